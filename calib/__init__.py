@@ -1,0 +1,1 @@
+"""Camera calibration: ChArUco intrinsics, camera response, vignetting (same anatomy as a stage)."""

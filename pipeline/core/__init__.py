@@ -1,0 +1,1 @@
+"""Pure NumPy/SciPy maths: no I/O, no logging, nothing imported from above this package."""

@@ -1,0 +1,118 @@
+"""Camera geometry in DESIGN.md's conventions (COLMAP models, OpenCV axes, COLMAP pixel centres).
+
+World-to-camera: x_cam = R @ x_world + t; the camera looks along +Z_cam, +X right, +Y down.
+Pixel coordinates put the top-left *corner* of the image at (0, 0), so the centre of pixel
+(row i, column j) is (u, v) = (j + 0.5, i + 0.5).
+Supported models (COLMAP parameter order): SIMPLE_PINHOLE (f, cx, cy), PINHOLE (fx, fy, cx, cy),
+SIMPLE_RADIAL (f, cx, cy, k), RADIAL (f, cx, cy, k1, k2), OPENCV (fx, fy, cx, cy, k1, k2, p1, p2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+MODELS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8}
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Intrinsics: COLMAP model name, image size in pixels and the model's parameters."""
+
+    model: str
+    width: int
+    height: int
+    params: tuple[float, ...]
+
+    def focal_principal(self) -> tuple[float, float, float, float]:
+        """(fx, fy, cx, cy) in pixels."""
+        p = self.params
+        if self.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
+            return p[0], p[0], p[1], p[2]
+        return p[0], p[1], p[2], p[3]
+
+    def distortion(self) -> tuple[float, float, float, float]:
+        """(k1, k2, p1, p2); zeros for undistorted models."""
+        p = self.params
+        return {
+            "SIMPLE_PINHOLE": (0.0, 0.0, 0.0, 0.0),
+            "PINHOLE": (0.0, 0.0, 0.0, 0.0),
+            "SIMPLE_RADIAL": (p[3], 0.0, 0.0, 0.0) if len(p) > 3 else (0.0,) * 4,
+            "RADIAL": (p[3], p[4], 0.0, 0.0) if len(p) > 4 else (0.0,) * 4,
+            "OPENCV": tuple(p[4:8]) if len(p) > 7 else (0.0,) * 4,
+        }[self.model]
+
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix in COLMAP's pixel convention (subtract 0.5 from cx, cy for OpenCV)."""
+        fx, fy, cx, cy = self.focal_principal()
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _distort(xn: np.ndarray, yn: np.ndarray, k1: float, k2: float, p1: float, p2: float):
+    r2 = xn * xn + yn * yn
+    radial = 1.0 + k1 * r2 + k2 * r2 * r2
+    xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
+    yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
+    return xd, yd
+
+
+def project(camera: Camera, R: np.ndarray, t: np.ndarray, points: np.ndarray):
+    """World points (N, 3) -> pixel coordinates (N, 2) (COLMAP convention) and depths (N,)."""
+    pc = np.asarray(points, float) @ np.asarray(R, float).T + np.asarray(t, float)
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xn, yn = pc[:, 0] / z, pc[:, 1] / z
+    k1, k2, p1, p2 = camera.distortion()
+    if k1 or k2 or p1 or p2:
+        xn, yn = _distort(xn, yn, k1, k2, p1, p2)
+    fx, fy, cx, cy = camera.focal_principal()
+    return np.stack([fx * xn + cx, fy * yn + cy], axis=1), z
+
+
+def pixel_rays(camera: Camera, R: np.ndarray, t: np.ndarray, uv: np.ndarray):
+    """Pixel coordinates (N, 2) -> ray origins (N, 3) and unit directions (N, 3) in world frame.
+
+    Distortion is inverted by fixed-point iteration (as COLMAP does), exact for pinhole models.
+    """
+    fx, fy, cx, cy = camera.focal_principal()
+    uv = np.asarray(uv, float)
+    xd, yd = (uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy
+    k1, k2, p1, p2 = camera.distortion()
+    xn, yn = xd.copy(), yd.copy()
+    if k1 or k2 or p1 or p2:
+        for _ in range(20):
+            xe, ye = _distort(xn, yn, k1, k2, p1, p2)
+            xn, yn = xn - (xe - xd), yn - (ye - yd)
+    d_cam = np.stack([xn, yn, np.ones_like(xn)], axis=1)
+    d_cam /= np.linalg.norm(d_cam, axis=1, keepdims=True)
+    R = np.asarray(R, float)
+    center = -R.T @ np.asarray(t, float)
+    dirs = d_cam @ R  # R^T applied to each row
+    return np.broadcast_to(center, dirs.shape).copy(), dirs
+
+
+def pixel_centers(width: int, height: int) -> np.ndarray:
+    """(H*W, 2) pixel-centre coordinates (u, v) in row-major order: centre of pixel (i, j) is (j+.5, i+.5)."""
+    v, u = np.mgrid[0:height, 0:width]
+    return np.stack([u.ravel() + 0.5, v.ravel() + 0.5], axis=1).astype(float)
+
+
+def camera_center(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Camera centre in world coordinates, C = -R^T t."""
+    return -np.asarray(R, float).T @ np.asarray(t, float)
+
+
+def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera (R, t) for a camera at ``center`` looking at ``target`` (OpenCV axes, +Y down)."""
+    center = np.asarray(center, float)
+    z = np.asarray(target, float) - center
+    z /= np.linalg.norm(z)
+    up = np.asarray(up, float)
+    if abs(np.dot(z, up)) > 0.999:  # looking straight up/down: pick another up
+        up = np.array([0.0, 1.0, 0.0])
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return R, -R @ center

@@ -1,0 +1,113 @@
+"""Image files through OpenImageIO: linear float RGB(A) arrays in, EXR/TIFF/PNG out.
+
+Arrays are float32, shape (H, W, C), row 0 at the top of the image.  Errors a user can cause
+(missing, unreadable or malformed files) raise ``UserError`` naming the file.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.workdir import atomic_path
+
+
+def _oiio():
+    import OpenImageIO as oiio  # imported lazily: keeps `sigrend --help` fast
+
+    return oiio
+
+
+def read_image(path: str | os.PathLike, *, with_metadata: bool = False):
+    """Read any image OpenImageIO understands as float32 (H, W, C).
+
+    Returns the array, or ``(array, metadata_dict)`` when ``with_metadata`` (EXIF and header
+    attributes by name, e.g. ``"ExposureTime"``, ``"FNumber"``, ``"Exif:PhotographicSensitivity"``).
+    Values of integer formats are scaled to [0, 1] (OpenImageIO's convention), not linearized.
+    """
+    oiio = _oiio()
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"{path}: file not found")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise UserError(f"{path}: cannot read this image ({oiio.geterror().strip() or 'unknown format'}); "
+                        "check the file is complete and in a supported format")
+    try:
+        spec = inp.spec()
+        pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
+        if pixels is None:
+            raise UserError(f"{path}: image data is unreadable ({inp.geterror().strip()}); the file may be truncated")
+        meta = {a.name: a.value for a in spec.extra_attribs} if with_metadata else None
+    finally:
+        inp.close()
+    arr = np.asarray(pixels, dtype=np.float32).reshape(spec.height, spec.width, spec.nchannels)
+    return (arr, meta) if with_metadata else arr
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray, *, dtype: str = "half",
+                attributes: dict | None = None) -> Path:
+    """Write (H, W, C) or (H, W) ``image`` atomically; format from the extension.
+
+    ``dtype``: "half" or "float" for EXR, "uint16"/"uint8" for TIFF/PNG (values in [0, 1]).
+    ``attributes``: extra header/EXIF attributes, e.g. ``{"ExposureTime": 0.01}``.
+    """
+    oiio = _oiio()
+    path = Path(path)
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim == 2:
+        img = img[:, :, None]
+    h, w, c = img.shape
+    spec = oiio.ImageSpec(w, h, c, dtype)
+    if c == 3:
+        spec.channelnames = ("R", "G", "B")
+    elif c == 4:
+        spec.channelnames = ("R", "G", "B", "A")
+        spec.alpha_channel = 3
+    if path.suffix.lower() == ".exr":
+        spec.attribute("compression", "zip")
+    for key, value in (attributes or {}).items():
+        spec.attribute(key, value)
+    with atomic_path(path) as tmp:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None or not out.open(str(tmp), spec):
+            raise OSError(f"cannot write {path}: {oiio.geterror()}")
+        ok = out.write_image(np.ascontiguousarray(img))
+        out.close()
+        if not ok:
+            raise OSError(f"cannot write {path}: {out.geterror()}")
+    return path
+
+
+def read_envmap(path: str | os.PathLike) -> np.ndarray:
+    """Read an equirectangular environment map (DESIGN.md convention) as float32 (H, 2H, 3).
+
+    Rejects maps whose width is not twice the height and maps with NaN/Inf or negative pixels.
+    """
+    path = Path(path)
+    env = read_image(path)
+    return validate_envmap(env[:, :, :3] if env.shape[2] >= 3 else np.repeat(env[:, :, :1], 3, axis=2), path)
+
+
+def validate_envmap(env: np.ndarray, name: str | os.PathLike = "environment map") -> np.ndarray:
+    """Check an equirect array's shape and values; returns it as float32 (H, W, 3)."""
+    env = np.asarray(env, dtype=np.float32)
+    if env.ndim != 3 or env.shape[2] != 3:
+        raise UserError(f"{name}: environment map must be RGB (H, W, 3), got shape {env.shape}")
+    h, w = env.shape[:2]
+    if w != 2 * h:
+        raise UserError(f"{name}: environment map is {w}x{h}; an equirectangular map needs width = 2*height "
+                        "(resample it, e.g. oiiotool --resize)")
+    if not np.all(np.isfinite(env)):
+        raise UserError(f"{name}: environment map has {int((~np.isfinite(env)).sum())} NaN/Inf values; "
+                        "clean or re-export it")
+    # Resampling filters leave tiny negative ringing in real HDRIs: clamp that, reject real negatives.
+    if np.any(env < 0):
+        if env.min() < -0.01 * max(float(env.mean()), 1e-12):
+            raise UserError(f"{name}: environment map has negative radiance (min {env.min():.3g}); "
+                            "it must be linear, non-negative RGB")
+        env = np.maximum(env, 0.0)
+    return env

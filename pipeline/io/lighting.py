@@ -1,0 +1,43 @@
+"""lighting_sh.json (DESIGN.md): real orthonormal SH coefficients of the lighting, (L+1)^2 rows of RGB."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.workdir import write_json
+
+
+def read_lighting_sh(path: str | os.PathLike) -> np.ndarray:
+    """Return the coefficients as float64 ((L+1)^2, 3) in k = l^2 + l + m order."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"{path}: file not found") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: not valid JSON ({exc})") from None
+    if doc.get("basis", "real-orthonormal") != "real-orthonormal":
+        raise UserError(f"{path}: SH basis {doc.get('basis')!r} is not 'real-orthonormal' (DESIGN.md); convert it")
+    try:
+        order = int(doc["order"])
+        coeffs = np.asarray(doc["coeffs"], dtype=float)
+    except (KeyError, TypeError, ValueError):
+        raise UserError(f"{path}: needs 'order' and 'coeffs' ((order+1)^2 rows of [r, g, b])") from None
+    if order < 0 or coeffs.shape != ((order + 1) ** 2, 3) or not np.all(np.isfinite(coeffs)):
+        raise UserError(f"{path}: order {order} needs {(order + 1) ** 2} finite rows of [r, g, b], "
+                        f"got shape {coeffs.shape}")
+    return coeffs
+
+
+def write_lighting_sh(path: str | os.PathLike, coeffs: np.ndarray, **extra) -> Path:
+    """Write ((L+1)^2, 3) coefficients; ``extra`` keys (e.g. provenance) are stored alongside."""
+    coeffs = np.asarray(coeffs, dtype=float)
+    order = int(round(np.sqrt(coeffs.shape[0]))) - 1
+    if coeffs.ndim != 2 or coeffs.shape != ((order + 1) ** 2, 3):
+        raise ValueError(f"coefficients must be ((L+1)^2, 3), got {coeffs.shape}")
+    return write_json(path, {"order": order, "basis": "real-orthonormal", "coeffs": coeffs.tolist(), **extra})

@@ -1,0 +1,87 @@
+"""poses.json (DESIGN.md): cameras (COLMAP models) and world-to-camera poses per image key."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core.camera import MODELS, Camera
+from pipeline.errors import UserError
+from pipeline.workdir import write_json
+
+
+@dataclass(frozen=True)
+class ImagePose:
+    camera: str
+    R: np.ndarray  # (3, 3) world-to-camera rotation
+    t: np.ndarray  # (3,) translation, metres
+
+
+@dataclass
+class Poses:
+    cameras: dict[str, Camera] = field(default_factory=dict)
+    images: dict[str, ImagePose] = field(default_factory=dict)
+
+    def camera_of(self, key: str) -> Camera:
+        return self.cameras[self.images[key].camera]
+
+
+def read_poses(path: str | os.PathLike) -> Poses:
+    """Read and validate poses.json; any problem -> UserError naming the file and the entry."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"{path}: file not found") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: not valid JSON ({exc}); fix or delete it") from None
+    if not isinstance(doc, dict) or "cameras" not in doc or "images" not in doc:
+        raise UserError(f"{path}: poses.json needs 'cameras' and 'images' (see DESIGN.md)")
+    if doc.get("frame", "object") != "object" or doc.get("units", "meters") != "meters":
+        raise UserError(f"{path}: poses must be in the object frame in meters, got frame={doc.get('frame')!r} "
+                        f"units={doc.get('units')!r}")
+    poses = Poses()
+    for name, c in doc["cameras"].items():
+        try:
+            model, w, h, params = c["model"], int(c["width"]), int(c["height"]), tuple(float(v) for v in c["params"])
+        except (KeyError, TypeError, ValueError):
+            raise UserError(f"{path}: camera {name!r} needs model, width, height, params") from None
+        if model not in MODELS:
+            raise UserError(f"{path}: camera {name!r} has unsupported model {model!r}; use one of {', '.join(MODELS)}")
+        if len(params) != MODELS[model]:
+            raise UserError(f"{path}: camera {name!r} ({model}) needs {MODELS[model]} params, got {len(params)}")
+        if w <= 0 or h <= 0 or params[0] <= 0 or not all(np.isfinite(params)):
+            raise UserError(f"{path}: camera {name!r} has non-positive size or focal length")
+        poses.cameras[name] = Camera(model, w, h, params)
+    for key, im in doc["images"].items():
+        try:
+            cam = im["camera"]
+            R = np.asarray(im["R"], dtype=float)
+            t = np.asarray(im["t"], dtype=float)
+        except (KeyError, TypeError, ValueError):
+            raise UserError(f"{path}: image {key!r} needs camera, R (3x3), t (3)") from None
+        if cam not in poses.cameras:
+            raise UserError(f"{path}: image {key!r} names unknown camera {cam!r}")
+        if R.shape != (3, 3) or t.shape != (3,) or not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
+            raise UserError(f"{path}: image {key!r} needs a finite 3x3 R and 3-vector t")
+        if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
+            raise UserError(f"{path}: image {key!r} has a rotation that is not orthonormal with det +1")
+        poses.images[key] = ImagePose(cam, R, t)
+    return poses
+
+
+def write_poses(path: str | os.PathLike, poses: Poses) -> Path:
+    """Write poses.json atomically (object frame, metres)."""
+    doc = {
+        "frame": "object",
+        "units": "meters",
+        "cameras": {n: {"model": c.model, "width": c.width, "height": c.height, "params": list(c.params)}
+                    for n, c in poses.cameras.items()},
+        "images": {k: {"camera": p.camera, "R": np.asarray(p.R).tolist(), "t": np.asarray(p.t).tolist()}
+                   for k, p in sorted(poses.images.items())},
+    }
+    return write_json(path, doc)

@@ -1,0 +1,85 @@
+"""The work folder: where each stage writes, atomic writes, and the skip-if-fresh rule.
+
+A stage is fresh when all its outputs exist, every output is newer than every input, and the
+settings it was run with (``WORK/<stage>.settings.json``) equal the settings asked for now.
+Every write goes to a temporary file in the same folder that is renamed into place, so an
+interrupted run never leaves a half-written file that a later stage would trust.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+from pipeline.settings import settings_dict
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path beside ``path`` (same suffix); on success rename it onto ``path``.
+
+    On an exception the temporary file is removed and ``path`` is left as it was.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def write_json(path: str | os.PathLike, obj: Any) -> Path:
+    """Write ``obj`` as indented JSON, atomically; returns the path."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(obj, indent=1) + "\n")
+    return path
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return path
+
+
+def settings_path(work: str | os.PathLike, stage: str) -> Path:
+    """Where the settings of ``stage`` are recorded: ``WORK/<stage>.settings.json``."""
+    return Path(work) / f"{stage}.settings.json"
+
+
+def record_settings(work: str | os.PathLike, stage: str, settings: Any, extra: dict | None = None) -> Path:
+    """Write the settings a stage ran with (plus e.g. input paths in ``extra``) beside its outputs."""
+    payload = {"stage": stage, "settings": settings_dict(settings), **(extra or {})}
+    return write_json(settings_path(work, stage), payload)
+
+
+def is_fresh(work: str | os.PathLike, stage: str, settings: Any, inputs: Iterable[Path],
+             outputs: Iterable[Path], extra: dict | None = None) -> bool:
+    """True when ``stage`` need not run again (see the module docstring)."""
+    outputs = [Path(p) for p in outputs]
+    inputs = [Path(p) for p in inputs]
+    if not outputs or not all(p.exists() for p in outputs):
+        return False
+    rec = settings_path(work, stage)
+    if not rec.exists():
+        return False
+    try:
+        recorded = json.loads(rec.read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    wanted = {"stage": stage, "settings": settings_dict(settings), **(extra or {})}
+    if json.loads(json.dumps(wanted)) != recorded:
+        return False
+    newest_input = max((p.stat().st_mtime for p in inputs if p.exists()), default=0.0)
+    oldest_output = min(p.stat().st_mtime for p in outputs)
+    return oldest_output >= newest_input

@@ -1,0 +1,13 @@
+"""The CLI's contract: user errors are one line on stderr with exit code 2, no traceback."""
+
+import subprocess
+import sys
+
+
+def test_user_error_is_one_line_exit_2(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(tmp_path / "nope")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert proc.stderr.startswith("sigrend: error:")

@@ -1,0 +1,87 @@
+"""Round trips of every file schema in pipeline.io, and their one-line errors on bad input."""
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.core.camera import Camera
+from pipeline.errors import UserError
+from pipeline.io.brdf import parse_brdf_spec, read_brdf, write_brdf
+from pipeline.io.images import read_envmap, read_image, write_image
+from pipeline.io.lighting import read_lighting_sh, write_lighting_sh
+from pipeline.io.poses import ImagePose, Poses, read_poses, write_poses
+
+
+def test_exr_round_trip_is_exact_in_float(tmp_path, rng):
+    img = rng.random((5, 7, 3)).astype(np.float32)
+    write_image(tmp_path / "a.exr", img, dtype="float")
+    np.testing.assert_array_equal(read_image(tmp_path / "a.exr"), img)
+
+
+def test_exr_half_round_trip_within_half_precision(tmp_path, rng):
+    img = rng.random((4, 4, 4)).astype(np.float32)
+    write_image(tmp_path / "a.exr", img)
+    # half floats carry 11 significant bits: relative error <= 2^-11
+    np.testing.assert_allclose(read_image(tmp_path / "a.exr"), img, rtol=2.0 ** -11, atol=1e-7)
+
+
+def test_unreadable_images_raise_user_error(tmp_path):
+    with pytest.raises(UserError, match="not found"):
+        read_image(tmp_path / "missing.exr")
+    (tmp_path / "bad.exr").write_bytes(b"not an exr")
+    with pytest.raises(UserError, match="bad.exr"):
+        read_image(tmp_path / "bad.exr")
+
+
+def test_envmap_shape_and_values_are_checked(tmp_path):
+    write_image(tmp_path / "square.exr", np.ones((8, 8, 3)))
+    with pytest.raises(UserError, match="width = 2\\*height"):
+        read_envmap(tmp_path / "square.exr")
+    bad = np.ones((8, 16, 3), np.float32)
+    bad[2, 3, 1] = np.nan
+    write_image(tmp_path / "nan.exr", bad, dtype="float")
+    with pytest.raises(UserError, match="NaN"):
+        read_envmap(tmp_path / "nan.exr")
+
+
+def test_poses_round_trip(tmp_path):
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    poses = Poses({"cam0": Camera("PINHOLE", 64, 48, (50.0, 51.0, 32.0, 24.0))},
+                  {"0000.exr": ImagePose("cam0", R, np.array([0.1, 0.2, 1.0]))})
+    write_poses(tmp_path / "poses.json", poses)
+    back = read_poses(tmp_path / "poses.json")
+    assert back.cameras == poses.cameras
+    np.testing.assert_array_equal(back.images["0000.exr"].R, R)
+    np.testing.assert_array_equal(back.images["0000.exr"].t, [0.1, 0.2, 1.0])
+
+
+def test_malformed_poses_raise_user_error(tmp_path):
+    doc = {"cameras": {"c": {"model": "PINHOLE", "width": 8, "height": 8, "params": [1, 1, 4, 4]}},
+           "images": {"a.exr": {"camera": "c", "R": [[2, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [0, 0, 1]}}}
+    (tmp_path / "p.json").write_text(json.dumps(doc))
+    with pytest.raises(UserError, match="orthonormal"):
+        read_poses(tmp_path / "p.json")
+    (tmp_path / "p.json").write_text("{")
+    with pytest.raises(UserError, match="not valid JSON"):
+        read_poses(tmp_path / "p.json")
+
+
+def test_lighting_sh_round_trip_and_shape_check(tmp_path, rng):
+    c = rng.normal(size=(16, 3))
+    write_lighting_sh(tmp_path / "l.json", c)
+    np.testing.assert_array_equal(read_lighting_sh(tmp_path / "l.json"), c)
+    (tmp_path / "bad.json").write_text(json.dumps({"order": 3, "coeffs": [[1, 2, 3]]}))
+    with pytest.raises(UserError, match="16 finite rows"):
+        read_lighting_sh(tmp_path / "bad.json")
+
+
+def test_brdf_spec_and_file(tmp_path):
+    b = parse_brdf_spec("microfacet:albedo=0.2,0.3,0.5,specular=0.04,roughness=0.2")
+    assert b == {"model": "microfacet", "albedo": [0.2, 0.3, 0.5], "specular": [0.04] * 3, "roughness": 0.2}
+    write_brdf(tmp_path / "b.json", b)
+    assert read_brdf(tmp_path / "b.json") == b
+    with pytest.raises(UserError, match="unknown BRDF model"):
+        parse_brdf_spec("velvet:albedo=0.5")
+    with pytest.raises(UserError, match="needs parameter 'roughness'"):
+        parse_brdf_spec("microfacet:albedo=0.5,specular=0.04")
