@@ -1,0 +1,92 @@
+"""BRDF models in the angular domain: the formulas every stage agrees on (DESIGN.md, brdf.json).
+
+All directions are unit vectors (N, 3) in the same frame; ``w_in`` points from the surface
+towards the light, ``w_out`` towards the viewer.  Values are per RGB channel, (N, 3).
+
+  lambert      f = rho_d / pi
+  phong        f = rho_d / pi + k_s (s + 1) / (2 pi) max(0, r . w_in)^s / (n . w_in)
+               with r = reflect(w_out, n): R&H 2001's reflection-space Phong, whose *transfer*
+               f cos(theta_in) is a lobe symmetric about r with unit integral over the sphere,
+               so its SH filter is exactly radial (A_0 = k_s; A_l ~ exp(-l^2 / 2s)).
+  microfacet   f = rho_d / pi + F(w_in . h) D(h) G / (4 (n . w_in)(n . w_out))   (Torrance-Sparrow)
+               Beckmann D(h) = exp(-tan^2 theta_h / sigma^2) / (pi sigma^2 cos^4 theta_h) with
+               sigma = roughness (RMS microfacet slope), Schlick F = F0 + (1 - F0)(1 - c)^5 with
+               F0 = specular, Cook-Torrance V-cavity G = min(1, 2 (n.h)(n.w_out)/(w_out.h),
+               2 (n.h)(n.w_in)/(w_out.h)).  R&H approximate its filter by exp(-(sigma l)^2).
+Both sides are zero when either direction is below the surface.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_EPS = 1e-12
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("ij,ij->i", a, b)
+
+
+def reflect(w: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Mirror direction of unit ``w`` about unit ``normal``: 2 (n . w) n - w, (N, 3)."""
+    w = np.atleast_2d(w)
+    n = np.atleast_2d(normal)
+    return 2.0 * _dot(n, w)[:, None] * n - w
+
+
+def beckmann_distribution(cos_h: np.ndarray, roughness: float) -> np.ndarray:
+    """Beckmann D(h) for cos(theta_h) = n . h; normalized so that integral D cos(theta_h) dw = 1."""
+    c2 = np.clip(cos_h, _EPS, 1.0) ** 2
+    tan2 = (1.0 - c2) / c2
+    d = np.exp(-tan2 / roughness**2) / (np.pi * roughness**2 * c2 * c2)
+    return np.where(cos_h > 0, d, 0.0)
+
+
+def schlick_fresnel(cos_i: np.ndarray, f0: np.ndarray) -> np.ndarray:
+    """Schlick's Fresnel F = F0 + (1 - F0)(1 - cos)^5; cos (N,), F0 (3,) -> (N, 3)."""
+    c = np.clip(cos_i, 0.0, 1.0)[:, None]
+    f0 = np.asarray(f0, dtype=float)[None, :]
+    return f0 + (1.0 - f0) * (1.0 - c) ** 5
+
+
+def vcavity_shadowing(n_h, n_in, n_out, out_h) -> np.ndarray:
+    """Cook-Torrance V-cavity shadowing-masking G (N,)."""
+    out_h = np.maximum(out_h, _EPS)
+    return np.minimum(1.0, np.minimum(2.0 * n_h * n_out / out_h, 2.0 * n_h * n_in / out_h))
+
+
+def phong_lobe(cos_alpha: np.ndarray, exponent: float) -> np.ndarray:
+    """R&H reflection-space Phong lobe (s + 1)/(2 pi) max(0, cos alpha)^s: unit integral over the sphere."""
+    return (exponent + 1.0) / (2.0 * np.pi) * np.maximum(cos_alpha, 0.0) ** exponent
+
+
+def cosine_weighted_brdf(brdf: dict, normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray) -> np.ndarray:
+    """The transfer f(w_in, w_out) max(0, n . w_in): what the reflection equation integrates. (N, 3)."""
+    n, wi, wo = (np.atleast_2d(np.asarray(a, dtype=float)) for a in (normal, w_in, w_out))
+    n_in, n_out = _dot(n, wi), _dot(n, wo)
+    front = (n_in > 0) & (n_out > 0)
+    cos_in = np.where(front, n_in, 0.0)
+    albedo = np.asarray(brdf["albedo"], dtype=float)
+    value = (cos_in / np.pi)[:, None] * albedo[None, :]
+    model = brdf["model"]
+    if model == "phong":
+        lobe = phong_lobe(_dot(reflect(wo, n), wi), float(brdf["exponent"]))
+        value = value + np.where(front, lobe, 0.0)[:, None] * np.asarray(brdf["specular"], float)[None, :]
+    elif model == "microfacet":
+        h = wi + wo
+        h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), _EPS)
+        n_h, out_h = _dot(n, h), _dot(wo, h)
+        d = beckmann_distribution(n_h, float(brdf["roughness"]))
+        g = vcavity_shadowing(n_h, np.maximum(n_in, 0), np.maximum(n_out, 0), out_h)
+        f = schlick_fresnel(_dot(wi, h), brdf["specular"])
+        spec = np.where(front, d * g / (4.0 * np.maximum(n_out, _EPS)), 0.0)  # cos_in cancels
+        value = value + spec[:, None] * f
+    elif model != "lambert":
+        raise ValueError(f"unknown BRDF model {model!r}")
+    return value
+
+
+def brdf_value(brdf: dict, normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray) -> np.ndarray:
+    """f(w_in, w_out) in 1/sr, (N, 3); zero below either horizon (see the module docstring)."""
+    n_in = _dot(np.atleast_2d(normal), np.atleast_2d(w_in))
+    return cosine_weighted_brdf(brdf, normal, w_in, w_out) / np.maximum(n_in, _EPS)[:, None]

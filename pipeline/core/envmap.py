@@ -1,0 +1,61 @@
+"""Equirectangular environment-map geometry (DESIGN.md convention).
+
+Pixel row i, column j of an H x 2H map is the direction with polar angle theta = pi (i + 0.5) / H
+from +Z and azimuth phi = 2 pi (j + 0.5) / W from +X towards +Y; row 0 is the zenith.
+A pixel's exact solid angle is (2 pi / W) (cos theta_top - cos theta_bottom).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def equirect_angles(height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel-centre polar angles (H,) and azimuths (2H,) in radians."""
+    width = 2 * height
+    theta = np.pi * (np.arange(height) + 0.5) / height
+    phi = 2.0 * np.pi * (np.arange(width) + 0.5) / width
+    return theta, phi
+
+
+def equirect_directions(height: int) -> np.ndarray:
+    """Unit direction of every pixel centre: (H, 2H, 3)."""
+    theta, phi = equirect_angles(height)
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    return np.stack(np.broadcast_arrays(st * np.cos(phi)[None, :], st * np.sin(phi)[None, :], ct), axis=-1)
+
+
+def equirect_solid_angles(height: int) -> np.ndarray:
+    """Exact solid angle of the pixels of each row: (H,), in steradians; they sum (x 2H) to 4 pi."""
+    edges = np.pi * np.arange(height + 1) / height
+    return (2.0 * np.pi / (2 * height)) * (np.cos(edges[:-1]) - np.cos(edges[1:]))
+
+
+def direction_to_pixel(dirs: np.ndarray, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column (integer, nearest pixel) of each unit direction (N, 3) in an H x 2H map."""
+    d = np.asarray(dirs, dtype=float).reshape(-1, 3)
+    theta = np.arccos(np.clip(d[:, 2], -1.0, 1.0))
+    phi = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2.0 * np.pi)
+    width = 2 * height
+    row = np.clip((theta / np.pi * height).astype(np.int64), 0, height - 1)
+    col = np.clip((phi / (2.0 * np.pi) * width).astype(np.int64), 0, width - 1)
+    return row, col
+
+
+def lookup(env: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Nearest-pixel radiance of an (H, 2H, C) map in directions (N, 3) -> (N, C)."""
+    row, col = direction_to_pixel(dirs, env.shape[0])
+    return env[row, col]
+
+
+def downsample(env: np.ndarray, factor: int) -> np.ndarray:
+    """Box-filter an (H, 2H, C) map by an integer factor, weighting by solid angle (energy-preserving)."""
+    h, w, c = env.shape
+    if factor == 1:
+        return env.copy()
+    if h % factor:
+        raise ValueError(f"height {h} is not divisible by {factor}")
+    omega = equirect_solid_angles(h)[:, None, None]
+    flux = (env * omega).reshape(h // factor, factor, w // factor, factor, c).sum(axis=(1, 3))
+    new_omega = equirect_solid_angles(h // factor)[:, None, None]
+    return flux / new_omega

@@ -1,0 +1,64 @@
+"""BRDF formulas against closed forms and quadrature over the hemisphere."""
+
+import numpy as np
+import pytest
+
+from pipeline.core.brdf import beckmann_distribution, cosine_weighted_brdf, reflect
+
+
+def _hemisphere_rule(n_theta=400, n_phi=800):
+    """Midpoint rule in (cos theta, phi) on the upper hemisphere: exact weights 2 pi / (n_theta n_phi)."""
+    mu = (np.arange(n_theta) + 0.5) / n_theta
+    phi = 2 * np.pi * (np.arange(n_phi) + 0.5) / n_phi
+    m, p = np.meshgrid(mu, phi, indexing="ij")
+    s = np.sqrt(1 - m**2)
+    dirs = np.stack([s * np.cos(p), s * np.sin(p), m], -1).reshape(-1, 3)
+    return dirs, np.full(len(dirs), 2 * np.pi / (n_theta * n_phi))
+
+
+def test_lambert_directional_albedo_equals_albedo():
+    dirs, w = _hemisphere_rule()
+    n = np.tile([0.0, 0.0, 1.0], (len(dirs), 1))
+    wo = np.tile([0.3, 0.0, np.sqrt(1 - 0.09)], (len(dirs), 1))
+    brdf = {"model": "lambert", "albedo": [0.2, 0.5, 1.0]}
+    got = (cosine_weighted_brdf(brdf, n, dirs, wo) * w[:, None]).sum(0)
+    # midpoint rule on a linear integrand in cos(theta): error ~1e-6 from the grid
+    np.testing.assert_allclose(got, [0.2, 0.5, 1.0], rtol=1e-5)
+
+
+def test_beckmann_is_normalized():
+    dirs, w = _hemisphere_rule(2000, 16)  # D depends on theta only
+    for sigma in (0.1, 0.3, 0.6):
+        total = (beckmann_distribution(dirs[:, 2], sigma) * dirs[:, 2] * w).sum()
+        assert total == pytest.approx(1.0, rel=2e-3)  # sharp lobe on a 2000-node grid: ~1e-3
+
+
+@pytest.mark.parametrize("view_cos", [1.0, 0.7, 0.3])
+def test_phong_transfer_has_at_most_unit_energy(view_cos):
+    dirs, w = _hemisphere_rule()
+    n = np.tile([0.0, 0.0, 1.0], (len(dirs), 1))
+    wo = np.tile([np.sqrt(1 - view_cos**2), 0.0, view_cos], (len(dirs), 1))
+    brdf = {"model": "phong", "albedo": [0, 0, 0], "specular": [1, 1, 1], "exponent": 50.0}
+    total = (cosine_weighted_brdf(brdf, n, dirs, wo)[:, 0] * w).sum()
+    # the lobe integrates to 1 over the sphere; the horizon clips it at grazing views only
+    assert total <= 1.0 + 1e-3
+    if view_cos == 1.0:
+        assert total == pytest.approx(1.0, rel=1e-3)
+
+
+@pytest.mark.parametrize("roughness", [0.1, 0.3])
+@pytest.mark.parametrize("view_cos", [1.0, 0.5, 0.15])
+def test_microfacet_never_returns_more_than_it_receives(roughness, view_cos):
+    dirs, w = _hemisphere_rule(1000, 1000)
+    n = np.tile([0.0, 0.0, 1.0], (len(dirs), 1))
+    wo = np.tile([np.sqrt(1 - view_cos**2), 0.0, view_cos], (len(dirs), 1))
+    brdf = {"model": "microfacet", "albedo": [0, 0, 0], "specular": [1, 1, 1], "roughness": roughness}
+    total = (cosine_weighted_brdf(brdf, n, dirs, wo)[:, 0] * w).sum()
+    assert 0.5 < total <= 1.0 + 2e-3  # F = 1: the lobe keeps most energy, never creates any
+
+
+def test_reflect_is_an_involution():
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(10, 3)); n /= np.linalg.norm(n, axis=1, keepdims=True)
+    w = rng.normal(size=(10, 3)); w /= np.linalg.norm(w, axis=1, keepdims=True)
+    np.testing.assert_allclose(reflect(reflect(w, n), n), w, atol=1e-12)
