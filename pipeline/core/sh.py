@@ -33,49 +33,70 @@ def band_of_index(order: int) -> np.ndarray:
     return np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1)
 
 
+def _legendre_table(z: np.ndarray, order: int, s: np.ndarray | None = None) -> np.ndarray:
+    """Fully normalized associated Legendre values K_l|m| P_l^|m|(z) in SH column order: (N, K).
+
+    ``s`` = sin(theta) if known more accurately than sqrt(1 - z^2) (near the poles).
+    Column k = l^2 + l + m holds the value for (l, |m|), so that Y_k = table_k * trig_m(phi).
+    Normalized recurrences (no factorials), vectorized over m, stable to high order:
+    P̄_mm = sqrt((2m+1)/(2m)) s P̄_{m-1,m-1} with s = sqrt(1 - z^2), P̄_{m+1,m} = sqrt(2m+3) z P̄_mm,
+    P̄_lm = a_lm (z P̄_{l-1,m} - b_lm P̄_{l-2,m}), a_lm = sqrt((4l^2-1)/(l^2-m^2)),
+    b_lm = sqrt(((l-1)^2-m^2)/(4(l-1)^2-1)); P̄_00 = 1/sqrt(4 pi) includes K_lm.  Values
+    underflow to 0 near the poles for large m, never to NaN.
+    """
+    z = np.asarray(z, dtype=float).reshape(-1)
+    s = np.sqrt(np.maximum(0.0, 1.0 - z * z)) if s is None else np.asarray(s, dtype=float).reshape(-1)
+    n = z.shape[0]
+    out = np.empty((num_coeffs(order), n))   # k-major: every recurrence step is contiguous in N
+    prev2 = np.zeros((order + 1, n))  # P̄_{l-2, m}
+    prev = np.zeros((order + 1, n))   # P̄_{l-1, m}
+    cur = np.zeros((order + 1, n))
+    for l in range(order + 1):
+        if l == 0:
+            cur[0] = np.sqrt(1.0 / (4.0 * np.pi))
+        else:
+            cur[l] = np.sqrt((2.0 * l + 1.0) / (2.0 * l)) * s * prev[l - 1]
+            cur[l - 1] = np.sqrt(2.0 * l + 1.0) * z * prev[l - 1]
+            if l >= 2:
+                m = np.arange(l - 1)
+                a = np.sqrt((4.0 * l * l - 1.0) / (l * l - m * m))[:, None]
+                b = np.sqrt(((l - 1.0) ** 2 - m * m) / (4.0 * (l - 1.0) ** 2 - 1.0))[:, None]
+                cur[:l - 1] = a * (z * prev[:l - 1] - b * prev2[:l - 1])
+        centre = l * l + l
+        out[centre:centre + l + 1] = cur[:l + 1]
+        out[l * l:centre] = cur[l:0:-1]
+        prev2, prev, cur = prev, cur, prev2
+    return out.T
+    return out
+
+
+def _trig_table(phi: np.ndarray, order: int) -> np.ndarray:
+    """Azimuthal factors for m = -L..L (column m + L): sqrt2 sin(|m| phi), 1, sqrt2 cos(m phi)."""
+    phi = np.asarray(phi, dtype=float).reshape(-1)
+    m = np.arange(1, order + 1)
+    mphi = phi[:, None] * m[None, :]
+    return np.concatenate([np.sqrt(2.0) * np.sin(mphi)[:, ::-1], np.ones((phi.shape[0], 1)),
+                           np.sqrt(2.0) * np.cos(mphi)], axis=1)
+
+
+def m_of_index(order: int) -> np.ndarray:
+    """m of every k up to ``order``: [0, -1, 0, 1, -2, ...]."""
+    l = band_of_index(order)
+    return np.arange(num_coeffs(order)) - l * l - l
+
+
 def sh_basis(dirs: np.ndarray, order: int) -> np.ndarray:
     """All real SH Y_k at N unit directions: (N, 3) -> (N, (order+1)^2), float64.
 
-    Fully normalized associated Legendre recurrences (no factorials), stable to high order:
-    P̄_mm = sqrt((2m+1)/(2m)) s P̄_{m-1,m-1}, P̄_{m+1,m} = sqrt(2m+3) z P̄_mm,
-    P̄_lm = a_lm (z P̄_{l-1,m} - b_lm P̄_{l-2,m}) with a_lm = sqrt((4l^2-1)/(l^2-m^2)),
-    b_lm = sqrt(((l-1)^2-m^2)/(4(l-1)^2-1)); P̄ includes K_lm. Values underflow to 0 near the
-    poles for large m, never to NaN.
+    Y_k = P̄_l|m|(cos theta) * trig_m(phi) with the normalized Legendre recurrences of
+    ``_legendre_table`` (stable to L = 100 and beyond: no factorials, no overflow, no NaN).
     """
     if order < 0:
         raise ValueError("order must be >= 0")
     d = np.asarray(dirs, dtype=float).reshape(-1, 3)
-    x, y, z = d[:, 0], d[:, 1], d[:, 2]
-    s = np.sqrt(np.maximum(0.0, x * x + y * y))
-    phi = np.arctan2(y, x)
-    out = np.empty((d.shape[0], num_coeffs(order)))
-    p_mm = np.full(d.shape[0], np.sqrt(1.0 / (4.0 * np.pi)))
-    sqrt2 = np.sqrt(2.0)
-    for m in range(order + 1):
-        if m > 0:
-            p_mm = p_mm * np.sqrt((2.0 * m + 1.0) / (2.0 * m)) * s
-        if m == 0:
-            cos_m, sin_m = None, None
-        else:
-            cos_m, sin_m = sqrt2 * np.cos(m * phi), sqrt2 * np.sin(m * phi)
-        p_prev2, p_prev = None, p_mm
-        for l in range(m, order + 1):
-            if l == m:
-                p = p_mm
-            elif l == m + 1:
-                p = np.sqrt(2.0 * m + 3.0) * z * p_mm
-            else:
-                a = np.sqrt((4.0 * l * l - 1.0) / (l * l - m * m))
-                b = np.sqrt(((l - 1.0) ** 2 - m * m) / (4.0 * (l - 1.0) ** 2 - 1.0))
-                p = a * (z * p_prev - b * p_prev2)
-            if l > m:
-                p_prev2, p_prev = p_prev, p
-            if m == 0:
-                out[:, l * l + l] = p
-            else:
-                out[:, l * l + l + m] = p * cos_m
-                out[:, l * l + l - m] = p * sin_m
-    return out
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    legendre = _legendre_table(d[:, 2], order, s=np.hypot(d[:, 0], d[:, 1]))
+    return legendre * _trig_table(phi, order)[:, m_of_index(order) + order]
 
 
 def sh_evaluate(coeffs: np.ndarray, dirs: np.ndarray, chunk: int = 65536) -> np.ndarray:
@@ -95,3 +116,138 @@ def band_energy(coeffs: np.ndarray) -> np.ndarray:
     order = order_of(c.shape[0])
     sq = (c ** 2).reshape(c.shape[0], -1).sum(axis=1)
     return np.bincount(band_of_index(order), weights=sq, minlength=order + 1)
+
+
+def project_envmap(env: np.ndarray, order: int, rows_per_chunk: int = 64) -> np.ndarray:
+    """SH coefficients of an equirectangular map (DESIGN.md convention): (H, 2H, C) -> ((L+1)^2, C).
+
+    c_k = sum_pixels f(pixel centre) Y_k(pixel centre) Omega_pixel, with each pixel's exact solid
+    angle Omega = (2 pi / W)(cos theta_top - cos theta_bottom) (pipeline.core.envmap).  The map
+    is separable in (theta, phi): each row is first reduced to its azimuthal Fourier sums
+    sum_j f_ij trig_m(phi_j) (one matrix product, exact for |m| < W/2), then weighted by the
+    row's Legendre values.  Processed ``rows_per_chunk`` rows at a time (memory ~ rows * W * C).
+    A 2-D (H, 2H) map gives ((L+1)^2,).
+    """
+    from pipeline.core.envmap import equirect_angles, equirect_solid_angles
+
+    env = np.asarray(env)
+    squeeze = env.ndim == 2
+    if squeeze:
+        env = env[:, :, None]
+    h, w, c = env.shape
+    if w != 2 * h:
+        raise ValueError(f"equirect map must have width = 2*height, got {w}x{h}")
+    if order < 0:
+        raise ValueError("order must be >= 0")
+    theta, phi = equirect_angles(h)
+    omega = equirect_solid_angles(h)
+    trig = _trig_table(phi, order).T                      # (2L+1, W)
+    m_col = m_of_index(order) + order
+    coeffs = np.zeros((num_coeffs(order), c))
+    for start in range(0, h, rows_per_chunk):
+        rows = slice(start, min(h, start + rows_per_chunk))
+        block = np.asarray(env[rows], dtype=float)          # (r, W, C)
+        r = block.shape[0]
+        # azimuthal sums: (2L+1, W) @ (W, r*C) -> (2L+1, r, C)
+        fourier = (trig @ block.transpose(1, 0, 2).reshape(w, r * c)).reshape(2 * order + 1, r, c)
+        legendre = _legendre_table(np.cos(theta[rows]), order, s=np.sin(theta[rows]))  # (r, K)
+        weighted = legendre * omega[rows, None]                # (r, K)
+        coeffs += np.einsum("rk,krc->kc", weighted, fourier[m_col])
+    return coeffs[:, 0] if squeeze else coeffs
+
+
+def envmap_from_sh(coeffs: np.ndarray, height: int) -> np.ndarray:
+    """Evaluate SH coefficients ((L+1)^2[, C]) at the pixel centres of an (H, 2H[, C]) equirect map."""
+    from pipeline.core.envmap import equirect_angles
+
+    coeffs = np.asarray(coeffs, dtype=float)
+    squeeze = coeffs.ndim == 1
+    if squeeze:
+        coeffs = coeffs[:, None]
+    order = order_of(coeffs.shape[0])
+    theta, phi = equirect_angles(height)
+    legendre = _legendre_table(np.cos(theta), order, s=np.sin(theta))   # (H, K)
+    m_of_k = m_of_index(order)
+    # per row and m: G[i, m, c] = sum_{l >= |m|} c_lm P̄_l|m|(z_i)
+    per_m = np.zeros((height, 2 * order + 1, coeffs.shape[1]))
+    for m in range(-order, order + 1):
+        ks = np.nonzero(m_of_k == m)[0]
+        per_m[:, m + order] = legendre[:, ks] @ coeffs[ks]
+    trig = _trig_table(phi, order)                                       # (W, 2L+1)
+    env = np.einsum("imc,jm->ijc", per_m, trig)
+    return env[:, :, 0] if squeeze else env
+
+
+def _check_rotation(rotation: np.ndarray) -> np.ndarray:
+    r = np.asarray(rotation, dtype=float)
+    if r.shape != (3, 3) or not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or np.linalg.det(r) < 0:
+        raise ValueError("rotation must be a proper 3x3 rotation matrix (R R^T = I, det R = +1)")
+    return r
+
+
+def sh_rotation_matrices(rotation: np.ndarray, order: int) -> list[np.ndarray]:
+    """Real SH rotation matrices D^l ((2l+1) x (2l+1), l = 0..order) for a 3x3 rotation R.
+
+    Convention: rotating a function f by R gives g(d) = f(R^T d), and its coefficients in band l
+    are D^l @ c_l (``rotate_sh``).  D^1 is R written in the (y, z, x) order of Y_1,-1, Y_10,
+    Y_11; higher bands follow from the Ivanic–Ruedenberg recurrence (J. Phys. Chem. 100, 6342
+    (1996), with the corrections of 102, 9099 (1998)), which builds D^l from D^1 and D^(l-1)
+    only: orthogonal to rounding at L = 100.  Vectorized per band.
+    """
+    r = _check_rotation(rotation)
+    mats = [np.ones((1, 1))]
+    if order == 0:
+        return mats
+    perm = [1, 2, 0]
+    r1 = r[np.ix_(perm, perm)]
+    mats.append(r1)
+    for l in range(2, order + 1):
+        prev = mats[l - 1]
+        mm, nn = np.meshgrid(np.arange(-l, l + 1), np.arange(-l, l + 1), indexing="ij")
+        absm = np.abs(mm)
+        m_is_0 = (mm == 0).astype(float)
+        denom = np.where(np.abs(nn) == l, 2.0 * l * (2 * l - 1), (l + nn) * (l - nn)).astype(float)
+        u = np.sqrt((l + mm) * (l - mm) / denom)
+        v = 0.5 * np.sqrt((1 + m_is_0) * (l + absm - 1) * (l + absm) / denom) * (1 - 2 * m_is_0)
+        w = -0.5 * np.sqrt((l - absm - 1) * (l - absm) / denom) * (1 - m_is_0)
+
+        def p_term(i, a, b):
+            # P^l_{i,a,b} of Ivanic–Ruedenberg; indices outside band l-1 only occur where the
+            # multiplying u, v or w is zero, so they are clipped to stay finite.
+            ac = np.clip(a, -(l - 1), l - 1) + (l - 1)
+            bc = np.clip(b, -(l - 1), l - 1) + (l - 1)
+            ri = r1[i + 1]
+            general = ri[1] * prev[ac, bc]
+            at_top = ri[2] * prev[ac, 2 * l - 2] - ri[0] * prev[ac, 0]
+            at_bottom = ri[2] * prev[ac, 0] + ri[0] * prev[ac, 2 * l - 2]
+            return np.where(b == l, at_top, np.where(b == -l, at_bottom, general))
+
+        big_u = p_term(0, mm, nn)
+        d1 = (mm == 1).astype(float)
+        dm1 = (mm == -1).astype(float)
+        big_v = np.where(
+            mm == 0, p_term(1, np.ones_like(mm), nn) + p_term(-1, -np.ones_like(mm), nn),
+            np.where(mm > 0,
+                     p_term(1, mm - 1, nn) * np.sqrt(1 + d1) - p_term(-1, -mm + 1, nn) * (1 - d1),
+                     p_term(1, mm + 1, nn) * (1 - dm1) + p_term(-1, -mm - 1, nn) * np.sqrt(1 + dm1)))
+        big_w = np.where(
+            mm == 0, 0.0,
+            np.where(mm > 0, p_term(1, mm + 1, nn) + p_term(-1, -mm - 1, nn),
+                     p_term(1, mm - 1, nn) - p_term(-1, -mm + 1, nn)))
+        mats.append(u * big_u + v * big_v + w * big_w)
+    return mats
+
+
+def rotate_sh(coeffs: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """Coefficients of the rotated function g(d) = f(R^T d): ((L+1)^2[, C]) -> same shape.
+
+    So rotate_sh(project(f), R) == project(f o R^T); rotating by R then by R^T is the identity
+    and rotate_sh(rotate_sh(c, R2), R1) == rotate_sh(c, R1 @ R2).
+    """
+    c = np.asarray(coeffs, dtype=float)
+    order = order_of(c.shape[0])
+    out = np.empty_like(c)
+    for l, mat in enumerate(sh_rotation_matrices(rotation, order)):
+        band = slice(l * l, (l + 1) ** 2)
+        out[band] = np.tensordot(mat, c[band], axes=(1, 0))
+    return out
