@@ -1,0 +1,524 @@
+"""Project every valid pixel of the posed linear images onto the mesh (ray casting) -> WORK/samples.npz.
+
+Inputs: the mesh (CAPTURE/mesh.{ply,obj,glb}), poses (WORK/poses.json, else CAPTURE/poses.json) and
+the linear images (WORK/linear/ when `sigrend linearize` has run, else linear EXR/HDR/TIFF straight
+from CAPTURE/images/).  Outputs: WORK/samples.npz (schema: pipeline/io/samples.py),
+WORK/samples_summary.json (counts, drops per reason, sphere coverage) and WORK/samples_coverage.png.
+
+Each pixel centre (COLMAP convention: pixel (i, j) is centred at (j + 0.5, i + 0.5)) is cast as a
+ray through the mesh (trimesh + embreex, first hit only).  A pixel is dropped under the FIRST of
+these reasons that applies, and counted under it:
+
+1. ``background``      the ray misses the mesh;
+2. ``silhouette_edge`` within ``edge_px`` pixels of a background pixel, or next to an occlusion
+                       edge (a depth jump of more than ``depth_jump`` pixel footprints to a neighbour);
+3. ``hidden``          the hit face, or the interpolated normal, faces away from the camera
+                       (first-hit casting already removes points hidden behind other geometry);
+4. ``grazing``         n·v < ``min_cos`` (v: unit direction from the point to the camera);
+5. ``masked``          invalid in the linear image (saturated / masked by linearize; alpha = 0);
+6. ``max_samples``     removed by the random subsampling that enforces ``max_samples``.
+
+Visibility: for every mesh vertex, ``visibility_rays`` fixed cosine-distributed directions of the
+hemisphere around its normal are cast; the unblocked fraction (the cosine-weighted visible
+fraction (1/π)∫V(ω)(n·ω)dω) is interpolated to each sample with its barycentrics.  Convex meshes
+skip the casting (visibility 1).  Samples are not filtered by it here: the fit leaves out those
+below its own threshold (``min_visibility`` is recorded in the meta as the recommended one).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays, project
+from pipeline.core.coverage import EqualAreaGrid, coverage_stats, reflect
+from pipeline.errors import UserError
+from pipeline.io.images import read_image
+from pipeline.io.poses import Poses, read_poses
+from pipeline.io.samples import SAMPLE_FIELDS, SamplesWriter
+from pipeline.settings import setting, settings_dict
+from pipeline.workdir import atomic_path, write_json
+
+MESH_NAMES = ("mesh.ply", "mesh.obj", "mesh.glb")
+LINEAR_SUFFIXES = (".exr", ".hdr", ".tif", ".tiff")
+DROP_REASONS = ("background", "silhouette_edge", "hidden", "grazing", "masked", "max_samples")
+
+
+@dataclass(frozen=True)
+class Settings:
+    min_cos: float = setting(0.15, "drop grazing views: keep a pixel only if n·v >= this (cosine of the view angle)")
+    edge_px: int = setting(1, "drop pixels within this many pixels of the silhouette or an occlusion edge (0: keep)")
+    depth_jump: float = setting(20.0, "a neighbour whose depth differs by more than this many pixel footprints "
+                                      "(depth/focal) marks an occlusion edge")
+    visibility_rays: int = setting(64, "hemisphere directions cast per mesh vertex for the visibility fraction")
+    min_visibility: float = setting(0.9, "recommended visibility threshold recorded for the fit (samples are kept)")
+    stride: int = setting(1, "use every stride-th pixel in rows and columns (1: every pixel)")
+    max_samples: int = setting(0, "keep at most this many samples, drawn uniformly per image (0: no limit)")
+    chunk_pixels: int = setting(262144, "pixels ray cast at a time (bounds memory)")
+    seed: int = setting(0, "random seed of the max_samples subsampling")
+
+    def validate(self) -> None:
+        if not 0.0 <= self.min_cos < 1.0:
+            raise UserError(f"--min-cos must be in [0, 1), got {self.min_cos}")
+        if self.edge_px < 0:
+            raise UserError(f"--edge-px must be >= 0, got {self.edge_px}")
+        if self.depth_jump <= 0:
+            raise UserError(f"--depth-jump must be positive, got {self.depth_jump}")
+        if self.visibility_rays < 1:
+            raise UserError(f"--visibility-rays must be >= 1, got {self.visibility_rays}")
+        if not 0.0 <= self.min_visibility <= 1.0:
+            raise UserError(f"--min-visibility must be in [0, 1], got {self.min_visibility}")
+        if self.stride < 1:
+            raise UserError(f"--stride must be >= 1, got {self.stride}")
+        if self.max_samples < 0:
+            raise UserError(f"--max-samples must be >= 0 (0: no limit), got {self.max_samples}")
+        if self.chunk_pixels < 1:
+            raise UserError(f"--chunk-pixels must be >= 1, got {self.chunk_pixels}")
+
+
+# ---------------------------------------------------------------------------------------------
+# where things are
+
+
+def mesh_path(capture: Path) -> Path:
+    """The capture's mesh file (first of mesh.ply, mesh.obj, mesh.glb)."""
+    for name in MESH_NAMES:
+        if (Path(capture) / name).exists():
+            return Path(capture) / name
+    raise UserError(f"{capture}: no mesh found; put the object's mesh in the capture as {' or '.join(MESH_NAMES)}")
+
+
+def poses_path(capture: Path, work: Path) -> Path:
+    """WORK/poses.json when the poses stage has run, else the capture's poses.json."""
+    for path in (Path(work) / "poses.json", Path(capture) / "poses.json"):
+        if path.exists():
+            return path
+    raise UserError(f"no poses: neither {Path(work) / 'poses.json'} nor {Path(capture) / 'poses.json'} exists; "
+                    "run `sigrend poses` first or add poses.json to the capture")
+
+
+def _linear_reader(work: Path):
+    """The linearize stage's image reader when WORK/linear/ holds its output, else None."""
+    if not (Path(work) / "linear" / "manifest.json").exists():
+        return None
+    try:
+        from pipeline.io.linear import read_linear_image
+    except ImportError:
+        return None
+    return read_linear_image
+
+
+def image_source(capture: Path, work: Path, key: str) -> Path:
+    """The file an image key is read from (for freshness): the linear EXR or the capture's image."""
+    linear = Path(work) / "linear" / (Path(key).with_suffix(".exr"))
+    if _linear_reader(work) is not None and linear.exists():
+        return linear
+    return Path(capture) / "images" / key
+
+
+def load_linear_image(capture: Path, work: Path, key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Linear RGB (H, W, 3) float32, pixel weight (H, W) float32 in [0, 1] (0 = masked) and the name used in errors.
+
+    From linearize's output when present, else an EXR/HDR/TIFF in CAPTURE/images/ (an alpha
+    channel, if any, is the weight).  NaN or Inf in a valid pixel is a UserError naming the file.
+    """
+    reader = _linear_reader(work)
+    if reader is not None:
+        rgb, valid = reader(work, key)
+        name = image_source(capture, work, key)
+        rgb = np.asarray(rgb, dtype=np.float32)[:, :, :3]
+        weight = np.asarray(valid, dtype=np.float32)
+    else:
+        name = Path(capture) / "images" / key
+        if not name.exists():
+            raise UserError(f"{name}: image listed in poses.json is missing from the capture; "
+                            "restore it or remove it from poses.json")
+        if name.suffix.lower() not in LINEAR_SUFFIXES:
+            raise UserError(f"{name}: not a linear image ({name.suffix}); run `sigrend linearize` first")
+        img = read_image(name)
+        if img.shape[2] == 1:
+            img = np.repeat(img, 3, axis=2)
+        rgb = img[:, :, :3]
+        weight = np.clip(img[:, :, 3], 0.0, 1.0) if img.shape[2] >= 4 else np.ones(img.shape[:2], np.float32)
+    bad = ~np.all(np.isfinite(rgb), axis=2) & (weight > 0)
+    if bad.any():
+        raise UserError(f"{name}: {int(bad.sum())} pixels are NaN or Inf; re-export the image "
+                        "(or mask those pixels) and run again")
+    return rgb, weight, name
+
+
+def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    paths = [mesh_path(capture)]
+    try:
+        pose_file = poses_path(capture, work)
+    except UserError:
+        return paths
+    paths.append(pose_file)
+    try:
+        poses = read_poses(pose_file)
+    except UserError:
+        return paths
+    return paths + [image_source(capture, work, key) for key in sorted(poses.images)]
+
+
+def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    work = Path(work)
+    return [work / "samples.npz", work / "samples_summary.json", work / "samples_coverage.png"]
+
+
+# ---------------------------------------------------------------------------------------------
+# geometry
+
+
+def load_mesh(path: Path):
+    """The mesh as one trimesh.Trimesh (scenes are concatenated); UserError if unreadable or empty."""
+    import trimesh
+
+    try:
+        mesh = trimesh.load(path, force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many types for malformed files
+        raise UserError(f"{path}: cannot read the mesh ({exc}); export it again as PLY or OBJ") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise UserError(f"{path}: the mesh has no triangles")
+    return mesh
+
+
+def cosine_hemisphere_directions(count: int) -> np.ndarray:
+    """(count, 3) fixed cosine-distributed unit directions about +Z (Malley's method on a Fibonacci disk).
+
+    Uniform points on the unit disk (golden-angle spiral, r = sqrt((k + 0.5) / count)) lifted to
+    z = sqrt(1 − r²) have density cos θ / π on the hemisphere, so the mean of V over them estimates
+    the cosine-weighted visible fraction (1/π)∫V(ω) cos θ dω.
+    """
+    k = np.arange(count) + 0.5
+    r = np.sqrt(k / count)
+    phi = k * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - r * r, 0.0))], axis=1)
+
+
+def vertex_visibility(mesh, rays: int, chunk: int = 262144) -> np.ndarray:
+    """(V,) cosine-weighted unblocked fraction of each vertex's hemisphere (1.0 for convex meshes)."""
+    if mesh.is_watertight and mesh.is_convex:
+        return np.ones(len(mesh.vertices), np.float32)
+    from tqdm import tqdm
+
+    local = cosine_hemisphere_directions(rays)
+    normals = np.asarray(mesh.vertex_normals, float)
+    # tangent frames: t1 ⟂ n from the axis least aligned with n
+    helper = np.where(np.abs(normals[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(normals, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(normals, t1)
+    offset = 1e-5 * float(np.linalg.norm(mesh.extents))  # lift origins off the surface (no self-hit)
+    origins = np.asarray(mesh.vertices, float) + offset * normals
+    visible = np.zeros(len(normals))
+    per = max(1, chunk // rays)
+    for start in tqdm(range(0, len(normals), per), desc="visibility", unit="chunk", leave=False, disable=None):
+        sl = slice(start, start + per)
+        dirs = (local[None, :, 0:1] * t1[sl, None] + local[None, :, 1:2] * t2[sl, None]
+                + local[None, :, 2:3] * normals[sl, None]).reshape(-1, 3)
+        orig = np.repeat(origins[sl], rays, axis=0)
+        blocked = mesh.ray.intersects_any(orig, dirs).reshape(-1, rays)
+        visible[sl] = 1.0 - blocked.mean(axis=1)
+    return visible.astype(np.float32)
+
+
+def _units_hint(mesh, poses: Poses) -> str:
+    """Why a mesh may miss every image: units (size vs camera distance) or frame (not in view)."""
+    size = float(np.linalg.norm(mesh.extents))
+    centre = np.asarray(mesh.bounds, float).mean(axis=0)
+    centres = np.array([camera_center(p.R, p.t) for p in poses.images.values()])
+    distance = float(np.median(np.linalg.norm(centres - centre, axis=1)))
+    ratio = size / max(distance, 1e-300)
+    if ratio > 20:
+        unit = "millimetres" if 300 < ratio < 3000 else "centimetres" if 30 < ratio <= 300 else "other units"
+        return f"the mesh is {ratio:.0f}x larger than the camera distances: is it in {unit}? convert it to metres"
+    if ratio < 1e-3:
+        return f"the mesh is {1 / ratio:.0f}x smaller than the camera distances: is it in kilometres or scaled down?"
+    in_view = 0
+    for key, pose in poses.images.items():
+        cam = poses.camera_of(key)
+        uv, z = project(cam, pose.R, pose.t, centre[None])
+        in_view += bool(z[0] > 0 and 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height)
+    return (f"the mesh centre is in view of {in_view} of {len(poses.images)} cameras: the mesh and poses.json "
+            "are probably in different frames (poses must be in the mesh's object frame, DESIGN.md)")
+
+
+# ---------------------------------------------------------------------------------------------
+# one image
+
+
+def _dilate(mask: np.ndarray, iterations: int) -> np.ndarray:
+    """Binary dilation with the 3x3 square; outside the image counts as False."""
+    from scipy.ndimage import binary_dilation
+
+    if iterations <= 0:
+        return np.zeros_like(mask)
+    return binary_dilation(mask, structure=np.ones((3, 3), bool), iterations=iterations, border_value=0)
+
+
+def _edge_mask(hit: np.ndarray, depth: np.ndarray, footprint: np.ndarray, settings: Settings) -> np.ndarray:
+    """Pixels within edge_px of background or of an occlusion edge (depth jump to a 4-neighbour)."""
+    if settings.edge_px == 0:
+        return np.zeros_like(hit)
+    jump = np.zeros_like(hit)
+    limit = settings.depth_jump * footprint
+    for axis in (0, 1):
+        a = [slice(None)] * 2
+        b = [slice(None)] * 2
+        a[axis], b[axis] = slice(0, -1), slice(1, None)
+        both = hit[tuple(a)] & hit[tuple(b)]
+        diff = np.abs(depth[tuple(a)] - depth[tuple(b)])
+        big = both & (diff > np.minimum(limit[tuple(a)], limit[tuple(b)]))
+        jump[tuple(a)] |= big
+        jump[tuple(b)] |= big
+    return hit & (_dilate(~hit, settings.edge_px) | _dilate(jump, settings.edge_px - 1) | jump)
+
+
+def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, rgb: np.ndarray, weight: np.ndarray,
+                 image_id: int, settings: Settings, visibility: np.ndarray, progress=None):
+    """Samples of one image, chunk by chunk.
+
+    Yields ``(arrays, drops)``: a dict with every field of SAMPLE_FIELDS for the kept pixels of one
+    chunk of rows, and a dict reason -> count of the dropped pixels of that chunk.
+    """
+    s = settings.stride
+    rows = np.arange(0, camera.height, s)
+    cols = np.arange(0, camera.width, s)
+    fx, fy, _, _ = camera.focal_principal()
+    focal = float(np.sqrt(fx * fy)) / s  # focal length in units of the strided pixel grid
+    centre = camera_center(R, t)
+    vertex_normals = np.asarray(mesh.vertex_normals, float)
+    faces = np.asarray(mesh.faces)
+    face_normals = np.asarray(mesh.face_normals, float)
+    halo = settings.edge_px + 1
+    per = max(1, settings.chunk_pixels // len(cols))
+    for start in range(0, len(rows), per):
+        stop = min(start + per, len(rows))
+        lo, hi = max(start - halo, 0), min(stop + halo, len(rows))
+        grid_rows = rows[lo:hi]
+        # pixel centres (COLMAP convention: +0.5) of the strided rows lo..hi
+        uv = pixel_centers(len(cols), len(grid_rows))
+        uv[:, 0] = cols[(uv[:, 0] - 0.5).astype(int)] + 0.5
+        uv[:, 1] = grid_rows[(uv[:, 1] - 0.5).astype(int)] + 0.5
+        origins, dirs = pixel_rays(camera, R, t, uv)
+        tri, ray, loc = mesh.ray.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+        shape = (len(grid_rows), len(cols))
+        hit = np.zeros(shape[0] * shape[1], bool)
+        hit[ray] = True
+        face = np.full(hit.shape, -1, np.int64)
+        face[ray] = tri
+        point = np.zeros((hit.size, 3))
+        point[ray] = loc
+        depth = np.zeros(hit.size)
+        depth[ray] = (loc @ np.asarray(R, float).T + t)[:, 2]
+        hit, depth = hit.reshape(shape), depth.reshape(shape)
+        edge = _edge_mask(hit, depth, depth / focal, settings)
+
+        inner = slice(start - lo, start - lo + (stop - start))
+        hit_in, edge_in = hit[inner].ravel(), edge[inner].ravel()
+        flat = np.arange(hit.size).reshape(shape)[inner].ravel()
+        drops = {"background": int((~hit_in).sum()), "silhouette_edge": int(edge_in.sum())}
+        cand = flat[hit_in & ~edge_in]
+        f = face[cand]
+        p = point[cand]
+        bary = _barycentric(mesh.triangles[f], p)
+        normal = np.einsum("nk,nkj->nj", bary, vertex_normals[faces[f]])
+        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        view = centre - p
+        view /= np.linalg.norm(view, axis=1, keepdims=True)
+        cos = np.sum(normal * view, axis=1)
+        hidden = (np.sum(face_normals[f] * view, axis=1) <= 0) | (cos <= 0)
+        grazing = ~hidden & (cos < settings.min_cos)
+        pix_r = grid_rows[cand // shape[1]]
+        pix_c = cols[cand % shape[1]]
+        w = weight[pix_r, pix_c]
+        masked = ~hidden & ~grazing & (w <= 0)
+        keep = ~(hidden | grazing | masked)
+        drops.update(hidden=int(hidden.sum()), grazing=int(grazing.sum()), masked=int(masked.sum()))
+        k = keep
+        vis = np.einsum("nk,nk->n", bary[k], visibility[faces[f[k]]])
+        arrays = {
+            "point": p[k], "normal": normal[k], "view_dir": view[k], "radiance": rgb[pix_r[k], pix_c[k]],
+            "image_id": np.full(int(k.sum()), image_id), "pixel": np.stack([pix_r[k], pix_c[k]], axis=1),
+            "face": f[k], "bary": bary[k], "weight": w[k], "visibility": vis,
+        }
+        if progress is not None:
+            progress.update(stop - start)
+        yield {name: np.asarray(arrays[name], dtype=SAMPLE_FIELDS[name][0]) for name in SAMPLE_FIELDS}, drops
+
+
+def _barycentric(triangles: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 3) barycentrics of points in their triangles, clipped to >= 0 and renormalized (ray hits lie inside)."""
+    from trimesh.triangles import points_to_barycentric
+
+    if len(points) == 0:
+        return np.zeros((0, 3))
+    bary = np.clip(points_to_barycentric(triangles, points), 0.0, None)
+    return bary / bary.sum(axis=1, keepdims=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# the stage
+
+
+class _Reservoir:
+    """Uniform random subset of at most ``size`` rows out of a stream of chunks (random-key top-k)."""
+
+    def __init__(self, size: int, rng: np.random.Generator):
+        self.size, self.rng = size, rng
+        self.keys = np.zeros(0)
+        self.rows: dict[str, np.ndarray] | None = None
+        self.seen = 0
+
+    def add(self, arrays: dict[str, np.ndarray]) -> None:
+        n = len(arrays["image_id"])
+        self.seen += n
+        keys = self.rng.random(n)
+        if self.rows is None:
+            self.rows = arrays
+            self.keys = keys
+        else:
+            self.rows = {name: np.concatenate([self.rows[name], arrays[name]]) for name in arrays}
+            self.keys = np.concatenate([self.keys, keys])
+        if len(self.keys) > self.size:
+            best = np.sort(np.argpartition(self.keys, self.size)[: self.size])
+            self.rows = {name: a[best] for name, a in self.rows.items()}
+            self.keys = self.keys[best]
+
+
+def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    from tqdm import tqdm
+
+    capture, work = Path(capture), Path(work)
+    started = time.perf_counter()
+    mesh_file = mesh_path(capture)
+    pose_file = poses_path(capture, work)
+    poses = read_poses(pose_file)
+    keys = sorted(poses.images)
+    if not keys:
+        raise UserError(f"{pose_file}: lists no images; nothing to sample")
+    if _linear_reader(work) is None:
+        for key in keys:
+            if not (capture / "images" / key).exists():
+                raise UserError(f"{capture / 'images' / key}: image listed in {pose_file} is missing from the "
+                                "capture; restore it or remove it from poses.json")
+    mesh = load_mesh(mesh_file)
+    visibility = vertex_visibility(mesh, settings.visibility_rays, settings.chunk_pixels)
+    grid = EqualAreaGrid()
+    normal_hist = np.zeros(grid.shape)
+    reflect_hist = np.zeros(grid.shape)
+    totals = dict.fromkeys(DROP_REASONS, 0)
+    per_image: dict[str, dict] = {}
+    visibility_low = 0
+    visibility_sum = 0.0
+    any_hit = False
+    rng = np.random.default_rng(settings.seed)
+    cap = -(-settings.max_samples // len(keys)) if settings.max_samples else 0
+
+    out_npz = work / "samples.npz"
+    with SamplesWriter(out_npz) as writer:
+        for image_id, key in enumerate(keys):
+            pose = poses.images[key]
+            camera = poses.camera_of(key)
+            rgb, weight, name = load_linear_image(capture, work, key)
+            if rgb.shape[:2] != (camera.height, camera.width):
+                raise UserError(f"{name}: image is {rgb.shape[1]}x{rgb.shape[0]} but its camera "
+                                f"{pose.camera!r} in {pose_file} is {camera.width}x{camera.height}")
+            drops = dict.fromkeys(DROP_REASONS, 0)
+            reservoir = _Reservoir(cap, rng) if cap else None
+            kept = 0
+            n_rows = len(range(0, camera.height, settings.stride))
+            with tqdm(total=n_rows, desc=f"samples {key}", unit="row", leave=False, disable=None) as bar:
+                for arrays, chunk_drops in sample_image(mesh, camera, pose.R, pose.t, rgb, weight, image_id,
+                                                        settings, visibility, progress=bar):
+                    for reason, count in chunk_drops.items():
+                        drops[reason] += count
+                    if reservoir is not None:
+                        reservoir.add(arrays)
+                        continue
+                    kept += _record(writer, arrays, grid, normal_hist, reflect_hist)
+                    visibility_low += int((arrays["visibility"] < settings.min_visibility).sum())
+                    visibility_sum += float(arrays["visibility"].sum())
+            if reservoir is not None and reservoir.rows is not None:
+                drops["max_samples"] = reservoir.seen - len(reservoir.keys)
+                kept += _record(writer, reservoir.rows, grid, normal_hist, reflect_hist)
+                visibility_low += int((reservoir.rows["visibility"] < settings.min_visibility).sum())
+                visibility_sum += float(reservoir.rows["visibility"].sum())
+            considered = kept + sum(drops.values())
+            any_hit |= drops["background"] < considered
+            per_image[key] = {"pixels": considered, "kept": kept, "drops": drops}
+            for reason, count in drops.items():
+                totals[reason] += count
+
+        if not any_hit:
+            raise UserError(f"{mesh_file}: the mesh is hit by no pixel of any image: {_units_hint(mesh, poses)}")
+        if writer.count == 0:
+            raise UserError("no samples left: every pixel that hits the mesh was dropped "
+                            f"({', '.join(f'{r} {c}' for r, c in totals.items() if c)}); check the masks and "
+                            "--min-cos / --edge-px")
+        summary = {
+            "count": writer.count,
+            "pixels": sum(v["pixels"] for v in per_image.values()),
+            "drops": totals,
+            "coverage": {
+                "grid": {"type": "equal-area z-phi", "n_bands": grid.n_bands, "n_azimuth": grid.n_azimuth},
+                "normals": coverage_stats(normal_hist),
+                "reflections": coverage_stats(reflect_hist),
+            },
+            "visibility": {
+                "convention": "cosine-weighted unblocked fraction of the hemisphere about the normal",
+                "rays_per_vertex": settings.visibility_rays,
+                "mean": visibility_sum / writer.count,
+                "min_visibility": settings.min_visibility,
+                "below_min_visibility": visibility_low,
+            },
+            "mesh": str(mesh_file),
+            "poses": str(pose_file),
+            "images": per_image,
+            "settings": settings_dict(settings),
+        }
+        writer.finish(keys, {**summary, "min_visibility": settings.min_visibility})
+    summary["seconds"] = time.perf_counter() - started
+    summary_path = write_json(work / "samples_summary.json", summary)
+    png = plot_coverage(work / "samples_coverage.png", grid, normal_hist, reflect_hist, summary["coverage"])
+    return [out_npz, summary_path, png]
+
+
+def _record(writer: SamplesWriter, arrays: dict, grid: EqualAreaGrid, normal_hist: np.ndarray,
+            reflect_hist: np.ndarray) -> int:
+    """Append a chunk and add it to the coverage histograms; returns its row count."""
+    writer.append(arrays)
+    normal_hist += grid.histogram(arrays["normal"])
+    reflect_hist += grid.histogram(reflect(arrays["view_dir"], arrays["normal"]))
+    return len(arrays["image_id"])
+
+
+def plot_coverage(path: Path, grid: EqualAreaGrid, normal_hist: np.ndarray, reflect_hist: np.ndarray,
+                  coverage: dict) -> Path:
+    """PNG: equirect (θ down, φ across) histograms of sample normals and reflection directions."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    theta = np.degrees(grid.band_edges_theta())
+    phi = np.degrees(grid.azimuth_edges())
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.4), constrained_layout=True)
+    for ax, hist, name in ((axes[0], normal_hist, "normals"), (axes[1], reflect_hist, "reflections")):
+        shown = np.where(hist > 0, hist, np.nan)
+        mesh = ax.pcolormesh(phi, theta, np.log10(shown), cmap="viridis", shading="flat")
+        ax.set_ylim(180, 0)
+        ax.set_xlim(0, 360)
+        ax.set_xlabel("azimuth φ (deg, from +X towards +Y)")
+        ax.set_ylabel("polar angle θ (deg, from +Z)")
+        ax.set_title(f"{name}: {100 * coverage[name]['fraction']:.1f}% of the sphere "
+                     f"({coverage[name]['cells_hit']}/{coverage[name]['cells']} equal-area cells)")
+        fig.colorbar(mesh, ax=ax, label="log10 samples per cell")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)
+    return Path(path)
