@@ -37,6 +37,7 @@ from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_ray
 from pipeline.core.coverage import EqualAreaGrid, coverage_stats, reflect
 from pipeline.errors import UserError
 from pipeline.io.images import read_image
+from pipeline.io.linear_manifest import linear_dir, manifest_path, read_linear_image, read_manifest, resolve_key
 from pipeline.io.poses import Poses, read_poses
 from pipeline.io.samples import SAMPLE_FIELDS, SamplesWriter
 from pipeline.settings import setting, settings_dict
@@ -100,39 +101,31 @@ def poses_path(capture: Path, work: Path) -> Path:
                     "run `sigrend poses` first or add poses.json to the capture")
 
 
-def _linear_reader(work: Path):
-    """The linearize stage's image reader when WORK/linear/ holds its output, else None."""
-    if not (Path(work) / "linear" / "manifest.json").exists():
-        return None
-    try:
-        from pipeline.io.linear import read_linear_image
-    except ImportError:
-        return None
-    return read_linear_image
+def linear_manifest(work: Path) -> dict | None:
+    """linearize's manifest when WORK/linear/ holds its output, else None (read the capture's images)."""
+    return read_manifest(work) if manifest_path(work).exists() else None
 
 
-def image_source(capture: Path, work: Path, key: str) -> Path:
-    """The file an image key is read from (for freshness): the linear EXR or the capture's image."""
-    linear = Path(work) / "linear" / (Path(key).with_suffix(".exr"))
-    if _linear_reader(work) is not None and linear.exists():
-        return linear
+def image_source(capture: Path, work: Path, key: str, manifest: dict | None) -> Path:
+    """The file an image key is read from: linearize's EXR when ``manifest`` is given, else CAPTURE/images/key."""
+    if manifest is not None:
+        return linear_dir(work) / manifest["images"][resolve_key(manifest, key)]["exr"]
     return Path(capture) / "images" / key
 
 
-def load_linear_image(capture: Path, work: Path, key: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Linear RGB (H, W, 3) float32, pixel weight (H, W) float32 in [0, 1] (0 = masked) and the name used in errors.
+def load_linear_image(capture: Path, work: Path, key: str,
+                      manifest: dict | None) -> tuple[np.ndarray, np.ndarray, Path]:
+    """Linear RGB (H, W, 3) float32, pixel weight (H, W) float32 in [0, 1] (0 = masked) and the file read.
 
-    From linearize's output when present, else an EXR/HDR/TIFF in CAPTURE/images/ (an alpha
-    channel, if any, is the weight).  NaN or Inf in a valid pixel is a UserError naming the file.
+    With linearize's ``manifest``: its EXR and valid mask (pipeline.io.linear_manifest).  Without:
+    an EXR/HDR/TIFF in CAPTURE/images/ (an alpha channel, if any, is the weight).  NaN or Inf in a
+    pixel that is not masked is a UserError naming the file.
     """
-    reader = _linear_reader(work)
-    if reader is not None:
-        rgb, valid = reader(work, key)
-        name = image_source(capture, work, key)
-        rgb = np.asarray(rgb, dtype=np.float32)[:, :, :3]
+    name = image_source(capture, work, key, manifest)
+    if manifest is not None:
+        rgb, valid = read_linear_image(work, key, manifest)
         weight = np.asarray(valid, dtype=np.float32)
     else:
-        name = Path(capture) / "images" / key
         if not name.exists():
             raise UserError(f"{name}: image listed in poses.json is missing from the capture; "
                             "restore it or remove it from poses.json")
@@ -143,6 +136,7 @@ def load_linear_image(capture: Path, work: Path, key: str) -> tuple[np.ndarray, 
             img = np.repeat(img, 3, axis=2)
         rgb = img[:, :, :3]
         weight = np.clip(img[:, :, 3], 0.0, 1.0) if img.shape[2] >= 4 else np.ones(img.shape[:2], np.float32)
+    rgb = np.asarray(rgb, dtype=np.float32)
     bad = ~np.all(np.isfinite(rgb), axis=2) & (weight > 0)
     if bad.any():
         raise UserError(f"{name}: {int(bad.sum())} pixels are NaN or Inf; re-export the image "
@@ -159,9 +153,10 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     paths.append(pose_file)
     try:
         poses = read_poses(pose_file)
+        manifest = linear_manifest(work)
+        return paths + [image_source(capture, work, key, manifest) for key in sorted(poses.images)]
     except UserError:
         return paths
-    return paths + [image_source(capture, work, key) for key in sorted(poses.images)]
 
 
 def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
@@ -401,7 +396,8 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     keys = sorted(poses.images)
     if not keys:
         raise UserError(f"{pose_file}: lists no images; nothing to sample")
-    if _linear_reader(work) is None:
+    manifest = linear_manifest(work)
+    if manifest is None:
         for key in keys:
             if not (capture / "images" / key).exists():
                 raise UserError(f"{capture / 'images' / key}: image listed in {pose_file} is missing from the "
@@ -424,7 +420,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         for image_id, key in enumerate(keys):
             pose = poses.images[key]
             camera = poses.camera_of(key)
-            rgb, weight, name = load_linear_image(capture, work, key)
+            rgb, weight, name = load_linear_image(capture, work, key, manifest)
             if rgb.shape[:2] != (camera.height, camera.width):
                 raise UserError(f"{name}: image is {rgb.shape[1]}x{rgb.shape[0]} but its camera "
                                 f"{pose.camera!r} in {pose_file} is {camera.width}x{camera.height}")
