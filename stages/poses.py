@@ -1,0 +1,653 @@
+"""poses: every photo's camera in the object frame (COLMAP + ChArUco board, or the capture's poses.json).
+
+Inputs: the capture's images (or the linearize stage's linear copies), capture.toml ([board], an
+optional calibrated camera), an optional capture poses.json.  Outputs: ``WORK/poses.json``
+(DESIGN.md schema: object frame, metres, world-to-camera R, t, COLMAP pixel convention),
+``WORK/poses_summary.json`` and ``WORK/colmap/`` (8-bit copies, database, sparse model, log).
+
+Paths, in order of preference:
+1. the capture brings ``poses.json``: validated and copied unchanged;
+2. COLMAP (pycolmap SIFT + matching + incremental mapping) on 8-bit tone-mapped copies, then a
+   similarity transform COLMAP -> object estimated (RANSAC + Umeyama) from the ChArUco corners
+   triangulated with the COLMAP cameras against their known object coordinates;
+3. fallback when SfM registers too few images but the board is visible: per-image PnP on the
+   board (intrinsics from the calibrated camera, else from a board calibration over all views).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Literal
+
+import numpy as np
+
+from pipeline.core.camera import Camera, project
+from pipeline.core.similarity import Similarity, ransac_similarity, transform_pose
+from pipeline.errors import UserError
+from pipeline.io.camera_json import read_camera_json
+from pipeline.io.capture_toml import BoardSpec, CaptureConfig, read_capture_config
+from pipeline.io.linear_manifest import manifest_path, read_linear_image
+from pipeline.io.poses import ImagePose, Poses, read_poses, write_poses
+from pipeline.settings import setting
+from pipeline.workdir import atomic_path, write_json
+
+RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".rw2", ".orf", ".pef", ".srw"}
+LINEAR_SUFFIXES = {".exr", ".hdr", ".tif", ".tiff"}
+DISPLAY_SUFFIXES = {".jpg", ".jpeg", ".png"}
+IMAGE_SUFFIXES = RAW_SUFFIXES | LINEAR_SUFFIXES | DISPLAY_SUFFIXES
+MIN_BOARD_CORNERS = 6  # corners per view for a PnP pose / a usable detection
+
+
+@dataclass(frozen=True)
+class Settings:
+    camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"] = setting(
+        "SIMPLE_RADIAL", "COLMAP camera model estimated when capture.toml names no calibrated camera")
+    max_image_size: int = setting(3200, "longest side (pixels) SIFT extraction works at; larger photos are "
+                                        "downscaled internally, poses stay in full-resolution pixels")
+    max_features: int = setting(8192, "maximum SIFT features per image")
+    matcher: Literal["auto", "exhaustive", "sequential"] = setting(
+        "auto", "image pairing: exhaustive, sequential (photos in capture order), or auto (exhaustive up to "
+                "--exhaustive-limit images)")
+    exhaustive_limit: int = setting(60, "auto matcher: exhaustive matching up to this many images")
+    min_registered: float = setting(0.5, "fraction of the photos SfM must register; below it the board PnP "
+                                         "fallback is used (or an error if the board is not visible)")
+    board_threshold_mm: float = setting(5.0, "RANSAC inlier distance (mm) between a triangulated board corner "
+                                             "and its known position")
+    method: Literal["auto", "colmap", "pnp"] = setting(
+        "auto", "auto: COLMAP, PnP fallback when it registers too few photos; colmap: never fall back; "
+                "pnp: board PnP only")
+    seed: int = setting(0, "random seed for COLMAP and RANSAC (runs are reproducible)")
+    verbose: bool = setting(False, "show COLMAP's log on the terminal instead of WORK/colmap/colmap.log")
+
+    def validate(self) -> None:
+        if self.max_image_size < 64 and self.max_image_size != -1:
+            raise UserError(f"--max-image-size {self.max_image_size} is too small; use >= 64 (or -1 for full size)")
+        if self.max_features < 100:
+            raise UserError(f"--max-features {self.max_features} is too small; use >= 100")
+        if not 0.0 < self.min_registered <= 1.0:
+            raise UserError(f"--min-registered {self.min_registered} must be in (0, 1]")
+        if self.board_threshold_mm <= 0:
+            raise UserError(f"--board-threshold-mm {self.board_threshold_mm} must be positive")
+        if self.exhaustive_limit < 2:
+            raise UserError(f"--exhaustive-limit {self.exhaustive_limit} must be >= 2")
+
+
+# --------------------------------------------------------------------------------------------
+# capture contents
+
+
+def list_images(capture: Path) -> list[str]:
+    """Image keys (file names relative to capture/images/, sorted) of every supported photo."""
+    folder = Path(capture) / "images"
+    if not folder.is_dir():
+        raise UserError(f"{folder}: no images/ folder in the capture; put the photos there")
+    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                  if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith("."))
+
+
+def calibrated_camera(config: CaptureConfig) -> Camera | None:
+    """The calibrated camera capture.toml names (``[camera] path = "camera.json"``), if any."""
+    return read_camera_json(config.camera) if config.camera is not None else None
+
+
+def _camera_group_key(path: Path) -> tuple:
+    """What identifies a physical camera: EXIF make, model, focal length and the image size."""
+    suffix = path.suffix.lower()
+    if suffix in RAW_SUFFIXES:
+        try:
+            import tifffile
+
+            with tifffile.TiffFile(path) as tif:
+                tags = {t.name: t.value for t in tif.pages[0].tags}
+                exif = tags.get("ExifTag", {}) or {}
+                return (str(tags.get("Make", "")), str(tags.get("Model", "")),
+                        str(exif.get("FocalLength", tags.get("FocalLength", ""))))
+        except Exception:  # not TIFF-based or unreadable tags: group by size only
+            return ("raw",)
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise UserError(f"{path}: cannot read this image ({oiio.geterror().strip()})")
+    spec = inp.spec()
+    inp.close()
+    return (str(spec.getattribute("Make") or ""), str(spec.getattribute("Model") or ""),
+            str(spec.getattribute("Exif:FocalLength") or ""), spec.width, spec.height)
+
+
+# --------------------------------------------------------------------------------------------
+# 8-bit copies for COLMAP and board detection
+
+
+def tone_map(linear: np.ndarray) -> np.ndarray:
+    """Linear float RGB -> 8-bit sRGB: the 99th luminance percentile maps to white (per image)."""
+    rgb = np.asarray(linear, np.float32)[..., :3]
+    if rgb.shape[-1] == 1:
+        rgb = np.repeat(rgb, 3, axis=-1)
+    rgb = np.nan_to_num(np.maximum(rgb, 0.0))
+    white = float(np.percentile(rgb.mean(axis=-1), 99.0))
+    x = np.clip(rgb / (white if white > 0 else 1.0), 0.0, 1.0)
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)  # IEC 61966-2-1
+    return np.round(srgb * 255).astype(np.uint8)
+
+
+def load_8bit(path: Path) -> np.ndarray:
+    """Any capture photo as 8-bit RGB (H, W, 3), pixels unrotated (EXIF orientation ignored)."""
+    suffix = path.suffix.lower()
+    if suffix in RAW_SUFFIXES:
+        import rawpy
+
+        try:
+            with rawpy.imread(str(path)) as raw:
+                rgb = raw.postprocess(use_camera_wb=True, output_bps=16, user_flip=0, gamma=(1, 1),
+                                      no_auto_bright=True)
+        except (rawpy.LibRawError, OSError) as exc:
+            raise UserError(f"{path}: cannot decode this RAW file ({exc})") from None
+        return tone_map(rgb.astype(np.float32) / 65535.0)
+    from pipeline.io.images import read_image
+
+    img = read_image(path)
+    if suffix in DISPLAY_SUFFIXES:
+        img = img[..., :3] if img.shape[2] >= 3 else np.repeat(img[..., :1], 3, axis=2)
+        return np.round(np.clip(img, 0, 1) * 255).astype(np.uint8)
+    return tone_map(img if img.shape[2] >= 3 else np.repeat(img[..., :1], 3, axis=2))
+
+
+def load_8bit_for_colmap(capture: Path, work: Path, key: str) -> np.ndarray:
+    """8-bit copy of photo ``key``: tone-mapped from the linearize stage's EXR when linearize has run,
+    else made from the capture's file (so the pixels match what later stages read)."""
+    if manifest_path(work).exists():
+        rgb, valid = read_linear_image(work, key)
+        return tone_map(np.where(valid[..., None], rgb, 0.0))
+    return load_8bit(Path(capture) / "images" / key)
+
+
+def colmap_name(group: str, key: str) -> str:
+    """Name of a photo's 8-bit copy inside WORK/colmap/images (one folder per physical camera)."""
+    return f"{group}/{key}.png"
+
+
+# --------------------------------------------------------------------------------------------
+# ChArUco detection
+
+
+def _cv_board(spec: BoardSpec):
+    import cv2
+
+    name = spec.dictionary.upper()
+    if not name.startswith("DICT_"):
+        name = "DICT_" + name
+    if not hasattr(cv2.aruco, name):
+        raise UserError(f"capture.toml [board] dictionary {spec.dictionary!r} is not an OpenCV ArUco dictionary "
+                        "(e.g. DICT_5X5_100)")
+    board = cv2.aruco.CharucoBoard(spec.squares, spec.square_length, spec.marker_length,
+                                   cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)))
+    return board
+
+
+def board_corners_object(spec: BoardSpec) -> np.ndarray:
+    """(K, 3) object-frame coordinates (metres) of the board's inner corners, indexed by ChArUco id."""
+    pts = np.asarray(_cv_board(spec).getChessboardCorners(), float).reshape(-1, 3)
+    return pts @ spec.board_to_object[:3, :3].T + spec.board_to_object[:3, 3]
+
+
+def detect_board(image_rgb8: np.ndarray, spec: BoardSpec) -> tuple[np.ndarray, np.ndarray]:
+    """ChArUco corners in one 8-bit photo: ids (K,) and pixel positions (K, 2) in COLMAP's convention.
+
+    cv2.aruco reports OpenCV pixel coordinates (pixel centres at integers); +0.5 converts them to
+    COLMAP's (top-left corner of the image at (0, 0)).
+    """
+    import cv2
+
+    gray = cv2.cvtColor(image_rgb8, cv2.COLOR_RGB2GRAY)
+    detector = cv2.aruco.CharucoDetector(_cv_board(spec))
+    corners, ids, _, _ = detector.detectBoard(gray)
+    if ids is None or len(ids) == 0:
+        return np.zeros(0, int), np.zeros((0, 2))
+    return np.asarray(ids, int).ravel(), np.asarray(corners, float).reshape(-1, 2) + 0.5
+
+
+# --------------------------------------------------------------------------------------------
+# COLMAP
+
+
+@contextlib.contextmanager
+def colmap_output(log_path: Path, verbose: bool) -> Iterator[None]:
+    """Send everything written to fd 1/2 (COLMAP's glog, Ceres) to ``log_path`` unless verbose."""
+    if verbose:
+        yield
+        return
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = os.dup(1), os.dup(2)
+    with open(log_path, "ab") as log:
+        os.dup2(log.fileno(), 1)
+        os.dup2(log.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])
+
+
+def _status(message: str) -> None:
+    print(f"poses: {message}", file=sys.stderr, flush=True)
+
+
+def _camera_from_pycolmap(cam) -> Camera:
+    return Camera(cam.model.name, int(cam.width), int(cam.height), tuple(float(v) for v in cam.params))
+
+
+def run_colmap(colmap_dir: Path, names: list[str], settings: Settings, fixed: Camera | None,
+               timings: dict) -> object | None:
+    """Features, matching and incremental mapping; returns the largest pycolmap.Reconstruction or None."""
+    import pycolmap
+
+    database = colmap_dir / "database.db"
+    sparse = colmap_dir / "sparse"
+    for stale in (database, Path(f"{database}-shm"), Path(f"{database}-wal")):
+        stale.unlink(missing_ok=True)
+    if sparse.exists():
+        shutil.rmtree(sparse)
+    sparse.mkdir(parents=True)
+    log = colmap_dir / "colmap.log"
+    log.unlink(missing_ok=True)  # this run's log only
+    pycolmap.set_random_seed(settings.seed)
+
+    reader = pycolmap.ImageReaderOptions()
+    if fixed is not None:
+        reader.camera_model = fixed.model
+        reader.camera_params = ",".join(repr(float(v)) for v in fixed.params)
+        mode = pycolmap.CameraMode.SINGLE
+    else:
+        reader.camera_model = settings.camera_model
+        mode = pycolmap.CameraMode.PER_FOLDER  # one folder per physical camera (EXIF group)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = settings.max_image_size
+    extraction.sift.max_num_features = settings.max_features
+    extraction.num_threads = -1
+
+    _status(f"extracting SIFT features from {len(names)} images")
+    start = time.perf_counter()
+    with colmap_output(log, settings.verbose):
+        pycolmap.extract_features(database, colmap_dir / "images", image_names=names, camera_mode=mode,
+                                  reader_options=reader, extraction_options=extraction,
+                                  device=pycolmap.Device.cpu)
+    timings["extraction"] = time.perf_counter() - start
+
+    matching = pycolmap.FeatureMatchingOptions()
+    use_exhaustive = settings.matcher == "exhaustive" or (
+        settings.matcher == "auto" and len(names) <= settings.exhaustive_limit)
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = settings.seed
+    _status(f"matching ({'exhaustive' if use_exhaustive else 'sequential'})")
+    start = time.perf_counter()
+    with colmap_output(log, settings.verbose):
+        if use_exhaustive:
+            pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification,
+                                      device=pycolmap.Device.cpu)
+        else:
+            pycolmap.match_sequential(database, matching_options=matching, verification_options=verification,
+                                      device=pycolmap.Device.cpu)
+    timings["matching"] = time.perf_counter() - start
+
+    with pycolmap.Database.open(str(database)) as db:
+        verified_pairs = db.num_verified_image_pairs()
+    if verified_pairs == 0:
+        timings["mapping"] = 0.0
+        return None
+
+    options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed = settings.seed
+    options.mapper.random_seed = settings.seed
+    options.triangulation.random_seed = settings.seed
+    options.multiple_models = True
+    options.min_model_size = 3
+    if fixed is not None:
+        options.ba_refine_focal_length = False
+        options.ba_refine_principal_point = False
+        options.ba_refine_extra_params = False
+        options.mapper.abs_pose_refine_focal_length = False
+        options.mapper.abs_pose_refine_extra_params = False
+    _status("incremental mapping")
+    start = time.perf_counter()
+    with colmap_output(log, settings.verbose):
+        models = pycolmap.incremental_mapping(database, colmap_dir / "images", sparse, options=options)
+    timings["mapping"] = time.perf_counter() - start
+    if not models:
+        return None
+    best = max(models, key=lambda i: models[i].num_reg_images())
+    return models[best]
+
+
+# --------------------------------------------------------------------------------------------
+# registration into the object frame
+
+
+def triangulate_board(reconstruction, detections: dict[str, tuple[np.ndarray, np.ndarray]],
+                      pixel_threshold: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+    """Triangulate board corners seen in >= 2 registered images: ids (M,), COLMAP-frame points (M, 3).
+
+    ``detections``: COLMAP image name -> (ids, COLMAP pixels).  pycolmap's LO-RANSAC triangulation
+    with an angular threshold equivalent to ``pixel_threshold`` pixels.
+    """
+    import pycolmap
+
+    observations: dict[int, list] = {}
+    for image in reconstruction.images.values():
+        if not image.has_pose or image.name not in detections:
+            continue
+        ids, uv = detections[image.name]
+        for cid, p in zip(ids, uv):
+            observations.setdefault(int(cid), []).append((p, image.cam_from_world(), image.camera))
+    options = pycolmap.EstimateTriangulationOptions()
+    out_ids, out_pts = [], []
+    for cid, obs in sorted(observations.items()):
+        if len(obs) < 2:
+            continue
+        focal = float(np.mean([o[2].mean_focal_length() for o in obs]))
+        options.ransac.max_error = pixel_threshold / focal
+        result = pycolmap.estimate_triangulation(np.array([o[0] for o in obs], float), [o[1] for o in obs],
+                                                 [o[2] for o in obs], options)
+        if result is None or int(np.sum(result["inliers"])) < 2:
+            continue
+        out_ids.append(cid)
+        out_pts.append(np.asarray(result["xyz"], float).ravel())
+    return np.asarray(out_ids, int), np.asarray(out_pts, float).reshape(-1, 3)
+
+
+def register_to_object(reconstruction, detections, spec: BoardSpec, settings: Settings):
+    """Similarity COLMAP -> object from triangulated board corners; (Similarity, inliers, residual_mm)."""
+    ids, points = triangulate_board(reconstruction, detections)
+    if len(ids) < 4:
+        raise UserError(f"the board was triangulated at only {len(ids)} corners (it must be seen in at least two "
+                        "registered photos); take more photos showing the board or pass --method pnp")
+    target = board_corners_object(spec)[ids]
+    try:
+        result = ransac_similarity(points, target, settings.board_threshold_mm / 1000.0,
+                                   rng=np.random.default_rng(settings.seed), min_inliers=4)
+    except ValueError:
+        raise UserError(f"the {len(ids)} triangulated board corners do not fit the board of capture.toml within "
+                        f"{settings.board_threshold_mm} mm; check [board] squares, lengths and board_to_object") from None
+    residual_mm = float(np.sqrt(np.mean(result.residuals[result.inliers] ** 2)) * 1000.0)
+    return result.similarity, result.inliers, residual_mm
+
+
+def poses_from_reconstruction(reconstruction, similarity: Similarity, name_to_key: dict[str, str],
+                              camera_names: dict[int, str]) -> Poses:
+    """COLMAP's registered images, carried into the object frame, as DESIGN.md Poses."""
+    poses = Poses()
+    for cam_id, cam in reconstruction.cameras.items():
+        poses.cameras[camera_names[cam_id]] = _camera_from_pycolmap(cam)
+    for image in reconstruction.images.values():
+        if not image.has_pose:
+            continue
+        pose = image.cam_from_world()
+        R, t = transform_pose(similarity, pose.rotation.matrix(), np.asarray(pose.translation, float))
+        poses.images[name_to_key[image.name]] = ImagePose(camera_names[image.camera_id], R, t)
+    return poses
+
+
+def board_reprojection_px(poses: Poses, detections_by_key: dict, spec: BoardSpec) -> float:
+    """RMS distance (pixels) between detected board corners and the board projected with the poses."""
+    corners = board_corners_object(spec)
+    errors = []
+    for key, pose in poses.images.items():
+        ids, uv = detections_by_key.get(key, (np.zeros(0, int), np.zeros((0, 2))))
+        if len(ids):
+            proj, _ = project(poses.cameras[pose.camera], pose.R, pose.t, corners[ids])
+            errors.append(np.linalg.norm(proj - uv, axis=1))
+    return float(np.sqrt(np.mean(np.concatenate(errors) ** 2))) if errors else float("nan")
+
+
+# --------------------------------------------------------------------------------------------
+# PnP fallback
+
+
+def _calibrate_from_board(detections: list[tuple[np.ndarray, np.ndarray]], spec: BoardSpec,
+                          size: tuple[int, int]) -> Camera:
+    """SIMPLE_RADIAL intrinsics from the board seen in several views (Zhang's method, cv2)."""
+    import cv2
+
+    board_pts = np.asarray(_cv_board(spec).getChessboardCorners(), np.float32).reshape(-1, 3)
+    obj, img = [], []
+    for ids, uv in detections:
+        if len(ids) >= MIN_BOARD_CORNERS:
+            obj.append(board_pts[ids])
+            img.append((uv - 0.5).astype(np.float32))  # COLMAP -> OpenCV pixel convention
+    if len(obj) < 3:
+        raise UserError(f"the board is detected (>= {MIN_BOARD_CORNERS} corners) in only {len(obj)} photos; "
+                        "PnP without a calibrated camera needs 3 or more (or name a camera.json in capture.toml)")
+    w, h = size
+    K0 = np.array([[1.2 * max(w, h), 0, w / 2 - 0.5], [0, 1.2 * max(w, h), h / 2 - 0.5], [0, 0, 1]])
+    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
+             | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3)
+    _, K, dist, _, _ = cv2.calibrateCamera(obj, img, (w, h), K0, np.zeros(5), flags=flags)
+    return Camera("SIMPLE_RADIAL", w, h, (float(K[0, 0]), float(K[0, 2]) + 0.5, float(K[1, 2]) + 0.5,
+                                          float(dist.ravel()[0])))
+
+
+def pnp_pose(camera: Camera, ids: np.ndarray, uv: np.ndarray, spec: BoardSpec) -> tuple[np.ndarray, np.ndarray, float]:
+    """World(object)-to-camera (R, t) from one view of the board, and its RMS reprojection error (px)."""
+    import cv2
+
+    fx, fy, cx, cy = camera.focal_principal()
+    K = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])  # OpenCV pixel convention
+    k1, k2, p1, p2 = camera.distortion()
+    dist = np.array([k1, k2, p1, p2, 0.0])
+    obj = np.asarray(_cv_board(spec).getChessboardCorners(), float).reshape(-1, 3)[ids]
+    img = np.asarray(uv, float) - 0.5
+    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        raise ValueError("PnP failed")
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
+    R_board = cv2.Rodrigues(rvec)[0]
+    # x_cam = R_b x_board + t_b and x_board = B⁻¹ x_obj  =>  R = R_b B_Rᵀ, t = t_b − R B_t
+    B = spec.board_to_object
+    R = R_board @ B[:3, :3].T
+    t = tvec.ravel() - R @ B[:3, 3]
+    proj, _ = project(camera, R, t, board_corners_object(spec)[ids])
+    return R, t, float(np.sqrt(np.mean(np.sum((proj - uv) ** 2, axis=1))))
+
+
+def pnp_poses(keys: list[str], groups: dict[str, str], detections_by_key: dict, spec: BoardSpec,
+              fixed: Camera | None, sizes: dict[str, tuple[int, int]]) -> tuple[Poses, dict]:
+    """Per-image board PnP for every photo with enough corners; (Poses, per-image RMS px)."""
+    poses, errors = Poses(), {}
+    for group in sorted(set(groups.values())):
+        members = [k for k in keys if groups[k] == group]
+        camera = fixed or _calibrate_from_board([detections_by_key[k] for k in members if k in detections_by_key],
+                                                spec, sizes[members[0]])
+        poses.cameras[group] = camera
+        for key in members:
+            ids, uv = detections_by_key.get(key, (np.zeros(0, int), None))
+            if len(ids) < MIN_BOARD_CORNERS:
+                continue
+            try:
+                R, t, err = pnp_pose(camera, ids, uv, spec)
+            except ValueError:
+                continue
+            poses.images[key] = ImagePose(group, R, t)
+            errors[key] = err
+    return poses, errors
+
+
+# --------------------------------------------------------------------------------------------
+# stage
+
+
+def _capture_poses(capture: Path) -> Path:
+    return Path(capture) / "poses.json"
+
+
+def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    capture = Path(capture)
+    paths = [capture / "images" / k for k in list_images(capture)] if (capture / "images").is_dir() else []
+    for extra in (capture / "capture.toml", _capture_poses(capture), Path(work) / "linear" / "manifest.json"):
+        if extra.exists():
+            paths.append(extra)
+    return paths
+
+
+def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    return [Path(work) / "poses.json", Path(work) / "poses_summary.json"]
+
+
+def _pass_through(capture: Path, work: Path, keys: list[str]) -> list[Path]:
+    source = _capture_poses(capture)
+    poses = read_poses(source)
+    missing = [k for k in keys if k not in poses.images]
+    if missing:
+        shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
+        raise UserError(f"{source}: no pose for {len(missing)} of {len(keys)} photos ({shown}); add them or "
+                        "delete poses.json to estimate poses with COLMAP")
+    extra = sorted(set(poses.images) - set(keys))
+    if extra:
+        raise UserError(f"{source}: poses for photos that are not in images/ ({', '.join(extra[:5])}); "
+                        "fix the image keys (file names relative to images/)")
+    for name, cam in poses.cameras.items():
+        fx, fy, cx, cy = cam.focal_principal()
+        if not (0 < cx < cam.width and 0 < cy < cam.height) or fy <= 0:
+            raise UserError(f"{source}: camera {name!r} has its principal point outside the image or a "
+                            "non-positive focal length; check the params order (COLMAP's)")
+    out = Path(work) / "poses.json"
+    with atomic_path(out) as tmp:
+        shutil.copyfile(source, tmp)
+    summary = {"method": "capture poses.json (validated, copied unchanged)", "images": len(keys),
+               "registered": len(poses.images), "unregistered": []}
+    return [out, _write_summary(work, summary)]
+
+
+def _write_summary(work: Path, summary: dict) -> Path:
+    path = write_json(Path(work) / "poses_summary.json", summary)
+    lines = [f"  {k}: {v}" for k, v in summary.items() if k not in ("cameras", "per_image_pnp_px")]
+    print("poses summary:\n" + "\n".join(lines), file=sys.stderr)
+    return path
+
+
+def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    capture, work = Path(capture), Path(work)
+    keys = list_images(capture)
+    if len(keys) < 3:
+        raise UserError(f"{capture / 'images'}: {len(keys)} photo(s) found; poses need at least 3 overlapping "
+                        "photos (or a poses.json in the capture)")
+    if _capture_poses(capture).exists():
+        return _pass_through(capture, work, keys)
+    config = read_capture_config(capture)
+    spec = config.board
+    if spec is None:
+        raise UserError(f"{capture}: no poses.json and no [board] in capture.toml, so the photos cannot be put in "
+                        "the object frame; add the ChArUco board's [board] section or the capture's poses.json")
+    fixed = calibrated_camera(config)
+    work.mkdir(parents=True, exist_ok=True)
+    colmap_dir = work / "colmap"
+    images_dir = colmap_dir / "images"
+    if images_dir.exists():
+        shutil.rmtree(images_dir)
+    images_dir.mkdir(parents=True)
+    timings: dict[str, float] = {}
+
+    # 8-bit copies, one folder per physical camera; board detection on the same pixels
+    start = time.perf_counter()
+    group_of_key: dict[str, tuple] = {}
+    for key in keys:
+        group_of_key[key] = ("calibrated",) if fixed is not None else _camera_group_key(capture / "images" / key)
+    group_names = {g: f"cam{i}" for i, g in enumerate(dict.fromkeys(group_of_key.values()))}
+    groups = {k: group_names[g] for k, g in group_of_key.items()}
+    name_to_key, detections, sizes = {}, {}, {}
+    import cv2
+    from tqdm import tqdm
+
+    for key in tqdm(keys, desc="poses: 8-bit copies + board", unit="img", file=sys.stderr, leave=False):
+        rgb = load_8bit_for_colmap(capture, work, key)
+        sizes[key] = (rgb.shape[1], rgb.shape[0])
+        if fixed is not None and sizes[key] != (fixed.width, fixed.height):
+            raise UserError(f"{key}: photo is {sizes[key][0]}x{sizes[key][1]} but the calibrated camera is "
+                            f"{fixed.width}x{fixed.height}; use photos at the calibration resolution")
+        name = colmap_name(groups[key], key)
+        (images_dir / name).parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(images_dir / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        name_to_key[name] = key
+        ids, uv = detect_board(rgb, spec)
+        if len(ids) >= MIN_BOARD_CORNERS:
+            detections[key] = (ids, uv)
+    timings["copies_and_board_detection"] = time.perf_counter() - start
+    if not detections:
+        raise UserError(f"the ChArUco board of capture.toml ({spec.dictionary}, {spec.squares[0]}x{spec.squares[1]} "
+                        f"squares) was not detected in any of the {len(keys)} photos; check [board] dictionary, "
+                        "squares and lengths against the printed board")
+    _status(f"board detected in {len(detections)} of {len(keys)} photos")
+
+    summary: dict = {"images": len(keys), "board_detected_in": len(detections)}
+    poses = None
+    unregistered: list[str] = []
+    if settings.method != "pnp":
+        names = [colmap_name(groups[k], k) for k in keys]
+        reconstruction = run_colmap(colmap_dir, names, settings, fixed, timings)
+        registered = set()
+        if reconstruction is not None:
+            registered = {name_to_key[im.name] for im in reconstruction.images.values() if im.has_pose}
+        unregistered = [k for k in keys if k not in registered]
+        enough = len(registered) >= max(3, int(np.ceil(settings.min_registered * len(keys))))
+        if enough:
+            start = time.perf_counter()
+            det_by_name = {colmap_name(groups[k], k): v for k, v in detections.items()}
+            similarity, inliers, residual_mm = register_to_object(reconstruction, det_by_name, spec, settings)
+            camera_names = {}
+            for image in reconstruction.images.values():
+                camera_names.setdefault(image.camera_id, groups[name_to_key[image.name]])
+            poses = poses_from_reconstruction(reconstruction, similarity, name_to_key, camera_names)
+            timings["registration"] = time.perf_counter() - start
+            summary.update({
+                "method": "colmap + board registration",
+                "registered": len(registered), "unregistered": unregistered,
+                "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
+                "points3D": int(reconstruction.num_points3D()),
+                "registration_residual_mm": residual_mm,
+                "board_corners_used": int(inliers.sum()), "board_corners_triangulated": int(len(inliers)),
+                "colmap_to_object_scale": float(similarity.scale),
+            })
+            reconstruction.write(colmap_dir / "sparse")  # the model that was used, at sparse/ top level
+        elif settings.method == "colmap" or len(detections) < max(3, int(np.ceil(settings.min_registered * len(keys)))):
+            why = ("its photos do not overlap (no image pair shares enough features)" if reconstruction is None
+                   else f"it registered only {len(registered)} of {len(keys)} photos")
+            shown = ", ".join(unregistered[:8]) + (f" and {len(unregistered) - 8} more" if len(unregistered) > 8 else "")
+            raise UserError(f"COLMAP could not build the capture: {why} (unregistered: {shown}), and the board is "
+                            f"visible in only {len(detections)} photos; take overlapping photos with texture, "
+                            f"see {colmap_dir / 'colmap.log'}")
+        else:
+            summary["fallback_reason"] = (f"SfM registered {len(registered)} of {len(keys)} photos "
+                                          f"(< {settings.min_registered:.0%})")
+            _status(f"{summary['fallback_reason']}: falling back to per-image board PnP")
+    if poses is None:
+        start = time.perf_counter()
+        poses, errors = pnp_poses(keys, groups, detections, spec, fixed, sizes)
+        timings["registration"] = time.perf_counter() - start
+        unregistered = [k for k in keys if k not in poses.images]
+        if len(poses.images) < 3:
+            raise UserError(f"board PnP posed only {len(poses.images)} photos; the board must be visible "
+                            f"(>= {MIN_BOARD_CORNERS} corners) in at least 3")
+        summary.update({
+            "method": "board PnP per image" + (" (fallback)" if settings.method != "pnp" else ""),
+            "registered": len(poses.images), "unregistered": unregistered,
+            "mean_reprojection_error_px": float(np.mean(list(errors.values()))),
+            "registration_residual_mm": None,
+            "per_image_pnp_px": errors,
+        })
+    summary["board_reprojection_rms_px"] = board_reprojection_px(poses, detections, spec)
+    summary["cameras"] = {n: {"model": c.model, "width": c.width, "height": c.height, "params": list(c.params)}
+                          for n, c in poses.cameras.items()}
+    summary["intrinsics"] = "calibrated (fixed)" if fixed is not None else "estimated"
+    summary["seconds"] = {k: round(v, 3) for k, v in timings.items()}
+    out = write_poses(work / "poses.json", poses)
+    return [out, _write_summary(work, summary), colmap_dir]

@@ -1,0 +1,163 @@
+"""poses stage: COLMAP + ChArUco registration, PnP fallback, poses.json pass-through, bad input.
+
+Captures are ray-traced here (a textured floor with a ChArUco board and a textured box, pinhole
+cameras on a ring) so the ground truth is exact; they are small (400x300 px, 14 views) to keep
+the COLMAP runs to seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.ndimage import map_coordinates
+from scipy.spatial.transform import Rotation
+
+from pipeline.cli import main as cli_main
+from pipeline.core.camera import Camera, camera_center, look_at, pixel_centers, pixel_rays
+from pipeline.errors import UserError
+from pipeline.io.poses import ImagePose, Poses, read_poses, write_poses
+from pipeline.settings import make_settings
+from stages import poses as stage
+
+BOARD = dict(dictionary="DICT_5X5_100", squares=(7, 5), square_length=0.03, marker_length=0.022)
+# board lying on the floor, its printed side up (+Z object), centred on the origin:
+# board x -> object +X, board y -> object -Y, board z (into the print) -> object -Z
+BOARD_TO_OBJECT = np.array([[1.0, 0, 0, -0.105], [0, -1, 0, 0.075], [0, 0, -1, 0], [0, 0, 0, 1]])
+
+
+def _noise_texture(rng, size: int) -> np.ndarray:
+    """Multi-scale random texture (8-bit gray) with SIFT-friendly blobs at every scale."""
+    tex = np.zeros((size, size), np.float32)
+    for cells in (4, 8, 16, 32, 64, 128):
+        tex += cv2.resize(rng.random((cells, cells)).astype(np.float32), (size, size),
+                          interpolation=cv2.INTER_CUBIC)
+    tex = (tex - tex.min()) / (tex.max() - tex.min())
+    return np.round(40 + 200 * tex).astype(np.uint8)
+
+
+def _quads(rng) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """Scene as textured rectangles: (origin, edge a, edge b, 8-bit texture); point = o + u·a + v·b."""
+    import cv2.aruco as aruco
+
+    board = aruco.CharucoBoard(BOARD["squares"], BOARD["square_length"], BOARD["marker_length"],
+                               aruco.getPredefinedDictionary(getattr(aruco, BOARD["dictionary"])))
+    sx, sy = BOARD["squares"]
+    board_img = board.generateImage((sx * 100, sy * 100), marginSize=0)
+    R, t = BOARD_TO_OBJECT[:3, :3], BOARD_TO_OBJECT[:3, 3]
+    quads = [(t + [0, 0, 1e-4], R @ [sx * BOARD["square_length"], 0, 0], R @ [0, sy * BOARD["square_length"], 0],
+              board_img)]
+    quads.append((np.array([-0.3, -0.3, 0.0]), np.array([0.6, 0, 0]), np.array([0, 0.6, 0]), _noise_texture(rng, 1024)))
+    # a textured box (0.08 m) off the board: four sides and the top
+    c, h = np.array([0.07, 0.12, 0.0]), 0.08
+    corners = [c + [-h / 2, -h / 2, 0], c + [h / 2, -h / 2, 0], c + [h / 2, h / 2, 0], c + [-h / 2, h / 2, 0]]
+    for i in range(4):
+        p, q = corners[i], corners[(i + 1) % 4]
+        quads.append((p, q - p, np.array([0, 0, h]), _noise_texture(rng, 256)))
+    quads.append((corners[0] + [0, 0, h], corners[1] - corners[0], corners[3] - corners[0], _noise_texture(rng, 256)))
+    return quads
+
+
+def render(camera: Camera, R: np.ndarray, t: np.ndarray, quads, supersample: int = 2) -> np.ndarray:
+    """Ray-cast the textured rectangles (nearest hit), 8-bit gray, box-filtered ``supersample``²."""
+    s = supersample
+    big = Camera("PINHOLE", camera.width * s, camera.height * s, tuple(np.array(camera.params) * s))
+    origins, dirs = pixel_rays(big, R, t, pixel_centers(big.width, big.height))
+    best = np.full(len(dirs), np.inf)
+    out = np.full(len(dirs), 128.0, np.float32)
+    for o, a, b, tex in quads:
+        n = np.cross(a, b)
+        denom = dirs @ n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            dist = ((o - origins[0]) @ n) / denom
+        p = origins + dist[:, None] * dirs - o
+        u, v = p @ a / (a @ a), p @ b / (b @ b)
+        hit = (dist > 0) & (dist < best) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
+        if hit.any():
+            th, tw = tex.shape
+            # texel centres at integer + 0.5 in (u·tw, v·th): bilinear lookup
+            coords = np.stack([v[hit] * th - 0.5, u[hit] * tw - 0.5])
+            out[hit] = map_coordinates(tex.astype(np.float32), coords, order=1, mode="nearest")
+            best[hit] = dist[hit]
+    img = out.reshape(big.height, big.width)
+    return cv2.resize(img, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
+
+
+def make_capture(folder: Path, *, n_views: int = 14, size=(400, 300), focal: float = 440.0, seed: int = 7,
+                 board: bool = True, views=None) -> Poses:
+    """Write images/NNNN.jpg, capture.toml and gt/poses.json; returns the ground-truth poses."""
+    rng = np.random.default_rng(seed)
+    quads = _quads(rng)
+    w, h = size
+    camera = Camera("PINHOLE", w, h, (focal, focal, w / 2, h / 2))
+    gt = Poses(cameras={"cam0": camera})
+    (folder / "images").mkdir(parents=True)
+    if views is None:
+        az = np.linspace(0, 2 * np.pi, n_views, endpoint=False) + 0.3
+        el = np.deg2rad(np.where(np.arange(n_views) % 2, 50.0, 38.0))
+        views = [(np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)]) * 0.55,
+                  np.array([0.02, 0.02, 0.03])) for a, e in zip(az, el)]
+    for i, (center, target) in enumerate(views):
+        R, t = look_at(center, target)
+        img = render(camera, R, t, quads)
+        img = np.clip(img + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
+        cv2.imwrite(str(folder / "images" / f"{i:04d}.jpg"), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        gt.images[f"{i:04d}.jpg"] = ImagePose("cam0", R, t)
+    if board:
+        rows = ",".join("[" + ",".join(repr(float(v)) for v in row) + "]" for row in BOARD_TO_OBJECT)
+        (folder / "capture.toml").write_text(
+            "[board]\n"
+            f'dictionary = "{BOARD["dictionary"]}"\nsquares = [{BOARD["squares"][0]}, {BOARD["squares"][1]}]\n'
+            f'square_length = {BOARD["square_length"]}\nmarker_length = {BOARD["marker_length"]}\n'
+            f"board_to_object = [{rows}]\n")
+    (folder / "gt").mkdir()
+    write_poses(folder / "gt" / "poses.json", gt)
+    return gt
+
+
+def pose_errors(gt: Poses, est: Poses) -> tuple[np.ndarray, np.ndarray]:
+    """Per-image rotation error (degrees) and camera-centre error relative to the camera's distance."""
+    rot, cen = [], []
+    for key, p in est.images.items():
+        g = gt.images[key]
+        rot.append(np.rad2deg(np.linalg.norm(Rotation.from_matrix(p.R @ g.R.T).as_rotvec())))
+        c_gt = camera_center(g.R, g.t)
+        cen.append(np.linalg.norm(camera_center(p.R, p.t) - c_gt) / np.linalg.norm(c_gt))
+    return np.array(rot), np.array(cen)
+
+
+@pytest.fixture(scope="session")
+def capture_dir(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("poses_capture")
+    make_capture(folder)
+    return folder
+
+
+@pytest.fixture(scope="session")
+def colmap_run(capture_dir, tmp_path_factory):
+    work = tmp_path_factory.mktemp("poses_work")
+    settings = make_settings(stage.Settings)
+    stage.run(capture=capture_dir, work=work, settings=settings)
+    return work
+
+
+def test_colmap_poses_match_ground_truth(capture_dir, colmap_run):
+    gt = read_poses(capture_dir / "gt" / "poses.json")
+    est = read_poses(colmap_run / "poses.json")
+    summary = json.loads((colmap_run / "poses_summary.json").read_text())
+    assert summary["method"] == "colmap + board registration"
+    assert set(est.images) == set(gt.images)
+    rot, cen = pose_errors(gt, est)
+    assert rot.max() < 0.2
+    assert cen.max() < 0.005
+    # one shared camera, focal within 1 % of the truth
+    assert len(est.cameras) == 1
+    cam = next(iter(est.cameras.values()))
+    assert cam.focal_principal()[0] == pytest.approx(gt.cameras["cam0"].params[0], rel=0.01)
+    assert summary["registration_residual_mm"] < 1.0
+    assert (colmap_run / "colmap" / "database.db").exists()
+    assert (colmap_run / "colmap" / "colmap.log").stat().st_size > 0
