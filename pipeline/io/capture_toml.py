@@ -1,0 +1,192 @@
+"""CAPTURE/capture.toml: optional per-capture facts the photos do not carry themselves.
+
+Every section is optional; paths are relative to the capture folder.
+
+    [camera]
+    path = "camera.json"            # intrinsics from `sigrend calib intrinsics` (COLMAP model)
+
+    [response]
+    path = "response.json"          # inverse camera response from `sigrend calib response` (8-bit files)
+
+    [vignetting]
+    path = "vignetting.exr"         # flat-field gain map from `sigrend calib vignetting`
+
+    [white_balance]
+    multipliers = [2.0, 1.0, 1.5]   # R, G, B gains used for every image (default: camera as-shot WB
+                                    # of the first image); or
+    gray_patch = [x0, y0, x1, y1]   # a gray card in the first image (pixels, x right, y down, end exclusive)
+
+    [exposure]                      # overrides of EXIF, per image file name, or "default" for all
+    default = {time = 0.01, iso = 100, fnumber = 8.0}
+    "IMG_0003.jpg" = {time = 0.04}  # seconds, ISO arithmetic, f-number; any subset
+
+    [brackets]                      # several exposures of one view, merged into one HDR image
+    view_00 = ["IMG_0001.jpg", "IMG_0002.jpg", "IMG_0003.jpg"]   # output linear/view_00.exr
+
+    [board]                         # ChArUco board (written by `sigrend synth`, read by calib and poses)
+    dictionary = "DICT_5X5_100"     # a cv2.aruco predefined dictionary name
+    squares = [7, 5]                # squares along x (columns) and y (rows)
+    square_length = 0.04            # metres
+    marker_length = 0.03            # metres
+    board_to_object = [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]   # 4x4, board frame -> object frame
+
+A board file for ``sigrend calib intrinsics --board`` holds the same ``[board]`` table (or its keys
+at the top level).  Malformed content raises ``UserError`` naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import UserError
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib  # type: ignore[no-redef]
+
+CAPTURE_TOML = "capture.toml"
+
+
+@dataclass(frozen=True)
+class ExposureOverride:
+    """EXIF replacements for one image; None keeps the file's own value."""
+
+    time: float | None = None  # seconds
+    iso: float | None = None  # ISO arithmetic speed
+    fnumber: float | None = None  # N
+
+
+@dataclass(frozen=True)
+class BoardSpec:
+    """A ChArUco board: cv2.aruco dictionary name, squares (x, y), lengths in metres, pose in the object."""
+
+    dictionary: str
+    squares: tuple[int, int]
+    square_length: float
+    marker_length: float
+    board_to_object: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+
+@dataclass(frozen=True)
+class CaptureConfig:
+    """Parsed capture.toml (absent file -> all defaults). Paths are absolute."""
+
+    camera: Path | None = None
+    response: Path | None = None
+    vignetting: Path | None = None
+    wb_multipliers: tuple[float, float, float] | None = None
+    wb_gray_patch: tuple[int, int, int, int] | None = None
+    exposure: dict[str, ExposureOverride] = field(default_factory=dict)
+    brackets: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    board: BoardSpec | None = None
+    source: Path | None = None
+
+    def exposure_for(self, name: str) -> ExposureOverride:
+        """Override for image ``name``: its own entry field by field over ``default``."""
+        own = self.exposure.get(name, ExposureOverride())
+        base = self.exposure.get("default", ExposureOverride())
+        return ExposureOverride(*(a if a is not None else b for a, b in
+                                  zip((own.time, own.iso, own.fnumber), (base.time, base.iso, base.fnumber))))
+
+
+def _load(path: Path) -> dict:
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise UserError(f"{path}: file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"{path}: not valid TOML ({exc}); fix the syntax") from None
+
+
+def _positive(path: Path, where: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
+        raise UserError(f"{path}: {where} must be a positive number, got {value!r}")
+    return float(value)
+
+
+def _path_entry(path: Path, doc: dict, section: str) -> Path | None:
+    table = doc.get(section)
+    if table is None:
+        return None
+    if not isinstance(table, dict) or not isinstance(table.get("path"), str):
+        raise UserError(f'{path}: [{section}] needs path = "file" (relative to the capture folder)')
+    target = (path.parent / table["path"]).resolve()
+    if not target.exists():
+        raise UserError(f"{path}: [{section}] path {table['path']!r} does not exist ({target})")
+    return target
+
+
+def parse_board(path: Path, table: dict) -> BoardSpec:
+    """A ``[board]`` table -> BoardSpec (UserError naming ``path`` on a bad key)."""
+    try:
+        dictionary = str(table["dictionary"])
+        squares = tuple(int(v) for v in table["squares"])
+        square = _positive(path, "[board] square_length", table["square_length"])
+        marker = _positive(path, "[board] marker_length", table["marker_length"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"{path}: [board] needs dictionary, squares = [x, y], square_length and marker_length "
+                        f"(metres); problem with {exc}") from None
+    if len(squares) != 2 or min(squares) < 2:
+        raise UserError(f"{path}: [board] squares must be two integers >= 2, got {table['squares']!r}")
+    if marker >= square:
+        raise UserError(f"{path}: [board] marker_length {marker} must be smaller than square_length {square}")
+    m = np.asarray(table.get("board_to_object", np.eye(4)), dtype=float)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise UserError(f"{path}: [board] board_to_object must be a finite 4x4 matrix")
+    return BoardSpec(dictionary, (squares[0], squares[1]), square, marker, m)
+
+
+def read_board(path: str | os.PathLike) -> BoardSpec:
+    """A board file: a ``[board]`` table, or the same keys at the top level."""
+    path = Path(path)
+    doc = _load(path)
+    return parse_board(path, doc["board"] if isinstance(doc.get("board"), dict) else doc)
+
+
+def read_capture_config(capture: str | os.PathLike) -> CaptureConfig:
+    """Parse ``capture/capture.toml``; a missing file gives the defaults."""
+    path = Path(capture) / CAPTURE_TOML
+    if not path.exists():
+        return CaptureConfig()
+    doc = _load(path)
+
+    wb = doc.get("white_balance", {})
+    mult = gray = None
+    if "multipliers" in wb:
+        vals = wb["multipliers"]
+        if not isinstance(vals, list) or len(vals) != 3:
+            raise UserError(f"{path}: [white_balance] multipliers must be [r, g, b]")
+        mult = tuple(_positive(path, "[white_balance] multipliers", v) for v in vals)
+    if "gray_patch" in wb:
+        vals = wb["gray_patch"]
+        if (not isinstance(vals, list) or len(vals) != 4 or not all(isinstance(v, int) for v in vals)
+                or vals[2] <= vals[0] or vals[3] <= vals[1] or min(vals) < 0):
+            raise UserError(f"{path}: [white_balance] gray_patch must be [x0, y0, x1, y1] integer pixels with x1 > x0, y1 > y0")
+        gray = tuple(vals)
+    if mult and gray:
+        raise UserError(f"{path}: [white_balance] give multipliers or gray_patch, not both")
+
+    exposure = {}
+    for name, entry in doc.get("exposure", {}).items():
+        if not isinstance(entry, dict) or set(entry) - {"time", "iso", "fnumber"}:
+            raise UserError(f"{path}: [exposure] {name!r} must be a table with time, iso and/or fnumber")
+        exposure[name] = ExposureOverride(
+            **{k: _positive(path, f"[exposure] {name}.{k}", v) for k, v in entry.items()})
+
+    brackets = {}
+    for name, members in doc.get("brackets", {}).items():
+        if not isinstance(members, list) or len(members) < 2 or not all(isinstance(m, str) for m in members):
+            raise UserError(f"{path}: [brackets] {name!r} must list at least two image file names")
+        brackets[name] = tuple(members)
+
+    board = parse_board(path, doc["board"]) if "board" in doc else None
+    return CaptureConfig(camera=_path_entry(path, doc, "camera"), response=_path_entry(path, doc, "response"),
+                         vignetting=_path_entry(path, doc, "vignetting"), wb_multipliers=mult, wb_gray_patch=gray,
+                         exposure=exposure, brackets=brackets, board=board, source=path)

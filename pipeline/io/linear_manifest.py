@@ -1,0 +1,91 @@
+"""WORK/linear/: the linearize stage's hand-off to later stages.
+
+Files
+    linear/<key>.exr          float RGB (half), linear sRGB primaries, radiance on one scale for the capture:
+                              value = linear pixel value x N^2 / (t x ISO/100)   (t seconds, N f-number)
+    linear/masks/<key>.png    8-bit, 255 = valid pixel, 0 = saturated / missing / non-finite (never use it)
+    linear/manifest.json      {"version": 1, "exposure_convention": "...",
+                               "images": {<key>: {"exr": "<key>.exr", "mask": "masks/<key>.png",
+                                                  "width", "height", "sources": [{"file", "format",
+                                                  "exposure_time_s", "iso", "f_number", "scale",
+                                                  "black_level", "white_level", "saturated_fraction"}],
+                                                  "white_balance": {...}, "saturated_fraction",
+                                                  "valid_fraction"}}}
+
+``<key>`` is the source file's stem (``IMG_0001.CR2`` -> ``IMG_0001``) or a bracket's name from
+capture.toml.  Later stages call ``read_linear_image(work, key)``; ``key`` may be the stem, the EXR
+file name, or any source file name of the image.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.io.images import read_image
+from pipeline.workdir import write_json
+
+LINEAR_DIR = "linear"
+MANIFEST = "manifest.json"
+EXPOSURE_CONVENTION = "radiance = linear pixel value * N^2 / (t_seconds * ISO/100)"
+
+
+def linear_dir(work: str | os.PathLike) -> Path:
+    return Path(work) / LINEAR_DIR
+
+
+def manifest_path(work: str | os.PathLike) -> Path:
+    return linear_dir(work) / MANIFEST
+
+
+def read_manifest(work: str | os.PathLike) -> dict:
+    """The manifest as a dict; UserError if linearize has not run."""
+    path = manifest_path(work)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"{path}: not found; run `sigrend linearize CAPTURE -w {work}` first") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: unreadable ({exc}); run `sigrend linearize --force`") from None
+    if not isinstance(doc, dict) or "images" not in doc:
+        raise UserError(f"{path}: not a linearize manifest; run `sigrend linearize --force`")
+    return doc
+
+
+def write_manifest(work: str | os.PathLike, images: dict[str, dict]) -> Path:
+    """Write manifest.json atomically, entries sorted by key."""
+    doc = {"version": 1, "exposure_convention": EXPOSURE_CONVENTION,
+           "images": {k: images[k] for k in sorted(images)}}
+    return write_json(manifest_path(work), doc)
+
+
+def resolve_key(manifest: dict, key: str) -> str:
+    """The manifest key of ``key`` (stem, ``<stem>.exr`` or a source file name); UserError if unknown."""
+    images = manifest["images"]
+    if key in images:
+        return key
+    for k, entry in images.items():
+        if key == entry.get("exr") or key in (s.get("file") for s in entry.get("sources", [])):
+            return k
+    raise UserError(f"image {key!r} is not in linear/manifest.json (known: {', '.join(sorted(images)[:8])}...); "
+                    "run linearize again or check the image name")
+
+
+def read_linear_image(work: str | os.PathLike, key: str, manifest: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Linear radiance (H, W, 3) float32 and valid mask (H, W) bool of image ``key``.
+
+    Invalid pixels (saturated, missing, non-finite) are False in the mask; their RGB is undefined.
+    Pass ``manifest`` (from read_manifest) when reading many images.
+    """
+    manifest = read_manifest(work) if manifest is None else manifest
+    entry = manifest["images"][resolve_key(manifest, key)]
+    folder = linear_dir(work)
+    rgb = read_image(folder / entry["exr"])[:, :, :3]
+    mask = read_image(folder / entry["mask"])[:, :, 0] > 0.5
+    if mask.shape != rgb.shape[:2]:
+        raise UserError(f"{folder / entry['mask']}: mask size differs from its image; run linearize --force")
+    return rgb, mask & np.all(np.isfinite(rgb), axis=2)

@@ -1,0 +1,53 @@
+"""response.json: an inverse camera response for 8-bit files (from `sigrend calib response`).
+
+    {"kind": "inverse_response", "codes": 256, "channels": ["R", "G", "B"],
+     "inverse": [[...256 values...], [...], [...]],   # relative linear exposure of each code, per channel
+     "normalization": "inverse[c][255] = 1 for every channel", "method": "debevec", ...}
+
+Linearizing an 8-bit pixel is a table lookup: linear = inverse[c][code].  Each channel is normalized
+so code 255 maps to 1 (the same convention as the sRGB curve), which keeps the camera's own white
+balance: an 8-bit white stays white.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.workdir import write_json
+
+
+def srgb_inverse_table() -> np.ndarray:
+    """(3, 256) inverse of the sRGB transfer curve (IEC 61966-2-1) at the 8-bit codes."""
+    v = np.arange(256) / 255.0
+    lin = np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+    return np.repeat(lin[None, :], 3, axis=0)
+
+
+def read_response_json(path: str | os.PathLike) -> np.ndarray:
+    """The (3, 256) inverse response table; UserError when the file is missing or malformed."""
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text())
+        table = np.asarray(doc["inverse"], dtype=float)
+    except FileNotFoundError:
+        raise UserError(f"{path}: file not found") from None
+    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise UserError(f"{path}: not a response.json ({exc}); write it with `sigrend calib response`") from None
+    if table.shape != (3, 256) or not np.all(np.isfinite(table)) or np.any(np.diff(table, axis=1) < 0):
+        raise UserError(f"{path}: inverse response must be 3 non-decreasing rows of 256 finite values; "
+                        "recalibrate with `sigrend calib response`")
+    return table
+
+
+def write_response_json(path: str | os.PathLike, inverse: np.ndarray, **info) -> Path:
+    """Write a (3, 256) inverse response table atomically (``info``: method, exposures, ...)."""
+    inverse = np.asarray(inverse, dtype=float)
+    doc = {"kind": "inverse_response", "codes": 256, "channels": ["R", "G", "B"],
+           "inverse": [[round(float(v), 8) for v in row] for row in inverse],
+           "normalization": "inverse[c][255] = 1 for every channel", **info}
+    return write_json(path, doc)

@@ -1,0 +1,571 @@
+"""linearize: camera files -> linear float RGB radiance on one scale for the capture (WORK/linear/).
+
+Every file of ``CAPTURE/images/`` (or every bracket of them) becomes ``WORK/linear/<key>.exr`` (float32
+RGB, linear sRGB primaries), ``WORK/linear/masks/<key>.png`` (255 = valid) and an entry of
+``WORK/linear/manifest.json`` (schema: pipeline.io.linear_manifest; user docs: docs/linearize.md).
+
+Decoding by kind
+    RAW (LibRaw via rawpy): linear (gamma 1, 1), no auto-brightness, 16 bit, highlights clipped,
+        black/white level from the file, LibRaw's maximum never adapted to the data
+        (adjust_maximum_thr = 0, so one scale for every image), one white balance for all images,
+        linear sRGB output.  value = LibRaw output / 65535.  Saturation: raw values at or above
+        ``saturation`` x white level, found before demosaicing and dilated by the 5x5 demosaic footprint.
+    float EXR/HDR/TIFF and 16-bit TIFF (OpenImageIO): taken as linear; 16-bit values >= ``saturation``
+        (of full scale) are masked.
+    8-bit JPEG/PNG/TIFF: inverse camera response (sRGB curve, or capture.toml [response]);
+        codes >= ``saturation`` x 255 are masked.
+
+Exposure: radiance = value x N^2 / (t x ISO/100) (t seconds, N f-number, ISO arithmetic), from EXIF
+or capture.toml [exposure]; a factor missing from every image is taken as equal (with a warning); a
+factor missing from some images only is an error.  A vignetting gain map (capture.toml [vignetting])
+divides every image.  Brackets (capture.toml [brackets], or --bracket-size) are merged into one HDR
+image: a weighted mean of the members' radiance, weight = exposure x validity x a linear roll-off over
+the top 10 % below the saturation level.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import hashlib
+import json
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.io.camera_json import read_camera_json
+from pipeline.io.capture_toml import CAPTURE_TOML, CaptureConfig, read_capture_config
+from pipeline.io.images import read_image, write_image
+from pipeline.io.linear_manifest import linear_dir, manifest_path, write_manifest
+from pipeline.io.response_json import read_response_json, srgb_inverse_table
+from pipeline.settings import setting, settings_dict
+
+RAW_EXTENSIONS = frozenset(
+    ".dng .cr2 .cr3 .crw .nef .nrw .arw .srf .sr2 .orf .rw2 .raf .pef .srw .x3f .3fr .iiq .erf .kdc .dcr "
+    ".mrw .mef .mos .rwl .raw .gpr".split())
+DECODED_EXTENSIONS = frozenset(".exr .hdr .tif .tiff .png .jpg .jpeg".split())
+DEMOSAIC_RADIUS = 2  # AHD interpolates from a 5x5 neighbourhood: a clipped photosite taints pixels 2 away
+ROLLOFF = 0.1  # bracket weights fall linearly to 0 over the top 10 % below the saturation level
+HEADER_KEY = "sigrend:linearize"  # EXR attribute holding the recipe digest and manifest entry
+
+
+@dataclass(frozen=True)
+class Settings:
+    wb: str = setting("capture", "white balance applied to every image: 'capture' (capture.toml [white_balance], "
+                      "else 'camera'), 'camera' (as-shot WB of the first RAW image), 'r,g,b' multipliers, "
+                      "or 'gray:x0,y0,x1,y1' (gray card patch in the first image, pixels)")
+    saturation: float = setting(0.98, "fraction of the white level (RAW) or full scale (8/16-bit files) "
+                                "from which a pixel counts as saturated and is masked")
+    bracket_size: int = setting(0, "merge every N consecutive images (sorted by name) into one HDR bracket; "
+                                "0 = only the [brackets] of capture.toml")
+    workers: int = setting(0, "worker processes (0 = one per CPU core, 1 = serial)")
+
+    def validate(self) -> None:
+        parse_wb(self.wb)
+        if not 0.5 <= self.saturation <= 1.0:
+            raise UserError(f"--saturation {self.saturation}: must be in [0.5, 1]")
+        if self.bracket_size < 0 or self.bracket_size == 1:
+            raise UserError(f"--bracket-size {self.bracket_size}: use 0 (no automatic brackets) or >= 2")
+        if self.workers < 0:
+            raise UserError(f"--workers {self.workers}: must be >= 0")
+
+
+def parse_wb(text: str) -> tuple[str, tuple]:
+    """'capture' | 'camera' | 'r,g,b' | 'gray:x0,y0,x1,y1' -> (kind, values)."""
+    if text in ("capture", "camera"):
+        return text, ()
+    try:
+        if text.startswith("gray:"):
+            box = tuple(int(v) for v in text[5:].split(","))
+            if len(box) == 4 and box[2] > box[0] >= 0 and box[3] > box[1] >= 0:
+                return "gray", box
+        else:
+            mult = tuple(float(v) for v in text.split(","))
+            if len(mult) == 3 and all(np.isfinite(mult)) and min(mult) > 0:
+                return "multipliers", mult
+    except ValueError:
+        pass
+    raise UserError(f"--wb {text!r}: use 'capture', 'camera', three positive multipliers 'r,g,b', "
+                    "or 'gray:x0,y0,x1,y1' with x1 > x0 and y1 > y0")
+
+
+# ----------------------------------------------------------------------------------------------
+# Planning: which files, which outputs
+
+
+def list_images(capture: Path) -> list[Path]:
+    """Image files of ``capture/images`` sorted by name; UserError on an empty folder or unknown type."""
+    folder = Path(capture) / "images"
+    if not folder.is_dir():
+        raise UserError(f"{folder}: folder not found; put the photos in CAPTURE/images/")
+    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    for p in files:
+        if p.suffix.lower() not in RAW_EXTENSIONS | DECODED_EXTENSIONS:
+            raise UserError(f"{p}: unknown image type {p.suffix!r}; linearize reads RAW (DNG, CR2, NEF, ARW, ...), "
+                            "EXR, HDR, TIFF, PNG and JPEG: convert or remove the file")
+    if not files:
+        raise UserError(f"{folder}: no images; put the photos (RAW, EXR, TIFF, PNG or JPEG) in this folder")
+    return files
+
+
+def plan_groups(files: list[Path], config: CaptureConfig, bracket_size: int) -> dict[str, list[Path]]:
+    """Output key -> source files (one file, or the members of a bracket)."""
+    by_name = {p.name: p for p in files}
+    groups: dict[str, list[Path]] = {}
+    used: set[str] = set()
+    where = config.source or CAPTURE_TOML
+    for name, members in config.brackets.items():
+        for m in members:
+            if m not in by_name:
+                raise UserError(f"{where}: bracket {name!r} lists {m!r}, which is not in images/")
+            if m in used:
+                raise UserError(f"{where}: {m!r} appears in more than one bracket")
+            used.add(m)
+        groups[name] = [by_name[m] for m in members]
+    rest = [p for p in files if p.name not in used]
+    if bracket_size >= 2:
+        if len(rest) % bracket_size:
+            raise UserError(f"{len(rest)} images outside capture.toml brackets do not split into brackets of "
+                            f"{bracket_size}; fix --bracket-size or list the brackets in capture.toml")
+        chunks = [rest[i:i + bracket_size] for i in range(0, len(rest), bracket_size)]
+    else:
+        chunks = [[p] for p in rest]
+    for chunk in chunks:
+        key = chunk[0].stem
+        if key in groups:
+            other = groups[key][0].name
+            raise UserError(f"{chunk[0]}: output name {key!r} is already used by {other!r}; rename one of them")
+        groups[key] = chunk
+    return groups
+
+
+def _capture_files(capture: Path, config: CaptureConfig) -> list[Path]:
+    return [p for p in (config.source, config.camera, config.response, config.vignetting) if p is not None]
+
+
+def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    config = read_capture_config(capture)
+    return list_images(capture) + _capture_files(capture, config)
+
+
+def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    config = read_capture_config(capture)
+    keys = plan_groups(list_images(capture), config, settings.bracket_size)
+    folder = linear_dir(work)
+    return ([folder / f"{k}.exr" for k in keys] + [folder / "masks" / f"{k}.png" for k in keys]
+            + [manifest_path(work)])
+
+
+# ----------------------------------------------------------------------------------------------
+# Probing: header-only reads (size, exposure, white balance) of every file before any decoding
+
+
+def _rawpy():
+    import rawpy
+
+    return rawpy
+
+
+def _open_raw(path: Path):
+    rawpy = _rawpy()
+    try:
+        return rawpy.imread(str(path))
+    except (rawpy.LibRawError, rawpy.NotSupportedError, OSError) as exc:
+        raise UserError(f"{path}: LibRaw cannot read this RAW file ({type(exc).__name__}: {exc}); "
+                        "the file may be truncated or corrupt: copy it again from the card or remove it") from None
+
+
+def _raw_output_size(raw) -> tuple[int, int]:
+    s = raw.sizes
+    return (s.height, s.width) if s.flip in (5, 6) else (s.width, s.height)
+
+
+@dataclass
+class Probe:
+    path: Path
+    kind: str  # "raw" | "float" | "uint16" | "uint8"
+    width: int
+    height: int
+    exif: dict  # time, iso, fnumber (None when absent)
+    camera_wb: tuple[float, ...] | None = None
+
+
+def _first(meta: dict, *names):
+    for n in names:
+        v = meta.get(n)
+        if v is not None:
+            return float(v[0] if isinstance(v, (tuple, list)) else v)
+    return None
+
+
+def probe(path: Path) -> Probe:
+    """Size, pixel kind, EXIF exposure (and as-shot WB for RAW) without decoding the pixels."""
+    if path.suffix.lower() in RAW_EXTENSIONS:
+        with _open_raw(path) as raw:
+            w, h = _raw_output_size(raw)
+            other = raw.other
+            exif = {"time": other.shutter_speed or None, "iso": other.iso_speed or None,
+                    "fnumber": other.aperture or None}
+            wb = tuple(float(v) for v in raw.camera_whitebalance)
+            if not any(wb):
+                wb = tuple(float(v) for v in raw.daylight_whitebalance)
+            return Probe(path, "raw", w, h, exif, wb)
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise UserError(f"{path}: cannot read this image ({oiio.geterror().strip() or 'unknown format'}); "
+                        "check the file is complete and in a supported format")
+    try:
+        spec = inp.spec()
+        meta = {a.name: a.value for a in spec.extra_attribs}
+    finally:
+        inp.close()
+    base = spec.format.basetype
+    kind = ("uint8" if base in (oiio.UINT8, oiio.INT8) else
+            "uint16" if base in (oiio.UINT16, oiio.INT16) else "float")
+    exif = {"time": _first(meta, "ExposureTime"),
+            "iso": _first(meta, "Exif:PhotographicSensitivity", "Exif:ISOSpeedRatings"),
+            "fnumber": _first(meta, "FNumber")}
+    return Probe(path, kind, spec.width, spec.height, exif)
+
+
+def exposure_scales(probes: list[Probe], config: CaptureConfig) -> dict[str, dict]:
+    """Per file: t, ISO, N after capture.toml overrides, and scale = N^2 / (t ISO/100).
+
+    A factor absent from every file is equal for all (value None, factor 1, one warning); absent from
+    some files only -> UserError naming the first such file.  Zero or negative values -> UserError.
+    """
+    resolved = {}
+    for pr in probes:
+        over = config.exposure_for(pr.path.name)
+        vals = {k: getattr(over, k) if getattr(over, k) is not None else pr.exif[k] for k in ("time", "iso", "fnumber")}
+        for k, v in vals.items():
+            if v is not None and not (np.isfinite(v) and v > 0):
+                raise UserError(f"{pr.path}: EXIF {k} is {v}; give the true value in capture.toml "
+                                f'[exposure] "{pr.path.name}" = {{{k} = ...}}')
+        resolved[pr.path.name] = vals
+    labels = {"time": "exposure time", "iso": "ISO", "fnumber": "f-number"}
+    for k, label in labels.items():
+        missing = [pr.path for pr in probes if resolved[pr.path.name][k] is None]
+        if missing and len(missing) < len(probes):
+            raise UserError(f"{missing[0]}: no {label} in EXIF while other images have one; give it in capture.toml "
+                            f'[exposure] "{missing[0].name}" = {{{k} = ...}} (or a default for all)')
+        if missing:
+            warnings.warn(f"no {label} in any image's EXIF or capture.toml: assuming it is the same for every "
+                          "image", UserWarning, stacklevel=2)
+    out = {}
+    for name, v in resolved.items():
+        t, iso, n = v["time"] or 1.0, v["iso"] or 100.0, v["fnumber"] or 1.0
+        out[name] = {"exposure_time_s": v["time"], "iso": v["iso"], "f_number": v["fnumber"],
+                     "scale": n * n / (t * iso / 100.0)}
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Decoding one file -> (linear RGB before exposure scaling, valid mask, level for bracket weights, info)
+
+
+def _flip_like_libraw(mask: np.ndarray, flip: int) -> np.ndarray:
+    """Rotate a raw-orientation mask as LibRaw rotates the image (3: 180 deg, 5: 90 CCW, 6: 90 CW)."""
+    return {3: np.rot90(mask, 2), 5: np.rot90(mask, 1), 6: np.rot90(mask, -1)}.get(flip, mask)
+
+
+def decode_raw(path: Path, wb_multipliers: tuple[float, ...], saturation: float, *, camera_space: bool = False):
+    """LibRaw linear decode: (rgb float32 in [0, ~1], valid mask, level (H, W) in [0, 1], info dict).
+
+    ``wb_multipliers``: 3 or 4 raw-channel gains (dcraw/LibRaw order R, G, B, G2).
+    ``camera_space``: output the camera's raw RGB instead of sRGB (used to measure a gray card).
+    """
+    rawpy = _rawpy()
+    wb = list(wb_multipliers) + ([wb_multipliers[1]] if len(wb_multipliers) == 3 else [])
+    with _open_raw(path) as raw:
+        try:
+            visible = raw.raw_image_visible
+            white = raw.camera_white_level_per_channel
+            colors = raw.raw_colors_visible
+            black = [int(b) for b in raw.black_level_per_channel]
+            white_level = int(raw.white_level)
+            rgb16 = raw.postprocess(
+                gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=False, user_wb=wb,
+                highlight_mode=rawpy.HighlightMode.Clip, adjust_maximum_thr=0.0,
+                output_color=rawpy.ColorSpace.raw if camera_space else rawpy.ColorSpace.sRGB)
+            flip = raw.sizes.flip
+        except (rawpy.LibRawError, rawpy.NotSupportedError) as exc:
+            raise UserError(f"{path}: LibRaw cannot decode this RAW file ({type(exc).__name__}: {exc}); "
+                            "the file may be truncated or corrupt: copy it again or remove it") from None
+        # Saturation before demosaicing, per photosite against its channel's white level.
+        levels = np.asarray(white if white is not None and any(white) else [white_level] * 4, dtype=float)
+        clipped = visible >= saturation * levels[colors]
+        raw_max = int(visible.max())
+    from scipy.ndimage import binary_dilation
+
+    clipped = binary_dilation(clipped, structure=np.ones((2 * DEMOSAIC_RADIUS + 1,) * 2, bool))
+    clipped = _flip_like_libraw(clipped, flip)
+    if clipped.shape != rgb16.shape[:2]:
+        import cv2
+
+        clipped = cv2.resize(clipped.astype(np.uint8), rgb16.shape[1::-1], interpolation=cv2.INTER_NEAREST) > 0
+    clipped |= np.any(rgb16 >= 65535, axis=2)  # channels clipped by white balance or the colour matrix
+    rgb = rgb16.astype(np.float32) / 65535.0
+    info = {"black_level": black, "white_level": white_level, "raw_max": raw_max}
+    all_black = raw_max <= max(black)
+    return rgb, ~clipped, rgb.max(axis=2), info, all_black
+
+
+def decode_other(path: Path, kind: str, inverse_response: np.ndarray, saturation: float):
+    """OpenImageIO decode: (rgb linear float32, valid mask, level in [0, 1] or None, info, all_black)."""
+    img = read_image(path)
+    if img.shape[2] == 1 or img.shape[2] == 2:
+        img = np.repeat(img[:, :, :1], 3, axis=2)
+    rgb = img[:, :, :3]
+    info: dict = {}
+    if kind == "uint8":
+        codes = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.intp)
+        lin = np.stack([inverse_response[c][codes[:, :, c]] for c in range(3)], axis=2).astype(np.float32)
+        valid = np.all(codes < saturation * 255.0, axis=2)
+        info = {"black_level": 0, "white_level": 255}
+        return lin, valid, rgb.max(axis=2), info, int(codes.max()) == 0
+    valid = np.all(np.isfinite(rgb), axis=2)
+    if kind == "uint16":
+        valid &= np.all(rgb < saturation, axis=2)
+        info = {"black_level": 0, "white_level": 65535}
+        level = rgb.max(axis=2)
+    else:
+        level = None
+    if img.shape[2] == 4:
+        valid &= img[:, :, 3] > 0
+    all_black = not np.any(np.where(valid[:, :, None], rgb, 0) > 0)
+    return np.ascontiguousarray(rgb, dtype=np.float32), valid, level, info, all_black
+
+
+# ----------------------------------------------------------------------------------------------
+# One job (an output image): decode its files, scale, devignette, merge, write
+
+
+def _digest(job: dict) -> str:
+    return hashlib.sha1(json.dumps(job, sort_keys=True).encode()).hexdigest()
+
+
+def _read_header_entry(exr: Path) -> dict | None:
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(exr))
+    if inp is None:
+        oiio.geterror()
+        return None
+    try:
+        text = inp.spec().get_string_attribute(HEADER_KEY)
+    finally:
+        inp.close()
+    try:
+        return json.loads(text) if text else None
+    except json.JSONDecodeError:
+        return None
+
+
+def _fresh_entry(job: dict) -> dict | None:
+    """The manifest entry recorded in an existing, newer-than-its-inputs output with the same recipe."""
+    exr, mask = Path(job["exr"]), Path(job["mask"])
+    if not (exr.exists() and mask.exists()):
+        return None
+    newest = max(Path(p).stat().st_mtime for p in job["depends_on"])
+    if min(exr.stat().st_mtime, mask.stat().st_mtime) < newest:
+        return None
+    header = _read_header_entry(exr)
+    if not header or header.get("recipe") != _digest(job):
+        return None
+    return header["entry"]
+
+
+def linearize_job(job: dict) -> dict:
+    """Decode, normalize and (for brackets) merge the sources of one output; write EXR + mask.
+
+    Returns the manifest entry.  Runs in a worker process: everything it needs is in ``job``.
+    """
+    inverse = (read_response_json(job["response"]) if job["response"] else srgb_inverse_table())
+    gain = None
+    if job["vignetting"]:
+        gain = read_image(job["vignetting"])[:, :, :3]
+    rgb_gains = np.asarray(job["rgb_gains"], dtype=np.float32)
+    num = den = None
+    sources = []
+    for src in job["sources"]:
+        path = Path(src["path"])
+        if src["kind"] == "raw":
+            rgb, valid, level, info, all_black = decode_raw(path, job["raw_wb"], job["saturation"])
+        else:
+            rgb, valid, level, info, all_black = decode_other(path, src["kind"], inverse, job["saturation"])
+            rgb = rgb * rgb_gains
+        if all_black:
+            raise UserError(f"{path}: the image is entirely black; check the lens cap and exposure, or remove it")
+        if not valid.any():
+            raise UserError(f"{path}: every pixel is saturated; shoot it darker (or bracket it) or remove it")
+        if gain is not None:
+            if gain.shape[:2] != rgb.shape[:2]:
+                raise UserError(f"{job['vignetting']}: vignetting map is {gain.shape[1]}x{gain.shape[0]} but {path.name} "
+                                f"is {rgb.shape[1]}x{rgb.shape[0]}; calibrate vignetting with this camera's images")
+            rgb = rgb / gain
+        radiance = np.where(valid[:, :, None], rgb * np.float32(src["scale"]), 0.0).astype(np.float32)
+        # Weight: exposure (photon-noise SNR grows with it) x a roll-off below the clip level, > 0 where valid.
+        rolloff = np.ones(valid.shape, np.float32)
+        if level is not None:
+            sat_level = job["saturation"]
+            rolloff = np.clip((sat_level - level) / (ROLLOFF * sat_level), 1e-3, 1.0).astype(np.float32)
+        weight = np.where(valid, rolloff / np.float32(src["scale"]), 0.0).astype(np.float32)
+        num = radiance * weight[:, :, None] if num is None else num + radiance * weight[:, :, None]
+        den = weight if den is None else den + weight
+        sources.append({"file": path.name, "format": src["format"], "exposure_time_s": src["exposure_time_s"],
+                        "iso": src["iso"], "f_number": src["f_number"], "scale": src["scale"],
+                        "black_level": info.get("black_level"), "white_level": info.get("white_level"),
+                        "saturated_fraction": round(float(1.0 - valid.mean()), 6)})
+    valid = den > 0
+    merged = np.where(valid[:, :, None], num / np.where(valid, den, 1.0)[:, :, None], 0.0).astype(np.float32)
+    key = job["key"]
+    entry = {"exr": f"{key}.exr", "mask": f"masks/{key}.png", "width": int(merged.shape[1]),
+             "height": int(merged.shape[0]), "sources": sources, "white_balance": job["white_balance"],
+             "saturated_fraction": round(float(1.0 - valid.mean()), 6), "valid_fraction": round(float(valid.mean()), 6),
+             "vignetting": job["vignetting"], "response": job["response"] or "srgb"}
+    header = json.dumps({"recipe": _digest(job), "entry": entry})
+    write_image(job["mask"], valid.astype(np.float32), dtype="uint8")
+    write_image(job["exr"], merged, dtype="float", attributes={HEADER_KEY: header})
+    return entry
+
+
+# ----------------------------------------------------------------------------------------------
+# White balance policy: one set of gains for the whole capture
+
+
+def resolve_white_balance(settings: Settings, config: CaptureConfig, probes: list[Probe], inverse: np.ndarray,
+                          saturation: float) -> tuple[list[float], list[float], dict]:
+    """(raw-channel multipliers R,G,B,G2 for RAW files, RGB gains for decoded files, record for the manifest)."""
+    kind, values = parse_wb(settings.wb)
+    if kind == "capture":
+        if config.wb_multipliers:
+            kind, values = "multipliers", config.wb_multipliers
+        elif config.wb_gray_patch:
+            kind, values = "gray", config.wb_gray_patch
+        else:
+            kind = "camera"
+    raws = [p for p in probes if p.kind == "raw"]
+    if kind == "multipliers":
+        r, g, b = values
+        return [r, g, b, g], [r, g, b], {"policy": "multipliers", "multipliers": [r, g, b]}
+    if kind == "camera":
+        wb = list(raws[0].camera_wb) if raws else [1.0, 1.0, 1.0, 1.0]
+        if len(wb) == 4 and wb[3] == 0:
+            wb[3] = wb[1]
+        record = {"policy": "camera", "from": raws[0].path.name if raws else None, "raw_multipliers": wb,
+                  "decoded_files": "as encoded"}
+        return wb, [1.0, 1.0, 1.0], record
+    # gray card in the first image
+    first = probes[0]
+    if any((p.kind == "raw") != (first.kind == "raw") for p in probes):
+        raise UserError(f"{first.path}: gray-card white balance needs all images RAW or all decoded; "
+                        "give --wb r,g,b instead")
+    x0, y0, x1, y1 = values
+    if x1 > first.width or y1 > first.height:
+        raise UserError(f"{first.path}: gray patch {values} lies outside the {first.width}x{first.height} image")
+    if first.kind == "raw":
+        rgb, valid, _, _, _ = decode_raw(first.path, (1.0, 1.0, 1.0, 1.0), saturation, camera_space=True)
+    else:
+        rgb, valid, _, _, _ = decode_other(first.path, first.kind, inverse, saturation)
+    patch = rgb[y0:y1, x0:x1][valid[y0:y1, x0:x1]]
+    if len(patch) == 0 or np.any(patch.mean(axis=0) <= 0):
+        raise UserError(f"{first.path}: gray patch {values} is saturated or black; choose another patch")
+    mean = patch.mean(axis=0)
+    gains = [float(mean[1] / mean[0]), 1.0, float(mean[1] / mean[2])]
+    record = {"policy": "gray", "patch": list(values), "from": first.path.name, "multipliers": gains}
+    return gains + [1.0], gains, record
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+def _check_sizes(probes: list[Probe], config: CaptureConfig) -> None:
+    if config.camera is not None:
+        cam = read_camera_json(config.camera)
+        expected, source = (cam.width, cam.height), f"camera.json ({config.camera.name})"
+    else:
+        sizes = [(p.width, p.height) for p in probes]
+        expected = max(set(sizes), key=sizes.count)
+        source = "most images"
+    for p in probes:
+        if (p.width, p.height) != expected:
+            raise UserError(f"{p.path}: image is {p.width}x{p.height} but {source} {expected[0]}x{expected[1]}; "
+                            "all images of a capture must come from one camera at one size (remove or re-export it)")
+
+
+def build_jobs(capture: Path, work: Path, settings: Settings) -> list[dict]:
+    """Probe every file and describe each output as a picklable job (validates the whole capture first)."""
+    config = read_capture_config(capture)
+    files = list_images(capture)
+    groups = plan_groups(files, config, settings.bracket_size)
+    probes = [probe(p) for p in files]
+    _check_sizes(probes, config)
+    by_name = {p.path.name: p for p in probes}
+    exposure = exposure_scales(probes, config)
+    inverse = read_response_json(config.response) if config.response else srgb_inverse_table()
+    raw_wb, rgb_gains, wb_record = resolve_white_balance(settings, config, probes, inverse, settings.saturation)
+    extra = [str(p) for p in _capture_files(capture, config)]
+    folder = linear_dir(work)
+    jobs = []
+    for key, members in groups.items():
+        sources = []
+        for m in members:
+            pr = by_name[m.name]
+            fmt = "raw" if pr.kind == "raw" else m.suffix.lower().lstrip(".") + ("" if pr.kind == "float" else f"-{pr.kind}")
+            sources.append({"path": str(m), "kind": pr.kind, "format": fmt, **exposure[m.name]})
+        jobs.append({"key": key, "sources": sources, "exr": str(folder / f"{key}.exr"),
+                     "mask": str(folder / "masks" / f"{key}.png"), "saturation": settings.saturation,
+                     "raw_wb": raw_wb, "rgb_gains": rgb_gains, "white_balance": wb_record,
+                     "response": str(config.response) if config.response else None,
+                     "vignetting": str(config.vignetting) if config.vignetting else None,
+                     "settings": {k: v for k, v in settings_dict(settings).items() if k != "workers"},
+                     "depends_on": [str(m) for m in members] + extra})
+    return jobs
+
+
+def run_jobs(jobs: list[dict], workers: int) -> dict[str, dict]:
+    """Run ``linearize_job`` for every job not already fresh; serial or in a process pool, with a progress bar."""
+    from tqdm import tqdm
+
+    entries: dict[str, dict] = {}
+    todo = []
+    for job in jobs:
+        fresh = _fresh_entry(job)
+        if fresh is not None:
+            entries[job["key"]] = fresh
+        else:
+            todo.append(job)
+    workers = workers or os.cpu_count() or 1
+    bar = tqdm(total=len(todo), desc="linearize", unit="img", disable=None)
+    try:
+        if workers == 1 or len(todo) <= 1:
+            for job in todo:
+                entries[job["key"]] = linearize_job(job)
+                bar.update()
+        else:
+            with cf.ProcessPoolExecutor(max_workers=min(workers, len(todo))) as pool:
+                futures = {pool.submit(linearize_job, job): job["key"] for job in todo}
+                try:
+                    for fut in cf.as_completed(futures):
+                        entries[futures[fut]] = fut.result()
+                        bar.update()
+                except BaseException:
+                    pool.shutdown(wait=True, cancel_futures=True)
+                    raise
+    finally:
+        bar.close()
+    return entries
+
+
+def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    """Linearize every image of the capture; returns the written EXRs, masks and manifest.json."""
+    jobs = build_jobs(Path(capture), Path(work), settings)
+    entries = run_jobs(jobs, settings.workers)
+    manifest = write_manifest(work, entries)
+    return [Path(j["exr"]) for j in jobs] + [Path(j["mask"]) for j in jobs] + [manifest]
