@@ -3,22 +3,35 @@
 A stage module (``stages/<name>.py``) provides: ``Settings`` (frozen dataclass, fields with help),
 ``inputs(*, capture, work, settings) -> list[Path]``, ``outputs(*, capture, work, settings) ->
 list[Path]`` and ``run(*, capture, work, settings) -> list[Path]``.
+
+``sigrend run`` runs linearize -> poses -> samples -> fit -> relight with each stage's default
+settings, skipping fresh stages.  Every ``holdout``-th view (sorted image keys) is left out of the
+samples, and the fitted object is relit from those held-out views under the fitted lighting and
+compared with their photos (after the one global scale lighting and BRDF share): the honest
+accuracy number of the run.  ``--relight ENV`` adds renders under new lighting.  The run's stage
+table is written to WORK/run.json and the report to WORK/report.html.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib
+import json
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
 from pipeline.errors import UserError
-from pipeline.settings import add_settings_arguments, settings_from_args
-from pipeline.workdir import is_fresh, record_settings
+from pipeline.settings import add_settings_arguments, make_settings, settings_from_args
+from pipeline.workdir import is_fresh, record_settings, write_json
 
-HELP = "Run the whole pipeline on a capture folder (linearize, poses, samples, fit, relight)."
+HELP = "Run the whole pipeline on a capture folder (linearize, poses, samples, fit, relight) and write the report."
+
+STAGES = ("linearize", "poses", "samples", "fit", "relight")
+HOLDOUT_FIELD = "holdout"  # samples.Settings field naming the image keys to leave out
 
 
 def default_work(capture: Path) -> Path:
@@ -42,24 +55,34 @@ class StageResult:
     skipped: bool
 
 
-def run_stage(name: str, *, capture: Path, work: Path, settings, force: bool = False) -> StageResult:
-    """Run stage ``name`` unless its outputs are fresh (see pipeline.workdir.is_fresh)."""
+def run_stage(name: str, *, capture: Path, work: Path, settings, force: bool = False,
+              record: str | None = None) -> StageResult:
+    """Run stage ``name`` unless its outputs are fresh (see pipeline.workdir.is_fresh).
+
+    ``record``: the name its settings are recorded under (default ``name``): a stage run several
+    times with different settings (relight under several lightings) keeps one record per run.
+    """
     module = importlib.import_module(f"stages.{name}")
+    record = record or name
     capture, work = Path(capture), Path(work)
     check_capture(capture)
     work.mkdir(parents=True, exist_ok=True)
     kwargs = dict(capture=capture, work=work, settings=settings)
     extra = {"capture": str(capture.resolve())}
     start = time.perf_counter()
-    if not force and is_fresh(work, name, settings, module.inputs(**kwargs), module.outputs(**kwargs), extra):
-        return StageResult(name, list(module.outputs(**kwargs)), time.perf_counter() - start, True)
+    if not force and is_fresh(work, record, settings, module.inputs(**kwargs), module.outputs(**kwargs), extra):
+        return StageResult(record, list(module.outputs(**kwargs)), time.perf_counter() - start, True)
     written = module.run(**kwargs)
-    record_settings(work, name, settings, extra)
-    return StageResult(name, list(written), time.perf_counter() - start, False)
+    record_settings(work, record, settings, extra)
+    return StageResult(record, list(written), time.perf_counter() - start, False)
 
 
 def stage_command(name: str) -> SimpleNamespace:
-    """CLI glue for stage ``name``: ``sigrend NAME CAPTURE [-w WORK] [--force] [--<setting> ...]``."""
+    """CLI glue for stage ``name``: ``sigrend NAME CAPTURE [-w WORK] [--force] [--<setting> ...]``.
+
+    A stage module may define ``add_arguments(parser)`` for extra short options (e.g. ``-o``); they
+    must use the ``dest`` of a Settings field.
+    """
     module = importlib.import_module(f"stages.{name}")
 
     def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -67,6 +90,9 @@ def stage_command(name: str) -> SimpleNamespace:
         parser.add_argument("-w", "--work", type=Path, default=None, help="work folder (default: <capture>-work)")
         parser.add_argument("--force", action="store_true", help="run even if the outputs are fresh")
         add_settings_arguments(parser, module.Settings)
+        hook = getattr(module, "add_arguments", None)
+        if hook is not None:
+            hook(parser)
 
     def main(args: argparse.Namespace) -> int:
         settings = settings_from_args(module.Settings, args)
@@ -82,10 +108,181 @@ def stage_command(name: str) -> SimpleNamespace:
     return SimpleNamespace(HELP=doc, add_arguments=add_arguments, main=main)
 
 
+# --------------------------------------------------------------------------------------- sigrend run
+
+def image_keys(capture: Path, work: Path) -> list[str]:
+    """Sorted image keys of the capture's posed views (WORK/poses.json, else CAPTURE/poses.json)."""
+    from pipeline.io.poses import read_poses
+
+    for path in (Path(work) / "poses.json", Path(capture) / "poses.json"):
+        if path.exists():
+            return sorted(read_poses(path).images)
+    raise UserError(f"no poses in {work} or {capture}; run the poses stage first (sigrend run --from poses)")
+
+
+def heldout_keys(keys: list[str], every: int) -> list[str]:
+    """Every ``every``-th key (the 4th, 8th, ... for every = 4); none when every = 0 or too few views."""
+    if every <= 0 or len(keys) < 2 * every:
+        return []
+    return keys[every - 1::every]
+
+
+def stage_settings(name: str, **values):
+    """Default settings of stage ``name``, with ``values`` for fields it has (others are dropped)."""
+    module = importlib.import_module(f"stages.{name}")
+    fields = {f.name for f in dataclasses.fields(module.Settings)}
+    return make_settings(module.Settings, **{k: v for k, v in values.items() if k in fields})
+
+
+def supports_holdout() -> bool:
+    module = importlib.import_module("stages.samples")
+    return HOLDOUT_FIELD in {f.name for f in dataclasses.fields(module.Settings)}
+
+
+@dataclass
+class RunPlan:
+    capture: Path
+    work: Path
+    first: str
+    last: str
+    force: bool
+    holdout: int
+    relight_envs: list[str]
+
+
+def _stage_range(first: str, last: str) -> list[str]:
+    i, j = STAGES.index(first), STAGES.index(last)
+    if i > j:
+        raise UserError(f"--from {first} comes after --to {last}; the order is {' -> '.join(STAGES)}")
+    return list(STAGES[i:j + 1])
+
+
+def run_pipeline(plan: RunPlan, progress: bool = True) -> list[StageResult]:
+    """Run the stages of ``plan`` in order; returns one StageResult per stage run (or skipped).
+
+    The held-out keys are chosen once the poses are known and passed to the samples stage;
+    relight renders the held-out views under the fitted lighting with --compare, then once per
+    ``--relight`` environment from the capture's views.
+    """
+    from tqdm import tqdm
+
+    names = _stage_range(plan.first, plan.last)
+    results: list[StageResult] = []
+    common = dict(capture=plan.capture, work=plan.work)
+    bar = tqdm(names, desc="sigrend run", unit="stage", file=sys.stderr, disable=not progress)
+    for name in bar:
+        bar.set_postfix_str(name)
+        if name == "samples" and supports_holdout():
+            held = heldout_keys(image_keys(plan.capture, plan.work), plan.holdout)
+            settings = stage_settings("samples", **{HOLDOUT_FIELD: tuple(held)})
+            results.append(run_stage("samples", settings=settings, force=plan.force, **common))
+        elif name == "relight":
+            results.extend(_relight_runs(plan))
+        else:
+            results.append(run_stage(name, settings=stage_settings(name), force=plan.force, **common))
+    return results
+
+
+def _relight_runs(plan: RunPlan) -> list[StageResult]:
+    results = []
+    common = dict(capture=plan.capture, work=plan.work, force=plan.force)
+    held = _samples_holdout(plan.work)
+    views = "heldout" if held else "capture"
+    settings = stage_settings("relight", views=views, compare=True, out_dir=str(Path(plan.work) / "relight" / "check"))
+    results.append(run_stage("relight", settings=settings, record="relight-check", **common))
+    for env in plan.relight_envs:
+        out = Path(plan.work) / "relight" / Path(env).stem
+        settings = stage_settings("relight", env=str(Path(env).resolve()), views="capture", out_dir=str(out))
+        results.append(run_stage("relight", settings=settings, record=f"relight-{Path(env).stem}", **common))
+    return results
+
+
+def _samples_holdout(work: Path) -> list[str]:
+    """The keys the samples stage actually held out (its meta), [] when none or unknown."""
+    from pipeline.io.samples import read_samples_meta
+
+    path = Path(work) / "samples.npz"
+    if not path.exists():
+        return []
+    return [str(k) for k in (read_samples_meta(path).get(HOLDOUT_FIELD) or [])]
+
+
+def relight_check(work: Path) -> dict | None:
+    """The relight comparison written by the run (WORK/relight/check/relight.json 'compare'), if any."""
+    path = Path(work) / "relight" / "check" / "relight.json"
+    if not path.exists():
+        return None
+    doc = json.loads(path.read_text())
+    check = doc.get("compare")
+    if check is not None:
+        check = dict(check, heldout=bool(_samples_holdout(work)))
+    return check
+
+
+def stage_table(results: list[StageResult]) -> str:
+    """The closing table: stage, status, seconds, number of outputs."""
+    lines = [f"{'stage':<16} {'status':<8} {'seconds':>8} {'outputs':>8}"]
+    for r in results:
+        lines.append(f"{r.name:<16} {'skipped' if r.skipped else 'ran':<8} {r.seconds:>8.1f} {len(r.outputs):>8d}")
+    lines.append(f"{'total':<16} {'':<8} {sum(r.seconds for r in results):>8.1f}")
+    return "\n".join(lines)
+
+
+def summary_lines(work: Path) -> list[str]:
+    """What the run found: fitted model (fit/report.json) and the relight error on held-out views."""
+    lines = []
+    report = Path(work) / "fit" / "report.json"
+    if report.exists():
+        try:
+            doc = json.loads(report.read_text())
+        except json.JSONDecodeError:
+            doc = {}
+        chosen = {k: doc[k] for k in ("mode", "model", "order", "brdf_model", "sh_order") if k in doc}
+        if chosen:
+            lines.append("fit: " + ", ".join(f"{k} {v}" for k, v in chosen.items()))
+    check = relight_check(work)
+    if check is not None:
+        which = "held-out views" if check["heldout"] else "training views (nothing held out)"
+        scale = f" after one global scale {check['scale']:.3g}" if check.get("scale_fitted") else ""
+        lines.append(f"relight error on {len(check['views'])} {which}: "
+                     f"{100 * check['relative_error']:.2f}% (relative RMS{scale})")
+    return lines
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("capture", type=Path, help="capture folder")
+    parser.add_argument("capture", type=Path, help="capture folder (images/, mesh, optional capture.toml, poses.json)")
     parser.add_argument("-w", "--work", type=Path, default=None, help="work folder (default: <capture>-work)")
+    parser.add_argument("--relight", metavar="ENV", nargs="+", default=[],
+                        help="also relight the capture's views under these environments (equirect EXR or "
+                             "lighting_sh.json); renders go to WORK/relight/<env name>/")
+    parser.add_argument("--from", dest="first", choices=STAGES, default=STAGES[0], help="first stage to run")
+    parser.add_argument("--to", dest="last", choices=STAGES, default=STAGES[-1], help="last stage to run")
+    parser.add_argument("--force", action="store_true", help="run the stages even if their outputs are fresh")
+    parser.add_argument("--holdout", type=int, default=4, metavar="N",
+                        help="leave every N-th view out of the fit and report the relight error on them (0: none)")
+    parser.add_argument("--no-report", dest="report", action="store_false", help="do not write WORK/report.html")
 
 
 def main(args: argparse.Namespace) -> int:
-    raise UserError("`sigrend run` is not built yet; run the stages one by one (see sigrend --help)")
+    capture = check_capture(args.capture)
+    work = Path(args.work or default_work(capture))
+    if args.holdout < 0:
+        raise UserError(f"--holdout {args.holdout}: give N >= 0 (every N-th view held out; 0 = none)")
+    for env in args.relight:
+        if not Path(env).is_file():
+            raise UserError(f"--relight {env}: file not found; give an equirect EXR or a lighting_sh.json")
+    plan = RunPlan(capture, work, args.first, args.last, args.force, args.holdout, list(args.relight))
+    started = time.perf_counter()
+    results = run_pipeline(plan)
+    table = stage_table(results)
+    write_json(work / "run.json", {"capture": str(capture.resolve()), "stages": [
+        {"name": r.name, "skipped": r.skipped, "seconds": r.seconds, "outputs": [str(p) for p in r.outputs]}
+        for r in results], "total_seconds": time.perf_counter() - started})
+    print(table)
+    for line in summary_lines(work):
+        print(line)
+    if args.report:
+        from pipeline.report import write_report
+
+        print(f"report: {write_report(capture, work)}")
+    return 0

@@ -1,0 +1,321 @@
+"""WORK/report.html: one self-contained page (PNGs embedded as base64) about a capture's run.
+
+Sections, each shown when the stage that feeds it has run: summary and stage timings
+(WORK/run.json), photos and masks (WORK/linear/), cameras (a 3D plot of the camera centres and
+viewing directions around the mesh's bounding box), sample coverage (WORK/samples_coverage.png),
+the fitted lighting (equirect map + spheres rendered under it) beside the fit's own plots
+(per-band spectrum and recoverability), the BRDF, relit vs photo with error maps on the held-out
+views (WORK/relight/check/), and the settings every stage ran with.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.workdir import write_text
+
+MAX_PHOTOS = 12
+THUMB_PX = 160
+
+
+def _figure():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _fig_png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    _figure().close(fig)
+    return buf.getvalue()
+
+
+def _img_tag(png: bytes, alt: str, width: int | None = None) -> str:
+    size = f' width="{width}"' if width else ""
+    data = base64.b64encode(png).decode("ascii")
+    return f'<img src="data:image/png;base64,{data}" alt="{html.escape(alt)}"{size}>'
+
+
+def _file_tag(path: Path, alt: str, width: int | None = None) -> str:
+    return _img_tag(Path(path).read_bytes(), alt, width) if Path(path).exists() else ""
+
+
+def _array_png(rgb: np.ndarray) -> bytes:
+    """8-bit PNG bytes of an sRGB-encoded [0, 1] (H, W, 3) array (matplotlib's writer, no figure)."""
+    plt = _figure()
+    buf = io.BytesIO()
+    plt.imsave(buf, np.clip(rgb, 0, 1), format="png")
+    return buf.getvalue()
+
+
+def _tonemap(linear: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    from stages.relight import preview_exposure, srgb_encode
+
+    rgb = np.asarray(linear, float)[..., :3]
+    m = mask if mask is not None else np.ones(rgb.shape[:2], bool)
+    return srgb_encode(rgb * preview_exposure(rgb, m))
+
+
+def _thumb(img: np.ndarray) -> np.ndarray:
+    """Nearest-neighbour downscale so the longer side is at most THUMB_PX."""
+    step = max(1, int(np.ceil(max(img.shape[:2]) / THUMB_PX)))
+    return img[::step, ::step]
+
+
+def _section(title: str, body: str) -> str:
+    return f"<section><h2>{html.escape(title)}</h2>\n{body}\n</section>\n"
+
+
+def _missing(what: str) -> str:
+    return f'<p class="missing">{html.escape(what)}</p>'
+
+
+def _json(path: Path) -> dict | None:
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+
+
+# --------------------------------------------------------------------------------------- sections
+
+def _summary(capture: Path, work: Path) -> str:
+    from pipeline.runner import stage_table, summary_lines, StageResult
+
+    parts = [f"<p>capture <code>{html.escape(str(Path(capture).resolve()))}</code>, "
+             f"work folder <code>{html.escape(str(Path(work).resolve()))}</code></p>"]
+    lines = summary_lines(work)
+    if lines:
+        parts.append("<ul>" + "".join(f"<li>{html.escape(s)}</li>" for s in lines) + "</ul>")
+    run = _json(Path(work) / "run.json")
+    if run:
+        results = [StageResult(s["name"], s["outputs"], s["seconds"], s["skipped"]) for s in run["stages"]]
+        parts.append("<h3>Stage timings</h3><pre>" + html.escape(stage_table(results)) + "</pre>")
+    return _section("Summary", "\n".join(parts))
+
+
+def _photos(capture: Path, work: Path) -> str:
+    from pipeline.io.images import read_image
+
+    linear = Path(work) / "linear"
+    exrs = sorted(p for p in linear.glob("*.exr") if not p.name.startswith("."))[:MAX_PHOTOS] if linear.is_dir() else []
+    if not exrs:
+        return _section("Photos and masks", _missing("no linear images yet (linearize has not run)"))
+    cells = []
+    for exr in exrs:
+        img = _thumb(read_image(exr))
+        tag = _img_tag(_array_png(_tonemap(img)), exr.name)
+        mask_file = linear / "masks" / f"{exr.stem}.png"
+        mask_tag = ""
+        if mask_file.exists():
+            mask = _thumb(read_image(mask_file))[..., 0]
+            mask_tag = _img_tag(_array_png(np.repeat(mask[..., None], 3, axis=2)), f"mask {exr.name}")
+        cells.append(f'<figure>{tag}{mask_tag}<figcaption>{html.escape(exr.stem)}</figcaption></figure>')
+    note = "<p>Linear photos (tone-mapped for display) and their validity masks (white = used).</p>"
+    return _section("Photos and masks", note + '<div class="grid">' + "".join(cells) + "</div>")
+
+
+def camera_plot(poses, bounds: np.ndarray | None, heldout: list[str]) -> bytes:
+    """PNG: camera centres (held-out ones in orange) with viewing directions, and the mesh's bounding box."""
+    from pipeline.core.camera import camera_center
+
+    plt = _figure()
+    fig = plt.figure(figsize=(5.5, 5))
+    ax = fig.add_subplot(projection="3d")
+    centres = np.array([camera_center(p.R, p.t) for p in poses.images.values()])
+    axes = np.array([p.R[2] for p in poses.images.values()])  # +Z_cam in world = viewing direction
+    span = float(np.ptp(centres, axis=0).max()) if len(centres) > 1 else 1.0
+    held = np.array([k in heldout for k in poses.images])
+    for sel, colour, label in ((~held, "tab:blue", "fit views"), (held, "tab:orange", "held-out views")):
+        if sel.any():
+            ax.scatter(*centres[sel].T, color=colour, label=label, s=18)
+            ax.quiver(*centres[sel].T, *(axes[sel] * 0.15 * span).T, color=colour, linewidth=0.8)
+    if bounds is not None:
+        lo, hi = bounds
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        for i in range(8):
+            for j in range(i + 1, 8):
+                if np.sum(corners[i] != corners[j]) == 1:
+                    ax.plot(*corners[[i, j]].T, color="k", linewidth=0.8)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_zlabel("z (m)")
+    ax.set_aspect("equal")
+    ax.legend(loc="upper left", fontsize=8)
+    ax.set_title("cameras (object frame, +Z up) and mesh bounding box", fontsize=9)
+    return _fig_png(fig)
+
+
+def _cameras(capture: Path, work: Path) -> str:
+    from pipeline.io.poses import read_poses
+    from pipeline.runner import _samples_holdout
+
+    path = next((p for p in (Path(work) / "poses.json", Path(capture) / "poses.json") if p.exists()), None)
+    if path is None:
+        return _section("Cameras", _missing("no poses yet (the poses stage has not run)"))
+    poses = read_poses(path)
+    bounds = None
+    try:
+        from stages.samples import load_mesh, mesh_path
+
+        bounds = load_mesh(mesh_path(capture)).bounds
+    except Exception:  # the report shows what it can; a bad mesh is reported by the stages
+        bounds = None
+    summary = _json(Path(work) / "poses_summary.json") or {}
+    text = f"<p>{len(poses.images)} views from <code>{html.escape(str(path))}</code>.</p>"
+    if summary:
+        text += "<pre>" + html.escape(json.dumps(summary, indent=1)[:2000]) + "</pre>"
+    return _section("Cameras", text + _img_tag(camera_plot(poses, bounds, _samples_holdout(work)), "cameras"))
+
+
+def _coverage(work: Path) -> str:
+    png = Path(work) / "samples_coverage.png"
+    summary = _json(Path(work) / "samples_summary.json")
+    body = _file_tag(png, "sample coverage") or _missing("no samples yet (the samples stage has not run)")
+    if summary:
+        keep = {k: summary[k] for k in ("count", "drops", "coverage", "holdout") if k in summary}
+        body += "<pre>" + html.escape(json.dumps(keep, indent=1)[:3000]) + "</pre>"
+    return _section("Sample coverage", body)
+
+
+def sphere_renders(coeffs: np.ndarray, brdf: dict | None, size: int = 128) -> bytes:
+    """PNG: orthographic spheres seen from +Y under SH lighting ``coeffs`` (one panel each):
+    a mirror sphere (the lighting itself), a white Lambertian sphere, and the fitted BRDF."""
+    from pipeline.core.sh import sh_evaluate
+    from pipeline.core.transfer import irradiance_from_sh
+    from stages.relight import srgb_encode
+
+    # orthographic view along -Y (camera on +Y looking at the origin): image x -> world x, image up -> +Z
+    u = (np.arange(size) + 0.5) / size * 2 - 1
+    x, z = np.meshgrid(u, -u)
+    inside = x * x + z * z < 1
+    y = np.sqrt(np.clip(1 - x * x - z * z, 0, 1))
+    normal = np.stack([x, y, z], axis=-1)[inside]
+    view = np.broadcast_to([0.0, 1.0, 0.0], normal.shape)
+    r = 2 * np.sum(normal * view, axis=1, keepdims=True) * normal - view
+    panels = {"mirror sphere (lighting)": sh_evaluate(coeffs, r),
+              "white Lambertian sphere": irradiance_from_sh(coeffs, normal) / np.pi}
+    if brdf is not None:
+        from stages.relight import Lighting
+
+        lighting = Lighting(brdf, coeffs=coeffs)  # the same forward model as relight
+        panels["fitted BRDF"] = lighting.radiance(normal, np.array(view), np.asarray(brdf["albedo"], float))
+    plt = _figure()
+    fig, axes = plt.subplots(1, len(panels), figsize=(3 * len(panels), 3.1))
+    for ax, (title, values) in zip(np.atleast_1d(axes), panels.items()):
+        img = np.zeros((size, size, 3))
+        img[inside] = values
+        top = np.percentile(img[inside].max(axis=1), 99)
+        ax.imshow(srgb_encode(img * (0.9 / top if top > 0 else 1.0)))
+        ax.set_title(title, fontsize=9)
+        ax.axis("off")
+    return _fig_png(fig)
+
+
+def _lighting(work: Path) -> str:
+    from pipeline.io.brdf import read_brdf
+    from pipeline.io.images import read_image
+    from pipeline.io.lighting import read_lighting_sh
+
+    fit = Path(work) / "fit"
+    sh_file = fit / "lighting_sh.json"
+    if not sh_file.exists():
+        return _section("Fitted lighting", _missing("no fitted lighting yet (the fit stage has not run)"))
+    parts = []
+    if (fit / "lighting.exr").exists():
+        env = read_image(fit / "lighting.exr")
+        parts.append("<h3>Equirect map (DESIGN.md convention, row 0 = zenith)</h3>"
+                     + _img_tag(_array_png(_tonemap(env)), "fitted lighting", 512))
+    coeffs = read_lighting_sh(sh_file)
+    brdf = read_brdf(fit / "brdf.json") if (fit / "brdf.json").exists() else None
+    parts.append("<h3>Spheres under the fitted lighting</h3>" + _img_tag(sphere_renders(coeffs, brdf), "spheres"))
+    plots = sorted(p for p in fit.glob("*.png") if not p.name.startswith("."))
+    if plots:
+        parts.append("<h3>Fit diagnostics (per-band spectrum, recoverability, residuals)</h3>"
+                     + "".join(f"<figure>{_file_tag(p, p.stem)}<figcaption>{html.escape(p.name)}</figcaption></figure>"
+                               for p in plots))
+    return _section("Fitted lighting", "\n".join(parts))
+
+
+def _brdf(work: Path) -> str:
+    fit = Path(work) / "fit"
+    brdf = _json(fit / "brdf.json")
+    if brdf is None:
+        return _section("BRDF", _missing("no fitted BRDF yet (the fit stage has not run)"))
+    rows = "".join(f"<tr><td>{html.escape(str(k))}</td><td>{html.escape(json.dumps(v))}</td></tr>" for k, v in brdf.items())
+    body = f"<table>{rows}</table>"
+    report = _json(fit / "report.json")
+    if report:
+        body += ("<details><summary>fit/report.json</summary><pre>"
+                 + html.escape(json.dumps(report, indent=1)[:20000]) + "</pre></details>")
+    return _section("BRDF", body)
+
+
+def _relight(work: Path) -> str:
+    from pipeline.runner import relight_check
+
+    folder = Path(work) / "relight" / "check"
+    check = relight_check(work)
+    if check is None:
+        return _section("Relit vs photo", _missing("no relight comparison yet (the relight stage has not run)"))
+    which = "held-out views (not used by the fit)" if check["heldout"] else "training views (no view was held out)"
+    head = (f"<p>{len(check['views'])} {which}: relative RMS error <b>{100 * check['relative_error']:.2f}%</b>"
+            + (f" after one global scale {check['scale']:.4g}" if check.get("scale_fitted") else "")
+            + f"; error maps show |relit − photo| / mean photo from 0 (black) to "
+              f"{100 * check.get('error_map_range', 0.2):.0f}% (white).</p>")
+    cells = []
+    for key, entry in check["views"].items():
+        stem = Path(key).stem
+        imgs = "".join(_file_tag(folder / f"{stem}{suffix}.png", f"{stem}{suffix}", THUMB_PX)
+                       for suffix in ("_photo", "", "_error"))
+        cells.append(f"<figure>{imgs}<figcaption>{html.escape(key)}: photo | relit | error — "
+                     f"{100 * entry['relative_error']:.2f}%</figcaption></figure>")
+    extra = []
+    for sub in sorted(p for p in (Path(work) / "relight").iterdir() if p.is_dir() and p.name != "check"):
+        pngs = sorted(p for p in sub.glob("*.png") if not p.name.startswith("."))[:MAX_PHOTOS]
+        if pngs:
+            extra.append(f"<h3>Relit under {html.escape(sub.name)}</h3>"
+                         + "".join(_file_tag(p, p.stem, THUMB_PX) for p in pngs))
+    return _section("Relit vs photo", head + "".join(cells) + "".join(extra))
+
+
+def _settings(work: Path) -> str:
+    files = sorted(Path(work).glob("*.settings.json"))
+    if not files:
+        return ""
+    body = "".join(f"<details><summary>{html.escape(p.name)}</summary><pre>"
+                   f"{html.escape(p.read_text())}</pre></details>" for p in files)
+    return _section("Settings", body)
+
+
+STYLE = """body{font-family:sans-serif;max-width:1100px;margin:1em auto;padding:0 1em;color:#222}
+h2{border-bottom:1px solid #ccc;margin-top:1.5em}figure{display:inline-block;margin:4px;text-align:center}
+figcaption{font-size:12px}.missing{color:#999;font-style:italic}table{border-collapse:collapse}
+td{border:1px solid #ddd;padding:2px 8px;font-family:monospace}pre{background:#f6f6f6;padding:6px;overflow-x:auto}
+.grid figure img{display:block}"""
+
+
+def build_report(capture: Path, work: Path) -> str:
+    """The report as one HTML string (no external references)."""
+    capture, work = Path(capture), Path(work)
+    sections = [_summary(capture, work), _photos(capture, work), _cameras(capture, work), _coverage(work),
+                _lighting(work), _brdf(work), _relight(work), _settings(work)]
+    return ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>sigrend report: "
+            f"{html.escape(Path(capture).name)}</title><style>{STYLE}</style></head><body>\n"
+            f"<h1>sigrend report: {html.escape(Path(capture).resolve().name)}</h1>\n"
+            + "".join(sections) + "</body></html>\n")
+
+
+def write_report(capture: Path, work: Path) -> Path:
+    """Write WORK/report.html atomically and return its path."""
+    return write_text(Path(work) / "report.html", build_report(capture, work))
