@@ -125,14 +125,21 @@ def _camera_group_key(path: Path) -> tuple:
 # 8-bit copies for COLMAP and board detection
 
 
-def tone_map(linear: np.ndarray) -> np.ndarray:
-    """Linear float RGB -> 8-bit sRGB: the 99th luminance percentile maps to white (per image)."""
+def tone_map(linear: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """Linear float RGB -> 8-bit sRGB for feature detection (not for measurement).
+
+    The 99th percentile of the valid pixels' mean RGB maps to white; invalid pixels (``valid``
+    False: saturated or missing) become white, which is what a saturated pixel looked like.
+    """
     rgb = np.asarray(linear, np.float32)[..., :3]
     if rgb.shape[-1] == 1:
         rgb = np.repeat(rgb, 3, axis=-1)
-    rgb = np.nan_to_num(np.maximum(rgb, 0.0))
-    white = float(np.percentile(rgb.mean(axis=-1), 99.0))
+    finite = np.all(np.isfinite(rgb), axis=-1)
+    valid = finite if valid is None else (np.asarray(valid, bool) & finite)
+    rgb = np.where(finite[..., None], np.maximum(rgb, 0.0), 0.0)
+    white = float(np.percentile(rgb[valid].mean(axis=-1), 99.0)) if valid.any() else 1.0
     x = np.clip(rgb / (white if white > 0 else 1.0), 0.0, 1.0)
+    x[~valid] = 1.0
     srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)  # IEC 61966-2-1
     return np.round(srgb * 255).astype(np.uint8)
 
@@ -164,7 +171,7 @@ def load_8bit_for_colmap(capture: Path, work: Path, key: str) -> np.ndarray:
     else made from the capture's file (so the pixels match what later stages read)."""
     if manifest_path(work).exists():
         rgb, valid = read_linear_image(work, key)
-        return tone_map(np.where(valid[..., None], rgb, 0.0))
+        return tone_map(rgb, valid)
     return load_8bit(Path(capture) / "images" / key)
 
 

@@ -298,3 +298,18 @@ def test_board_detection_uses_colmap_pixel_convention():
     # sub-pixel corner refinement on a 4x supersampled render: ~0.1 px per corner, unbiased
     assert np.abs(offsets.mean(axis=0)).max() < 0.1
     assert np.sqrt((offsets**2).sum(axis=1).mean()) < 0.3
+
+
+def test_tone_map_keeps_saturated_pixels_white():
+    """Linearize masks clipped pixels (their value is undefined): the 8-bit copy must show them white,
+    as the photo did, or the board's white squares vanish; the valid 99th percentile maps to 255."""
+    linear = np.full((10, 10, 3), 0.2, np.float32)
+    linear[:5] = 0.05
+    valid = np.ones((10, 10), bool)
+    valid[0, :3] = False
+    linear[0, :3] = 0.0  # what an undefined clipped value may hold
+    out = stage.tone_map(linear, valid)
+    assert (out[0, :3] == 255).all()
+    assert (out[9] == 255).all()  # 0.2 is the 99th percentile of the valid pixels
+    # 0.05 / 0.2 = 0.25 linear -> sRGB 0.537 (IEC 61966-2-1) -> 137
+    assert (out[1:5] == 137).all()
