@@ -313,3 +313,23 @@ def test_tone_map_keeps_saturated_pixels_white():
     assert (out[9] == 255).all()  # 0.2 is the 99th percentile of the valid pixels
     # 0.05 / 0.2 = 0.25 linear -> sRGB 0.537 (IEC 61966-2-1) -> 137
     assert (out[1:5] == 137).all()
+
+
+def test_calibrated_camera_is_kept_fixed(tmp_path, capture_dir):
+    """capture.toml names a camera.json: COLMAP keeps those intrinsics exactly and poses stay accurate."""
+    from pipeline.io.camera_json import write_camera_json
+
+    capture = tmp_path / "calibrated"
+    shutil.copytree(capture_dir / "images", capture / "images")
+    gt = read_poses(capture_dir / "gt" / "poses.json")
+    write_camera_json(capture / "camera.json", gt.cameras["cam0"])
+    (capture / "capture.toml").write_text((capture_dir / "capture.toml").read_text()
+                                          + '\n[camera]\npath = "camera.json"\n')
+    work = tmp_path / "work"
+    stage.run(capture=capture, work=work, settings=make_settings(stage.Settings))
+    est = read_poses(work / "poses.json")
+    assert list(est.cameras.values()) == [gt.cameras["cam0"]]
+    rot, cen = pose_errors(gt, est)
+    assert rot.max() < 0.2
+    assert cen.max() < 0.005
+    assert json.loads((work / "poses_summary.json").read_text())["intrinsics"] == "calibrated (fixed)"
