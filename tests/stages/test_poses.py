@@ -333,3 +333,27 @@ def test_calibrated_camera_is_kept_fixed(tmp_path, capture_dir):
     assert rot.max() < 0.2
     assert cen.max() < 0.005
     assert json.loads((work / "poses_summary.json").read_text())["intrinsics"] == "calibrated (fixed)"
+
+
+def test_two_physical_cameras_get_one_camera_each(tmp_path):
+    """Photos from two cameras (different size and focal length): two COLMAP cameras, not one per photo."""
+    a, b = tmp_path / "a", tmp_path / "b"
+    gt_a = make_capture(a, n_views=12, seed=5)
+    gt_b = make_capture(b, n_views=12, seed=5, size=(360, 270), focal=330.0)  # same scene (same seed)
+    capture = tmp_path / "mixed"
+    shutil.copytree(a, capture)
+    for i, key in enumerate(sorted(gt_b.images)):
+        if i % 2:  # odd views replaced by camera b
+            shutil.copyfile(b / "images" / key, capture / "images" / key)
+    work = tmp_path / "work"
+    stage.run(capture=capture, work=work, settings=make_settings(stage.Settings))
+    est = read_poses(work / "poses.json")
+    assert len(est.images) == 12
+    assert len(est.cameras) == 2
+    focals = {}
+    for key, pose in est.images.items():
+        focals.setdefault(pose.camera, set()).add(int(key[:4]) % 2)
+    assert sorted(map(sorted, focals.values())) == [[0], [1]]  # each camera holds one parity of views
+    for name, parity in focals.items():
+        truth = (gt_b if parity == {1} else gt_a).cameras["cam0"].params[0]
+        assert est.cameras[name].params[0] == pytest.approx(truth, rel=0.01)
