@@ -145,14 +145,15 @@ def tone_map(linear: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
 
 
 def load_8bit(path: Path) -> np.ndarray:
-    """Any capture photo as 8-bit RGB (H, W, 3), pixels unrotated (EXIF orientation ignored)."""
+    """Any capture photo as 8-bit RGB (H, W, 3), oriented as linearize orients it (RAW: LibRaw's flip,
+    other formats: stored pixel order)."""
     suffix = path.suffix.lower()
     if suffix in RAW_SUFFIXES:
         import rawpy
 
         try:
             with rawpy.imread(str(path)) as raw:
-                rgb = raw.postprocess(use_camera_wb=True, output_bps=16, user_flip=0, gamma=(1, 1),
+                rgb = raw.postprocess(use_camera_wb=True, output_bps=16, gamma=(1, 1),
                                       no_auto_bright=True)
         except (rawpy.LibRawError, OSError) as exc:
             raise UserError(f"{path}: cannot decode this RAW file ({exc})") from None
