@@ -1,0 +1,132 @@
+"""calib response: the inverse camera response of 8-bit photos from an exposure bracket -> response.json.
+
+Input: 8-bit photos (JPEG/PNG/TIFF) of one static scene from a tripod at several exposure times
+(EXIF ExposureTime, or --times).  cv2.createCalibrateDebevec (Debevec & Malik 1997: least squares
+for g(Z) = ln E + ln t with a smoothness term, eq. 3) or cv2.createCalibrateRobertson (Robertson et
+al. 2003, iterative ML).  The curve is made non-decreasing and each channel is normalized to 1 at
+code 255 (pipeline.io.response_json).  A PNG plot of the curve is written beside the JSON.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.io.images import read_image
+from pipeline.io.response_json import srgb_inverse_table, write_response_json
+from pipeline.settings import setting
+from pipeline.workdir import atomic_path
+
+HELP = "Camera response curve from a bracket of 8-bit photos of one static scene (writes response.json + PNG)."
+IMAGES_HELP = "folder of 8-bit photos (JPEG/PNG/TIFF) of one scene at different exposure times"
+DEFAULT_OUTPUT = "response.json"
+EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+
+
+@dataclass(frozen=True)
+class Settings:
+    method: Literal["debevec", "robertson"] = setting("debevec", "calibration method (cv2)")
+    times: list[float] = setting([], "exposure times in seconds, in file-name order (default: EXIF ExposureTime)")
+    samples: int = setting(100, "Debevec: pixel locations sampled")
+    smoothness: float = setting(10.0, "Debevec: weight of the smoothness term (lambda)")
+
+    def validate(self) -> None:
+        if any(t <= 0 for t in self.times):
+            raise UserError(f"--times {self.times}: exposure times must be positive seconds")
+        if self.samples < 10 or self.smoothness <= 0:
+            raise UserError("--samples must be >= 10 and --smoothness > 0")
+
+
+def load_bracket(folder: Path, times: list[float]) -> tuple[list[np.ndarray], np.ndarray, list[str]]:
+    """8-bit (H, W, 3) uint8 images and exposure times (s) of the bracket in ``folder``."""
+    import OpenImageIO as oiio
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise UserError(f"{folder}: folder not found")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in EXTENSIONS and not p.name.startswith("."))
+    if len(files) < 2:
+        raise UserError(f"{folder}: need at least 2 8-bit photos (JPEG/PNG/TIFF) at different exposures, found {len(files)}")
+    if times and len(times) != len(files):
+        raise UserError(f"--times gives {len(times)} exposure times for {len(files)} photos in {folder}")
+    images, found = [], []
+    for i, path in enumerate(files):
+        img, meta = read_image(path, with_metadata=True)
+        inp = oiio.ImageInput.open(str(path))
+        bits = inp.spec().format.basetype
+        inp.close()
+        if bits not in (oiio.UINT8, oiio.INT8):
+            raise UserError(f"{path}: response calibration needs 8-bit photos; this file is not 8-bit")
+        if img.shape[2] < 3:
+            img = np.repeat(img[:, :, :1], 3, axis=2)
+        if images and img.shape[:2] != images[0].shape[:2]:
+            raise UserError(f"{path}: size {img.shape[1]}x{img.shape[0]} differs from the other photos of the bracket")
+        images.append(np.clip(np.rint(img[:, :, :3] * 255), 0, 255).astype(np.uint8))
+        t = times[i] if times else meta.get("ExposureTime")
+        if t is None or not t > 0:
+            raise UserError(f"{path}: no exposure time in EXIF; give all of them with --times t1 t2 ... (seconds)")
+        found.append(float(t))
+    t = np.asarray(found, dtype=np.float32)
+    if len(np.unique(t)) < 2:
+        raise UserError(f"{folder}: all photos have the same exposure time {t[0]} s; shoot a bracket (e.g. 1 EV steps)")
+    return images, t, [p.name for p in files]
+
+
+def calibrate_response(images: list[np.ndarray], times: np.ndarray, settings: Settings) -> np.ndarray:
+    """(3, 256) inverse response, non-decreasing, 1 at code 255 per channel."""
+    import cv2
+
+    if settings.method == "debevec":
+        tool = cv2.createCalibrateDebevec(samples=settings.samples, **{"lambda": settings.smoothness}, random=False)
+    else:
+        tool = cv2.createCalibrateRobertson()
+    curve = tool.process(images, times.astype(np.float32)).reshape(256, 3).T.astype(float)
+    curve = np.maximum(curve, 0)
+    curve = np.maximum.accumulate(curve, axis=1)
+    if np.any(curve[:, 255] <= 0):
+        raise UserError("response calibration failed (flat curve); use a scene with a wide range of brightness")
+    return curve / curve[:, 255:256]
+
+
+def plot_response(path: Path, inverse: np.ndarray) -> Path:
+    """PNG: code vs relative exposure per channel (log scale), with the sRGB curve for comparison."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 4))
+    codes = np.arange(256)
+    for c, color in enumerate("rgb"):
+        ax.semilogx(np.maximum(inverse[c], 1e-5), codes, color=color, label=f"{'RGB'[c]} (calibrated)")
+    ax.semilogx(np.maximum(srgb_inverse_table()[0], 1e-5), codes, "k--", lw=1, label="sRGB")
+    ax.set_xlabel("relative exposure (linear, 1 at code 255)")
+    ax.set_ylabel("8-bit code")
+    ax.legend(loc="upper left", fontsize=8)
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)
+    return path
+
+
+def inputs(*, images: Path, output: Path, settings: Settings) -> list[Path]:
+    return sorted(p for p in Path(images).iterdir() if p.suffix.lower() in EXTENSIONS)
+
+
+def outputs(*, images: Path, output: Path, settings: Settings) -> list[Path]:
+    return [Path(output), Path(output).with_suffix(".png")]
+
+
+def run(*, images: Path, output: Path, settings: Settings) -> list[Path]:
+    """Calibrate from the bracket in ``images``; write response.json and response.png."""
+    imgs, times, names = load_bracket(images, list(settings.times))
+    inverse = calibrate_response(imgs, times, settings)
+    out = write_response_json(output, inverse, method=settings.method,
+                              exposures_s={n: float(t) for n, t in zip(names, times)})
+    return [out, plot_response(Path(output).with_suffix(".png"), inverse)]
