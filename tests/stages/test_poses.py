@@ -147,6 +147,7 @@ def colmap_run(capture_dir, tmp_path_factory):
     return work
 
 
+@pytest.mark.slow
 def test_colmap_poses_match_ground_truth(capture_dir, colmap_run):
     gt = read_poses(capture_dir / "gt" / "poses.json")
     est = read_poses(colmap_run / "poses.json")
@@ -165,6 +166,7 @@ def test_colmap_poses_match_ground_truth(capture_dir, colmap_run):
     assert (colmap_run / "colmap" / "colmap.log").stat().st_size > 0
 
 
+@pytest.mark.slow
 def test_starved_capture_falls_back_to_board_pnp(tmp_path):
     """Board only, 6 views 60° apart: SfM cannot initialise (COLMAP needs 100 inlier matches between
     two views), the board PnP fallback poses every photo and says so."""
@@ -246,6 +248,7 @@ def test_board_never_detected(tmp_path, capture_dir, capsys):
     _expect_user_error(capsys, capture, tmp_path / "work", "not detected in any of the 3 photos")
 
 
+@pytest.mark.slow
 def test_photos_that_do_not_overlap(tmp_path, capture_dir, capsys, rng):
     capture = _partial_capture(capture_dir, tmp_path / "disjoint", ["0000.jpg"])
     for i in range(1, 4):  # independent random textures: nothing to match
@@ -253,6 +256,7 @@ def test_photos_that_do_not_overlap(tmp_path, capture_dir, capsys, rng):
     _expect_user_error(capsys, capture, tmp_path / "work", "do not overlap")
 
 
+@pytest.mark.slow
 def test_sfm_registers_under_half(tmp_path, capture_dir, capsys, rng):
     keys = [f"{i:04d}.jpg" for i in range(6)]  # 6 neighbouring views reconstruct
     capture = _partial_capture(capture_dir, tmp_path / "half", keys)
@@ -315,6 +319,7 @@ def test_tone_map_keeps_saturated_pixels_white():
     assert (out[1:5] == 137).all()
 
 
+@pytest.mark.slow
 def test_calibrated_camera_is_kept_fixed(tmp_path, capture_dir):
     """capture.toml names a camera.json: COLMAP keeps those intrinsics exactly and poses stay accurate."""
     from pipeline.io.camera_json import write_camera_json
@@ -335,6 +340,7 @@ def test_calibrated_camera_is_kept_fixed(tmp_path, capture_dir):
     assert json.loads((work / "poses_summary.json").read_text())["intrinsics"] == "calibrated (fixed)"
 
 
+@pytest.mark.slow
 def test_two_physical_cameras_get_one_camera_each(tmp_path):
     """Photos from two cameras (different size and focal length): two COLMAP cameras, not one per photo."""
     a, b = tmp_path / "a", tmp_path / "b"
