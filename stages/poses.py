@@ -27,9 +27,11 @@ from typing import Iterator, Literal
 
 import numpy as np
 
+from calib.charuco import detect, make_board
 from pipeline.core.camera import Camera, project
 from pipeline.core.similarity import Similarity, ransac_similarity, transform_pose
 from pipeline.errors import UserError
+from pipeline.io.camera_decode import DECODED_EXTENSIONS, RAW_EXTENSIONS
 from pipeline.io.camera_json import read_camera_json
 from pipeline.io.capture_toml import BoardSpec, CaptureConfig, read_capture_config
 from pipeline.io.linear_manifest import manifest_path, read_linear_image
@@ -37,10 +39,9 @@ from pipeline.io.poses import ImagePose, Poses, read_poses, write_poses
 from pipeline.settings import setting
 from pipeline.workdir import atomic_path, write_json
 
-RAW_SUFFIXES = {".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".rw2", ".orf", ".pef", ".srw"}
-LINEAR_SUFFIXES = {".exr", ".hdr", ".tif", ".tiff"}
-DISPLAY_SUFFIXES = {".jpg", ".jpeg", ".png"}
-IMAGE_SUFFIXES = RAW_SUFFIXES | LINEAR_SUFFIXES | DISPLAY_SUFFIXES
+RAW_SUFFIXES = RAW_EXTENSIONS
+DISPLAY_SUFFIXES = {".jpg", ".jpeg", ".png"}  # display-referred 8-bit: copied as they are
+IMAGE_SUFFIXES = RAW_EXTENSIONS | DECODED_EXTENSIONS
 MIN_BOARD_CORNERS = 6  # corners per view for a PnP pose / a usable detection
 
 
@@ -185,40 +186,28 @@ def colmap_name(group: str, key: str) -> str:
 # ChArUco detection
 
 
-def _cv_board(spec: BoardSpec):
-    import cv2
-
-    name = spec.dictionary.upper()
-    if not name.startswith("DICT_"):
-        name = "DICT_" + name
-    if not hasattr(cv2.aruco, name):
-        raise UserError(f"capture.toml [board] dictionary {spec.dictionary!r} is not an OpenCV ArUco dictionary "
-                        "(e.g. DICT_5X5_100)")
-    board = cv2.aruco.CharucoBoard(spec.squares, spec.square_length, spec.marker_length,
-                                   cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)))
-    return board
-
-
 def board_corners_object(spec: BoardSpec) -> np.ndarray:
     """(K, 3) object-frame coordinates (metres) of the board's inner corners, indexed by ChArUco id."""
-    pts = np.asarray(_cv_board(spec).getChessboardCorners(), float).reshape(-1, 3)
+    pts = np.asarray(make_board(spec).getChessboardCorners(), float).reshape(-1, 3)
     return pts @ spec.board_to_object[:3, :3].T + spec.board_to_object[:3, 3]
 
 
 def detect_board(image_rgb8: np.ndarray, spec: BoardSpec) -> tuple[np.ndarray, np.ndarray]:
     """ChArUco corners in one 8-bit photo: ids (K,) and pixel positions (K, 2) in COLMAP's convention.
 
-    cv2.aruco reports OpenCV pixel coordinates (pixel centres at integers); +0.5 converts them to
-    COLMAP's (top-left corner of the image at (0, 0)).
+    Detection is calib.charuco.detect (OpenCV pixel coordinates, pixel centres at integers); +0.5
+    converts to COLMAP's (top-left corner of the image at (0, 0)).  A corner's id is its index in
+    the board's chessboard corners, recovered from its board coordinates.
     """
     import cv2
 
-    gray = cv2.cvtColor(image_rgb8, cv2.COLOR_RGB2GRAY)
-    detector = cv2.aruco.CharucoDetector(_cv_board(spec))
-    corners, ids, _, _ = detector.detectBoard(gray)
-    if ids is None or len(ids) == 0:
+    board = make_board(spec)
+    obj, img = detect(board, cv2.cvtColor(image_rgb8, cv2.COLOR_RGB2GRAY))
+    if len(obj) == 0:
         return np.zeros(0, int), np.zeros((0, 2))
-    return np.asarray(ids, int).ravel(), np.asarray(corners, float).reshape(-1, 2) + 0.5
+    grid = np.asarray(board.getChessboardCorners(), float).reshape(-1, 3)
+    ids = np.argmin(np.linalg.norm(obj[:, None, :] - grid[None], axis=2), axis=1)
+    return ids, img.astype(float) + 0.5
 
 
 # --------------------------------------------------------------------------------------------
@@ -427,7 +416,7 @@ def _calibrate_from_board(detections: list[tuple[np.ndarray, np.ndarray]], spec:
     """SIMPLE_RADIAL intrinsics from the board seen in several views (Zhang's method, cv2)."""
     import cv2
 
-    board_pts = np.asarray(_cv_board(spec).getChessboardCorners(), np.float32).reshape(-1, 3)
+    board_pts = np.asarray(make_board(spec).getChessboardCorners(), np.float32).reshape(-1, 3)
     obj, img = [], []
     for ids, uv in detections:
         if len(ids) >= MIN_BOARD_CORNERS:
@@ -453,7 +442,7 @@ def pnp_pose(camera: Camera, ids: np.ndarray, uv: np.ndarray, spec: BoardSpec) -
     K = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])  # OpenCV pixel convention
     k1, k2, p1, p2 = camera.distortion()
     dist = np.array([k1, k2, p1, p2, 0.0])
-    obj = np.asarray(_cv_board(spec).getChessboardCorners(), float).reshape(-1, 3)[ids]
+    obj = np.asarray(make_board(spec).getChessboardCorners(), float).reshape(-1, 3)[ids]
     img = np.asarray(uv, float) - 0.5
     ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
     if not ok:
