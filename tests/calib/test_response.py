@@ -1,0 +1,68 @@
+"""calib response: recover a synthetic, non-sRGB camera curve from an 8-bit bracket."""
+
+import json
+
+import numpy as np
+import pytest
+
+from calib import response
+from pipeline.cli import main as cli_main
+from pipeline.errors import UserError
+from pipeline.io.images import write_image
+from pipeline.io.response_json import read_response_json
+from pipeline.settings import make_settings
+
+GAMMA = 1 / 1.6  # the synthetic camera: code = 255 * clip(E t)^GAMMA, different per channel gain below
+TIMES = [1 / 64, 1 / 16, 1 / 4, 1.0, 4.0]
+
+
+def true_inverse(codes: np.ndarray) -> np.ndarray:
+    """Normalized inverse of the synthetic curve: 1 at code 255."""
+    return (codes / 255.0) ** (1 / GAMMA)
+
+
+@pytest.fixture(scope="module")
+def bracket(tmp_path_factory):
+    rng = np.random.default_rng(3)
+    folder = tmp_path_factory.mktemp("bracket")
+    # A scene spanning ~10 stops so every code is hit by some exposure; smooth blocks (8x8) so JPEG-like
+    # spatial structure is irrelevant (PNG, exact codes).
+    radiance = np.exp(rng.uniform(np.log(1e-3), np.log(2.0), size=(24, 32, 3)))
+    radiance = np.kron(radiance, np.ones((4, 4, 1)))
+    for i, t in enumerate(TIMES):
+        codes = np.round(255 * np.clip(radiance * t, 0, 1) ** GAMMA)
+        write_image(folder / f"b{i}.png", codes / 255.0, dtype="uint8", attributes={"ExposureTime": t})
+    return folder
+
+
+def test_response_recovers_synthetic_curve(bracket, tmp_path):
+    method = "debevec"
+    out = tmp_path / "response.json"
+    response.run(images=bracket, output=out, settings=make_settings(response.Settings, method=method))
+    table = read_response_json(out)
+    codes = np.arange(256)
+    mid = (codes >= 16) & (codes <= 250)
+    err = np.abs(table[:, mid] / true_inverse(codes[mid]) - 1)
+    # Debevec fits the curve up to noise from 8-bit quantization (0.5 code is 3 % of code 16,
+    # ~0.4 % of code 200) and the smoothness prior; 5 % max / 2 % median over codes 16..250 separates
+    # this gamma-1.6 curve from sRGB (which differs by > 20 % at mid codes).
+    assert np.median(err) < 0.02 and err.max() < 0.05, (method, np.median(err), err.max())
+    srgb_err = np.abs(response.srgb_inverse_table()[:, mid] / true_inverse(codes[mid]) - 1)
+    assert srgb_err.max() > 0.2
+    assert (tmp_path / "response.png").stat().st_size > 1000
+
+
+def test_cli_times_option_and_bad_inputs(bracket, tmp_path, capsys):
+    out = tmp_path / "r.json"
+    times = [str(t) for t in TIMES]
+    assert cli_main(["calib", "response", str(bracket), "-o", str(out), "--times", *times]) == 0
+    assert json.loads(out.read_text())["exposures_s"]["b4.png"] == 4.0
+    assert cli_main(["calib", "response", str(bracket), "-o", str(out), "--times", "1", "2"]) == 2
+    assert "exposure times for 5 photos" in capsys.readouterr().err
+
+
+def test_same_exposure_everywhere_is_a_user_error(tmp_path):
+    for i in range(3):
+        write_image(tmp_path / f"{i}.png", np.full((8, 8, 3), 0.5), dtype="uint8", attributes={"ExposureTime": 0.1})
+    with pytest.raises(UserError, match="same exposure time"):
+        response.load_bracket(tmp_path, [])
