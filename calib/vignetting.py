@@ -29,7 +29,7 @@ DEFAULT_OUTPUT = "vignetting.exr"
 
 @dataclass(frozen=True)
 class Settings:
-    degree: int = setting(6, "total degree of the 2D Legendre polynomial fitted to the mean flat")
+    degree: int = setting(8, "total degree of the 2D Legendre polynomial fitted to the mean flat")
     response: str = setting("", "response.json for 8-bit flats (default: the sRGB curve)")
     saturation: float = setting(0.98, "fraction of full scale from which a pixel counts as saturated")
 

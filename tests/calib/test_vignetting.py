@@ -27,9 +27,16 @@ def test_flat_field_gain_recovered(tmp_path, rng):
     vignetting.run(images=flats, output=out, settings=make_settings(vignetting.Settings))
     got = read_image(out)
     rel = np.abs(got / gain - 1)
-    # Noise: 2 % per pixel averaged by a 28-term fit over 4 x 12288 pixels -> ~0.05 %; the degree-6
-    # polynomial approximates this (1 + k r^2)^-2 falloff to ~0.3 %: 1 % max leaves margin.
-    assert rel.max() < 0.01, rel.max()
+    # Noise: 1 % per pixel after averaging 4 flats; a 45-term fit averages it to ~0.06 % RMS, but corner
+    # pixels have ~30x the mean leverage (std ~0.3 %, max over the border ~1-1.7 % across seeds 0..4);
+    # the degree-8 model error itself is 0.2 % (test below).
+    assert np.sqrt(np.mean(rel**2)) < 0.005 and rel.max() < 0.025, (np.sqrt(np.mean(rel**2)), rel.max())
+
+
+def test_noise_free_fit_matches_falloff():
+    gain = true_gain()
+    got = vignetting.flat_field_gain([(gain, np.ones(gain.shape[:2], bool))], degree=8)
+    assert np.abs(got / gain - 1).max() < 0.005  # measured 0.19 %: polynomial approximation error only
 
 
 def test_linearize_divides_by_vignetting(tmp_path):
