@@ -84,12 +84,28 @@ class Settings:
 
 
 def list_images(capture: Path) -> list[str]:
-    """Image keys (file names relative to capture/images/, sorted) of every supported photo."""
+    """File names of the supported photos directly in capture/images/ (sorted), as linearize lists them."""
     folder = Path(capture) / "images"
     if not folder.is_dir():
         raise UserError(f"{folder}: no images/ folder in the capture; put the photos there")
-    return sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
+    return sorted(p.name for p in folder.iterdir()
                   if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith("."))
+
+
+def pose_keys(capture: Path, work: Path) -> list[str]:
+    """The photos that get a pose: one per view.  An exposure bracket is one view, posed under its first
+    file's name (``read_linear_image`` resolves that name to the merged image): the linearize manifest
+    says which files were merged when it exists, else capture.toml's [brackets]."""
+    files = list_images(capture)
+    if manifest_path(work).exists():
+        from pipeline.io.linear_manifest import read_manifest
+
+        firsts = {entry["sources"][0]["file"] for entry in read_manifest(work)["images"].values()
+                  if entry.get("sources")}
+        members = {s["file"] for entry in read_manifest(work)["images"].values() for s in entry.get("sources", [])}
+        return [f for f in files if f in firsts or f not in members]
+    skipped = {m for group in read_capture_config(capture).brackets.values() for m in group[1:]}
+    return [f for f in files if f not in skipped]
 
 
 def calibrated_camera(config: CaptureConfig) -> Camera | None:
@@ -508,7 +524,7 @@ def _pass_through(capture: Path, work: Path, keys: list[str]) -> list[Path]:
         shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
         raise UserError(f"{source}: no pose for {len(missing)} of {len(keys)} photos ({shown}); add them or "
                         "delete poses.json to estimate poses with COLMAP")
-    extra = sorted(set(poses.images) - set(keys))
+    extra = sorted(set(poses.images) - set(list_images(capture)))
     if extra:
         raise UserError(f"{source}: poses for photos that are not in images/ ({', '.join(extra[:5])}); "
                         "fix the image keys (file names relative to images/)")
@@ -534,7 +550,7 @@ def _write_summary(work: Path, summary: dict) -> Path:
 
 def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     capture, work = Path(capture), Path(work)
-    keys = list_images(capture)
+    keys = pose_keys(capture, work)
     if len(keys) < 3:
         raise UserError(f"{capture / 'images'}: {len(keys)} photo(s) found; poses need at least 3 overlapping "
                         "photos (or a poses.json in the capture)")

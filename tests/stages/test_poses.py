@@ -363,3 +363,21 @@ def test_two_physical_cameras_get_one_camera_each(tmp_path):
     for name, parity in focals.items():
         truth = (gt_b if parity == {1} else gt_a).cameras["cam0"].params[0]
         assert est.cameras[name].params[0] == pytest.approx(truth, rel=0.01)
+
+
+def test_one_pose_per_bracket(tmp_path):
+    """An exposure bracket is one view: posed once, under its first file (capture.toml or the manifest)."""
+    from pipeline.io.linear_manifest import write_manifest
+
+    capture = tmp_path / "brackets"
+    (capture / "images").mkdir(parents=True)
+    for name in ("a1.jpg", "a2.jpg", "a3.jpg", "b.jpg", "c1.jpg", "c2.jpg", "notes.txt"):
+        (capture / "images" / name).write_bytes(b"")
+    (capture / "capture.toml").write_text('[brackets]\nview_a = ["a1.jpg", "a2.jpg", "a3.jpg"]\n')
+    work = tmp_path / "work"
+    assert stage.pose_keys(capture, work) == ["a1.jpg", "b.jpg", "c1.jpg", "c2.jpg"]
+    # linearize merged differently (e.g. --bracket-size): its manifest wins
+    write_manifest(work, {"a": {"sources": [{"file": "a1.jpg"}, {"file": "a2.jpg"}]},
+                          "a3": {"sources": [{"file": "a3.jpg"}]}, "b": {"sources": [{"file": "b.jpg"}]},
+                          "c": {"sources": [{"file": "c1.jpg"}, {"file": "c2.jpg"}]}})
+    assert stage.pose_keys(capture, work) == ["a1.jpg", "a3.jpg", "b.jpg", "c1.jpg"]
