@@ -289,7 +289,7 @@ def reflected_angle_spectrum(brdf, band: int, n_quad: int = 2048) -> np.ndarray:
     """
     if not isinstance(brdf, (Phong, Microfacet)):
         raise ValueError("reflected_angle_spectrum is defined for Phong and Microfacet lobes")
-    theta = circle_grid(n_quad) - np.pi
+    theta = circle_grid(n_quad)   # fourier_coefficients expects samples starting at θ = 0
     coeffs = fourier_coefficients(brdf.brdf(theta, 0.0), band).real  # even lobe: real spectrum
     return coeffs / coeffs[band]
 
