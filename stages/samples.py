@@ -228,11 +228,14 @@ def _units_hint(mesh, poses: Poses) -> str:
     centres = np.array([camera_center(p.R, p.t) for p in poses.images.values()])
     distance = float(np.median(np.linalg.norm(centres - centre, axis=1)))
     ratio = size / max(distance, 1e-300)
-    if ratio > 20:
-        unit = "millimetres" if 300 < ratio < 3000 else "centimetres" if 30 < ratio <= 300 else "other units"
-        return f"the mesh is {ratio:.0f}x larger than the camera distances: is it in {unit}? convert it to metres"
+    sizes = f"(bounding box {size:.3g} across, median camera distance {distance:.3g})"
+    if ratio > 20:  # an object is normally about as large as (or smaller than) its distance to the camera
+        unit = "millimetres" if ratio >= 100 else "centimetres"
+        return (f"the mesh is {ratio:.0f}x larger than the camera distances {sizes}: is it in {unit}? "
+                "convert it to metres")
     if ratio < 1e-3:
-        return f"the mesh is {1 / ratio:.0f}x smaller than the camera distances: is it in kilometres or scaled down?"
+        return (f"the mesh is {1 / ratio:.0f}x smaller than the camera distances {sizes}: "
+                "is it in kilometres, or are the poses scaled?")
     in_view = 0
     for key, pose in poses.images.items():
         cam = poses.camera_of(key)
@@ -411,7 +414,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     per_image: dict[str, dict] = {}
     visibility_low = 0
     visibility_sum = 0.0
-    any_hit = False
+    sees_outside = False
     rng = np.random.default_rng(settings.seed)
     cap = -(-settings.max_samples // len(keys)) if settings.max_samples else 0
 
@@ -445,13 +448,15 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
                 visibility_low += int((reservoir.rows["visibility"] < settings.min_visibility).sum())
                 visibility_sum += float(reservoir.rows["visibility"].sum())
             considered = kept + sum(drops.values())
-            any_hit |= drops["background"] < considered
+            # pixels that reached the hidden test and passed it: the camera sees the mesh's outside
+            sees_outside |= considered - drops["background"] - drops["silhouette_edge"] - drops["hidden"] > 0
             per_image[key] = {"pixels": considered, "kept": kept, "drops": drops}
             for reason, count in drops.items():
                 totals[reason] += count
 
-        if not any_hit:
-            raise UserError(f"{mesh_file}: the mesh is hit by no pixel of any image: {_units_hint(mesh, poses)}")
+        if not sees_outside:
+            raise UserError(f"{mesh_file}: no pixel of any image sees the outside of the mesh: "
+                            f"{_units_hint(mesh, poses)}")
         if writer.count == 0:
             raise UserError("no samples left: every pixel that hits the mesh was dropped "
                             f"({', '.join(f'{r} {c}' for r, c in totals.items() if c)}); check the masks and "

@@ -1,0 +1,309 @@
+"""samples stage on a scene with a closed form: an icosphere seen by pinhole cameras.
+
+The images are rendered analytically from the *exact* sphere (radiance = 0.5 + 0.5·n, background
+0), independently of the mesh and of the stage's ray casting, so recovered points, normals, pixel
+positions and radiance are checked against geometry, and the drop counts against the analytic
+disk of each camera, bracketed by the mesh's inscribed and circumscribed spheres.
+"""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+import stages.samples as samples_stage
+from pipeline.core.camera import Camera, camera_center, look_at, pixel_centers, pixel_rays, project
+from pipeline.core.coverage import EqualAreaGrid
+from pipeline.io.images import write_image
+from pipeline.io.poses import ImagePose, Poses, write_poses
+from pipeline.io.samples import read_samples
+from pipeline.settings import make_settings
+
+RADIUS = 0.1  # metres
+SUBDIVISIONS = 4  # icosphere: 2562 vertices, facet angle ~4.3 deg
+CAMERAS = [(0.5, 0.0, 0.1), (0.0, 0.5, -0.1), (-0.3, -0.3, 0.3)]
+
+
+def sphere_hits(camera, R, t, radius):
+    """Per pixel (row-major): does the centre ray hit the sphere of ``radius`` at the origin, the
+    outward normal at the first hit and the cosine between it and the direction to the camera."""
+    origin, direction = pixel_rays(camera, R, t, pixel_centers(camera.width, camera.height))
+    b = np.sum(origin * direction, axis=1)
+    disc = b * b - (np.sum(origin * origin, axis=1) - radius**2)
+    hit = disc > 0
+    dist = -b - np.sqrt(np.where(hit, disc, 0.0))
+    normal = (origin + dist[:, None] * direction) / radius
+    cos = -np.sum(normal * direction, axis=1)
+    return hit, normal, cos
+
+
+def make_capture(root, centers, size=80, focal=96.0, alpha=None, nan_pixel=None):
+    """Capture folder: icosphere mesh.ply, poses.json and float EXRs 0.5 + 0.5·n of the exact sphere.
+
+    ``alpha``: optional (size, size) array written as a 4th channel of every image (the pixel weight).
+    """
+    root = Path(root)
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    trimesh.creation.icosphere(subdivisions=SUBDIVISIONS, radius=RADIUS).export(root / "mesh.ply")
+    camera = Camera("PINHOLE", size, size, (focal, focal, size / 2, size / 2))
+    poses = Poses(cameras={"cam0": camera})
+    for i, centre in enumerate(centers):
+        R, t = look_at(centre, (0.0, 0.0, 0.0))
+        key = f"{i:04d}.exr"
+        poses.images[key] = ImagePose("cam0", R, t)
+        hit, normal, _ = sphere_hits(camera, R, t, RADIUS)
+        image = np.where(hit[:, None], 0.5 + 0.5 * normal, 0.0).reshape(size, size, 3)
+        if alpha is not None:
+            image = np.concatenate([image, alpha[:, :, None]], axis=2)
+        if nan_pixel is not None and i == 0:
+            image[nan_pixel] = np.nan
+        write_image(root / "images" / key, image, dtype="float")
+    write_poses(root / "poses.json", poses)
+    return root, poses
+
+
+def run_samples(capture, work, **settings):
+    settings = make_settings(samples_stage.Settings, **settings)
+    samples_stage.run(capture=capture, work=work, settings=settings)
+    arrays, meta = read_samples(Path(work) / "samples.npz")
+    return arrays, meta, json.loads((Path(work) / "samples_summary.json").read_text())
+
+
+def mesh_radii():
+    """(inradius, circumradius) of the icosphere: the mesh lies between these two spheres."""
+    mesh = trimesh.creation.icosphere(subdivisions=SUBDIVISIONS, radius=RADIUS)
+    inradius = np.abs(np.sum(mesh.face_normals * mesh.triangles[:, 0], axis=1)).min()
+    return float(inradius), float(np.linalg.norm(mesh.vertices, axis=1).max())
+
+
+def max_edge_angle():
+    mesh = trimesh.creation.icosphere(subdivisions=SUBDIVISIONS, radius=RADIUS)
+    a, b = mesh.vertices[mesh.edges_unique[:, 0]], mesh.vertices[mesh.edges_unique[:, 1]]
+    return float(np.arccos(np.sum(a * b, axis=1) / RADIUS**2).max())
+
+
+def near(mask, size):
+    """Pixels with an 8-neighbour (or themselves) in ``mask`` (flat row-major, size x size)."""
+    from scipy.ndimage import binary_dilation
+
+    return binary_dilation(mask.reshape(size, size), np.ones((3, 3), bool)).ravel()
+
+
+@pytest.fixture(scope="module")
+def sphere_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("sphere")
+    capture, poses = make_capture(root / "capture", CAMERAS)
+    arrays, meta, summary = run_samples(capture, root / "work")
+    return capture, root / "work", poses, arrays, meta, summary
+
+
+def test_points_normals_pixels_and_radiance_match_the_sphere(sphere_run):
+    capture, work, poses, a, meta, summary = sphere_run
+    inradius, circumradius = mesh_radii()
+    point = a["point"].astype(float)
+    radius = np.linalg.norm(point, axis=1)
+    # hits lie on the mesh, i.e. between its inscribed and circumscribed spheres (float32: 1e-7 relative)
+    assert radius.min() >= inradius * (1 - 1e-6) and radius.max() <= circumradius * (1 + 1e-6)
+    # interpolated vertex normals vs the radial direction: linear interpolation over a facet of angle h
+    # errs to second order in h; face normals (first order) would err by up to ~h/sqrt(3) = 2.5 deg.
+    # h/4 (1.1 deg) separates the two.
+    normal = a["normal"].astype(float)
+    angle = np.arccos(np.clip(np.sum(normal * point / radius[:, None], axis=1), -1, 1))
+    assert angle.max() < max_edge_angle() / 4
+    np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-6)
+    keys = list(a["image_keys"])
+    assert keys == sorted(poses.images)
+    for image_id, key in enumerate(keys):
+        sel = a["image_id"] == image_id
+        pose, camera = poses.images[key], poses.camera_of(key)
+        # the point projects back onto its pixel's centre (COLMAP: centre of (row i, col j) = (j+.5, i+.5));
+        # float32 points of 0.1 m: ~1e-8 m -> 1e-5 px
+        uv, _ = project(camera, pose.R, pose.t, point[sel])
+        np.testing.assert_allclose(uv, a["pixel"][sel][:, ::-1] + 0.5, atol=1e-3)
+        to_camera = camera_center(pose.R, pose.t) - point[sel]
+        np.testing.assert_allclose(a["view_dir"][sel], to_camera / np.linalg.norm(to_camera, axis=1, keepdims=True),
+                                   atol=1e-6)
+    # radiance was rendered as 0.5 + 0.5 n from the exact sphere along the same ray: it differs from
+    # 0.5 + 0.5 n(mesh) by at most half the normal error (1.1 deg -> 0.0096)
+    assert np.abs(a["radiance"] - (0.5 + 0.5 * normal)).max() < 0.5 * max_edge_angle() / 4
+    assert np.all(a["weight"] == 1.0)
+    assert np.all(a["visibility"] == 1.0)  # convex mesh: nothing blocks any hemisphere
+    assert meta["count"] == len(point) == summary["count"]
+
+
+def test_drop_counts_bracket_the_analytic_disk(sphere_run):
+    capture, work, poses, a, meta, summary = sphere_run
+    inradius, circumradius = mesh_radii()
+    for image_id, key in enumerate(sorted(poses.images)):
+        pose, camera = poses.images[key], poses.camera_of(key)
+        size = camera.width
+        counts = summary["images"][key]
+        drops = counts["drops"]
+        assert counts["pixels"] == size * size == counts["kept"] + sum(drops.values())
+        assert counts["kept"] == int(np.sum(a["image_id"] == image_id))
+        hit_out, _, _ = sphere_hits(camera, pose.R, pose.t, circumradius)
+        hit_in, _, _ = sphere_hits(camera, pose.R, pose.t, inradius)
+        # the mesh lies between the two spheres, so its background is between their backgrounds
+        assert (~hit_out).sum() <= drops["background"] <= (~hit_in).sum()
+        # silhouette band (edge_px = 1): hit pixels with a background 8-neighbour, bracketed the same way
+        assert (hit_in & near(~hit_out, size)).sum() <= drops["silhouette_edge"] <= (hit_out & near(~hit_in, size)).sum()
+        # convex mesh seen from outside, 1 px band: nothing back-facing, nothing grazing (n.v ~0.3 one pixel
+        # inside the silhouette of a 20 px disk), nothing masked
+        assert drops["hidden"] == drops["grazing"] == drops["masked"] == drops["max_samples"] == 0
+    totals = {r: sum(summary["images"][k]["drops"][r] for k in poses.images) for r in samples_stage.DROP_REASONS}
+    assert totals == summary["drops"] == meta["drops"]
+
+
+def test_grazing_threshold_against_the_analytic_cosine(sphere_run, tmp_path):
+    capture, work, poses, *_ = sphere_run
+    min_cos = 0.5
+    a, meta, summary = run_samples(capture, tmp_path / "work", min_cos=min_cos)
+    # mesh cosines differ from the exact sphere's by the normal error (< 1.1 deg -> < 0.02 in cos)
+    slack = np.sin(max_edge_angle() / 4)
+    for image_id, key in enumerate(sorted(poses.images)):
+        pose, camera = poses.images[key], poses.camera_of(key)
+        hit, _, cos = sphere_hits(camera, pose.R, pose.t, RADIUS)
+        kept = summary["images"][key]["kept"]
+        assert (hit & (cos >= min_cos + slack)).sum() <= kept <= (hit & (cos >= min_cos - slack)).sum()
+        assert summary["images"][key]["drops"]["grazing"] > 0
+    cos = np.sum(a["normal"] * a["view_dir"], axis=1)
+    assert cos.min() >= min_cos - 1e-6
+
+
+def test_masked_pixels_are_dropped_and_counted(sphere_run, tmp_path):
+    _, _, poses, full, _, full_summary = sphere_run
+    size = 80
+    alpha = np.ones((size, size), np.float32)
+    alpha[20:50, 30:60] = 0.0  # masked block
+    alpha[50:60, 30:60] = 0.5  # half-weight block
+    capture, _ = make_capture(tmp_path / "capture", CAMERAS, size=size, alpha=alpha)
+    a, meta, summary = run_samples(capture, tmp_path / "work")
+    for image_id, key in enumerate(sorted(poses.images)):
+        px = full["pixel"][full["image_id"] == image_id]
+        in_block = (px[:, 0] >= 20) & (px[:, 0] < 50) & (px[:, 1] >= 30) & (px[:, 1] < 60)
+        # exactly the pixels the unmasked run kept inside the block are masked, nothing else changes
+        assert summary["images"][key]["drops"]["masked"] == int(in_block.sum()) > 0
+        assert summary["images"][key]["kept"] == full_summary["images"][key]["kept"] - int(in_block.sum())
+    r, c = a["pixel"][:, 0], a["pixel"][:, 1]
+    assert not np.any((r >= 20) & (r < 50) & (c >= 30) & (c < 60))
+    np.testing.assert_array_equal(a["weight"], np.where((r >= 50) & (r < 60) & (c >= 30) & (c < 60), 0.5, 1.0))
+
+
+def test_chunking_stride_and_max_samples(sphere_run, tmp_path):
+    capture, _, poses, full, _, _ = sphere_run
+    # tiny chunks (two rows at a time, halo rows for the edge test) give exactly the one-chunk result
+    chunked, _, _ = run_samples(capture, tmp_path / "chunked", chunk_pixels=160)
+    for field in full:
+        np.testing.assert_array_equal(chunked[field], full[field])
+    # stride 2: the 40x40 grid of even rows/cols; every kept pixel is one of the full run's
+    strided, _, summary = run_samples(capture, tmp_path / "strided", stride=2)
+    assert all(v["pixels"] == 40 * 40 for v in summary["images"].values())
+    assert np.all(strided["pixel"] % 2 == 0)
+    full_set = {tuple(x) for x in np.column_stack([full["image_id"], full["pixel"]])}
+    assert {tuple(x) for x in np.column_stack([strided["image_id"], strided["pixel"]])} <= full_set
+    # max_samples: at most ceil(300 / 3) per image, drawn from the full run's samples
+    capped, _, summary = run_samples(capture, tmp_path / "capped", max_samples=300)
+    assert len(capped["image_id"]) == 300
+    assert np.all(np.bincount(capped["image_id"]) == 100)
+    assert summary["drops"]["max_samples"] == len(full["image_id"]) - 300
+    assert {tuple(x) for x in np.column_stack([capped["image_id"], capped["pixel"]])} <= full_set
+
+
+def test_coverage_of_one_camera_matches_the_visible_cap(tmp_path):
+    """One camera on +Z at distance d sees the normals z >= z* (n·v >= min_cos) and reflections z >= z_r*.
+
+    Exact sphere, normal at polar angle α: n·v = (d cos α − r) / sqrt(d² − 2 d r cos α + r²) and the
+    reflection's polar angle is 2α + β with tan β = r sin α / (d − r cos α).  The equal-area grid
+    (16 bands in z of height 1/8) is hit in every band above the threshold, so the covered fraction
+    is (1 − lower edge of the threshold's band) / 2.
+    """
+    d, min_cos = 0.5, 0.3745
+    capture, _ = make_capture(tmp_path / "capture", [(0.0, 0.0, d)], size=128, focal=192.0)
+    _, _, summary = run_samples(capture, tmp_path / "work", min_cos=min_cos)
+    alpha = np.linspace(0.0, np.pi / 2, 200001)
+    cos_nv = (d * np.cos(alpha) - RADIUS) / np.sqrt(d**2 - 2 * d * RADIUS * np.cos(alpha) + RADIUS**2)
+    alpha_max = alpha[cos_nv >= min_cos].max()
+    z_normal = np.cos(alpha_max)
+    beta = np.arctan2(RADIUS * np.sin(alpha_max), d - RADIUS * np.cos(alpha_max))
+    z_reflect = np.cos(2 * alpha_max + beta)
+    edges = EqualAreaGrid().band_edges_z()
+    for z in (z_normal, z_reflect):  # precondition: thresholds not within the mesh's cos error of a band edge
+        assert np.abs(edges - z).min() > 0.03
+    expected_normal = (1 - edges[edges <= z_normal].max()) / 2
+    expected_reflect = (1 - edges[edges <= z_reflect].max()) / 2
+    assert summary["coverage"]["normals"]["fraction"] == expected_normal  # 0.25 for these numbers
+    assert summary["coverage"]["reflections"]["fraction"] == expected_reflect  # 0.8125
+
+
+def test_vertex_visibility_against_the_view_factor_of_a_wall():
+    """Floor vertices (normal +Z) in front of a wall of height h, infinitely wide, at distance a.
+
+    The cosine-weighted blocked fraction is the view factor from a differential element to an
+    infinitely long strip, F = (sin φ2 − sin φ1) / 2 with angles from the normal in the cross-section
+    (Howell's catalogue, C-4): φ1 = 90° − atan(h/a), φ2 = 90°, so visibility = 1 − F = (1 + a/√(a²+h²)) / 2.
+    """
+    rays = 64
+    floor = trimesh.Trimesh(vertices=np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0], [-1, 0, 0]], float),
+                            faces=[[4, 0, 1], [4, 1, 2], [4, 2, 3]])  # normals +Z; vertices 0, 3, 4 on x = -1
+    height = 2.0
+    wall = trimesh.creation.box(extents=(0.02, 2000.0, height))  # 2 km wide: "infinitely" wide to 1e-6
+    wall.apply_translation((-1.011, 0.0, height / 2))  # its face at x = -1.001, 1 mm from the floor's edge
+    assert np.all(samples_stage.vertex_visibility(floor, rays) == 1.0)  # nothing above an open floor
+    assert np.all(samples_stage.vertex_visibility(wall, rays) == 1.0)  # convex: casting skipped
+    vis = samples_stage.vertex_visibility(trimesh.util.concatenate([floor, wall]), rays)
+    for vertex, distance in ((4, 0.001), (0, 0.001), (1, 2.001), (2, 2.001)):
+        expected = (1 + distance / np.hypot(distance, height)) / 2  # 0.5002 at the foot, 0.854 at 2 m
+        # a fixed set of 64 directions estimates a region's cosine weight to about 2 directions in 64
+        assert vis[vertex] == pytest.approx(expected, abs=2 / rays)
+
+
+# ---------------------------------------------------------------------------------------------
+# bad input: one line, exit code 2, earlier outputs intact
+
+
+@pytest.fixture
+def good_work(sphere_run, tmp_path):
+    """A copy of the capture and of a finished work folder, to break one thing at a time."""
+    capture, work, *_ = sphere_run
+    shutil.copytree(capture, tmp_path / "capture")
+    shutil.copytree(work, tmp_path / "work")
+    return tmp_path / "capture", tmp_path / "work"
+
+
+def sigrend(*args):
+    return subprocess.run([sys.executable, "-m", "pipeline.cli", *map(str, args)], capture_output=True, text=True)
+
+
+def scale_mesh(capture, factor=1.0, shift=(0.0, 0.0, 0.0)):
+    mesh = trimesh.load(capture / "mesh.ply", force="mesh")
+    mesh.apply_scale(factor)
+    mesh.apply_translation(shift)
+    mesh.export(capture / "mesh.ply")
+
+
+BAD_INPUTS = {
+    "millimetres": (lambda c: scale_mesh(c, 1000.0), "larger than the camera distances (bounding box 346 across, median camera distance 0.51): is it in millimetres"),
+    "other frame": (lambda c: scale_mesh(c, shift=(0.0, 0.0, 50.0)), "different frames"),
+    "missing image": (lambda c: (c / "images" / "0001.exr").unlink(), "0001.exr: image listed in"),
+    "no poses": (lambda c: (c / "poses.json").unlink(), "no poses"),
+    "nan": (lambda c: make_capture(c, CAMERAS, nan_pixel=(40, 40)), "0000.exr: 1 pixels are NaN"),
+    "all masked": (lambda c: make_capture(c, CAMERAS, alpha=np.zeros((80, 80), np.float32)), "no samples left"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_input_is_one_line_and_exit_2(good_work, case):
+    capture, work = good_work
+    before = {p.name: p.read_bytes() for p in work.iterdir() if p.is_file()}
+    breaker, message = BAD_INPUTS[case]
+    breaker(capture)
+    result = sigrend("samples", capture, "-w", work, "--force")
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], result.stderr
+    assert {p.name: p.read_bytes() for p in work.iterdir() if p.is_file()} == before
