@@ -33,21 +33,16 @@ def band_of_index(order: int) -> np.ndarray:
     return np.repeat(np.arange(order + 1), 2 * np.arange(order + 1) + 1)
 
 
-def _legendre_table(z: np.ndarray, order: int, s: np.ndarray | None = None) -> np.ndarray:
-    """Fully normalized associated Legendre values K_l|m| P_l^|m|(z) in SH column order: (N, K).
+def _legendre_bands(z: np.ndarray, s: np.ndarray, order: int):
+    """Yield (l, P̄_l) for l = 0..order, P̄_l[m] (m = 0..l, each (N,)) = K_lm P_l^m(z).
 
-    ``s`` = sin(theta) if known more accurately than sqrt(1 - z^2) (near the poles).
-    Column k = l^2 + l + m holds the value for (l, |m|), so that Y_k = table_k * trig_m(phi).
-    Normalized recurrences (no factorials), vectorized over m, stable to high order:
-    P̄_mm = sqrt((2m+1)/(2m)) s P̄_{m-1,m-1} with s = sqrt(1 - z^2), P̄_{m+1,m} = sqrt(2m+3) z P̄_mm,
+    Fully normalized recurrences (no factorials), vectorized over m, stable to high order:
+    P̄_mm = sqrt((2m+1)/(2m)) s P̄_{m-1,m-1} with s = sin(theta), P̄_{m+1,m} = sqrt(2m+3) z P̄_mm,
     P̄_lm = a_lm (z P̄_{l-1,m} - b_lm P̄_{l-2,m}), a_lm = sqrt((4l^2-1)/(l^2-m^2)),
-    b_lm = sqrt(((l-1)^2-m^2)/(4(l-1)^2-1)); P̄_00 = 1/sqrt(4 pi) includes K_lm.  Values
-    underflow to 0 near the poles for large m, never to NaN.
+    b_lm = sqrt(((l-1)^2-m^2)/(4(l-1)^2-1)); P̄_00 = 1/sqrt(4 pi).  Values underflow to 0 near
+    the poles for large m, never to NaN.  The yielded array is reused: copy what you keep.
     """
-    z = np.asarray(z, dtype=float).reshape(-1)
-    s = np.sqrt(np.maximum(0.0, 1.0 - z * z)) if s is None else np.asarray(s, dtype=float).reshape(-1)
     n = z.shape[0]
-    out = np.empty((num_coeffs(order), n))   # k-major: every recurrence step is contiguous in N
     prev2 = np.zeros((order + 1, n))  # P̄_{l-2, m}
     prev = np.zeros((order + 1, n))   # P̄_{l-1, m}
     cur = np.zeros((order + 1, n))
@@ -62,12 +57,29 @@ def _legendre_table(z: np.ndarray, order: int, s: np.ndarray | None = None) -> n
                 a = np.sqrt((4.0 * l * l - 1.0) / (l * l - m * m))[:, None]
                 b = np.sqrt(((l - 1.0) ** 2 - m * m) / (4.0 * (l - 1.0) ** 2 - 1.0))[:, None]
                 cur[:l - 1] = a * (z * prev[:l - 1] - b * prev2[:l - 1])
-        centre = l * l + l
-        out[centre:centre + l + 1] = cur[:l + 1]
-        out[l * l:centre] = cur[l:0:-1]
+        yield l, cur[:l + 1]
         prev2, prev, cur = prev, cur, prev2
+
+
+def _z_and_sin(z: np.ndarray, s: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    z = np.asarray(z, dtype=float).reshape(-1)
+    s = np.sqrt(np.maximum(0.0, 1.0 - z * z)) if s is None else np.asarray(s, dtype=float).reshape(-1)
+    return z, s
+
+
+def _legendre_table(z: np.ndarray, order: int, s: np.ndarray | None = None) -> np.ndarray:
+    """K_l|m| P_l^|m|(z) in SH column order: (N, K); column k = l^2 + l + m holds (l, |m|).
+
+    So Y_k = table_k * trig_m(phi).  ``s`` = sin(theta) when known more accurately than
+    sqrt(1 - z^2) (near the poles).
+    """
+    z, s = _z_and_sin(z, s)
+    out = np.empty((num_coeffs(order), z.shape[0]))   # k-major: contiguous in N
+    for l, p in _legendre_bands(z, s, order):
+        centre = l * l + l
+        out[centre:centre + l + 1] = p
+        out[l * l:centre] = p[l:0:-1]
     return out.T
-    return out
 
 
 def _trig_table(phi: np.ndarray, order: int) -> np.ndarray:
@@ -89,14 +101,20 @@ def sh_basis(dirs: np.ndarray, order: int) -> np.ndarray:
     """All real SH Y_k at N unit directions: (N, 3) -> (N, (order+1)^2), float64.
 
     Y_k = P̄_l|m|(cos theta) * trig_m(phi) with the normalized Legendre recurrences of
-    ``_legendre_table`` (stable to L = 100 and beyond: no factorials, no overflow, no NaN).
+    ``_legendre_bands`` (stable to L = 100 and beyond: no factorials, no overflow, no NaN).
+    The result is a transposed (Fortran-ordered) view of a k-major array.
     """
     if order < 0:
         raise ValueError("order must be >= 0")
     d = np.asarray(dirs, dtype=float).reshape(-1, 3)
-    phi = np.arctan2(d[:, 1], d[:, 0])
-    legendre = _legendre_table(d[:, 2], order, s=np.hypot(d[:, 0], d[:, 1]))
-    return legendre * _trig_table(phi, order)[:, m_of_index(order) + order]
+    z, s = _z_and_sin(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
+    trig = _trig_table(np.arctan2(d[:, 1], d[:, 0]), order).T     # (2L+1, N), row m + L
+    out = np.empty((num_coeffs(order), d.shape[0]))
+    for l, p in _legendre_bands(z, s, order):
+        centre = l * l + l
+        np.multiply(p, trig[order:order + l + 1], out=out[centre:centre + l + 1])
+        np.multiply(p[l:0:-1], trig[order - l:order], out=out[l * l:centre])
+    return out.T
 
 
 def sh_evaluate(coeffs: np.ndarray, dirs: np.ndarray, chunk: int = 65536) -> np.ndarray:
