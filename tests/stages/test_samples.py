@@ -194,6 +194,34 @@ def test_masked_pixels_are_dropped_and_counted(sphere_run, tmp_path):
     np.testing.assert_array_equal(a["weight"], np.where((r >= 50) & (r < 60) & (c >= 30) & (c < 60), 0.5, 1.0))
 
 
+def test_reads_linearize_output_when_present(sphere_run, tmp_path):
+    """With WORK/linear/manifest.json the images and masks come from linearize, not the capture."""
+    from pipeline.io.images import read_image
+    from pipeline.io.linear_manifest import write_manifest
+
+    capture, _, poses, full, _, full_summary = sphere_run
+    work = tmp_path / "work"
+    (work / "linear" / "masks").mkdir(parents=True)
+    entries = {}
+    mask = np.full((80, 80), 1.0, np.float32)
+    mask[:40] = 0.0  # top half saturated
+    for key in sorted(poses.images):
+        stem = Path(key).stem
+        linear = 2.0 * read_image(capture / "images" / key)  # another exposure scale than the capture's EXR
+        write_image(work / "linear" / f"{stem}.exr", linear)  # half floats, like linearize
+        write_image(work / "linear" / "masks" / f"{stem}.png", mask, dtype="uint8")
+        entries[stem] = {"exr": f"{stem}.exr", "mask": f"masks/{stem}.png", "width": 80, "height": 80,
+                         "sources": [{"file": key}]}
+    write_manifest(work, entries)
+    a, meta, summary = run_samples(capture, work)
+    assert summary["count"] == int(np.sum(full["pixel"][:, 0] >= 40)) == len(a["radiance"])
+    assert summary["drops"]["masked"] == int(np.sum(full["pixel"][:, 0] < 40))
+    in_full = full["pixel"][:, 0] >= 40
+    # half floats keep 11 significant bits: relative error <= 2^-11
+    np.testing.assert_allclose(a["radiance"], 2.0 * full["radiance"][in_full], rtol=2.0**-11)
+    assert list(a["image_keys"]) == sorted(poses.images)
+
+
 def test_chunking_stride_and_max_samples(sphere_run, tmp_path):
     capture, _, poses, full, _, _ = sphere_run
     # tiny chunks (two rows at a time, halo rows for the edge test) give exactly the one-chunk result
