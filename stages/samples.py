@@ -221,8 +221,9 @@ def vertex_visibility(mesh, rays: int, chunk: int = 262144) -> np.ndarray:
     return visible.astype(np.float32)
 
 
-def _units_hint(mesh, poses: Poses) -> str:
-    """Why a mesh may miss every image: units (size vs camera distance) or frame (not in view)."""
+def _units_hint(mesh, poses: Poses, totals: dict) -> str:
+    """Why no camera sees the mesh's outside: units (size vs camera distance), frame (not in view)
+    or back faces only (cameras inside the mesh, or faces wound inwards)."""
     size = float(np.linalg.norm(mesh.extents))
     centre = np.asarray(mesh.bounds, float).mean(axis=0)
     centres = np.array([camera_center(p.R, p.t) for p in poses.images.values()])
@@ -241,8 +242,11 @@ def _units_hint(mesh, poses: Poses) -> str:
         cam = poses.camera_of(key)
         uv, z = project(cam, pose.R, pose.t, centre[None])
         in_view += bool(z[0] > 0 and 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height)
-    return (f"the mesh centre is in view of {in_view} of {len(poses.images)} cameras: the mesh and poses.json "
-            "are probably in different frames (poses must be in the mesh's object frame, DESIGN.md)")
+    if in_view == 0 or totals["hidden"] == 0:
+        return (f"the mesh centre is in view of {in_view} of {len(poses.images)} cameras: the mesh and poses.json "
+                "are probably in different frames (poses must be in the mesh's object frame, DESIGN.md)")
+    return ("every hit is on a back face: the cameras are inside the mesh or its faces are wound inwards "
+            "(normals pointing in); check the poses or fix the winding (e.g. trimesh.repair.fix_normals)")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -335,9 +339,8 @@ def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, rgb: np.nda
         pix_c = cols[cand % shape[1]]
         w = weight[pix_r, pix_c]
         masked = ~hidden & ~grazing & (w <= 0)
-        keep = ~(hidden | grazing | masked)
+        k = ~(hidden | grazing | masked)
         drops.update(hidden=int(hidden.sum()), grazing=int(grazing.sum()), masked=int(masked.sum()))
-        k = keep
         vis = np.einsum("nk,nk->n", bary[k], visibility[faces[f[k]]])
         arrays = {
             "point": p[k], "normal": normal[k], "view_dir": view[k], "radiance": rgb[pix_r[k], pix_c[k]],
@@ -456,7 +459,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
 
         if not sees_outside:
             raise UserError(f"{mesh_file}: no pixel of any image sees the outside of the mesh: "
-                            f"{_units_hint(mesh, poses)}")
+                            f"{_units_hint(mesh, poses, totals)}")
         if writer.count == 0:
             raise UserError("no samples left: every pixel that hits the mesh was dropped "
                             f"({', '.join(f'{r} {c}' for r, c in totals.items() if c)}); check the masks and "

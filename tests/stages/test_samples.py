@@ -307,16 +307,19 @@ def sigrend(*args):
     return subprocess.run([sys.executable, "-m", "pipeline.cli", *map(str, args)], capture_output=True, text=True)
 
 
-def scale_mesh(capture, factor=1.0, shift=(0.0, 0.0, 0.0)):
+def scale_mesh(capture, factor=1.0, shift=(0.0, 0.0, 0.0), invert=False):
     mesh = trimesh.load(capture / "mesh.ply", force="mesh")
     mesh.apply_scale(factor)
     mesh.apply_translation(shift)
+    if invert:
+        mesh.invert()
     mesh.export(capture / "mesh.ply")
 
 
 BAD_INPUTS = {
     "millimetres": (lambda c: scale_mesh(c, 1000.0), "larger than the camera distances (bounding box 346 across, median camera distance 0.51): is it in millimetres"),
     "other frame": (lambda c: scale_mesh(c, shift=(0.0, 0.0, 50.0)), "different frames"),
+    "inward normals": (lambda c: scale_mesh(c, invert=True), "faces are wound inwards"),
     "missing image": (lambda c: (c / "images" / "0001.exr").unlink(), "0001.exr: image listed in"),
     "no poses": (lambda c: (c / "poses.json").unlink(), "no poses"),
     "nan": (lambda c: make_capture(c, CAMERAS, nan_pixel=(40, 40)), "0000.exr: 1 pixels are NaN"),
