@@ -1,0 +1,41 @@
+"""`sigrend planar figures -o DIR`: writes the five seed-paper PNGs; bad input is one line, exit 2."""
+
+import subprocess
+import sys
+
+import pytest
+
+from pipeline.cli import main
+from pipeline.commands.planar import FIGURES
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+def test_figures_written(tmp_path, capsys):
+    out = tmp_path / "figs"
+    assert main(["planar", "figures", "-o", str(out), "--dpi", "40"]) == 0
+    printed = capsys.readouterr().out.split()
+    assert printed == [str(out / name) for name in FIGURES]
+    for name in FIGURES:
+        data = (out / name).read_bytes()
+        assert data.startswith(PNG_MAGIC) and len(data) > 5000   # a real plot, not an empty canvas
+    assert sorted(p.name for p in out.iterdir()) == sorted(FIGURES)  # no temporary files left
+
+
+@pytest.mark.parametrize("args", [["--noise", "-1"], ["--dpi", "5"]])
+def test_bad_arguments_one_line_exit_2(tmp_path, args):
+    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "planar", "figures",
+                           "-o", str(tmp_path / "f"), *args], capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "f").exists()
+
+
+def test_output_is_a_file(tmp_path):
+    target = tmp_path / "taken"
+    target.write_text("keep me")
+    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "planar", "figures", "-o", str(target)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "not a folder" in proc.stderr
+    assert target.read_text() == "keep me"
