@@ -10,8 +10,9 @@ ray through the mesh (trimesh + embreex, first hit only).  A pixel is dropped un
 these reasons that applies, and counted under it:
 
 1. ``background``      the ray misses the mesh;
-2. ``silhouette_edge`` within ``edge_px`` pixels of a background pixel, or next to an occlusion
-                       edge (a depth jump of more than ``depth_jump`` pixel footprints to a neighbour);
+2. ``silhouette_edge`` within ``edge_px`` pixels of a background pixel, or on either side of an
+                       occlusion edge (a depth jump of more than ``depth_jump`` pixel footprints
+                       between 4-neighbours, widened by edge_px − 1);
 3. ``hidden``          the hit face, or the interpolated normal, faces away from the camera
                        (first-hit casting already removes points hidden behind other geometry);
 4. ``grazing``         n·v < ``min_cos`` (v: unit direction from the point to the camera);

@@ -242,6 +242,41 @@ def test_chunking_stride_and_max_samples(sphere_run, tmp_path):
     assert {tuple(x) for x in np.column_stack([capped["image_id"], capped["pixel"]])} <= full_set
 
 
+def test_occlusion_edge_in_front_of_a_wall(tmp_path):
+    """The sphere in front of a wall: no background, and the pixels on both sides of the depth jump
+    (4-neighbour pairs, one on the sphere, one on the wall 0.3 m = 60 pixel footprints behind) are
+    dropped as silhouette_edge; bracketed by the in- and circumscribed spheres' pairs."""
+    size = 80
+    capture, poses = make_capture(tmp_path / "capture", [(0.0, 0.0, 0.5)], size=size)
+    wall = trimesh.Trimesh(vertices=np.array([[-1, -1, -0.3], [1, -1, -0.3], [1, 1, -0.3], [-1, 1, -0.3]], float),
+                           faces=[[0, 1, 2], [0, 2, 3]])  # normal +Z, towards the camera
+    sphere = trimesh.load(capture / "mesh.ply", force="mesh")
+    trimesh.util.concatenate([sphere, wall]).export(capture / "mesh.ply")
+    _, _, summary = run_samples(capture, tmp_path / "work")
+    drops = summary["drops"]
+    key = next(iter(poses.images))
+    pose, camera = poses.images[key], poses.camera_of(key)
+    inradius, circumradius = mesh_radii()
+    hit_in = sphere_hits(camera, pose.R, pose.t, inradius)[0].reshape(size, size)
+    hit_out = sphere_hits(camera, pose.R, pose.t, circumradius)[0].reshape(size, size)
+
+    def pair_pixels(on, off):
+        """Pixels of 4-neighbour pairs with one pixel in ``on`` and the other in ``off``."""
+        out = np.zeros_like(on)
+        for axis in (0, 1):
+            a, b = [slice(None)] * 2, [slice(None)] * 2
+            a[axis], b[axis] = slice(0, -1), slice(1, None)
+            pair = (on[tuple(a)] & off[tuple(b)]) | (off[tuple(a)] & on[tuple(b)])
+            out[tuple(a)] |= pair
+            out[tuple(b)] |= pair
+        return out.sum()
+
+    assert drops["background"] == 0
+    assert pair_pixels(hit_in, ~hit_out) <= drops["silhouette_edge"] <= pair_pixels(hit_out, ~hit_in)
+    assert summary["count"] + drops["silhouette_edge"] + drops["grazing"] == size * size
+    assert drops["silhouette_edge"] > 0
+
+
 def test_coverage_of_one_camera_matches_the_visible_cap(tmp_path):
     """One camera on +Z at distance d sees the normals z >= z* (n·v >= min_cos) and reflections z >= z_r*.
 
