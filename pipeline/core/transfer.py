@@ -193,3 +193,22 @@ def irradiance_9term(coeffs: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return (_C1 * l22 * (x * x - y * y) + _C3 * l20 * z * z + _C4 * l00 - _C5 * l20
             + 2 * _C1 * (l2m2 * x * y + l21 * x * z + l2m1 * y * z)
             + 2 * _C2 * (l11 * x + l1m1 * y + l10 * z))
+
+
+def irradiance_envmap(coeffs: np.ndarray, height: int, nine_term: bool = False) -> np.ndarray:
+    """Irradiance environment map (H, 2H[, C]): pixel = E(n) for the normal n pointing that way.
+
+    ``coeffs``: lighting ((L+1)^2[, C]).  ``nine_term``: use R&H's closed form (eq. 13; needs
+    L >= 2, higher bands ignored); otherwise E = sum_lm Â_l L_lm Y_lm over all given bands,
+    synthesized separably (``envmap_from_sh`` of the Â-filtered coefficients).
+    """
+    from pipeline.core.envmap import equirect_directions
+    from pipeline.core.sh import band_of_index, envmap_from_sh, order_of
+
+    coeffs = np.asarray(coeffs, dtype=float)
+    if nine_term:
+        normals = equirect_directions(height).reshape(-1, 3)
+        return irradiance_9term(coeffs, normals).reshape((height, 2 * height) + coeffs.shape[1:])
+    order = order_of(coeffs.shape[0])
+    a_hat = lambert_filter(order)[band_of_index(order)]
+    return envmap_from_sh(coeffs * a_hat.reshape((-1,) + (1,) * (coeffs.ndim - 1)), height)
