@@ -9,7 +9,7 @@ Geometry and angles (radians)
     A point of the curve is labelled by the angle α of its outward normal.  Lighting L(θ) is
     distant, a function of the global direction θ on the circle.  Local angles are measured from
     the normal, in the same orientation: θ'_i = θ_i − α, θ'_o.  The reflection of θ'_i about the
-    normal is −θ'_i.  The reflection equation (R&H 2001, eq. 3) is
+    normal is −θ'_i.  The reflection equation (R&H 2001, §3) is
 
         B(α, θ'_o) = ∫ L(α + θ'_i) ρ̂(θ'_i, θ'_o) dθ'_i ,   ρ̂(θ'_i, θ'_o) = ρ(θ'_i, θ'_o) max(cos θ'_i, 0)
 
@@ -28,7 +28,7 @@ Fourier normalization (chosen so that DESIGN.md's formulas hold exactly)
         g(a, b) = Σ_pq g_pq e^{ipa} e^{iqb},   g_pq = 1/(4π²) ∬ g(a, b) e^{−ipa} e^{−iqb} da db
 
     for L (1D), ρ̂ (in θ'_i, θ'_o) and B (in α, θ'_o).  Substituting into the reflection
-    equation, ∫ e^{ipθ} e^{ip'θ} dθ = 2π δ_{p',−p}, so the convolution becomes (R&H 2001, eq. 6)
+    equation, ∫ e^{ipθ} e^{ip'θ} dθ = 2π δ_{p',−p}, so the convolution becomes (R&H 2001, §3)
 
         B_pq = 2π L_p ρ̂_{−p,q} .
 
@@ -298,7 +298,7 @@ def reflected_angle_spectrum(brdf, band: int, n_quad: int = 2048) -> np.ndarray:
 
 
 def reflect(lighting: np.ndarray, rho: np.ndarray) -> np.ndarray:
-    """B_pq = 2π L_p ρ̂_{−p,q} (R&H 2001, eq. 6).  lighting (2P+1,), rho (2P+1, 2Q+1)."""
+    """B_pq = 2π L_p ρ̂_{−p,q} (R&H 2001, §3).  lighting (2P+1,), rho (2P+1, 2Q+1)."""
     lighting = np.asarray(lighting)
     rho = np.asarray(rho)
     if rho.shape[0] != lighting.shape[0]:
