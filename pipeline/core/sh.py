@@ -117,11 +117,15 @@ def sh_basis(dirs: np.ndarray, order: int) -> np.ndarray:
     return out.T
 
 
-def sh_evaluate(coeffs: np.ndarray, dirs: np.ndarray, chunk: int = 65536) -> np.ndarray:
-    """Sum_k c_k Y_k(d) at N directions; coeffs (K,) or (K, C) -> (N,) or (N, C). Chunked in N."""
+def sh_evaluate(coeffs: np.ndarray, dirs: np.ndarray, chunk: int | None = None) -> np.ndarray:
+    """Sum_k c_k Y_k(d) at N directions; coeffs (K,) or (K, C) -> (N,) or (N, C).
+
+    Chunked in N: ``chunk`` directions at a time (default: a ~32 MB basis block, 2^22 / K rows).
+    """
     coeffs = np.asarray(coeffs, dtype=float)
     order = order_of(coeffs.shape[0])
     d = np.asarray(dirs, dtype=float).reshape(-1, 3)
+    chunk = max(1, (1 << 22) // coeffs.shape[0]) if chunk is None else int(chunk)
     out = np.empty((d.shape[0],) + coeffs.shape[1:])
     for start in range(0, d.shape[0], chunk):
         out[start:start + chunk] = sh_basis(d[start:start + chunk], order) @ coeffs
@@ -192,8 +196,8 @@ def envmap_from_sh(coeffs: np.ndarray, height: int) -> np.ndarray:
         ks = np.nonzero(m_of_k == m)[0]
         per_m[:, m + order] = legendre[:, ks] @ coeffs[ks]
     trig = _trig_table(phi, order)                                       # (W, 2L+1)
-    env = np.einsum("imc,jm->ijc", per_m, trig)
-    return env[:, :, 0] if squeeze else env
+    env = np.matmul(per_m.transpose(0, 2, 1), trig.T).transpose(0, 2, 1)  # (H, C, W) -> (H, W, C)
+    return env[:, :, 0] if squeeze else np.ascontiguousarray(env)
 
 
 def _check_rotation(rotation: np.ndarray) -> np.ndarray:

@@ -1,0 +1,124 @@
+"""`sigrend bench SUITE [-o DIR]`: timing benchmarks (not tests), written as DIR/bench_<suite>.csv.
+
+A suite is a function ``suite(quick: bool, repeat: int) -> list[BenchRow]`` registered in
+``SUITES`` (name -> (help, "module:function")); add a suite by adding one entry.  Every timing is
+the best of ``--repeat`` runs (the least disturbed by other processes), measured with
+``time.perf_counter``.  ``--quick`` shrinks the problem sizes (for smoke tests), so its numbers
+are not comparable with a full run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import importlib
+import io
+import os
+import platform
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from pipeline.errors import UserError
+
+HELP = "Benchmarks (timings, not tests): write DIR/bench_<suite>.csv and print a table."
+
+# suite name -> (one-line help, "module:function")
+SUITES: dict[str, tuple[str, str]] = {
+    "sh": ("spherical harmonics: evaluation throughput at L = 8, 20, 50; env projection 2048x1024 at L = 20",
+           "pipeline.commands.bench:sh_suite"),
+}
+
+
+@dataclass(frozen=True)
+class BenchRow:
+    """One measurement: what (case), at which size (order, size), the number and its unit."""
+
+    case: str
+    order: int
+    size: str
+    value: float
+    unit: str
+    note: str = ""
+
+
+def best_time(func, repeat: int) -> float:
+    """Best wall-clock seconds of ``repeat`` calls of ``func()`` (after one warm-up call)."""
+    func()
+    best = float("inf")
+    for _ in range(max(1, repeat)):
+        start = time.perf_counter()
+        func()
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def sh_suite(quick: bool, repeat: int) -> list[BenchRow]:
+    """SH evaluation throughput (directions/s) at L = 8, 20, 50 and env-map projection/synthesis times."""
+    import numpy as np
+
+    from pipeline.core.sh import envmap_from_sh, num_coeffs, project_envmap, sh_basis, sh_evaluate, sh_rotation_matrices
+
+    rng = np.random.default_rng(0)
+    rows = []
+    for order, n_dirs in ((8, 200_000), (20, 100_000), (50, 20_000)):
+        n = n_dirs // 20 if quick else n_dirs
+        dirs = rng.normal(size=(n, 3))
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        coeffs = rng.normal(size=(num_coeffs(order), 3))
+        seconds = best_time(lambda: sh_evaluate(coeffs, dirs), repeat)
+        rows.append(BenchRow("sh_evaluate RGB", order, f"{n} dirs", n / seconds, "directions/s",
+                             "sum_k c_k Y_k(d), 3 channels, chunked basis"))
+        block = dirs[: min(n, max(1000, (1 << 22) // num_coeffs(order)))]
+        seconds = best_time(lambda: sh_basis(block, order), repeat)
+        rows.append(BenchRow("sh_basis", order, f"{len(block)} dirs", len(block) / seconds, "directions/s",
+                             f"all {num_coeffs(order)} functions per direction"))
+    height = 128 if quick else 1024
+    env = rng.random((height, 2 * height, 3), dtype=np.float32)
+    seconds = best_time(lambda: project_envmap(env, 20), repeat)
+    rows.append(BenchRow("project_envmap", 20, f"{2 * height}x{height} RGB", seconds, "s",
+                         "exact pixel solid angles, separable, 64-row chunks"))
+    coeffs = rng.normal(size=(num_coeffs(20), 3))
+    seconds = best_time(lambda: envmap_from_sh(coeffs, height), repeat)
+    rows.append(BenchRow("envmap_from_sh", 20, f"{2 * height}x{height} RGB", seconds, "s", "synthesis"))
+    for order in (20, 100):
+        rot = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        rot *= np.sign(np.linalg.det(rot))
+        seconds = best_time(lambda: sh_rotation_matrices(rot, order), repeat)
+        rows.append(BenchRow("sh_rotation_matrices", order, "1 rotation", seconds, "s", "Ivanic-Ruedenberg"))
+    return rows
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("suite", choices=sorted(SUITES), metavar="SUITE",
+                        help="; ".join(f"{name}: {info[0]}" for name, info in sorted(SUITES.items())))
+    parser.add_argument("-o", "--output", type=Path, default=Path("bench"), help="folder for bench_<suite>.csv")
+    parser.add_argument("--repeat", type=int, default=3, help="timed runs per case (the best is kept)")
+    parser.add_argument("--quick", action="store_true", help="small sizes: a smoke test, numbers not comparable")
+
+
+def _table(rows: list[BenchRow]) -> str:
+    lines = [f"{'case':<22} {'L':>4} {'size':<18} {'value':>12}  unit"]
+    for r in rows:
+        lines.append(f"{r.case:<22} {r.order:>4} {r.size:<18} {r.value:>12.4g}  {r.unit}")
+    return "\n".join(lines)
+
+
+def main(args: argparse.Namespace) -> int:
+    from pipeline.workdir import write_text
+
+    if not 1 <= args.repeat <= 100:
+        raise UserError(f"--repeat {args.repeat} is outside 1..100")
+    module_name, func_name = SUITES[args.suite][1].split(":")
+    rows = getattr(importlib.import_module(module_name), func_name)(quick=args.quick, repeat=args.repeat)
+    machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cpus, python {platform.python_version()}"
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=["suite", *BenchRow.__dataclass_fields__, "quick", "machine"])
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({"suite": args.suite, **asdict(row), "quick": args.quick, "machine": machine})
+    path = write_text(Path(args.output) / f"bench_{args.suite}.csv", buffer.getvalue())
+    print(f"bench {args.suite} ({machine}{', quick' if args.quick else ''}; best of {args.repeat}):")
+    print(_table(rows))
+    print(f"wrote {path}")
+    return 0
