@@ -275,6 +275,13 @@ def test_occlusion_edge_in_front_of_a_wall(tmp_path):
     assert pair_pixels(hit_in, ~hit_out) <= drops["silhouette_edge"] <= pair_pixels(hit_out, ~hit_in)
     assert summary["count"] + drops["silhouette_edge"] + drops["grazing"] == size * size
     assert drops["silhouette_edge"] > 0
+    # non-convex scene: stored visibility = the vertices' visibility interpolated with the barycentrics
+    a, _ = read_samples(tmp_path / "work" / "samples.npz", ["face", "bary", "visibility"])
+    mesh = samples_stage.load_mesh(capture / "mesh.ply")
+    per_vertex = samples_stage.vertex_visibility(mesh, 64)
+    expected = np.sum(a["bary"] * per_vertex[mesh.faces[a["face"]]], axis=1)
+    np.testing.assert_allclose(a["visibility"], expected, atol=1e-6)  # float32 storage
+    assert a["visibility"].min() < 0.9 and a["visibility"].max() == 1.0
 
 
 def test_coverage_of_one_camera_matches_the_visible_cap(tmp_path):
