@@ -35,7 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays, project
-from pipeline.core.coverage import EqualAreaGrid, coverage_stats, reflect
+from pipeline.core.brdf import reflect
+from pipeline.core.coverage import EqualAreaGrid, coverage_stats
 from pipeline.errors import UserError
 from pipeline.io.images import read_image
 from pipeline.io.linear_manifest import linear_dir, manifest_path, read_linear_image, read_manifest, resolve_key

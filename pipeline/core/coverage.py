@@ -13,16 +13,6 @@ from __future__ import annotations
 import numpy as np
 
 
-def reflect(view_dir: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """Mirror direction r = 2 (n·v) n − v of unit ``view_dir`` (towards the viewer) about unit ``normal``.
-
-    Both (N, 3); returns (N, 3) unit vectors (up to the inputs' normalization).
-    """
-    v = np.asarray(view_dir, dtype=float)
-    n = np.asarray(normal, dtype=float)
-    return 2.0 * np.sum(n * v, axis=-1, keepdims=True) * n - v
-
-
 class EqualAreaGrid:
     """Equal-area cells on the unit sphere: ``n_bands`` bands in z = cos θ × ``n_azimuth`` sectors in φ."""
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.core.coverage import EqualAreaGrid, coverage_stats, reflect
+from pipeline.core.coverage import EqualAreaGrid, coverage_stats
 
 
 def fibonacci_sphere(n):
@@ -55,9 +55,3 @@ def test_min_count_and_weights():
     assert hist.sum() == 3.5
     assert coverage_stats(hist, min_count=1.0)["cells_hit"] == 1
     assert coverage_stats(hist, min_count=0.5)["cells_hit"] == 2
-
-
-def test_reflect_is_mirror():
-    n = np.array([[0.0, 0.0, 1.0]])
-    v = np.array([[np.sin(0.3), 0.0, np.cos(0.3)]])
-    np.testing.assert_allclose(reflect(v, n), [[-np.sin(0.3), 0.0, np.cos(0.3)]], atol=1e-15)
