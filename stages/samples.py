@@ -62,6 +62,8 @@ class Settings:
     max_samples: int = setting(0, "keep at most this many samples, drawn uniformly per image (0: no limit)")
     chunk_pixels: int = setting(262144, "pixels ray cast at a time (bounds memory)")
     seed: int = setting(0, "random seed of the max_samples subsampling")
+    holdout: tuple[str, ...] = setting((), "image keys left out of the samples (held out to validate the fit; "
+                                           "listed in the meta as 'holdout')")
 
     def validate(self) -> None:
         if not 0.0 <= self.min_cos < 1.0:
@@ -401,9 +403,13 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     mesh_file = mesh_path(capture)
     pose_file = poses_path(capture, work)
     poses = read_poses(pose_file)
-    keys = sorted(poses.images)
+    unknown = sorted(set(settings.holdout) - set(poses.images))
+    if unknown:
+        raise UserError(f"--holdout names image(s) not in {pose_file}: {', '.join(unknown)}")
+    keys = sorted(set(poses.images) - set(settings.holdout))
     if not keys:
-        raise UserError(f"{pose_file}: lists no images; nothing to sample")
+        raise UserError(f"{pose_file}: no images left to sample"
+                        f"{' after --holdout' if settings.holdout else ''}; nothing to sample")
     manifest = linear_manifest(work)
     if manifest is None:
         for key in keys:
@@ -482,6 +488,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
                 "min_visibility": settings.min_visibility,
                 "below_min_visibility": visibility_low,
             },
+            "holdout": sorted(settings.holdout),
             "mesh": str(mesh_file),
             "poses": str(pose_file),
             "images": per_image,

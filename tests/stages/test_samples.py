@@ -19,6 +19,7 @@ import trimesh
 import stages.samples as samples_stage
 from pipeline.core.camera import Camera, camera_center, look_at, pixel_centers, pixel_rays, project
 from pipeline.core.coverage import EqualAreaGrid
+from pipeline.errors import UserError
 from pipeline.io.images import write_image
 from pipeline.io.poses import ImagePose, Poses, write_poses
 from pipeline.io.samples import read_samples
@@ -282,6 +283,19 @@ def test_occlusion_edge_in_front_of_a_wall(tmp_path):
     expected = np.sum(a["bary"] * per_vertex[mesh.faces[a["face"]]], axis=1)
     np.testing.assert_allclose(a["visibility"], expected, atol=1e-6)  # float32 storage
     assert a["visibility"].min() < 0.9 and a["visibility"].max() == 1.0
+
+
+def test_holdout_views_are_left_out_and_listed(sphere_run, tmp_path):
+    capture, _, poses, full, _, _ = sphere_run
+    keys = sorted(poses.images)
+    a, meta, summary = run_samples(capture, tmp_path / "work", holdout=(keys[1],))
+    assert list(a["image_keys"]) == [keys[0], keys[2]] and meta["holdout"] == [keys[1]]
+    # the remaining views give exactly the full run's samples of those views, renumbered
+    for new_id, key in enumerate(a["image_keys"]):
+        old = full["pixel"][full["image_id"] == keys.index(key)]
+        np.testing.assert_array_equal(a["pixel"][a["image_id"] == new_id], old)
+    with pytest.raises(UserError, match="not in"):
+        run_samples(capture, tmp_path / "work2", holdout=("nope.exr",))
 
 
 def test_coverage_of_one_camera_matches_the_visible_cap(tmp_path):
