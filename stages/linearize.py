@@ -28,6 +28,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import hashlib
 import json
+import multiprocessing
 import os
 import warnings
 from dataclasses import dataclass
@@ -399,7 +400,9 @@ def run_jobs(jobs: list[dict], workers: int) -> dict[str, dict]:
                 entries[job["key"]] = linearize_job(job)
                 bar.update()
         else:
-            with cf.ProcessPoolExecutor(max_workers=min(workers, len(todo))) as pool:
+            # forkserver, not fork: OpenImageIO's thread pool in this process would deadlock forked children
+            context = multiprocessing.get_context("forkserver")
+            with cf.ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=context) as pool:
                 futures = {pool.submit(linearize_job, job): job["key"] for job in todo}
                 try:
                     for fut in cf.as_completed(futures):

@@ -68,14 +68,19 @@ def _first(meta: dict, *names):
 def probe(path: Path) -> Probe:
     """Size, pixel kind, EXIF exposure (and as-shot WB for RAW) without decoding the pixels."""
     if path.suffix.lower() in RAW_EXTENSIONS:
+        rawpy = _rawpy()
         with _open_raw(path) as raw:
-            w, h = _raw_output_size(raw)
-            other = raw.other
+            try:
+                w, h = _raw_output_size(raw)
+                other = raw.other
+                wb = tuple(float(v) for v in raw.camera_whitebalance)
+                if not any(wb):
+                    wb = tuple(float(v) for v in raw.daylight_whitebalance)
+            except (rawpy.LibRawError, rawpy.NotSupportedError) as exc:
+                raise UserError(f"{path}: LibRaw cannot read this RAW file ({type(exc).__name__}: {exc}); the file "
+                                "may be truncated or corrupt: copy it again from the card or remove it") from None
             exif = {"time": other.shutter_speed or None, "iso": other.iso_speed or None,
                     "fnumber": other.aperture or None}
-            wb = tuple(float(v) for v in raw.camera_whitebalance)
-            if not any(wb):
-                wb = tuple(float(v) for v in raw.daylight_whitebalance)
             return Probe(path, "raw", w, h, exif, wb)
     import OpenImageIO as oiio
 
