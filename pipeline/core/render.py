@@ -1,0 +1,358 @@
+"""Angular-domain reference renderer: the independent forward model that synthetic captures come from.
+
+It integrates the reflection equation numerically over the environment map's directions and
+never touches the spherical-harmonic or transfer code (pipeline.core.sh / .transfer), so that
+testing the frequency-space fit against its images is not circular:
+
+    B(x, w_o) = sum_j  L_j dω_j  V(x, w_j)  f_r(w_j, w_o) max(0, n . w_j)
+
+* Camera rays (DESIGN.md poses convention, pipeline.core.camera) are cast with Embree through
+  trimesh; a hit gives the point, the face and the barycentric-interpolated vertex normal
+  (optionally a barycentric-interpolated per-vertex albedo).
+* Directions ("light set", ``light_set``): the map is split into *bright* pixels, kept at full
+  resolution one by one (sun disks, area lights, lamps: every pixel brighter than
+  ``bright_ratio`` times the map's mean luminance or than its coarse cell's mean, at most
+  ``max_bright`` of them by power), and the *remainder*, box-filtered (solid-angle weighted,
+  so energy is preserved exactly) into a coarse grid of ``cell_height`` x 2 ``cell_height`` cells
+  at their centre directions.  Each direction carries its power L dω.  ``cell_height >= H``
+  uses every pixel of the map (exact pixel quadrature, used by the tests).
+* f_r is pipeline.core.brdf (Lambert, R&H Phong, Torrance-Sparrow microfacet).  The diffuse
+  part is a matrix product over all directions; the specular lobe is evaluated only for
+  direction pairs inside its support: for Beckmann roughness σ the half vector is more than
+  atan(4σ) from n (D < e^-16 of its peak) whenever w_in is more than 2 atan(4σ) from the mirror
+  direction r (reflecting w_out about h instead of n is r rotated by twice the angle between h
+  and n), and for Phong where cos^s < 1e-7.
+* Shadows (``shadows=True``): V is computed per mesh vertex by shadow rays (Embree
+  ``intersects_any``) from the vertex, offset along its normal, for every direction above
+  -0.3 of its tangent plane, and interpolated barycentrically at the hit point, so its cost is
+  vertices x directions once per scene (cached across views), not pixels x directions per view.
+  Shadow edges are therefore soft at the scale of one triangle.
+* Optional ChArUco board (``BoardPlane``): a textured Lambertian rectangle on z = 0.  It
+  occludes the object's lower hemisphere (it is part of the shadow-ray scene) and is lit by the
+  upper hemisphere of the map without shadows: the object casts nothing on it, so its radiance
+  is texture albedo x E_up / π with E_up = sum over w_z > 0 of L w_z dω (all pixels of the map).
+  Board pixels are supersampled (``board_supersample``^2 rays per pixel) for sub-pixel corners.
+* Background pixels see the map itself (nearest pixel in the ray direction).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+from pipeline.core.brdf import beckmann_distribution, phong_lobe, vcavity_shadowing
+from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays
+from pipeline.core.envmap import (downsample, equirect_directions, equirect_solid_angles, lookup)
+
+_VIS_HORIZON = -0.3  # shadow rays only for directions with n_vertex . w > this (others: occluded)
+_LOBE_CUT_SIGMAS = 4.0  # microfacet support: tan(theta_h) < 4 sigma, D > exp(-16) of its peak
+_PHONG_CUT = 1e-7  # phong support: cos(alpha)^s > 1e-7
+
+
+class InsideMeshError(ValueError):
+    """The camera is inside the mesh (most of its rays hit back faces)."""
+
+
+@dataclass(frozen=True)
+class LightSet:
+    """Discrete directions (D, 3) of the environment with their power L dω (D, 3), RGB."""
+
+    directions: np.ndarray
+    power: np.ndarray
+
+    def __len__(self) -> int:
+        return self.directions.shape[0]
+
+
+def light_set(env: np.ndarray, cell_height: int = 16, max_bright: int = 1024,
+              bright_ratio: float = 4.0) -> LightSet:
+    """Split an (H, 2H, 3) equirect map into full-resolution bright pixels + a coarse remainder.
+
+    See the module docstring.  The powers sum exactly to the map's sum(L dω) per channel.
+    """
+    env = np.asarray(env, dtype=float)
+    h = env.shape[0]
+    dirs = equirect_directions(h).reshape(-1, 3)
+    omega = np.broadcast_to(equirect_solid_angles(h)[:, None], env.shape[:2]).reshape(-1)
+    flat = env.reshape(-1, 3)
+    if cell_height >= h:
+        keep = flat.max(axis=1) > 0
+        return LightSet(dirs[keep], flat[keep] * omega[keep, None])
+    factor = max(1, h // max(cell_height, 1))
+    while h % factor:
+        factor -= 1
+    lum = flat.mean(axis=1)
+    cell_mean = downsample(env, factor).mean(axis=2)
+    cell_mean_full = np.repeat(np.repeat(cell_mean, factor, axis=0), factor, axis=1).reshape(-1)
+    mean_lum = float((lum * omega).sum() / omega.sum())
+    bright = (lum > bright_ratio * mean_lum) | (lum > bright_ratio * cell_mean_full)
+    bright &= lum > 0
+    idx = np.flatnonzero(bright)
+    if idx.size > max_bright:
+        idx = idx[np.argsort(lum[idx] * omega[idx])[::-1][:max_bright]]
+    residual = flat.copy()
+    residual[idx] = 0.0
+    coarse = downsample(residual.reshape(env.shape), factor)
+    ch = coarse.shape[0]
+    c_dirs = equirect_directions(ch).reshape(-1, 3)
+    c_power = (coarse * equirect_solid_angles(ch)[:, None, None]).reshape(-1, 3)
+    nonzero = c_power.max(axis=1) > 0
+    return LightSet(np.concatenate([c_dirs[nonzero], dirs[idx]]),
+                    np.concatenate([c_power[nonzero], flat[idx] * omega[idx, None]]))
+
+
+@dataclass(frozen=True)
+class BoardPlane:
+    """A flat textured board in the object frame's z = 0 plane.
+
+    ``albedo`` (h, w) texture (row 0 at board y = 0); ``size`` (width, height) in metres;
+    ``board_to_object`` 4x4 maps board coordinates (OpenCV's: x along the texture's columns,
+    y along its rows, z into the board) to the object frame.
+    """
+
+    albedo: np.ndarray
+    size: tuple[float, float]
+    board_to_object: np.ndarray
+
+    def corners_object(self) -> np.ndarray:
+        w, h = self.size
+        pts = np.array([[0, 0, 0, 1], [w, 0, 0, 1], [w, h, 0, 1], [0, h, 0, 1]], float)
+        return (pts @ np.asarray(self.board_to_object, float).T)[:, :3]
+
+    def albedo_at(self, points_object: np.ndarray) -> np.ndarray:
+        """Texture albedo at object-frame points on the plane (nearest texel); NaN outside."""
+        inv = np.linalg.inv(np.asarray(self.board_to_object, float))
+        pb = points_object @ inv[:3, :3].T + inv[:3, 3]
+        th, tw = self.albedo.shape
+        col = np.floor(pb[:, 0] / self.size[0] * tw).astype(np.int64)
+        row = np.floor(pb[:, 1] / self.size[1] * th).astype(np.int64)
+        inside = (col >= 0) & (col < tw) & (row >= 0) & (row < th)
+        out = np.full(points_object.shape[0], np.nan)
+        out[inside] = self.albedo[row[inside], col[inside]]
+        return out
+
+
+@dataclass
+class RenderResult:
+    radiance: np.ndarray  # (H, W, 3) float32, linear
+    object_mask: np.ndarray  # (H, W) bool: pixel centre ray hits the object
+    board_mask: np.ndarray  # (H, W) bool: pixel shows the board
+
+
+def _intersector(mesh: trimesh.Trimesh):
+    from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+    return RayMeshIntersector(mesh)
+
+
+@dataclass
+class Renderer:
+    """A prepared scene: mesh (object frame, metres), environment map, BRDF dict (pipeline.io.brdf).
+
+    ``vertex_albedo`` (V, 3) replaces brdf["albedo"] per vertex (linear).  Build once, call
+    ``render`` per view: the light set and the per-vertex visibility are shared by all views.
+    """
+
+    mesh: trimesh.Trimesh
+    env: np.ndarray
+    brdf: dict
+    shadows: bool = True
+    vertex_albedo: np.ndarray | None = None
+    board: BoardPlane | None = None
+    cell_height: int = 16
+    max_bright: int = 1024
+    board_supersample: int = 4
+    chunk_pairs: int = 1 << 21
+    lights: LightSet = field(init=False)
+    _visibility: np.ndarray = field(init=False, repr=False)
+    _vis_done: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if len(self.mesh.faces) == 0:
+            raise ValueError("mesh has no faces")
+        self.env = np.asarray(self.env, dtype=np.float32)
+        self.lights = light_set(self.env, self.cell_height, self.max_bright)
+        self._camera_rays = _intersector(self.mesh)
+        self._vertex_normals = np.asarray(self.mesh.vertex_normals, float)
+        nv, nd = len(self.mesh.vertices), len(self.lights)
+        self._visibility = np.ones((nv, nd), dtype=bool)
+        self._vis_done = np.zeros(nv, dtype=bool)
+        self._scale = float(np.linalg.norm(self.mesh.extents))
+        if self.shadows:
+            scene = self.mesh
+            if self.board is not None:
+                c = self.board.corners_object()
+                quad = trimesh.Trimesh(c, [[0, 1, 2], [0, 2, 3]], process=False)
+                scene = trimesh.util.concatenate([self.mesh, quad])
+            self._shadow_rays = _intersector(scene)
+        if self.board is not None:
+            h = self.env.shape[0]
+            d = equirect_directions(h)
+            up = np.clip(d[..., 2], 0.0, None)[..., None]
+            omega = equirect_solid_angles(h)[:, None, None]
+            self._board_irradiance = (self.env * up * omega).sum(axis=(0, 1))
+
+    # -- visibility -------------------------------------------------------------------------
+    def _ensure_visibility(self, vertices: np.ndarray) -> None:
+        """Shadow rays for the vertices not done yet: V[v, j] = direction j unoccluded from v."""
+        todo = np.unique(vertices)
+        todo = todo[~self._vis_done[todo]]
+        if not self.shadows or todo.size == 0:
+            return
+        dirs = self.lights.directions
+        pos = np.asarray(self.mesh.vertices, float)[todo]
+        nrm = self._vertex_normals[todo]
+        origins = pos + nrm * (1e-4 * self._scale)
+        per_chunk = max(1, self.chunk_pairs // len(dirs))
+        for s in range(0, todo.size, per_chunk):
+            sl = slice(s, s + per_chunk)
+            facing = nrm[sl] @ dirs.T > _VIS_HORIZON
+            vi, di = np.nonzero(facing)
+            vis = np.zeros(facing.shape, dtype=bool)
+            if vi.size:
+                hit = self._shadow_rays.intersects_any(origins[sl][vi], dirs[di])
+                vis[vi, di] = ~hit
+            self._visibility[todo[sl]] = vis
+        self._vis_done[todo] = True
+
+    # -- shading ----------------------------------------------------------------------------
+    def _spec_cut(self) -> float | None:
+        model = self.brdf["model"]
+        if model == "microfacet":
+            return float(np.cos(min(np.pi, 2.0 * np.arctan(_LOBE_CUT_SIGMAS * float(self.brdf["roughness"])))))
+        if model == "phong":
+            return float(max(0.0, np.exp(np.log(_PHONG_CUT) / float(self.brdf["exponent"]))))
+        return None
+
+    def shade(self, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
+        """Outgoing radiance (P, 3) at points given by face ids (P,) and barycentrics (P, 3).
+
+        ``view_dirs`` (P, 3) are unit vectors from the point towards the viewer.
+        """
+        tri = np.asarray(self.mesh.faces)[faces]
+        normals = np.einsum("pk,pkc->pc", bary, self._vertex_normals[tri])
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        if self.vertex_albedo is not None:
+            albedo = np.einsum("pk,pkc->pc", bary, np.asarray(self.vertex_albedo, float)[tri])
+        else:
+            albedo = np.broadcast_to(np.asarray(self.brdf["albedo"], float), normals.shape)
+        if self.shadows:
+            self._ensure_visibility(tri.ravel())
+        dirs, power = self.lights.directions, self.lights.power
+        spec_cut = self._spec_cut()
+        out = np.zeros((faces.shape[0], 3))
+        per_chunk = max(1, self.chunk_pairs // len(dirs))
+        for s in range(0, faces.shape[0], per_chunk):
+            sl = slice(s, s + per_chunk)
+            n, wo = normals[sl], view_dirs[sl]
+            cos = n @ dirs.T  # (P, D)
+            vis = None
+            if self.shadows:
+                t, b = tri[sl], bary[sl]
+                vis = (b[:, 0:1] * self._visibility[t[:, 0]] + b[:, 1:2] * self._visibility[t[:, 1]]
+                       + b[:, 2:3] * self._visibility[t[:, 2]])
+            n_out = np.einsum("pc,pc->p", n, wo)[:, None]
+            cos_in = np.where((cos > 0) & (n_out > 0), cos, 0.0)  # both sides above the surface
+            weight = cos_in if vis is None else cos_in * vis
+            out[sl] = albedo[sl] / np.pi * (weight @ power)
+            if spec_cut is not None:
+                out[sl] += self._specular(n, wo, n_out, cos_in, vis, spec_cut)
+        return out
+
+    def _specular(self, n, wo, n_out, cos_in, vis, spec_cut) -> np.ndarray:
+        """Specular lobe of the BRDF summed over the light set for P points: (P, 3).
+
+        ``n_out`` = n . w_o (P, 1); ``cos_in`` = n . w_j where both are positive, else 0 (P, D);
+        ``vis`` interpolated visibility (P, D) or None.  Dense over the pairs, with the half
+        vector never formed: |w_j + w_o|^2 = 2 + 2 w_o . w_j, so n . h = (n . w_j + n . w_o) /
+        |w_j + w_o| and w_o . h = w_j . h = (1 + w_o . w_j) / |w_j + w_o|.  Schlick's F is linear
+        in F0, so F0 (RGB) is applied after the sum over directions.  Formulas: pipeline.core.brdf.
+        """
+        dirs, power = self.lights.directions, self.lights.power
+        r = 2.0 * n_out * n - wo  # mirror direction of w_o
+        r_w = r @ dirs.T
+        support = (cos_in > 0) & (r_w > spec_cut)
+        if vis is not None:
+            support &= vis > 0
+        specular = np.asarray(self.brdf["specular"], float)
+        if self.brdf["model"] == "phong":
+            # R&H reflection-space Phong: the transfer f cos(theta_in) is the lobe itself
+            transfer = np.where(support, phong_lobe(r_w, float(self.brdf["exponent"])), 0.0)
+            if vis is not None:
+                transfer = transfer * vis
+            return specular[None, :] * (transfer @ power)
+        wo_w = wo @ dirs.T
+        inv_len = 1.0 / np.sqrt(np.maximum(2.0 + 2.0 * wo_w, 1e-12))
+        n_h = np.where(support, (cos_in + n_out) * inv_len, 1.0)
+        out_h = np.where(support, (1.0 + wo_w) * inv_len, 1.0)
+        d = beckmann_distribution(n_h, float(self.brdf["roughness"]))
+        g = vcavity_shadowing(n_h, cos_in, n_out, out_h)
+        # f cos(theta_in) = F D G / (4 n . w_out) (Torrance-Sparrow; cos(theta_in) cancels)
+        transfer = np.where(support, d * g, 0.0) / (4.0 * np.maximum(n_out, 1e-12))
+        if vis is not None:
+            transfer = transfer * vis
+        schlick = (1.0 - np.clip(out_h, 0.0, 1.0)) ** 5
+        s1, s2 = transfer @ power, (transfer * schlick) @ power
+        return specular[None, :] * s1 + (1.0 - specular[None, :]) * s2
+
+    # -- views ------------------------------------------------------------------------------
+    def render(self, camera: Camera, R: np.ndarray, t: np.ndarray) -> RenderResult:
+        """Render one view: radiance (H, W, 3), object and board masks.
+
+        Raises InsideMeshError when most camera rays hit back faces (camera inside the mesh).
+        """
+        w, h = camera.width, camera.height
+        uv = pixel_centers(w, h)
+        origins, dirs = pixel_rays(camera, R, t, uv)
+        tri_ids, ray_ids, locations = self._camera_rays.intersects_id(
+            origins, dirs, multiple_hits=False, return_locations=True)
+        if tri_ids.size:
+            back = np.einsum("pc,pc->p", np.asarray(self.mesh.face_normals)[tri_ids], dirs[ray_ids]) > 0
+            if back.mean() > 0.5:
+                raise InsideMeshError("camera is inside the mesh")
+        radiance = lookup(self.env, dirs).astype(float)  # background: the map itself
+        object_mask = np.zeros(w * h, dtype=bool)
+        object_mask[ray_ids] = True
+        board_mask = np.zeros(w * h, dtype=bool)
+        if self.board is not None:
+            radiance, board_mask = self._render_board(camera, R, t, uv, dirs, object_mask, radiance)
+        if tri_ids.size:
+            bary = trimesh.triangles.points_to_barycentric(self.mesh.triangles[tri_ids], locations)
+            radiance[ray_ids] = self.shade(tri_ids, bary, -dirs[ray_ids])
+        return RenderResult(radiance.reshape(h, w, 3).astype(np.float32), object_mask.reshape(h, w),
+                            board_mask.reshape(h, w))
+
+    def _render_board(self, camera, R, t, uv, dirs, object_mask, radiance):
+        """Supersampled board radiance for pixels whose centre ray misses the object."""
+        ss = max(1, int(self.board_supersample))
+        centre = camera_center(R, t)
+        if centre[2] <= 0:
+            return radiance, np.zeros(len(uv), bool)
+        offsets = (np.arange(ss) + 0.5) / ss - 0.5
+        candidates = np.flatnonzero(~object_mask & (dirs[:, 2] < 0))
+        total = np.zeros(candidates.size)
+        hits = np.zeros(candidates.size)
+        for dv in offsets:
+            for du in offsets:
+                _, d = pixel_rays(camera, R, t, uv[candidates] + [du, dv])
+                s = -centre[2] / d[:, 2]
+                albedo = self.board.albedo_at(centre + s[:, None] * d)
+                ok = np.isfinite(albedo)
+                total[ok] += albedo[ok]
+                hits += ok
+        board_mask = np.zeros(len(uv), bool)
+        on = hits > 0
+        board_mask[candidates[on]] = True
+        # pixels only partly on the board mix board and background by coverage
+        frac = (hits[on] / ss**2)[:, None]
+        board_rad = (total[on] / hits[on])[:, None] * self._board_irradiance[None, :] / np.pi
+        radiance[candidates[on]] = frac * board_rad + (1 - frac) * radiance[candidates[on]]
+        return radiance, board_mask
+
+
+def render_view(mesh: trimesh.Trimesh, env: np.ndarray, brdf: dict, camera: Camera, R: np.ndarray,
+                t: np.ndarray, **options) -> RenderResult:
+    """One-off convenience: ``Renderer(mesh, env, brdf, **options).render(camera, R, t)``."""
+    return Renderer(mesh, env, brdf, **options).render(camera, R, t)
