@@ -27,6 +27,8 @@ HELP = "Benchmarks (timings, not tests): write DIR/bench_<suite>.csv and print a
 SUITES: dict[str, tuple[str, str]] = {
     "sh": ("spherical harmonics: evaluation throughput at L = 8, 20, 50; env projection 2048x1024 at L = 20",
            "pipeline.commands.bench:sh_suite"),
+    "linearize": ("linearize throughput (MP/s), DNG and JPEG, serial vs process pool, beside rawpy's bare decode",
+                  "pipeline.commands.bench_linearize:linearize_suite"),
 }
 
 

@@ -138,13 +138,12 @@ def decode_raw(path: Path, wb_multipliers: tuple[float, ...], saturation: float,
         levels = np.asarray(white if white is not None and any(white) else [white_level] * 4, dtype=float)
         clipped = visible >= saturation * levels[colors]
         raw_max = int(visible.max())
-    from scipy.ndimage import binary_dilation
+    import cv2
 
-    clipped = binary_dilation(clipped, structure=np.ones((2 * DEMOSAIC_RADIUS + 1,) * 2, bool))
+    kernel = np.ones((2 * DEMOSAIC_RADIUS + 1,) * 2, np.uint8)
+    clipped = cv2.dilate(clipped.astype(np.uint8), kernel) > 0
     clipped = _flip_like_libraw(clipped, flip)
     if clipped.shape != rgb16.shape[:2]:
-        import cv2
-
         clipped = cv2.resize(clipped.astype(np.uint8), rgb16.shape[1::-1], interpolation=cv2.INTER_NEAREST) > 0
     clipped |= np.any(rgb16 >= 65535, axis=2)  # channels clipped by white balance or the colour matrix
     rgb = rgb16.astype(np.float32) / 65535.0

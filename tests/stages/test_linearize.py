@@ -1,7 +1,7 @@
 """linearize: camera files -> linear radiance on one scale, checked against the radiance they were made from.
 
 Test files are written here from a known linear sRGB radiance: DNGs whose camera space *is* linear
-sRGB (ColorMatrix1 = XYZ->sRGB, so LibRaw's colour conversion is the identity), 8-bit JPEG/PNG
+sRGB (pipeline.io.dng: LibRaw's colour conversion is the identity), 8-bit JPEG/PNG
 through the sRGB curve (or a gamma-1.6 curve with its response.json), float EXR.
 Ground truth for every image: radiance = L x N^2 / (t x ISO/100) with L the scene value that a
 1/100 s, f/4 exposure maps to raw full scale (see ``exposed``).
@@ -15,10 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import tifffile
-
 from pipeline.cli import main as cli_main
 from pipeline.errors import UserError
+from pipeline.io.dng import write_linear_dng
 from pipeline.io.images import read_image, write_image
 from pipeline.io.linear_manifest import read_linear_image, read_manifest
 from pipeline.io.response_json import write_response_json
@@ -56,36 +55,9 @@ def srgb_encode(v: np.ndarray) -> np.ndarray:
 
 def write_dng(path: Path, linear: np.ndarray, *, t: float = T_REF, fnumber: float = N_REF,
               neutral=(1.0, 1.0, 1.0), noise: float = 0.0, rng=None, truncate: bool = False) -> None:
-    """A minimal RGGB DNG of linear sRGB values (1 = white level) whose camera space is linear sRGB.
-
-    ``neutral``: AsShotNeutral; the sensor's channel sensitivities are ``neutral`` (raw = value x neutral),
-    so the camera's as-shot white balance (1/neutral) restores ``linear``.
-    (Stand-in until pipeline.io.camera_files.write_dng lands; ISO is not written: LibRaw reads it
-    only from an EXIF IFD.)
-    """
-    xyz_to_srgb = np.array([[3.2404542, -1.5371385, -0.4985314], [-0.9692660, 1.8760108, 0.0415560],
-                            [0.0556434, -0.2040259, 1.0572252]])
-    lin = linear * np.asarray(neutral)
-    cfa = np.empty(lin.shape[:2])
-    cfa[0::2, 0::2] = lin[0::2, 0::2, 0]
-    cfa[0::2, 1::2] = lin[0::2, 1::2, 1]
-    cfa[1::2, 0::2] = lin[1::2, 0::2, 1]
-    cfa[1::2, 1::2] = lin[1::2, 1::2, 2]
-    if noise:
-        cfa = cfa + rng.normal(0, noise, cfa.shape)
-    raw = np.clip(np.round(BLACK + cfa * (WHITE - BLACK)), 0, WHITE).astype(np.uint16)
-
-    def rational(values, den):
-        return tuple(int(v) for x in values for v in (round(x * den), den))
-
-    tags = [(33421, "H", 2, (2, 2), True), (33422, "B", 4, (0, 1, 1, 2), True),
-            (50706, "B", 4, (1, 4, 0, 0), True), (50708, "s", 0, "sigrend test camera", True),
-            (50714, "I", 1, (BLACK,), True), (50717, "I", 1, (WHITE,), True),
-            (50721, 10, 9, rational(xyz_to_srgb.ravel(), 10000), True), (50778, "H", 1, (21,), True),
-            (50728, 5, 3, rational(neutral, 10000), True),
-            (33434, 5, 1, rational([t], 1000000), True), (33437, 5, 1, rational([fnumber], 100), True)]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tifffile.imwrite(path, raw, photometric=32803, extratags=tags, subfiletype=0)
+    """DNG of linear sRGB values (pipeline.io.dng; ISO absent), optionally cut to a third of its bytes."""
+    write_linear_dng(path, linear, exposure_time=t, fnumber=fnumber, black=BLACK, white=WHITE, neutral=neutral,
+                     noise=noise, rng=rng)
     if truncate:
         data = path.read_bytes()
         path.write_bytes(data[: len(data) // 3])
