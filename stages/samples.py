@@ -333,7 +333,9 @@ def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, rgb: np.nda
         p = point[cand]
         bary = _barycentric(mesh.triangles[f], p)
         normal = np.einsum("nk,nkj->nj", bary, vertex_normals[faces[f]])
-        normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+        length = np.linalg.norm(normal, axis=1, keepdims=True)
+        # vertex normals that cancel (e.g. a crease of opposite faces): fall back to the face normal
+        normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-12), face_normals[f])
         view = centre - p
         view /= np.linalg.norm(view, axis=1, keepdims=True)
         cos = np.sum(normal * view, axis=1)
@@ -362,8 +364,11 @@ def _barycentric(triangles: np.ndarray, points: np.ndarray) -> np.ndarray:
 
     if len(points) == 0:
         return np.zeros((0, 3))
-    bary = np.clip(points_to_barycentric(triangles, points), 0.0, None)
-    return bary / bary.sum(axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        bary = np.clip(points_to_barycentric(triangles, points), 0.0, None)
+        bary = bary / bary.sum(axis=1, keepdims=True)
+    # degenerate (zero-area) triangles have no barycentrics: use the centroid's
+    return np.where(np.all(np.isfinite(bary), axis=1, keepdims=True), bary, 1.0 / 3.0)
 
 
 # ---------------------------------------------------------------------------------------------
