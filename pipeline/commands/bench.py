@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import csv
 import importlib
+import inspect
 import io
 import os
 import platform
@@ -29,6 +30,8 @@ SUITES: dict[str, tuple[str, str]] = {
            "pipeline.commands.bench:sh_suite"),
     "linearize": ("linearize throughput (MP/s), DNG and JPEG, serial vs process pool, beside rawpy's bare decode",
                   "pipeline.commands.bench_linearize:linearize_suite"),
+    "stability": ("error vs noise: inverse lighting (Lambertian vs glossy), BRDF estimation (sharp vs soft "
+                  "lighting); charts + stability.csv in DIR", "pipeline.bench_pipeline:stability_suite"),
 }
 
 
@@ -112,7 +115,9 @@ def main(args: argparse.Namespace) -> int:
     if not 1 <= args.repeat <= 100:
         raise UserError(f"--repeat {args.repeat} is outside 1..100")
     module_name, func_name = SUITES[args.suite][1].split(":")
-    rows = getattr(importlib.import_module(module_name), func_name)(quick=args.quick, repeat=args.repeat)
+    suite = getattr(importlib.import_module(module_name), func_name)
+    extra = {"output": Path(args.output)} if "output" in inspect.signature(suite).parameters else {}
+    rows = suite(quick=args.quick, repeat=args.repeat, **extra)  # suites with charts take the output folder
     machine = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cpus, python {platform.python_version()}"
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=["suite", *BenchRow.__dataclass_fields__, "quick", "machine"])

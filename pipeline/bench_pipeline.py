@@ -1,0 +1,322 @@
+"""Benchmark suites of the whole pipeline for `sigrend bench`: ``pipeline`` and ``stability``.
+
+``stability`` (seconds): the seed's well-posedness table in 3D, measured.  Light-field samples of
+a sphere seen from many directions are generated with the frequency-space forward model
+(pipeline.core.forward), Gaussian noise is added, and the inverse problems are solved by plain
+(unregularized) least squares, so the conditioning of each problem shows undamped:
+  * inverse lighting: relative error of each SH band l of the recovered lighting vs noise, for a
+    Lambertian and a glossy sphere (R&H: from a Lambertian object only l <= 2 is recoverable,
+    odd l > 1 not at all; a sharp lobe carries high bands);
+  * BRDF estimation: relative error of the recovered lobe width and specular weight vs noise,
+    under sharp lighting (small area lights) and soft lighting (a smooth order-2 sky) (R&H: the
+    lobe width is recoverable only when the lighting has the frequencies the lobe passes).
+Writes stability_lighting.png, stability_brdf.png and stability.csv.
+
+``pipeline`` (a few minutes): small synthetic captures rendered by the independent angular-domain
+renderer (pipeline.core.render), run through samples -> fit -> relight with a sweep of SH order,
+data amount (sample stride, number of views) and fit mode; each configuration's time and accuracy
+(lighting error per band against the ground truth, relight error on held-out views) go to
+bench.csv and bench.png (relight error against time, Pareto front marked).
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core.sh import band_of_index, num_coeffs, project_envmap
+
+NOISE_LEVELS = (0.0, 0.001, 0.003, 0.01, 0.03, 0.1)
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def sphere_light_field(n_normals: int, n_views: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(normal, view_dir) pairs of a sphere photographed from ``n_views`` directions spread over the
+    sphere: every normal facing a camera (n.v > 0.2) gives one sample per camera.  (N, 3) each."""
+    def fibonacci(n):
+        i = np.arange(n) + 0.5
+        z = 1 - 2 * i / n
+        phi = np.pi * (1 + 5 ** 0.5) * i
+        s = np.sqrt(1 - z * z)
+        return np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=1)
+
+    normals = fibonacci(n_normals)
+    views = fibonacci(n_views) @ _random_rotation(rng).T
+    cos = normals @ views.T
+    ni, vi = np.nonzero(cos > 0.2)
+    return normals[ni], views[vi]
+
+
+def _random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def test_lighting(order: int, rng: np.random.Generator) -> np.ndarray:
+    """Band-limited lighting ((order+1)^2, 3) with a natural 1/(1+l)^2 energy spectrum per band,
+    DC large enough to keep the radiance positive."""
+    l = band_of_index(order)
+    coeffs = rng.normal(size=(num_coeffs(order), 3)) / (1.0 + l[:, None]) ** 1.0 / np.sqrt(2 * l[:, None] + 1)
+    coeffs[0] = 3.0
+    return coeffs
+
+
+def _solve_lighting(normal, view, radiance, brdf, order) -> np.ndarray:
+    """Plain least squares for the SH lighting, per channel (minimum-norm where rank deficient)."""
+    from pipeline.core import forward
+
+    terms = forward.design_terms(normal, view, order, brdf["model"] in forward.LOBE_MODELS)
+    designs = forward.channel_designs(terms, brdf, order)
+    return np.stack([np.linalg.lstsq(designs[c], radiance[:, c], rcond=1e-12)[0] for c in range(3)], axis=1)
+
+
+def band_errors(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """Relative error per band ||L̂_l - L_l|| / ||L_l|| (all channels), (L+1,)."""
+    order = int(round(np.sqrt(truth.shape[0]))) - 1
+    bands = band_of_index(order)
+    err = np.bincount(bands, weights=((estimate - truth) ** 2).sum(axis=1), minlength=order + 1)
+    ref = np.bincount(bands, weights=(truth ** 2).sum(axis=1), minlength=order + 1)
+    return np.sqrt(err / ref)
+
+
+def stability_lighting(rng: np.random.Generator, order: int = 8, trials: int = 3) -> list[dict]:
+    """Inverse lighting error per band vs noise, Lambertian vs glossy (rows for the CSV)."""
+    from pipeline.core import forward
+
+    normal, view = sphere_light_field(1500, 24, rng)
+    scenes = {"lambertian": {"model": "lambert", "albedo": [0.8, 0.8, 0.8]},
+              "glossy (phong s=200)": {"model": "phong", "albedo": [0.3, 0.3, 0.3], "specular": [0.6, 0.6, 0.6],
+                                       "exponent": 200.0}}
+    rows = []
+    for scene, brdf in scenes.items():
+        for noise in NOISE_LEVELS:
+            errs = []
+            for _ in range(trials):
+                truth = test_lighting(order, rng)
+                clean = forward.render_samples(truth, brdf, normal, view)
+                noisy = clean + noise * clean.mean() * rng.normal(size=clean.shape)
+                errs.append(band_errors(_solve_lighting(normal, view, noisy, brdf, order), truth))
+            med = np.median(errs, axis=0)
+            for l, e in enumerate(med):
+                rows.append({"problem": "inverse lighting", "scene": scene, "noise": noise, "quantity": f"band {l}",
+                             "relative_error": float(e)})
+    return rows
+
+
+class LobeFit:
+    """Variable projection for a lobe width under known SH lighting: for a width w the model is
+    linear in (albedo_c, specular_c), solved by least squares; the width minimizes the residual
+    (grid over log w, then bounded golden-section refinement).  Precomputes what does not depend
+    on the data: the diffuse and per-band reflected projections of the lighting."""
+
+    def __init__(self, normal, view, coeffs, model: str, widths: np.ndarray):
+        from pipeline.core import forward
+        from pipeline.core.transfer import irradiance_from_sh
+
+        self.forward = forward
+        self.order = int(round(np.sqrt(coeffs.shape[0]))) - 1
+        self.model, self.widths = model, np.asarray(widths, float)
+        self.diffuse = irradiance_from_sh(coeffs, normal) / np.pi                       # (N, 3)
+        self.bands = forward.band_projections(coeffs, forward.reflect_view(view, normal))  # (N, L+1, 3)
+        self.k_grazing = forward.fresnel_grazing(normal, view)
+
+    def _lobe(self, width: float) -> np.ndarray:
+        filt = self.forward.lobe_filter(self.model, width, self.order)
+        return np.einsum("l,nlc->nc", filt, self.bands)
+
+    def _solve(self, width: float, radiance: np.ndarray):
+        lobe = self._lobe(width)
+        albedo, spec, resid = np.zeros(3), np.zeros(3), 0.0
+        for c in range(3):
+            a = np.stack([self.diffuse[:, c], lobe[:, c]], axis=1)
+            x, *_ = np.linalg.lstsq(a, radiance[:, c], rcond=None)
+            albedo[c], spec[c] = x
+            resid += float(((a @ x - radiance[:, c]) ** 2).sum())
+        return resid, albedo, spec
+
+    def fit(self, radiance: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        from scipy.optimize import minimize_scalar
+
+        resid = [self._solve(w, radiance)[0] for w in self.widths]
+        i = int(np.argmin(resid))
+        lo, hi = np.log(self.widths[max(i - 1, 0)]), np.log(self.widths[min(i + 1, len(self.widths) - 1)])
+        best = minimize_scalar(lambda lw: self._solve(np.exp(lw), radiance)[0], bounds=(lo, hi),
+                               method="bounded", options={"xatol": 1e-4})
+        width = float(np.exp(best.x))
+        _, albedo, spec = self._solve(width, radiance)
+        return width, albedo, spec
+
+
+def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
+    """BRDF estimation error (lobe width, specular weight) vs noise under sharp and soft lighting."""
+    from pipeline.core import forward
+    from pipeline.core.envmaps import make_envmap
+
+    normal, view = sphere_light_field(600, 16, rng)
+    order = 24
+    lightings = {"sharp (area lights)": project_envmap(make_envmap("area", 64), order),
+                 "soft (smooth sky)": project_envmap(make_envmap("smooth", 64), 2)}
+    exponent, specular = 200.0, 0.5
+    truth = {"model": "phong", "albedo": [0.4, 0.4, 0.4], "specular": [specular] * 3, "exponent": exponent}
+    rows = []
+    for name, coeffs in lightings.items():
+        clean = forward.render_samples(coeffs, truth, normal, view)
+        solver = LobeFit(normal, view, coeffs, "phong", np.geomspace(5.0, 5000.0, 25))
+        for noise in NOISE_LEVELS:
+            w_err, s_err = [], []
+            for _ in range(trials):
+                noisy = clean + noise * clean.mean() * rng.normal(size=clean.shape)
+                width, albedo, spec = solver.fit(noisy)
+                w_err.append(abs(width / exponent - 1.0))
+                s_err.append(float(np.abs(spec - specular).mean() / specular))
+            rows.append({"problem": "BRDF estimation", "scene": name, "noise": noise,
+                         "quantity": "lobe width (Phong exponent)", "relative_error": float(np.median(w_err))})
+            rows.append({"problem": "BRDF estimation", "scene": name, "noise": noise,
+                         "quantity": "specular weight", "relative_error": float(np.median(s_err))})
+    return rows
+
+
+def _noise_axis(noise: np.ndarray) -> np.ndarray:
+    """Noise levels for a log axis: the noiseless run is drawn at a tenth of the smallest level."""
+    positive = noise[noise > 0]
+    return np.where(noise > 0, noise, positive.min() / 10 if positive.size else 1e-4)
+
+
+def plot_stability(rows: list[dict], out_dir: Path) -> list[Path]:
+    plt = _plt()
+    written = []
+    light = [r for r in rows if r["problem"] == "inverse lighting"]
+    scenes = list(dict.fromkeys(r["scene"] for r in light))
+    fig, axes = plt.subplots(1, len(scenes), figsize=(5.5 * len(scenes), 4.2), sharey=True)
+    for ax, scene in zip(np.atleast_1d(axes), scenes):
+        sub = [r for r in light if r["scene"] == scene]
+        for q in dict.fromkeys(r["quantity"] for r in sub):
+            pts = [r for r in sub if r["quantity"] == q]
+            noise = _noise_axis(np.array([r["noise"] for r in pts]))
+            ax.loglog(noise, np.maximum([r["relative_error"] for r in pts], 1e-6), marker="o", ms=3,
+                      label=q, color=plt.cm.viridis(int(q.split()[-1]) / 9))
+        ax.axhline(1.0, color="k", lw=0.6, ls="--")
+        ax.set_title(f"inverse lighting, {scene}")
+        ax.set_xlabel("noise (fraction of mean radiance; leftmost = noiseless)")
+    np.atleast_1d(axes)[0].set_ylabel("relative error of SH band (plain least squares)")
+    np.atleast_1d(axes)[-1].legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    path = out_dir / "stability_lighting.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    written.append(path)
+
+    brdf = [r for r in rows if r["problem"] == "BRDF estimation"]
+    quantities = list(dict.fromkeys(r["quantity"] for r in brdf))
+    fig, axes = plt.subplots(1, len(quantities), figsize=(5.5 * len(quantities), 4.2))
+    for ax, q in zip(np.atleast_1d(axes), quantities):
+        for scene in dict.fromkeys(r["scene"] for r in brdf):
+            pts = [r for r in brdf if r["scene"] == scene and r["quantity"] == q]
+            noise = _noise_axis(np.array([r["noise"] for r in pts]))
+            ax.loglog(noise, np.maximum([r["relative_error"] for r in pts], 1e-6), marker="o", label=scene)
+        ax.set_title(f"BRDF estimation: {q}")
+        ax.set_xlabel("noise (fraction of mean radiance; leftmost = noiseless)")
+        ax.set_ylabel("error")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = out_dir / "stability_brdf.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    written.append(path)
+    return written
+
+
+def _write_csv(path: Path, rows: list[dict]) -> Path:
+    from pipeline.workdir import atomic_path
+
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+# --------------------------------------------------------------------------------------- captures
+
+def ring_poses(n_views: int, size: int, distance: float = 0.45, fov_deg: float = 30.0, seed: int = 0):
+    """``n_views`` cameras around the origin at alternating elevations 10..50 degrees, looking at it."""
+    from pipeline.core.camera import Camera, look_at
+    from pipeline.io.poses import ImagePose, Poses
+
+    rng = np.random.default_rng(seed)
+    f = 0.5 * size / np.tan(np.radians(fov_deg) / 2)
+    poses = Poses()
+    poses.cameras["cam0"] = Camera("PINHOLE", size, size, (f, f, size / 2, size / 2))
+    for i in range(n_views):
+        phi = 2 * np.pi * i / n_views + rng.uniform(-0.1, 0.1)
+        elev = np.radians(10 + 40 * ((i * 0.618) % 1.0))
+        eye = distance * np.array([np.cos(elev) * np.cos(phi), np.cos(elev) * np.sin(phi), np.sin(elev)])
+        R, t = look_at(eye, np.zeros(3))
+        poses.images[f"{i:04d}.exr"] = ImagePose("cam0", R, t)
+    return poses
+
+
+def make_capture(path: Path, *, env: np.ndarray, brdf: dict, n_views: int = 12, size: int = 64,
+                 subdivisions: int = 4, radius: float = 0.1, noise: float = 0.0, seed: int = 0) -> Path:
+    """A small synthetic capture (sphere mesh, linear EXR photos, poses.json) rendered by the
+    independent angular-domain renderer; ground truth in CAPTURE/gt/ (lighting_sh.json order 20,
+    brdf.json).  ``noise``: Gaussian, as a fraction of each image's mean object radiance."""
+    import trimesh
+
+    from pipeline.core.render import Renderer
+    from pipeline.io.brdf import write_brdf
+    from pipeline.io.images import write_image
+    from pipeline.io.lighting import write_lighting_sh
+    from pipeline.io.poses import write_poses
+
+    path = Path(path)
+    (path / "images").mkdir(parents=True, exist_ok=True)
+    mesh = trimesh.creation.icosphere(subdivisions, radius=radius)
+    mesh.export(path / "mesh.ply")
+    poses = ring_poses(n_views, size, seed=seed)
+    renderer = Renderer(mesh, env, brdf, shadows=False)
+    rng = np.random.default_rng(seed)
+    for key, pose in poses.images.items():
+        result = renderer.render(poses.camera_of(key), pose.R, pose.t)
+        img = result.radiance.astype(float)
+        if noise > 0 and result.object_mask.any():
+            img = img + noise * img[result.object_mask].mean() * rng.normal(size=img.shape)
+        write_image(path / "images" / key, np.maximum(img, 0.0), dtype="float")
+    write_poses(path / "poses.json", poses)
+    write_lighting_sh(path / "gt" / "lighting_sh.json", project_envmap(env, 20))
+    write_brdf(path / "gt" / "brdf.json", brdf)
+    return path
+
+
+# --------------------------------------------------------------------------------------- suites
+
+def stability_suite(quick: bool, repeat: int, output: Path = Path("bench")) -> list:
+    """`sigrend bench stability`: the charts and CSV in ``output``; rows = error at each noise level.
+
+    ``repeat`` is unused (errors, not timings); ``quick`` runs one trial per noise level.
+    """
+    from pipeline.commands.bench import BenchRow
+
+    out_dir = Path(output)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    trials = 1 if quick else 3
+    rows = stability_lighting(rng, trials=trials) + stability_brdf(rng, trials=trials)
+    _write_csv(out_dir / "stability.csv", rows)
+    charts = plot_stability(rows, out_dir)
+    keep = [r for r in rows if r["noise"] in (0.0, 0.01, 0.1)]
+    return [BenchRow(f"{r['scene']}: {r['quantity']}", 0, f"noise {r['noise']:g}", r["relative_error"],
+                     "relative error", r["problem"]) for r in keep] + \
+        [BenchRow("charts", 0, "", len(charts), "files", ", ".join(str(p) for p in charts))]

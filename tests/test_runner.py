@@ -1,0 +1,115 @@
+"""`sigrend run`: stage order, skip-if-fresh across runs, --from/--to, --force, held-out views and
+a failing stage that leaves the earlier outputs intact.  Runs the real stages up to samples on a
+tiny synthetic EXR capture that brings its own poses.json (no COLMAP).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from pipeline import cli
+from pipeline.bench_pipeline import make_capture
+from pipeline.core.envmaps import make_envmap
+from pipeline.runner import STAGES, heldout_keys, stage_table, StageResult
+
+# linear EXR renders carry no EXIF: linearize says so once per run and assumes equal exposure
+pytestmark = pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning")
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Path:
+    return make_capture(tmp_path_factory.mktemp("runner") / "cap", env=make_envmap("area", 32),
+                        brdf={"model": "lambert", "albedo": [0.6, 0.5, 0.4]}, n_views=8, size=48)
+
+
+def _mtimes(work: Path, names: list[str]) -> dict[str, int]:
+    return {n: (work / n).stat().st_mtime_ns for n in names}
+
+
+STAGE_FILES = ["linear/manifest.json", "poses.json", "samples.npz"]
+
+
+def _run(*args: str) -> int:
+    return cli.main(["run", *map(str, args), "--no-report"])
+
+
+def test_heldout_keys_every_fourth():
+    keys = [f"{i:04d}.exr" for i in range(10)]
+    assert heldout_keys(keys, 4) == ["0003.exr", "0007.exr"]
+    assert heldout_keys(keys, 0) == []
+    assert heldout_keys(keys[:5], 4) == []  # fewer than two per held-out view: keep all for the fit
+
+
+def test_resume_skips_fresh_stages_and_force_redoes(capture, tmp_path, capsys):
+    work = tmp_path / "work"
+    assert _run(capture, "-w", work, "--to", "samples") == 0
+    run = json.loads((work / "run.json").read_text())
+    assert [s["name"] for s in run["stages"]] == ["linearize", "poses", "samples"]
+    assert not any(s["skipped"] for s in run["stages"])
+    before = _mtimes(work, STAGE_FILES)
+    # as if killed after samples: the next run finds every stage fresh and redoes nothing
+    assert _run(capture, "-w", work, "--to", "samples") == 0
+    run = json.loads((work / "run.json").read_text())
+    assert all(s["skipped"] for s in run["stages"])
+    assert _mtimes(work, STAGE_FILES) == before
+    assert "skipped" in capsys.readouterr().out
+    # --from samples --force redoes samples only
+    assert _run(capture, "-w", work, "--from", "samples", "--to", "samples", "--force") == 0
+    after = _mtimes(work, STAGE_FILES)
+    assert after["samples.npz"] > before["samples.npz"]
+    assert after["poses.json"] == before["poses.json"] and after["linear/manifest.json"] == before["linear/manifest.json"]
+    # --force on the whole range redoes every stage
+    assert _run(capture, "-w", work, "--to", "samples", "--force") == 0
+    forced = _mtimes(work, STAGE_FILES)
+    assert all(forced[n] > after[n] for n in ("linear/manifest.json", "poses.json", "samples.npz"))
+
+
+def test_a_newer_input_reruns_the_stages_that_depend_on_it(capture, tmp_path):
+    work = tmp_path / "work"
+    assert _run(capture, "-w", work, "--to", "poses") == 0
+    before = _mtimes(work, ["linear/manifest.json", "poses.json"])
+    # a poses.json newer than the stage's output: poses reruns, linearize (which does not read it) does not
+    pose_file = capture / "poses.json"
+    pose_file.write_text(pose_file.read_text())
+    assert _run(capture, "-w", work, "--to", "poses") == 0
+    after = _mtimes(work, ["linear/manifest.json", "poses.json"])
+    assert after["linear/manifest.json"] == before["linear/manifest.json"]
+    assert after["poses.json"] > before["poses.json"]
+
+
+def test_failing_stage_is_one_line_and_keeps_earlier_outputs(capture, tmp_path, capsys):
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for item in capture.iterdir():
+        (bad / item.name).symlink_to(item)
+    (bad / "poses.json").unlink()
+    (bad / "poses.json").write_text("{not json")
+    work = tmp_path / "work"
+    assert _run(bad, "-w", work, "--to", "linearize") == 0
+    before = _mtimes(work, ["linear/manifest.json"])
+    capsys.readouterr()
+    assert _run(bad, "-w", work, "--to", "samples") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len([line for line in err if line.startswith("sigrend: error:")]) == 1
+    assert "poses.json" in err[-1] and "Traceback" not in "\n".join(err)
+    assert _mtimes(work, ["linear/manifest.json"]) == before
+    assert not (work / "samples.npz").exists()
+
+
+def test_bad_arguments_are_user_errors(capture, tmp_path, capsys):
+    assert _run(tmp_path / "missing", "-w", tmp_path / "w") == 2
+    assert "capture folder not found" in capsys.readouterr().err
+    assert _run(capture, "-w", tmp_path / "w", "--from", "fit", "--to", "poses") == 2
+    assert "comes after" in capsys.readouterr().err
+    assert _run(capture, "-w", tmp_path / "w", "--relight", tmp_path / "nope.exr") == 2
+    assert "nope.exr" in capsys.readouterr().err
+
+
+def test_stage_table_lists_every_stage():
+    results = [StageResult(name, [], 1.5, name == "poses") for name in STAGES]
+    table = stage_table(results).splitlines()
+    assert len(table) == len(STAGES) + 2
+    assert "skipped" in table[2] and table[-1].split()[-1] == f"{1.5 * len(STAGES):.1f}"
