@@ -13,6 +13,7 @@ import pytest
 from pipeline import cli
 from pipeline.bench_pipeline import make_capture
 from pipeline.core.envmaps import make_envmap
+from pipeline.io.samples import read_samples_meta
 from pipeline.runner import STAGES, heldout_keys, stage_table, StageResult
 
 # linear EXR renders carry no EXIF: linearize says so once per run and assumes equal exposure
@@ -49,6 +50,8 @@ def test_resume_skips_fresh_stages_and_force_redoes(capture, tmp_path, capsys):
     run = json.loads((work / "run.json").read_text())
     assert [s["name"] for s in run["stages"]] == ["linearize", "poses", "samples"]
     assert not any(s["skipped"] for s in run["stages"])
+    # every 4th view is held out of the samples (8 views: the 4th and the 8th)
+    assert read_samples_meta(work / "samples.npz")["holdout"] == ["0003.exr", "0007.exr"]
     before = _mtimes(work, STAGE_FILES)
     # as if killed after samples: the next run finds every stage fresh and redoes nothing
     assert _run(capture, "-w", work, "--to", "samples") == 0
