@@ -1,0 +1,352 @@
+"""Synthetic captures with known truth: ``make_capture(out_dir, settings)`` (the `sigrend synth` engine).
+
+Writes, in DESIGN.md's conventions:
+
+    CAPTURE/images/<view>[_b<k>].<ext>   camera files (exr | tiff | jpeg | dng), image key = file name
+    CAPTURE/mesh.ply                      the mesh in the object frame (metres, +Z up, lowest point at z = 0)
+    CAPTURE/capture.toml                  [exposure] (ISO), [brackets] when --brackets > 1, [board] with --board
+    CAPTURE/poses.json                    unless --no-poses
+    CAPTURE/gt/lighting.exr               the environment map actually rendered with (float EXR)
+    CAPTURE/gt/lighting_sh.json           its SH projection, order 20 (pipeline.core.sh.project_envmap)
+    CAPTURE/gt/brdf.json, gt/poses.json, gt/masks/<view>.png (object pixels = 255)
+    CAPTURE/gt/synth.json                 the settings and the radiometric scale
+
+Radiometry: images hold value = radiance * t (ISO/100) / N^2 (pipeline.io.camera_files), so the
+linearize stage's ``value * N^2 / (t ISO/100)`` gives back the rendered radiance, on the same
+scale as gt/lighting.exr.  One exposure time for the whole capture is chosen from the first view
+(its object's 99.5th-percentile radiance maps to 0.7 of full scale); brackets step by 2 EV.
+
+Only the images and gt/lighting_sh.json touch anything frequency-space: the images come from the
+angular-domain renderer (pipeline.core.render).
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.settings import setting
+
+FORMATS = ("exr", "tiff", "jpeg", "dng")
+BUILTIN_MESHES = ("sphere", "icosphere")
+BOARD_DICTIONARY = "DICT_5X5_100"
+BOARD_SQUARES = (7, 5)
+SH_ORDER = 20
+
+
+@dataclass(frozen=True)
+class SynthSettings:
+    """What to render; every field is a `sigrend synth` option."""
+
+    mesh: str = setting("sphere", "mesh file (OBJ/PLY/GLB, any units) or 'sphere'/'icosphere'")
+    env: str = setting("area", "environment: an equirect EXR/HDR path or a procedural spec "
+                       "(constant, smooth, sun+sky, overcast, area, point, room; e.g. 'sun+sky:elev=40'; docs/synth.md)")
+    brdf: str = setting("lambert:albedo=0.6", "brdf.json path or inline spec, e.g. "
+                        "'microfacet:albedo=0.2,0.3,0.5,specular=0.04,roughness=0.2'")
+    views: int = setting(8, "number of camera views")
+    size: tuple[int, int] = setting((256, 256), "image width and height in pixels")
+    format: Literal["exr", "tiff", "jpeg", "dng"] = setting("exr", "image file format")
+    board: bool = setting(False, "put a ChArUco board under the object (z = 0)")
+    brackets: int = setting(1, "exposures per view (2 EV apart); >1 writes [brackets] in capture.toml")
+    noise: str = setting("auto", "'none', 'auto' (on for tiff/jpeg/dng, off for exr) or "
+                         "'full_well=E,read=R' (electrons at full scale, read-noise sigma in full scale)")
+    poses: bool = setting(True, "write poses.json into the capture (always written to gt/)")
+    mesh_size: float = setting(0.2, "size of the mesh's longest bounding-box side, metres")
+    mesh_up: Literal["y", "z"] = setting("y", "up axis of the mesh file (scans are usually +Y up)")
+    layout: Literal["sphere", "ring"] = setting("sphere", "views spread over the upper hemisphere or on a ring")
+    elevation: tuple[float, float] = setting((15.0, 60.0), "min and max camera elevation, degrees (ring: the mean)")
+    distance: float = setting(3.0, "camera distance in units of the framed radius")
+    shadows: bool = setting(True, "shadow rays (self-shadowing, board occludes the lower hemisphere)")
+    cell_height: int = setting(16, "rows of the coarse direction grid for the dim part of the env (render.py)")
+    fnumber: float = setting(8.0, "f-number written to EXIF")
+    seed: int = setting(0, "random seed (noise)")
+
+    def validate(self) -> None:
+        if self.views < 1:
+            raise UserError(f"--views must be >= 1, got {self.views}")
+        w, h = self.size
+        if w < 8 or h < 8:
+            raise UserError(f"--size {w}x{h} is too small; use at least 8x8")
+        if self.format == "dng" and (w % 2 or h % 2):
+            raise UserError(f"--size {w}x{h}: a Bayer DNG needs even width and height")
+        if self.format not in FORMATS:
+            raise UserError(f"--format {self.format!r}: use one of {', '.join(FORMATS)}")
+        if self.brackets < 1:
+            raise UserError(f"--brackets must be >= 1, got {self.brackets}")
+        if self.mesh_size <= 0 or self.distance <= 0:
+            raise UserError("--mesh-size and --distance must be positive")
+        parse_noise(self.noise, self.format)
+
+
+def parse_noise(spec: str, fmt: str) -> dict | None:
+    """Noise spec -> keyword arguments of camera_files.add_sensor_noise, or None for no noise."""
+    spec = spec.strip()
+    if spec == "none" or (spec == "auto" and fmt == "exr"):
+        return None
+    if spec == "auto":
+        return {}
+    out = {}
+    for token in spec.split(","):
+        key, _, value = token.partition("=")
+        key = {"full_well": "full_well", "read": "read_noise"}.get(key.strip())
+        try:
+            out[key] = float(value)
+        except ValueError:
+            key = None
+        if key is None or out[key] < 0:
+            raise UserError(f"--noise {spec!r}: use 'none', 'auto' or 'full_well=E,read=R' with non-negative numbers")
+    return out
+
+
+# -- inputs ---------------------------------------------------------------------------------------
+
+def load_mesh(spec: str, mesh_size: float, up: str = "y"):
+    """Mesh in the object frame: +Z up, longest side ``mesh_size`` m, centred in x, y, lowest point z = 0."""
+    import trimesh
+
+    if spec in BUILTIN_MESHES:
+        mesh = trimesh.creation.icosphere(subdivisions=4 if spec == "sphere" else 2, radius=1.0)
+        up = "z"
+    else:
+        path = Path(spec)
+        if not path.is_file():
+            raise UserError(f"{path}: mesh file not found (or use 'sphere')")
+        try:
+            mesh = trimesh.load(path, force="mesh", process=True)
+        except Exception as exc:  # trimesh raises many types on malformed files
+            raise UserError(f"{path}: cannot read this mesh ({exc})") from None
+        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+            raise UserError(f"{path}: the mesh has no faces; synth needs a triangle mesh")
+    mesh = mesh.copy()
+    if up == "y":  # +Y up -> +Z up: rotate +90 degrees about X
+        mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    extent = float(mesh.extents.max())
+    if not np.isfinite(extent) or extent <= 0:
+        raise UserError(f"{spec}: the mesh is degenerate (zero size)")
+    mesh.apply_scale(mesh_size / extent)
+    lo, hi = mesh.bounds
+    mesh.apply_translation([-(lo[0] + hi[0]) / 2, -(lo[1] + hi[1]) / 2, -lo[2]])
+    return mesh
+
+
+def load_env(spec: str) -> np.ndarray:
+    """Equirect map from a file path (validated) or a procedural spec (pipeline.core.envmaps)."""
+    from pipeline.core.envmaps import envmap_from_spec
+    from pipeline.io.images import read_envmap
+
+    path = Path(spec)
+    if path.suffix.lower() in (".exr", ".hdr", ".tif", ".tiff", ".png") or path.is_file():
+        return read_envmap(path)
+    try:
+        return envmap_from_spec(spec)
+    except ValueError as exc:
+        raise UserError(f"--env {spec!r}: {exc}") from None
+
+
+# -- board ----------------------------------------------------------------------------------------
+
+def make_board(mesh_size: float, texels_per_square: int = 80):
+    """ChArUco board (7 x 5 squares of 0.35 mesh_size) centred under the object on z = 0.
+
+    Returns (render.BoardPlane, capture.toml [board] dict).  board_to_object maps OpenCV's board
+    frame (origin at the top-left corner of the generated image, x along columns, y along rows,
+    z into the board) to the object frame: x_b -> +X, y_b -> -Y, z_b -> -Z (face up).
+    """
+    import cv2
+
+    from pipeline.core.render import BoardPlane
+
+    sx, sy = BOARD_SQUARES
+    square = round(0.35 * mesh_size, 6)
+    marker = round(0.75 * square, 6)
+    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, BOARD_DICTIONARY))
+    board = cv2.aruco.CharucoBoard((sx, sy), square, marker, dictionary)
+    image = board.generateImage((sx * texels_per_square, sy * texels_per_square), marginSize=0, borderBits=1)
+    albedo = np.where(image > 127, 0.8, 0.04)  # white paper / black print
+    w, h = sx * square, sy * square
+    to_object = np.array([[1.0, 0, 0, -w / 2], [0, -1.0, 0, h / 2], [0, 0, -1.0, 0], [0, 0, 0, 1.0]])
+    table = {"dictionary": BOARD_DICTIONARY, "squares": [sx, sy], "square_length": square,
+             "marker_length": marker, "board_to_object": to_object.tolist()}
+    return BoardPlane(albedo, (w, h), to_object), table
+
+
+# -- views ----------------------------------------------------------------------------------------
+
+def view_directions(n: int, layout: str, elevation: tuple[float, float]) -> np.ndarray:
+    """Unit vectors from the target towards the cameras (n, 3).
+
+    sphere: a Fibonacci spiral, uniform in z over the elevation band; ring: equal azimuth steps at
+    the mean elevation, alternating +-5 degrees so that views are not all coplanar.
+    """
+    lo, hi = np.radians(elevation[0]), np.radians(elevation[1])
+    k = np.arange(n)
+    if layout == "ring":
+        elev = np.full(n, (lo + hi) / 2) + np.radians(5.0) * np.where(k % 2, 1, -1) * (n > 2)
+        az = 2 * np.pi * k / n
+    else:
+        z = np.sin(lo) + (np.sin(hi) - np.sin(lo)) * (k + 0.5) / n
+        elev = np.arcsin(z)
+        az = k * np.pi * (3.0 - np.sqrt(5.0))  # golden angle
+    return np.stack([np.cos(elev) * np.cos(az), np.cos(elev) * np.sin(az), np.sin(elev)], axis=1)
+
+
+def make_views(mesh, settings: SynthSettings, board_size: tuple[float, float] | None):
+    """Camera (shared PINHOLE) and (R, t) per view, looking at the object's bounding-sphere centre."""
+    from pipeline.core.camera import Camera, look_at
+
+    lo, hi = mesh.bounds
+    target = (lo + hi) / 2
+    radius = float(np.linalg.norm(hi - lo)) / 2
+    if board_size is not None:  # show enough of the board for detection
+        radius = max(radius, 0.8 * float(np.hypot(*board_size)) / 2)
+    dist = settings.distance * radius
+    w, h = settings.size
+    half_angle = np.arcsin(min(1.0, 1.0 / settings.distance))
+    focal = 0.95 * (min(w, h) / 2) / np.tan(half_angle)
+    camera = Camera("PINHOLE", w, h, (focal, focal, w / 2, h / 2))
+    poses = [look_at(target + dist * d, target) for d in view_directions(settings.views, settings.layout,
+                                                                          settings.elevation)]
+    return camera, poses
+
+
+# -- the capture ----------------------------------------------------------------------------------
+
+def _toml_value(v) -> str:
+    if isinstance(v, str):
+        return f'"{v}"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    return repr(float(v)) if isinstance(v, float) else str(v)
+
+
+def _capture_toml(board_table: dict | None, brackets: dict[str, list[str]], iso: float) -> str:
+    lines = ["# written by sigrend synth", "", "[exposure]", f"default = {{iso = {iso:g}}}", ""]
+    if brackets:
+        lines.append("[brackets]")
+        lines += [f'{k} = {_toml_value(v)}' for k, v in brackets.items()]
+        lines.append("")
+    if board_table:
+        lines.append("[board]")
+        lines += [f"{k} = {_toml_value(v)}" for k, v in board_table.items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _auto_exposure_time(radiance: np.ndarray, mask: np.ndarray, fnumber: float, iso: float) -> float:
+    """Exposure time mapping the 99.5th-percentile object radiance to 0.7 of full scale (3 significant digits)."""
+    values = radiance[mask] if mask.any() else radiance.reshape(-1, 3)
+    level = float(np.percentile(values.max(axis=1), 99.5)) if values.size else 1.0
+    t = 0.7 * fnumber**2 / (max(level, 1e-12) * iso / 100.0)
+    return float(f"{t:.3g}")
+
+
+def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool = True) -> list[Path]:
+    """Render and write a capture (module docstring); returns the written paths."""
+    from tqdm import tqdm
+
+    from pipeline.core.render import InsideMeshError, Renderer
+    from pipeline.io.brdf import parse_brdf_spec, write_brdf
+    from pipeline.io.camera_files import Exposure, add_sensor_noise, sensor_value, write_camera_file
+    from pipeline.io.images import write_image
+    from pipeline.io.poses import ImagePose, Poses, write_poses
+    from pipeline.workdir import write_json, write_text
+
+    settings.validate()
+    out = Path(out_dir)
+    brdf = parse_brdf_spec(settings.brdf)
+    env = load_env(settings.env)
+    mesh = load_mesh(settings.mesh, settings.mesh_size, settings.mesh_up)
+    board, board_table = make_board(settings.mesh_size) if settings.board else (None, None)
+    camera, view_poses = make_views(mesh, settings, board.size if board else None)
+    renderer = Renderer(mesh, env, brdf, shadows=settings.shadows, board=board, cell_height=settings.cell_height)
+    noise = parse_noise(settings.noise, settings.format)
+    rng = np.random.default_rng(settings.seed)
+    iso = 100.0
+    written: list[Path] = []
+    poses = Poses(cameras={"cam0": camera})
+    brackets: dict[str, list[str]] = {}
+    t_base = None
+    started = time.perf_counter()
+    bar = tqdm(list(enumerate(view_poses)), desc="synth views", unit="view", file=sys.stderr, disable=not progress)
+    for i, (R, t) in bar:
+        try:
+            result = renderer.render(camera, R, t)
+        except InsideMeshError:
+            raise UserError(f"view {i}: the camera is inside the mesh; increase --distance "
+                            f"(now {settings.distance}) or check the mesh") from None
+        if t_base is None:
+            t_base = _auto_exposure_time(result.radiance, result.object_mask, settings.fnumber, iso)
+        stem = f"{i:04d}"
+        keys = []
+        for k in range(settings.brackets):
+            step = k - (settings.brackets - 1) / 2
+            exposure = Exposure(time=float(f"{t_base * 4.0 ** step:.3g}"), iso=iso, fnumber=settings.fnumber)
+            value = sensor_value(result.radiance, exposure)
+            if noise is not None:
+                value = add_sensor_noise(value, rng, **noise)
+            name = stem if settings.brackets == 1 else f"{stem}_b{k}"
+            path = write_camera_file(out / "images" / name, settings.format, value, exposure)
+            written.append(path)
+            keys.append(path.name)
+            poses.images[path.name] = ImagePose("cam0", R, t)
+        if settings.brackets > 1:
+            brackets[f"view_{stem}"] = keys
+        written.append(write_image(out / "gt" / "masks" / f"{stem}.png", result.object_mask.astype(np.float32),
+                                   dtype="uint8"))
+    seconds = time.perf_counter() - started
+    written.append(write_poses(out / "gt" / "poses.json", poses))
+    if settings.poses:
+        written.append(write_poses(out / "poses.json", poses))
+    mesh_path = out / "mesh.ply"
+    from pipeline.workdir import atomic_path
+
+    with atomic_path(mesh_path) as tmp:
+        mesh.export(tmp, file_type="ply")
+    written.append(mesh_path)
+    written.append(write_text(out / "capture.toml", _capture_toml(board_table, brackets, iso)))
+    written.append(write_image(out / "gt" / "lighting.exr", env, dtype="float"))
+    written.append(write_brdf(out / "gt" / "brdf.json", brdf))
+    written.append(_write_lighting_sh(out / "gt" / "lighting_sh.json", env))
+    written.append(write_json(out / "gt" / "synth.json", {
+        "settings": _settings_json(settings), "exposure_time_base": t_base, "iso": iso,
+        "fnumber": settings.fnumber, "radiance_from_value": "radiance = value * N^2 / (t * ISO/100)",
+        "render_seconds": round(seconds, 3), "light_directions": len(renderer.lights)}))
+    return written
+
+
+def _settings_json(settings: SynthSettings) -> dict:
+    from pipeline.settings import settings_dict
+
+    return settings_dict(settings)
+
+
+def _write_lighting_sh(path: Path, env: np.ndarray) -> Path:
+    from pipeline.core.sh import project_envmap
+    from pipeline.io.lighting import write_lighting_sh
+
+    return write_lighting_sh(path, project_envmap(np.asarray(env, float), SH_ORDER),
+                             source="gt/lighting.exr projected by sigrend synth")
+
+
+# -- for tests of every stage ---------------------------------------------------------------------
+
+def make_test_capture(out_dir: str | Path, *, mesh: str = "sphere", brdf: str = "lambert:albedo=0.6",
+                      env: str = "area", views: int = 6, size: tuple[int, int] = (96, 96), fmt: str = "exr",
+                      **more) -> Path:
+    """A small capture for tests (defaults: sphere, Lambert, area lights, 6 views of 96 x 96 EXR).
+
+    ``more``: any other SynthSettings field (board=True, brackets=3, noise="none", poses=False, ...).
+    Returns ``out_dir``.  Use it from a session-scoped fixture: rendering takes ~0.1-1 s per view.
+    """
+    settings = replace(SynthSettings(), mesh=mesh, brdf=brdf, env=env, views=views, size=tuple(size),
+                       format=fmt, **more)
+    make_capture(out_dir, settings, progress=False)
+    return Path(out_dir)
