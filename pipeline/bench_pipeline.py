@@ -248,58 +248,6 @@ def _write_csv(path: Path, rows: list[dict]) -> Path:
     return path
 
 
-# --------------------------------------------------------------------------------------- captures
-
-def ring_poses(n_views: int, size: int, distance: float = 0.45, fov_deg: float = 30.0, seed: int = 0):
-    """``n_views`` cameras around the origin at alternating elevations 10..50 degrees, looking at it."""
-    from pipeline.core.camera import Camera, look_at
-    from pipeline.io.poses import ImagePose, Poses
-
-    rng = np.random.default_rng(seed)
-    f = 0.5 * size / np.tan(np.radians(fov_deg) / 2)
-    poses = Poses()
-    poses.cameras["cam0"] = Camera("PINHOLE", size, size, (f, f, size / 2, size / 2))
-    for i in range(n_views):
-        phi = 2 * np.pi * i / n_views + rng.uniform(-0.1, 0.1)
-        elev = np.radians(10 + 40 * ((i * 0.618) % 1.0))
-        eye = distance * np.array([np.cos(elev) * np.cos(phi), np.cos(elev) * np.sin(phi), np.sin(elev)])
-        R, t = look_at(eye, np.zeros(3))
-        poses.images[f"{i:04d}.exr"] = ImagePose("cam0", R, t)
-    return poses
-
-
-def make_capture(path: Path, *, env: np.ndarray, brdf: dict, n_views: int = 12, size: int = 64,
-                 subdivisions: int = 4, radius: float = 0.1, noise: float = 0.0, seed: int = 0) -> Path:
-    """A small synthetic capture (sphere mesh, linear EXR photos, poses.json) rendered by the
-    independent angular-domain renderer; ground truth in CAPTURE/gt/ (lighting_sh.json order 20,
-    brdf.json).  ``noise``: Gaussian, as a fraction of each image's mean object radiance."""
-    import trimesh
-
-    from pipeline.core.render import Renderer
-    from pipeline.io.brdf import write_brdf
-    from pipeline.io.images import write_image
-    from pipeline.io.lighting import write_lighting_sh
-    from pipeline.io.poses import write_poses
-
-    path = Path(path)
-    (path / "images").mkdir(parents=True, exist_ok=True)
-    mesh = trimesh.creation.icosphere(subdivisions, radius=radius)
-    mesh.export(path / "mesh.ply")
-    poses = ring_poses(n_views, size, seed=seed)
-    renderer = Renderer(mesh, env, brdf, shadows=False)
-    rng = np.random.default_rng(seed)
-    for key, pose in poses.images.items():
-        result = renderer.render(poses.camera_of(key), pose.R, pose.t)
-        img = result.radiance.astype(float)
-        if noise > 0 and result.object_mask.any():
-            img = img + noise * img[result.object_mask].mean() * rng.normal(size=img.shape)
-        write_image(path / "images" / key, np.maximum(img, 0.0), dtype="float")
-    write_poses(path / "poses.json", poses)
-    write_lighting_sh(path / "gt" / "lighting_sh.json", project_envmap(env, 20))
-    write_brdf(path / "gt" / "brdf.json", brdf)
-    return path
-
-
 # --------------------------------------------------------------------------------------- suites
 
 def stability_suite(quick: bool, repeat: int, output: Path = Path("bench")) -> list:
