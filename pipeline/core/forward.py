@@ -1,0 +1,135 @@
+"""Frequency-space forward model per light-field sample (R&H 2001, reflection-space approximation).
+
+For a sample with unit normal n, unit direction v from the surface to the camera and the mirror
+direction r = reflect(v, n) = 2 (n.v) n - v, the outgoing radiance of channel c under distant
+lighting with SH coefficients L_lm,c is modelled as
+
+    B_c = rho_c / pi * sum_lm Â_l L_lm,c Y_lm(n)                  (diffuse: clamped cosine, exact)
+        + k_c(n.v)     * sum_lm A_l(w) L_lm,c Y_lm(r)             (lobe about r: R&H 2001, sec. 5)
+
+with Â_l the clamped-cosine filter (pipeline.core.transfer.lambert_filter) and A_l(w) the filter of
+the specular lobe of width w (pipeline.core.transfer.phong_filter / microfacet_filter).  The lobe
+factor k_c is
+  phong       k_c = specular_c                                (the R&H Phong transfer is exactly
+                                                               radial about r with unit integral)
+  microfacet  k_c = F0_c (1 - f) + f,  f = (1 - n.v)^5        (Schlick's Fresnel at the half
+                                                               vector ~ n, the lobe's centre), and
+              A_l(sigma) = the exact filter of the Torrance–Sparrow lobe seen from the normal;
+              away from normal view the lobe stretches and loses energy to shadowing; that
+              approximation error is what R&H accept (measured in tests/core/test_solve.py).
+Everything is linear in the lighting for a fixed BRDF, and linear in (rho_c, specular_c) for fixed
+lighting and lobe width: the two facts the solvers in pipeline.core.solve use.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.core import transfer
+from pipeline.core.sh import band_of_index, sh_basis
+
+LOBE_MODELS = ("phong", "microfacet")
+WIDTH_PARAM = {"phong": "exponent", "microfacet": "roughness"}
+
+
+def reflect_view(view_dir: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Mirror direction r = 2 (n.v) n - v of the view direction about the normal, (N, 3)."""
+    v = np.asarray(view_dir, dtype=float)
+    n = np.asarray(normal, dtype=float)
+    return 2.0 * np.einsum("ij,ij->i", n, v)[:, None] * n - v
+
+
+def lobe_filter(model: str, width: float, order: int) -> np.ndarray:
+    """A_l (l = 0..order) of the specular lobe of ``model`` with width parameter ``width``
+    (Phong exponent s or Beckmann roughness sigma)."""
+    if model == "phong":
+        return transfer.phong_filter(width, order)
+    if model == "microfacet":
+        return transfer.microfacet_filter(width, order)
+    raise ValueError(f"model {model!r} has no specular lobe")
+
+
+def fresnel_grazing(normal: np.ndarray, view_dir: np.ndarray) -> np.ndarray:
+    """Schlick's grazing weight f = (1 - n.v)^5 (N,): F = F0 (1 - f) + f."""
+    cos_o = np.clip(np.einsum("ij,ij->i", np.asarray(normal, float), np.asarray(view_dir, float)), 0.0, 1.0)
+    return (1.0 - cos_o) ** 5
+
+
+@dataclass
+class DesignTerms:
+    """The BRDF-independent building blocks of the forward model for N samples, order L.
+
+    diffuse: (N, K) Â_l / pi * Y_lm(n);  reflected: (N, K) Y_lm(r) (None for a Lambertian model);
+    grazing: (N,) Schlick weight (1 - n.v)^5.
+    """
+
+    diffuse: np.ndarray
+    reflected: np.ndarray | None
+    grazing: np.ndarray
+
+
+def design_terms(normal: np.ndarray, view_dir: np.ndarray, order: int, with_lobe: bool) -> DesignTerms:
+    """Evaluate the SH blocks of the forward model for one chunk of samples."""
+    normal = np.asarray(normal, dtype=float)
+    view_dir = np.asarray(view_dir, dtype=float)
+    a_hat = transfer.lambert_filter(order)[band_of_index(order)] / np.pi
+    diffuse = sh_basis(normal, order)
+    diffuse *= a_hat[None, :]
+    reflected = sh_basis(reflect_view(view_dir, normal), order) if with_lobe else None
+    return DesignTerms(diffuse, reflected, fresnel_grazing(normal, view_dir))
+
+
+def lobe_factor(brdf: dict, grazing: np.ndarray) -> np.ndarray:
+    """k_c per sample and channel (N, 3) of the module docstring; zeros for a Lambertian BRDF."""
+    model = brdf["model"]
+    spec = np.asarray(brdf.get("specular", [0.0, 0.0, 0.0]), dtype=float)
+    if model == "phong":
+        return np.broadcast_to(spec[None, :], (grazing.shape[0], 3))
+    if model == "microfacet":
+        return spec[None, :] * (1.0 - grazing[:, None]) + grazing[:, None]
+    return np.zeros((grazing.shape[0], 3))
+
+
+def channel_designs(terms: DesignTerms, brdf: dict, order: int) -> np.ndarray:
+    """Per-channel design matrices (3, N, K): B_c = designs[c] @ L_c for a fixed BRDF."""
+    albedo = np.asarray(brdf["albedo"], dtype=float)
+    designs = albedo[:, None, None] * terms.diffuse[None]
+    if brdf["model"] in LOBE_MODELS:
+        filt = lobe_filter(brdf["model"], float(brdf[WIDTH_PARAM[brdf["model"]]]), order)[band_of_index(order)]
+        k = lobe_factor(brdf, terms.grazing)                     # (N, 3)
+        lobe = terms.reflected * filt[None, :]
+        designs = designs + k.T[:, :, None] * lobe[None]
+    return designs
+
+
+def render_samples(coeffs: np.ndarray, brdf: dict, normal: np.ndarray, view_dir: np.ndarray,
+                   chunk: int = 65536) -> np.ndarray:
+    """Forward model: radiance (N, 3) of samples lit by SH lighting ``coeffs`` ((L+1)^2, 3)."""
+    coeffs = np.asarray(coeffs, dtype=float)
+    order = int(round(np.sqrt(coeffs.shape[0]))) - 1
+    n = np.asarray(normal, dtype=float)
+    v = np.asarray(view_dir, dtype=float)
+    out = np.empty((n.shape[0], 3))
+    with_lobe = brdf["model"] in LOBE_MODELS
+    for s in range(0, n.shape[0], chunk):
+        terms = design_terms(n[s:s + chunk], v[s:s + chunk], order, with_lobe)
+        designs = channel_designs(terms, brdf, order)
+        out[s:s + chunk] = np.einsum("cnk,kc->nc", designs, coeffs)
+    return out
+
+
+def band_projections(coeffs: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Per-band partial sums P_l,c(d) = sum_m L_lm,c Y_lm(d): (N, L+1, 3).
+
+    Any radially symmetric filter then costs one small product: sum_l A_l P_l,c.
+    """
+    coeffs = np.asarray(coeffs, dtype=float)
+    order = int(round(np.sqrt(coeffs.shape[0]))) - 1
+    basis = sh_basis(dirs, order)                                   # (N, K)
+    prod = basis[:, :, None] * coeffs[None, :, :]                   # (N, K, 3)
+    out = np.zeros((basis.shape[0], order + 1, coeffs.shape[1]))
+    for l in range(order + 1):
+        out[:, l] = prod[:, l * l:(l + 1) ** 2].sum(axis=1)
+    return out

@@ -1,0 +1,380 @@
+"""Regularized deconvolution in SH space: chunked normal equations, per-band conditioning labels,
+variable-projection BRDF fits, leave-views-out model selection (pure NumPy/SciPy + nlopt).
+
+Inverse lighting (DESIGN.md "The inverse problems"): for a fixed BRDF the radiance is linear in the
+lighting, B_c = A_c L_c (pipeline.core.forward), so L_c solves the weighted normal equations
+(A_c^T W A_c) L_c = A_c^T W b_c.  They are accumulated chunk by chunk (memory O(K^2), time linear
+in N) and separately per validation fold, so that held-out errors of every order <= L come from
+one pass over the data (the SH design of order L' < L is the first (L'+1)^2 columns).
+
+Per-band conditioning.  For band l, let g_l = sqrt(lambda_min(G_ll) / W) be the RMS radiance change
+per unit coefficient in the least observable direction of the band (G_ll: the band's block of the
+channel-averaged normal matrix, W: the total weight), and sigma the per-sample noise (residual RMS,
+floored at ``noise_floor`` x RMS radiance because calibration and model errors never vanish).
+The band's signal-to-noise ratio is snr_l = g_l |L_0| / sigma with |L_0| the RMS of the DC
+lighting coefficient: the radiance that a band coefficient as large as the DC term would produce,
+over the noise.  Labels:
+  ill-posed        g_max,l <= 1e-6 g_max,0: the transfer is (numerically) zero in the band
+                   (odd l > 1 of a Lambertian: Â_l = 0 exactly) or nothing covers it -> zeroed;
+  ill-conditioned  snr_l < min_snr (default 20, i.e. a coefficient of 5% of the DC term is at the
+                   noise level) -> Tikhonov ridge sigma^2 / tau^2 with prior scale
+                   tau = band_prior |L_0|, treating the noise as fully correlated (systematic), so
+                   the ridge does not vanish as N grows;
+  recoverable      otherwise -> (numerically) unregularized.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.core.sh import band_of_index, num_coeffs
+
+LABELS = ("recoverable", "ill-conditioned", "ill-posed")
+
+
+@dataclass
+class NormalEquations:
+    """Weighted normal equations per fold and channel, accumulated chunk by chunk.
+
+    gram (F, C, K, K), rhs (F, C, K), btb (F, C), weight (F,), count (F,).  ``shared`` = True when
+    every channel uses the same design (Lambertian: A_c = rho_c D, scale applied at solve time),
+    then gram has C = 1.
+    """
+
+    order: int
+    folds: int
+    shared: bool
+    gram: np.ndarray = field(init=False)
+    rhs: np.ndarray = field(init=False)
+    btb: np.ndarray = field(init=False)
+    weight: np.ndarray = field(init=False)
+    count: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        k = num_coeffs(self.order)
+        self.gram = np.zeros((self.folds, 1 if self.shared else 3, k, k))
+        self.rhs = np.zeros((self.folds, 3, k))
+        self.btb = np.zeros((self.folds, 3))
+        self.weight = np.zeros(self.folds)
+        self.count = np.zeros(self.folds, dtype=np.int64)
+
+    def add(self, designs: np.ndarray, radiance: np.ndarray, weight: np.ndarray, fold: np.ndarray) -> None:
+        """Add one chunk: designs (Cd, N, K) with Cd = 1 (shared) or 3, radiance (N, 3),
+        weight (N,), fold (N,) ints in [0, folds)."""
+        order = np.argsort(fold, kind="stable")
+        bounds = np.searchsorted(fold[order], np.arange(self.folds + 1))
+        for f in range(self.folds):
+            rows = order[bounds[f]:bounds[f + 1]]
+            if rows.size == 0:
+                continue
+            sw = np.sqrt(weight[rows])
+            b = radiance[rows] * sw[:, None]
+            for c in range(designs.shape[0]):
+                a = designs[c, rows] * sw[:, None]
+                self.gram[f, c] += a.T @ a
+                if self.shared:
+                    self.rhs[f] += (a.T @ b).T
+                else:
+                    self.rhs[f, c] += a.T @ b[:, c]
+            self.btb[f] += (b * b).sum(axis=0)
+            self.weight[f] += weight[rows].sum()
+            self.count[f] += rows.size
+
+    def channel_system(self, folds: np.ndarray | slice, scale: np.ndarray | None = None, order: int | None = None):
+        """Summed (over ``folds``) per-channel (G (3,K',K'), h (3,K'), btb (3,), W) truncated to
+        ``order``; ``scale`` (3,) multiplies a shared design per channel (rho_c)."""
+        k = num_coeffs(self.order if order is None else order)
+        g = self.gram[folds].sum(axis=0)[:, :k, :k]
+        h = self.rhs[folds].sum(axis=0)[:, :k]
+        if self.shared:
+            s = np.ones(3) if scale is None else np.asarray(scale, dtype=float)
+            g = (s ** 2)[:, None, None] * g[0][None]
+            h = s[:, None] * h
+        return g, h, self.btb[folds].sum(axis=0), float(self.weight[folds].sum())
+
+
+def residual_sum(g: np.ndarray, h: np.ndarray, btb: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Weighted RSS per channel from the normal equations: b'Wb - 2 x'h + x'Gx (3,)."""
+    return btb - 2.0 * np.einsum("ck,kc->c", h, x) + np.einsum("kc,ckj,jc->c", x, g, x)
+
+
+@dataclass
+class LightingFit:
+    coeffs: np.ndarray                # ((L+1)^2, 3)
+    labels: list[str]                 # per band
+    bands: list[dict]                 # per band diagnostics
+    noise_sigma: float                # per-sample noise used for labels (radiance units)
+    residual_rms: float               # weighted training RMS residual
+    ridge: np.ndarray                 # (K,) diagonal regularization added
+
+
+def band_gains(g_mean: np.ndarray, weight: float, order: int) -> tuple[np.ndarray, np.ndarray]:
+    """(g_min, g_max) per band: sqrt of the extreme eigenvalues of the band's block of G / W."""
+    gmin, gmax = np.zeros(order + 1), np.zeros(order + 1)
+    for l in range(order + 1):
+        sl = slice(l * l, (l + 1) ** 2)
+        ev = np.linalg.eigvalsh(g_mean[sl, sl] / max(weight, 1e-300))
+        gmin[l], gmax[l] = np.sqrt(max(ev[0], 0.0)), np.sqrt(max(ev[-1], 0.0))
+    return gmin, gmax
+
+
+def _solve_ridge(g: np.ndarray, h: np.ndarray, ridge: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Per channel (G + diag(ridge)) x = h on the ``keep`` coefficients; others are 0. -> (K, 3)."""
+    k = g.shape[1]
+    x = np.zeros((k, 3))
+    idx = np.nonzero(keep)[0]
+    if idx.size == 0:
+        return x
+    for c in range(3):
+        a = g[c][np.ix_(idx, idx)] + np.diag(ridge[idx])
+        try:
+            x[idx, c] = np.linalg.solve(a, h[c, idx])
+        except np.linalg.LinAlgError:
+            x[idx, c] = np.linalg.lstsq(a, h[c, idx], rcond=None)[0]
+    return x
+
+
+def solve_lighting(g: np.ndarray, h: np.ndarray, btb: np.ndarray, weight: float, count: int,
+                   order: int, *, noise_floor: float = 0.005, min_snr: float = 20.0,
+                   band_prior: float = 0.3, labels: list[str] | None = None,
+                   noise_sigma: float | None = None) -> LightingFit:
+    """Regularized lighting from per-channel normal equations (see the module docstring).
+
+    ``labels`` / ``noise_sigma`` given: reuse them (held-out refits use the full-data labels).
+    Returns coefficients ((L+1)^2, 3) in the real orthonormal basis of DESIGN.md.
+    """
+    k = num_coeffs(order)
+    g, h = g[:, :k, :k], h[:, :k]
+    bands = band_of_index(order)
+    g_mean = g.mean(axis=0)
+    gmin, gmax = band_gains(g_mean, weight, order)
+    eps = 1e-10 * max(np.trace(g_mean) / k, 1e-300)
+    posed = gmax > 1e-6 * max(gmax[0], 1e-300)
+    keep = posed[bands]
+    x0 = _solve_ridge(g, h, np.full(k, eps), keep)
+    rss = residual_sum(g, h, btb, x0)
+    dof = max(count - keep.sum(), 1)
+    rms_signal = float(np.sqrt(max(btb.mean(), 0.0) / max(weight, 1e-300)))
+    measured = float(np.sqrt(max(rss.mean(), 0.0) / max(weight, 1e-300) * count / dof))
+    if noise_sigma is None:
+        noise_sigma = max(measured, noise_floor * rms_signal, 1e-300)
+    dc = float(np.sqrt(np.mean(x0[0] ** 2))) or 1.0
+    snr = gmin * dc / noise_sigma
+    if labels is None:
+        labels = [("ill-posed" if not posed[l] else "ill-conditioned" if snr[l] < min_snr else "recoverable")
+                  for l in range(order + 1)]
+    labels = list(labels[:order + 1])
+    tau = band_prior * dc
+    # G sums N samples; "fully correlated" noise means the prior weighs like one sample's noise
+    # against the weighted mean square: ridge = W sigma^2 / tau^2 (shrinkage snr'^2 / (snr'^2 + 1),
+    # snr' = g_l tau / sigma, independent of N)
+    band_ridge = np.array([weight * noise_sigma ** 2 / tau ** 2 if lab == "ill-conditioned" else eps for lab in labels])
+    keep = np.array([lab != "ill-posed" for lab in labels])[bands]
+    ridge = band_ridge[bands]
+    x = _solve_ridge(g, h, ridge, keep)
+    rss = residual_sum(g, h, btb, x)
+    info = [{"l": l, "label": labels[l], "gain_min": float(gmin[l]), "gain_max": float(gmax[l]),
+             "snr": float(snr[l]), "ridge": float(band_ridge[l]) if labels[l] == "ill-conditioned" else 0.0,
+             "energy": float((x[l * l:(l + 1) ** 2] ** 2).sum())} for l in range(order + 1)]
+    return LightingFit(x, labels, info, float(noise_sigma),
+                       float(np.sqrt(max(rss.sum(), 0.0) / (3 * max(weight, 1e-300)))), ridge)
+
+
+def cross_validate_orders(eqs: NormalEquations, orders: list[int], scale: np.ndarray | None = None,
+                          **solve_kwargs) -> list[dict]:
+    """Leave-one-fold-out errors of every candidate order from one set of per-fold normal equations.
+
+    Per order: the full-data fit fixes the band labels and the noise; each fold is refit without
+    its own rows and scored on them.  Returns one dict per order: order, params, train_rmse,
+    validation_rmse, seconds.
+    """
+    out = []
+    all_folds = slice(None)
+    if "noise_sigma" not in solve_kwargs:
+        # one noise level for every candidate: the residual of the richest model
+        top = max(orders)
+        g, h, btb, w = eqs.channel_system(all_folds, scale, top)
+        solve_kwargs = {**solve_kwargs,
+                        "noise_sigma": solve_lighting(g, h, btb, w, int(eqs.count.sum()), top, **solve_kwargs).noise_sigma}
+    for order in orders:
+        t0 = time.perf_counter()
+        g, h, btb, w = eqs.channel_system(all_folds, scale, order)
+        full = solve_lighting(g, h, btb, w, int(eqs.count.sum()), order, **solve_kwargs)
+        val_rss, val_w = 0.0, 0.0
+        for f in range(eqs.folds):
+            if eqs.count[f] == 0:
+                continue
+            train = np.array([i for i in range(eqs.folds) if i != f])
+            if eqs.count[train].sum() == 0:
+                continue
+            gt, ht, bt, wt = eqs.channel_system(train, scale, order)
+            fit = solve_lighting(gt, ht, bt, wt, int(eqs.count[train].sum()), order,
+                                 **{**solve_kwargs, "labels": full.labels})
+            gv, hv, bv, wv = eqs.channel_system(np.array([f]), scale, order)
+            val_rss += float(residual_sum(gv, hv, bv, fit.coeffs).sum())
+            val_w += wv
+        out.append({"order": order, "params": 3 * num_coeffs(order), "train_rmse": full.residual_rms,
+                    "validation_rmse": float(np.sqrt(max(val_rss, 0.0) / (3 * val_w))) if val_w else float("nan"),
+                    "seconds": time.perf_counter() - t0, "fit": full})
+    return out
+
+
+def parsimonious_choice(candidates: list[dict], tolerance: float, key: str = "validation_rmse") -> int:
+    """Index of the candidate with the fewest parameters whose ``key`` is within a factor
+    (1 + tolerance) of the best (the "model no more than the scene needs" rule)."""
+    errors = np.array([c[key] for c in candidates], dtype=float)
+    finite = np.isfinite(errors)
+    if not finite.any():
+        return int(np.argmin([c["params"] for c in candidates]))
+    best = errors[finite].min()
+    ok = [i for i, c in enumerate(candidates) if finite[i] and errors[i] <= best * (1.0 + tolerance) + 1e-300]
+    return min(ok, key=lambda i: (candidates[i]["params"], errors[i]))
+
+
+# ---------------------------------------------------------------------------------------------
+# BRDF from known lighting: variable projection over the lobe width
+# ---------------------------------------------------------------------------------------------
+
+@dataclass
+class BrdfData:
+    """Per-sample quantities for BRDF fits under fixed lighting (pipeline.core.forward):
+    diffuse (N, 3) = sum Â_l/pi L_lm,c Y_lm(n) (radiance per unit albedo), bands (N, L+1, 3) =
+    per-band lighting at the mirror direction, grazing (N,) Schlick weight, radiance (N, 3),
+    weight (N,), fold (N,)."""
+
+    diffuse: np.ndarray
+    bands: np.ndarray
+    grazing: np.ndarray
+    radiance: np.ndarray
+    weight: np.ndarray
+    fold: np.ndarray
+
+    def subset(self, rows: np.ndarray) -> "BrdfData":
+        return BrdfData(*(getattr(self, f)[rows] for f in ("diffuse", "bands", "grazing", "radiance", "weight", "fold")))
+
+
+def _nnls_2(g: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """min x'Gx - 2h'x over x >= 0 for a 1x1 or 2x2 G (exact: try the interior, then the faces)."""
+    n = g.shape[0]
+    best, best_val = np.zeros(n), 0.0
+    candidates = []
+    try:
+        candidates.append(np.linalg.solve(g + 1e-300 * np.eye(n), h))
+    except np.linalg.LinAlgError:
+        pass
+    for i in range(n):
+        x = np.zeros(n)
+        if g[i, i] > 0:
+            x[i] = h[i] / g[i, i]
+        candidates.append(x)
+    for x in candidates:
+        if np.all(x >= 0):
+            val = x @ g @ x - 2.0 * h @ x
+            if val < best_val:
+                best, best_val = x, val
+    return best
+
+
+def linear_brdf(data: BrdfData, model: str, filt: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float]:
+    """Non-negative least squares for (albedo_c, specular_c) at a fixed lobe filter ``filt`` (A_l).
+
+    Returns albedo (3,), specular (3,) and the weighted RSS (all channels)."""
+    w = data.weight
+    albedo, spec, rss = np.zeros(3), np.zeros(3), 0.0
+    lobe = None if model == "lambert" else data.bands @ filt          # (N, 3)
+    for c in range(3):
+        cols = [data.diffuse[:, c]]
+        target = data.radiance[:, c]
+        if model == "phong":
+            cols.append(lobe[:, c])
+        elif model == "microfacet":
+            cols.append(lobe[:, c] * (1.0 - data.grazing))
+            target = target - lobe[:, c] * data.grazing
+        a = np.stack(cols, axis=1)
+        g = a.T @ (a * w[:, None])
+        h = a.T @ (target * w)
+        x = _nnls_2(g, h)
+        albedo[c] = x[0]
+        if len(x) > 1:
+            spec[c] = x[1]
+        rss += float(target ** 2 @ w - 2.0 * h @ x + x @ g @ x)
+    return albedo, spec, max(rss, 0.0)
+
+
+WIDTH_BOUNDS = {"phong": (1.0, 5000.0), "microfacet": (0.02, 1.0)}
+
+
+def angular_width(model: str, width: float) -> float:
+    """Lobe width as an angle-like number (radians ~): sigma for microfacet, 1/sqrt(s) for Phong."""
+    return float(width) if model == "microfacet" else 1.0 / np.sqrt(float(width))
+
+
+def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.005, grid: int = 17,
+             max_evals: int = 40) -> dict:
+    """Variable projection: nlopt (LN_COBYLA, bounded, in log width) over the lobe width; for each
+    width :func:`linear_brdf` gives the linear parameters.  ``filter_fn(model, width)`` -> A_l.
+
+    The residual profile on a log grid of widths is kept: the width counts as recoverable when the
+    widths whose mean square residual is within sigma^2 of the best (sigma: residual RMS, floored
+    at ``noise_floor`` x RMS radiance) span at most a factor 3 in angular width; otherwise the
+    profile is flat within noise and the width is reported unrecoverable.
+    """
+    import nlopt
+
+    wsum = float(data.weight.sum())
+    rms_signal = float(np.sqrt((data.radiance ** 2 * data.weight[:, None]).sum() / (3 * wsum)))
+    if model == "lambert":
+        albedo, spec, rss = linear_brdf(data, model, None)
+        return {"brdf": {"model": "lambert", "albedo": albedo.tolist()}, "mse": rss / (3 * wsum),
+                "width": None, "profile": [], "width_recoverable": None}
+    lo, hi = WIDTH_BOUNDS[model]
+    param = "exponent" if model == "phong" else "roughness"
+
+    def mse_at(log_w: float) -> float:
+        return linear_brdf(data, model, filter_fn(model, float(np.exp(log_w))))[2] / (3 * wsum)
+
+    log_grid = np.linspace(np.log(lo), np.log(hi), grid)
+    profile = np.array([mse_at(x) for x in log_grid])
+    start = float(log_grid[int(np.argmin(profile))])
+    opt = nlopt.opt(nlopt.LN_COBYLA, 1)
+    opt.set_lower_bounds([np.log(lo)])
+    opt.set_upper_bounds([np.log(hi)])
+    opt.set_min_objective(lambda x, grad: mse_at(float(x[0])))
+    opt.set_initial_step([float(log_grid[1] - log_grid[0]) / 2])
+    opt.set_xtol_abs(1e-4)
+    opt.set_maxeval(max_evals)
+    try:
+        best_log = float(opt.optimize([start])[0])
+    except (nlopt.RoundoffLimited, ValueError, RuntimeError):
+        best_log = start
+    if mse_at(best_log) > profile.min():
+        best_log = start
+    width = float(np.exp(best_log))
+    albedo, spec, rss = linear_brdf(data, model, filter_fn(model, width))
+    mse = rss / (3 * wsum)
+    sigma2 = max(mse, (noise_floor * rms_signal) ** 2)
+    accepted = np.exp(log_grid[profile - min(mse, profile.min()) <= sigma2])
+    ang = sorted(angular_width(model, x) for x in accepted) if accepted.size else [angular_width(model, width)]
+    spread = ang[-1] / max(ang[0], 1e-300)
+    recoverable = bool(spread <= 3.0 and np.max(spec) > 0)
+    return {"brdf": {"model": model, "albedo": albedo.tolist(), "specular": spec.tolist(), param: width},
+            "mse": mse, "width": width,
+            "profile": [{param: float(np.exp(x)), "mse": float(m)} for x, m in zip(log_grid, profile)],
+            "width_recoverable": recoverable,
+            "width_interval": [float(accepted.min()), float(accepted.max())] if accepted.size else [width, width]}
+
+
+def brdf_mse(data: BrdfData, brdf: dict, filter_fn) -> float:
+    """Weighted mean square residual of a fixed BRDF on ``data`` (all channels)."""
+    model = brdf["model"]
+    pred = np.asarray(brdf["albedo"])[None, :] * data.diffuse
+    if model != "lambert":
+        lobe = data.bands @ filter_fn(model, float(brdf["exponent" if model == "phong" else "roughness"]))
+        spec = np.asarray(brdf["specular"])[None, :]
+        k = spec if model == "phong" else spec * (1.0 - data.grazing[:, None]) + data.grazing[:, None]
+        pred = pred + k * lobe
+    r = data.radiance - pred
+    return float((r ** 2 * data.weight[:, None]).sum() / (3 * data.weight.sum()))
