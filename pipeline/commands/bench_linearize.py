@@ -1,7 +1,7 @@
 """`sigrend bench linearize`: linearize throughput (megapixels/s) for DNG and JPEG, serial vs process
 pool, beside rawpy's bare decode (LibRaw unpack + demosaic with the same parameters) of the same DNGs.
 
-Files: ``n`` images of a smooth synthetic scene (pipeline.io.dng for DNG, OpenImageIO for JPEG q95),
+Files: ``n`` images of a smooth synthetic scene (pipeline.io.camera_files.write_dng for DNG, OpenImageIO for JPEG q95),
 written once to a temporary folder; every timed run linearizes into a fresh work folder (the stage
 skips fresh outputs).  Full size: 8 images of 3000x2000 (6 MP); --quick: 4 of 600x400.
 """
@@ -26,7 +26,7 @@ def _scene(h: int, w: int, i: int) -> np.ndarray:
 def linearize_suite(quick: bool, repeat: int) -> list[BenchRow]:
     import rawpy
 
-    from pipeline.io.dng import write_linear_dng
+    from pipeline.io.camera_files import Exposure, write_dng
     from pipeline.io.images import write_image
     from pipeline.settings import make_settings
     from stages import linearize
@@ -38,7 +38,7 @@ def linearize_suite(quick: bool, repeat: int) -> list[BenchRow]:
         tmp = Path(tmp)
         for i in range(n):
             scene = _scene(h, w, i)
-            write_linear_dng(tmp / "dng" / "images" / f"{i:03d}.dng", scene, exposure_time=0.01, fnumber=4.0)
+            write_dng(tmp / "dng" / "images" / f"{i:03d}.dng", scene, Exposure(time=0.01, iso=100.0, fnumber=4.0))
             v = np.clip(scene, 0, 1)
             srgb = np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)
             write_image(tmp / "jpeg" / "images" / f"{i:03d}.jpg", srgb, dtype="uint8",

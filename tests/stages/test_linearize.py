@@ -1,7 +1,7 @@
 """linearize: camera files -> linear radiance on one scale, checked against the radiance they were made from.
 
 Test files are written here from a known linear sRGB radiance: DNGs whose camera space *is* linear
-sRGB (pipeline.io.dng: LibRaw's colour conversion is the identity), 8-bit JPEG/PNG
+sRGB (pipeline.io.camera_files.write_dng: LibRaw's colour conversion is the identity), 8-bit JPEG/PNG
 through the sRGB curve (or a gamma-1.6 curve with its response.json), float EXR.
 Ground truth for every image: radiance = L x N^2 / (t x ISO/100) with L the scene value that a
 1/100 s, f/4 exposure maps to raw full scale (see ``exposed``).
@@ -10,14 +10,17 @@ Ground truth for every image: radiance = L x N^2 / (t x ISO/100) with L the scen
 from __future__ import annotations
 
 import json
+import struct
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
+import tifffile
 from pipeline.cli import main as cli_main
 from pipeline.errors import UserError
-from pipeline.io.dng import write_linear_dng
+from pipeline.io.camera_files import Exposure
+from pipeline.io.camera_files import write_dng as write_camera_dng
 from pipeline.io.images import read_image, write_image
 from pipeline.io.linear_manifest import read_linear_image, read_manifest
 from pipeline.io.response_json import write_response_json
@@ -55,9 +58,23 @@ def srgb_encode(v: np.ndarray) -> np.ndarray:
 
 def write_dng(path: Path, linear: np.ndarray, *, t: float = T_REF, fnumber: float = N_REF,
               neutral=(1.0, 1.0, 1.0), noise: float = 0.0, rng=None, truncate: bool = False) -> None:
-    """DNG of linear sRGB values (pipeline.io.dng; ISO absent), optionally cut to a third of its bytes."""
-    write_linear_dng(path, linear, exposure_time=t, fnumber=fnumber, black=BLACK, white=WHITE, neutral=neutral,
-                     noise=noise, rng=rng)
+    """The synth's DNG (pipeline.io.camera_files.write_dng: camera space = linear sRGB, no ISO) of ``linear``.
+
+    ``neutral``: the simulated sensor's channel sensitivities (raw = value x neutral), written as the
+    AsShotNeutral tag (patched in place), so the camera's as-shot WB (1/neutral) restores ``linear``.
+    ``noise``: Gaussian, in units of full scale.  ``truncate``: keep only the first third of the bytes.
+    """
+    value = np.asarray(linear, float) * np.asarray(neutral)
+    if noise:
+        value = value + rng.normal(0, noise, value.shape)
+    write_camera_dng(path, value, Exposure(time=t, iso=100.0, fnumber=fnumber), black=BLACK, white=WHITE)
+    if tuple(neutral) != (1.0, 1.0, 1.0):
+        with tifffile.TiffFile(path) as tif:
+            tag = tif.pages[0].tags[50728]  # AsShotNeutral, 3 RATIONALs
+            offset, byteorder = tag.valueoffset, tif.byteorder
+        with open(path, "r+b") as fh:
+            fh.seek(offset)
+            fh.write(struct.pack(byteorder + "6I", *(v for n in neutral for v in (round(n * 10000), 10000))))
     if truncate:
         data = path.read_bytes()
         path.write_bytes(data[: len(data) // 3])
