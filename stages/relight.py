@@ -1,0 +1,583 @@
+"""relight: render the fitted object under new lighting, from the capture's views or new ones.
+
+Usage: ``sigrend relight CAPTURE -w WORK [--env NEW.exr|lighting_sh.json] [--views ...] [-o DIR]``.
+Inputs: the mesh (CAPTURE/mesh.*), the fitted BRDF (WORK/fit/brdf.json, optional per-vertex albedo
+WORK/fit/albedo.ply), the lighting (``--env``: an equirect EXR/HDR in DESIGN.md's convention or a
+lighting_sh.json; default the fitted WORK/fit/lighting_sh.json) and the views (``--views``).
+Outputs, in ``--out-dir`` (default WORK/relight): one linear RGBA EXR per view named after the
+view's image key stem (alpha = fraction of the pixel covered by the object), an sRGB PNG preview
+of each, and ``relight.json`` (views, lighting, scale and errors).  With ``--compare`` also
+``<stem>_photo.png`` and ``<stem>_error.png`` and the relative errors against the linear photos.
+
+Rendering is the frequency-space forward model (R&H 2001), pixel by pixel after a ray cast:
+  diffuse   B_d = rho_d / pi * E(n),  E(n) = sum_lm Â_l L_lm Y_lm(n)   (R&H irradiance paper, eq. 7)
+  lobe      B_s = k_c * sum_lm A_l L_lm Y_lm(r),  r = reflect(view, n)  (R&H 2001, radially
+            symmetric lobes in reflection space)
+with A_l the lobe's filter and k_c its weight: the fit's forward model, pipeline.core.forward.
+Broad lobes are summed in SH; a lobe that needs more bands than ``lobe_sh_order`` (a sharp one)
+is read from the lighting prefiltered once with the same lobe in the angular domain (the
+framework's dual representation).  No shadows: the model is that of the fit.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core import camera as cam
+from pipeline.core import forward
+from pipeline.core.envmap import downsample, equirect_angles, equirect_solid_angles
+from pipeline.core.sh import band_of_index, num_coeffs, order_of, project_envmap, sh_evaluate
+from pipeline.core.transfer import irradiance_from_sh
+from pipeline.errors import UserError
+from pipeline.io.brdf import read_brdf
+from pipeline.io.images import read_envmap, write_image
+from pipeline.io.lighting import read_lighting_sh
+from pipeline.io.poses import Poses, read_poses
+from pipeline.settings import setting
+from pipeline.workdir import write_json
+from stages.samples import image_source, linear_manifest, load_linear_image, load_mesh, mesh_path, poses_path
+
+DIFFUSE_ORDER = 8          # Â_l beyond l = 8 is < 0.3% of Â_0: irradiance is exact to that level
+LOBE_CUTOFF = 1e-3         # a lobe "needs" band l while |A_l| > LOBE_CUTOFF * A_0
+MAX_LOBE_ORDER = 400       # the filter is examined up to this band
+ERROR_MAP_RANGE = 0.2      # error maps: relative error 0 .. 20% spans the colour map
+
+
+@dataclass(frozen=True)
+class Settings:
+    env: str = setting("", "new lighting: an equirect EXR/HDR (DESIGN.md convention) or a lighting_sh.json; "
+                           "empty = the fitted lighting WORK/fit/lighting_sh.json")
+    views: str = setting("capture", "'capture' (every posed view), 'heldout' (the views left out of the samples), "
+                                    "a poses.json path, 'orbit:N' (N views on a ring) or image keys 'K1,K2,...'")
+    size: str = setting("", "output size WxH (the intrinsics are scaled); empty = each camera's native size")
+    out_dir: str = setting("", "output folder; empty = WORK/relight")
+    compare: bool = setting(False, "compare with the linear photos of the same views: error maps and relative errors "
+                                   "(after one global scale when the lighting is the fitted one)")
+    supersample: int = setting(2, "rays per pixel along each axis (n x n); alpha is the covered fraction")
+    lobe_sh_order: int = setting(24, "a lobe that needs more SH bands than this is read from a prefiltered "
+                                     "angular-space map instead (sharp lobes)")
+    prefilter_height: int = setting(128, "height of the prefiltered equirect map used for sharp lobes")
+
+    def validate(self) -> None:
+        if self.size:
+            parse_size(self.size)
+        if self.views.startswith("orbit:"):
+            parse_orbit(self.views)
+        if not 1 <= self.supersample <= 8:
+            raise UserError(f"--supersample {self.supersample}: use 1 to 8 rays per pixel and axis")
+        if self.lobe_sh_order < 2:
+            raise UserError(f"--lobe-sh-order {self.lobe_sh_order}: use at least 2")
+        if not 8 <= self.prefilter_height <= 1024:
+            raise UserError(f"--prefilter-height {self.prefilter_height}: use 8 to 1024")
+
+
+def add_arguments(parser) -> None:
+    """Extra CLI option for ``sigrend relight`` (see pipeline.runner.stage_command): ``-o`` = ``--out-dir``."""
+    import argparse
+
+    parser.add_argument("-o", dest="out_dir", metavar="DIR", default=argparse.SUPPRESS,
+                        help="output folder (same as --out-dir)")
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """'WxH' -> (W, H), both positive."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UserError(f"--size {text!r}: give the output size as WxH, e.g. 320x240") from None
+    if w <= 0 or h <= 0 or w > 16384 or h > 16384:
+        raise UserError(f"--size {text!r}: width and height must be between 1 and 16384")
+    return w, h
+
+
+def parse_orbit(text: str) -> int:
+    try:
+        n = int(text.split(":", 1)[1])
+    except ValueError:
+        raise UserError(f"--views {text!r}: write orbit:N with N the number of views, e.g. orbit:12") from None
+    if not 1 <= n <= 1000:
+        raise UserError(f"--views {text!r}: N must be between 1 and 1000")
+    return n
+
+
+# --------------------------------------------------------------------------------------- paths
+
+def out_folder(work: Path, settings: Settings) -> Path:
+    return Path(settings.out_dir) if settings.out_dir else Path(work) / "relight"
+
+
+def fitted_lighting_path(work: Path) -> Path:
+    return Path(work) / "fit" / "lighting_sh.json"
+
+
+def lighting_path(work: Path, settings: Settings) -> Path:
+    return Path(settings.env) if settings.env else fitted_lighting_path(work)
+
+
+def uses_fitted_lighting(work: Path, settings: Settings) -> bool:
+    """True when the lighting is the one fitted from these photos (then one global scale is free)."""
+    return lighting_path(work, settings).resolve() == fitted_lighting_path(work).resolve()
+
+
+def capture_poses_path(capture: Path, work: Path) -> Path:
+    """The capture's camera poses: WORK/poses.json (poses stage), else CAPTURE/poses.json."""
+    try:
+        return poses_path(capture, work)
+    except UserError:
+        return Path(work) / "poses.json"
+
+
+def view_stem(key: str) -> str:
+    """Output name of a view: the image key's file stem ('0007.exr' -> '0007')."""
+    return Path(key).stem
+
+
+def heldout_keys(work: Path) -> list[str]:
+    """Image keys the samples stage left out (samples.npz meta 'holdout'), for an honest check."""
+    from pipeline.io.samples import read_samples_meta
+
+    path = Path(work) / "samples.npz"
+    if not path.exists():
+        raise UserError(f"{path}: --views heldout needs the samples stage's output; run `sigrend samples` first")
+    keys = read_samples_meta(path).get("holdout") or []
+    if not keys:
+        raise UserError(f"{path}: no views were held out of the samples; use --views capture or rerun samples "
+                        "with held-out views")
+    return [str(k) for k in keys]
+
+
+# --------------------------------------------------------------------------------------- views
+
+@dataclass(frozen=True)
+class View:
+    key: str
+    camera: cam.Camera
+    R: np.ndarray
+    t: np.ndarray
+    has_photo: bool
+
+
+def _scaled(camera: cam.Camera, size: tuple[int, int] | None) -> cam.Camera:
+    """The camera with its image resized to ``size`` = (W, H): focal lengths and principal point scale."""
+    if size is None or size == (camera.width, camera.height):
+        return camera
+    sx, sy = size[0] / camera.width, size[1] / camera.height
+    fx, fy, cx, cy = camera.focal_principal()
+    k = camera.distortion()
+    return cam.Camera("OPENCV", size[0], size[1], (fx * sx, fy * sy, cx * sx, cy * sy, *k))
+
+
+def orbit_views(n: int, mesh, size: tuple[int, int] | None, reference: Poses | None) -> list[View]:
+    """N views on a ring 20 degrees above the mesh's centre, framing its bounding sphere (40 deg field of view)."""
+    width, height = size or (256, 256)
+    centre = np.asarray(mesh.bounding_sphere.primitive.center, float)
+    radius = float(mesh.bounding_sphere.primitive.radius)
+    fov = np.radians(40.0)
+    distance = 1.15 * radius / np.sin(fov / 2)
+    if reference is not None and reference.images:
+        centres = [cam.camera_center(p.R, p.t) for p in reference.images.values()]
+        distance = max(distance * 0.5, float(np.median([np.linalg.norm(c - centre) for c in centres])))
+    f = 0.5 * min(width, height) / np.tan(fov / 2)
+    camera = cam.Camera("PINHOLE", width, height, (f, f, width / 2, height / 2))
+    elevation = np.radians(20.0)
+    views = []
+    for i in range(n):
+        phi = 2 * np.pi * i / n
+        eye = centre + distance * np.array([np.cos(elevation) * np.cos(phi), np.cos(elevation) * np.sin(phi),
+                                            np.sin(elevation)])
+        R, t = cam.look_at(eye, centre)
+        views.append(View(f"orbit_{i:03d}", camera, R, t, False))
+    return views
+
+
+def resolve_views(*, capture: Path, work: Path, settings: Settings, mesh=None) -> list[View]:
+    """The views to render, from ``settings.views`` (see Settings)."""
+    size = parse_size(settings.size) if settings.size else None
+    spec = settings.views.strip()
+    capture_poses = capture_poses_path(capture, work)
+    if spec.startswith("orbit:"):
+        reference = read_poses(capture_poses) if capture_poses.exists() else None
+        if mesh is None:
+            mesh = load_mesh(mesh_path(capture))
+        return orbit_views(parse_orbit(spec), mesh, size, reference)
+    if spec.endswith(".json"):
+        poses, keys, own = read_poses(spec), None, False
+    else:
+        if not capture_poses.exists():
+            raise UserError(f"{capture}: no camera poses yet (no WORK/poses.json or CAPTURE/poses.json); "
+                            "run `sigrend poses` first or give --views orbit:N or a poses.json")
+        poses, own = read_poses(capture_poses), True
+        if spec in ("capture", "all", ""):
+            keys = None
+        elif spec == "heldout":
+            keys = heldout_keys(work)
+        else:
+            keys = [k.strip() for k in spec.split(",") if k.strip()]
+        if keys is not None:
+            missing = [k for k in keys if k not in poses.images]
+            if missing:
+                raise UserError(f"--views: image key(s) {', '.join(missing[:5])} are not in {capture_poses}")
+    keys = sorted(poses.images) if keys is None else keys
+    return [View(k, _scaled(poses.camera_of(k), size), poses.images[k].R, poses.images[k].t,
+                 own or (Path(capture) / "images" / k).exists()) for k in keys]
+
+
+# --------------------------------------------------------------------------------------- lighting
+
+def brdf_lobe_filter(brdf: dict, order: int) -> np.ndarray:
+    """A_l for l = 0..order of the BRDF's specular lobe (pipeline.core.forward); zeros for lambert."""
+    if brdf["model"] not in forward.LOBE_MODELS:
+        return np.zeros(order + 1)
+    model = brdf["model"]
+    return np.asarray(forward.lobe_filter(model, float(brdf[forward.WIDTH_PARAM[model]]), order), float)
+
+
+def needed_order(filt: np.ndarray) -> int:
+    """Smallest L with |A_l| <= LOBE_CUTOFF * A_0 for every l > L (len(filt)-1 when it never decays)."""
+    filt = np.abs(np.asarray(filt, float))
+    if filt[0] <= 0:
+        return 0
+    above = np.nonzero(filt > LOBE_CUTOFF * filt[0])[0]
+    return int(above[-1]) if above.size else 0
+
+
+def lobe_kernel(filt: np.ndarray, cos_gamma: np.ndarray) -> np.ndarray:
+    """Angular kernel K(cos gamma) = sum_l (2l+1)/(4 pi) A_l P_l(cos gamma) (Funk-Hecke inverse)."""
+    l = np.arange(len(filt))
+    return np.polynomial.legendre.legval(np.clip(cos_gamma, -1.0, 1.0), (2 * l + 1) / (4 * np.pi) * filt)
+
+
+def prefilter_envmap(env: np.ndarray, filt: np.ndarray, height: int) -> np.ndarray:
+    """The equirect map convolved with the radial lobe of filter ``filt``: P(r) = ∫ L(w) K(r.w) dw.
+
+    Output (h, 2h, 3) with h = the largest divisor of the map height <= ``height``.  Input and
+    output share the azimuth grid, so for each pair of rows the sum over azimuth is a circular
+    convolution (one FFT per row pair).  The discrete kernel is normalized to integrate to A_0, so
+    a lobe narrower than a pixel still conserves energy.
+    """
+    h_in = env.shape[0]
+    factor = max(1, h_in // height)
+    while h_in % factor:
+        factor -= 1
+    env = downsample(np.asarray(env, float), factor)
+    h, w = env.shape[:2]
+    theta, phi = equirect_angles(h)
+    omega = equirect_solid_angles(h)
+    # kernel tabulated in angle (fine enough for the sharpest lobe we prefilter), then interpolated
+    gamma_table = np.linspace(0.0, np.pi, 8192)
+    k_table = lobe_kernel(filt, np.cos(gamma_table))
+    dphi = phi - phi[0]
+    st, ct = np.sin(theta), np.cos(theta)
+    out = np.empty((h, w, 3))
+    spectrum = np.fft.rfft(env * omega[:, None, None], axis=1)            # (h, F, 3)
+    for i in range(h):
+        cos_gamma = ct[i] * ct[:, None] + st[i] * st[:, None] * np.cos(dphi)[None, :]   # (h', W)
+        kern = np.interp(np.arccos(np.clip(cos_gamma, -1, 1)), gamma_table, k_table)
+        norm = float((kern * omega[:, None]).sum())
+        kern_f = np.fft.rfft(kern, axis=1)                                 # (h', F)
+        row = np.fft.irfft(np.einsum("if,ifc->fc", kern_f, spectrum), n=w, axis=0)
+        out[i] = row * (filt[0] / norm if norm > 0 else 0.0)
+    return out
+
+
+def bilinear_lookup(env: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of an (H, 2H, C) equirect map at unit directions (N, 3) (wraps in azimuth)."""
+    h, w = env.shape[:2]
+    d = np.asarray(dirs, float)
+    theta = np.arccos(np.clip(d[:, 2], -1, 1))
+    phi = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi)
+    y = np.clip(theta / np.pi * h - 0.5, 0, h - 1)      # pixel centres at (i + 0.5)
+    x = phi / (2 * np.pi) * w - 0.5
+    y0 = np.minimum(np.floor(y).astype(int), h - 2) if h > 1 else np.zeros(len(y), int)
+    fy = (y - y0)[:, None]
+    x0 = np.floor(x).astype(int)
+    fx = (x - x0)[:, None]
+    x0 %= w
+    x1 = (x0 + 1) % w
+    y1 = np.minimum(y0 + 1, h - 1)
+    return ((1 - fy) * ((1 - fx) * env[y0, x0] + fx * env[y0, x1])
+            + fy * ((1 - fx) * env[y1, x0] + fx * env[y1, x1]))
+
+
+class Lighting:
+    """New lighting prepared for one BRDF: the irradiance SH and the lobe-filtered lighting (SH or map).
+
+    Give ``coeffs`` (SH lighting, ((L+1)^2, 3)) or ``env`` (an equirect map (H, 2H, 3)).  SH
+    lighting is band-limited, so the filtered sums are exact to its order; an env map is
+    projected to the bands the lobe needs, or prefiltered in the angular domain for sharp lobes.
+    """
+
+    def __init__(self, brdf: dict, *, coeffs: np.ndarray | None = None, env: np.ndarray | None = None,
+                 lobe_sh_order: int = 24, prefilter_height: int = 128, source: str = ""):
+        self.source = source
+        self.brdf = brdf
+        filt = brdf_lobe_filter(brdf, MAX_LOBE_ORDER)
+        lobe_order = needed_order(filt)
+        self.prefiltered = None
+        if coeffs is not None:
+            coeffs = np.asarray(coeffs, float)
+            order = order_of(coeffs.shape[0])
+            self.kind = "sh"
+        else:
+            sharp = lobe_order > lobe_sh_order
+            order = max(DIFFUSE_ORDER, 0 if sharp else lobe_order)
+            coeffs = project_envmap(env, order)
+            if sharp:
+                self.prefiltered = prefilter_envmap(env, filt, prefilter_height)
+            self.kind = "envmap"
+        self.order = order
+        d_order = min(order, DIFFUSE_ORDER) if self.kind == "envmap" else order
+        self.diffuse_lighting = coeffs[:num_coeffs(d_order)]
+        self.lobe = None
+        if self.prefiltered is None and lobe_order > 0:
+            self.lobe = filt[:order + 1][band_of_index(order)][:, None] * coeffs      # A_l L_lm
+        self.lobe_order = lobe_order
+
+    @classmethod
+    def from_file(cls, path: Path, brdf: dict, **kwargs) -> "Lighting":
+        """From a lighting_sh.json or an equirect EXR/HDR (DESIGN.md conventions)."""
+        path = Path(path)
+        if path.suffix.lower() == ".json":
+            return cls(brdf, coeffs=read_lighting_sh(path), source=str(path), **kwargs)
+        return cls(brdf, env=read_envmap(path), source=str(path), **kwargs)
+
+    def describe(self) -> dict:
+        return {"path": self.source, "kind": self.kind, "sh_order": self.order, "lobe_bands": self.lobe_order,
+                "lobe": "none" if self.lobe_order == 0 else
+                ("prefiltered map" if self.prefiltered is not None else "sh")}
+
+    def radiance(self, normal: np.ndarray, view_dir: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+        """Outgoing radiance (N, 3) at unit normals and unit directions to the viewer (N, 3).
+
+        The forward model of pipeline.core.forward (diffuse + lobe factor k_c times the filtered
+        lighting at r); ``albedo`` (N, 3) or (3,) replaces the BRDF's uniform albedo (textures).
+        """
+        out = np.asarray(albedo, float) / np.pi * irradiance_from_sh(self.diffuse_lighting, normal)
+        if self.lobe_order > 0:
+            r = forward.reflect_view(view_dir, normal)
+            r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-12)
+            filtered = bilinear_lookup(self.prefiltered, r) if self.prefiltered is not None \
+                else sh_evaluate(self.lobe, r)
+            k = forward.lobe_factor(self.brdf, forward.fresnel_grazing(normal, view_dir))
+            front = (np.einsum("ij,ij->i", normal, view_dir) > 0)[:, None]
+            out = out + np.where(front, k * filtered, 0.0)
+        return np.maximum(out, 0.0)
+
+
+# --------------------------------------------------------------------------------------- rendering
+
+def vertex_albedo(work: Path, mesh) -> np.ndarray | None:
+    """Per-vertex linear albedo (V, 3) from WORK/fit/albedo.ply when the fit wrote one."""
+    path = Path(work) / "fit" / "albedo.ply"
+    if not path.exists():
+        return None
+    tex = load_mesh(path)
+    colors = getattr(tex.visual, "vertex_colors", None)
+    if colors is None or len(tex.vertices) != len(mesh.vertices):
+        return None
+    colors = np.asarray(colors, float)[:, :3]
+    return colors / 255.0 if colors.max() > 1.0 else colors
+
+
+def render_view(view: View, mesh, intersector, lighting: Lighting, albedo, vertex_colors,
+                supersample: int = 1, chunk: int = 1 << 16) -> np.ndarray:
+    """Linear RGBA (H, W, 4): radiance averaged over an n x n grid of rays per pixel, alpha = hit fraction."""
+    import trimesh
+
+    w, h = view.camera.width, view.camera.height
+    centres = cam.pixel_centers(w, h)
+    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+    rgb = np.zeros((h * w, 3))
+    hits = np.zeros(h * w)
+    normals = np.asarray(mesh.vertex_normals, float)
+    for oy in offsets:
+        for ox in offsets:
+            uv = centres + np.array([ox, oy])
+            for start in range(0, len(uv), chunk):
+                origins, dirs = cam.pixel_rays(view.camera, view.R, view.t, uv[start:start + chunk])
+                tri, ray, loc = intersector.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+                if len(tri) == 0:
+                    continue
+                bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], loc)
+                n = np.einsum("ij,ijk->ik", bary, normals[mesh.faces[tri]])
+                n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+                v = -dirs[ray]
+                rho = albedo if vertex_colors is None else np.einsum("ij,ijk->ik", bary, vertex_colors[mesh.faces[tri]])
+                idx = start + ray
+                rgb[idx] += lighting.radiance(n, v, rho)
+                hits[idx] += 1
+    n_rays = supersample * supersample
+    return np.concatenate([rgb / n_rays, hits[:, None] / n_rays], axis=1).reshape(h, w, 4).astype(np.float32)
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] -> sRGB-encoded [0, 1] (IEC 61966-2-1 curve), clipped."""
+    x = np.clip(linear, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def preview_exposure(rgb: np.ndarray, mask: np.ndarray) -> float:
+    """Scale that maps the 99th percentile of the object's pixels to 0.9 (for sRGB previews)."""
+    values = rgb[mask].max(axis=-1) if mask.any() else rgb.reshape(-1, rgb.shape[-1]).max(axis=-1)
+    top = float(np.percentile(values, 99)) if values.size else 0.0
+    return 0.9 / top if top > 0 else 1.0
+
+
+def write_preview(path: Path, rgb: np.ndarray, exposure: float, alpha: np.ndarray | None = None) -> Path:
+    """8-bit sRGB PNG of linear ``rgb`` times ``exposure`` (composited over black when alpha is given)."""
+    img = srgb_encode(np.asarray(rgb, float)[..., :3] * exposure)
+    if alpha is not None:
+        img = np.concatenate([img, np.clip(alpha, 0, 1)[..., None]], axis=-1)
+    return write_image(path, img, dtype="uint8")
+
+
+def error_map_image(rel_error: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """RGB colour image of a relative-error map (0 .. ERROR_MAP_RANGE on matplotlib's 'magma'); black off-object."""
+    from matplotlib import colormaps
+
+    colours = colormaps["magma"](np.clip(rel_error / ERROR_MAP_RANGE, 0, 1))[..., :3]
+    return np.where(mask[..., None], colours, 0.0)
+
+
+def _interior(alpha: np.ndarray) -> np.ndarray:
+    """Pixels fully covered by the object whose 4-neighbours are covered too (no silhouette mixing)."""
+    full = alpha >= 0.999
+    inner = full.copy()
+    inner[1:] &= full[:-1]
+    inner[:-1] &= full[1:]
+    inner[:, 1:] &= full[:, :-1]
+    inner[:, :-1] &= full[:, 1:]
+    return inner
+
+
+def compare_views(rendered: dict[str, np.ndarray], photos: dict[str, np.ndarray], masks: dict[str, np.ndarray],
+                  fit_scale: bool) -> dict:
+    """Relative RMS errors ||s R - P|| / ||P|| per view and over all, on interior object pixels.
+
+    ``s`` is one least-squares scale over all views (s = sum R.P / sum R.R) when ``fit_scale``
+    (lighting and BRDF are recovered up to one global scale), else 1.
+    """
+    num = den = 0.0
+    for key, img in rendered.items():
+        m = masks[key]
+        num += float((img[..., :3][m] * photos[key][m]).sum())
+        den += float((img[..., :3][m] ** 2).sum())
+    scale = num / den if fit_scale and den > 0 else 1.0
+    per_view, total_err, total_ref = {}, 0.0, 0.0
+    for key, img in rendered.items():
+        m = masks[key]
+        diff = scale * img[..., :3][m] - photos[key][m]
+        err, ref = float((diff ** 2).sum()), float((photos[key][m] ** 2).sum())
+        per_view[key] = {"relative_error": float(np.sqrt(err / ref)) if ref > 0 else float("nan"),
+                         "pixels": int(m.sum())}
+        total_err += err
+        total_ref += ref
+    overall = float(np.sqrt(total_err / total_ref)) if total_ref > 0 else float("nan")
+    return {"scale": scale, "scale_fitted": bool(fit_scale), "relative_error": overall, "views": per_view,
+            "metric": "relative RMS error sqrt(sum |s R - P|^2 / sum |P|^2) over interior object pixels"}
+
+
+# --------------------------------------------------------------------------------------- stage API
+
+def _view_outputs(folder: Path, key: str, compare: bool) -> list[Path]:
+    stem = view_stem(key)
+    paths = [folder / f"{stem}.exr", folder / f"{stem}.png"]
+    if compare:
+        paths += [folder / f"{stem}_photo.png", folder / f"{stem}_error.png"]
+    return paths
+
+
+def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    paths = [lighting_path(work, settings), Path(work) / "fit" / "brdf.json", Path(work) / "fit" / "albedo.ply"]
+    try:
+        paths.append(mesh_path(capture))
+    except UserError:
+        pass
+    views = settings.views.strip()
+    if views.endswith(".json"):
+        paths.append(Path(views))
+    elif not views.startswith("orbit:"):
+        paths.append(capture_poses_path(capture, work))
+        if views == "heldout":
+            paths.append(Path(work) / "samples.npz")
+        if settings.compare:
+            try:
+                manifest = linear_manifest(work)
+                paths += [image_source(capture, work, v.key, manifest)
+                          for v in resolve_views(capture=capture, work=work, settings=settings) if v.has_photo]
+            except (UserError, KeyError):
+                pass
+    return paths
+
+
+def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    folder = out_folder(work, settings)
+    paths = [folder / "relight.json"]
+    try:
+        for view in resolve_views(capture=capture, work=work, settings=settings):
+            paths += _view_outputs(folder, view.key, settings.compare and view.has_photo)
+    except UserError:
+        pass  # views not resolvable yet (no poses): the stage is not fresh anyway
+    return paths
+
+
+def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    from trimesh.ray.ray_pyembree import RayMeshIntersector
+    from tqdm import tqdm
+
+    capture, work = Path(capture), Path(work)
+    brdf_path = work / "fit" / "brdf.json"
+    if not brdf_path.exists():
+        raise UserError(f"{brdf_path}: no fitted BRDF; run `sigrend fit` first")
+    light_path = lighting_path(work, settings)
+    if not light_path.exists():
+        raise UserError(f"{light_path}: lighting not found; give --env NEW.exr|lighting_sh.json or run `sigrend fit`")
+    brdf = read_brdf(brdf_path)
+    mesh = load_mesh(mesh_path(capture))
+    views = resolve_views(capture=capture, work=work, settings=settings, mesh=mesh)
+    lighting = Lighting.from_file(light_path, brdf, lobe_sh_order=settings.lobe_sh_order,
+                                  prefilter_height=settings.prefilter_height)
+    vertex_colors = vertex_albedo(work, mesh)
+    albedo = np.asarray(brdf["albedo"], float)
+    intersector = RayMeshIntersector(mesh)
+    folder = out_folder(work, settings)
+    folder.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    rendered, photos, masks, exposures = {}, {}, {}, {}
+    manifest = linear_manifest(work) if settings.compare else None
+    for view in tqdm(views, desc="relight", unit="view", leave=False):
+        rgba = render_view(view, mesh, intersector, lighting, albedo, vertex_colors, settings.supersample)
+        stem = view_stem(view.key)
+        written.append(write_image(folder / f"{stem}.exr", rgba, dtype="float"))
+        exposures[view.key] = preview_exposure(rgba[..., :3], rgba[..., 3] > 0.5)
+        written.append(write_preview(folder / f"{stem}.png", rgba[..., :3], exposures[view.key], rgba[..., 3]))
+        if settings.compare and view.has_photo:
+            photo, weight, _ = load_linear_image(capture, work, view.key, manifest)
+            photo = photo.astype(float)
+            if photo.shape[:2] != rgba.shape[:2]:
+                raise UserError(f"{view.key}: the photo is {photo.shape[1]}x{photo.shape[0]} but the render is "
+                                f"{rgba.shape[1]}x{rgba.shape[0]}; --compare needs the native size (drop --size)")
+            valid = weight > 0.999  # fully valid pixels only (linearize's masks, alpha)
+            rendered[view.key], photos[view.key] = rgba, photo
+            masks[view.key] = _interior(rgba[..., 3]) & valid & np.all(np.isfinite(photo), axis=-1)
+    summary = {"views": [v.key for v in views], "lighting": lighting.describe(), "brdf": brdf,
+               "size": settings.size or "native", "out_dir": str(folder)}
+    if settings.compare and rendered:
+        result = compare_views(rendered, photos, masks, uses_fitted_lighting(work, settings))
+        for key, img in rendered.items():
+            stem = view_stem(key)
+            exposure = exposures[key] / result["scale"] if result["scale"] > 0 else exposures[key]
+            written.append(write_preview(folder / f"{stem}_photo.png", photos[key], exposure))
+            m = masks[key]
+            mean_photo = float(photos[key][m].mean()) if m.any() else 1.0
+            rel = np.abs(result["scale"] * img[..., :3] - photos[key]).mean(axis=-1) / max(mean_photo, 1e-12)
+            written.append(write_image(folder / f"{stem}_error.png", error_map_image(rel, m), dtype="uint8"))
+            result["views"][key]["error_map"] = f"{stem}_error.png"
+        result["error_map_range"] = ERROR_MAP_RANGE
+        summary["compare"] = result
+    written.append(write_json(folder / "relight.json", summary))
+    return written
