@@ -115,3 +115,16 @@ def test_stage_table_lists_every_stage():
     table = stage_table(results).splitlines()
     assert len(table) == len(STAGES) + 2
     assert "skipped" in table[2] and table[-1].split()[-1] == f"{1.5 * len(STAGES):.1f}"
+
+
+def test_report_is_self_contained_and_says_what_is_missing(capture, tmp_path, capsys):
+    work = tmp_path / "work"
+    assert cli.main(["run", str(capture), "-w", str(work), "--to", "samples"]) == 0
+    assert f"report: {work / 'report.html'}" in capsys.readouterr().out
+    html = (work / "report.html").read_text()
+    # photos + masks, the camera plot and the coverage plot are embedded; nothing is linked
+    assert html.count('src="data:image/png;base64,') >= 2 * 8 + 2
+    assert 'src="http' not in html and 'href="' not in html
+    for title in ("Summary", "Photos and masks", "Cameras", "Sample coverage", "Fitted lighting", "Relit vs photo"):
+        assert f"<h2>{title}</h2>" in html
+    assert "the fit stage has not run" in html
