@@ -242,25 +242,35 @@ def linearize_job(job: dict) -> dict:
     if job["vignetting"]:
         gain = read_image(job["vignetting"])[:, :, :3]
     rgb_gains = np.asarray(job["rgb_gains"], dtype=np.float32)
-    num = den = None
+    single = len(job["sources"]) == 1
+    num = den = merged = None
     sources = []
     for src in job["sources"]:
         path = Path(src["path"])
         if src["kind"] == "raw":
-            rgb, valid, level, info, all_black = decode_raw(path, job["raw_wb"], job["saturation"])
+            rgb, valid, level, info, all_black = decode_raw(path, job["raw_wb"], job["saturation"], want_level=not single)
         else:
             rgb, valid, level, info, all_black = decode_other(path, src["kind"], inverse, job["saturation"])
-            rgb = rgb * rgb_gains
+            if np.any(rgb_gains != 1):
+                rgb = rgb * rgb_gains
         if all_black:
             raise UserError(f"{path}: the image is entirely black; check the lens cap and exposure, or remove it")
-        if not valid.any():
+        if not np.count_nonzero(valid):
             raise UserError(f"{path}: every pixel is saturated; shoot it darker (or bracket it) or remove it")
         if gain is not None:
             if gain.shape[:2] != rgb.shape[:2]:
                 raise UserError(f"{job['vignetting']}: vignetting map is {gain.shape[1]}x{gain.shape[0]} but {path.name} "
                                 f"is {rgb.shape[1]}x{rgb.shape[0]}; calibrate vignetting with this camera's images")
             rgb = rgb / gain
-        radiance = np.where(valid[:, :, None], rgb * np.float32(src["scale"]), 0.0).astype(np.float32)
+        sources.append({"file": path.name, "format": src["format"], "exposure_time_s": src["exposure_time_s"],
+                        "iso": src["iso"], "f_number": src["f_number"], "scale": src["scale"],
+                        "black_level": info.get("black_level"), "white_level": info.get("white_level"),
+                        "saturated_fraction": round(1.0 - np.count_nonzero(valid) / valid.size, 6)})
+        radiance = np.multiply(rgb, np.float32(src["scale"]), dtype=np.float32)
+        radiance[~valid] = 0.0
+        if single:  # no merge: the scaled image with its mask
+            merged = radiance
+            break
         # Weight: exposure (photon-noise SNR grows with it) x a roll-off below the clip level, > 0 where valid.
         rolloff = np.ones(valid.shape, np.float32)
         if level is not None:
@@ -269,16 +279,14 @@ def linearize_job(job: dict) -> dict:
         weight = np.where(valid, rolloff / np.float32(src["scale"]), 0.0).astype(np.float32)
         num = radiance * weight[:, :, None] if num is None else num + radiance * weight[:, :, None]
         den = weight if den is None else den + weight
-        sources.append({"file": path.name, "format": src["format"], "exposure_time_s": src["exposure_time_s"],
-                        "iso": src["iso"], "f_number": src["f_number"], "scale": src["scale"],
-                        "black_level": info.get("black_level"), "white_level": info.get("white_level"),
-                        "saturated_fraction": round(float(1.0 - valid.mean()), 6)})
-    valid = den > 0
-    merged = np.where(valid[:, :, None], num / np.where(valid, den, 1.0)[:, :, None], 0.0).astype(np.float32)
+    if not single:
+        valid = den > 0
+        merged = np.where(valid[:, :, None], num / np.where(valid, den, 1.0)[:, :, None], 0.0).astype(np.float32)
     key = job["key"]
+    valid_fraction = np.count_nonzero(valid) / valid.size
     entry = {"exr": f"{key}.exr", "mask": f"masks/{key}.png", "width": int(merged.shape[1]),
              "height": int(merged.shape[0]), "sources": sources, "white_balance": job["white_balance"],
-             "saturated_fraction": round(float(1.0 - valid.mean()), 6), "valid_fraction": round(float(valid.mean()), 6),
+             "saturated_fraction": round(1.0 - valid_fraction, 6), "valid_fraction": round(valid_fraction, 6),
              "vignetting": job["vignetting"], "response": job["response"] or "srgb"}
     header = json.dumps({"recipe": _digest(job), "entry": entry})
     write_image(job["mask"], valid.astype(np.float32), dtype="uint8")

@@ -111,11 +111,13 @@ def _flip_like_libraw(mask: np.ndarray, flip: int) -> np.ndarray:
     return {3: np.rot90(mask, 2), 5: np.rot90(mask, 1), 6: np.rot90(mask, -1)}.get(flip, mask)
 
 
-def decode_raw(path: Path, wb_multipliers: tuple[float, ...], saturation: float, *, camera_space: bool = False):
+def decode_raw(path: Path, wb_multipliers: tuple[float, ...], saturation: float, *, camera_space: bool = False,
+               want_level: bool = True):
     """LibRaw linear decode: (rgb float32 in [0, ~1], valid mask, level (H, W) in [0, 1], info dict).
 
     ``wb_multipliers``: 3 or 4 raw-channel gains (dcraw/LibRaw order R, G, B, G2).
     ``camera_space``: output the camera's raw RGB instead of sRGB (used to measure a gray card).
+    ``want_level``: False skips the level (returned as None; only bracket merging needs it).
     """
     rawpy = _rawpy()
     wb = list(wb_multipliers) + ([wb_multipliers[1]] if len(wb_multipliers) == 3 else [])
@@ -145,11 +147,11 @@ def decode_raw(path: Path, wb_multipliers: tuple[float, ...], saturation: float,
     clipped = _flip_like_libraw(clipped, flip)
     if clipped.shape != rgb16.shape[:2]:
         clipped = cv2.resize(clipped.astype(np.uint8), rgb16.shape[1::-1], interpolation=cv2.INTER_NEAREST) > 0
-    clipped |= np.any(rgb16 >= 65535, axis=2)  # channels clipped by white balance or the colour matrix
-    rgb = rgb16.astype(np.float32) / 65535.0
+    clipped |= rgb16.max(axis=2) == 65535  # channels clipped by white balance or the colour matrix
+    rgb = np.multiply(rgb16, np.float32(1 / 65535.0), dtype=np.float32)
     info = {"black_level": black, "white_level": white_level, "raw_max": raw_max}
     all_black = raw_max <= max(black)
-    return rgb, ~clipped, rgb.max(axis=2), info, all_black
+    return rgb, ~clipped, rgb.max(axis=2) if want_level else None, info, all_black
 
 
 def decode_other(path: Path, kind: str, inverse_response: np.ndarray, saturation: float):
