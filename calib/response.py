@@ -16,6 +16,7 @@ from typing import Literal
 import numpy as np
 
 from pipeline.errors import UserError
+from pipeline.io.camera_decode import probe
 from pipeline.io.images import read_image
 from pipeline.io.response_json import srgb_inverse_table, write_response_json
 from pipeline.settings import setting
@@ -43,8 +44,6 @@ class Settings:
 
 def load_bracket(folder: Path, times: list[float]) -> tuple[list[np.ndarray], np.ndarray, list[str]]:
     """8-bit (H, W, 3) uint8 images and exposure times (s) of the bracket in ``folder``."""
-    import OpenImageIO as oiio
-
     folder = Path(folder)
     if not folder.is_dir():
         raise UserError(f"{folder}: folder not found")
@@ -55,12 +54,9 @@ def load_bracket(folder: Path, times: list[float]) -> tuple[list[np.ndarray], np
         raise UserError(f"--times gives {len(times)} exposure times for {len(files)} photos in {folder}")
     images, found = [], []
     for i, path in enumerate(files):
-        img, meta = read_image(path, with_metadata=True)
-        inp = oiio.ImageInput.open(str(path))
-        bits = inp.spec().format.basetype
-        inp.close()
-        if bits not in (oiio.UINT8, oiio.INT8):
+        if probe(path).kind != "uint8":
             raise UserError(f"{path}: response calibration needs 8-bit photos; this file is not 8-bit")
+        img, meta = read_image(path, with_metadata=True)
         if img.shape[2] < 3:
             img = np.repeat(img[:, :, :1], 3, axis=2)
         if images and img.shape[:2] != images[0].shape[:2]:
