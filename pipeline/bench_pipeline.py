@@ -7,8 +7,8 @@ a sphere seen from many directions are generated with the frequency-space forwar
   * inverse lighting: relative error of each SH band l of the recovered lighting vs noise, for a
     Lambertian and a glossy sphere (R&H: from a Lambertian object only l <= 2 is recoverable,
     odd l > 1 not at all; a sharp lobe carries high bands);
-  * BRDF estimation: relative error of the recovered lobe width and specular weight vs noise,
-    under sharp lighting (small area lights) and soft lighting (a smooth order-2 sky) (R&H: the
+  * BRDF estimation (the fit's variable projection, pipeline.core.solve.fit_brdf): relative error
+    of the recovered lobe width and specular weight vs noise, under sharp lighting (small area lights) and soft lighting (a smooth order-2 sky) (R&H: the
     lobe width is recoverable only when the lighting has the frequencies the lobe passes).
 Writes stability_lighting.png, stability_brdf.png and stability.csv.
 
@@ -115,54 +115,25 @@ def stability_lighting(rng: np.random.Generator, order: int = 8, trials: int = 3
     return rows
 
 
-class LobeFit:
-    """Variable projection for a lobe width under known SH lighting: for a width w the model is
-    linear in (albedo_c, specular_c), solved by least squares; the width minimizes the residual
-    (grid over log w, then bounded golden-section refinement).  Precomputes what does not depend
-    on the data: the diffuse and per-band reflected projections of the lighting."""
+def brdf_data(normal, view, radiance, coeffs):
+    """pipeline.core.solve.BrdfData of samples under known SH lighting ``coeffs`` (all in one fold)."""
+    from pipeline.core import forward
+    from pipeline.core.solve import BrdfData
+    from pipeline.core.transfer import irradiance_from_sh
 
-    def __init__(self, normal, view, coeffs, model: str, widths: np.ndarray):
-        from pipeline.core import forward
-        from pipeline.core.transfer import irradiance_from_sh
-
-        self.forward = forward
-        self.order = int(round(np.sqrt(coeffs.shape[0]))) - 1
-        self.model, self.widths = model, np.asarray(widths, float)
-        self.diffuse = irradiance_from_sh(coeffs, normal) / np.pi                       # (N, 3)
-        self.bands = forward.band_projections(coeffs, forward.reflect_view(view, normal))  # (N, L+1, 3)
-        self.k_grazing = forward.fresnel_grazing(normal, view)
-
-    def _lobe(self, width: float) -> np.ndarray:
-        filt = self.forward.lobe_filter(self.model, width, self.order)
-        return np.einsum("l,nlc->nc", filt, self.bands)
-
-    def _solve(self, width: float, radiance: np.ndarray):
-        lobe = self._lobe(width)
-        albedo, spec, resid = np.zeros(3), np.zeros(3), 0.0
-        for c in range(3):
-            a = np.stack([self.diffuse[:, c], lobe[:, c]], axis=1)
-            x, *_ = np.linalg.lstsq(a, radiance[:, c], rcond=None)
-            albedo[c], spec[c] = x
-            resid += float(((a @ x - radiance[:, c]) ** 2).sum())
-        return resid, albedo, spec
-
-    def fit(self, radiance: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-        from scipy.optimize import minimize_scalar
-
-        resid = [self._solve(w, radiance)[0] for w in self.widths]
-        i = int(np.argmin(resid))
-        lo, hi = np.log(self.widths[max(i - 1, 0)]), np.log(self.widths[min(i + 1, len(self.widths) - 1)])
-        best = minimize_scalar(lambda lw: self._solve(np.exp(lw), radiance)[0], bounds=(lo, hi),
-                               method="bounded", options={"xatol": 1e-4})
-        width = float(np.exp(best.x))
-        _, albedo, spec = self._solve(width, radiance)
-        return width, albedo, spec
+    bands = forward.band_projections(coeffs, forward.reflect_view(view, normal))    # (N, L+1, 3)
+    n = len(normal)
+    return BrdfData(diffuse=irradiance_from_sh(coeffs, normal) / np.pi,
+                    bands=np.ascontiguousarray(bands.transpose(0, 2, 1)),          # (N, 3, L+1): @ A_l -> (N, 3)
+                    grazing=forward.fresnel_grazing(normal, view), radiance=radiance,
+                    weight=np.ones(n), fold=np.zeros(n, int))
 
 
 def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
     """BRDF estimation error (lobe width, specular weight) vs noise under sharp and soft lighting."""
     from pipeline.core import forward
     from pipeline.core.envmaps import make_envmap
+    from pipeline.core.solve import fit_brdf
 
     normal, view = sphere_light_field(600, 16, rng)
     order = 24
@@ -173,14 +144,16 @@ def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
     rows = []
     for name, coeffs in lightings.items():
         clean = forward.render_samples(coeffs, truth, normal, view)
-        solver = LobeFit(normal, view, coeffs, "phong", np.geomspace(5.0, 5000.0, 25))
+        data = brdf_data(normal, view, clean, coeffs)
+        l_max = data.bands.shape[2] - 1
         for noise in NOISE_LEVELS:
             w_err, s_err = [], []
             for _ in range(trials):
-                noisy = clean + noise * clean.mean() * rng.normal(size=clean.shape)
-                width, albedo, spec = solver.fit(noisy)
-                w_err.append(abs(width / exponent - 1.0))
-                s_err.append(float(np.abs(spec - specular).mean() / specular))
+                data.radiance = clean + noise * clean.mean() * rng.normal(size=clean.shape)
+                fit = fit_brdf(data, "phong", lambda model, width: forward.lobe_filter(model, width, l_max),
+                               noise_floor=1e-6)["brdf"]
+                w_err.append(abs(fit["exponent"] / exponent - 1.0))
+                s_err.append(float(np.abs(np.asarray(fit["specular"]) - specular).mean() / specular))
             rows.append({"problem": "BRDF estimation", "scene": name, "noise": noise,
                          "quantity": "lobe width (Phong exponent)", "relative_error": float(np.median(w_err))})
             rows.append({"problem": "BRDF estimation", "scene": name, "noise": noise,
