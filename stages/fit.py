@@ -1,0 +1,526 @@
+"""fit: lighting (SH) and BRDF from the light-field samples, in frequency space, with diagnostics.
+
+Usage: ``sigrend fit CAPTURE -w WORK [--lighting unknown|ENV.exr|lighting_sh.json]
+[--brdf auto|lambert|phong|microfacet|brdf.json|inline spec] [--order auto|N]``.
+
+Modes (the inverse-rendering table, DESIGN.md "The inverse problems"):
+  lighting       BRDF known (a file or inline spec), lighting unknown: regularized linear least
+                 squares for the SH coefficients with per-band conditioning labels.
+  brdf           lighting known (equirect EXR or lighting_sh.json), BRDF unknown: variable
+                 projection (nlopt over the lobe width, non-negative LS for albedo and specular).
+  factorization  both unknown: alternating lighting / BRDF fits from the Lambertian start; the
+                 scale ambiguity (one per colour channel) is fixed by capture.toml
+                 ``[fit] known_albedo = [r, g, b]`` or else by the default grey albedo 0.5.
+  check          both known: only residuals are reported.
+Model selection: the SH order (``--order auto``) and the BRDF model (``--brdf auto``) are chosen
+by leave-views-out validation (folds = image_id mod ``folds``) with the parsimony rule of
+pipeline.core.solve.parsimonious_choice.  Samples with visibility < ``min_visibility`` are left out.
+Outputs in WORK/fit/: lighting_sh.json, lighting.exr, brdf.json, report.json, lighting.png,
+spectrum.png, residuals.png.  Details: docs/fit.md.
+"""
+
+from __future__ import annotations
+
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core import forward, solve
+from pipeline.core.sh import band_of_index, num_coeffs, order_of, project_envmap, sh_evaluate
+from pipeline.core.transfer import lambert_filter
+from pipeline.errors import UserError
+from pipeline.io.brdf import MODEL_PARAMS, parse_brdf_spec, write_brdf
+from pipeline.io.lighting import read_lighting_sh, write_lighting_sh
+from pipeline.io.report import write_report
+from pipeline.io.samples import iter_sample_chunks, read_samples_meta
+from pipeline.settings import setting, settings_dict
+
+FIELDS = ("normal", "view_dir", "radiance", "image_id", "weight", "visibility")
+DEFAULT_ALBEDO = 0.5        # the factorization's scale convention when no hint is given
+
+
+@dataclass(frozen=True)
+class Settings:
+    lighting: str = setting("unknown", "'unknown', or the known lighting: an equirect EXR/HDR (DESIGN.md) or a lighting_sh.json")
+    brdf: str = setting("auto", "'auto' (choose among lambert/phong/microfacet), a model name (parameters fitted), "
+                                "or a known BRDF: brdf.json path or inline spec 'model:key=v,...'")
+    order: str = setting("auto", "SH order of the fitted lighting: 'auto' (leave-views-out validation) or an integer")
+    max_order: int = setting(8, "largest SH order tried by --order auto (and used while factorizing)")
+    env_order: int = setting(16, "SH order to which a known EXR lighting is projected")
+    lobe_min_cos: float = setting(0.7, "with a specular lobe in the model, use only samples with n.v >= this: the R&H "
+                                       "reflection-space lobe is accurate near normal view (docs/fit.md)")
+    min_visibility: float = setting(0.9, "leave out samples whose unblocked hemisphere fraction is below this")
+    folds: int = setting(4, "validation folds; views go to fold image_id mod folds")
+    parsimony: float = setting(0.05, "choose the smallest model whose validation RMSE is within this fraction of the best")
+    noise_floor: float = setting(0.005, "noise assumed at least this fraction of the RMS radiance (calibration, model error)")
+    min_snr: float = setting(20.0, "a band is recoverable when its SNR (docs/fit.md) reaches this")
+    band_prior: float = setting(0.3, "Tikhonov prior scale of ill-conditioned bands, as a fraction of the DC lighting")
+    iterations: int = setting(6, "alternations lighting <-> BRDF in the factorization")
+    max_samples: int = setting(400000, "samples held in memory for BRDF and factorization fits (random subset)")
+    chunk: int = setting(262144, "samples per chunk when streaming the normal equations")
+    env_height: int = setting(64, "height of fit/lighting.exr (width = 2 x height)")
+    seed: int = setting(0, "random seed of the sample subset")
+
+    def validate(self) -> None:
+        if self.order != "auto":
+            try:
+                if int(self.order) < 0:
+                    raise ValueError
+            except ValueError:
+                raise UserError(f"--order must be 'auto' or a non-negative integer, got {self.order!r}") from None
+        if self.max_order < 0 or self.env_order < 0:
+            raise UserError("--max-order and --env-order must be >= 0")
+        if self.folds < 2:
+            raise UserError(f"--folds must be >= 2 (views are held out for validation), got {self.folds}")
+        if not 0.0 <= self.min_visibility <= 1.0:
+            raise UserError(f"--min-visibility must be in [0, 1], got {self.min_visibility}")
+        if self.max_samples < 100 or self.chunk < 100 or self.env_height < 4 or self.iterations < 1:
+            raise UserError("--max-samples, --chunk must be >= 100, --env-height >= 4, --iterations >= 1")
+
+
+def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    paths = [Path(work) / "samples.npz"]
+    for spec in (settings.lighting, settings.brdf):
+        if Path(spec).is_file():
+            paths.append(Path(spec))
+    if (Path(capture) / "capture.toml").exists():
+        paths.append(Path(capture) / "capture.toml")
+    return paths
+
+
+def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    out = Path(work) / "fit"
+    return [out / n for n in ("lighting_sh.json", "lighting.exr", "brdf.json", "report.json",
+                              "lighting.png", "spectrum.png", "residuals.png")]
+
+
+# ---------------------------------------------------------------------------------------------
+# inputs
+
+
+def known_albedo_hint(capture: Path) -> list[float] | None:
+    """capture.toml ``[fit] known_albedo = [r, g, b]`` (or one number), else None."""
+    path = Path(capture) / "capture.toml"
+    if not path.exists():
+        return None
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise UserError(f"{path}: not valid TOML ({exc})") from None
+    value = doc.get("fit", {}).get("known_albedo")
+    if value is None:
+        return None
+    arr = np.atleast_1d(np.asarray(value, dtype=float))
+    arr = np.repeat(arr, 3) if arr.size == 1 else arr
+    if arr.shape != (3,) or np.any(arr <= 0) or np.any(arr > 1):
+        raise UserError(f"{path}: [fit] known_albedo must be one or three numbers in (0, 1], got {value!r}")
+    return arr.tolist()
+
+
+def load_known_lighting(spec: str, env_order: int) -> np.ndarray:
+    """Known lighting as SH ((L+1)^2, 3): a lighting_sh.json, or an equirect map projected to env_order."""
+    path = Path(spec)
+    if not path.is_file():
+        raise UserError(f"--lighting {spec!r}: no such file; give 'unknown', an equirect EXR/HDR or a lighting_sh.json")
+    if path.suffix.lower() == ".json":
+        return read_lighting_sh(path)
+    from pipeline.io.images import read_envmap
+
+    return project_envmap(np.asarray(read_envmap(path), dtype=float), env_order)
+
+
+def parse_brdf_setting(spec: str) -> tuple[str | None, dict | None]:
+    """--brdf -> (model to fit or None for auto, known BRDF dict or None)."""
+    if spec == "auto":
+        return None, None
+    if spec in MODEL_PARAMS:
+        return spec, None
+    return None, parse_brdf_spec(spec)
+
+
+def _filter_rows(chunk: dict, settings: Settings, min_cos: float) -> np.ndarray:
+    ok = (chunk["weight"] > 0) & (chunk["visibility"] >= settings.min_visibility)
+    if min_cos > 0:
+        ok &= np.einsum("ij,ij->i", chunk["normal"], chunk["view_dir"]) >= min_cos
+    return ok & np.all(np.isfinite(chunk["radiance"]), axis=1)
+
+
+def iter_valid_chunks(path: Path, settings: Settings, min_cos: float = 0.0):
+    """Chunks of the samples (float64), leaving out self-shadowed, zero-weight and non-finite rows
+    (and views with n.v < min_cos)."""
+    for chunk in iter_sample_chunks(path, settings.chunk, FIELDS):
+        ok = _filter_rows(chunk, settings, min_cos)
+        if ok.any():
+            yield {k: (v[ok].astype(np.float64) if v.dtype.kind == "f" else v[ok]) for k, v in chunk.items()}
+
+
+def load_subset(path: Path, settings: Settings, total: int, min_cos: float) -> dict:
+    """At most ``max_samples`` valid samples in memory (uniform random subset)."""
+    rng = np.random.default_rng(settings.seed)
+    keep_fraction = min(1.0, settings.max_samples / max(total, 1))
+    parts = []
+    for chunk in iter_valid_chunks(path, settings, min_cos):
+        if keep_fraction < 1.0:
+            sel = rng.random(len(chunk["weight"])) < keep_fraction
+            chunk = {k: v[sel] for k, v in chunk.items()}
+        parts.append(chunk)
+    if not parts:
+        return {}
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def fold_of(image_id: np.ndarray, folds: int) -> np.ndarray:
+    return (np.asarray(image_id) % folds).astype(np.int64)
+
+
+# ---------------------------------------------------------------------------------------------
+# coverage: how many coefficients the data can carry
+
+
+def occupied_cells(dirs: np.ndarray, cells_per_axis: int) -> np.ndarray:
+    """Indices of occupied equal-area cells (cos theta x phi grid) hit by unit directions (N, 3)."""
+    z = np.clip(dirs[:, 2], -1.0, 1.0)
+    iz = np.minimum(((z + 1.0) / 2.0 * cells_per_axis).astype(np.int64), cells_per_axis - 1)
+    phi = np.mod(np.arctan2(dirs[:, 1], dirs[:, 0]), 2 * np.pi)
+    ip = np.minimum((phi / (2 * np.pi) * 2 * cells_per_axis).astype(np.int64), 2 * cells_per_axis - 1)
+    return np.unique(iz * 2 * cells_per_axis + ip)
+
+
+def carried_coefficients(normal_cells: set, reflect_cells: set, with_lobe: bool) -> int:
+    return len(normal_cells | reflect_cells) if with_lobe else len(normal_cells)
+
+
+CELLS_PER_AXIS = 24   # 24 x 48 = 1152 equal-area cells (~0.011 sr each)
+
+
+# ---------------------------------------------------------------------------------------------
+# fitting
+
+
+def accumulate(path: Path, settings: Settings, brdf: dict, order: int) -> tuple[solve.NormalEquations, dict]:
+    """Stream the samples once into per-fold normal equations for a fixed BRDF; also coverage."""
+    with_lobe = brdf["model"] in forward.LOBE_MODELS
+    eqs = solve.NormalEquations(order, settings.folds, shared=not with_lobe)
+    ncell, rcell = set(), set()
+    for chunk in iter_valid_chunks(path, settings, settings.lobe_min_cos if with_lobe else 0.0):
+        terms = forward.design_terms(chunk["normal"], chunk["view_dir"], order, with_lobe)
+        designs = terms.diffuse[None] if not with_lobe else forward.channel_designs(terms, brdf, order)
+        eqs.add(designs, chunk["radiance"], chunk["weight"], fold_of(chunk["image_id"], settings.folds))
+        ncell.update(occupied_cells(chunk["normal"], CELLS_PER_AXIS).tolist())
+        if with_lobe:
+            rcell.update(occupied_cells(forward.reflect_view(chunk["view_dir"], chunk["normal"]), CELLS_PER_AXIS).tolist())
+    return eqs, {"normal_cells": len(ncell), "reflect_cells": len(rcell),
+                 "carried": carried_coefficients(ncell, rcell, with_lobe)}
+
+
+def equations_from_arrays(data: dict, settings: Settings, brdf: dict, order: int) -> solve.NormalEquations:
+    with_lobe = brdf["model"] in forward.LOBE_MODELS
+    eqs = solve.NormalEquations(order, settings.folds, shared=not with_lobe)
+    n = len(data["weight"])
+    for s in range(0, n, settings.chunk):
+        sl = slice(s, s + settings.chunk)
+        terms = forward.design_terms(data["normal"][sl], data["view_dir"][sl], order, with_lobe)
+        designs = terms.diffuse[None] if not with_lobe else forward.channel_designs(terms, brdf, order)
+        eqs.add(designs, data["radiance"][sl], data["weight"][sl], fold_of(data["image_id"][sl], settings.folds))
+    return eqs
+
+
+def choose_order(eqs: solve.NormalEquations, brdf: dict, settings: Settings, max_carried: int,
+                 explicit: int | None) -> tuple[solve.LightingFit, list[dict], int]:
+    """Fit every candidate order (or the given one) and choose by validation + parsimony."""
+    scale = np.asarray(brdf["albedo"], float) if eqs.shared else None
+    kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior)
+    if explicit is not None:
+        orders = [explicit]
+    else:
+        orders = [o for o in range(eqs.order + 1) if num_coeffs(o) <= max_carried] or [0]
+    cands = solve.cross_validate_orders(eqs, orders, scale, **kw)
+    pick = solve.parsimonious_choice(cands, settings.parsimony) if explicit is None else 0
+    return cands[pick]["fit"], cands, cands[pick]["order"]
+
+
+def brdf_data(data: dict, coeffs: np.ndarray, fold_count: int) -> solve.BrdfData:
+    """Per-sample quantities for BRDF fits under the lighting ``coeffs`` (pipeline.core.solve.BrdfData)."""
+    order = order_of(coeffs.shape[0])
+    a_hat = lambert_filter(order)[band_of_index(order)] / np.pi
+    diffuse = sh_evaluate(coeffs * a_hat[:, None], data["normal"])
+    refl = forward.reflect_view(data["view_dir"], data["normal"])
+    bands = np.concatenate([forward.band_projections(coeffs, refl[s:s + 65536])
+                            for s in range(0, len(refl), 65536)]) if len(refl) else np.zeros((0, order + 1, 3))
+    return solve.BrdfData(diffuse, bands, forward.fresnel_grazing(data["normal"], data["view_dir"]),
+                          data["radiance"], data["weight"], fold_of(data["image_id"], fold_count))
+
+
+def _filter_fn(model: str, width: float, order: int):
+    return forward.lobe_filter(model, width, order)
+
+
+def fit_brdf_models(bd: solve.BrdfData, models: list[str], settings: Settings, order: int) -> list[dict]:
+    """Every candidate BRDF model: leave-one-fold-out validation, then the fit on all data."""
+    fn = lambda m, w: _filter_fn(m, w, order)  # noqa: E731
+    out = []
+    for model in models:
+        t0 = time.perf_counter()
+        val_se, val_w = 0.0, 0.0
+        for f in np.unique(bd.fold):
+            train, test = bd.fold != f, bd.fold == f
+            if not train.any():
+                continue
+            fitted = solve.fit_brdf(bd.subset(train), model, fn, noise_floor=settings.noise_floor)
+            wv = float(bd.weight[test].sum())
+            val_se += solve.brdf_mse(bd.subset(test), fitted["brdf"], fn) * wv
+            val_w += wv
+        full = solve.fit_brdf(bd, model, fn, noise_floor=settings.noise_floor)
+        out.append({"name": model, "params": 3 + (4 if model != "lambert" else 0),
+                    "train_rmse": float(np.sqrt(full["mse"])),
+                    "validation_rmse": float(np.sqrt(val_se / val_w)) if val_w else float("nan"),
+                    "seconds": time.perf_counter() - t0, "fit": full})
+    return out
+
+
+def lighting_step(data: dict, brdf: dict, order: int, settings: Settings, labels=None) -> solve.LightingFit:
+    eqs = equations_from_arrays(data, settings, brdf, order)
+    scale = np.asarray(brdf["albedo"], float) if eqs.shared else None
+    g, h, btb, w = eqs.channel_system(slice(None), scale)
+    return solve.solve_lighting(g, h, btb, w, int(eqs.count.sum()), order, noise_floor=settings.noise_floor,
+                                min_snr=settings.min_snr, band_prior=settings.band_prior, labels=labels)
+
+
+def factorize(data: dict, model: str, order: int, albedo0: np.ndarray, settings: Settings) -> tuple[np.ndarray, dict]:
+    """Alternate lighting <- BRDF and BRDF <- lighting from the Lambertian start (albedo0)."""
+    fn = lambda m, w: _filter_fn(m, w, order)  # noqa: E731
+    brdf = {"model": "lambert", "albedo": albedo0.tolist()}
+    coeffs = lighting_step(data, brdf, order, settings).coeffs
+    for _ in range(settings.iterations if model != "lambert" else 1):
+        bd = brdf_data(data, coeffs, settings.folds)
+        fitted = solve.fit_brdf(bd, model, fn, noise_floor=settings.noise_floor)
+        brdf = fitted["brdf"]
+        if np.max(brdf["albedo"]) <= 0:
+            break
+        coeffs = lighting_step(data, brdf, order, settings).coeffs
+    return coeffs, brdf
+
+
+def apply_scale_convention(coeffs: np.ndarray, brdf: dict, target: np.ndarray) -> tuple[np.ndarray, dict, np.ndarray]:
+    """Rescale so that albedo = target per channel: L_c * s_c, (albedo, specular)_c / s_c."""
+    albedo = np.asarray(brdf["albedo"], float)
+    s = np.where(albedo > 0, albedo / target, 1.0)
+    out = dict(brdf)
+    out["albedo"] = (albedo / s).tolist()
+    if "specular" in brdf:
+        out["specular"] = (np.asarray(brdf["specular"], float) / s).tolist()
+    return coeffs * s[None, :], out, s
+
+
+# ---------------------------------------------------------------------------------------------
+# outputs
+
+
+def residuals_per_view(path: Path, settings: Settings, coeffs: np.ndarray, brdf: dict, keys: list[str]) -> list[dict]:
+    """Weighted RMS and relative RMS residual per image (a second pass over the samples)."""
+    m = len(keys)
+    se, bb, w, cnt = np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m, dtype=np.int64)
+    for chunk in iter_valid_chunks(path, settings):
+        pred = forward.render_samples(coeffs, brdf, chunk["normal"], chunk["view_dir"])
+        r2 = ((chunk["radiance"] - pred) ** 2).sum(axis=1) * chunk["weight"]
+        ids = chunk["image_id"]
+        se += np.bincount(ids, r2, m)
+        bb += np.bincount(ids, (chunk["radiance"] ** 2).sum(axis=1) * chunk["weight"], m)
+        w += np.bincount(ids, chunk["weight"], m)
+        cnt += np.bincount(ids, minlength=m)
+    return [{"image": keys[i], "samples": int(cnt[i]), "fold": int(i % settings.folds),
+             "rmse": float(np.sqrt(se[i] / (3 * w[i]))) if w[i] else None,
+             "relative_rmse": float(np.sqrt(se[i] / bb[i])) if bb[i] else None} for i in range(m)]
+
+
+def write_plots(out: Path, env: np.ndarray, bands: list[dict], views: list[dict]) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pipeline.workdir import atomic_path
+
+    written = []
+    colours = {"recoverable": "tab:green", "ill-conditioned": "tab:orange", "ill-posed": "tab:red"}
+    fig, ax = plt.subplots(figsize=(8, 4))
+    shown = np.clip(env / max(np.percentile(env, 99), 1e-12), 0, 1) ** (1 / 2.2)
+    ax.imshow(shown, extent=(0, 360, 180, 0))
+    ax.set_xlabel("azimuth from +X towards +Y (deg)")
+    ax.set_ylabel("polar angle from +Z (deg)")
+    ax.set_title("fitted lighting (equirect, gamma 2.2, clipped at the 99th percentile)")
+    written.append(_save(fig, out / "lighting.png", atomic_path, plt))
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ls = [b["l"] for b in bands]
+    ax.bar(ls, [max(b["energy"], 1e-30) for b in bands], color=[colours[b["label"]] for b in bands])
+    ax.set_yscale("log")
+    ax.set_xlabel("band l")
+    ax.set_ylabel("energy sum_m L_lm^2 (RGB)")
+    for lab, col in colours.items():
+        ax.bar([], [], color=col, label=lab)
+    ax.legend()
+    ax.set_title("fitted lighting spectrum and what the data determine")
+    written.append(_save(fig, out / "spectrum.png", atomic_path, plt))
+    fig, ax = plt.subplots(figsize=(max(6, 0.25 * len(views)), 4))
+    ax.bar(range(len(views)), [v["relative_rmse"] or 0 for v in views],
+           color=["tab:blue" if v["fold"] else "tab:purple" for v in views])
+    ax.set_xlabel("view (image id)")
+    ax.set_ylabel("relative RMS residual")
+    ax.set_title("residual per view")
+    written.append(_save(fig, out / "residuals.png", atomic_path, plt))
+    return written
+
+
+def _save(fig, path: Path, atomic_path, plt) -> Path:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def _lighting_candidates_json(cands: list[dict]) -> list[dict]:
+    return [{"name": f"order {c['order']}", **{k: v for k, v in c.items() if k != "fit"}} for c in cands]
+
+
+def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    timings: dict[str, float] = {}
+    t_start = time.perf_counter()
+    capture, work = Path(capture), Path(work)
+    samples_path = work / "samples.npz"
+    meta = read_samples_meta(samples_path)
+    keys = meta["image_keys"]
+    explicit_order = None if settings.order == "auto" else int(settings.order)
+    fit_model, known_brdf = parse_brdf_setting(settings.brdf)
+    known_lighting = None if settings.lighting == "unknown" else load_known_lighting(settings.lighting, settings.env_order)
+    hint = known_albedo_hint(capture)
+    total = int(meta.get("count", 0))
+    valid = sum(len(c["weight"]) for c in iter_sample_chunks(samples_path, settings.chunk, ("weight",))) if not total else total
+
+    report: dict = {"settings": settings_dict(settings), "samples": {"total": valid}}
+    candidates: list[dict] = []
+    bands: list[dict] = []
+    noise = None
+    if known_brdf is not None and known_lighting is None:
+        mode = "lighting"
+        brdf = known_brdf
+        max_order = explicit_order if explicit_order is not None else settings.max_order
+        t0 = time.perf_counter()
+        eqs, cover = accumulate(samples_path, settings, brdf, max_order)
+        timings["normal_equations"] = time.perf_counter() - t0
+        _check_counts(eqs, cover, explicit_order, samples_path)
+        t0 = time.perf_counter()
+        fit, cands, order = choose_order(eqs, brdf, settings, cover["carried"], explicit_order)
+        timings["solve"] = time.perf_counter() - t0
+        coeffs, bands, noise = fit.coeffs, fit.bands, fit.noise_sigma
+        candidates = _lighting_candidates_json(cands)
+        report["samples"].update(used=int(eqs.count.sum()), coverage=cover)
+    else:
+        with_lobe = (fit_model or "auto") != "lambert" or (known_brdf or {}).get("model") in forward.LOBE_MODELS
+        data = load_subset(samples_path, settings, valid, settings.lobe_min_cos if with_lobe else 0.0)
+        n_used = len(data.get("weight", []))
+        if n_used == 0:
+            raise UserError(f"{samples_path}: no samples left after leaving out zero-weight, non-finite and "
+                            f"self-shadowed (visibility < {settings.min_visibility}) ones; lower --min-visibility "
+                            "or check the samples stage's drop counts")
+        report["samples"].update(used=n_used)
+        models = [fit_model] if fit_model else ["lambert", "phong", "microfacet"]
+        if known_lighting is not None and known_brdf is not None:
+            mode = "check"
+            coeffs, brdf = known_lighting, known_brdf
+        elif known_lighting is not None:
+            mode = "brdf"
+            coeffs = known_lighting
+            t0 = time.perf_counter()
+            bd = brdf_data(data, coeffs, settings.folds)
+            cands = fit_brdf_models(bd, models, settings, order_of(coeffs.shape[0]))
+            pick = solve.parsimonious_choice(cands, settings.parsimony)
+            brdf = cands[pick]["fit"]["brdf"]
+            report["brdf_width"] = {k: v for k, v in cands[pick]["fit"].items() if k not in ("brdf",)}
+            candidates = [{k: v for k, v in c.items() if k != "fit"} for c in cands]
+            timings["brdf_fit"] = time.perf_counter() - t0
+        else:
+            mode = "factorization"
+            work_order = explicit_order if explicit_order is not None else settings.max_order
+            target = np.asarray(hint if hint is not None else [DEFAULT_ALBEDO] * 3, float)
+            _check_subset_counts(data, work_order, samples_path, explicit_order)
+            t0 = time.perf_counter()
+            cands = []
+            for model in models:
+                tm = time.perf_counter()
+                train = {k: v[data["image_id"] % settings.folds != 0] for k, v in data.items()}
+                held = {k: v[data["image_id"] % settings.folds == 0] for k, v in data.items()}
+                if len(train["weight"]) == 0 or len(held["weight"]) == 0:
+                    train = held = data
+                c_t, b_t = factorize(train, model, work_order, target, settings)
+                pred = forward.render_samples(c_t, b_t, held["normal"], held["view_dir"])
+                val = float(np.sqrt(((held["radiance"] - pred) ** 2 * held["weight"][:, None]).sum()
+                                    / (3 * held["weight"].sum())))
+                c_a, b_a = factorize(data, model, work_order, target, settings)
+                pred = forward.render_samples(c_a, b_a, data["normal"], data["view_dir"])
+                tr = float(np.sqrt(((data["radiance"] - pred) ** 2 * data["weight"][:, None]).sum()
+                                   / (3 * data["weight"].sum())))
+                n_lobe = 4 if model != "lambert" else 0
+                cands.append({"name": model, "params": 3 * num_coeffs(work_order) + 3 + n_lobe, "train_rmse": tr,
+                              "validation_rmse": val, "seconds": time.perf_counter() - tm,
+                              "fit": (c_a, b_a)})
+            pick = solve.parsimonious_choice(cands, settings.parsimony)
+            coeffs, brdf = cands[pick]["fit"]
+            coeffs, brdf, scale = apply_scale_convention(coeffs, brdf, target)
+            report["scale_convention"] = {
+                "source": "capture.toml [fit] known_albedo" if hint is not None else f"default grey albedo {DEFAULT_ALBEDO}",
+                "albedo": target.tolist(), "applied_channel_scale": scale.tolist(),
+                "note": "lighting and BRDF are determined up to one scale per colour channel; "
+                        "the lighting carries the inverse of the scale applied to the BRDF"}
+            candidates = [{k: v for k, v in c.items() if k != "fit"} for c in cands]
+            timings["factorization"] = time.perf_counter() - t0
+        if mode in ("factorization",):
+            # final lighting with labels and order choice for the chosen BRDF
+            t0 = time.perf_counter()
+            max_order = explicit_order if explicit_order is not None else settings.max_order
+            eqs = equations_from_arrays(data, settings, brdf, max_order)
+            fit, cands_o, order = choose_order(eqs, brdf, settings, 10 ** 9, explicit_order)
+            coeffs, bands, noise = fit.coeffs, fit.bands, fit.noise_sigma
+            candidates += _lighting_candidates_json(cands_o)
+            timings["order_selection"] = time.perf_counter() - t0
+    order = order_of(coeffs.shape[0])
+    report.update(mode=mode, order=order, brdf_model=brdf["model"], brdf=brdf, bands=bands,
+                  noise_sigma=noise, candidates=candidates,
+                  labels={b["l"]: b["label"] for b in bands})
+
+    out = work / "fit"
+    t0 = time.perf_counter()
+    from pipeline.core.sh import envmap_from_sh
+    from pipeline.io.images import write_image
+
+    env = np.maximum(envmap_from_sh(coeffs, settings.env_height), 0.0)
+    views = residuals_per_view(samples_path, settings, coeffs, brdf, keys)
+    report["residuals_per_view"] = views
+    written = [write_lighting_sh(out / "lighting_sh.json", coeffs, source=f"sigrend fit ({mode})"),
+               write_image(out / "lighting.exr", env.astype(np.float32), dtype="float"),
+               write_brdf(out / "brdf.json", brdf)]
+    written += write_plots(out, env, bands, views)
+    timings["outputs"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+    report["timings"] = timings
+    written.insert(3, write_report(out / "report.json", report))
+    return written
+
+
+def _check_counts(eqs: solve.NormalEquations, cover: dict, explicit: int | None, path: Path) -> None:
+    n = int(eqs.count.sum())
+    if n == 0:
+        raise UserError(f"{path}: no samples left after leaving out zero-weight, non-finite and self-shadowed ones; "
+                        "lower --min-visibility or check the samples stage's drop counts")
+    if explicit is not None and num_coeffs(explicit) > min(cover["carried"], n):
+        raise UserError(f"--order {explicit} needs {num_coeffs(explicit)} SH coefficients but the samples cover only "
+                        f"{min(cover['carried'], n)} distinct directions; use a lower --order or --order auto")
+
+
+def _check_subset_counts(data: dict, order: int, path: Path, explicit: int | None) -> None:
+    cells = len(occupied_cells(data["normal"], CELLS_PER_AXIS))
+    if explicit is not None and num_coeffs(order) > min(cells, len(data["weight"])):
+        raise UserError(f"--order {order} needs {num_coeffs(order)} SH coefficients but the samples cover only "
+                        f"{cells} distinct normal directions; use a lower --order or --order auto")

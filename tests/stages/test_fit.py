@@ -1,0 +1,95 @@
+"""fit stage end to end on sphere samples whose radiance is integrated numerically over an
+environment map (tests/stages/fit_scenes.py), not produced by the SH forward model."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pipeline.core.sh import band_energy, num_coeffs, project_envmap
+from pipeline.io.brdf import read_brdf, write_brdf
+from pipeline.io.lighting import read_lighting_sh, write_lighting_sh
+from pipeline.io.report import read_report
+from pipeline.runner import run_stage
+from pipeline.settings import make_settings
+from stages import fit
+
+sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
+from fit_scenes import integrate_radiance, sharp_env, smooth_env, sphere_views, write_scene  # noqa: E402
+
+ALBEDO = [0.6, 0.5, 0.4]
+GLOSSY = {"model": "microfacet", "albedo": [0.3, 0.25, 0.2], "specular": [0.9, 0.9, 0.9], "roughness": 0.15}
+
+
+def band_errors(fitted, truth, bands):
+    return [np.linalg.norm(fitted[l * l:(l + 1) ** 2] - truth[l * l:(l + 1) ** 2])
+            / np.linalg.norm(truth[l * l:(l + 1) ** 2]) for l in bands]
+
+
+@pytest.fixture(scope="session")
+def lambert_scene(tmp_path_factory):
+    rng = np.random.default_rng(11)
+    env = sharp_env(48, sun_width=0.05)
+    n, v, ids = sphere_views(rng, 16, 300)
+    b = integrate_radiance(env, {"model": "lambert", "albedo": ALBEDO}, n, v)
+    work = tmp_path_factory.mktemp("lambert") / "work"
+    write_scene(work, n, v, ids, b)
+    capture = work.parent / "capture"
+    capture.mkdir()
+    return capture, work, env
+
+
+@pytest.fixture(scope="session")
+def glossy_scene(tmp_path_factory):
+    rng = np.random.default_rng(12)
+    env = sharp_env(48, sun_width=0.02)
+    n, v, ids = sphere_views(rng, 16, 250, min_cos=0.7)
+    b = integrate_radiance(env, GLOSSY, n, v)
+    work = tmp_path_factory.mktemp("glossy") / "work"
+    write_scene(work, n, v, ids, b)
+    capture = work.parent / "capture"
+    capture.mkdir()
+    return capture, work, env
+
+
+def run_fit(capture, work, **values):
+    settings = make_settings(fit.Settings, **values)
+    return run_stage("fit", capture=capture, work=work, settings=settings, force=True)
+
+
+def test_lambertian_unknown_lighting_known_albedo(lambert_scene, tmp_path):
+    capture, work, env = lambert_scene
+    brdf_file = write_brdf(tmp_path / "brdf.json", {"model": "lambert", "albedo": ALBEDO})
+    result = run_fit(capture, work, brdf=str(brdf_file), order="8")
+    assert {p.name for p in result.outputs} >= {"lighting_sh.json", "lighting.exr", "brdf.json", "report.json",
+                                                 "spectrum.png", "lighting.png", "residuals.png"}
+    coeffs = read_lighting_sh(work / "fit" / "lighting_sh.json")
+    truth = project_envmap(env, 8)
+    # bands 0-2: 3% (issue 6); the data are integrated over a 48x96 map (midpoint rule) whose
+    # bands > 8 alias into the fit, which the measured errors (< 1%) leave room for
+    assert max(band_errors(coeffs, truth, (0, 1, 2))) < 0.03
+    report = read_report(work / "fit" / "report.json")
+    labels = [b["label"] for b in report["bands"]]
+    assert labels[:3] == ["recoverable"] * 3
+    assert all(labels[l] == "ill-posed" for l in (3, 5, 7))            # Â_l = 0 exactly
+    assert all(labels[l] == "ill-conditioned" for l in (4, 6, 8))
+    energy, true_energy = band_energy(coeffs), band_energy(truth)
+    assert np.all(energy[[3, 5, 7]] == 0)
+    assert np.all(energy[[4, 6, 8]] <= true_energy[[4, 6, 8]])         # regularized, not invented
+    assert report["mode"] == "lighting" and len(report["residuals_per_view"]) == 16
+
+
+def test_order_auto_lists_candidates(lambert_scene, tmp_path):
+    capture, work, env = lambert_scene
+    brdf_file = write_brdf(tmp_path / "brdf.json", {"model": "lambert", "albedo": ALBEDO})
+    run_fit(capture, work, brdf=str(brdf_file))
+    report = read_report(work / "fit" / "report.json")
+    names = [c["name"] for c in report["candidates"]]
+    assert names == [f"order {o}" for o in range(9)]
+    for c in report["candidates"]:
+        assert c["params"] > 0 and c["validation_rmse"] >= 0 and c["train_rmse"] >= 0
+    assert max(band_errors(read_lighting_sh(work / "fit" / "lighting_sh.json"), project_envmap(env, 2), (0, 1, 2))) < 0.03
