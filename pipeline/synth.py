@@ -36,7 +36,7 @@ from pipeline.settings import setting
 FORMATS = ("exr", "tiff", "jpeg", "dng")
 BUILTIN_MESHES = ("sphere", "icosphere")
 BOARD_DICTIONARY = "DICT_5X5_100"
-BOARD_SQUARES = (7, 5)
+BOARD_SQUARES = (8, 6)
 SH_ORDER = 20
 
 
@@ -60,7 +60,7 @@ class SynthSettings:
     mesh_size: float = setting(0.2, "size of the mesh's longest bounding-box side, metres")
     mesh_up: Literal["y", "z"] = setting("y", "up axis of the mesh file (scans are usually +Y up)")
     layout: Literal["sphere", "ring"] = setting("sphere", "views spread over the upper hemisphere or on a ring")
-    elevation: tuple[float, float] = setting((15.0, 60.0), "min and max camera elevation, degrees (ring: the mean)")
+    elevation: tuple[float, float] = setting((20.0, 65.0), "min and max camera elevation, degrees (ring: the mean)")
     distance: float = setting(3.0, "camera distance in units of the framed radius")
     shadows: bool = setting(True, "shadow rays (self-shadowing, board occludes the lower hemisphere)")
     cell_height: int = setting(16, "rows of the coarse direction grid for the dim part of the env (render.py)")
@@ -152,7 +152,7 @@ def load_env(spec: str) -> np.ndarray:
 # -- board ----------------------------------------------------------------------------------------
 
 def make_board(mesh_size: float, texels_per_square: int = 80):
-    """ChArUco board (7 x 5 squares of 0.35 mesh_size) centred under the object on z = 0.
+    """ChArUco board (8 x 6 squares of 0.35 mesh_size) centred under the object on z = 0.
 
     Returns (render.BoardPlane, capture.toml [board] dict).  board_to_object maps OpenCV's board
     frame (origin at the top-left corner of the generated image, x along columns, y along rows,
@@ -203,7 +203,8 @@ def make_views(mesh, settings: SynthSettings, board_size: tuple[float, float] | 
     lo, hi = mesh.bounds
     target = (lo + hi) / 2
     radius = float(np.linalg.norm(hi - lo)) / 2
-    if board_size is not None:  # show enough of the board for detection
+    if board_size is not None:  # show enough of the board for detection: aim lower, frame wider
+        target = target * np.array([1.0, 1.0, 0.5])
         radius = max(radius, 0.8 * float(np.hypot(*board_size)) / 2)
     dist = settings.distance * radius
     w, h = settings.size
@@ -275,7 +276,8 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     brackets: dict[str, list[str]] = {}
     t_base = None
     started = time.perf_counter()
-    bar = tqdm(list(enumerate(view_poses)), desc="synth views", unit="view", file=sys.stderr, disable=not progress)
+    bar = tqdm(list(enumerate(view_poses)), desc="synth views", unit="view", file=sys.stderr,
+               disable=None if progress else True)  # None: no bar when stderr is not a terminal
     for i, (R, t) in bar:
         try:
             result = renderer.render(camera, R, t)
