@@ -205,7 +205,7 @@ def make_views(mesh, settings: SynthSettings, board_size: tuple[float, float] | 
     radius = float(np.linalg.norm(hi - lo)) / 2
     if board_size is not None:  # show enough of the board for detection: aim lower, frame wider
         target = target * np.array([1.0, 1.0, 0.5])
-        radius = max(radius, 0.8 * float(np.hypot(*board_size)) / 2)
+        radius = max(radius, 0.7 * float(np.hypot(*board_size)) / 2)
     dist = settings.distance * radius
     w, h = settings.size
     half_angle = np.arcsin(min(1.0, 1.0 / settings.distance))
