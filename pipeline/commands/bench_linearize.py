@@ -57,7 +57,7 @@ def linearize_suite(quick: bool, repeat: int) -> list[BenchRow]:
                              "imread + postprocess(linear, 16 bit), serial"))
         counter = iter(range(10**6))
         for kind in ("dng", "jpeg"):
-            for workers, label in ((1, "serial"), (0, f"pool ({os.cpu_count()} workers)")):
+            for workers, label in ((1, "serial"), (0, f"pool{os.cpu_count()}")):
                 settings = make_settings(linearize.Settings, workers=workers)
 
                 def run_once():
@@ -66,6 +66,6 @@ def linearize_suite(quick: bool, repeat: int) -> list[BenchRow]:
                         linearize.run(capture=tmp / kind, work=tmp / f"work{next(counter)}", settings=settings)
 
                 seconds = best_time(run_once, repeat)
-                rows.append(BenchRow(f"linearize {kind}", 0, f"{n}x{w}x{h}", megapixels / seconds, "MP/s",
-                                     f"{label}: decode, mask, EXR float32 + mask PNG, manifest"))
+                rows.append(BenchRow(f"linearize {kind} {label}", 0, f"{n}x{w}x{h}", megapixels / seconds, "MP/s",
+                                     "decode, mask, EXR float32 + mask PNG, manifest"))
     return rows
