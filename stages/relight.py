@@ -41,7 +41,7 @@ from pipeline.settings import setting
 from pipeline.workdir import write_json
 from stages.samples import image_source, linear_manifest, load_linear_image, load_mesh, mesh_path, poses_path
 
-DIFFUSE_ORDER = 8          # Â_l beyond l = 8 is < 0.3% of Â_0: irradiance is exact to that level
+DIFFUSE_ORDER = 16         # |Â_l| beyond l = 16 is < 0.15% of Â_0: irradiance of an env map to that level
 LOBE_CUTOFF = 1e-3         # a lobe "needs" band l while |A_l| > LOBE_CUTOFF * A_0
 MAX_LOBE_ORDER = 400       # the filter is examined up to this band
 ERROR_MAP_RANGE = 0.2      # error maps: relative error 0 .. 20% spans the colour map
