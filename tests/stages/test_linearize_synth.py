@@ -25,7 +25,7 @@ VIEWS, SIZE = 2, (64, 64)
 def linearized(tmp_path_factory):
     root = tmp_path_factory.mktemp("synth_linearize")
     out = {}
-    for name, fmt, more in (("exr", "exr", {}), ("dng", "dng", {}), ("jpeg", "jpeg", {}),
+    for name, fmt, more in (("exr", "exr", {}), ("dng", "dng", {}), ("tiff", "tiff", {}), ("jpeg", "jpeg", {}),
                             ("brackets", "jpeg", {"brackets": 3})):
         capture = make_test_capture(root / name, views=VIEWS, size=SIZE, fmt=fmt, noise="none", **more)
         with warnings.catch_warnings():
@@ -62,6 +62,7 @@ def test_exr_capture_is_the_rendered_radiance(linearized):
 
 @pytest.mark.parametrize("name, tol", [
     ("dng", 0.01),       # issue: DNG within noise (none here), mean relative error < 1 % (AHD at edges)
+    ("tiff", 0.01),      # 16-bit linear TIFF: quantization 1/65535 only
     ("jpeg", 0.03),      # issue: JPEG via sRGB within 3 %
     ("brackets", 0.03),  # JPEG brackets merged (sRGB, quantization): same 3 %
 ])
