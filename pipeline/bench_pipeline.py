@@ -22,6 +22,7 @@ bench.csv and bench.png (relight error against time, Pareto front marked).
 from __future__ import annotations
 
 import csv
+import json
 import time
 from pathlib import Path
 
@@ -241,3 +242,160 @@ def stability_suite(quick: bool, repeat: int, output: Path = Path("bench")) -> l
     return [BenchRow(f"{r['scene']}: {r['quantity']}", 0, f"noise {r['noise']:g}", r["relative_error"],
                      "relative error", r["problem"]) for r in keep] + \
         [BenchRow("charts", 0, "", len(charts), "files", ", ".join(str(p) for p in charts))]
+
+
+# --------------------------------------------------------------------------------------- pipeline suite
+
+SCENES = {
+    "diffuse": "lambert:albedo=0.6,0.5,0.4",
+    "glossy": "phong:albedo=0.3,0.3,0.3,specular=0.3,exponent=20",
+}
+REPORT_BANDS = 4   # lighting error columns band0 .. band4
+
+
+def _lighting_band_errors(fitted: np.ndarray, truth: np.ndarray, scale_free: bool) -> tuple[np.ndarray, float]:
+    """Relative error per band (l <= REPORT_BANDS) of fitted vs true SH lighting; bands the fit does not
+    have count as error 1.  ``scale_free``: first fit the one global scale (factorization)."""
+    k = min(fitted.shape[0], truth.shape[0])
+    padded = np.zeros((num_coeffs(REPORT_BANDS), 3))
+    n = min(k, padded.shape[0])
+    padded[:n] = fitted[:n]
+    ref = truth[:padded.shape[0]]
+    scale = float((padded * ref).sum() / (padded * padded).sum()) if scale_free and (padded ** 2).sum() > 0 else 1.0
+    return band_errors(scale * padded, ref), scale
+
+
+def _pareto(times: np.ndarray, errors: np.ndarray) -> np.ndarray:
+    """Mask of the configurations no other one beats in both time and error."""
+    front = np.ones(len(times), bool)
+    for i in range(len(times)):
+        better = (times <= times[i]) & (errors <= errors[i]) & ((times < times[i]) | (errors < errors[i]))
+        front[i] = not better.any()
+    return front
+
+
+def pipeline_configs(quick: bool) -> list[dict]:
+    """The sweep: per scene, SH order x fit mode at the full data, plus less data at order 4."""
+    orders = (2, 4) if quick else (2, 4, 8)
+    configs = []
+    for scene in SCENES:
+        for mode in ("known BRDF", "factorization"):
+            for order in orders:
+                configs.append({"scene": scene, "mode": mode, "order": order, "train_views": 9, "stride": 1})
+            if not quick:
+                configs.append({"scene": scene, "mode": mode, "order": 4, "train_views": 9, "stride": 3})
+                configs.append({"scene": scene, "mode": mode, "order": 4, "train_views": 4, "stride": 1})
+    return configs
+
+
+def run_pipeline_bench(out_dir: Path, quick: bool = False) -> tuple[list[dict], list[Path]]:
+    """Render the scenes, run samples -> fit -> relight per configuration; write bench.csv + bench.png."""
+    import os
+    import shutil
+
+    from pipeline.io.lighting import read_lighting_sh
+    from pipeline.runner import run_stage, stage_settings
+    from pipeline.synth import make_test_capture
+
+    out_dir = Path(out_dir)
+    scratch = out_dir / "pipeline_scratch"
+    shutil.rmtree(scratch, ignore_errors=True)
+    views, size = 12, (64, 64) if quick else (96, 96)
+    rows, sample_runs = [], {}
+    for config in pipeline_configs(quick):
+        scene = config["scene"]
+        capture = scratch / scene / "capture"
+        if not capture.exists():
+            make_test_capture(capture, brdf=SCENES[scene], env="area", views=views, size=size, fmt="exr",
+                              mesh="sphere", noise="none")
+        keys = sorted(f"{i:04d}.exr" for i in range(views))
+        validation = keys[3::4]
+        training = [k for k in keys if k not in validation]
+        train = training[::max(1, len(training) // config["train_views"])][:config["train_views"]]
+        data_key = (scene, config["train_views"], config["stride"])
+        if data_key not in sample_runs:
+            work = scratch / scene / f"samples_v{config['train_views']}_s{config['stride']}"
+            holdout = tuple(sorted(set(keys) - set(train)))
+            result = run_stage("samples", capture=capture, work=work,
+                               settings=stage_settings("samples", holdout=holdout, stride=config["stride"]))
+            sample_runs[data_key] = (work, result.seconds)
+        sample_work, samples_s = sample_runs[data_key]
+        name = f"{scene}_{config['mode'].replace(' ', '-')}_L{config['order']}_v{config['train_views']}_s{config['stride']}"
+        work = scratch / scene / name
+        work.mkdir(parents=True, exist_ok=True)
+        for f in ("samples.npz",):
+            if not (work / f).exists():
+                os.link(sample_work / f, work / f)
+        brdf = str(capture / "gt" / "brdf.json") if config["mode"] == "known BRDF" else SCENES[scene].split(":")[0]
+        fit = run_stage("fit", capture=capture, work=work,
+                        settings=stage_settings("fit", brdf=brdf, order=str(config["order"]), lighting="unknown"))
+        relit = run_stage("relight", capture=capture, work=work,
+                          settings=stage_settings("relight", views=",".join(validation), compare=True, supersample=1))
+        check = json.loads((work / "relight" / "relight.json").read_text())["compare"]
+        band_err, scale = _lighting_band_errors(read_lighting_sh(work / "fit" / "lighting_sh.json"),
+                                                read_lighting_sh(capture / "gt" / "lighting_sh.json"),
+                                                config["mode"] != "known BRDF")
+        row = {**config, "samples_s": round(samples_s, 3), "fit_s": round(fit.seconds, 3),
+               "time_s": round(samples_s + fit.seconds, 3), "relight_s": round(relit.seconds, 3),
+               "relight_error": check["relative_error"], "lighting_scale": scale,
+               **{f"band{l}_error": float(e) for l, e in enumerate(band_err)}}
+        rows.append(row)
+        print(f"{name}: time {row['time_s']:.2f} s, relight error {100 * row['relight_error']:.2f}%")
+    times = np.array([r["time_s"] for r in rows])
+    errors = np.array([r["relight_error"] for r in rows])
+    front = _pareto(times, errors)
+    for r, f in zip(rows, front):
+        r["pareto"] = bool(f)
+    csv_path = _write_csv(out_dir / "bench.csv", rows)
+    png = plot_pareto(rows, out_dir / "bench.png")
+    if not quick:
+        shutil.rmtree(scratch, ignore_errors=True)
+    return rows, [csv_path, png]
+
+
+def plot_pareto(rows: list[dict], path: Path) -> Path:
+    """bench.png: relight error on held-out views against time (samples + fit), Pareto front marked."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7.5, 5))
+    markers = {"known BRDF": "o", "factorization": "s"}
+    colours = {"diffuse": "tab:blue", "glossy": "tab:red"}
+    for r in rows:
+        ax.scatter(r["time_s"], r["relight_error"] * 100, marker=markers[r["mode"]], color=colours[r["scene"]],
+                   s=25 + 10 * r["order"], alpha=0.8, edgecolors="k" if r["pareto"] else "none")
+        ax.annotate(f"L{r['order']} v{r['train_views']} s{r['stride']}", (r["time_s"], r["relight_error"] * 100),
+                    fontsize=6, xytext=(3, 3), textcoords="offset points")
+    front = sorted((r["time_s"], r["relight_error"] * 100) for r in rows if r["pareto"])
+    if front:
+        ax.step(*zip(*front), where="post", color="k", lw=1, ls="--", label="Pareto front")
+    for mode, m in markers.items():
+        ax.scatter([], [], marker=m, color="gray", label=mode)
+    for scene, c in colours.items():
+        ax.scatter([], [], marker="o", color=c, label=f"{scene} scene")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("time: samples + fit (s, 2 cores)")
+    ax.set_ylabel("relight error on held-out views (%, relative RMS)")
+    ax.set_title("speed vs accuracy (marker size = SH order; v = training views, s = sample stride)", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def pipeline_suite(quick: bool, repeat: int, output: Path = Path("bench")) -> list:
+    """`sigrend bench pipeline`: bench.csv + bench.png in ``output``; rows = each configuration's numbers.
+
+    ``repeat`` is unused (each configuration runs once: its time is part of the result)."""
+    from pipeline.commands.bench import BenchRow
+
+    Path(output).mkdir(parents=True, exist_ok=True)
+    rows, written = run_pipeline_bench(Path(output), quick=quick)
+    out = []
+    for r in rows:
+        case = f"{r['scene']} {r['mode']}"
+        size = f"v{r['train_views']} s{r['stride']}"
+        note = "pareto" if r["pareto"] else ""
+        out.append(BenchRow(case, r["order"], size, r["time_s"], "s (samples+fit)", note))
+        out.append(BenchRow(case, r["order"], size, r["relight_error"], "relight error", note))
+    return out + [BenchRow("outputs", 0, "", len(written), "files", ", ".join(str(p) for p in written))]
