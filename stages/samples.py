@@ -38,6 +38,7 @@ from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_ray
 from pipeline.core.brdf import reflect
 from pipeline.core.coverage import EqualAreaGrid, coverage_stats
 from pipeline.errors import UserError
+from pipeline.io.camera_decode import probe
 from pipeline.io.images import read_image
 from pipeline.io.linear_manifest import linear_dir, manifest_path, read_linear_image, read_manifest, resolve_key
 from pipeline.io.poses import Poses, read_poses
@@ -117,13 +118,34 @@ def image_source(capture: Path, work: Path, key: str, manifest: dict | None) -> 
     return Path(capture) / "images" / key
 
 
-def load_linear_image(capture: Path, work: Path, key: str,
-                      manifest: dict | None) -> tuple[np.ndarray, np.ndarray, Path]:
+def exposure_scales(capture: Path, keys: list[str]) -> dict[str, float]:
+    """Per capture image: N² / (t · ISO/100) from its EXIF, the linearize stage's convention.
+
+    Factors absent from every image count as equal (1 s, ISO 100, f/1): plain radiance EXRs get
+    scale 1.  A factor present in some images only -> UserError (run linearize with capture.toml).
+    """
+    exifs = {key: probe(Path(capture) / "images" / key).exif for key in keys}
+    for factor in ("time", "iso", "fnumber"):
+        missing = [k for k in keys if exifs[k].get(factor) is None]
+        if missing and len(missing) < len(keys):
+            raise UserError(f"{Path(capture) / 'images' / missing[0]}: no EXIF {factor} while other images have "
+                            "one, so their radiometric scales differ; run `sigrend linearize` (capture.toml "
+                            "[exposure] can give the value)")
+    scales = {}
+    for key, exif in exifs.items():
+        t, iso, n = exif.get("time") or 1.0, exif.get("iso") or 100.0, exif.get("fnumber") or 1.0
+        scales[key] = n * n / (t * iso / 100.0)
+    return scales
+
+
+def load_linear_image(capture: Path, work: Path, key: str, manifest: dict | None,
+                      scale: float = 1.0) -> tuple[np.ndarray, np.ndarray, Path]:
     """Linear RGB (H, W, 3) float32, pixel weight (H, W) float32 in [0, 1] (0 = masked) and the file read.
 
     With linearize's ``manifest``: its EXR and valid mask (pipeline.io.linear_manifest).  Without:
-    an EXR/HDR/TIFF in CAPTURE/images/ (an alpha channel, if any, is the weight).  NaN or Inf in a
-    pixel that is not masked is a UserError naming the file.
+    an EXR/HDR/TIFF in CAPTURE/images/ times ``scale`` (from :func:`exposure_scales`; an alpha
+    channel, if any, is the weight).  NaN or Inf in a pixel that is not masked is a UserError
+    naming the file.
     """
     name = image_source(capture, work, key, manifest)
     if manifest is not None:
@@ -138,7 +160,7 @@ def load_linear_image(capture: Path, work: Path, key: str,
         img = read_image(name)
         if img.shape[2] == 1:
             img = np.repeat(img, 3, axis=2)
-        rgb = img[:, :, :3]
+        rgb = img[:, :, :3] * np.float32(scale)
         weight = np.clip(img[:, :, 3], 0.0, 1.0) if img.shape[2] >= 4 else np.ones(img.shape[:2], np.float32)
     rgb = np.asarray(rgb, dtype=np.float32)
     bad = ~np.all(np.isfinite(rgb), axis=2) & (weight > 0)
@@ -421,6 +443,11 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             if not (capture / "images" / key).exists():
                 raise UserError(f"{capture / 'images' / key}: image listed in {pose_file} is missing from the "
                                 "capture; restore it or remove it from poses.json")
+            if Path(key).suffix.lower() not in LINEAR_SUFFIXES:
+                raise UserError(f"{capture / 'images' / key}: not a linear image; run `sigrend linearize` first")
+        scales = exposure_scales(capture, keys)
+    else:
+        scales = dict.fromkeys(keys, 1.0)
     mesh = load_mesh(mesh_file)
     visibility = vertex_visibility(mesh, settings.visibility_rays, settings.chunk_pixels)
     grid = EqualAreaGrid()
@@ -439,7 +466,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         for image_id, key in enumerate(keys):
             pose = poses.images[key]
             camera = poses.camera_of(key)
-            rgb, weight, name = load_linear_image(capture, work, key, manifest)
+            rgb, weight, name = load_linear_image(capture, work, key, manifest, scales[key])
             if rgb.shape[:2] != (camera.height, camera.width):
                 raise UserError(f"{name}: image is {rgb.shape[1]}x{rgb.shape[0]} but its camera "
                                 f"{pose.camera!r} in {pose_file} is {camera.width}x{camera.height}")
@@ -466,7 +493,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             considered = kept + sum(drops.values())
             # pixels that reached the hidden test and passed it: the camera sees the mesh's outside
             sees_outside |= considered - drops["background"] - drops["silhouette_edge"] - drops["hidden"] > 0
-            per_image[key] = {"pixels": considered, "kept": kept, "drops": drops}
+            per_image[key] = {"pixels": considered, "kept": kept, "drops": drops, "exposure_scale": scales[key]}
             for reason, count in drops.items():
                 totals[reason] += count
 
