@@ -31,7 +31,7 @@ testing the frequency-space fit against its images is not circular:
   occludes the object's lower hemisphere (it is part of the shadow-ray scene) and is lit by the
   upper hemisphere of the map without shadows: the object casts nothing on it, so its radiance
   is texture albedo x E_up / π with E_up = sum over w_z > 0 of L w_z dω (all pixels of the map).
-  Board pixels are supersampled (``board_supersample``^2 rays per pixel) for sub-pixel corners.
+  Board pixels at texture edges are supersampled (``board_supersample``^2 rays) for sub-pixel corners.
 * Background pixels see the map itself (nearest pixel in the ray direction).
 """
 
@@ -123,8 +123,8 @@ class BoardPlane:
 
     def albedo_at(self, points_object: np.ndarray) -> np.ndarray:
         """Texture albedo at object-frame points on the plane (nearest texel); NaN outside."""
-        inv = np.linalg.inv(np.asarray(self.board_to_object, float))
-        pb = points_object @ inv[:3, :3].T + inv[:3, 3]
+        m = np.asarray(self.board_to_object, float)  # rigid: inverse rotation is the transpose
+        pb = (points_object - m[:3, 3]) @ m[:3, :3]
         th, tw = self.albedo.shape
         col = np.floor(pb[:, 0] / self.size[0] * tw).astype(np.int64)
         row = np.floor(pb[:, 1] / self.size[1] * th).astype(np.int64)
@@ -325,30 +325,57 @@ class Renderer:
                             board_mask.reshape(h, w))
 
     def _render_board(self, camera, R, t, uv, dirs, object_mask, radiance):
-        """Supersampled board radiance for pixels whose centre ray misses the object."""
+        """Board radiance for pixels whose centre ray misses the object.
+
+        The texture is sampled at the pixel centre; pixels whose 3 x 3 neighbourhood is not one
+        uniform texture value (marker edges, the board's rim) are supersampled with
+        ``board_supersample``^2 rays, and pixels only partly on the board mix board and background
+        by coverage.
+        """
+        import cv2
+
         ss = max(1, int(self.board_supersample))
         centre = camera_center(R, t)
+        n_pix = len(uv)
         if centre[2] <= 0:
-            return radiance, np.zeros(len(uv), bool)
-        offsets = (np.arange(ss) + 0.5) / ss - 0.5
-        candidates = np.flatnonzero(~object_mask & (dirs[:, 2] < 0))
-        total = np.zeros(candidates.size)
-        hits = np.zeros(candidates.size)
-        for dv in offsets:
-            for du in offsets:
-                _, d = pixel_rays(camera, R, t, uv[candidates] + [du, dv])
-                s = -centre[2] / d[:, 2]
-                albedo = self.board.albedo_at(centre + s[:, None] * d)
-                ok = np.isfinite(albedo)
-                total[ok] += albedo[ok]
-                hits += ok
-        board_mask = np.zeros(len(uv), bool)
-        on = hits > 0
-        board_mask[candidates[on]] = True
-        # pixels only partly on the board mix board and background by coverage
+            return radiance, np.zeros(n_pix, bool)
+
+        def board_albedo(d: np.ndarray) -> np.ndarray:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s = np.where(d[:, 2] < 0, -centre[2] / d[:, 2], np.nan)
+            out = np.full(d.shape[0], np.nan)
+            ok = np.isfinite(s)
+            out[ok] = self.board.albedo_at(centre + s[ok, None] * d[ok])
+            return out
+
+        free = ~object_mask
+        albedo = np.full(n_pix, np.nan)
+        albedo[free] = board_albedo(dirs[free])
+        # sentinel codes so that min/max filters see board edges, object edges and background
+        coded = np.where(free, np.where(np.isfinite(albedo), albedo, -1.0), -2.0).astype(np.float32)
+        coded = coded.reshape(camera.height, camera.width)
+        kernel = np.ones((3, 3), np.uint8)
+        varies = (cv2.dilate(coded, kernel) != cv2.erode(coded, kernel)).ravel()
+        total = np.where(np.isfinite(albedo), albedo, 0.0) * ss**2
+        hits = np.where(np.isfinite(albedo), float(ss**2), 0.0)
+        edge = np.flatnonzero(varies & free)
+        if ss > 1 and edge.size:
+            total[edge] = 0.0
+            hits[edge] = 0.0
+            offsets = (np.arange(ss) + 0.5) / ss - 0.5
+            for dv in offsets:
+                for du in offsets:
+                    _, d = pixel_rays(camera, R, t, uv[edge] + [du, dv])
+                    a = board_albedo(d)
+                    ok = np.isfinite(a)
+                    total[edge[ok]] += a[ok]
+                    hits[edge[ok]] += 1.0
+        on = np.flatnonzero(free & (hits > 0))
+        board_mask = np.zeros(n_pix, bool)
+        board_mask[on] = True
         frac = (hits[on] / ss**2)[:, None]
         board_rad = (total[on] / hits[on])[:, None] * self._board_irradiance[None, :] / np.pi
-        radiance[candidates[on]] = frac * board_rad + (1 - frac) * radiance[candidates[on]]
+        radiance[on] = frac * board_rad + (1 - frac) * radiance[on]
         return radiance, board_mask
 
 

@@ -1,8 +1,5 @@
 """`sigrend synth`: the capture it writes, its board, and its one-line errors."""
 
-import subprocess
-import sys
-
 import cv2
 import numpy as np
 import pytest
@@ -121,12 +118,8 @@ def test_rendered_board_is_detected_and_solvepnp_reproduces_the_pose(board_captu
         assert centre_err < 0.02 * np.linalg.norm(pose.t), key
 
 
-def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", "synth", *map(str, args)],
-                          capture_output=True, text=True)
-
-
-def test_bad_input_is_one_line_exit_2(tmp_path):
+def test_bad_input_is_one_line_exit_2(tmp_path, capsys):
+    """In-process through pipeline.cli.main (the subprocess path is tested in test_cli_errors.py)."""
     faceless = tmp_path / "points.obj"
     faceless.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
     square_env = tmp_path / "square.exr"
@@ -134,15 +127,16 @@ def test_bad_input_is_one_line_exit_2(tmp_path):
     cases = {
         "unknown BRDF model": ["--brdf", "velvet:albedo=0.5"],
         "has no faces": ["--mesh", faceless],
-        "inside the mesh": ["--distance", "0.5", "--views", "1"],
+        "inside the mesh": ["--distance", "0.5"],
         "width = 2*height": ["--env", square_env],
         "unknown environment": ["--env", "disco"],
     }
     for words, args in cases.items():
         out = tmp_path / words.replace(" ", "_")
-        proc = _cli("--size", "16x16", "--views", "1", *args, "-o", out)
-        assert proc.returncode == 2, (words, proc.stderr)
-        assert "Traceback" not in proc.stderr
-        assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
-        assert words in proc.stderr, proc.stderr
+        code = cli_main(["synth", "--size", "16x16", "--views", "1", *map(str, args), "-o", str(out)])
+        err = capsys.readouterr().err
+        assert code == 2, (words, err)
+        assert "Traceback" not in err
+        assert len(err.strip().splitlines()) == 1, err
+        assert words in err, err
         assert not (out / "images").exists() or not any((out / "images").iterdir())
