@@ -63,6 +63,8 @@ class Settings:
     method: Literal["auto", "colmap", "pnp"] = setting(
         "auto", "auto: COLMAP, PnP fallback when it registers too few photos; colmap: never fall back; "
                 "pnp: board PnP only")
+    board_bundle_adjustment: bool = setting(
+        True, "after registration, bundle-adjust in the object frame with the board corners as known points")
     seed: int = setting(0, "random seed for COLMAP and RANSAC (runs are reproducible)")
     verbose: bool = setting(False, "show COLMAP's log on the terminal instead of WORK/colmap/colmap.log")
 
@@ -396,6 +398,65 @@ def register_to_object(reconstruction, detections, spec: BoardSpec, settings: Se
     return result.similarity, result.inliers, residual_mm
 
 
+def refine_with_board(reconstruction, similarity: Similarity, detections: dict, spec: BoardSpec,
+                      fixed_intrinsics: bool):
+    """Bundle adjustment in the object frame with the board's corners as known, constant 3D points.
+
+    The registered model is carried into the object frame (``similarity``) and rebuilt with each
+    image's detected corners appended to its keypoints, observing one constant 3D point per corner
+    at its board_to_object position; pycolmap's bundle adjuster (Cauchy loss, 1 px) then refines
+    poses, SfM points and (unless calibrated) intrinsics.  The board's metric structure thus
+    constrains every camera directly, which matters most when the scene's other texture is poor
+    (a plane seen by cameras with unknown focal length is a near-degenerate SfM problem).
+    ``detections``: COLMAP image name -> (ids, COLMAP pixels).  Returns the new Reconstruction.
+    """
+    import pycolmap
+
+    old = reconstruction
+    old.transform(pycolmap.Sim3d(similarity.scale, pycolmap.Rotation3d(similarity.R), similarity.t))
+    new = pycolmap.Reconstruction()
+    for camera in old.cameras.values():
+        new.add_camera_with_trivial_rig(camera)
+    first_board_index = {}
+    for image_id, image in old.images.items():
+        if not image.has_pose:
+            continue
+        keypoints = [p.xy for p in image.points2D]
+        first_board_index[image_id] = len(keypoints)
+        uv = detections.get(image.name, (None, np.zeros((0, 2))))[1]
+        keypoints = np.array(keypoints + list(uv), float).reshape(-1, 2)
+        new.add_image_with_trivial_frame(pycolmap.Image(name=image.name, keypoints=keypoints,
+                                                        camera_id=image.camera_id, image_id=image_id),
+                                         image.cam_from_world())
+    for point in old.points3D.values():
+        pid = new.add_point3D(point.xyz, pycolmap.Track(), point.color)
+        for el in point.track.elements:
+            new.add_observation(pid, pycolmap.TrackElement(el.image_id, el.point2D_idx))
+    corners = board_corners_object(spec)
+    board_points: dict[int, int] = {}
+    for image_id, start in first_board_index.items():
+        ids = detections.get(old.images[image_id].name, (np.zeros(0, int), None))[0]
+        for k, cid in enumerate(ids):
+            if int(cid) not in board_points:
+                board_points[int(cid)] = new.add_point3D(corners[cid], pycolmap.Track())
+            new.add_observation(board_points[int(cid)], pycolmap.TrackElement(image_id, start + k))
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in first_board_index:
+        config.add_image(image_id)
+    for pid in board_points.values():
+        config.add_constant_point(pid)
+    if fixed_intrinsics:
+        for camera_id in new.cameras:
+            config.set_constant_cam_intrinsics(camera_id)
+    options = pycolmap.BundleAdjustmentOptions()
+    options.print_summary = False
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    options.ceres.loss_function_scale = 1.0  # pixels
+    pycolmap.create_default_bundle_adjuster(options, config, new).solve()
+    new.update_point_3d_errors()
+    return new
+
+
 def poses_from_reconstruction(reconstruction, similarity: Similarity, name_to_key: dict[str, str],
                               camera_names: dict[int, str]) -> Poses:
     """COLMAP's registered images, carried into the object frame, as DESIGN.md Poses."""
@@ -619,16 +680,23 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             camera_names = {}
             for image in reconstruction.images.values():
                 camera_names.setdefault(image.camera_id, groups[name_to_key[image.name]])
+            if settings.board_bundle_adjustment:
+                _status("bundle adjustment with the board as known points")
+                with colmap_output(colmap_dir / "colmap.log", settings.verbose):
+                    reconstruction = refine_with_board(reconstruction, similarity, det_by_name, spec,
+                                                       fixed is not None)
+                similarity = Similarity(1.0, np.eye(3), np.zeros(3))  # already in the object frame
             poses = poses_from_reconstruction(reconstruction, similarity, name_to_key, camera_names)
             timings["registration"] = time.perf_counter() - start
             summary.update({
-                "method": "colmap + board registration",
+                "method": "colmap + board registration" + (" + board bundle adjustment"
+                                                           if settings.board_bundle_adjustment else ""),
                 "registered": len(registered), "unregistered": unregistered,
                 "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
                 "points3D": int(reconstruction.num_points3D()),
                 "registration_residual_mm": residual_mm,
                 "board_corners_used": int(inliers.sum()), "board_corners_triangulated": int(len(inliers)),
-                "colmap_to_object_scale": float(similarity.scale),
+                "board_bundle_adjustment": settings.board_bundle_adjustment,
             })
             reconstruction.write(colmap_dir / "sparse")  # the model that was used, at sparse/ top level
         elif settings.method == "colmap" or len(detections) < max(3, int(np.ceil(settings.min_registered * len(keys)))):

@@ -152,7 +152,7 @@ def test_colmap_poses_match_ground_truth(capture_dir, colmap_run):
     gt = read_poses(capture_dir / "gt" / "poses.json")
     est = read_poses(colmap_run / "poses.json")
     summary = json.loads((colmap_run / "poses_summary.json").read_text())
-    assert summary["method"] == "colmap + board registration"
+    assert summary["method"] == "colmap + board registration + board bundle adjustment"
     assert set(est.images) == set(gt.images)
     rot, cen = pose_errors(gt, est)
     assert rot.max() < 0.2
