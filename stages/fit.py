@@ -56,7 +56,7 @@ class Settings:
     folds: int = setting(4, "validation folds; views go to fold image_id mod folds")
     parsimony: float = setting(0.05, "choose the smallest model whose validation RMSE is within this fraction of the best")
     noise_floor: float = setting(0.005, "noise assumed at least this fraction of the RMS radiance (calibration, model error)")
-    min_snr: float = setting(20.0, "a band is recoverable when its SNR (docs/fit.md) reaches this")
+    min_snr: float = setting(10.0, "a band is recoverable when its SNR (docs/fit.md) reaches this")
     band_prior: float = setting(0.3, "Tikhonov prior scale of ill-conditioned bands, as a fraction of the DC lighting")
     iterations: int = setting(6, "alternations lighting <-> BRDF in the factorization")
     max_samples: int = setting(400000, "samples held in memory for BRDF and factorization fits (random subset)")
@@ -204,16 +204,17 @@ def accumulate(path: Path, settings: Settings, brdf: dict, order: int) -> tuple[
     """Stream the samples once into per-fold normal equations for a fixed BRDF; also coverage."""
     with_lobe = brdf["model"] in forward.LOBE_MODELS
     eqs = solve.NormalEquations(order, settings.folds, shared=not with_lobe)
-    ncell, rcell = set(), set()
+    ncell, rcell, views = set(), set(), set()
     for chunk in iter_valid_chunks(path, settings, settings.lobe_min_cos if with_lobe else 0.0):
         terms = forward.design_terms(chunk["normal"], chunk["view_dir"], order, with_lobe)
         designs = terms.diffuse[None] if not with_lobe else forward.channel_designs(terms, brdf, order)
         eqs.add(designs, chunk["radiance"], chunk["weight"], fold_of(chunk["image_id"], settings.folds))
         ncell.update(occupied_cells(chunk["normal"], CELLS_PER_AXIS).tolist())
+        views.update(np.unique(chunk["image_id"]).tolist())
         if with_lobe:
             rcell.update(occupied_cells(forward.reflect_view(chunk["view_dir"], chunk["normal"]), CELLS_PER_AXIS).tolist())
     return eqs, {"normal_cells": len(ncell), "reflect_cells": len(rcell),
-                 "carried": carried_coefficients(ncell, rcell, with_lobe)}
+                 "carried": carried_coefficients(ncell, rcell, with_lobe), "views": len(views)}
 
 
 def equations_from_arrays(data: dict, settings: Settings, brdf: dict, order: int) -> solve.NormalEquations:
@@ -229,10 +230,11 @@ def equations_from_arrays(data: dict, settings: Settings, brdf: dict, order: int
 
 
 def choose_order(eqs: solve.NormalEquations, brdf: dict, settings: Settings, max_carried: int,
-                 explicit: int | None) -> tuple[solve.LightingFit, list[dict], int]:
+                 explicit: int | None, views: int) -> tuple[solve.LightingFit, list[dict], int]:
     """Fit every candidate order (or the given one) and choose by validation + parsimony."""
     scale = np.asarray(brdf["albedo"], float) if eqs.shared else None
-    kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior)
+    kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior,
+              independent_groups=views)
     if explicit is not None:
         orders = [explicit]
     else:
@@ -251,16 +253,17 @@ def brdf_data(data: dict, coeffs: np.ndarray, fold_count: int) -> solve.BrdfData
     bands = np.concatenate([forward.band_projections(coeffs, refl[s:s + 65536])
                             for s in range(0, len(refl), 65536)]) if len(refl) else np.zeros((0, order + 1, 3))
     return solve.BrdfData(diffuse, bands, forward.fresnel_grazing(data["normal"], data["view_dir"]),
-                          data["radiance"], data["weight"], fold_of(data["image_id"], fold_count))
+                          data["radiance"], data["weight"], fold_of(data["image_id"], fold_count),
+                          np.einsum("ij,ij->i", data["normal"], data["view_dir"]))
 
 
-def _filter_fn(model: str, width: float, order: int):
-    return forward.lobe_filter(model, width, order)
+def _filter_fn(model: str, width: float, order: int, cos_view: np.ndarray) -> np.ndarray:
+    return forward.sample_lobe_filters(model, width, order, cos_view)
 
 
 def fit_brdf_models(bd: solve.BrdfData, models: list[str], settings: Settings, order: int) -> list[dict]:
     """Every candidate BRDF model: leave-one-fold-out validation, then the fit on all data."""
-    fn = lambda m, w: _filter_fn(m, w, order)  # noqa: E731
+    fn = lambda m, w, c: _filter_fn(m, w, order, c)  # noqa: E731
     out = []
     for model in models:
         t0 = time.perf_counter()
@@ -286,12 +289,13 @@ def lighting_step(data: dict, brdf: dict, order: int, settings: Settings, labels
     scale = np.asarray(brdf["albedo"], float) if eqs.shared else None
     g, h, btb, w = eqs.channel_system(slice(None), scale)
     return solve.solve_lighting(g, h, btb, w, int(eqs.count.sum()), order, noise_floor=settings.noise_floor,
-                                min_snr=settings.min_snr, band_prior=settings.band_prior, labels=labels)
+                                min_snr=settings.min_snr, band_prior=settings.band_prior, labels=labels,
+                                independent_groups=len(np.unique(data["image_id"])))
 
 
 def factorize(data: dict, model: str, order: int, albedo0: np.ndarray, settings: Settings) -> tuple[np.ndarray, dict]:
     """Alternate lighting <- BRDF and BRDF <- lighting from the Lambertian start (albedo0)."""
-    fn = lambda m, w: _filter_fn(m, w, order)  # noqa: E731
+    fn = lambda m, w, c: _filter_fn(m, w, order, c)  # noqa: E731
     brdf = {"model": "lambert", "albedo": albedo0.tolist()}
     coeffs = lighting_step(data, brdf, order, settings).coeffs
     for _ in range(settings.iterations if model != "lambert" else 1):
@@ -412,7 +416,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         timings["normal_equations"] = time.perf_counter() - t0
         _check_counts(eqs, cover, explicit_order, samples_path)
         t0 = time.perf_counter()
-        fit, cands, order = choose_order(eqs, brdf, settings, cover["carried"], explicit_order)
+        fit, cands, order = choose_order(eqs, brdf, settings, cover["carried"], explicit_order, cover["views"])
         timings["solve"] = time.perf_counter() - t0
         coeffs, bands, noise = fit.coeffs, fit.bands, fit.noise_sigma
         candidates = _lighting_candidates_json(cands)
@@ -481,7 +485,9 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             t0 = time.perf_counter()
             max_order = explicit_order if explicit_order is not None else settings.max_order
             eqs = equations_from_arrays(data, settings, brdf, max_order)
-            fit, cands_o, order = choose_order(eqs, brdf, settings, 10 ** 9, explicit_order)
+            cells = len(occupied_cells(data["normal"], CELLS_PER_AXIS))
+            fit, cands_o, order = choose_order(eqs, brdf, settings, cells, explicit_order,
+                                               len(np.unique(data["image_id"])))
             coeffs, bands, noise = fit.coeffs, fit.bands, fit.noise_sigma
             candidates += _lighting_candidates_json(cands_o)
             timings["order_selection"] = time.perf_counter() - t0

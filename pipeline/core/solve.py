@@ -16,10 +16,11 @@ lighting coefficient: the radiance that a band coefficient as large as the DC te
 over the noise.  Labels:
   ill-posed        g_max,l <= 1e-6 g_max,0: the transfer is (numerically) zero in the band
                    (odd l > 1 of a Lambertian: Â_l = 0 exactly) or nothing covers it -> zeroed;
-  ill-conditioned  snr_l < min_snr (default 20, i.e. a coefficient of 5% of the DC term is at the
-                   noise level) -> Tikhonov ridge sigma^2 / tau^2 with prior scale
-                   tau = band_prior |L_0|, treating the noise as fully correlated (systematic), so
-                   the ridge does not vanish as N grows;
+  ill-conditioned  snr_l < min_snr (default 10, i.e. a coefficient of 10% of the DC term is at the
+                   noise level) -> Tikhonov ridge (W / V) sigma^2 / tau^2 with prior scale
+                   tau = band_prior |L_0|, treating the noise as correlated within each of the V
+                   views (calibration, model error) and independent between views, so the ridge
+                   does not vanish as the number of pixels grows;
   recoverable      otherwise -> (numerically) unregularized.
 """
 
@@ -138,9 +139,9 @@ def _solve_ridge(g: np.ndarray, h: np.ndarray, ridge: np.ndarray, keep: np.ndarr
 
 
 def solve_lighting(g: np.ndarray, h: np.ndarray, btb: np.ndarray, weight: float, count: int,
-                   order: int, *, noise_floor: float = 0.005, min_snr: float = 20.0,
+                   order: int, *, noise_floor: float = 0.005, min_snr: float = 10.0,
                    band_prior: float = 0.3, labels: list[str] | None = None,
-                   noise_sigma: float | None = None) -> LightingFit:
+                   noise_sigma: float | None = None, independent_groups: int = 1) -> LightingFit:
     """Regularized lighting from per-channel normal equations (see the module docstring).
 
     ``labels`` / ``noise_sigma`` given: reuse them (held-out refits use the full-data labels).
@@ -168,10 +169,11 @@ def solve_lighting(g: np.ndarray, h: np.ndarray, btb: np.ndarray, weight: float,
                   for l in range(order + 1)]
     labels = list(labels[:order + 1])
     tau = band_prior * dc
-    # G sums N samples; "fully correlated" noise means the prior weighs like one sample's noise
-    # against the weighted mean square: ridge = W sigma^2 / tau^2 (shrinkage snr'^2 / (snr'^2 + 1),
-    # snr' = g_l tau / sigma, independent of N)
-    band_ridge = np.array([weight * noise_sigma ** 2 / tau ** 2 if lab == "ill-conditioned" else eps for lab in labels])
+    # G sums N samples, but calibration and model errors are correlated within a view: the noise
+    # is taken as independent only between ``independent_groups`` groups (views), so the ridge is
+    # (W / groups) sigma^2 / tau^2 and the shrinkage of a band, G/(G + ridge) ~
+    # groups snr'^2 / (groups snr'^2 + 1) with snr' = g_l tau / sigma, does not vanish as N grows.
+    band_ridge = np.array([weight / max(independent_groups, 1) * noise_sigma ** 2 / tau ** 2 if lab == "ill-conditioned" else eps for lab in labels])
     keep = np.array([lab != "ill-posed" for lab in labels])[bands]
     ridge = band_ridge[bands]
     x = _solve_ridge(g, h, ridge, keep)
@@ -243,7 +245,7 @@ class BrdfData:
     """Per-sample quantities for BRDF fits under fixed lighting (pipeline.core.forward):
     diffuse (N, 3) = sum Â_l/pi L_lm,c Y_lm(n) (radiance per unit albedo), bands (N, L+1, 3) =
     per-band lighting at the mirror direction, grazing (N,) Schlick weight, radiance (N, 3),
-    weight (N,), fold (N,)."""
+    weight (N,), fold (N,), cos_view (N,) = n.v (for view-dependent lobe filters)."""
 
     diffuse: np.ndarray
     bands: np.ndarray
@@ -251,9 +253,11 @@ class BrdfData:
     radiance: np.ndarray
     weight: np.ndarray
     fold: np.ndarray
+    cos_view: np.ndarray
 
     def subset(self, rows: np.ndarray) -> "BrdfData":
-        return BrdfData(*(getattr(self, f)[rows] for f in ("diffuse", "bands", "grazing", "radiance", "weight", "fold")))
+        return BrdfData(*(getattr(self, f)[rows] for f in
+                          ("diffuse", "bands", "grazing", "radiance", "weight", "fold", "cos_view")))
 
 
 def _nnls_2(g: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -279,12 +283,13 @@ def _nnls_2(g: np.ndarray, h: np.ndarray) -> np.ndarray:
 
 
 def linear_brdf(data: BrdfData, model: str, filt: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float]:
-    """Non-negative least squares for (albedo_c, specular_c) at a fixed lobe filter ``filt`` (A_l).
+    """Non-negative least squares for (albedo_c, specular_c) at fixed per-sample lobe filters
+    ``filt`` (N, L+1) (A_l of each sample's view).
 
     Returns albedo (3,), specular (3,) and the weighted RSS (all channels)."""
     w = data.weight
     albedo, spec, rss = np.zeros(3), np.zeros(3), 0.0
-    lobe = None if model == "lambert" else data.bands @ filt          # (N, 3)
+    lobe = None if model == "lambert" else np.einsum("nlc,nl->nc", data.bands, filt)   # (N, 3)
     for c in range(3):
         cols = [data.diffuse[:, c]]
         target = data.radiance[:, c]
@@ -312,8 +317,8 @@ def angular_width(model: str, width: float) -> float:
     return float(width) if model == "microfacet" else 1.0 / np.sqrt(float(width))
 
 
-def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.005, grid: int = 17,
-             max_evals: int = 40) -> dict:
+def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.005, grid: int = 13,
+             max_evals: int = 25) -> dict:
     """Variable projection: nlopt (LN_COBYLA, bounded, in log width) over the lobe width; for each
     width :func:`linear_brdf` gives the linear parameters.  ``filter_fn(model, width)`` -> A_l.
 
@@ -334,7 +339,7 @@ def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.00
     param = "exponent" if model == "phong" else "roughness"
 
     def mse_at(log_w: float) -> float:
-        return linear_brdf(data, model, filter_fn(model, float(np.exp(log_w))))[2] / (3 * wsum)
+        return linear_brdf(data, model, filter_fn(model, float(np.exp(log_w)), data.cos_view))[2] / (3 * wsum)
 
     log_grid = np.linspace(np.log(lo), np.log(hi), grid)
     profile = np.array([mse_at(x) for x in log_grid])
@@ -344,7 +349,7 @@ def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.00
     opt.set_upper_bounds([np.log(hi)])
     opt.set_min_objective(lambda x, grad: mse_at(float(x[0])))
     opt.set_initial_step([float(log_grid[1] - log_grid[0]) / 2])
-    opt.set_xtol_abs(1e-4)
+    opt.set_xtol_abs(1e-3)
     opt.set_maxeval(max_evals)
     try:
         best_log = float(opt.optimize([start])[0])
@@ -353,7 +358,7 @@ def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.00
     if mse_at(best_log) > profile.min():
         best_log = start
     width = float(np.exp(best_log))
-    albedo, spec, rss = linear_brdf(data, model, filter_fn(model, width))
+    albedo, spec, rss = linear_brdf(data, model, filter_fn(model, width, data.cos_view))
     mse = rss / (3 * wsum)
     sigma2 = max(mse, (noise_floor * rms_signal) ** 2)
     accepted = np.exp(log_grid[profile - min(mse, profile.min()) <= sigma2])
@@ -372,7 +377,8 @@ def brdf_mse(data: BrdfData, brdf: dict, filter_fn) -> float:
     model = brdf["model"]
     pred = np.asarray(brdf["albedo"])[None, :] * data.diffuse
     if model != "lambert":
-        lobe = data.bands @ filter_fn(model, float(brdf["exponent" if model == "phong" else "roughness"]))
+        filt = filter_fn(model, float(brdf["exponent" if model == "phong" else "roughness"]), data.cos_view)
+        lobe = np.einsum("nlc,nl->nc", data.bands, filt)
         spec = np.asarray(brdf["specular"])[None, :]
         k = spec if model == "phong" else spec * (1.0 - data.grazing[:, None]) + data.grazing[:, None]
         pred = pred + k * lobe

@@ -22,7 +22,7 @@ sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
 from fit_scenes import integrate_radiance, sharp_env, smooth_env, sphere_views, write_scene  # noqa: E402
 
 ALBEDO = [0.6, 0.5, 0.4]
-GLOSSY = {"model": "microfacet", "albedo": [0.3, 0.25, 0.2], "specular": [0.9, 0.9, 0.9], "roughness": 0.15}
+GLOSSY = {"model": "microfacet", "albedo": [0.3, 0.25, 0.2], "specular": [0.9, 0.9, 0.9], "roughness": 0.1}
 
 
 def band_errors(fitted, truth, bands):
@@ -93,3 +93,29 @@ def test_order_auto_lists_candidates(lambert_scene, tmp_path):
     for c in report["candidates"]:
         assert c["params"] > 0 and c["validation_rmse"] >= 0 and c["train_rmse"] >= 0
     assert max(band_errors(read_lighting_sh(work / "fit" / "lighting_sh.json"), project_envmap(env, 2), (0, 1, 2))) < 0.03
+
+
+def test_glossy_known_brdf_recovers_lighting_to_order_8(glossy_scene, tmp_path):
+    capture, work, env = glossy_scene
+    brdf_file = write_brdf(tmp_path / "brdf.json", GLOSSY)
+    run_fit(capture, work, brdf=str(brdf_file), order="16")
+    coeffs = read_lighting_sh(work / "fit" / "lighting_sh.json")
+    errors = band_errors(coeffs, project_envmap(env, 16), range(17))
+    print("glossy lighting band errors", np.round(errors, 4))
+    report = read_report(work / "fit" / "report.json")
+    print([b["label"] for b in report["bands"]])
+    assert max(errors[:9]) < 0.10
+
+
+def test_glossy_known_lighting_recovers_brdf(glossy_scene, tmp_path):
+    capture, work, env = glossy_scene
+    light = write_lighting_sh(tmp_path / "lighting_sh.json", project_envmap(env, 16))
+    run_fit(capture, work, lighting=str(light), brdf="auto")
+    brdf = read_brdf(work / "fit" / "brdf.json")
+    report = read_report(work / "fit" / "report.json")
+    print(brdf, [(c["name"], c["validation_rmse"]) for c in report["candidates"]])
+    assert brdf["model"] == "microfacet"
+    assert np.max(np.abs(np.array(brdf["albedo"]) / GLOSSY["albedo"] - 1)) < 0.02
+    assert np.max(np.abs(np.array(brdf["specular"]) / GLOSSY["specular"] - 1)) < 0.10
+    assert abs(brdf["roughness"] / GLOSSY["roughness"] - 1) < 0.10
+    assert report["brdf_width"]["width_recoverable"] is True
