@@ -427,14 +427,25 @@ BAD_INPUTS = {
 }
 
 
+SUBPROCESS_CASES = {"millimetres", "missing image"}  # the rest in-process: same cli.main, no interpreter start-up
+
+
 @pytest.mark.parametrize("case", sorted(BAD_INPUTS))
-def test_bad_input_is_one_line_and_exit_2(good_work, case):
+def test_bad_input_is_one_line_and_exit_2(good_work, case, capsys):
+    from pipeline.cli import main
+
     capture, work = good_work
     before = {p.name: p.read_bytes() for p in work.iterdir() if p.is_file()}
     breaker, message = BAD_INPUTS[case]
     breaker(capture)
-    result = sigrend("samples", capture, "-w", work, "--force")
-    assert result.returncode == 2, result.stderr
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and message in lines[0], result.stderr
+    if case in SUBPROCESS_CASES:
+        result = sigrend("samples", capture, "-w", work, "--force")
+        code, stderr = result.returncode, result.stderr
+    else:
+        capsys.readouterr()
+        code = main(["samples", str(capture), "-w", str(work), "--force"])
+        stderr = capsys.readouterr().err
+    assert code == 2, stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], stderr
     assert {p.name: p.read_bytes() for p in work.iterdir() if p.is_file()} == before
