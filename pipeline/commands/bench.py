@@ -32,6 +32,8 @@ SUITES: dict[str, tuple[str, str]] = {
                   "pipeline.commands.bench_linearize:linearize_suite"),
     "stability": ("error vs noise: inverse lighting (Lambertian vs glossy), BRDF estimation (sharp vs soft "
                   "lighting); charts + stability.csv in DIR", "pipeline.bench_pipeline:stability_suite"),
+    "synth": ("reference renderer: seconds per 512x512 bunny view under a 128x64 env, Lambert/microfacet, "
+              "with/without shadows", "pipeline.synth:synth_bench_suite"),
     "pipeline": ("speed vs accuracy of samples -> fit -> relight on synthetic scenes (SH order, data, fit mode); "
                  "bench.csv + bench.png (Pareto front) in DIR", "pipeline.bench_pipeline:pipeline_suite"),
 }
