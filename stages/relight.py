@@ -304,20 +304,22 @@ def bilinear_lookup(env: np.ndarray, dirs: np.ndarray) -> np.ndarray:
 
 
 class Lighting:
-    """New lighting prepared for one BRDF: the irradiance SH and the lobe-filtered lighting (SH or map).
+    """New lighting prepared for one BRDF: the irradiance SH and the lobe-filtered lighting (SH or maps).
 
     Give ``coeffs`` (SH lighting, ((L+1)^2, 3)) or ``env`` (an equirect map (H, 2H, 3)).  SH
     lighting is band-limited, so the filtered sums are exact to its order; an env map is
     projected to the bands the lobe needs, or prefiltered in the angular domain for sharp lobes.
+    The lobe filter is the forward model's per-sample one (forward.sample_lobe_filters: Phong's is
+    fixed, the microfacet one depends on n.v, tabulated on forward.VIEW_COS_GRID); sharp
+    view-dependent lobes get one prefiltered map per grid entry, interpolated like the filters.
     """
 
     def __init__(self, brdf: dict, *, coeffs: np.ndarray | None = None, env: np.ndarray | None = None,
                  lobe_sh_order: int = 24, prefilter_height: int = 128, source: str = ""):
         self.source = source
         self.brdf = brdf
-        filt = brdf_lobe_filter(brdf, MAX_LOBE_ORDER)
-        lobe_order = needed_order(filt)
-        self.prefiltered = None
+        lobe_order = needed_order(brdf_lobe_filter(brdf, MAX_LOBE_ORDER))
+        self.prefiltered: list[np.ndarray] | None = None
         if coeffs is not None:
             coeffs = np.asarray(coeffs, float)
             order = order_of(coeffs.shape[0])
@@ -327,15 +329,25 @@ class Lighting:
             order = max(DIFFUSE_ORDER, 0 if sharp else lobe_order)
             coeffs = project_envmap(env, order)
             if sharp:
-                self.prefiltered = prefilter_envmap(env, filt, prefilter_height)
+                self.prefiltered = [prefilter_envmap(env, filt, prefilter_height)
+                                    for filt in self._grid_filters(lobe_order)]
             self.kind = "envmap"
         self.order = order
         d_order = min(order, DIFFUSE_ORDER) if self.kind == "envmap" else order
         self.diffuse_lighting = coeffs[:num_coeffs(d_order)]
-        self.lobe = None
-        if self.prefiltered is None and lobe_order > 0:
-            self.lobe = filt[:order + 1][band_of_index(order)][:, None] * coeffs      # A_l L_lm
+        self.lobe_lighting = coeffs if lobe_order > 0 and self.prefiltered is None else None
         self.lobe_order = lobe_order
+
+    def _width(self) -> tuple[str, float]:
+        model = self.brdf["model"]
+        return model, float(self.brdf[forward.WIDTH_PARAM[model]])
+
+    def _grid_filters(self, order: int) -> np.ndarray:
+        """The lobe's filters on forward.VIEW_COS_GRID (one row for a view-independent lobe)."""
+        model, width = self._width()
+        if model == "phong":
+            return np.asarray(forward.lobe_filter(model, width, order), float)[None, :]
+        return np.asarray(forward.sample_lobe_filters(model, width, order, forward.VIEW_COS_GRID), float)
 
     @classmethod
     def from_file(cls, path: Path, brdf: dict, **kwargs) -> "Lighting":
@@ -350,6 +362,30 @@ class Lighting:
                 "lobe": "none" if self.lobe_order == 0 else
                 ("prefiltered map" if self.prefiltered is not None else "sh")}
 
+    def _filtered_lobe(self, r: np.ndarray, cos_view: np.ndarray, chunk: int = 8192) -> np.ndarray:
+        """sum_l A_l(n.v) sum_m L_lm Y_lm(r) per sample (N, 3)."""
+        if self.prefiltered is not None:
+            if len(self.prefiltered) == 1:
+                return bilinear_lookup(self.prefiltered[0], r)
+            grid = forward.VIEW_COS_GRID
+            x = np.clip(cos_view, grid[0], grid[-1])
+            pos = (x - grid[0]) / (grid[1] - grid[0])
+            i = np.minimum(pos.astype(np.int64), len(grid) - 2)
+            frac = (pos - i)[:, None]
+            out = np.zeros((len(r), 3))
+            for j in np.unique(i):
+                sel = i == j
+                out[sel] = ((1 - frac[sel]) * bilinear_lookup(self.prefiltered[j], r[sel])
+                            + frac[sel] * bilinear_lookup(self.prefiltered[j + 1], r[sel]))
+            return out
+        model, width = self._width()
+        out = np.empty((len(r), 3))
+        for s in range(0, len(r), chunk):
+            bands = forward.band_projections(self.lobe_lighting, r[s:s + chunk])               # (n, L+1, 3)
+            filt = forward.sample_lobe_filters(model, width, self.order, cos_view[s:s + chunk])  # (n, L+1)
+            out[s:s + chunk] = np.einsum("nl,nlc->nc", filt, bands)
+        return out
+
     def radiance(self, normal: np.ndarray, view_dir: np.ndarray, albedo: np.ndarray) -> np.ndarray:
         """Outgoing radiance (N, 3) at unit normals and unit directions to the viewer (N, 3).
 
@@ -360,11 +396,9 @@ class Lighting:
         if self.lobe_order > 0:
             r = forward.reflect_view(view_dir, normal)
             r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-12)
-            filtered = bilinear_lookup(self.prefiltered, r) if self.prefiltered is not None \
-                else sh_evaluate(self.lobe, r)
+            cos_view = np.einsum("ij,ij->i", normal, view_dir)
             k = forward.lobe_factor(self.brdf, forward.fresnel_grazing(normal, view_dir))
-            front = (np.einsum("ij,ij->i", normal, view_dir) > 0)[:, None]
-            out = out + np.where(front, k * filtered, 0.0)
+            out = out + np.where((cos_view > 0)[:, None], k * self._filtered_lobe(r, cos_view), 0.0)
         return np.maximum(out, 0.0)
 
 
