@@ -10,6 +10,7 @@ Writes, in DESIGN.md's conventions:
     CAPTURE/gt/lighting_sh.json           its SH projection, order 20 (pipeline.core.sh.project_envmap)
     CAPTURE/gt/brdf.json, gt/poses.json, gt/masks/<view>.png (object pixels = 255)
     CAPTURE/gt/synth.json                 the settings and the radiometric scale
+    CAPTURE/gt/albedo.ply                 with --texture: per-vertex linear albedo as vertex colours (x 255)
 
 Radiometry: images hold value = radiance * t (ISO/100) / N^2 (pipeline.io.camera_files), so the
 linearize stage's ``value * N^2 / (t ISO/100)`` gives back the rendered radiance, on the same
@@ -63,6 +64,8 @@ class SynthSettings:
     elevation: tuple[float, float] = setting((20.0, 65.0), "min and max camera elevation, degrees (ring: the mean)")
     distance: float = setting(3.0, "camera distance in units of the framed radius")
     shadows: bool = setting(True, "shadow rays (self-shadowing, board occludes the lower hemisphere)")
+    texture: str = setting("none", "per-vertex albedo: 'none', 'stripes[:freq=6,contrast=0.6]' (high frequency) or "
+                           "'smooth[:freq=1,contrast=0.5]' (low frequency); written to gt/albedo.ply")
     cell_height: int = setting(16, "rows of the coarse direction grid for the dim part of the env (render.py)")
     fnumber: float = setting(8.0, "f-number written to EXIF")
     seed: int = setting(0, "random seed (noise)")
@@ -82,6 +85,7 @@ class SynthSettings:
         if self.mesh_size <= 0 or self.distance <= 0:
             raise UserError("--mesh-size and --distance must be positive")
         parse_noise(self.noise, self.format)
+        parse_texture(self.texture)
 
 
 def parse_noise(spec: str, fmt: str) -> dict | None:
@@ -102,6 +106,52 @@ def parse_noise(spec: str, fmt: str) -> dict | None:
         if key is None or out[key] < 0:
             raise UserError(f"--noise {spec!r}: use 'none', 'auto' or 'full_well=E,read=R' with non-negative numbers")
     return out
+
+
+TEXTURES = {"stripes": {"freq": 6.0, "contrast": 0.6}, "smooth": {"freq": 1.0, "contrast": 0.5}}
+
+
+def parse_texture(spec: str) -> tuple[str, dict] | None:
+    """Texture spec -> (name, params) or None for 'none'."""
+    name, _, rest = spec.strip().partition(":")
+    if name == "none":
+        return None
+    if name not in TEXTURES:
+        raise UserError(f"--texture {spec!r}: use 'none', 'stripes[:freq=F,contrast=C]' or 'smooth[:freq=F,contrast=C]'")
+    params = dict(TEXTURES[name])
+    for token in filter(None, (t.strip() for t in rest.split(","))):
+        key, _, value = token.partition("=")
+        try:
+            params[key.strip()] = float(value)
+        except ValueError:
+            key = ""
+        if key.strip() not in TEXTURES[name]:
+            raise UserError(f"--texture {spec!r}: parameters are freq=F, contrast=C (numbers)")
+    if not 0 <= params["contrast"] <= 1 or params["freq"] <= 0:
+        raise UserError(f"--texture {spec!r}: contrast must be in [0, 1] and freq positive")
+    return name, params
+
+
+def texture_albedo(mesh, albedo: np.ndarray, spec: str) -> np.ndarray | None:
+    """Per-vertex linear albedo (V, 3) = albedo x (1 - contrast x pattern), quantized to 1/255 (as stored).
+
+    stripes: pattern = [sin(2 pi freq (x + y + z) / size) > 0], sharp bands (high frequency);
+    smooth: pattern = (1 + sin(2 pi freq x / size) cos(2 pi freq y / size)) / 2 (low frequency);
+    coordinates relative to the bounding-box centre, size = the longest side.
+    """
+    parsed = parse_texture(spec)
+    if parsed is None:
+        return None
+    name, p = parsed
+    lo, hi = mesh.bounds
+    q = (np.asarray(mesh.vertices) - (lo + hi) / 2) / float((hi - lo).max())
+    w = 2 * np.pi * p["freq"]
+    if name == "stripes":
+        pattern = (np.sin(w * q.sum(axis=1)) > 0).astype(float)
+    else:
+        pattern = 0.5 * (1 + np.sin(w * q[:, 0]) * np.cos(w * q[:, 1]))
+    rgb = np.asarray(albedo, float)[None, :] * (1 - p["contrast"] * pattern)[:, None]
+    return np.round(rgb * 255) / 255
 
 
 # -- inputs ---------------------------------------------------------------------------------------
@@ -258,7 +308,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     from pipeline.io.camera_files import Exposure, add_sensor_noise, sensor_value, write_camera_file
     from pipeline.io.images import write_image
     from pipeline.io.poses import ImagePose, Poses, write_poses
-    from pipeline.workdir import write_json, write_text
+    from pipeline.workdir import atomic_path, write_json, write_text
 
     settings.validate()
     out = Path(out_dir)
@@ -267,7 +317,9 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     mesh = load_mesh(settings.mesh, settings.mesh_size, settings.mesh_up)
     board, board_table = make_board(settings.mesh_size) if settings.board else (None, None)
     camera, view_poses = make_views(mesh, settings, board.size if board else None)
-    renderer = Renderer(mesh, env, brdf, shadows=settings.shadows, board=board, cell_height=settings.cell_height)
+    vertex_albedo = texture_albedo(mesh, brdf["albedo"], settings.texture)
+    renderer = Renderer(mesh, env, brdf, shadows=settings.shadows, board=board, cell_height=settings.cell_height,
+                        vertex_albedo=vertex_albedo)
     noise = parse_noise(settings.noise, settings.format)
     rng = np.random.default_rng(settings.seed)
     iso = 100.0
@@ -308,11 +360,16 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     if settings.poses:
         written.append(write_poses(out / "poses.json", poses))
     mesh_path = out / "mesh.ply"
-    from pipeline.workdir import atomic_path
 
     with atomic_path(mesh_path) as tmp:
         mesh.export(tmp, file_type="ply")
     written.append(mesh_path)
+    if vertex_albedo is not None:  # DESIGN.md: per-vertex linear albedo as PLY vertex colours (x 255)
+        textured = mesh.copy()
+        textured.visual.vertex_colors = np.round(vertex_albedo * 255).astype(np.uint8)
+        with atomic_path(out / "gt" / "albedo.ply") as tmp:
+            textured.export(tmp, file_type="ply")
+        written.append(out / "gt" / "albedo.ply")
     written.append(write_text(out / "capture.toml", _capture_toml(board_table, brackets, iso)))
     written.append(write_image(out / "gt" / "lighting.exr", env, dtype="float"))
     written.append(write_brdf(out / "gt" / "brdf.json", brdf))

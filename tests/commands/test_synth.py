@@ -140,3 +140,22 @@ def test_bad_input_is_one_line_exit_2(tmp_path, capsys):
         assert len(err.strip().splitlines()) == 1, err
         assert words in err, err
         assert not (out / "images").exists() or not any((out / "images").iterdir())
+
+
+def test_env_file_and_texture_round_trip(tiny_capture, tmp_path):
+    """Rendering with the written gt/lighting.exr as --env gives the same images; textures land in gt/albedo.ply."""
+    import trimesh
+
+    first = tiny_capture(views=2, size=(48, 48), noise="none")
+    again = tmp_path / "again"
+    assert cli_main(["synth", "--views", "2", "--size", "48x48", "--brdf", "lambert:albedo=0.6", "--env",
+                     str(first / "gt" / "lighting.exr"), "-o", str(again)]) == 0
+    for key in ("0000.exr", "0001.exr"):
+        np.testing.assert_allclose(read_image(again / "images" / key), read_image(first / "images" / key), rtol=1e-6)
+    textured = tmp_path / "textured"
+    assert cli_main(["synth", "--views", "1", "--size", "48x48", "--brdf", "lambert:albedo=0.8",
+                     "--texture", "stripes:freq=3", "-o", str(textured)]) == 0
+    albedo = np.asarray(trimesh.load(textured / "gt" / "albedo.ply").visual.vertex_colors, float)[:, :3] / 255
+    # stripes of contrast 0.6 on albedo 0.8: exactly two levels, 0.8 and 0.32 (to 1/255)
+    np.testing.assert_allclose(np.unique(np.round(albedo[:, 0], 2)), [0.32, 0.8])
+    assert cli_main(["synth", "--texture", "plaid", "-o", str(tmp_path / "bad")]) == 2
