@@ -41,13 +41,14 @@ from pipeline.errors import UserError
 from pipeline.io.camera_decode import probe
 from pipeline.io.images import read_image
 from pipeline.io.linear_manifest import linear_dir, manifest_path, read_linear_image, read_manifest, resolve_key
+from pipeline.io.mesh import mesh_path, read_mesh
 from pipeline.io.poses import Poses, read_poses
 from pipeline.io.samples import SAMPLE_FIELDS, SamplesWriter
 from pipeline.settings import setting, settings_dict
 from pipeline.workdir import atomic_path, write_json
 
-MESH_NAMES = ("mesh.ply", "mesh.obj", "mesh.glb")
 LINEAR_SUFFIXES = (".exr", ".hdr", ".tif", ".tiff")
+load_mesh = read_mesh  # the name pipeline/report.py imports from here
 DROP_REASONS = ("background", "silhouette_edge", "hidden", "grazing", "masked", "max_samples")
 
 
@@ -87,14 +88,6 @@ class Settings:
 
 # ---------------------------------------------------------------------------------------------
 # where things are
-
-
-def mesh_path(capture: Path) -> Path:
-    """The capture's mesh file (first of mesh.ply, mesh.obj, mesh.glb)."""
-    for name in MESH_NAMES:
-        if (Path(capture) / name).exists():
-            return Path(capture) / name
-    raise UserError(f"{capture}: no mesh found; put the object's mesh in the capture as {' or '.join(MESH_NAMES)}")
 
 
 def poses_path(capture: Path, work: Path) -> Path:
@@ -192,19 +185,6 @@ def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
 
 # ---------------------------------------------------------------------------------------------
 # geometry
-
-
-def load_mesh(path: Path):
-    """The mesh as one trimesh.Trimesh (scenes are concatenated); UserError if unreadable or empty."""
-    import trimesh
-
-    try:
-        mesh = trimesh.load(path, force="mesh", process=True)
-    except Exception as exc:  # trimesh raises many types for malformed files
-        raise UserError(f"{path}: cannot read the mesh ({exc}); export it again as PLY or OBJ") from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise UserError(f"{path}: the mesh has no triangles")
-    return mesh
 
 
 def cosine_hemisphere_directions(count: int) -> np.ndarray:
@@ -448,7 +428,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         scales = exposure_scales(capture, keys)
     else:
         scales = dict.fromkeys(keys, 1.0)
-    mesh = load_mesh(mesh_file)
+    mesh = read_mesh(mesh_file)
     visibility = vertex_visibility(mesh, settings.visibility_rays, settings.chunk_pixels)
     grid = EqualAreaGrid()
     normal_hist = np.zeros(grid.shape)

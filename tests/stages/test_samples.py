@@ -21,6 +21,7 @@ from pipeline.core.camera import Camera, camera_center, look_at, pixel_centers, 
 from pipeline.core.coverage import EqualAreaGrid
 from pipeline.errors import UserError
 from pipeline.io.images import write_image
+from pipeline.io.mesh import read_mesh
 from pipeline.io.poses import ImagePose, Poses, write_poses
 from pipeline.io.samples import read_samples
 from pipeline.settings import make_settings
@@ -322,7 +323,7 @@ def test_occlusion_edge_in_front_of_a_wall(tmp_path):
     assert drops["silhouette_edge"] > 0
     # non-convex scene: stored visibility = the vertices' visibility interpolated with the barycentrics
     a, _ = read_samples(tmp_path / "work" / "samples.npz", ["face", "bary", "visibility"])
-    mesh = samples_stage.load_mesh(capture / "mesh.ply")
+    mesh = read_mesh(capture / "mesh.ply")
     per_vertex = samples_stage.vertex_visibility(mesh, 64)
     expected = np.sum(a["bary"] * per_vertex[mesh.faces[a["face"]]], axis=1)
     np.testing.assert_allclose(a["visibility"], expected, atol=1e-6)  # float32 storage

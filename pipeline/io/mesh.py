@@ -1,0 +1,35 @@
+"""The capture's mesh file (DESIGN.md: CAPTURE/mesh.{ply,obj,glb}, object frame, metres) via trimesh."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from pipeline.errors import UserError
+
+MESH_NAMES = ("mesh.ply", "mesh.obj", "mesh.glb")
+
+
+def mesh_path(capture: str | os.PathLike) -> Path:
+    """The capture's mesh file (first of mesh.ply, mesh.obj, mesh.glb); UserError if there is none."""
+    for name in MESH_NAMES:
+        if (Path(capture) / name).exists():
+            return Path(capture) / name
+    raise UserError(f"{capture}: no mesh found; put the object's mesh in the capture as {' or '.join(MESH_NAMES)}")
+
+
+def read_mesh(path: str | os.PathLike):
+    """One trimesh.Trimesh (a scene's geometries concatenated, vertices merged); UserError if the
+    file is missing, unreadable or has no triangles."""
+    import trimesh  # lazily: keeps `sigrend --help` fast
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: mesh file not found")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many types for malformed files
+        raise UserError(f"{path}: cannot read the mesh ({exc}); export it again as PLY or OBJ") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise UserError(f"{path}: the mesh has no triangles; a triangle mesh is needed")
+    return mesh
