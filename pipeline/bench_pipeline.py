@@ -117,17 +117,13 @@ def stability_lighting(rng: np.random.Generator, order: int = 8, trials: int = 3
 
 
 def brdf_data(normal, view, radiance, coeffs):
-    """pipeline.core.solve.BrdfData of samples under known SH lighting ``coeffs`` (all in one fold)."""
-    from pipeline.core import forward
-    from pipeline.core.solve import BrdfData
-    from pipeline.core.transfer import irradiance_from_sh
+    """pipeline.core.solve.BrdfData of samples under known SH lighting ``coeffs`` (one fold), built
+    by the fit stage's own helper."""
+    from stages.fit import brdf_data as fit_brdf_data
 
-    bands = forward.band_projections(coeffs, forward.reflect_view(view, normal))    # (N, L+1, 3)
     n = len(normal)
-    return BrdfData(diffuse=irradiance_from_sh(coeffs, normal) / np.pi,
-                    bands=np.ascontiguousarray(bands.transpose(0, 2, 1)),          # (N, 3, L+1): @ A_l -> (N, 3)
-                    grazing=forward.fresnel_grazing(normal, view), radiance=radiance,
-                    weight=np.ones(n), fold=np.zeros(n, int))
+    return fit_brdf_data({"normal": normal, "view_dir": view, "radiance": radiance, "weight": np.ones(n),
+                          "image_id": np.zeros(n, int)}, coeffs, 1)
 
 
 def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
@@ -146,13 +142,16 @@ def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
     for name, coeffs in lightings.items():
         clean = forward.render_samples(coeffs, truth, normal, view)
         data = brdf_data(normal, view, clean, coeffs)
-        l_max = data.bands.shape[2] - 1
+        l_max = data.bands.shape[1] - 1
+
+        def filter_fn(model, width, cos_view=None, l_max=l_max, data=data):
+            """Per-sample A_l (N, L+1) of the forward model, as the fit's solver asks for them."""
+            return forward.sample_lobe_filters(model, width, l_max, data.cos_view if cos_view is None else cos_view)
         for noise in NOISE_LEVELS:
             w_err, s_err = [], []
             for _ in range(trials):
                 data.radiance = clean + noise * clean.mean() * rng.normal(size=clean.shape)
-                fit = fit_brdf(data, "phong", lambda model, width: forward.lobe_filter(model, width, l_max),
-                               noise_floor=1e-6)["brdf"]
+                fit = fit_brdf(data, "phong", filter_fn, noise_floor=1e-6)["brdf"]
                 w_err.append(abs(fit["exponent"] / exponent - 1.0))
                 s_err.append(float(np.abs(np.asarray(fit["specular"]) - specular).mean() / specular))
             rows.append({"problem": "BRDF estimation", "scene": name, "noise": noise,
