@@ -58,7 +58,7 @@ class Settings:
     noise_floor: float = setting(0.005, "noise assumed at least this fraction of the RMS radiance (calibration, model error)")
     min_snr: float = setting(10.0, "a band is recoverable when its SNR (docs/fit.md) reaches this")
     band_prior: float = setting(0.3, "Tikhonov prior scale of ill-conditioned bands, as a fraction of the DC lighting")
-    iterations: int = setting(6, "alternations lighting <-> BRDF in the factorization")
+    iterations: int = setting(3, "alternations lighting <-> BRDF in the factorization after the joint linear start")
     max_samples: int = setting(400000, "samples held in memory for BRDF and factorization fits (random subset)")
     chunk: int = setting(262144, "samples per chunk when streaming the normal equations")
     env_height: int = setting(64, "height of fit/lighting.exr (width = 2 x height)")
@@ -293,17 +293,62 @@ def lighting_step(data: dict, brdf: dict, order: int, settings: Settings, labels
                                 independent_groups=len(np.unique(data["image_id"])))
 
 
+JOINT_WIDTHS = 9      # lobe widths tried by the joint linear initialization (log grid over the bounds)
+
+
+def joint_initialization(data: dict, model: str, order: int, albedo0: np.ndarray,
+                         settings: Settings) -> tuple[np.ndarray, dict]:
+    """Lambertian start plus a lobe, from one linear solve per trial width.
+
+    With X_c = rho_c L_c (diffuse, bands 0-2: what a Lambertian object determines) and
+    Y_c = k_c L_c (lobe, all bands), radiance = D X_c + S_w Y_c is linear; the rank-one
+    constraint X_c = (rho_c / k_c) Y_c on bands 0-2 gives the diffuse/specular ratio.  The width
+    whose constrained prediction fits best is kept; k_c = 1 until the scale convention.
+    """
+    low = num_coeffs(min(order, 2))
+    k = num_coeffs(order)
+    n = len(data["weight"])
+    sw = np.sqrt(data["weight"])
+    lo, hi = solve.WIDTH_BOUNDS[model]
+    best = None
+    for width in np.exp(np.linspace(np.log(lo), np.log(hi), JOINT_WIDTHS)):
+        gram = np.zeros((low + k, low + k))
+        rhs = np.zeros((low + k, 3))
+        for s0 in range(0, n, settings.chunk):
+            sl = slice(s0, s0 + settings.chunk)
+            terms = forward.design_terms(data["normal"][sl], data["view_dir"][sl], order, True)
+            filt = forward.sample_lobe_filters(model, float(width), order, terms.cos_view)
+            a = np.concatenate([terms.diffuse[:, :low], terms.reflected * filt[:, band_of_index(order)]], axis=1)
+            a *= sw[sl, None]
+            gram += a.T @ a
+            rhs += a.T @ (data["radiance"][sl] * sw[sl, None])
+        ridge = 1e-8 * np.trace(gram) / len(gram)
+        z = np.linalg.solve(gram + ridge * np.eye(len(gram)), rhs)            # (low + K, 3)
+        x, y = z[:low], z[low:]
+        ratio = np.maximum((x * y[:low]).sum(axis=0) / np.maximum((y[:low] ** 2).sum(axis=0), 1e-300), 0.0)
+        constrained = np.concatenate([ratio[None, :] * y[:low], y])
+        btb = (data["radiance"] ** 2 * data["weight"][:, None]).sum(axis=0)
+        rss = float((btb - 2 * (constrained * rhs).sum(axis=0)
+                     + np.einsum("ic,ij,jc->c", constrained, gram, constrained)).sum())
+        if best is None or rss < best[0]:
+            best = (rss, width, ratio, y)
+    _, width, ratio, y = best
+    brdf = {"model": model, "albedo": ratio.tolist(), "specular": [1.0, 1.0, 1.0], forward.WIDTH_PARAM[model]: float(width)}
+    return y, brdf
+
+
 def factorize(data: dict, model: str, order: int, albedo0: np.ndarray, settings: Settings) -> tuple[np.ndarray, dict]:
-    """Alternate lighting <- BRDF and BRDF <- lighting from the Lambertian start (albedo0)."""
+    """Lighting and BRDF together: the Lambertian solution (lambert), or the joint linear start
+    (:func:`joint_initialization`) refined by alternating BRDF <- lighting (variable projection)
+    and lighting <- BRDF (regularized normal equations)."""
     fn = lambda m, w, c: _filter_fn(m, w, order, c)  # noqa: E731
-    brdf = {"model": "lambert", "albedo": albedo0.tolist()}
-    coeffs = lighting_step(data, brdf, order, settings).coeffs
-    for _ in range(settings.iterations if model != "lambert" else 1):
+    if model == "lambert":
+        brdf = {"model": "lambert", "albedo": albedo0.tolist()}
+        return lighting_step(data, brdf, order, settings).coeffs, brdf
+    coeffs, brdf = joint_initialization(data, model, order, albedo0, settings)
+    for _ in range(settings.iterations):
         bd = brdf_data(data, coeffs, settings.folds)
-        fitted = solve.fit_brdf(bd, model, fn, noise_floor=settings.noise_floor)
-        brdf = fitted["brdf"]
-        if np.max(brdf["albedo"]) <= 0:
-            break
+        brdf = solve.fit_brdf(bd, model, fn, noise_floor=settings.noise_floor)["brdf"]
         coeffs = lighting_step(data, brdf, order, settings).coeffs
     return coeffs, brdf
 
