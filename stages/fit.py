@@ -240,7 +240,8 @@ def choose_order(eqs: solve.NormalEquations, brdf: dict, settings: Settings, max
     else:
         orders = [o for o in range(eqs.order + 1) if num_coeffs(o) <= max_carried] or [0]
     cands = solve.cross_validate_orders(eqs, orders, scale, **kw)
-    pick = solve.parsimonious_choice(cands, settings.parsimony) if explicit is None else 0
+    floor = settings.noise_floor * float(np.sqrt(eqs.btb.sum() / (3 * max(eqs.weight.sum(), 1e-300))))
+    pick = solve.parsimonious_choice(cands, settings.parsimony, noise=floor) if explicit is None else 0
     return cands[pick]["fit"], cands, cands[pick]["order"]
 
 
@@ -485,7 +486,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             t0 = time.perf_counter()
             bd = brdf_data(data, coeffs, settings.folds)
             cands = fit_brdf_models(bd, models, settings, order_of(coeffs.shape[0]))
-            pick = solve.parsimonious_choice(cands, settings.parsimony)
+            pick = solve.parsimonious_choice(cands, settings.parsimony, noise=settings.noise_floor * _rms(data))
             brdf = cands[pick]["fit"]["brdf"]
             report["brdf_width"] = {k: v for k, v in cands[pick]["fit"].items() if k not in ("brdf",)}
             candidates = [{k: v for k, v in c.items() if k != "fit"} for c in cands]
@@ -515,7 +516,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
                 cands.append({"name": model, "params": 3 * num_coeffs(work_order) + 3 + n_lobe, "train_rmse": tr,
                               "validation_rmse": val, "seconds": time.perf_counter() - tm,
                               "fit": (c_a, b_a)})
-            pick = solve.parsimonious_choice(cands, settings.parsimony)
+            pick = solve.parsimonious_choice(cands, settings.parsimony, noise=settings.noise_floor * _rms(data))
             coeffs, brdf = cands[pick]["fit"]
             coeffs, brdf, scale = apply_scale_convention(coeffs, brdf, target)
             report["scale_convention"] = {
@@ -558,6 +559,10 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     report["timings"] = timings
     written.insert(3, write_report(out / "report.json", report))
     return written
+
+
+def _rms(data: dict) -> float:
+    return float(np.sqrt((data["radiance"] ** 2 * data["weight"][:, None]).sum() / (3 * data["weight"].sum())))
 
 
 def _check_counts(eqs: solve.NormalEquations, cover: dict, explicit: int | None, path: Path) -> None:
