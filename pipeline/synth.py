@@ -164,15 +164,9 @@ def load_mesh(spec: str, mesh_size: float, up: str = "y"):
         mesh = trimesh.creation.icosphere(subdivisions=4 if spec == "sphere" else 2, radius=1.0)
         up = "z"
     else:
-        path = Path(spec)
-        if not path.is_file():
-            raise UserError(f"{path}: mesh file not found (or use 'sphere')")
-        try:
-            mesh = trimesh.load(path, force="mesh", process=True)
-        except Exception as exc:  # trimesh raises many types on malformed files
-            raise UserError(f"{path}: cannot read this mesh ({exc})") from None
-        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-            raise UserError(f"{path}: the mesh has no faces; synth needs a triangle mesh")
+        from pipeline.io.mesh import read_mesh
+
+        mesh = read_mesh(spec)  # UserError when missing, unreadable or without faces
     mesh = mesh.copy()
     if up == "y":  # +Y up -> +Z up: rotate +90 degrees about X
         mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))

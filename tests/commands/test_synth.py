@@ -126,7 +126,7 @@ def test_bad_input_is_one_line_exit_2(tmp_path, capsys):
     write_image(square_env, np.ones((8, 8, 3), np.float32))
     cases = {
         "unknown BRDF model": ["--brdf", "velvet:albedo=0.5"],
-        "has no faces": ["--mesh", faceless],
+        "has no triangles": ["--mesh", faceless],
         "inside the mesh": ["--distance", "0.5"],
         "width = 2*height": ["--env", square_env],
         "unknown environment": ["--env", "disco"],
