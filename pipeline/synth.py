@@ -55,6 +55,7 @@ class SynthSettings:
     format: Literal["exr", "tiff", "jpeg", "dng"] = setting("exr", "image file format")
     board: bool = setting(False, "put a ChArUco board under the object (z = 0)")
     brackets: int = setting(1, "exposures per view (2 EV apart); >1 writes [brackets] in capture.toml")
+    vary_exposure: float = setting(0.0, "per-view exposure offsets, uniform in +-STOPS EV (seeded), like an auto-exposing camera")
     noise: str = setting("auto", "'none', 'auto' (on for tiff/jpeg/dng, off for exr) or "
                          "'full_well=E,read=R' (electrons at full scale, read-noise sigma in full scale)")
     poses: bool = setting(True, "write poses.json into the capture (always written to gt/)")
@@ -82,6 +83,8 @@ class SynthSettings:
             raise UserError(f"--format {self.format!r}: use one of {', '.join(FORMATS)}")
         if self.brackets < 1:
             raise UserError(f"--brackets must be >= 1, got {self.brackets}")
+        if not 0 <= self.vary_exposure <= 6:
+            raise UserError(f"--vary-exposure {self.vary_exposure}: use 0..6 stops")
         if self.mesh_size <= 0 or self.distance <= 0:
             raise UserError("--mesh-size and --distance must be positive")
         parse_noise(self.noise, self.format)
@@ -316,6 +319,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
                         vertex_albedo=vertex_albedo)
     noise = parse_noise(settings.noise, settings.format)
     rng = np.random.default_rng(settings.seed)
+    exposure_rng = np.random.default_rng([settings.seed, 1])  # independent of the noise stream
     iso = 100.0
     written: list[Path] = []
     poses = Poses(cameras={"cam0": camera})
@@ -334,8 +338,9 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
             t_base = _auto_exposure_time(result.radiance, result.object_mask, settings.fnumber, iso)
         stem = f"{i:04d}"
         keys = []
+        view_stops = exposure_rng.uniform(-settings.vary_exposure, settings.vary_exposure)
         for k in range(settings.brackets):
-            step = k - (settings.brackets - 1) / 2
+            step = k - (settings.brackets - 1) / 2 + view_stops / 2  # 4**(stops/2) = 2**stops
             exposure = Exposure(time=float(f"{t_base * 4.0 ** step:.3g}"), iso=iso, fnumber=settings.fnumber)
             value = sensor_value(result.radiance, exposure)
             if noise is not None:

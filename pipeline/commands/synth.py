@@ -51,6 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--format", choices=FORMATS, default=d.format, help=_help("format"))
     parser.add_argument("--board", action="store_true", help=_help("board"))
     parser.add_argument("--brackets", type=int, default=d.brackets, help=_help("brackets"))
+    parser.add_argument("--vary-exposure", type=float, default=d.vary_exposure, metavar="STOPS",
+                        help=_help("vary_exposure"))
     parser.add_argument("--noise", default=d.noise, help=_help("noise"))
     parser.add_argument("--no-poses", dest="poses", action="store_false", help="leave poses.json out of the "
                         "capture (it is still written to gt/poses.json)")

@@ -159,3 +159,21 @@ def test_env_file_and_texture_round_trip(tiny_capture, tmp_path):
     # stripes of contrast 0.6 on albedo 0.8: exactly two levels, 0.8 and 0.32 (to 1/255)
     np.testing.assert_allclose(np.unique(np.round(albedo[:, 0], 2)), [0.32, 0.8])
     assert cli_main(["synth", "--texture", "plaid", "-o", str(tmp_path / "bad")]) == 2
+
+
+def test_camera_values_divide_back_to_the_rendered_radiance(tiny_capture):
+    """value * N^2 / (t ISO/100) of 16-bit TIFFs with per-view exposures equals the EXR radiance (docs/synth.md)."""
+    exr = tiny_capture(views=3, size=(48, 48), noise="none")
+    tif = tiny_capture(views=3, size=(48, 48), noise="none", fmt="tiff", vary_exposure=2.0)
+    iso = read_capture_config(tif).exposure_for("0000.tif").iso
+    times = set()
+    for i in range(3):
+        value, meta = read_image(tif / "images" / f"{i:04d}.tif", with_metadata=True)
+        radiance = read_image(exr / "images" / f"{i:04d}.exr")
+        times.add(round(meta["ExposureTime"], 6))
+        scale = meta["FNumber"] ** 2 / (meta["ExposureTime"] * iso / 100)
+        ok = (value < 0.99) & (value > 0.01)  # unclipped, well above 16-bit quantization
+        assert ok.sum() > 1000
+        # in value units: 16-bit quantization (0.5/65535) plus float32 EXIF t and N (rtol 1e-5)
+        np.testing.assert_allclose(value[ok], radiance[ok] / scale, rtol=1e-5, atol=0.51 / 65535)
+    assert len(times) == 3  # exposures really differ per view
