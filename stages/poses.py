@@ -65,6 +65,8 @@ class Settings:
                 "pnp: board PnP only")
     board_bundle_adjustment: bool = setting(
         True, "after registration, bundle-adjust in the object frame with the board corners as known points")
+    max_board_disagreement_deg: float = setting(
+        5.0, "drop an SfM pose whose rotation differs from the board PnP's by more than this (degrees)")
     seed: int = setting(0, "random seed for COLMAP and RANSAC (runs are reproducible)")
     verbose: bool = setting(False, "show COLMAP's log on the terminal instead of WORK/colmap/colmap.log")
 
@@ -398,6 +400,31 @@ def register_to_object(reconstruction, detections, spec: BoardSpec, settings: Se
     return result.similarity, result.inliers, residual_mm
 
 
+def board_disagreement_deg(reconstruction, similarity: Similarity, detections: dict,
+                           spec: BoardSpec) -> dict[str, float]:
+    """Per registered image with the board in view: angle (degrees) between its SfM rotation (carried
+    into the object frame) and the rotation board PnP gives with the same intrinsics.
+
+    SfM can register a view of a mostly planar scene in its mirror position (the camera below the
+    board, looking away): such a pose still fits its few matches but contradicts the board by
+    ~180°, while honest poses agree with PnP to a fraction of a degree.
+    """
+    out = {}
+    for image in reconstruction.images.values():
+        if not image.has_pose or image.name not in detections:
+            continue
+        ids, uv = detections[image.name]
+        pose = image.cam_from_world()
+        R, _ = transform_pose(similarity, pose.rotation.matrix(), np.asarray(pose.translation, float))
+        try:
+            R_pnp, _, _ = pnp_pose(_camera_from_pycolmap(image.camera), ids, uv, spec)
+        except ValueError:
+            continue
+        cos = (np.trace(R @ R_pnp.T) - 1.0) / 2.0
+        out[image.name] = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return out
+
+
 def refine_with_board(reconstruction, similarity: Similarity, detections: dict, spec: BoardSpec,
                       fixed_intrinsics: bool):
     """Bundle adjustment in the object frame with the board's corners as known, constant 3D points.
@@ -680,6 +707,16 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             camera_names = {}
             for image in reconstruction.images.values():
                 camera_names.setdefault(image.camera_id, groups[name_to_key[image.name]])
+            disagreement = board_disagreement_deg(reconstruction, similarity, det_by_name, spec)
+            rejected = {n: round(d, 1) for n, d in disagreement.items() if d > settings.max_board_disagreement_deg}
+            for image in reconstruction.images.values():
+                if image.name in rejected:
+                    reconstruction.deregister_frame(image.frame_id)
+            if rejected:
+                _status(f"dropped {len(rejected)} SfM pose(s) that contradict the board: "
+                        + ", ".join(f"{name_to_key[n]} ({d}°)" for n, d in rejected.items()))
+                registered -= {name_to_key[n] for n in rejected}
+                unregistered = [k for k in keys if k not in registered]
             if settings.board_bundle_adjustment:
                 _status("bundle adjustment with the board as known points")
                 with colmap_output(colmap_dir / "colmap.log", settings.verbose):
@@ -692,6 +729,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
                 "method": "colmap + board registration" + (" + board bundle adjustment"
                                                            if settings.board_bundle_adjustment else ""),
                 "registered": len(registered), "unregistered": unregistered,
+                "rejected_contradicting_board_deg": {name_to_key[n]: d for n, d in rejected.items()},
                 "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
                 "points3D": int(reconstruction.num_points3D()),
                 "registration_residual_mm": residual_mm,

@@ -381,3 +381,48 @@ def test_one_pose_per_bracket(tmp_path):
                           "a3": {"sources": [{"file": "a3.jpg"}]}, "b": {"sources": [{"file": "b.jpg"}]},
                           "c": {"sources": [{"file": "c1.jpg"}, {"file": "c2.jpg"}]}})
     assert stage.pose_keys(capture, work) == ["a1.jpg", "a3.jpg", "b.jpg", "c1.jpg"]
+
+
+# ------------------------------------------------------------------------------------------
+# captures from `sigrend synth --board --no-poses` (pipeline.synth): DNG and JPEG camera files
+
+
+@pytest.fixture(scope="session", params=["dng", "jpeg"])
+def synth_run(request, tmp_path_factory):
+    """A 12-view 400x300 synth capture (sphere over the board) and the poses stage's work folder.
+    The DNG capture goes through linearize first (poses then reads linear/*.exr), the JPEG one is
+    read directly."""
+    from pipeline.runner import run_stage
+    from pipeline.synth import make_test_capture
+    from stages import linearize
+
+    fmt = request.param
+    capture = make_test_capture(tmp_path_factory.mktemp(f"synth_{fmt}"), views=12, size=(400, 300), fmt=fmt,
+                                board=True, poses=False)
+    work = tmp_path_factory.mktemp(f"synth_{fmt}_work")
+    if fmt == "dng":
+        run_stage("linearize", capture=capture, work=work, settings=make_settings(linearize.Settings))
+    stage.run(capture=capture, work=work, settings=make_settings(stage.Settings))
+    return capture, work
+
+
+@pytest.mark.slow
+def test_synth_capture_poses(synth_run):
+    capture, work = synth_run
+    assert not (capture / "poses.json").exists()
+    gt = read_poses(capture / "gt" / "poses.json")
+    est = read_poses(work / "poses.json")
+    summary = json.loads((work / "poses_summary.json").read_text())
+    # the lowest view (15° elevation) sees the board edge-on: SfM may miss it or register it in its
+    # mirror position, which the board check then drops; every other view must be posed
+    assert len(est.images) >= len(gt.images) - 1
+    assert set(summary["unregistered"]) <= {"0000.dng", "0000.jpg"}
+    rot, cen = pose_errors(gt, est)
+    # The synth scene has no texture off the board (a uniform sphere): SfM is a near-planar problem
+    # and the accuracy is bounded by ~0.2 px corner noise at 400x300 px; measured 0.17° / 0.33 % (DNG)
+    # and 0.20° / 0.41 % (JPEG).  The issue's 0.2° is asserted on the textured capture above.
+    assert rot.max() < 0.3
+    assert cen.max() < 0.005
+    cam = next(iter(est.cameras.values()))
+    assert len(est.cameras) == 1
+    assert cam.focal_principal()[0] == pytest.approx(gt.cameras[next(iter(gt.cameras))].params[0], rel=0.01)
