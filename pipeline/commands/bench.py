@@ -34,6 +34,8 @@ SUITES: dict[str, tuple[str, str]] = {
                   "lighting); charts + stability.csv in DIR", "pipeline.bench_pipeline:stability_suite"),
     "synth": ("reference renderer: seconds per 512x512 bunny view under a 128x64 env, Lambert/microfacet, "
               "with/without shadows", "pipeline.synth:synth_bench_suite"),
+    "fit": ("fit time vs samples (10^4-10^7) and vs SH order, per mode (known BRDF, known lighting, factorization)",
+            "pipeline.commands.bench_fit:fit_suite"),
     "pipeline": ("speed vs accuracy of samples -> fit -> relight on synthetic scenes (SH order, data, fit mode); "
                  "bench.csv + bench.png (Pareto front) in DIR", "pipeline.bench_pipeline:pipeline_suite"),
 }

@@ -65,24 +65,29 @@ class NormalEquations:
     def add(self, designs: np.ndarray, radiance: np.ndarray, weight: np.ndarray, fold: np.ndarray) -> None:
         """Add one chunk: designs (Cd, N, K) with Cd = 1 (shared) or 3, radiance (N, 3),
         weight (N,), fold (N,) ints in [0, folds)."""
+        sw = np.sqrt(np.asarray(weight, dtype=float))
         order = np.argsort(fold, kind="stable")
         bounds = np.searchsorted(fold[order], np.arange(self.folds + 1))
-        for f in range(self.folds):
-            rows = order[bounds[f]:bounds[f + 1]]
-            if rows.size == 0:
-                continue
-            sw = np.sqrt(weight[rows])
-            b = radiance[rows] * sw[:, None]
-            for c in range(designs.shape[0]):
-                a = designs[c, rows] * sw[:, None]
+        b_all = (radiance * sw[:, None])[order]
+        w_all = np.asarray(weight, dtype=float)[order]
+        for c in range(designs.shape[0]):
+            a_all = designs[c][order]              # one permuted copy: each fold is then a view
+            a_all *= sw[order, None]
+            for f in range(self.folds):
+                a = a_all[bounds[f]:bounds[f + 1]]
+                if a.shape[0] == 0:
+                    continue
+                b = b_all[bounds[f]:bounds[f + 1]]
                 self.gram[f, c] += a.T @ a
                 if self.shared:
                     self.rhs[f] += (a.T @ b).T
                 else:
                     self.rhs[f, c] += a.T @ b[:, c]
+        for f in range(self.folds):
+            b = b_all[bounds[f]:bounds[f + 1]]
             self.btb[f] += (b * b).sum(axis=0)
-            self.weight[f] += weight[rows].sum()
-            self.count[f] += rows.size
+            self.weight[f] += w_all[bounds[f]:bounds[f + 1]].sum()
+            self.count[f] += bounds[f + 1] - bounds[f]
 
     def channel_system(self, folds: np.ndarray | slice, scale: np.ndarray | None = None, order: int | None = None):
         """Summed (over ``folds``) per-channel (G (3,K',K'), h (3,K'), btb (3,), W) truncated to
