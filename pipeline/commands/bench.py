@@ -30,6 +30,8 @@ SUITES: dict[str, tuple[str, str]] = {
            "pipeline.commands.bench:sh_suite"),
     "linearize": ("linearize throughput (MP/s), DNG and JPEG, serial vs process pool, beside rawpy's bare decode",
                   "pipeline.commands.bench_linearize:linearize_suite"),
+    "poses": ("poses stage seconds for 24 photos at 1 and 6 MP: extraction, matching, mapping, registration; "
+              "accuracy vs ground truth", "pipeline.commands.bench_poses:poses_suite"),
     "stability": ("error vs noise: inverse lighting (Lambertian vs glossy), BRDF estimation (sharp vs soft "
                   "lighting); charts + stability.csv in DIR", "pipeline.bench_pipeline:stability_suite"),
     "synth": ("reference renderer: seconds per 512x512 bunny view under a 128x64 env, Lambert/microfacet, "

@@ -1,6 +1,6 @@
 """poses stage: COLMAP + ChArUco registration, PnP fallback, poses.json pass-through, bad input.
 
-Captures are ray-traced here (a textured floor with a ChArUco board and a textured box, pinhole
+Captures are ray-traced by pipeline.commands.bench_poses (a textured floor with a ChArUco board and a textured box, pinhole
 cameras on a ring) so the ground truth is exact; they are small (400x300 px, 14 views) to keep
 the COLMAP runs to seconds.
 """
@@ -14,128 +14,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from scipy.ndimage import map_coordinates
-from scipy.spatial.transform import Rotation
 
 from pipeline.cli import main as cli_main
-from pipeline.core.camera import Camera, camera_center, look_at, pixel_centers, pixel_rays, project
-from pipeline.errors import UserError
-from pipeline.io.poses import ImagePose, Poses, read_poses, write_poses
+from pipeline.commands.bench_poses import (BOARD, BOARD_TO_OBJECT, make_textured_capture, noise_texture,
+                                           pose_errors, render, scene_quads)
+from pipeline.core.camera import Camera, look_at, project
+from pipeline.io.poses import Poses, read_poses, write_poses
 from pipeline.settings import make_settings
 from stages import poses as stage
-
-BOARD = dict(dictionary="DICT_5X5_100", squares=(7, 5), square_length=0.03, marker_length=0.022)
-# board lying on the floor, its printed side up (+Z object), centred on the origin:
-# board x -> object +X, board y -> object -Y, board z (into the print) -> object -Z
-BOARD_TO_OBJECT = np.array([[1.0, 0, 0, -0.105], [0, -1, 0, 0.075], [0, 0, -1, 0], [0, 0, 0, 1]])
-
-
-def _noise_texture(rng, size: int) -> np.ndarray:
-    """Multi-scale random texture (8-bit gray) with SIFT-friendly blobs at every scale."""
-    tex = np.zeros((size, size), np.float32)
-    for cells in (4, 8, 16, 32, 64, 128):
-        tex += cv2.resize(rng.random((cells, cells)).astype(np.float32), (size, size),
-                          interpolation=cv2.INTER_CUBIC)
-    tex = (tex - tex.min()) / (tex.max() - tex.min())
-    return np.round(40 + 200 * tex).astype(np.uint8)
-
-
-def _quads(rng, textured: bool = True) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-    """Scene as textured rectangles: (origin, edge a, edge b, 8-bit texture); point = o + u·a + v·b."""
-    import cv2.aruco as aruco
-
-    board = aruco.CharucoBoard(BOARD["squares"], BOARD["square_length"], BOARD["marker_length"],
-                               aruco.getPredefinedDictionary(getattr(aruco, BOARD["dictionary"])))
-    sx, sy = BOARD["squares"]
-    board_img = board.generateImage((sx * 100, sy * 100), marginSize=0)
-    R, t = BOARD_TO_OBJECT[:3, :3], BOARD_TO_OBJECT[:3, 3]
-    quads = [(t + [0, 0, 1e-4], R @ [sx * BOARD["square_length"], 0, 0], R @ [0, sy * BOARD["square_length"], 0],
-              board_img)]
-    if not textured:  # only the board: SfM is starved of features
-        return quads
-    quads.append((np.array([-0.3, -0.3, 0.0]), np.array([0.6, 0, 0]), np.array([0, 0.6, 0]), _noise_texture(rng, 1024)))
-    # a textured box (0.08 m) off the board: four sides and the top
-    c, h = np.array([0.07, 0.12, 0.0]), 0.08
-    corners = [c + [-h / 2, -h / 2, 0], c + [h / 2, -h / 2, 0], c + [h / 2, h / 2, 0], c + [-h / 2, h / 2, 0]]
-    for i in range(4):
-        p, q = corners[i], corners[(i + 1) % 4]
-        quads.append((p, q - p, np.array([0, 0, h]), _noise_texture(rng, 256)))
-    quads.append((corners[0] + [0, 0, h], corners[1] - corners[0], corners[3] - corners[0], _noise_texture(rng, 256)))
-    return quads
-
-
-def render(camera: Camera, R: np.ndarray, t: np.ndarray, quads, supersample: int = 2) -> np.ndarray:
-    """Ray-cast the textured rectangles (nearest hit), 8-bit gray, box-filtered ``supersample``²."""
-    s = supersample
-    big = Camera("PINHOLE", camera.width * s, camera.height * s, tuple(np.array(camera.params) * s))
-    origins, dirs = pixel_rays(big, R, t, pixel_centers(big.width, big.height))
-    best = np.full(len(dirs), np.inf)
-    out = np.full(len(dirs), 128.0, np.float32)
-    for o, a, b, tex in quads:
-        n = np.cross(a, b)
-        denom = dirs @ n
-        with np.errstate(divide="ignore", invalid="ignore"):
-            dist = ((o - origins[0]) @ n) / denom
-        p = origins + dist[:, None] * dirs - o
-        u, v = p @ a / (a @ a), p @ b / (b @ b)
-        hit = (dist > 0) & (dist < best) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
-        if hit.any():
-            th, tw = tex.shape
-            # texel centres at integer + 0.5 in (u·tw, v·th): bilinear lookup
-            coords = np.stack([v[hit] * th - 0.5, u[hit] * tw - 0.5])
-            out[hit] = map_coordinates(tex.astype(np.float32), coords, order=1, mode="nearest")
-            best[hit] = dist[hit]
-    img = out.reshape(big.height, big.width)
-    return cv2.resize(img, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
-
-
-def make_capture(folder: Path, *, n_views: int = 14, size=(400, 300), focal: float = 440.0, seed: int = 7,
-                 board: bool = True, textured: bool = True, views=None) -> Poses:
-    """Write images/NNNN.jpg, capture.toml and gt/poses.json; returns the ground-truth poses."""
-    rng = np.random.default_rng(seed)
-    quads = _quads(rng, textured)
-    w, h = size
-    camera = Camera("PINHOLE", w, h, (focal, focal, w / 2, h / 2))
-    gt = Poses(cameras={"cam0": camera})
-    (folder / "images").mkdir(parents=True)
-    if views is None:
-        az = np.linspace(0, 2 * np.pi, n_views, endpoint=False) + 0.3
-        el = np.deg2rad(np.where(np.arange(n_views) % 2, 50.0, 38.0))
-        views = [(np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)]) * 0.55,
-                  np.array([0.02, 0.02, 0.03])) for a, e in zip(az, el)]
-    for i, (center, target) in enumerate(views):
-        R, t = look_at(center, target)
-        img = render(camera, R, t, quads)
-        img = np.clip(img + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
-        cv2.imwrite(str(folder / "images" / f"{i:04d}.jpg"), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
-        gt.images[f"{i:04d}.jpg"] = ImagePose("cam0", R, t)
-    if board:
-        rows = ",".join("[" + ",".join(repr(float(v)) for v in row) + "]" for row in BOARD_TO_OBJECT)
-        (folder / "capture.toml").write_text(
-            "[board]\n"
-            f'dictionary = "{BOARD["dictionary"]}"\nsquares = [{BOARD["squares"][0]}, {BOARD["squares"][1]}]\n'
-            f'square_length = {BOARD["square_length"]}\nmarker_length = {BOARD["marker_length"]}\n'
-            f"board_to_object = [{rows}]\n")
-    (folder / "gt").mkdir()
-    write_poses(folder / "gt" / "poses.json", gt)
-    return gt
-
-
-def pose_errors(gt: Poses, est: Poses) -> tuple[np.ndarray, np.ndarray]:
-    """Per-image rotation error (degrees) and camera-centre error relative to the camera's distance."""
-    rot, cen = [], []
-    for key, p in est.images.items():
-        g = gt.images[key]
-        rot.append(np.rad2deg(np.linalg.norm(Rotation.from_matrix(p.R @ g.R.T).as_rotvec())))
-        c_gt = camera_center(g.R, g.t)
-        cen.append(np.linalg.norm(camera_center(p.R, p.t) - c_gt) / np.linalg.norm(c_gt))
-    return np.array(rot), np.array(cen)
-
 
 @pytest.fixture(scope="session")
 def capture_dir(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("poses_capture")
-    make_capture(folder)
+    make_textured_capture(folder)
     return folder
 
 
@@ -171,7 +62,7 @@ def test_starved_capture_falls_back_to_board_pnp(tmp_path):
     """Board only, 6 views 60° apart: SfM cannot initialise (COLMAP needs 100 inlier matches between
     two views), the board PnP fallback poses every photo and says so."""
     capture = tmp_path / "starved"
-    gt = make_capture(capture, n_views=6, textured=False)
+    gt = make_textured_capture(capture, n_views=6, textured=False)
     work = tmp_path / "work"
     stage.run(capture=capture, work=work, settings=make_settings(stage.Settings))
     summary = json.loads((work / "poses_summary.json").read_text())
@@ -202,7 +93,7 @@ def test_given_poses_pass_through_unchanged(tmp_path, capture_dir):
 
 
 def _noise_photo(rng, path: Path) -> None:
-    cv2.imwrite(str(path), _noise_texture(rng, 400)[:300], [cv2.IMWRITE_JPEG_QUALITY, 95])
+    cv2.imwrite(str(path), noise_texture(rng, 400)[:300], [cv2.IMWRITE_JPEG_QUALITY, 95])
 
 
 def _expect_user_error(capsys, capture: Path, work: Path, *needles: str) -> str:
@@ -286,7 +177,7 @@ def test_board_detection_uses_colmap_pixel_convention():
     """Detected ChArUco corners land on the ground-truth projections (COLMAP convention, pixel
     centres at +0.5): the mean signed offset must be far below the 0.5 px a convention slip causes."""
     rng = np.random.default_rng(3)
-    quads = _quads(rng)
+    quads = scene_quads(rng)
     camera = Camera("PINHOLE", 400, 300, (440.0, 440.0, 200.0, 150.0))
     spec = stage.BoardSpec(BOARD["dictionary"], BOARD["squares"], BOARD["square_length"], BOARD["marker_length"],
                            BOARD_TO_OBJECT)
@@ -344,8 +235,8 @@ def test_calibrated_camera_is_kept_fixed(tmp_path, capture_dir):
 def test_two_physical_cameras_get_one_camera_each(tmp_path):
     """Photos from two cameras (different size and focal length): two COLMAP cameras, not one per photo."""
     a, b = tmp_path / "a", tmp_path / "b"
-    gt_a = make_capture(a, n_views=12, seed=5)
-    gt_b = make_capture(b, n_views=12, seed=5, size=(360, 270), focal=330.0)  # same scene (same seed)
+    gt_a = make_textured_capture(a, n_views=12, seed=5)
+    gt_b = make_textured_capture(b, n_views=12, seed=5, size=(360, 270), focal=330.0)  # same scene (same seed)
     capture = tmp_path / "mixed"
     shutil.copytree(a, capture)
     for i, key in enumerate(sorted(gt_b.images)):
