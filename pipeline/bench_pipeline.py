@@ -340,11 +340,7 @@ def run_pipeline_bench(out_dir: Path, quick: bool = False) -> tuple[list[dict], 
                **{f"band{l}_error": float(e) for l, e in enumerate(band_err)}}
         rows.append(row)
         print(f"{name}: time {row['time_s']:.2f} s, relight error {100 * row['relight_error']:.2f}%")
-    times = np.array([r["time_s"] for r in rows])
-    errors = np.array([r["relight_error"] for r in rows])
-    front = _pareto(times, errors)
-    for r, f in zip(rows, front):
-        r["pareto"] = bool(f)
+    mark_pareto(rows)
     csv_path = _write_csv(out_dir / "bench.csv", rows)
     png = plot_pareto(rows, out_dir / "bench.png")
     if not quick:
@@ -352,30 +348,41 @@ def run_pipeline_bench(out_dir: Path, quick: bool = False) -> tuple[list[dict], 
     return rows, [csv_path, png]
 
 
+def mark_pareto(rows: list[dict]) -> None:
+    """Set ``row["pareto"]``: on the speed/accuracy front of its scene (fronts across scenes mean nothing)."""
+    for scene in dict.fromkeys(r["scene"] for r in rows):
+        sub = [r for r in rows if r["scene"] == scene]
+        front = _pareto(np.array([r["time_s"] for r in sub]), np.array([r["relight_error"] for r in sub]))
+        for r, f in zip(sub, front):
+            r["pareto"] = bool(f)
+
+
 def plot_pareto(rows: list[dict], path: Path) -> Path:
-    """bench.png: relight error on held-out views against time (samples + fit), Pareto front marked."""
+    """bench.png: relight error on held-out views against time (samples + fit), one panel per scene,
+    each scene's Pareto front marked."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(7.5, 5))
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    fig, axes = plt.subplots(1, len(scenes), figsize=(6 * len(scenes), 4.8))
     markers = {"known BRDF": "o", "factorization": "s"}
-    colours = {"diffuse": "tab:blue", "glossy": "tab:red"}
-    for r in rows:
-        ax.scatter(r["time_s"], r["relight_error"] * 100, marker=markers[r["mode"]], color=colours[r["scene"]],
-                   s=25 + 10 * r["order"], alpha=0.8, edgecolors="k" if r["pareto"] else "none")
-        ax.annotate(f"L{r['order']} v{r['train_views']} s{r['stride']}", (r["time_s"], r["relight_error"] * 100),
-                    fontsize=6, xytext=(3, 3), textcoords="offset points")
-    front = sorted((r["time_s"], r["relight_error"] * 100) for r in rows if r["pareto"])
-    if front:
-        ax.step(*zip(*front), where="post", color="k", lw=1, ls="--", label="Pareto front")
-    for mode, m in markers.items():
-        ax.scatter([], [], marker=m, color="gray", label=mode)
-    for scene, c in colours.items():
-        ax.scatter([], [], marker="o", color=c, label=f"{scene} scene")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("time: samples + fit (s, 2 cores)")
-    ax.set_ylabel("relight error on held-out views (%, relative RMS)")
-    ax.set_title("speed vs accuracy (marker size = SH order; v = training views, s = sample stride)", fontsize=9)
-    ax.legend(fontsize=7)
+    for ax, scene in zip(np.atleast_1d(axes), scenes):
+        sub = [r for r in rows if r["scene"] == scene]
+        for r in sub:
+            colour = plt.cm.viridis(min(int(r["order"]), 8) / 9)
+            ax.scatter(r["time_s"], r["relight_error"] * 100, marker=markers[r["mode"]], color=colour,
+                       s=50, edgecolors="k" if r["pareto"] else "none", linewidths=1.2)
+            ax.annotate(f"L{r['order']} v{r['train_views']} s{r['stride']}", (r["time_s"], r["relight_error"] * 100),
+                        fontsize=6, xytext=(3, 3), textcoords="offset points")
+        front = sorted((r["time_s"], r["relight_error"] * 100) for r in sub if r["pareto"])
+        if front:
+            ax.step(*zip(*front), where="post", color="k", lw=1, ls="--", label="Pareto front")
+        for mode, m in markers.items():
+            ax.scatter([], [], marker=m, color="gray", label=mode)
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("time: samples + fit (s, 2 shared cores)")
+        ax.set_ylabel("relight error on held-out views (%, relative RMS)")
+        ax.set_title(f"{scene} scene (colour = SH order L; v = training views, s = sample stride)", fontsize=8)
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
