@@ -15,7 +15,7 @@ Writes, in DESIGN.md's conventions:
 Radiometry: images hold value = radiance * t (ISO/100) / N^2 (pipeline.io.camera_files), so the
 linearize stage's ``value * N^2 / (t ISO/100)`` gives back the rendered radiance, on the same
 scale as gt/lighting.exr.  One exposure time for the whole capture is chosen from the first view
-(its object's 99.5th-percentile radiance maps to 0.7 of full scale); brackets step by 2 EV.
+(the 99.5th-percentile radiance of its object and board pixels maps to 0.7 of full scale); brackets step by 2 EV.
 
 Only the images and gt/lighting_sh.json touch anything frequency-space: the images come from the
 angular-domain renderer (pipeline.core.render).
@@ -54,6 +54,7 @@ class SynthSettings:
     size: tuple[int, int] = setting((256, 256), "image width and height in pixels")
     format: Literal["exr", "tiff", "jpeg", "dng"] = setting("exr", "image file format")
     board: bool = setting(False, "put a ChArUco board under the object (z = 0)")
+    table: bool = setting(False, "a noise-textured table (3 x the board) at z = 0 around the board: texture for SfM")
     brackets: int = setting(1, "exposures per view (2 EV apart); >1 writes [brackets] in capture.toml")
     vary_exposure: float = setting(0.0, "per-view exposure offsets, uniform in +-STOPS EV (seeded), like an auto-exposing camera")
     noise: str = setting("auto", "'none', 'auto' (on for tiff/jpeg/dng, off for exr) or "
@@ -65,8 +66,9 @@ class SynthSettings:
     elevation: tuple[float, float] = setting((20.0, 65.0), "min and max camera elevation, degrees (ring: the mean)")
     distance: float = setting(3.0, "camera distance in units of the framed radius")
     shadows: bool = setting(True, "shadow rays (self-shadowing, board occludes the lower hemisphere)")
-    texture: str = setting("none", "per-vertex albedo: 'none', 'stripes[:freq=6,contrast=0.6]' (high frequency) or "
-                           "'smooth[:freq=1,contrast=0.5]' (low frequency); written to gt/albedo.ply")
+    texture: str = setting("none", "per-vertex albedo: 'none', 'stripes[:freq=6,contrast=0.6]' (high frequency), "
+                           "'smooth[:freq=1,contrast=0.5]' (low frequency) or 'noise[:freq=8,contrast=0.7]' "
+                           "(multi-scale, for feature matching); written to gt/albedo.ply")
     cell_height: int = setting(16, "rows of the coarse direction grid for the dim part of the env (render.py)")
     fnumber: float = setting(8.0, "f-number written to EXIF")
     seed: int = setting(0, "random seed (noise)")
@@ -111,7 +113,8 @@ def parse_noise(spec: str, fmt: str) -> dict | None:
     return out
 
 
-TEXTURES = {"stripes": {"freq": 6.0, "contrast": 0.6}, "smooth": {"freq": 1.0, "contrast": 0.5}}
+TEXTURES = {"stripes": {"freq": 6.0, "contrast": 0.6}, "smooth": {"freq": 1.0, "contrast": 0.5},
+            "noise": {"freq": 8.0, "contrast": 0.7}}
 
 
 def parse_texture(spec: str) -> tuple[str, dict] | None:
@@ -120,7 +123,7 @@ def parse_texture(spec: str) -> tuple[str, dict] | None:
     if name == "none":
         return None
     if name not in TEXTURES:
-        raise UserError(f"--texture {spec!r}: use 'none', 'stripes[:freq=F,contrast=C]' or 'smooth[:freq=F,contrast=C]'")
+        raise UserError(f"--texture {spec!r}: use 'none' or stripes / smooth / noise [:freq=F,contrast=C]")
     params = dict(TEXTURES[name])
     for token in filter(None, (t.strip() for t in rest.split(","))):
         key, _, value = token.partition("=")
@@ -140,6 +143,8 @@ def texture_albedo(mesh, albedo: np.ndarray, spec: str) -> np.ndarray | None:
 
     stripes: pattern = [sin(2 pi freq (x + y + z) / size) > 0], sharp bands (high frequency);
     smooth: pattern = (1 + sin(2 pi freq x / size) cos(2 pi freq y / size)) / 2 (low frequency);
+    noise: multi-scale (freq/4 .. 2 freq cycles per size) sum of plane waves in fixed pseudo-random
+    directions and phases, scaled to [0, 1] (non-periodic texture for feature matching);
     coordinates relative to the bounding-box centre, size = the longest side.
     """
     parsed = parse_texture(spec)
@@ -151,6 +156,14 @@ def texture_albedo(mesh, albedo: np.ndarray, spec: str) -> np.ndarray | None:
     w = 2 * np.pi * p["freq"]
     if name == "stripes":
         pattern = (np.sin(w * q.sum(axis=1)) > 0).astype(float)
+    elif name == "noise":
+        rng = np.random.default_rng(7)
+        pattern = np.zeros(len(q))
+        for f in p["freq"] * np.array([0.25, 0.5, 1.0, 2.0]):
+            for _ in range(6):
+                d = rng.normal(size=3)
+                pattern += np.sin(2 * np.pi * f * q @ (d / np.linalg.norm(d)) + rng.uniform(0, 2 * np.pi)) / np.sqrt(f)
+        pattern = (pattern - pattern.min()) / max(float(np.ptp(pattern)), 1e-12)
     else:
         pattern = 0.5 * (1 + np.sin(w * q[:, 0]) * np.cos(w * q[:, 1]))
     rgb = np.asarray(albedo, float)[None, :] * (1 - p["contrast"] * pattern)[:, None]
@@ -198,29 +211,56 @@ def load_env(spec: str) -> np.ndarray:
 
 # -- board ----------------------------------------------------------------------------------------
 
-def make_board(mesh_size: float, texels_per_square: int = 80):
-    """ChArUco board (8 x 6 squares of 0.35 mesh_size) centred under the object on z = 0.
+def make_board(mesh_size: float, *, charuco: bool = True, table: bool = False, seed: int = 0,
+               texels_per_square: int = 80):
+    """The z = 0 plane under the object: a ChArUco board and/or a noise-textured table around it.
 
-    Returns (render.BoardPlane, capture.toml [board] dict).  board_to_object maps OpenCV's board
-    frame (origin at the top-left corner of the generated image, x along columns, y along rows,
-    z into the board) to the object frame: x_b -> +X, y_b -> -Y, z_b -> -Z (face up).
+    Board: 8 x 6 squares of 0.35 mesh_size (DICT_5X5_100, markers 0.75 of a square), centred under
+    the object, white paper 0.8 / black print 0.04.  Table (``table``): 3 x the board's size,
+    multi-scale value noise of albedo 0.1-0.7 (six octaves, 8 to 256 cells across), with a white paper margin of half a
+    square around the board, to give structure-from-motion texture off the board.
+    Returns (render.BoardPlane or None, capture.toml [board] dict or None, the board's (w, h)).
+    ``board_to_object`` maps OpenCV's board frame (origin at the top-left corner of the generated
+    image, x along columns, y along rows, z into the board) to the object frame:
+    x_b -> +X, y_b -> -Y, z_b -> -Z (face up).
     """
     import cv2
 
     from pipeline.core.render import BoardPlane
 
+    if not (charuco or table):
+        return None, None, None
     sx, sy = BOARD_SQUARES
     square = round(0.35 * mesh_size, 6)
     marker = round(0.75 * square, 6)
-    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, BOARD_DICTIONARY))
-    board = cv2.aruco.CharucoBoard((sx, sy), square, marker, dictionary)
-    image = board.generateImage((sx * texels_per_square, sy * texels_per_square), marginSize=0, borderBits=1)
-    albedo = np.where(image > 127, 0.8, 0.04)  # white paper / black print
     w, h = sx * square, sy * square
     to_object = np.array([[1.0, 0, 0, -w / 2], [0, -1.0, 0, h / 2], [0, 0, -1.0, 0], [0, 0, 0, 1.0]])
-    table = {"dictionary": BOARD_DICTIONARY, "squares": [sx, sy], "square_length": square,
-             "marker_length": marker, "board_to_object": to_object.tolist()}
-    return BoardPlane(albedo, (w, h), to_object), table
+    tw, th = sx * texels_per_square, sy * texels_per_square
+    board_table = None
+    albedo = np.full((th, tw), 0.8)
+    if charuco:
+        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, BOARD_DICTIONARY))
+        board = cv2.aruco.CharucoBoard((sx, sy), square, marker, dictionary)
+        image = board.generateImage((tw, th), marginSize=0, borderBits=1)
+        albedo = np.where(image > 127, 0.8, 0.04)  # white paper / black print
+        board_table = {"dictionary": BOARD_DICTIONARY, "squares": [sx, sy], "square_length": square,
+                       "marker_length": marker, "board_to_object": to_object.tolist()}
+    if not table:
+        return BoardPlane(albedo, (w, h), to_object), board_table, (w, h)
+    rng = np.random.default_rng([seed, 2])
+    big_w, big_h = 3 * tw, 3 * th
+    noise = np.zeros((big_h, big_w), np.float32)
+    for octave in range(6):
+        cells = 8 * 2**octave
+        grid = rng.uniform(size=(cells * th // tw + 2, cells + 2)).astype(np.float32)
+        noise += 0.8**octave * cv2.resize(grid, (big_w, big_h), interpolation=cv2.INTER_CUBIC)
+    noise = (noise - noise.min()) / max(float(noise.max() - noise.min()), 1e-12)
+    plane = 0.1 + 0.6 * noise.astype(float)
+    margin = texels_per_square // 2
+    plane[th - margin:2 * th + margin, tw - margin:2 * tw + margin] = 0.8
+    plane[th:2 * th, tw:2 * tw] = albedo
+    plane_to_object = np.array([[1.0, 0, 0, -1.5 * w], [0, -1.0, 0, 1.5 * h], [0, 0, -1.0, 0], [0, 0, 0, 1.0]])
+    return BoardPlane(plane, (3 * w, 3 * h), plane_to_object), board_table, (w, h)
 
 
 # -- views ----------------------------------------------------------------------------------------
@@ -289,7 +329,7 @@ def _capture_toml(board_table: dict | None, brackets: dict[str, list[str]], iso:
 
 
 def _auto_exposure_time(radiance: np.ndarray, mask: np.ndarray, fnumber: float, iso: float) -> float:
-    """Exposure time mapping the 99.5th-percentile object radiance to 0.7 of full scale (3 significant digits)."""
+    """Exposure time mapping the 99.5th-percentile radiance in ``mask`` to 0.7 of full scale (3 significant digits)."""
     values = radiance[mask] if mask.any() else radiance.reshape(-1, 3)
     level = float(np.percentile(values.max(axis=1), 99.5)) if values.size else 1.0
     t = 0.7 * fnumber**2 / (max(level, 1e-12) * iso / 100.0)
@@ -312,8 +352,9 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     brdf = parse_brdf_spec(settings.brdf)
     env = load_env(settings.env)
     mesh = load_mesh(settings.mesh, settings.mesh_size, settings.mesh_up)
-    board, board_table = make_board(settings.mesh_size) if settings.board else (None, None)
-    camera, view_poses = make_views(mesh, settings, board.size if board else None)
+    board, board_table, board_size = make_board(settings.mesh_size, charuco=settings.board, table=settings.table,
+                                                seed=settings.seed)
+    camera, view_poses = make_views(mesh, settings, board_size)
     vertex_albedo = texture_albedo(mesh, brdf["albedo"], settings.texture)
     renderer = Renderer(mesh, env, brdf, shadows=settings.shadows, board=board, cell_height=settings.cell_height,
                         vertex_albedo=vertex_albedo)
@@ -335,7 +376,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
             raise UserError(f"view {i}: the camera is inside the mesh; increase --distance "
                             f"(now {settings.distance}) or check the mesh") from None
         if t_base is None:
-            t_base = _auto_exposure_time(result.radiance, result.object_mask, settings.fnumber, iso)
+            t_base = _auto_exposure_time(result.radiance, result.object_mask | result.board_mask, settings.fnumber, iso)
         stem = f"{i:04d}"
         keys = []
         view_stops = exposure_rng.uniform(-settings.vary_exposure, settings.vary_exposure)

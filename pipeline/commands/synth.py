@@ -50,6 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", type=_size, default=d.size, metavar="WxH", help=_help("size"))
     parser.add_argument("--format", choices=FORMATS, default=d.format, help=_help("format"))
     parser.add_argument("--board", action="store_true", help=_help("board"))
+    parser.add_argument("--table", action="store_true", help=_help("table"))
     parser.add_argument("--brackets", type=int, default=d.brackets, help=_help("brackets"))
     parser.add_argument("--vary-exposure", type=float, default=d.vary_exposure, metavar="STOPS",
                         help=_help("vary_exposure"))
