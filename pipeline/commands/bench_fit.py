@@ -30,7 +30,7 @@ def _chunk(rng: np.random.Generator, n: int, truth: np.ndarray, brdf: dict) -> d
     view = normal + 0.5 * rng.normal(size=(n, 3))
     view /= np.linalg.norm(view, axis=1, keepdims=True)
     return {"normal": normal, "view_dir": view, "radiance": render_samples(truth, brdf, normal, view),
-            "image_id": rng.integers(0, 32, n), "weight": np.ones(n)}
+            "image_id": np.sort(rng.integers(0, 32, n)), "weight": np.ones(n)}   # grouped by image, as in a file
 
 
 def _lighting_fit(n: int, order: int, brdf: dict, truth: np.ndarray) -> None:

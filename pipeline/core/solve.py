@@ -64,30 +64,34 @@ class NormalEquations:
 
     def add(self, designs: np.ndarray, radiance: np.ndarray, weight: np.ndarray, fold: np.ndarray) -> None:
         """Add one chunk: designs (Cd, N, K) with Cd = 1 (shared) or 3, radiance (N, 3),
-        weight (N,), fold (N,) ints in [0, folds)."""
-        sw = np.sqrt(np.asarray(weight, dtype=float))
-        order = np.argsort(fold, kind="stable")
-        bounds = np.searchsorted(fold[order], np.arange(self.folds + 1))
-        b_all = (radiance * sw[:, None])[order]
-        w_all = np.asarray(weight, dtype=float)[order]
-        for c in range(designs.shape[0]):
-            a_all = designs[c][order]              # one permuted copy: each fold is then a view
-            a_all *= sw[order, None]
-            for f in range(self.folds):
-                a = a_all[bounds[f]:bounds[f + 1]]
-                if a.shape[0] == 0:
-                    continue
-                b = b_all[bounds[f]:bounds[f + 1]]
+        weight (N,), fold (N,) ints in [0, folds).
+
+        Samples files list each image's samples together, so folds (= views) come in runs: each
+        run is a view of the chunk (no copy); shuffled folds are permuted once instead.
+        """
+        weight = np.asarray(weight, dtype=float)
+        fold = np.asarray(fold)
+        unit = bool(np.all(weight == 1.0))
+        starts = np.concatenate([[0], np.flatnonzero(np.diff(fold)) + 1])
+        if len(starts) > 8 * self.folds:                      # shuffled: permute once
+            order = np.argsort(fold, kind="stable")
+            designs, radiance, weight, fold = designs[:, order], radiance[order], weight[order], fold[order]
+            starts = np.concatenate([[0], np.flatnonzero(np.diff(fold)) + 1])
+        stops = np.append(starts[1:], len(fold))
+        sw = None if unit else np.sqrt(weight)
+        for lo, hi in zip(starts, stops):
+            f = int(fold[lo])
+            b = radiance[lo:hi] if unit else radiance[lo:hi] * sw[lo:hi, None]
+            for c in range(designs.shape[0]):
+                a = designs[c, lo:hi] if unit else designs[c, lo:hi] * sw[lo:hi, None]
                 self.gram[f, c] += a.T @ a
                 if self.shared:
                     self.rhs[f] += (a.T @ b).T
                 else:
                     self.rhs[f, c] += a.T @ b[:, c]
-        for f in range(self.folds):
-            b = b_all[bounds[f]:bounds[f + 1]]
             self.btb[f] += (b * b).sum(axis=0)
-            self.weight[f] += w_all[bounds[f]:bounds[f + 1]].sum()
-            self.count[f] += bounds[f + 1] - bounds[f]
+            self.weight[f] += weight[lo:hi].sum()
+            self.count[f] += hi - lo
 
     def channel_system(self, folds: np.ndarray | slice, scale: np.ndarray | None = None, order: int | None = None):
         """Summed (over ``folds``) per-channel (G (3,K',K'), h (3,K'), btb (3,), W) truncated to
