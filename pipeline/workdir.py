@@ -37,6 +37,22 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             tmp_path.unlink()
 
 
+def read_json(path: str | os.PathLike, *, missing: str = "", unreadable: str = "") -> Any:
+    """Parse a JSON file; a missing or malformed file is a ``UserError`` naming it.
+
+    ``missing`` / ``unreadable``: what the user should do, appended to the message.
+    """
+    from pipeline.errors import UserError
+
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except FileNotFoundError:
+        raise UserError(f"{path}: file not found" + (f"; {missing}" if missing else "")) from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: not valid JSON ({exc})" + (f"; {unreadable}" if unreadable else "")) from None
+
+
 def write_json(path: str | os.PathLike, obj: Any) -> Path:
     """Write ``obj`` as indented JSON, atomically; returns the path."""
     path = Path(path)

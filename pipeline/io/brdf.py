@@ -8,14 +8,13 @@ Models and their parameters (formulas in pipeline.core.brdf and docs/):
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.workdir import write_json
+from pipeline.workdir import read_json, write_json
 
 MODEL_PARAMS = {
     "lambert": ("albedo",),
@@ -82,13 +81,7 @@ def parse_brdf_spec(spec: str) -> dict:
 
 
 def read_brdf(path: str | os.PathLike) -> dict:
-    path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"{path}: file not found") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: not valid JSON ({exc})") from None
+    doc = read_json(path)
     if not isinstance(doc, dict):
         raise UserError(f"{path}: a BRDF file is a JSON object with 'model' and 'albedo'")
     return validate_brdf(doc, str(path))

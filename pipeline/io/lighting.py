@@ -2,25 +2,21 @@
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.workdir import write_json
+from pipeline.workdir import read_json, write_json
 
 
 def read_lighting_sh(path: str | os.PathLike) -> np.ndarray:
     """Return the coefficients as float64 ((L+1)^2, 3) in k = l^2 + l + m order."""
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"{path}: file not found") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: not valid JSON ({exc})") from None
+    doc = read_json(path)
+    if not isinstance(doc, dict):
+        raise UserError(f"{path}: a lighting file is a JSON object with 'order' and 'coeffs'")
     if doc.get("basis", "real-orthonormal") != "real-orthonormal":
         raise UserError(f"{path}: SH basis {doc.get('basis')!r} is not 'real-orthonormal' (DESIGN.md); convert it")
     try:

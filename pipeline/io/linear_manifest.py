@@ -19,7 +19,6 @@ file name, or any source file name of the image.
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -27,7 +26,7 @@ import numpy as np
 
 from pipeline.errors import UserError
 from pipeline.io.images import read_image
-from pipeline.workdir import write_json
+from pipeline.workdir import read_json, write_json
 
 LINEAR_DIR = "linear"
 MANIFEST = "manifest.json"
@@ -45,12 +44,8 @@ def manifest_path(work: str | os.PathLike) -> Path:
 def read_manifest(work: str | os.PathLike) -> dict:
     """The manifest as a dict; UserError if linearize has not run."""
     path = manifest_path(work)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"{path}: not found; run `sigrend linearize CAPTURE -w {work}` first") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: unreadable ({exc}); run `sigrend linearize --force`") from None
+    doc = read_json(path, missing=f"run `sigrend linearize CAPTURE -w {work}` first",
+                    unreadable="run `sigrend linearize --force`")
     if not isinstance(doc, dict) or "images" not in doc:
         raise UserError(f"{path}: not a linearize manifest; run `sigrend linearize --force`")
     return doc

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -11,7 +10,7 @@ import numpy as np
 
 from pipeline.core.camera import MODELS, Camera
 from pipeline.errors import UserError
-from pipeline.workdir import write_json
+from pipeline.workdir import read_json, write_json
 
 
 @dataclass(frozen=True)
@@ -33,12 +32,7 @@ class Poses:
 def read_poses(path: str | os.PathLike) -> Poses:
     """Read and validate poses.json; any problem -> UserError naming the file and the entry."""
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UserError(f"{path}: file not found") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise UserError(f"{path}: not valid JSON ({exc}); fix or delete it") from None
+    doc = read_json(path, unreadable="fix or delete it")
     if not isinstance(doc, dict) or "cameras" not in doc or "images" not in doc:
         raise UserError(f"{path}: poses.json needs 'cameras' and 'images' (see DESIGN.md)")
     if doc.get("frame", "object") != "object" or doc.get("units", "meters") != "meters":
