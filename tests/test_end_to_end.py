@@ -17,11 +17,14 @@ from pathlib import Path
 import pytest
 
 from pipeline import cli
+from pipeline.runner import relight_check
 
 pytestmark = pytest.mark.slow
 
 VIEWS = 12
 SIZE = (320, 240)
+# the issue's acceptance number (the seed's cat sculpture was within 5 %)
+RELIGHT_TOLERANCE = 0.05
 
 
 def _capture(tiny_capture, fmt: str) -> Path:
@@ -30,6 +33,33 @@ def _capture(tiny_capture, fmt: str) -> Path:
 
 def _mtime(path: Path) -> int:
     return path.stat().st_mtime_ns
+
+
+@pytest.mark.parametrize("fmt", ["jpeg", "dng"])
+def test_photos_to_relit_held_out_views_within_5_percent(tiny_capture, tmp_path, capsys, fmt):
+    capture = _capture(tiny_capture, fmt)
+    assert not (capture / "poses.json").exists()
+    work = tmp_path / "work"
+    # an interrupted run: stopped after samples ...
+    assert cli.main(["run", str(capture), "-w", str(work), "--to", "samples", "--no-report"]) == 0
+    early = {name: _mtime(work / name) for name in ("linear/manifest.json", "poses.json", "samples.npz")}
+    capsys.readouterr()
+    # ... resumes without redoing linearize, poses or samples
+    assert cli.main(["run", str(capture), "-w", str(work)]) == 0
+    out = capsys.readouterr().out
+    assert {name: _mtime(work / name) for name in early} == early
+    table = {line.split()[0]: line.split()[1] for line in out.splitlines()[1:6]}
+    assert table == {"linearize": "skipped", "poses": "skipped", "samples": "skipped", "fit": "ran",
+                     "relight-check": "ran"}
+    check = relight_check(work)
+    assert check is not None and check["heldout"], "the run must hold views out of the fit"
+    assert len(check["views"]) >= 2
+    assert check["scale_fitted"]
+    assert check["relative_error"] <= RELIGHT_TOLERANCE, check
+    assert f"{100 * check['relative_error']:.2f}%" in out
+    report = (work / "report.html").read_text()
+    assert 'src="data:image/png;base64,' in report and 'src="http' not in report and 'src="/' not in report
+    assert "report:" in out
 
 
 def test_force_redoes_and_a_bad_capture_keeps_earlier_outputs(tiny_capture, tmp_path, capsys):
