@@ -85,3 +85,15 @@ def test_brdf_spec_and_file(tmp_path):
         parse_brdf_spec("velvet:albedo=0.5")
     with pytest.raises(UserError, match="needs parameter 'roughness'"):
         parse_brdf_spec("microfacet:albedo=0.5,specular=0.04")
+
+
+def test_atomic_writes_have_ordinary_permissions(tmp_path):
+    import os
+    import stat
+
+    from pipeline.workdir import write_json
+
+    path = write_json(tmp_path / "x.json", {"a": 1})
+    umask = os.umask(0)
+    os.umask(umask)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~umask
