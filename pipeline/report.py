@@ -159,9 +159,10 @@ def camera_plot(poses, bounds: np.ndarray | None, heldout: list[str]) -> bytes:
 def _cameras(capture: Path, work: Path) -> str:
     from pipeline.io.poses import read_poses
     from pipeline.runner import _samples_holdout
+    from stages.relight import capture_poses_path
 
-    path = next((p for p in (Path(work) / "poses.json", Path(capture) / "poses.json") if p.exists()), None)
-    if path is None:
+    path = capture_poses_path(capture, work)
+    if not path.exists():
         return _section("Cameras", _missing("no poses yet (the poses stage has not run)"))
     poses = read_poses(path)
     bounds = None

@@ -113,11 +113,9 @@ def stage_command(name: str) -> SimpleNamespace:
 def image_keys(capture: Path, work: Path) -> list[str]:
     """Sorted image keys of the capture's posed views (WORK/poses.json, else CAPTURE/poses.json)."""
     from pipeline.io.poses import read_poses
+    from stages.samples import poses_path
 
-    for path in (Path(work) / "poses.json", Path(capture) / "poses.json"):
-        if path.exists():
-            return sorted(read_poses(path).images)
-    raise UserError(f"no poses in {work} or {capture}; run the poses stage first (sigrend run --from poses)")
+    return sorted(read_poses(poses_path(capture, work)).images)
 
 
 def heldout_keys(keys: list[str], every: int) -> list[str]:

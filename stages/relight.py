@@ -34,6 +34,7 @@ from pipeline.core.sh import band_of_index, num_coeffs, order_of, project_envmap
 from pipeline.core.transfer import irradiance_from_sh
 from pipeline.errors import UserError
 from pipeline.io.brdf import read_brdf
+from pipeline.io.camera_files import srgb_encode
 from pipeline.io.images import read_envmap, write_image
 from pipeline.io.lighting import read_lighting_sh
 from pipeline.io.poses import Poses, read_poses
@@ -446,12 +447,6 @@ def render_view(view: View, mesh, intersector, lighting: Lighting, albedo, verte
                 hits[idx] += 1
     n_rays = supersample * supersample
     return np.concatenate([rgb / n_rays, hits[:, None] / n_rays], axis=1).reshape(h, w, 4).astype(np.float32)
-
-
-def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] -> sRGB-encoded [0, 1] (IEC 61966-2-1 curve), clipped."""
-    x = np.clip(linear, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
 def preview_exposure(rgb: np.ndarray, mask: np.ndarray) -> float:
