@@ -405,13 +405,18 @@ def write_plots(out: Path, env: np.ndarray, bands: list[dict], views: list[dict]
     written.append(_save(fig, out / "lighting.png", atomic_path, plt))
     fig, ax = plt.subplots(figsize=(7, 4))
     ls = [b["l"] for b in bands]
-    ax.bar(ls, [max(b["energy"], 1e-30) for b in bands], color=[colours[b["label"]] for b in bands])
+    positive = [b["energy"] for b in bands if b["energy"] > 0]
+    floor = min(positive) / 100 if positive else 1e-6
+    # ill-posed bands are zero: drawn as a short stub at the bottom of the log axis
+    ax.bar(ls, [max(b["energy"], floor * 3) for b in bands], bottom=floor, color=[colours[b["label"]] for b in bands])
     ax.set_yscale("log")
+    ax.set_ylim(bottom=floor)
     ax.set_xlabel("band l")
     ax.set_ylabel("energy sum_m L_lm^2 (RGB)")
-    for lab, col in colours.items():
-        ax.bar([], [], color=col, label=lab)
-    ax.legend()
+    from matplotlib.patches import Patch
+
+    ax.legend(handles=[Patch(color=col, label=lab + (" (zeroed)" if lab == "ill-posed" else ""))
+                       for lab, col in colours.items()])
     ax.set_title("fitted lighting spectrum and what the data determine")
     written.append(_save(fig, out / "spectrum.png", atomic_path, plt))
     fig, ax = plt.subplots(figsize=(max(6, 0.25 * len(views)), 4))
