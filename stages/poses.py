@@ -479,6 +479,9 @@ def refine_with_board(reconstruction, similarity: Similarity, detections: dict, 
     options.print_summary = False
     options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
     options.ceres.loss_function_scale = 1.0  # pixels
+    # stop when the cost changes by < 1e-6 relative (COLMAP's default 0 runs to the iteration limit)
+    options.ceres.solver_options.function_tolerance = 1e-6
+    options.ceres.solver_options.max_num_iterations = 50
     pycolmap.create_default_bundle_adjuster(options, config, new).solve()
     new.update_point_3d_errors()
     return new
