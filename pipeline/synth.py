@@ -453,7 +453,7 @@ def make_test_capture(out_dir: str | Path, *, mesh: str = "sphere", brdf: str = 
 
 # -- benchmark (`sigrend bench synth`) ------------------------------------------------------------
 
-BENCH_MESH = Path(__file__).resolve().parents[1].parent / "shared" / "meshes" / "stanford-bunny.obj"  # ../shared/meshes
+BENCH_MESH = Path(__file__).resolve().parents[1] / "sample_data" / "meshes" / "stanford-bunny.obj"  # see its SOURCES.md
 
 
 def synth_bench_suite(quick: bool, repeat: int) -> list:
