@@ -524,6 +524,17 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             pick = solve.parsimonious_choice(cands, settings.parsimony, noise=settings.noise_floor * _rms(data))
             coeffs, brdf = cands[pick]["fit"]
             coeffs, brdf, scale = apply_scale_convention(coeffs, brdf, target)
+            if brdf["model"] != "lambert":
+                # how well the data pin the lobe width given the factorized lighting (profile only)
+                fn = lambda m, w, c: _filter_fn(m, w, order_of(coeffs.shape[0]), c)  # noqa: E731
+                profile = solve.fit_brdf(brdf_data(data, coeffs, settings.folds), brdf["model"], fn,
+                                         noise_floor=settings.noise_floor)
+                report["brdf_width"] = {k: v for k, v in profile.items() if k != "brdf"}
+                report["brdf_width"]["recoverable_given_fitted_lighting"] = report["brdf_width"].pop("width_recoverable")
+                report["brdf_width"]["width_recoverable"] = None
+                report["brdf_width"]["note"] = ("factorization: a radially symmetric lobe trades its width against "
+                                                "lighting blur and only the diffuse part separates them (weakly), so "
+                                                "the profile, taken with the fitted lighting fixed, overstates certainty")
             report["scale_convention"] = {
                 "source": "capture.toml [fit] known_albedo" if hint is not None else f"default grey albedo {DEFAULT_ALBEDO}",
                 "albedo": target.tolist(), "applied_channel_scale": scale.tolist(),
