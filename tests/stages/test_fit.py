@@ -135,6 +135,7 @@ def test_factorization_predicts_held_out_views(glossy_scene):
     report = read_report(work / "fit" / "report.json")
     assert report["mode"] == "factorization"
     assert report["scale_convention"]["source"].startswith("capture.toml")
+    assert report["brdf_width"]["width_recoverable"] is None     # never claimed in a factorization
     assert np.allclose(brdf["albedo"], [0.3, 0.25, 0.2], rtol=1e-6) or max(brdf["albedo"]) == 0
     pred = render_samples(coeffs, brdf, n_out, v_out)
     rel = np.sqrt(((pred - b_out) ** 2).sum() / (b_out ** 2).sum())
