@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.io.images import read_image
+from pipeline.io.images import open_image_input, read_image
 
 RAW_EXTENSIONS = frozenset(
     ".dng .cr2 .cr3 .crw .nef .nrw .arw .srf .sr2 .orf .rw2 .raf .pef .srw .x3f .3fr .iiq .erf .kdc .dcr "
@@ -84,10 +84,7 @@ def probe(path: Path) -> Probe:
             return Probe(path, "raw", w, h, exif, wb)
     import OpenImageIO as oiio
 
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise UserError(f"{path}: cannot read this image ({oiio.geterror().strip() or 'unknown format'}); "
-                        "check the file is complete and in a supported format")
+    inp = open_image_input(path)
     try:
         spec = inp.spec()
         meta = {a.name: a.value for a in spec.extra_attribs}

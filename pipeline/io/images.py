@@ -21,13 +21,8 @@ def _oiio():
     return oiio
 
 
-def read_image(path: str | os.PathLike, *, with_metadata: bool = False):
-    """Read any image OpenImageIO understands as float32 (H, W, C).
-
-    Returns the array, or ``(array, metadata_dict)`` when ``with_metadata`` (EXIF and header
-    attributes by name, e.g. ``"ExposureTime"``, ``"FNumber"``, ``"Exif:PhotographicSensitivity"``).
-    Values of integer formats are scaled to [0, 1] (OpenImageIO's convention), not linearized.
-    """
+def open_image_input(path: str | os.PathLike):
+    """An open OpenImageIO ImageInput for ``path`` (close it after use); UserError when unreadable."""
     oiio = _oiio()
     path = Path(path)
     if not path.exists():
@@ -36,6 +31,18 @@ def read_image(path: str | os.PathLike, *, with_metadata: bool = False):
     if inp is None:
         raise UserError(f"{path}: cannot read this image ({oiio.geterror().strip() or 'unknown format'}); "
                         "check the file is complete and in a supported format")
+    return inp
+
+
+def read_image(path: str | os.PathLike, *, with_metadata: bool = False):
+    """Read any image OpenImageIO understands as float32 (H, W, C).
+
+    Returns the array, or ``(array, metadata_dict)`` when ``with_metadata`` (EXIF and header
+    attributes by name, e.g. ``"ExposureTime"``, ``"FNumber"``, ``"Exif:PhotographicSensitivity"``).
+    Values of integer formats are scaled to [0, 1] (OpenImageIO's convention), not linearized.
+    """
+    path = Path(path)
+    inp = open_image_input(path)
     try:
         spec = inp.spec()
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
