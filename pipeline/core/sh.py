@@ -91,6 +91,36 @@ def _trig_table(phi: np.ndarray, order: int) -> np.ndarray:
                            np.sqrt(2.0) * np.cos(mphi)], axis=1)
 
 
+def _azimuth_rows(x: np.ndarray, y: np.ndarray, order: int) -> np.ndarray:
+    """Azimuthal factors as rows m + L (m = -L..L) of a (2L+1, N) array, like ``_trig_table``.T.
+
+    cos(m phi), sin(m phi) by the Chebyshev recurrence t_m = 2 cos(phi) t_{m-1} - t_{m-2} from
+    cos(phi) = x / rho, sin(phi) = y / rho (rho = hypot(x, y); phi = 0 at the poles, as arctan2
+    gives): no transcendental function per m.  Agrees with the direct formula to ~1e-14 at L = 8
+    and ~3e-13 at L = 40 (rounding grows linearly in m).
+    """
+    rho = np.hypot(x, y)
+    pole = rho == 0.0
+    inv = np.divide(1.0, rho, out=np.zeros_like(rho), where=~pole)
+    out = np.empty((2 * order + 1, x.shape[0]))
+    out[order] = 1.0
+    if order == 0:
+        return out
+    root2 = np.sqrt(2.0)
+    np.multiply(np.where(pole, 1.0, x * inv), root2, out=out[order + 1])     # sqrt2 cos(phi)
+    np.multiply(y * inv, root2, out=out[order - 1])                           # sqrt2 sin(phi)
+    two_cos = np.where(pole, 2.0, 2.0 * x * inv)
+    for m in range(2, order + 1):
+        np.multiply(two_cos, out[order + m - 1], out=out[order + m])
+        np.multiply(two_cos, out[order - m + 1], out=out[order - m])
+        if m == 2:
+            out[order + m] -= root2                                           # sqrt2 cos(0)
+        else:
+            out[order + m] -= out[order + m - 2]
+            out[order - m] -= out[order - m + 2]                              # sin(0) = 0 at m = 2
+    return out
+
+
 def m_of_index(order: int) -> np.ndarray:
     """m of every k up to ``order``: [0, -1, 0, 1, -2, ...]."""
     l = band_of_index(order)
@@ -101,14 +131,15 @@ def sh_basis(dirs: np.ndarray, order: int) -> np.ndarray:
     """All real SH Y_k at N unit directions: (N, 3) -> (N, (order+1)^2), float64.
 
     Y_k = P̄_l|m|(cos theta) * trig_m(phi) with the normalized Legendre recurrences of
-    ``_legendre_bands`` (stable to L = 100 and beyond: no factorials, no overflow, no NaN).
+    ``_legendre_bands`` (stable to L = 100 and beyond: no factorials, no overflow, no NaN) and
+    the azimuthal Chebyshev recurrence of ``_azimuth_rows``.
     The result is a transposed (Fortran-ordered) view of a k-major array.
     """
     if order < 0:
         raise ValueError("order must be >= 0")
     d = np.asarray(dirs, dtype=float).reshape(-1, 3)
     z, s = _z_and_sin(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
-    trig = _trig_table(np.arctan2(d[:, 1], d[:, 0]), order).T     # (2L+1, N), row m + L
+    trig = _azimuth_rows(d[:, 0], d[:, 1], order)                  # (2L+1, N), row m + L
     out = np.empty((num_coeffs(order), d.shape[0]))
     for l, p in _legendre_bands(z, s, order):
         centre = l * l + l
