@@ -9,14 +9,25 @@ view's image key stem (alpha = fraction of the pixel covered by the object), an 
 of each, and ``relight.json`` (views, lighting, scale and errors).  With ``--compare`` also
 ``<stem>_photo.png`` and ``<stem>_error.png`` and the relative errors against the linear photos.
 
-Rendering is the frequency-space forward model (R&H 2001), pixel by pixel after a ray cast:
+Two methods (``--method``), both pixel by pixel after a ray cast:
+
+``angular`` (default): the reflection equation integrated in the angular domain by the reference
+renderer's machinery (pipeline.core.render.Renderer.shade): the lighting as an equirect map (an
+SH lighting is synthesized to a map, pipeline.core.sh.envmap_from_sh, clamped >= 0), split into
+directions with exact solid angles, the full BRDF (pipeline.core.brdf: Torrance-Sparrow microfacet
+with Schlick Fresnel and V-cavity G, or R&H Phong), and per-vertex shadow rays (self-shadowing,
+plus the capture's board from capture.toml as an occluder, as in the photos):
+  B(x, w_o) = sum_j L_j dω_j V(x, w_j) f_r(w_j, w_o) max(0, n . w_j)
+
+``frequency``: the frequency-space forward model (R&H 2001) of the fit, fast, no shadows:
   diffuse   B_d = rho_d / pi * E(n),  E(n) = sum_lm Â_l L_lm Y_lm(n)   (R&H irradiance paper, eq. 7)
   lobe      B_s = k_c * sum_lm A_l L_lm Y_lm(r),  r = reflect(view, n)  (R&H 2001, radially
             symmetric lobes in reflection space)
 with A_l the lobe's filter and k_c its weight: the fit's forward model, pipeline.core.forward.
 Broad lobes are summed in SH; a lobe that needs more bands than ``lobe_sh_order`` (a sharp one)
 is read from the lighting prefiltered once with the same lobe in the angular domain (the
-framework's dual representation).  No shadows: the model is that of the fit.
+framework's dual representation).  No shadows and the reflection-space lobe approximation:
+the model is that of the fit (docs/relight.md gives both methods' measured errors).
 """
 
 from __future__ import annotations
@@ -30,7 +41,7 @@ import numpy as np
 from pipeline.core import camera as cam
 from pipeline.core import forward
 from pipeline.core.envmap import downsample, equirect_angles, equirect_solid_angles
-from pipeline.core.sh import band_of_index, num_coeffs, order_of, project_envmap, sh_evaluate
+from pipeline.core.sh import band_of_index, envmap_from_sh, num_coeffs, order_of, project_envmap, sh_evaluate
 from pipeline.core.transfer import irradiance_from_sh
 from pipeline.errors import UserError
 from pipeline.io.brdf import read_brdf
@@ -46,6 +57,7 @@ DIFFUSE_ORDER = 16         # |Â_l| beyond l = 16 is < 0.15% of Â_0: irradiance
 LOBE_CUTOFF = 1e-3         # a lobe "needs" band l while |A_l| > LOBE_CUTOFF * A_0
 MAX_LOBE_ORDER = 400       # the filter is examined up to this band
 ERROR_MAP_RANGE = 0.2      # error maps: relative error 0 .. 20% spans the colour map
+METHODS = ("angular", "frequency")
 
 
 @dataclass(frozen=True)
@@ -59,6 +71,14 @@ class Settings:
     compare: bool = setting(False, "compare with the linear photos of the same views: error maps and relative errors "
                                    "(after one global scale when the lighting is the fitted one)")
     supersample: int = setting(2, "rays per pixel along each axis (n x n); alpha is the covered fraction")
+    method: str = setting("angular", "'angular': the reflection equation over the lighting's directions with the full "
+                                     "BRDF and shadow rays (accurate); 'frequency': the fit's SH / prefiltered "
+                                     "forward model (fast, no shadows, reflection-space lobe)")
+    env_height: int = setting(64, "angular method: height of the equirect map an SH lighting is synthesized to")
+    cell_height: int = setting(32, "angular method: the map's remainder (outside bright pixels) is averaged into "
+                                   "cell_height x 2 cell_height directions")
+    shadows: bool = setting(True, "angular method: self-shadowing by shadow rays (and the capture's board, if "
+                                  "capture.toml has one, as an occluder)")
     lobe_sh_order: int = setting(24, "a lobe that needs more SH bands than this is read from a prefiltered "
                                      "angular-space map instead (sharp lobes)")
     prefilter_height: int = setting(128, "height of the prefiltered equirect map used for sharp lobes")
@@ -74,6 +94,12 @@ class Settings:
             raise UserError(f"--lobe-sh-order {self.lobe_sh_order}: use at least 2")
         if not 8 <= self.prefilter_height <= 1024:
             raise UserError(f"--prefilter-height {self.prefilter_height}: use 8 to 1024")
+        if self.method not in METHODS:
+            raise UserError(f"--method {self.method!r}: use one of {', '.join(METHODS)}")
+        if not 8 <= self.env_height <= 1024:
+            raise UserError(f"--env-height {self.env_height}: use 8 to 1024")
+        if not 4 <= self.cell_height <= 512:
+            raise UserError(f"--cell-height {self.cell_height}: use 4 to 512")
 
 
 def add_arguments(parser) -> None:
@@ -403,6 +429,102 @@ class Lighting:
         return np.maximum(out, 0.0)
 
 
+    def shade_hits(self, tri: np.ndarray, bary: np.ndarray, normal: np.ndarray, view_dir: np.ndarray,
+                   albedo: np.ndarray) -> np.ndarray:
+        """Radiance (N, 3) at ray hits (face ids, barycentrics, interpolated normals, view directions, albedo)."""
+        return self.radiance(normal, view_dir, albedo)
+
+
+class AngularLighting:
+    """New lighting for the angular method: pipeline.core.render.Renderer over an equirect map.
+
+    Give ``coeffs`` (SH lighting, synthesized to an ``env_height`` map and clamped >= 0: negative
+    radiance is not light) or ``env`` (an equirect map, used as is).  The renderer splits the map
+    into bright full-resolution pixels and ``cell_height`` x 2 ``cell_height`` remainder cells with
+    their exact solid angles, evaluates the full BRDF per direction and, with ``shadows``, casts
+    shadow rays once per mesh vertex (``board``: a render.BoardPlane that occludes too).
+
+    A lobe sharper than the cells (it needs more SH bands than ``cell_height``, needed_order) would
+    be point-sampled between directions and lose its energy; such a lobe is taken from the
+    frequency path instead (Lighting: exact SH or prefiltered-map filtering, for which sharp lobes
+    are the easy case) without its shadows, and the renderer does the diffuse part with shadows.
+    """
+
+    def __init__(self, brdf: dict, mesh, *, coeffs: np.ndarray | None = None, env: np.ndarray | None = None,
+                 env_height: int = 64, cell_height: int = 32, shadows: bool = True, vertex_albedo=None,
+                 board=None, source: str = "", lobe_sh_order: int = 24, prefilter_height: int = 128):
+        from pipeline.core.render import Renderer
+
+        self.source = source
+        self.lobe_order = needed_order(brdf_lobe_filter(brdf, MAX_LOBE_ORDER))
+        self.sharp_lobe = self.lobe_order > cell_height
+        self.lobe: Lighting | None = None
+        if self.sharp_lobe:
+            self.lobe = Lighting({**brdf, "albedo": [0.0, 0.0, 0.0]}, coeffs=coeffs, env=env,
+                                 lobe_sh_order=lobe_sh_order, prefilter_height=prefilter_height, source=source)
+            brdf = {"model": "lambert", "albedo": brdf["albedo"]}
+        if coeffs is not None:
+            env = np.maximum(envmap_from_sh(np.asarray(coeffs, float), env_height), 0.0)
+            self.kind, self.order = "sh", order_of(np.asarray(coeffs).shape[0])
+        else:
+            self.kind, self.order = "envmap", None
+        self.shadows = bool(shadows)
+        self.board = board is not None and self.shadows
+        self.renderer = Renderer(mesh, env, brdf, shadows=self.shadows, vertex_albedo=vertex_albedo,
+                                 board=board if self.shadows else None, cell_height=cell_height)
+
+    @classmethod
+    def from_file(cls, path: Path, brdf: dict, mesh, **kwargs) -> "AngularLighting":
+        path = Path(path)
+        if path.suffix.lower() == ".json":
+            return cls(brdf, mesh, coeffs=read_lighting_sh(path), source=str(path), **kwargs)
+        return cls(brdf, mesh, env=read_envmap(path), source=str(path), **kwargs)
+
+    def describe(self) -> dict:
+        return {"path": self.source, "kind": self.kind, "sh_order": self.order, "method": "angular",
+                "map_height": int(self.renderer.env.shape[0]), "directions": len(self.renderer.lights),
+                "shadows": self.shadows, "board_occludes": self.board, "lobe_bands": self.lobe_order,
+                "lobe": "none" if self.lobe_order == 0 else
+                ("frequency path (sharper than the cells), unshadowed" if self.sharp_lobe else "angular")}
+
+    def shade_hits(self, tri: np.ndarray, bary: np.ndarray, normal: np.ndarray, view_dir: np.ndarray,
+                   albedo: np.ndarray) -> np.ndarray:
+        """Radiance (N, 3) at ray hits; the renderer interpolates normals and albedo itself."""
+        out = self.renderer.shade(tri, bary, view_dir)
+        if self.lobe is not None:
+            out = out + self.lobe.radiance(normal, view_dir, np.zeros(3))
+        return out
+
+
+def board_occluder(capture: Path):
+    """The capture's ChArUco board (capture.toml [board]) as a render.BoardPlane occluder, or None.
+
+    Only its rectangle matters here (it blocks the object's lower hemisphere as in the photos);
+    its texture is not rendered.
+    """
+    from pipeline.core.render import BoardPlane
+    from pipeline.io.capture_toml import read_capture_config
+
+    spec = read_capture_config(capture).board
+    if spec is None:
+        return None
+    size = (spec.squares[0] * spec.square_length, spec.squares[1] * spec.square_length)
+    return BoardPlane(np.full((1, 1), 0.8), size, np.asarray(spec.board_to_object, float))
+
+
+def prepare_lighting(path: Path, brdf: dict, mesh, settings: Settings, *, capture: Path | None = None,
+                     vertex_colors=None):
+    """The lighting at ``path`` prepared for ``settings.method`` (Lighting or AngularLighting)."""
+    if settings.method == "frequency":
+        return Lighting.from_file(path, brdf, lobe_sh_order=settings.lobe_sh_order,
+                                  prefilter_height=settings.prefilter_height)
+    board = board_occluder(capture) if capture is not None and settings.shadows else None
+    return AngularLighting.from_file(path, brdf, mesh, env_height=settings.env_height,
+                                     cell_height=settings.cell_height, shadows=settings.shadows,
+                                     vertex_albedo=vertex_colors, board=board, lobe_sh_order=settings.lobe_sh_order,
+                                     prefilter_height=settings.prefilter_height)
+
+
 # --------------------------------------------------------------------------------------- rendering
 
 def vertex_albedo(work: Path, mesh) -> np.ndarray | None:
@@ -418,7 +540,7 @@ def vertex_albedo(work: Path, mesh) -> np.ndarray | None:
     return colors / 255.0 if colors.max() > 1.0 else colors
 
 
-def render_view(view: View, mesh, intersector, lighting: Lighting, albedo, vertex_colors,
+def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLighting", albedo, vertex_colors,
                 supersample: int = 1, chunk: int = 1 << 16) -> np.ndarray:
     """Linear RGBA (H, W, 4): radiance averaged over an n x n grid of rays per pixel, alpha = hit fraction."""
     import trimesh
@@ -443,7 +565,7 @@ def render_view(view: View, mesh, intersector, lighting: Lighting, albedo, verte
                 v = -dirs[ray]
                 rho = albedo if vertex_colors is None else np.einsum("ij,ijk->ik", bary, vertex_colors[mesh.faces[tri]])
                 idx = start + ray
-                rgb[idx] += lighting.radiance(n, v, rho)
+                rgb[idx] += lighting.shade_hits(tri, bary, n, v, rho)
                 hits[idx] += 1
     n_rays = supersample * supersample
     return np.concatenate([rgb / n_rays, hits[:, None] / n_rays], axis=1).reshape(h, w, 4).astype(np.float32)
@@ -522,6 +644,8 @@ def _view_outputs(folder: Path, key: str, compare: bool) -> list[Path]:
 
 def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     paths = [lighting_path(work, settings), Path(work) / "fit" / "brdf.json", Path(work) / "fit" / "albedo.ply"]
+    if settings.method == "angular" and settings.shadows:
+        paths.append(Path(capture) / "capture.toml")  # the board occluder
     try:
         paths.append(mesh_path(capture))
     except UserError:
@@ -568,9 +692,8 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     brdf = read_brdf(brdf_path)
     mesh = load_mesh(mesh_path(capture))
     views = resolve_views(capture=capture, work=work, settings=settings, mesh=mesh)
-    lighting = Lighting.from_file(light_path, brdf, lobe_sh_order=settings.lobe_sh_order,
-                                  prefilter_height=settings.prefilter_height)
     vertex_colors = vertex_albedo(work, mesh)
+    lighting = prepare_lighting(light_path, brdf, mesh, settings, capture=capture, vertex_colors=vertex_colors)
     albedo = np.asarray(brdf["albedo"], float)
     intersector = RayMeshIntersector(mesh)
     folder = out_folder(work, settings)
@@ -593,7 +716,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             valid = weight > 0.999  # fully valid pixels only (linearize's masks, alpha)
             rendered[view.key], photos[view.key] = rgba, photo
             masks[view.key] = _interior(rgba[..., 3]) & valid & np.all(np.isfinite(photo), axis=-1)
-    summary = {"views": [v.key for v in views], "lighting": lighting.describe(), "brdf": brdf,
+    summary = {"views": [v.key for v in views], "method": settings.method, "lighting": lighting.describe(), "brdf": brdf,
                "size": settings.size or "native", "out_dir": str(folder)}
     if settings.compare and rendered:
         result = compare_views(rendered, photos, masks, uses_fitted_lighting(work, settings))
