@@ -18,7 +18,7 @@ import pytest
 from pipeline.cli import main as cli_main
 from pipeline.commands.bench_poses import (BOARD, BOARD_TO_OBJECT, make_textured_capture, noise_texture,
                                            pose_errors, render, scene_quads)
-from pipeline.core.camera import Camera, look_at, project
+from pipeline.core.camera import Camera, camera_center, look_at, project
 from pipeline.io.poses import Poses, read_poses, write_poses
 from pipeline.settings import make_settings
 from stages import poses as stage
@@ -280,7 +280,8 @@ def test_one_pose_per_bracket(tmp_path):
 
 @pytest.fixture(scope="session", params=["dng", "jpeg"])
 def synth_run(request, tmp_path_factory):
-    """A 12-view 400x300 synth capture (sphere over the board) and the poses stage's work folder.
+    """A 12-view 400x300 synth capture (noise-textured sphere over the board on a noise-textured table,
+    elevations 15°-60°) and the poses stage's work folder.
     The DNG capture goes through linearize first (poses then reads linear/*.exr), the JPEG one is
     read directly."""
     from pipeline.runner import run_stage
@@ -289,7 +290,7 @@ def synth_run(request, tmp_path_factory):
 
     fmt = request.param
     capture = make_test_capture(tmp_path_factory.mktemp(f"synth_{fmt}"), views=12, size=(400, 300), fmt=fmt,
-                                board=True, poses=False)
+                                board=True, poses=False, table=True, texture="noise")
     work = tmp_path_factory.mktemp(f"synth_{fmt}_work")
     if fmt == "dng":
         run_stage("linearize", capture=capture, work=work, settings=make_settings(linearize.Settings))
@@ -304,16 +305,22 @@ def test_synth_capture_poses(synth_run):
     gt = read_poses(capture / "gt" / "poses.json")
     est = read_poses(work / "poses.json")
     summary = json.loads((work / "poses_summary.json").read_text())
-    # the lowest view (15° elevation) sees the board edge-on: SfM may miss it or register it in its
-    # mirror position, which the board check then drops; every other view must be posed
-    assert len(est.images) >= len(gt.images) - 1
-    assert set(summary["unregistered"]) <= {"0000.dng", "0000.jpg"}
+    # every view is posed (the 15° view sees board and table at grazing incidence but still registers)
+    assert set(est.images) == set(gt.images)
+    assert summary["unregistered"] == []
     rot, cen = pose_errors(gt, est)
-    # The synth scene has no texture off the board (a uniform sphere): SfM is a near-planar problem
-    # and the accuracy is bounded by ~0.2 px corner noise at 400x300 px; measured 0.17° / 0.33 % (DNG)
-    # and 0.20° / 0.41 % (JPEG).  The issue's 0.2° is asserted on the textured capture above.
-    assert rot.max() < 0.3
-    assert cen.max() < 0.005
+    keys = sorted(est.images)
+    centres = np.array([camera_center(gt.images[k].R, gt.images[k].t) for k in keys])
+    steep = centres[:, 2] / np.linalg.norm(centres, axis=1) > np.sin(np.radians(20.0))  # vs the object origin
+    steep[np.argmin(centres[:, 2])] = False  # the lowest view (15° towards its aim point)
+    assert steep.sum() >= 10
+    # The issue's bounds hold for every view but the lowest.  The lowest view (15°) sees the texture
+    # at grazing incidence (features foreshortened ~4x): measured 0.35° / 0.54 % there (JPEG), so it
+    # gets twice the bounds.  Measured elsewhere: <= 0.18° and <= 0.3 %.
+    assert rot[steep].max() < 0.2
+    assert cen[steep].max() < 0.005
+    assert rot.max() < 0.4
+    assert cen.max() < 0.01
     cam = next(iter(est.cameras.values()))
     assert len(est.cameras) == 1
     assert cam.focal_principal()[0] == pytest.approx(gt.cameras[next(iter(gt.cameras))].params[0], rel=0.01)
