@@ -263,7 +263,7 @@ def _brdf(work: Path) -> str:
 
 
 def _relight(work: Path) -> str:
-    from pipeline.runner import relight_check
+    from pipeline.runner import method_description, relight_check
 
     folder = Path(work) / "relight" / "check"
     check = relight_check(work)
@@ -272,6 +272,7 @@ def _relight(work: Path) -> str:
     which = "held-out views (not used by the fit)" if check["heldout"] else "training views (no view was held out)"
     head = (f"<p>{len(check['views'])} {which}: relative RMS error <b>{100 * check['relative_error']:.2f}%</b>"
             + (f" after one global scale {check['scale']:.4g}" if check.get("scale_fitted") else "")
+            + f". Relit images made by the <b>{html.escape(method_description(check))}</b>"
             + f"; error maps show |relit − photo| / mean photo from 0 (black) to "
               f"{100 * check.get('error_map_range', 0.2):.0f}% (white).</p>")
     cells = []

@@ -213,8 +213,20 @@ def relight_check(work: Path) -> dict | None:
     doc = json.loads(path.read_text())
     check = doc.get("compare")
     if check is not None:
-        check = dict(check, heldout=bool(_samples_holdout(work)))
+        check = dict(check, heldout=bool(_samples_holdout(work)), method=doc.get("method", "frequency"),
+                     lighting=doc.get("lighting", {}))
     return check
+
+
+def method_description(check: dict) -> str:
+    """One phrase naming the relight method that made the compared images (from relight.json)."""
+    if check.get("method") == "angular":
+        light = check.get("lighting", {})
+        shadows = "with shadows" if light.get("shadows") else "without shadows"
+        lobe = light.get("lobe", "")
+        note = "; sharp lobe via the frequency path" if str(lobe).startswith("frequency") else ""
+        return f"angular method: reflection equation, full BRDF, {shadows}{note}"
+    return "frequency method: SH / prefiltered lobe, no shadows"
 
 
 def stage_table(results: list[StageResult]) -> str:
@@ -243,7 +255,7 @@ def summary_lines(work: Path) -> list[str]:
         which = "held-out views" if check["heldout"] else "training views (nothing held out)"
         scale = f" after one global scale {check['scale']:.3g}" if check.get("scale_fitted") else ""
         lines.append(f"relight error on {len(check['views'])} {which}: "
-                     f"{100 * check['relative_error']:.2f}% (relative RMS{scale})")
+                     f"{100 * check['relative_error']:.2f}% (relative RMS{scale}; {method_description(check)})")
     return lines
 
 
