@@ -48,7 +48,10 @@ class Settings:
     brdf: str = setting("auto", "'auto' (choose among lambert/phong/microfacet), a model name (parameters fitted), "
                                 "or a known BRDF: brdf.json path or inline spec 'model:key=v,...'")
     order: str = setting("auto", "SH order of the fitted lighting: 'auto' (leave-views-out validation) or an integer")
-    max_order: int = setting(8, "largest SH order tried by --order auto (and used while factorizing)")
+    max_order: int = setting(12, "largest SH order tried by --order auto (sharp lights seen through a glossy lobe "
+                                 "carry energy to order > 8)")
+    factor_order: int = setting(8, "SH order of the lighting while factorizing (the final lighting is then chosen "
+                                   "up to --max-order for the factorized BRDF)")
     env_order: int = setting(16, "SH order to which a known EXR lighting is projected")
     lobe_min_cos: float = setting(0.7, "with a specular lobe in the model, use only samples with n.v >= this: the R&H "
                                        "reflection-space lobe is accurate near normal view (docs/fit.md)")
@@ -58,6 +61,9 @@ class Settings:
     noise_floor: float = setting(0.005, "noise assumed at least this fraction of the RMS radiance (calibration, model error)")
     min_snr: float = setting(10.0, "a band is recoverable when its SNR (docs/fit.md) reaches this")
     band_prior: float = setting(0.3, "Tikhonov prior scale of ill-conditioned bands, as a fraction of the DC lighting")
+    band_prior_choices: str = setting("1,3", "further prior scales tried with --order auto; order and prior are "
+                                             "chosen together by leave-views-out validation (sharp lights put "
+                                             "more energy in high bands than the default prior allows)")
     iterations: int = setting(3, "alternations lighting <-> BRDF in the factorization after the joint linear start")
     max_samples: int = setting(400000, "samples held in memory for BRDF and factorization fits (random subset)")
     chunk: int = setting(262144, "samples per chunk when streaming the normal equations")
@@ -73,8 +79,14 @@ class Settings:
                     raise ValueError
             except ValueError:
                 raise UserError(f"--order must be 'auto' or a non-negative integer, got {self.order!r}") from None
-        if self.max_order < 0 or self.env_order < 0:
-            raise UserError("--max-order and --env-order must be >= 0")
+        if self.max_order < 0 or self.env_order < 0 or self.factor_order < 0:
+            raise UserError("--max-order, --factor-order and --env-order must be >= 0")
+        try:
+            if any(p <= 0 for p in prior_choices(self)):
+                raise ValueError
+        except ValueError:
+            raise UserError(f"--band-prior-choices must be comma-separated positive numbers, got "
+                            f"{self.band_prior_choices!r}") from None
         if self.folds < 2:
             raise UserError(f"--folds must be >= 2 (views are held out for validation), got {self.folds}")
         if not 0.0 <= self.min_visibility <= 1.0:
@@ -83,6 +95,12 @@ class Settings:
             raise UserError(f"--blas-threads must be >= 0, got {self.blas_threads}")
         if self.max_samples < 100 or self.chunk < 100 or self.env_height < 4 or self.iterations < 1:
             raise UserError("--max-samples, --chunk must be >= 100, --env-height >= 4, --iterations >= 1")
+
+
+def prior_choices(settings: Settings) -> list[float]:
+    """band_prior first, then the distinct extra choices."""
+    extra = [float(x) for x in settings.band_prior_choices.split(",") if x.strip()]
+    return [settings.band_prior] + [p for p in dict.fromkeys(extra) if p != settings.band_prior]
 
 
 def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
@@ -235,15 +253,20 @@ def equations_from_arrays(data: dict, settings: Settings, brdf: dict, order: int
 
 def choose_order(eqs: solve.NormalEquations, brdf: dict, settings: Settings, max_carried: int,
                  explicit: int | None, views: int) -> tuple[solve.LightingFit, list[dict], int]:
-    """Fit every candidate order (or the given one) and choose by validation + parsimony."""
+    """Fit every candidate order (or the given one) and, with --order auto, every prior scale of
+    ``band_prior_choices``; choose by validation + parsimony (equal parameter counts: lower error)."""
     scale = np.asarray(brdf["albedo"], float) if eqs.shared else None
     kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior,
               independent_groups=views)
     if explicit is not None:
-        orders = [explicit]
+        orders, priors = [explicit], [settings.band_prior]
     else:
         orders = [o for o in range(eqs.order + 1) if num_coeffs(o) <= max_carried] or [0]
-    cands = solve.cross_validate_orders(eqs, orders, scale, **kw)
+        priors = prior_choices(settings)
+    cands = []
+    for prior in priors:
+        for c in solve.cross_validate_orders(eqs, orders, scale, **{**kw, "band_prior": prior}):
+            cands.append({**c, "band_prior": prior})
     floor = settings.noise_floor * float(np.sqrt(eqs.btb.sum() / (3 * max(eqs.weight.sum(), 1e-300))))
     pick = solve.parsimonious_choice(cands, settings.parsimony, noise=floor) if explicit is None else 0
     return cands[pick]["fit"], cands, cands[pick]["order"]
@@ -373,21 +396,45 @@ def apply_scale_convention(coeffs: np.ndarray, brdf: dict, target: np.ndarray) -
 # outputs
 
 
-def residuals_per_view(path: Path, settings: Settings, coeffs: np.ndarray, brdf: dict, keys: list[str]) -> list[dict]:
-    """Weighted RMS and relative RMS residual per image (a second pass over the samples)."""
+def residuals_per_view(path: Path, settings: Settings, coeffs: np.ndarray, brdf: dict,
+                       keys: list[str]) -> tuple[list[dict], dict]:
+    """Weighted RMS and relative RMS residual per image over the samples the fit uses, and the
+    model's limits: the relative RMS residual of the samples left out as self-shadowed
+    (visibility < min_visibility) and of the used ones by n.v (one pass over the samples)."""
     m = len(keys)
     se, bb, w, cnt = np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m, dtype=np.int64)
-    for chunk in iter_valid_chunks(path, settings):
+    groups = {"shadowed": [0.0, 0.0, 0], "visible, n.v < lobe_min_cos": [0.0, 0.0, 0],
+              "visible, n.v >= lobe_min_cos": [0.0, 0.0, 0]}
+    for chunk in iter_sample_chunks(path, settings.chunk, FIELDS):
+        ok = (chunk["weight"] > 0) & np.all(np.isfinite(chunk["radiance"]), axis=1)
+        if not ok.any():
+            continue
+        chunk = {k: (v[ok].astype(np.float64) if v.dtype.kind == "f" else v[ok]) for k, v in chunk.items()}
         pred = forward.render_samples(coeffs, brdf, chunk["normal"], chunk["view_dir"])
         r2 = ((chunk["radiance"] - pred) ** 2).sum(axis=1) * chunk["weight"]
-        ids = chunk["image_id"]
-        se += np.bincount(ids, r2, m)
-        bb += np.bincount(ids, (chunk["radiance"] ** 2).sum(axis=1) * chunk["weight"], m)
-        w += np.bincount(ids, chunk["weight"], m)
+        b2 = (chunk["radiance"] ** 2).sum(axis=1) * chunk["weight"]
+        used = chunk["visibility"] >= settings.min_visibility
+        front = np.einsum("ij,ij->i", chunk["normal"], chunk["view_dir"]) >= settings.lobe_min_cos
+        for name, rows in (("shadowed", ~used), ("visible, n.v < lobe_min_cos", used & ~front),
+                           ("visible, n.v >= lobe_min_cos", used & front)):
+            groups[name][0] += float(r2[rows].sum())
+            groups[name][1] += float(b2[rows].sum())
+            groups[name][2] += int(rows.sum())
+        ids = chunk["image_id"][used]
+        se += np.bincount(ids, r2[used], m)
+        bb += np.bincount(ids, b2[used], m)
+        w += np.bincount(ids, chunk["weight"][used], m)
         cnt += np.bincount(ids, minlength=m)
-    return [{"image": keys[i], "samples": int(cnt[i]), "fold": int(i % settings.folds),
-             "rmse": float(np.sqrt(se[i] / (3 * w[i]))) if w[i] else None,
-             "relative_rmse": float(np.sqrt(se[i] / bb[i])) if bb[i] else None} for i in range(m)]
+    views = [{"image": keys[i], "samples": int(cnt[i]), "fold": int(i % settings.folds),
+              "rmse": float(np.sqrt(se[i] / (3 * w[i]))) if w[i] else None,
+              "relative_rmse": float(np.sqrt(se[i] / bb[i])) if bb[i] else None} for i in range(m)]
+    total = sum(g[2] for g in groups.values())
+    limits = {name: {"samples": g[2], "fraction": g[2] / max(total, 1),
+                     "relative_rmse": float(np.sqrt(g[0] / g[1])) if g[1] else None} for name, g in groups.items()}
+    limits["note"] = ("the forward model has no self-shadowing (R&H distant lighting, whole hemisphere visible): "
+                      "samples with visibility < min_visibility are left out of the fit and predicted too bright; "
+                      "relight's angular renderer adds the shadows back")
+    return views, limits
 
 
 def write_plots(out: Path, env: np.ndarray, bands: list[dict], views: list[dict]) -> list[Path]:
@@ -441,7 +488,8 @@ def _save(fig, path: Path, atomic_path, plt) -> Path:
 
 
 def _lighting_candidates_json(cands: list[dict]) -> list[dict]:
-    return [{"name": f"order {c['order']}", **{k: v for k, v in c.items() if k != "fit"}} for c in cands]
+    return [{"name": f"order {c['order']}, band prior {c.get('band_prior', '')}",
+             **{k: v for k, v in c.items() if k != "fit"}} for c in cands]
 
 
 def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
@@ -484,6 +532,7 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         fit, cands, order = choose_order(eqs, brdf, settings, cover["carried"], explicit_order, cover["views"])
         timings["solve"] = time.perf_counter() - t0
         coeffs, bands, noise = fit.coeffs, fit.bands, fit.noise_sigma
+        report["band_prior"] = _chosen_prior(cands, fit)
         candidates = _lighting_candidates_json(cands)
         report["samples"].update(used=int(eqs.count.sum()), coverage=cover)
     else:
@@ -512,7 +561,7 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             timings["brdf_fit"] = time.perf_counter() - t0
         else:
             mode = "factorization"
-            work_order = explicit_order if explicit_order is not None else settings.max_order
+            work_order = explicit_order if explicit_order is not None else min(settings.factor_order, settings.max_order)
             target = np.asarray(hint if hint is not None else [DEFAULT_ALBEDO] * 3, float)
             _check_subset_counts(data, work_order, samples_path, explicit_order)
             t0 = time.perf_counter()
@@ -565,6 +614,7 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             fit, cands_o, order = choose_order(eqs, brdf, settings, cells, explicit_order,
                                                len(np.unique(data["image_id"])))
             coeffs, bands, noise = fit.coeffs, fit.bands, fit.noise_sigma
+            report["band_prior"] = _chosen_prior(cands_o, fit)
             candidates += _lighting_candidates_json(cands_o)
             timings["order_selection"] = time.perf_counter() - t0
     order = order_of(coeffs.shape[0])
@@ -578,8 +628,10 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     from pipeline.io.images import write_image
 
     env = np.maximum(envmap_from_sh(coeffs, settings.env_height), 0.0)
-    views = residuals_per_view(samples_path, settings, coeffs, brdf, keys)
+    views, limits = residuals_per_view(samples_path, settings, coeffs, brdf, keys)
     report["residuals_per_view"] = views
+    report["model_limits"] = limits
+    _say_limits(limits, settings)
     written = [write_lighting_sh(out / "lighting_sh.json", coeffs, source=f"sigrend fit ({mode})"),
                write_image(out / "lighting.exr", env.astype(np.float32), dtype="float"),
                write_brdf(out / "brdf.json", brdf)]
@@ -589,6 +641,26 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     report["timings"] = timings
     written.insert(3, write_report(out / "report.json", report))
     return written
+
+
+def _say_limits(limits: dict, settings: Settings) -> None:
+    """One line on stderr: how far the forward model is from the data where it is used, and on the
+    self-shadowed samples it leaves out."""
+    import sys
+
+    shadow = limits["shadowed"]
+    parts = [f"{100 * g['relative_rmse']:.1f}% on the {100 * g['fraction']:.0f}% visible with {name[9:]}"
+             for name, g in limits.items() if name.startswith("visible") and g["relative_rmse"] is not None]
+    parts[:1] = ["fit: relative RMS residual " + p for p in parts[:1]]
+    if shadow["samples"] and shadow["relative_rmse"] is not None:
+        parts.append(f"{100 * shadow['relative_rmse']:.1f}% on the {100 * shadow['fraction']:.0f}% self-shadowed ones "
+                     f"(visibility < {settings.min_visibility}; the forward model has no shadows, they are left out)")
+    if parts:
+        print("; ".join(parts), file=sys.stderr)
+
+
+def _chosen_prior(cands: list[dict], fit: solve.LightingFit) -> float:
+    return next(float(c["band_prior"]) for c in cands if c["fit"] is fit)
 
 
 def _rms(data: dict) -> float:

@@ -90,8 +90,10 @@ def test_order_auto_lists_candidates(lambert_scene, tmp_path):
     brdf_file = write_brdf(tmp_path / "brdf.json", {"model": "lambert", "albedo": ALBEDO})
     run_fit(capture, work, brdf=str(brdf_file))
     report = read_report(work / "fit" / "report.json")
-    names = [c["name"] for c in report["candidates"]]
-    assert names == [f"order {o}" for o in range(9)]
+    # every order up to --max-order (12) with every prior scale (0.3 and the choices 1, 3)
+    tried = {(c["order"], c["band_prior"]) for c in report["candidates"]}
+    assert tried == {(o, p) for o in range(13) for p in (0.3, 1.0, 3.0)}
+    assert report["band_prior"] in (0.3, 1.0, 3.0)
     for c in report["candidates"]:
         assert c["params"] > 0 and c["validation_rmse"] >= 0 and c["train_rmse"] >= 0
     assert max(band_errors(read_lighting_sh(work / "fit" / "lighting_sh.json"), project_envmap(env, 2), (0, 1, 2))) < 0.03
