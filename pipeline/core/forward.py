@@ -79,9 +79,10 @@ def design_terms(normal: np.ndarray, view_dir: np.ndarray, order: int, with_lobe
     a_hat = transfer.lambert_filter(order)[band_of_index(order)] / np.pi
     diffuse = sh_basis(normal, order)
     diffuse *= a_hat[None, :]
-    reflected = sh_basis(reflect_view(view_dir, normal), order) if with_lobe else None
     cos_view = np.einsum("ij,ij->i", normal, view_dir)
-    return DesignTerms(diffuse, reflected, fresnel_grazing(normal, view_dir), cos_view)
+    reflected = sh_basis(2.0 * cos_view[:, None] * normal - view_dir, order) if with_lobe else None   # reflect_view
+    grazing = (1.0 - np.clip(cos_view, 0.0, 1.0)) ** 5                                               # fresnel_grazing
+    return DesignTerms(diffuse, reflected, grazing, cos_view)
 
 
 def lobe_factor(brdf: dict, grazing: np.ndarray) -> np.ndarray:
