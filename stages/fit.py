@@ -403,8 +403,8 @@ def residuals_per_view(path: Path, settings: Settings, coeffs: np.ndarray, brdf:
     (visibility < min_visibility) and of the used ones by n.v (one pass over the samples)."""
     m = len(keys)
     se, bb, w, cnt = np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m, dtype=np.int64)
-    groups = {"shadowed": [0.0, 0.0, 0], "visible, n.v < lobe_min_cos": [0.0, 0.0, 0],
-              "visible, n.v >= lobe_min_cos": [0.0, 0.0, 0]}
+    groups = {"visible, n.v >= lobe_min_cos": [0.0, 0.0, 0], "visible, n.v < lobe_min_cos": [0.0, 0.0, 0],
+              "shadowed": [0.0, 0.0, 0]}
     for chunk in iter_sample_chunks(path, settings.chunk, FIELDS):
         ok = (chunk["weight"] > 0) & np.all(np.isfinite(chunk["radiance"]), axis=1)
         if not ok.any():

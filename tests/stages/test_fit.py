@@ -220,3 +220,9 @@ def test_check_mode_reports_residuals_of_known_lighting_and_brdf(lambert_scene, 
     assert report["mode"] == "check"
     # the truth's own residual: the order-8 cut of the sun and the 48x96 midpoint rule, < 1%
     assert max(v["relative_rmse"] for v in report["residuals_per_view"]) < 0.01
+    limits = report["model_limits"]
+    groups = [g for name, g in limits.items() if name != "note"]
+    assert abs(sum(g["fraction"] for g in groups) - 1.0) < 1e-12
+    # a convex sphere shadows nothing; the visible samples carry the same < 1% residual as the views
+    assert limits["shadowed"]["samples"] == 0
+    assert all(g["relative_rmse"] < 0.01 for g in groups if g["samples"])
