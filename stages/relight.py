@@ -75,10 +75,15 @@ class Settings:
                                      "BRDF and shadow rays (accurate); 'frequency': the fit's SH / prefiltered "
                                      "forward model (fast, no shadows, reflection-space lobe)")
     env_height: int = setting(64, "angular method: height of the equirect map an SH lighting is synthesized to")
+    clamp_sh: bool = setting(False, "angular method: clamp the map synthesized from an SH lighting at 0; off = keep "
+                                    "its negative lobes (rendered as a second, subtracted map), as the fit did")
     cell_height: int = setting(32, "angular method: the map's remainder (outside bright pixels) is averaged into "
                                    "cell_height x 2 cell_height directions")
-    shadows: bool = setting(True, "angular method: self-shadowing by shadow rays (and the capture's board, if "
-                                  "capture.toml has one, as an occluder)")
+    shadows: bool = setting(True, "angular method: self-shadowing by shadow rays")
+    board: str = setting("auto", "angular method with shadows: the capture's board (capture.toml [board]) occludes the "
+                                 "object: 'on', 'off', or 'auto' = on under a given --env (a whole environment, "
+                                 "the board was in the scene), off under the fitted lighting (the fit saw the "
+                                 "board's shadow as darkness from below: it is already in the lighting)")
     lobe_sh_order: int = setting(24, "a lobe that needs more SH bands than this is read from a prefiltered "
                                      "angular-space map instead (sharp lobes)")
     prefilter_height: int = setting(128, "height of the prefiltered equirect map used for sharp lobes")
@@ -98,6 +103,8 @@ class Settings:
             raise UserError(f"--method {self.method!r}: use one of {', '.join(METHODS)}")
         if not 8 <= self.env_height <= 1024:
             raise UserError(f"--env-height {self.env_height}: use 8 to 1024")
+        if self.board not in ("auto", "on", "off"):
+            raise UserError(f"--board {self.board!r}: use auto, on or off")
         if not 4 <= self.cell_height <= 512:
             raise UserError(f"--cell-height {self.cell_height}: use 4 to 512")
 
@@ -438,8 +445,12 @@ class Lighting:
 class AngularLighting:
     """New lighting for the angular method: pipeline.core.render.Renderer over an equirect map.
 
-    Give ``coeffs`` (SH lighting, synthesized to an ``env_height`` map and clamped >= 0: negative
-    radiance is not light) or ``env`` (an equirect map, used as is).  The renderer splits the map
+    Give ``coeffs`` (SH lighting, synthesized to an ``env_height`` map) or ``env`` (an equirect map,
+    used as is).  A fitted SH lighting has negative lobes (bands the data could not pin down: from a
+    Lambertian object half of the map's power can be negative) that the fit's linear model relied
+    on; clamping them at 0 (``clamp_sh``) adds their energy back as light, so by default the map is
+    split as L = L+ - L- and the object is rendered under both (the reflection equation is linear in
+    L): B = B(L+) - B(L-).  The renderer splits the map
     into bright full-resolution pixels and ``cell_height`` x 2 ``cell_height`` remainder cells with
     their exact solid angles, evaluates the full BRDF per direction and, with ``shadows``, casts
     shadow rays once per mesh vertex (``board``: a render.BoardPlane that occludes too).
@@ -452,7 +463,8 @@ class AngularLighting:
 
     def __init__(self, brdf: dict, mesh, *, coeffs: np.ndarray | None = None, env: np.ndarray | None = None,
                  env_height: int = 64, cell_height: int = 32, shadows: bool = True, vertex_albedo=None,
-                 board=None, source: str = "", lobe_sh_order: int = 24, prefilter_height: int = 128):
+                 board=None, source: str = "", lobe_sh_order: int = 24, prefilter_height: int = 128,
+                 clamp_sh: bool = False):
         from pipeline.core.render import Renderer
 
         self.source = source
@@ -463,15 +475,21 @@ class AngularLighting:
             self.lobe = Lighting({**brdf, "albedo": [0.0, 0.0, 0.0]}, coeffs=coeffs, env=env,
                                  lobe_sh_order=lobe_sh_order, prefilter_height=prefilter_height, source=source)
             brdf = {"model": "lambert", "albedo": brdf["albedo"]}
+        negative = None
         if coeffs is not None:
-            env = np.maximum(envmap_from_sh(np.asarray(coeffs, float), env_height), 0.0)
+            env = envmap_from_sh(np.asarray(coeffs, float), env_height)
+            if not clamp_sh and env.min() < 0:
+                negative = np.maximum(-env, 0.0)
+            env = np.maximum(env, 0.0)
             self.kind, self.order = "sh", order_of(np.asarray(coeffs).shape[0])
         else:
             self.kind, self.order = "envmap", None
         self.shadows = bool(shadows)
         self.board = board is not None and self.shadows
-        self.renderer = Renderer(mesh, env, brdf, shadows=self.shadows, vertex_albedo=vertex_albedo,
-                                 board=board if self.shadows else None, cell_height=cell_height)
+        options = dict(shadows=self.shadows, vertex_albedo=vertex_albedo, board=board if self.shadows else None,
+                       cell_height=cell_height)
+        self.renderer = Renderer(mesh, env, brdf, **options)
+        self.negative = None if negative is None else Renderer(mesh, negative, brdf, **options)
 
     @classmethod
     def from_file(cls, path: Path, brdf: dict, mesh, **kwargs) -> "AngularLighting":
@@ -484,6 +502,7 @@ class AngularLighting:
         return {"path": self.source, "kind": self.kind, "sh_order": self.order, "method": "angular",
                 "map_height": int(self.renderer.env.shape[0]), "directions": len(self.renderer.lights),
                 "shadows": self.shadows, "board_occludes": self.board, "lobe_bands": self.lobe_order,
+                "negative_lobes": "clamped" if self.negative is None else "subtracted",
                 "lobe": "none" if self.lobe_order == 0 else
                 ("frequency path (sharper than the cells), unshadowed" if self.sharp_lobe else "angular")}
 
@@ -491,6 +510,8 @@ class AngularLighting:
                    albedo: np.ndarray) -> np.ndarray:
         """Radiance (N, 3) at ray hits; the renderer interpolates normals and albedo itself."""
         out = self.renderer.shade(tri, bary, view_dir)
+        if self.negative is not None:
+            out = out - self.negative.shade(tri, bary, view_dir)
         if self.lobe is not None:
             out = out + self.lobe.radiance(normal, view_dir, np.zeros(3))
         return out
@@ -512,17 +533,24 @@ def board_occluder(capture: Path):
     return BoardPlane(np.full((1, 1), 0.8), size, np.asarray(spec.board_to_object, float))
 
 
+def board_occludes(work: Path, settings: Settings) -> bool:
+    """Whether the capture's board is an occluder (Settings.board; 'auto': not under the fitted lighting)."""
+    if settings.method != "angular" or not settings.shadows or settings.board == "off":
+        return False
+    return settings.board == "on" or not uses_fitted_lighting(work, settings)
+
+
 def prepare_lighting(path: Path, brdf: dict, mesh, settings: Settings, *, capture: Path | None = None,
-                     vertex_colors=None):
+                     vertex_colors=None, with_board: bool = False):
     """The lighting at ``path`` prepared for ``settings.method`` (Lighting or AngularLighting)."""
     if settings.method == "frequency":
         return Lighting.from_file(path, brdf, lobe_sh_order=settings.lobe_sh_order,
                                   prefilter_height=settings.prefilter_height)
-    board = board_occluder(capture) if capture is not None and settings.shadows else None
+    board = board_occluder(capture) if capture is not None and with_board else None
     return AngularLighting.from_file(path, brdf, mesh, env_height=settings.env_height,
                                      cell_height=settings.cell_height, shadows=settings.shadows,
                                      vertex_albedo=vertex_colors, board=board, lobe_sh_order=settings.lobe_sh_order,
-                                     prefilter_height=settings.prefilter_height)
+                                     prefilter_height=settings.prefilter_height, clamp_sh=settings.clamp_sh)
 
 
 # --------------------------------------------------------------------------------------- rendering
@@ -644,7 +672,7 @@ def _view_outputs(folder: Path, key: str, compare: bool) -> list[Path]:
 
 def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     paths = [lighting_path(work, settings), Path(work) / "fit" / "brdf.json", Path(work) / "fit" / "albedo.ply"]
-    if settings.method == "angular" and settings.shadows:
+    if board_occludes(work, settings):
         paths.append(Path(capture) / "capture.toml")  # the board occluder
     try:
         paths.append(mesh_path(capture))
@@ -693,7 +721,8 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     mesh = load_mesh(mesh_path(capture))
     views = resolve_views(capture=capture, work=work, settings=settings, mesh=mesh)
     vertex_colors = vertex_albedo(work, mesh)
-    lighting = prepare_lighting(light_path, brdf, mesh, settings, capture=capture, vertex_colors=vertex_colors)
+    lighting = prepare_lighting(light_path, brdf, mesh, settings, capture=capture, vertex_colors=vertex_colors,
+                                with_board=board_occludes(work, settings))
     albedo = np.asarray(brdf["albedo"], float)
     intersector = RayMeshIntersector(mesh)
     folder = out_folder(work, settings)

@@ -250,10 +250,19 @@ def _relight_both(tmp_path, capture, work, **common) -> tuple[np.ndarray, np.nda
     return out["frequency"], out["angular"]
 
 
-def test_angular_method_agrees_with_the_irradiance_formula_for_lambert(tmp_path, rng):
+@pytest.mark.parametrize("dc", [2.0, 0.6])
+def test_angular_method_agrees_with_the_irradiance_formula_for_lambert(tmp_path, rng, dc):
     """Lambertian, no shadows: the frequency method is exact (irradiance formula, R&H 2001b eq. 7),
-    so the angular method may differ from it only by its discretization of the lighting."""
-    capture, work = _scene(tmp_path, {"model": "lambert", "albedo": [0.6, 0.5, 0.4]}, _lighting(rng))
+    so the angular method may differ from it only by its discretization of the lighting -- also for
+    an SH lighting with negative lobes (dc = 0.6: like a fit's unrecoverable bands), which the
+    angular method subtracts as a second map instead of clamping (dc = 0.6 keeps the irradiance itself
+    positive: the frequency path clamps negative radiance at 0)."""
+    coeffs = _lighting(rng)
+    coeffs[0] = dc
+    capture, work = _scene(tmp_path, {"model": "lambert", "albedo": [0.6, 0.5, 0.4]}, coeffs)
+    if dc < 1:
+        from pipeline.core.sh import envmap_from_sh
+        assert envmap_from_sh(coeffs, 64).min() < 0   # the case is what it claims to be
     freq, ang = _relight_both(tmp_path, capture, work, supersample=1, shadows=False)
     m = (freq[..., 3] == 1) & (ang[..., 3] == 1)
     rel = np.linalg.norm(ang[..., :3][m] - freq[..., :3][m]) / np.linalg.norm(freq[..., :3][m])
