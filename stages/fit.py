@@ -576,16 +576,17 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
                 pred = forward.render_samples(c_t, b_t, held["normal"], held["view_dir"])
                 val = float(np.sqrt(((held["radiance"] - pred) ** 2 * held["weight"][:, None]).sum()
                                     / (3 * held["weight"].sum())))
-                c_a, b_a = factorize(data, model, work_order, target, settings)
-                pred = forward.render_samples(c_a, b_a, data["normal"], data["view_dir"])
-                tr = float(np.sqrt(((data["radiance"] - pred) ** 2 * data["weight"][:, None]).sum()
-                                   / (3 * data["weight"].sum())))
+                pred = forward.render_samples(c_t, b_t, train["normal"], train["view_dir"])
+                tr = float(np.sqrt(((train["radiance"] - pred) ** 2 * train["weight"][:, None]).sum()
+                                   / (3 * train["weight"].sum())))
                 n_lobe = 4 if model != "lambert" else 0
                 cands.append({"name": model, "params": 3 * num_coeffs(work_order) + 3 + n_lobe, "train_rmse": tr,
-                              "validation_rmse": val, "seconds": time.perf_counter() - tm,
-                              "fit": (c_a, b_a)})
+                              "validation_rmse": val, "seconds": time.perf_counter() - tm})
+            # training error on the training views; only the chosen model is refitted on all views
             pick = solve.parsimonious_choice(cands, settings.parsimony, noise=settings.noise_floor * _rms(data))
-            coeffs, brdf = cands[pick]["fit"]
+            tm = time.perf_counter()
+            coeffs, brdf = factorize(data, cands[pick]["name"], work_order, target, settings)
+            cands[pick]["seconds"] += time.perf_counter() - tm
             coeffs, brdf, scale = apply_scale_convention(coeffs, brdf, target)
             if brdf["model"] != "lambert":
                 # how well the data pin the lobe width given the factorized lighting (profile only)
