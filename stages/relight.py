@@ -514,7 +514,7 @@ class AngularLighting:
             out = out - self.negative.shade(tri, bary, view_dir)
         if self.lobe is not None:
             out = out + self.lobe.radiance(normal, view_dir, np.zeros(3))
-        return out
+        return np.maximum(out, 0.0)  # as the frequency path: B(L+) - B(L-) < 0 is not an image value
 
 
 def board_occluder(capture: Path):
