@@ -13,10 +13,12 @@ Two methods (``--method``), both pixel by pixel after a ray cast:
 
 ``angular`` (default): the reflection equation integrated in the angular domain by the reference
 renderer's machinery (pipeline.core.render.Renderer.shade): the lighting as an equirect map (an
-SH lighting is synthesized to a map, pipeline.core.sh.envmap_from_sh, clamped >= 0), split into
-directions with exact solid angles, the full BRDF (pipeline.core.brdf: Torrance-Sparrow microfacet
-with Schlick Fresnel and V-cavity G, or R&H Phong), and per-vertex shadow rays (self-shadowing,
-plus the capture's board from capture.toml as an occluder, as in the photos):
+SH lighting is synthesized to a map, pipeline.core.sh.envmap_from_sh, its negative lobes rendered
+as a second, subtracted map), split into directions with exact solid angles, the full BRDF
+(pipeline.core.brdf: Torrance-Sparrow microfacet with Schlick Fresnel and V-cavity G, or R&H
+Phong), and per-vertex shadow rays (self-shadowing; under a given --env also the capture's board
+from capture.toml as an occluder, as in the photos).  Lobes sharper than the direction cells are
+taken from the frequency path (AngularLighting):
   B(x, w_o) = sum_j L_j dω_j V(x, w_j) f_r(w_j, w_o) max(0, n . w_j)
 
 ``frequency``: the frequency-space forward model (R&H 2001) of the fit, fast, no shadows:
