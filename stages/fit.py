@@ -53,7 +53,7 @@ class Settings:
     factor_order: int = setting(8, "SH order of the lighting while factorizing (the final lighting is then chosen "
                                    "up to --max-order for the factorized BRDF)")
     env_order: int = setting(16, "SH order to which a known EXR lighting is projected")
-    lobe_min_cos: float = setting(0.7, "with a specular lobe in the model, use only samples with n.v >= this: the R&H "
+    lobe_min_cos: float = setting(0.3, "with a specular lobe in the model, use only samples with n.v >= this: the R&H "
                                        "reflection-space lobe is accurate near normal view (docs/fit.md)")
     min_visibility: float = setting(0.9, "leave out samples whose unblocked hemisphere fraction is below this")
     folds: int = setting(4, "validation folds; views go to fold image_id mod folds")
