@@ -465,7 +465,6 @@ def synth_bench_suite(quick: bool, repeat: int) -> list:
     bunny (``BENCH_MESH``, else the 'sphere'); --quick renders 128 x 128.
     """
     from pipeline.commands.bench import BenchRow
-    from pipeline.core.camera import Camera
     from pipeline.core.envmaps import make_envmap
     from pipeline.core.render import Renderer
 

@@ -34,7 +34,6 @@ the model is that of the fit (docs/relight.md gives both methods' measured error
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,7 +42,7 @@ import numpy as np
 from pipeline.core import camera as cam
 from pipeline.core import forward
 from pipeline.core.envmap import downsample, equirect_angles, equirect_solid_angles
-from pipeline.core.sh import band_of_index, envmap_from_sh, num_coeffs, order_of, project_envmap, sh_evaluate
+from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envmap
 from pipeline.core.transfer import irradiance_from_sh
 from pipeline.errors import UserError
 from pipeline.io.brdf import read_brdf

@@ -8,7 +8,7 @@ import numpy as np
 from pipeline.core import forward, solve
 from pipeline.core.brdf import cosine_weighted_brdf
 from pipeline.core.envmap import equirect_directions, equirect_solid_angles
-from pipeline.core.sh import num_coeffs, project_envmap, sh_basis
+from pipeline.core.sh import num_coeffs, project_envmap
 
 ALBEDO = np.array([0.6, 0.5, 0.4])
 

@@ -21,7 +21,7 @@ from pipeline.cli import main as cli_main
 from pipeline.errors import UserError
 from pipeline.io.camera_files import Exposure
 from pipeline.io.camera_files import write_dng as write_camera_dng
-from pipeline.io.images import read_image, write_image
+from pipeline.io.images import write_image
 from pipeline.io.linear_manifest import read_linear_image, read_manifest
 from pipeline.io.response_json import write_response_json
 from pipeline.settings import make_settings

@@ -68,7 +68,7 @@ def test_exr_capture_is_the_rendered_radiance(linearized):
 ])
 def test_formats_match_rendered_radiance(linearized, name, tol):
     capture, work = linearized[name]
-    manifest = read_manifest(work)
+    read_manifest(work)
     for view in _views(linearized["exr"][0]):
         truth, truth_valid = _truth(linearized, view)
         key = view if name != "brackets" else f"view_{view}"  # synth names brackets view_<view>
