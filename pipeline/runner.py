@@ -250,6 +250,11 @@ def summary_lines(work: Path) -> list[str]:
         chosen = {k: doc[k] for k in ("mode", "model", "order", "brdf_model", "sh_order") if k in doc}
         if chosen:
             lines.append("fit: " + ", ".join(f"{k} {v}" for k, v in chosen.items()))
+        if doc.get("model_limits"):
+            from stages.fit import model_limits_line
+
+            min_visibility = doc.get("settings", {}).get("min_visibility", "?")
+            lines.append(model_limits_line(doc["model_limits"], min_visibility))
     check = relight_check(work)
     if check is not None:
         which = "held-out views" if check["heldout"] else "training views (nothing held out)"
