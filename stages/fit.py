@@ -15,8 +15,10 @@ Modes (the inverse-rendering table, DESIGN.md "The inverse problems"):
 Model selection: the SH order (``--order auto``) and the BRDF model (``--brdf auto``) are chosen
 by leave-views-out validation (folds = image_id mod ``folds``) with the parsimony rule of
 pipeline.core.solve.parsimonious_choice.  Samples with visibility < ``min_visibility`` are left out.
+Then textured vs uniform diffuse albedo (``--albedo``): a per-vertex albedo with the fitted lighting
+and specular part fixed (pipeline.core.texture), kept only when the held-out views prefer it.
 Outputs in WORK/fit/: lighting_sh.json, lighting.exr, brdf.json, report.json, lighting.png,
-spectrum.png, residuals.png.  Details: docs/fit.md.
+spectrum.png, residuals.png (+ albedo.ply when textured).  Details: docs/fit.md.
 """
 
 from __future__ import annotations
@@ -69,6 +71,10 @@ class Settings:
     chunk: int = setting(262144, "samples per chunk when streaming the normal equations")
     env_height: int = setting(64, "height of fit/lighting.exr (width = 2 x height)")
     seed: int = setting(0, "random seed of the sample subset")
+    albedo: str = setting("auto", "diffuse albedo: 'uniform', 'textured' (per vertex, fit/albedo.ply) or 'auto' "
+                                  "(textured only if it beats uniform on the held-out views by more than --parsimony)")
+    albedo_smoothness: float = setting(0.001, "weight of the mesh-Laplacian smoothness term of the per-vertex albedo "
+                                             "(relative to the mean data weight per vertex)")
     blas_threads: int = setting(1, "BLAS threads during the fit (0 = library default); the fit's many small "
                                    "products ran 7x slower with multithreaded OpenBLAS on a shared 2-core machine")
 
@@ -87,6 +93,10 @@ class Settings:
         except ValueError:
             raise UserError(f"--band-prior-choices must be comma-separated positive numbers, got "
                             f"{self.band_prior_choices!r}") from None
+        if self.albedo not in ("auto", "uniform", "textured"):
+            raise UserError(f"--albedo must be auto, uniform or textured, got {self.albedo!r}")
+        if self.albedo_smoothness < 0:
+            raise UserError(f"--albedo-smoothness must be >= 0, got {self.albedo_smoothness}")
         if self.folds < 2:
             raise UserError(f"--folds must be >= 2 (views are held out for validation), got {self.folds}")
         if not 0.0 <= self.min_visibility <= 1.0:
@@ -110,6 +120,10 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             paths.append(Path(spec))
     if (Path(capture) / "capture.toml").exists():
         paths.append(Path(capture) / "capture.toml")
+    if settings.albedo != "uniform":
+        from pipeline.io.mesh import MESH_NAMES
+
+        paths += [Path(capture) / n for n in MESH_NAMES if (Path(capture) / n).exists()][:1]
     return paths
 
 
@@ -625,6 +639,12 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
 
     out = work / "fit"
     t0 = time.perf_counter()
+    report["albedo"], vertex_rho, tex_mesh = choose_albedo(capture, samples_path, settings, coeffs, brdf)
+    if vertex_rho is not None:
+        brdf = {**brdf, "albedo": [float(x) for x in vertex_rho.mean(axis=0)]}
+        report["brdf"] = brdf
+    timings["albedo"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     from pipeline.core.sh import envmap_from_sh
     from pipeline.io.images import write_image
 
@@ -637,11 +657,114 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
                write_image(out / "lighting.exr", env.astype(np.float32), dtype="float"),
                write_brdf(out / "brdf.json", brdf)]
     written += write_plots(out, env, bands, views)
+    if vertex_rho is not None:
+        written.append(write_vertex_albedo(out / "albedo.ply", tex_mesh, vertex_rho))
+    elif (out / "albedo.ply").exists():
+        (out / "albedo.ply").unlink()     # a stale texture from an earlier run would be read by relight
     timings["outputs"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     report["timings"] = timings
     written.insert(3, write_report(out / "report.json", report))
     return written
+
+
+# ---------------------------------------------------------------------------------------------
+# textured vs uniform albedo
+
+
+def choose_albedo(capture: Path, samples_path: Path, settings: Settings, coeffs: np.ndarray,
+                  brdf: dict) -> tuple[dict, np.ndarray | None, object]:
+    """Fit a per-vertex diffuse albedo with the fitted lighting and specular part fixed, and choose
+    textured vs uniform by the held-out views (folds = image_id mod folds): textured only when its
+    validation RMSE is below uniform's by more than ``parsimony``.  Returns (report entry,
+    per-vertex albedo (V, 3) or None, mesh)."""
+    from pipeline.core import texture
+    from pipeline.io.mesh import mesh_path, read_mesh
+
+    entry: dict = {"setting": settings.albedo, "smoothness": settings.albedo_smoothness}
+    if settings.albedo == "uniform":
+        return {**entry, "choice": "uniform", "note": "--albedo uniform: no per-vertex fit"}, None, None
+    try:
+        mesh = read_mesh(mesh_path(capture))
+    except UserError as exc:
+        if settings.albedo == "textured":
+            raise
+        return {**entry, "choice": "uniform", "note": f"no per-vertex fit: {exc}"}, None, None
+    with_lobe = brdf["model"] in forward.LOBE_MODELS
+    rng = np.random.default_rng(settings.seed)
+    parts = []
+    for chunk in iter_sample_chunks(samples_path, settings.chunk, FIELDS + ("face", "bary")):
+        ok = _filter_rows(chunk, settings, settings.lobe_min_cos if with_lobe else 0.0)
+        ok &= (chunk["face"] >= 0) & (chunk["face"] < len(mesh.faces))
+        parts.append({k: v[ok] for k, v in chunk.items()})
+    data = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]} if parts else {}
+    n = len(data.get("weight", []))
+    if n > settings.max_samples:
+        sel = rng.choice(n, settings.max_samples, replace=False)
+        data = {k: v[sel] for k, v in data.items()}
+        n = settings.max_samples
+    if n == 0 or np.abs(data["bary"].sum(axis=1) - 1).max() > 1e-3:
+        if settings.albedo == "textured":
+            raise UserError(f"{samples_path}: the samples carry no face/barycentrics on the mesh; "
+                            "--albedo textured needs them (run the samples stage)")
+        return {**entry, "choice": "uniform", "note": "no per-vertex fit: the samples carry no face/barycentrics"}, None, None
+    normal, view = data["normal"].astype(float), data["view_dir"].astype(float)
+    shade = forward.render_samples(coeffs, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, normal, view)
+    spec = (forward.render_samples(coeffs, {**brdf, "albedo": [0.0, 0.0, 0.0]}, normal, view) if with_lobe
+            else np.zeros_like(shade))
+    target = data["radiance"].astype(float) - spec
+    w = data["weight"].astype(float)
+    nv = len(mesh.vertices)
+    interp = texture.interpolation_matrix(mesh.faces, data["face"], data["bary"].astype(float), nv)
+    lap = texture.graph_laplacian(mesh.faces, nv)
+    fold = fold_of(data["image_id"], settings.folds)
+    sse = {"uniform": [0.0, 0.0], "textured": [0.0, 0.0]}       # validation, training (weighted SSE)
+    wsum = [0.0, 0.0]
+    for f in np.unique(fold):
+        tr, va = fold != f, fold == f
+        if not tr.any():
+            continue
+        rho_u = texture.uniform_albedo(shade[tr], target[tr], w[tr])
+        rho_t = texture.fit_vertex_albedo(interp[tr], shade[tr], target[tr], w[tr], lap, settings.albedo_smoothness)
+        for name, rho in (("uniform", rho_u), ("textured", rho_t)):
+            for k, m in ((0, va), (1, tr)):
+                pred = texture.predict(interp[m], shade[m], rho)
+                sse[name][k] += float(((pred - target[m]) ** 2 * w[m, None]).sum())
+        wsum[0] += float(w[va].sum())
+        wsum[1] += float(w[tr].sum())
+    rmse = {name: [float(np.sqrt(v[k] / (3 * max(wsum[k], 1e-300)))) for k in (0, 1)] for name, v in sse.items()}
+    observed = int((np.asarray(interp.sum(axis=0)).ravel() > 0).sum())
+    cands = [{"name": "uniform", "params": 3, "validation_rmse": rmse["uniform"][0], "train_rmse": rmse["uniform"][1]},
+             {"name": "textured", "params": 3 * nv, "validation_rmse": rmse["textured"][0],
+              "train_rmse": rmse["textured"][1]}]
+    noise = settings.noise_floor * _rms(data)
+    auto = cands[solve.parsimonious_choice(cands, settings.parsimony, noise=noise)]["name"]
+    choice = "textured" if settings.albedo == "textured" else auto
+    rho = texture.fit_vertex_albedo(interp, shade, target, w, lap, settings.albedo_smoothness)
+    rho_u = texture.uniform_albedo(shade, target, w)
+    cands[0]["albedo"] = rho_u.tolist()
+    cands[1]["albedo_mean"] = rho.mean(axis=0).tolist()
+    entry.update(choice=choice, candidates=cands, vertices=nv, vertices_with_samples=observed, samples=int(n),
+                 auto_choice=auto, noise=noise,
+                 rule=f"the fit's parsimony rule: textured only if uniform's validation RMSE > textured's x "
+                      f"(1 + parsimony {settings.parsimony}) + noise floor x RMS radiance ({noise:.3g})",
+                 folds=settings.folds)
+    if choice != "textured":
+        return entry, None, mesh
+    return entry, np.clip(rho, 0.0, None), mesh
+
+
+def write_vertex_albedo(path: Path, mesh, albedo: np.ndarray) -> Path:
+    """fit/albedo.ply: the mesh with per-vertex linear albedo as vertex colours x 255 (uint8, as
+    gt/albedo.ply and stages/relight.vertex_albedo read it; values above 1 are clipped)."""
+    from pipeline.workdir import atomic_path
+
+    out = mesh.copy()
+    out.visual.vertex_colors = np.round(np.clip(albedo, 0.0, 1.0) * 255).astype(np.uint8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        out.export(tmp, file_type="ply")
+    return path
 
 
 def model_limits_line(limits: dict, min_visibility: float) -> str:

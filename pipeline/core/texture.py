@@ -1,0 +1,88 @@
+"""Per-vertex diffuse albedo: sparse linear least squares with a mesh-Laplacian smoothness term.
+
+Model per sample i and channel c (DESIGN.md, Lambertian transfer):
+
+    B_ic = spec_ic + shade_ic * sum_j bary_ij * rho_c(v_ij)      shade = E(n)/pi (fitted lighting)
+
+The specular part ``spec`` and the shading are taken from the fitted lighting and BRDF and kept
+fixed.  Unknowns: rho (V, 3).  Objective per channel
+
+    sum_i w_i (A rho - y)_i^2 + lam * s * ||L rho||^2 + eps * s * ||rho - rho_u||^2
+
+with L the uniform graph Laplacian of the mesh (a constant albedo costs nothing), s the mean
+diagonal of A^T W A over observed vertices (so ``lam`` is dimensionless), rho_u the uniform
+least-squares albedo, and a tiny eps so that parts of the mesh no sample sees are filled smoothly
+from their neighbours (the Laplacian) and pinned to rho_u only where nothing is connected.
+Pure NumPy/SciPy; no I/O.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+EPS = 1e-6
+
+
+def graph_laplacian(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """Uniform graph Laplacian D - A of the mesh's edge graph (V x V)."""
+    f = np.asarray(faces, np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    adj = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_vertices, n_vertices))
+    adj = ((adj + adj.T) > 0).astype(float)
+    deg = np.asarray(adj.sum(axis=1)).ravel()
+    return (sp.diags(deg) - adj).tocsr()
+
+
+def interpolation_matrix(faces: np.ndarray, face: np.ndarray, bary: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """(N x V) sparse matrix: row i holds sample i's barycentric weights at its face's vertices."""
+    verts = np.asarray(faces, np.int64)[np.asarray(face, np.int64)]          # (N, 3)
+    rows = np.repeat(np.arange(len(face)), 3)
+    return sp.csr_matrix((np.asarray(bary, float).ravel(), (rows, verts.ravel())),
+                         shape=(len(face), n_vertices))
+
+
+def uniform_albedo(shade: np.ndarray, target: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Per-channel least-squares constant albedo (3,): target ~ shade * rho."""
+    w = np.asarray(weight, float)[:, None]
+    num = (w * shade * target).sum(axis=0)
+    den = np.maximum((w * shade * shade).sum(axis=0), 1e-300)
+    return num / den
+
+
+def fit_vertex_albedo(interp: sp.csr_matrix, shade: np.ndarray, target: np.ndarray, weight: np.ndarray,
+                      laplacian: sp.csr_matrix, smoothness: float) -> np.ndarray:
+    """Per-vertex albedo (V, 3) minimizing the objective of the module docstring.
+
+    interp (N x V), shade (N, 3) = E/pi per channel, target (N, 3) = radiance - specular,
+    weight (N,), laplacian (V x V), smoothness = lam.
+    """
+    n_v = interp.shape[1]
+    rho_u = uniform_albedo(shade, target, weight)
+    ltl = (laplacian.T @ laplacian).tocsr()
+    out = np.empty((n_v, 3))
+    for c in range(3):
+        a = sp.diags(shade[:, c]) @ interp
+        aw = a.T @ sp.diags(weight)
+        ata = (aw @ a).tocsr()
+        diag = ata.diagonal()
+        scale = float(diag[diag > 0].mean()) if np.any(diag > 0) else 1.0
+        lhs = ata + smoothness * scale * ltl + EPS * scale * sp.identity(n_v)
+        rhs = aw @ target[:, c] + EPS * scale * rho_u[c]
+        out[:, c] = spla.spsolve(lhs.tocsc(), rhs)
+    return out
+
+
+def predict(interp: sp.csr_matrix, shade: np.ndarray, albedo: np.ndarray) -> np.ndarray:
+    """Diffuse radiance (N, 3) = shade * interpolated albedo (albedo (V, 3) or (3,))."""
+    albedo = np.asarray(albedo, float)
+    if albedo.ndim == 1:
+        return shade * albedo[None, :]
+    return shade * (interp @ albedo)
+
+
+def weighted_rmse(pred: np.ndarray, target: np.ndarray, weight: np.ndarray) -> float:
+    w = np.asarray(weight, float)
+    return float(np.sqrt(((pred - target) ** 2 * w[:, None]).sum() / (3 * max(w.sum(), 1e-300))))
