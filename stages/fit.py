@@ -24,17 +24,18 @@ spectrum.png, residuals.png (+ albedo.ply when textured).  Details: docs/fit.md.
 from __future__ import annotations
 
 import time
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.core import forward, solve
+from pipeline.core.brdf import reflect
 from pipeline.core.sh import band_of_index, num_coeffs, order_of, project_envmap, sh_evaluate
 from pipeline.core.transfer import lambert_filter
 from pipeline.errors import UserError
 from pipeline.io.brdf import MODEL_PARAMS, parse_brdf_spec, write_brdf
+from pipeline.io.capture_toml import read_toml
 from pipeline.io.lighting import read_lighting_sh, write_lighting_sh
 from pipeline.io.report import write_report
 from pipeline.io.samples import iter_sample_chunks, read_samples_meta
@@ -142,10 +143,7 @@ def known_albedo_hint(capture: Path) -> list[float] | None:
     path = Path(capture) / "capture.toml"
     if not path.exists():
         return None
-    try:
-        doc = tomllib.loads(path.read_text())
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise UserError(f"{path}: not valid TOML ({exc})") from None
+    doc = read_toml(path)
     value = doc.get("fit", {}).get("known_albedo")
     if value is None:
         return None
@@ -248,7 +246,7 @@ def accumulate(path: Path, settings: Settings, brdf: dict, order: int) -> tuple[
         ncell.update(occupied_cells(chunk["normal"], CELLS_PER_AXIS).tolist())
         views.update(np.unique(chunk["image_id"]).tolist())
         if with_lobe:
-            rcell.update(occupied_cells(forward.reflect_view(chunk["view_dir"], chunk["normal"]), CELLS_PER_AXIS).tolist())
+            rcell.update(occupied_cells(reflect(chunk["view_dir"], chunk["normal"]), CELLS_PER_AXIS).tolist())
     return eqs, {"normal_cells": len(ncell), "reflect_cells": len(rcell),
                  "carried": carried_coefficients(ncell, rcell, with_lobe), "views": len(views)}
 
@@ -291,7 +289,7 @@ def brdf_data(data: dict, coeffs: np.ndarray, fold_count: int) -> solve.BrdfData
     order = order_of(coeffs.shape[0])
     a_hat = lambert_filter(order)[band_of_index(order)] / np.pi
     diffuse = sh_evaluate(coeffs * a_hat[:, None], data["normal"])
-    refl = forward.reflect_view(data["view_dir"], data["normal"])
+    refl = reflect(data["view_dir"], data["normal"])
     bands = np.concatenate([forward.band_projections(coeffs, refl[s:s + 65536])
                             for s in range(0, len(refl), 65536)]) if len(refl) else np.zeros((0, order + 1, 3))
     return solve.BrdfData(diffuse, bands, forward.fresnel_grazing(data["normal"], data["view_dir"]),

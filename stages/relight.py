@@ -41,6 +41,7 @@ import numpy as np
 
 from pipeline.core import camera as cam
 from pipeline.core import forward
+from pipeline.core.brdf import reflect
 from pipeline.core.envmap import downsample, equirect_angles, equirect_solid_angles
 from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envmap
 from pipeline.core.transfer import irradiance_from_sh
@@ -429,7 +430,7 @@ class Lighting:
         """
         out = np.asarray(albedo, float) / np.pi * irradiance_from_sh(self.diffuse_lighting, normal)
         if self.lobe_order > 0:
-            r = forward.reflect_view(view_dir, normal)
+            r = reflect(view_dir, normal)
             r /= np.maximum(np.linalg.norm(r, axis=1, keepdims=True), 1e-12)
             cos_view = np.einsum("ij,ij->i", normal, view_dir)
             k = forward.lobe_factor(self.brdf, forward.fresnel_grazing(normal, view_dir))

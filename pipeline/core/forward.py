@@ -35,13 +35,6 @@ LOBE_MODELS = ("phong", "microfacet")
 WIDTH_PARAM = {"phong": "exponent", "microfacet": "roughness"}
 
 
-def reflect_view(view_dir: np.ndarray, normal: np.ndarray) -> np.ndarray:
-    """Mirror direction r = 2 (n.v) n - v of the view direction about the normal, (N, 3)."""
-    v = np.asarray(view_dir, dtype=float)
-    n = np.asarray(normal, dtype=float)
-    return 2.0 * np.einsum("ij,ij->i", n, v)[:, None] * n - v
-
-
 def lobe_filter(model: str, width: float, order: int) -> np.ndarray:
     """A_l (l = 0..order) of the specular lobe of ``model`` with width parameter ``width``
     (Phong exponent s or Beckmann roughness sigma)."""
@@ -80,7 +73,7 @@ def design_terms(normal: np.ndarray, view_dir: np.ndarray, order: int, with_lobe
     diffuse = sh_basis(normal, order)
     diffuse *= a_hat[None, :]
     cos_view = np.einsum("ij,ij->i", normal, view_dir)
-    reflected = sh_basis(2.0 * cos_view[:, None] * normal - view_dir, order) if with_lobe else None   # reflect_view
+    reflected = sh_basis(2.0 * cos_view[:, None] * normal - view_dir, order) if with_lobe else None   # core.brdf.reflect, with n.v reused
     grazing = (1.0 - np.clip(cos_view, 0.0, 1.0)) ** 5                                               # fresnel_grazing
     return DesignTerms(diffuse, reflected, grazing, cos_view)
 

@@ -95,7 +95,8 @@ class CaptureConfig:
                                   zip((own.time, own.iso, own.fnumber), (base.time, base.iso, base.fnumber))))
 
 
-def _load(path: Path) -> dict:
+def read_toml(path: Path) -> dict:
+    """Parse a TOML file (tomllib, tomli on Python 3.10); UserError when missing or malformed."""
     try:
         with open(path, "rb") as fh:
             return tomllib.load(fh)
@@ -146,7 +147,7 @@ def parse_board(path: Path, table: dict) -> BoardSpec:
 def read_board(path: str | os.PathLike) -> BoardSpec:
     """A board file: a ``[board]`` table, or the same keys at the top level."""
     path = Path(path)
-    doc = _load(path)
+    doc = read_toml(path)
     return parse_board(path, doc["board"] if isinstance(doc.get("board"), dict) else doc)
 
 
@@ -155,7 +156,7 @@ def read_capture_config(capture: str | os.PathLike) -> CaptureConfig:
     path = Path(capture) / CAPTURE_TOML
     if not path.exists():
         return CaptureConfig()
-    doc = _load(path)
+    doc = read_toml(path)
 
     wb = doc.get("white_balance", {})
     mult = gray = None
