@@ -31,6 +31,7 @@ from calib.charuco import detect, make_board
 from pipeline.core.camera import Camera, project
 from pipeline.core.similarity import Similarity, ransac_similarity, transform_pose
 from pipeline.errors import UserError
+from pipeline.io.camera_files import srgb_encode
 from pipeline.io.camera_decode import DECODED_EXTENSIONS, RAW_EXTENSIONS
 from pipeline.io.camera_json import read_camera_json
 from pipeline.io.capture_toml import BoardSpec, CaptureConfig, read_capture_config
@@ -161,8 +162,7 @@ def tone_map(linear: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     white = float(np.percentile(rgb[valid].mean(axis=-1), 99.0)) if valid.any() else 1.0
     x = np.clip(rgb / (white if white > 0 else 1.0), 0.0, 1.0)
     x[~valid] = 1.0
-    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)  # IEC 61966-2-1
-    return np.round(srgb * 255).astype(np.uint8)
+    return np.round(srgb_encode(x) * 255).astype(np.uint8)
 
 
 def load_8bit(path: Path) -> np.ndarray:

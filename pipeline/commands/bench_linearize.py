@@ -26,7 +26,7 @@ def _scene(h: int, w: int, i: int) -> np.ndarray:
 def linearize_suite(quick: bool, repeat: int) -> list[BenchRow]:
     import rawpy
 
-    from pipeline.io.camera_files import Exposure, write_dng
+    from pipeline.io.camera_files import Exposure, srgb_encode, write_dng
     from pipeline.io.images import write_image
     from pipeline.settings import make_settings
     from stages import linearize
@@ -39,9 +39,7 @@ def linearize_suite(quick: bool, repeat: int) -> list[BenchRow]:
         for i in range(n):
             scene = _scene(h, w, i)
             write_dng(tmp / "dng" / "images" / f"{i:03d}.dng", scene, Exposure(time=0.01, iso=100.0, fnumber=4.0))
-            v = np.clip(scene, 0, 1)
-            srgb = np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)
-            write_image(tmp / "jpeg" / "images" / f"{i:03d}.jpg", srgb, dtype="uint8",
+            write_image(tmp / "jpeg" / "images" / f"{i:03d}.jpg", srgb_encode(scene), dtype="uint8",
                         attributes={"ExposureTime": 0.01, "FNumber": 4.0, "Exif:PhotographicSensitivity": 100,
                                     "Compression": "jpeg:95"})
         dngs = sorted((tmp / "dng" / "images").iterdir())
