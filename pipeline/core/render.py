@@ -45,6 +45,9 @@ import trimesh
 from pipeline.core.brdf import beckmann_distribution, phong_lobe, vcavity_shadowing
 from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays
 from pipeline.core.envmap import (downsample, equirect_directions, equirect_solid_angles, lookup)
+from pipeline.core.material import principled_from_dict
+from pipeline.core.shading import (EnvPyramid, lobe_support_cos, specular_over_directions, specular_samples,
+                                   tangent_frames)
 
 _VIS_HORIZON = -0.3  # shadow rays only for directions with n_vertex . w > this (others: occluded)
 _LOBE_CUT_SIGMAS = 4.0  # microfacet support: tan(theta_h) < 4 sigma, D > exp(-16) of its peak
@@ -61,9 +64,14 @@ class LightSet:
 
     directions: np.ndarray
     power: np.ndarray
+    bright: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # flat map indices, last rows
 
     def __len__(self) -> int:
         return self.directions.shape[0]
+
+    @property
+    def n_bright(self) -> int:
+        return int(self.bright.size)
 
 
 def light_set(env: np.ndarray, cell_height: int = 16, max_bright: int = 1024,
@@ -79,7 +87,7 @@ def light_set(env: np.ndarray, cell_height: int = 16, max_bright: int = 1024,
     flat = env.reshape(-1, 3)
     if cell_height >= h:
         keep = flat.max(axis=1) > 0
-        return LightSet(dirs[keep], flat[keep] * omega[keep, None])
+        return LightSet(dirs[keep], flat[keep] * omega[keep, None], np.flatnonzero(keep))
     factor = max(1, h // max(cell_height, 1))
     while h % factor:
         factor -= 1
@@ -100,7 +108,7 @@ def light_set(env: np.ndarray, cell_height: int = 16, max_bright: int = 1024,
     c_power = (coarse * equirect_solid_angles(ch)[:, None, None]).reshape(-1, 3)
     nonzero = c_power.max(axis=1) > 0
     return LightSet(np.concatenate([c_dirs[nonzero], dirs[idx]]),
-                    np.concatenate([c_power[nonzero], flat[idx] * omega[idx, None]]))
+                    np.concatenate([c_power[nonzero], flat[idx] * omega[idx, None]]), idx)
 
 
 @dataclass(frozen=True)
@@ -165,6 +173,11 @@ class Renderer:
     max_bright: int = 1024
     board_supersample: int = 4
     chunk_pairs: int = 1 << 21
+    interreflection: bool = True
+    bounce_samples: int = 64
+    lobe_samples: int = 64
+    max_bounces: int = 8
+    seed: int = 0
     lights: LightSet = field(init=False)
     _visibility: np.ndarray = field(init=False, repr=False)
     _vis_done: np.ndarray = field(init=False, repr=False)
@@ -180,6 +193,14 @@ class Renderer:
         self._visibility = np.ones((nv, nd), dtype=bool)
         self._vis_done = np.zeros(nv, dtype=bool)
         self._scale = float(np.linalg.norm(self.mesh.extents))
+        self.material = principled_from_dict(self.brdf) if self.brdf["model"] == "principled" else None
+        self._rng = np.random.default_rng(self.seed)
+        self._vertex_irradiance = None
+        if self.material is not None:
+            remainder = self.env.reshape(-1, 3).astype(float).copy()
+            remainder[self.lights.bright] = 0.0
+            self._remainder = EnvPyramid.build(remainder.reshape(self.env.shape))
+            self._spec_cut_cos = lobe_support_cos(self.material.alpha)
         if self.shadows:
             scene = self.mesh
             if self.board is not None:
@@ -226,11 +247,147 @@ class Renderer:
             return float(max(0.0, np.exp(np.log(_PHONG_CUT) / float(self.brdf["exponent"]))))
         return None
 
+    def _diffuse_albedo(self, mu_out: np.ndarray, base: np.ndarray) -> np.ndarray:
+        """Lambertian reflectance seen from mu_out: the material's layered base or the plain albedo."""
+        if self.material is None:
+            return base
+        return self.material.diffuse_weight(mu_out, base)
+
+    def _base(self, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        key = "base_color" if self.material is not None else "albedo"
+        if self.vertex_albedo is not None:
+            return np.einsum("pk,pkc->pc", bary, np.asarray(self.vertex_albedo, float)[tri])
+        return np.broadcast_to(np.asarray(self.brdf[key], float), (tri.shape[0], 3))
+
+    # -- interreflection ---------------------------------------------------------------------
+    def vertex_irradiance(self) -> np.ndarray:
+        """Per-vertex irradiance (V, 3) with self-shadowing and diffuse interreflection, and the
+        indirect part of it (V, 3): ``(E_total, E_indirect)``, computed once per scene.
+
+        Each vertex casts ``bounce_samples`` cosine-distributed rays (stratified, one random
+        rotation per vertex).  Direct: the unshadowed irradiance of the light set (exact) minus the
+        occluded rays' share, pi / S * L(w_s) read from the map prefiltered to the ray's solid angle
+        (a control variate: exact on convex parts).  Indirect: an occluded ray sees the hit point's
+        diffuse radiance rho_d(mu) / pi * E_total(hit); the fixed point E = E_d + M (rho E) is
+        iterated until a bounce adds < 0.5 % (at most ``max_bounces``).
+        """
+        if self._vertex_irradiance is not None:
+            return self._vertex_irradiance
+        verts = np.asarray(self.mesh.vertices, float)
+        normals = self._vertex_normals
+        nv = verts.shape[0]
+        dirs, power = self.lights.directions, self.lights.power
+        e_open = np.zeros((nv, 3))
+        per_chunk = max(1, self.chunk_pairs // len(dirs))
+        for s in range(0, nv, per_chunk):
+            e_open[s:s + per_chunk] = np.maximum(normals[s:s + per_chunk] @ dirs.T, 0.0) @ power
+        if not self.shadows:  # no occlusion at all: convex treatment, nothing bounces
+            self._vertex_irradiance = (e_open, np.zeros_like(e_open))
+            return self._vertex_irradiance
+        side = max(1, int(round(np.sqrt(self.bounce_samples))))
+        n_s = side * side
+        grid = (np.stack(np.meshgrid(np.arange(side), np.arange(side), indexing="ij"), -1).reshape(-1, 2) + 0.5) / side
+        u = np.mod(grid[None] + self._rng.random((nv, 1, 2)), 1.0)
+        r, phi = np.sqrt(u[..., 0]), 2 * np.pi * u[..., 1]
+        local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1 - r * r, 0))], -1)  # cosine pdf
+        t, b = tangent_frames(normals)
+        w = local[..., 0:1] * t[:, None] + local[..., 1:2] * b[:, None] + local[..., 2:3] * normals[:, None]
+        origins = np.repeat(verts + normals * (1e-4 * self._scale), n_s, axis=0)
+        hit_face, ray_id, loc = self._shadow_rays.intersects_id(origins, w.reshape(-1, 3), multiple_hits=False,
+                                                                return_locations=True)
+        owner = ray_id // n_s
+        w_hit = w.reshape(-1, 3)[ray_id]
+        full = EnvPyramid.build(self.env)
+        cos_s = np.maximum(local.reshape(-1, 3)[ray_id, 2], 1e-3)
+        blocked = full.lookup(w_hit, np.pi / (n_s * cos_s)) * (np.pi / n_s)
+        e_direct = e_open.copy()
+        for c in range(3):
+            e_direct[:, c] -= np.bincount(owner, weights=blocked[:, c], minlength=nv)
+        e_direct = np.maximum(e_direct, 0.0)
+        e_ind = np.zeros_like(e_direct)
+        on_mesh = hit_face < len(self.mesh.faces)  # the board (when present) is not a bounce source
+        if self.interreflection and on_mesh.any():
+            import scipy.sparse as sp
+
+            hf, own, w_h, lh = hit_face[on_mesh], owner[on_mesh], w_hit[on_mesh], loc[on_mesh]
+            tri = np.asarray(self.mesh.faces)[hf]
+            bary = trimesh.triangles.points_to_barycentric(self.mesh.triangles[hf], lh)
+            n_hit = np.einsum("pk,pkc->pc", bary, normals[tri])
+            n_hit /= np.maximum(np.linalg.norm(n_hit, axis=1, keepdims=True), 1e-12)
+            mu_hit = np.clip(-np.einsum("pc,pc->p", n_hit, w_h), 0.0, 1.0)
+            layer = self._diffuse_albedo(mu_hit, np.ones((hf.size, 3)))  # (1 - m)(1 - A_s) per channel
+            base_v = (np.asarray(self.vertex_albedo, float) if self.vertex_albedo is not None else
+                      np.broadcast_to(np.asarray(self.brdf["base_color" if self.material is not None else "albedo"],
+                                                 float), (nv, 3)))
+            rows = np.repeat(own, 3)
+            cols = tri.ravel()
+            e_total = e_direct
+            for _ in range(self.max_bounces):
+                src = base_v * e_total  # rho E at vertices; a hit's radiance = layer * interp(src) / pi
+                new = np.zeros_like(e_direct)
+                for c in range(3):
+                    m = sp.csr_matrix(((bary * layer[:, c:c + 1]).ravel() / n_s, (rows, cols)), shape=(nv, nv))
+                    new[:, c] = m @ src[:, c]  # pi / S * (1 / pi) per ray
+                step = np.abs(new - e_ind).max() / max(float(np.abs(e_direct).max()), 1e-12)
+                e_ind = new
+                e_total = e_direct + e_ind
+                if step < 5e-3:
+                    break
+        self._vertex_irradiance = (e_direct + e_ind, e_ind)
+        return self._vertex_irradiance
+
+    def _indirect_at(self, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        if not self.interreflection:
+            return np.zeros((tri.shape[0], 3))
+        e_ind = self.vertex_irradiance()[1]
+        return np.einsum("pk,pkc->pc", bary, e_ind[tri])
+
+    def _object_radiance(self, faces: np.ndarray, points: np.ndarray, w_toward: np.ndarray) -> np.ndarray:
+        """Diffuse radiance (N, 3) that points on the mesh send along unit ``w_toward`` (N, 3)."""
+        tri = np.asarray(self.mesh.faces)[faces]
+        bary = trimesh.triangles.points_to_barycentric(self.mesh.triangles[faces], points)
+        n = np.einsum("pk,pkc->pc", bary, self._vertex_normals[tri])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        mu = np.clip(np.einsum("pc,pc->p", n, w_toward), 0.0, 1.0)
+        e_total = np.einsum("pk,pkc->pc", bary, self.vertex_irradiance()[0][tri])
+        return self._diffuse_albedo(mu, self._base(tri, bary)) / np.pi * e_total
+
+    def _specular_sampled(self, faces, bary, normals, view_dirs, base) -> np.ndarray:
+        """The remainder map through the lobe by filtered importance sampling (pipeline.core.shading),
+        with the occluded samples seeing the object's diffuse radiance instead of the map."""
+        p = faces.shape[0]
+        out = np.zeros((p, 3))
+        per_chunk = max(1, (1 << 16) // max(self.lobe_samples, 1))
+        for s in range(0, p, per_chunk):
+            sl = slice(s, s + per_chunk)
+            samples = specular_samples(self.material, normals[sl], view_dirs[sl], self.lobe_samples, self._rng,
+                                       None if self.vertex_albedo is None else base[sl])
+            q, ns = samples.directions.shape[:2]
+            dirs = samples.directions.reshape(-1, 3)
+            live = np.flatnonzero(samples.weight.reshape(-1, 3).max(axis=1) > 0)
+            radiance = np.zeros((q * ns, 3))
+            radiance[live] = self._remainder.lookup(dirs[live], samples.solid_angle.reshape(-1)[live])
+            if self.shadows:
+                fn = np.asarray(self.mesh.face_normals)[faces[sl]]
+                pts = np.einsum("pk,pkc->pc", bary[sl], self.mesh.triangles[faces[sl]]) + fn * (1e-5 * self._scale)
+                hit_face, ray_id, loc = self._shadow_rays.intersects_id(
+                    np.repeat(pts, ns, axis=0)[live], dirs[live], multiple_hits=False, return_locations=True)
+                idx = live[ray_id]
+                on_mesh = hit_face < len(self.mesh.faces)
+                radiance[idx] = 0.0
+                if self.interreflection and on_mesh.any():
+                    radiance[idx[on_mesh]] = self._object_radiance(hit_face[on_mesh], loc[on_mesh],
+                                                                   -dirs[idx[on_mesh]])
+            out[sl] = np.einsum("psc,psc->pc", samples.weight, radiance.reshape(q, ns, 3))
+        return out
+
     def shade(self, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
         """Outgoing radiance (P, 3) at points given by face ids (P,) and barycentrics (P, 3).
 
         ``view_dirs`` (P, 3) are unit vectors from the point towards the viewer.
         """
+        if self.material is not None:
+            return self._shade_principled(faces, bary, view_dirs)
         tri = np.asarray(self.mesh.faces)[faces]
         normals = np.einsum("pk,pkc->pc", bary, self._vertex_normals[tri])
         normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
@@ -259,6 +416,46 @@ class Renderer:
             out[sl] = albedo[sl] / np.pi * (weight @ power)
             if spec_cut is not None:
                 out[sl] += self._specular(n, wo, n_out, cos_in, vis, spec_cut)
+        if self.shadows and self.interreflection:
+            out += albedo / np.pi * self._indirect_at(tri, bary)
+        return out
+
+    def _shade_principled(self, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
+        """shade() for the principled material: diffuse over the light set (+ interreflection),
+        specular exactly over the bright pixels and by filtered importance sampling elsewhere."""
+        tri = np.asarray(self.mesh.faces)[faces]
+        normals = np.einsum("pk,pkc->pc", bary, self._vertex_normals[tri])
+        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        base = self._base(tri, bary)
+        if self.shadows:
+            self._ensure_visibility(tri.ravel())
+        dirs, power = self.lights.directions, self.lights.power
+        nb = self.lights.n_bright
+        mu_out = np.einsum("pc,pc->p", normals, view_dirs)
+        kd = self._diffuse_albedo(np.clip(mu_out, 0, 1), base)
+        out = np.zeros((faces.shape[0], 3))
+        per_chunk = max(1, self.chunk_pairs // len(dirs))
+        for s in range(0, faces.shape[0], per_chunk):
+            sl = slice(s, s + per_chunk)
+            n, wo = normals[sl], view_dirs[sl]
+            cos = np.where(mu_out[sl, None] > 0, np.maximum(n @ dirs.T, 0.0), 0.0)
+            vis = None
+            if self.shadows:
+                t, b = tri[sl], bary[sl]
+                vis = (b[:, 0:1] * self._visibility[t[:, 0]] + b[:, 1:2] * self._visibility[t[:, 1]]
+                       + b[:, 2:3] * self._visibility[t[:, 2]])
+            weight = cos if vis is None else cos * vis
+            out[sl] = kd[sl] / np.pi * (weight @ power)
+            if nb:
+                out[sl] += specular_over_directions(
+                    self.material, n, wo, dirs[-nb:], power[-nb:], None if vis is None else vis[:, -nb:],
+                    self._spec_cut_cos, None if self.vertex_albedo is None else base[sl])
+        if self.shadows and self.interreflection:
+            out += kd / np.pi * self._indirect_at(tri, bary)
+        front = mu_out > 0
+        if front.any():
+            out[front] += self._specular_sampled(faces[front], bary[front], normals[front], view_dirs[front],
+                                                 base[front])
         return out
 
     def _specular(self, n, wo, n_out, cos_in, vis, spec_cut) -> np.ndarray:

@@ -1,9 +1,12 @@
 """brdf.json (DESIGN.md): ``{"model": ..., "albedo": [r, g, b], ...}`` and the inline CLI spec.
 
-Models and their parameters (formulas in pipeline.core.brdf and docs/):
-  lambert     albedo
-  phong       albedo, specular [r,g,b], exponent s
-  microfacet  albedo, specular [r,g,b] (Fresnel F0), roughness sigma (Beckmann RMS slope)
+Models and their parameters (formulas in pipeline.core.material, pipeline.core.brdf and docs/material.md):
+  lambert     albedo [r,g,b] in [0, 1]
+  principled  base_color [r,g,b] in [0, 1], roughness in (0, 1] (perceptual: GGX alpha = roughness^2),
+              metallic in [0, 1] (default 0), ior >= 1 (default 1.5), specular_tint [r,g,b] in [0, 1]
+              (default white) -- Blender's Principled BSDF and glTF 2.0 metallic-roughness
+  phong       albedo, specular [r,g,b], exponent s          (the seed's theory: R&H reflection-space lobe)
+  microfacet  albedo, specular [r,g,b] (F0), roughness sigma (the seed's theory: Beckmann RMS slope)
 """
 
 from __future__ import annotations
@@ -18,37 +21,81 @@ from pipeline.workdir import read_json, write_json
 
 MODEL_PARAMS = {
     "lambert": ("albedo",),
+    "principled": ("base_color", "roughness"),
     "phong": ("albedo", "specular", "exponent"),
     "microfacet": ("albedo", "specular", "roughness"),
 }
-RGB_PARAMS = ("albedo", "specular")
+OPTIONAL_PARAMS = {"principled": {"metallic": 0.0, "ior": 1.5, "specular_tint": [1.0, 1.0, 1.0]}}
+RGB_PARAMS = ("albedo", "specular", "base_color", "specular_tint")
+UNIT_PARAMS = ("albedo", "base_color", "specular_tint", "metallic")  # physically within [0, 1]
+LEGACY_MODELS = {"lambertian": "lambert", "principled_v2": "principled", "ggx": "principled"}
+# keys a brdf.json may carry besides its model's parameters (provenance, notes)
+FREE_KEYS = ("model", "notes", "source", "blender", "note", "evidence")
+
+
+def _principled_ranges(name: str, doc: dict) -> None:
+    r = doc["roughness"]
+    if not 0.0 < r <= 1.0:
+        raise UserError(f"{name}: roughness {r:g} is outside (0, 1] (perceptual roughness; GGX alpha = roughness^2)")
+    if doc["ior"] < 1.0:
+        raise UserError(f"{name}: ior {doc['ior']:g} is below 1; a dielectric's index of refraction is >= 1 (1.5 for "
+                        "most plastics and paints)")
 
 
 def validate_brdf(doc: dict, name: str = "brdf") -> dict:
-    """Normalize a BRDF dict (RGB params as 3 floats, scalars as float); UserError when malformed."""
+    """Normalize a BRDF dict (RGB params as 3 floats, scalars as float); UserError when malformed.
+
+    Principled: optional parameters get their defaults, every value is range-checked and an
+    unknown key is refused (one line naming the key and what is valid).
+    """
     model = doc.get("model")
+    if isinstance(model, str) and model.split(" ")[0] in LEGACY_MODELS:
+        raise UserError(f"{name}: model {model!r} is not a sigrend model; write \"{LEGACY_MODELS[model.split(' ')[0]]}\" "
+                        f"with its parameters ({', '.join(MODEL_PARAMS[LEGACY_MODELS[model.split(' ')[0]]])})")
     if model not in MODEL_PARAMS:
         raise UserError(f"{name}: unknown BRDF model {model!r}; use one of {', '.join(MODEL_PARAMS)}")
     out = dict(doc)
-    for key in MODEL_PARAMS[model]:
-        if key not in doc:
+    optional = OPTIONAL_PARAMS.get(model, {})
+    if model == "principled":
+        allowed = set(MODEL_PARAMS[model]) | set(optional) | set(FREE_KEYS)
+        unknown = sorted(set(doc) - allowed)
+        if unknown:
+            raise UserError(f"{name}: unknown key {unknown[0]!r} for model 'principled'; valid keys: base_color, "
+                            "roughness (0, 1], metallic [0, 1], ior >= 1, specular_tint [0, 1]")
+        for key, default in optional.items():
+            out.setdefault(key, default)
+    for key in MODEL_PARAMS[model] + tuple(optional):
+        if key not in out:
             raise UserError(f"{name}: model {model!r} needs parameter {key!r}")
-        value = doc[key]
+        value = out[key]
         if key in RGB_PARAMS:
             arr = np.atleast_1d(np.asarray(value, dtype=float))
             if arr.size == 1:
                 arr = np.repeat(arr, 3)
             if arr.shape != (3,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
                 raise UserError(f"{name}: {key} must be one or three non-negative numbers, got {value!r}")
-            if key == "albedo" and np.any(arr > 1):
-                raise UserError(f"{name}: albedo {arr.tolist()} exceeds 1 (a surface cannot reflect more than it receives)")
+            if key in UNIT_PARAMS and np.any(arr > 1):
+                raise UserError(f"{name}: {key} {arr.tolist()} is outside [0, 1] (a surface cannot reflect more than "
+                                "it receives)")
             out[key] = arr.tolist()
         else:
-            v = float(value)
-            if not np.isfinite(v) or v <= 0:
-                raise UserError(f"{name}: {key} must be a positive number, got {value!r}")
+            try:
+                v = float(value)
+            except (TypeError, ValueError):
+                raise UserError(f"{name}: {key} must be a number, got {value!r}") from None
+            lower_ok = v >= 0 if key == "metallic" else v > 0
+            if not np.isfinite(v) or not lower_ok or (key in UNIT_PARAMS and v > 1):
+                valid = "a number in [0, 1]" if key in UNIT_PARAMS else "a positive number"
+                raise UserError(f"{name}: {key} must be {valid}, got {value!r}")
             out[key] = v
+    if model == "principled":
+        _principled_ranges(name, out)
     return out
+
+
+def diffuse_color(brdf: dict) -> list[float]:
+    """The Lambertian colour of a BRDF dict: ``albedo``, or a principled material's ``base_color``."""
+    return list(brdf["albedo"] if "albedo" in brdf else brdf["base_color"])
 
 
 def parse_brdf_spec(spec: str) -> dict:
