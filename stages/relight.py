@@ -570,16 +570,17 @@ def vertex_albedo(work: Path, mesh) -> np.ndarray | None:
     return colors / 255.0 if colors.max() > 1.0 else colors
 
 
-def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLighting", albedo, vertex_colors,
-                supersample: int = 1, chunk: int = 1 << 16) -> np.ndarray:
-    """Linear RGBA (H, W, 4): radiance averaged over an n x n grid of rays per pixel, alpha = hit fraction."""
+def _render_pixels(view: View, mesh, intersector, lighting, albedo, vertex_colors, pixels: np.ndarray,
+                   supersample: int, background=None, chunk: int = 1 << 16) -> tuple[np.ndarray, np.ndarray]:
+    """Radiance sums (P, 3) and hit counts (P,) of an n x n grid of rays in each listed pixel (flat ids);
+    rays that miss the object add ``background(dirs)`` when given (the environment behind it)."""
     import trimesh
 
-    w, h = view.camera.width, view.camera.height
-    centres = cam.pixel_centers(w, h)
+    w = view.camera.width
+    centres = cam.pixel_centers(w, view.camera.height)[pixels]
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
-    rgb = np.zeros((h * w, 3))
-    hits = np.zeros(h * w)
+    rgb = np.zeros((pixels.size, 3))
+    hits = np.zeros(pixels.size)
     normals = np.asarray(mesh.vertex_normals, float)
     for oy in offsets:
         for ox in offsets:
@@ -587,6 +588,10 @@ def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLigh
             for start in range(0, len(uv), chunk):
                 origins, dirs = cam.pixel_rays(view.camera, view.R, view.t, uv[start:start + chunk])
                 tri, ray, loc = intersector.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+                if background is not None:
+                    miss = np.ones(len(dirs), bool)
+                    miss[ray] = False
+                    rgb[start + np.flatnonzero(miss)] += background(dirs[miss])
                 if len(tri) == 0:
                     continue
                 bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], loc)
@@ -597,7 +602,36 @@ def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLigh
                 idx = start + ray
                 rgb[idx] += lighting.shade_hits(tri, bary, n, v, rho)
                 hits[idx] += 1
+    return rgb, hits
+
+
+def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLighting", albedo, vertex_colors,
+                supersample: int = 1, refine: int = 8, contrast: float = 2.0, background=None) -> np.ndarray:
+    """Linear RGBA (H, W, 4): radiance averaged over an n x n grid of rays per pixel, alpha = hit fraction.
+
+    Adaptive refinement (``refine`` > ``supersample``): pixels on the object whose luminance differs
+    from a 3 x 3 neighbour's by more than ``contrast`` times the object's mean luminance (sun
+    highlights, sharp shadow edges) are rendered again with ``refine`` x ``refine`` rays, since a
+    highlight a few pixels wide is otherwise aliased by the few rays of the first pass.
+    ``background`` (dirs -> radiance) fills what the object does not cover; alpha stays its coverage.
+    """
+    w, h = view.camera.width, view.camera.height
+    every = np.arange(w * h)
+    rgb, hits = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, every, supersample,
+                               background)
     n_rays = supersample * supersample
+    if refine > supersample and hits.any():
+        from scipy import ndimage
+
+        lum = (rgb.mean(axis=1) / n_rays).reshape(h, w)
+        on = (hits > 0).reshape(h, w)
+        spread = ndimage.maximum_filter(lum, 3) - ndimage.minimum_filter(lum, 3)
+        redo = np.flatnonzero((spread > contrast * float(lum[on].mean())) & ndimage.binary_dilation(on))
+        if redo.size:
+            rgb2, hits2 = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, redo, refine,
+                                         background)
+            scale = n_rays / (refine * refine)
+            rgb[redo], hits[redo] = rgb2 * scale, hits2 * scale
     return np.concatenate([rgb / n_rays, hits[:, None] / n_rays], axis=1).reshape(h, w, 4).astype(np.float32)
 
 

@@ -238,6 +238,19 @@ class Renderer:
             self._visibility[todo[sl]] = vis
         self._vis_done[todo] = True
 
+    def _point_visibility(self, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """Visibility (P, D) of the light set at points: the vertices' visibility where all three
+        of the point's vertices agree, an exact shadow ray from the point where they do not
+        (shadow edges crossing the triangle), so shadows are sharp at any mesh resolution."""
+        vis = (bary[:, 0:1] * self._visibility[tri[:, 0]] + bary[:, 1:2] * self._visibility[tri[:, 1]]
+               + bary[:, 2:3] * self._visibility[tri[:, 2]])
+        pi, di = np.nonzero((vis > 0) & (vis < 1))
+        if pi.size:
+            fn = np.asarray(self.mesh.face_normals)[faces[pi]]
+            pts = np.einsum("pk,pkc->pc", bary[pi], self.mesh.triangles[faces[pi]]) + fn * (1e-5 * self._scale)
+            vis[pi, di] = ~self._shadow_rays.intersects_any(pts, self.lights.directions[di])
+        return vis
+
     # -- shading ----------------------------------------------------------------------------
     def _spec_cut(self) -> float | None:
         model = self.brdf["model"]
@@ -405,11 +418,7 @@ class Renderer:
             sl = slice(s, s + per_chunk)
             n, wo = normals[sl], view_dirs[sl]
             cos = n @ dirs.T  # (P, D)
-            vis = None
-            if self.shadows:
-                t, b = tri[sl], bary[sl]
-                vis = (b[:, 0:1] * self._visibility[t[:, 0]] + b[:, 1:2] * self._visibility[t[:, 1]]
-                       + b[:, 2:3] * self._visibility[t[:, 2]])
+            vis = self._point_visibility(faces[sl], tri[sl], bary[sl]) if self.shadows else None
             n_out = np.einsum("pc,pc->p", n, wo)[:, None]
             cos_in = np.where((cos > 0) & (n_out > 0), cos, 0.0)  # both sides above the surface
             weight = cos_in if vis is None else cos_in * vis
@@ -439,11 +448,7 @@ class Renderer:
             sl = slice(s, s + per_chunk)
             n, wo = normals[sl], view_dirs[sl]
             cos = np.where(mu_out[sl, None] > 0, np.maximum(n @ dirs.T, 0.0), 0.0)
-            vis = None
-            if self.shadows:
-                t, b = tri[sl], bary[sl]
-                vis = (b[:, 0:1] * self._visibility[t[:, 0]] + b[:, 1:2] * self._visibility[t[:, 1]]
-                       + b[:, 2:3] * self._visibility[t[:, 2]])
+            vis = self._point_visibility(faces[sl], tri[sl], bary[sl]) if self.shadows else None
             weight = cos if vis is None else cos * vis
             out[sl] = kd[sl] / np.pi * (weight @ power)
             if nb:
