@@ -49,7 +49,7 @@ class SynthSettings:
     env: str = setting("area", "environment: an equirect EXR/HDR path or a procedural spec "
                        "(constant, smooth, sun+sky, overcast, area, point, room; e.g. 'sun+sky:elev=40'; docs/synth.md)")
     brdf: str = setting("lambert:albedo=0.6", "brdf.json path or inline spec, e.g. "
-                        "'microfacet:albedo=0.2,0.3,0.5,specular=0.04,roughness=0.2'")
+                        "'principled:base_color=0.2,0.3,0.5,roughness=0.3' (metallic=, ior=, specular_tint= optional)")
     views: int = setting(8, "number of camera views")
     size: tuple[int, int] = setting((256, 256), "image width and height in pixels")
     format: Literal["exr", "tiff", "jpeg", "dng"] = setting("exr", "image file format")
@@ -341,7 +341,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     from tqdm import tqdm
 
     from pipeline.core.render import InsideMeshError, Renderer
-    from pipeline.io.brdf import parse_brdf_spec, write_brdf
+    from pipeline.io.brdf import diffuse_color, parse_brdf_spec, write_brdf
     from pipeline.io.camera_files import Exposure, add_sensor_noise, sensor_value, write_camera_file
     from pipeline.io.images import write_image
     from pipeline.io.poses import ImagePose, Poses, write_poses
@@ -355,7 +355,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     board, board_table, board_size = make_board(settings.mesh_size, charuco=settings.board, table=settings.table,
                                                 seed=settings.seed)
     camera, view_poses = make_views(mesh, settings, board_size)
-    vertex_albedo = texture_albedo(mesh, brdf["albedo"], settings.texture)
+    vertex_albedo = texture_albedo(mesh, diffuse_color(brdf), settings.texture)
     renderer = Renderer(mesh, env, brdf, shadows=settings.shadows, board=board, cell_height=settings.cell_height,
                         vertex_albedo=vertex_albedo)
     noise = parse_noise(settings.noise, settings.format)

@@ -46,7 +46,7 @@ from pipeline.core.envmap import downsample, equirect_angles, equirect_solid_ang
 from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envmap
 from pipeline.core.transfer import irradiance_from_sh
 from pipeline.errors import UserError
-from pipeline.io.brdf import read_brdf
+from pipeline.io.brdf import diffuse_color, read_brdf
 from pipeline.io.camera_files import srgb_encode
 from pipeline.io.images import read_envmap, write_image
 from pipeline.io.lighting import read_lighting_sh
@@ -82,6 +82,10 @@ class Settings:
     cell_height: int = setting(32, "angular method: the map's remainder (outside bright pixels) is averaged into "
                                    "cell_height x 2 cell_height directions")
     shadows: bool = setting(True, "angular method: self-shadowing by shadow rays")
+    bounces: int = setting(8, "angular method with shadows: most diffuse interreflection bounces (stops earlier once a "
+                              "bounce adds < 0.5%); 0 = none")
+    bounce_samples: int = setting(64, "angular method: hemisphere rays per vertex for interreflection")
+    lobe_samples: int = setting(64, "angular method, principled material: importance samples of the specular lobe per ray")
     board: str = setting("auto", "angular method with shadows: the capture's board (capture.toml [board]) occludes the "
                                  "object: 'on', 'off', or 'auto' = on under a given --env (a whole environment, "
                                  "the board was in the scene), off under the fitted lighting (the fit saw the "
@@ -109,6 +113,10 @@ class Settings:
             raise UserError(f"--board {self.board!r}: use auto, on or off")
         if not 4 <= self.cell_height <= 512:
             raise UserError(f"--cell-height {self.cell_height}: use 4 to 512")
+        if not 0 <= self.bounces <= 64:
+            raise UserError(f"--bounces {self.bounces}: use 0 (no interreflection) to 64")
+        if not 4 <= self.bounce_samples <= 4096 or not 1 <= self.lobe_samples <= 4096:
+            raise UserError("--bounce-samples and --lobe-samples: use 4 to 4096 and 1 to 4096")
 
 
 def add_arguments(parser) -> None:
@@ -466,7 +474,7 @@ class AngularLighting:
     def __init__(self, brdf: dict, mesh, *, coeffs: np.ndarray | None = None, env: np.ndarray | None = None,
                  env_height: int = 64, cell_height: int = 32, shadows: bool = True, vertex_albedo=None,
                  board=None, source: str = "", lobe_sh_order: int = 24, prefilter_height: int = 128,
-                 clamp_sh: bool = False):
+                 clamp_sh: bool = False, bounces: int = 8, bounce_samples: int = 64, lobe_samples: int = 64):
         from pipeline.core.render import Renderer
 
         self.source = source
@@ -489,7 +497,8 @@ class AngularLighting:
         self.shadows = bool(shadows)
         self.board = board is not None and self.shadows
         options = dict(shadows=self.shadows, vertex_albedo=vertex_albedo, board=board if self.shadows else None,
-                       cell_height=cell_height)
+                       cell_height=cell_height, interreflection=bounces > 0, max_bounces=max(bounces, 1),
+                       bounce_samples=bounce_samples, lobe_samples=lobe_samples)
         self.renderer = Renderer(mesh, env, brdf, **options)
         self.negative = None if negative is None else Renderer(mesh, negative, brdf, **options)
 
@@ -504,6 +513,7 @@ class AngularLighting:
         return {"path": self.source, "kind": self.kind, "sh_order": self.order, "method": "angular",
                 "map_height": int(self.renderer.env.shape[0]), "directions": len(self.renderer.lights),
                 "shadows": self.shadows, "board_occludes": self.board, "lobe_bands": self.lobe_order,
+                "interreflection": self.renderer.interreflection and self.shadows,
                 "negative_lobes": "clamped" if self.negative is None else "subtracted",
                 "lobe": "none" if self.lobe_order == 0 else
                 ("frequency path (sharper than the cells), unshadowed" if self.sharp_lobe else "angular")}
@@ -545,6 +555,9 @@ def board_occludes(work: Path, settings: Settings) -> bool:
 def prepare_lighting(path: Path, brdf: dict, mesh, settings: Settings, *, capture: Path | None = None,
                      vertex_colors=None, with_board: bool = False):
     """The lighting at ``path`` prepared for ``settings.method`` (Lighting or AngularLighting)."""
+    if settings.method == "frequency" and brdf["model"] == "principled":
+        raise UserError("--method frequency renders the seed's convex lobes (lambert, phong, microfacet) only; "
+                        "a principled material needs --method angular (the default)")
     if settings.method == "frequency":
         return Lighting.from_file(path, brdf, lobe_sh_order=settings.lobe_sh_order,
                                   prefilter_height=settings.prefilter_height)
@@ -552,7 +565,9 @@ def prepare_lighting(path: Path, brdf: dict, mesh, settings: Settings, *, captur
     return AngularLighting.from_file(path, brdf, mesh, env_height=settings.env_height,
                                      cell_height=settings.cell_height, shadows=settings.shadows,
                                      vertex_albedo=vertex_colors, board=board, lobe_sh_order=settings.lobe_sh_order,
-                                     prefilter_height=settings.prefilter_height, clamp_sh=settings.clamp_sh)
+                                     prefilter_height=settings.prefilter_height, clamp_sh=settings.clamp_sh,
+                                     bounces=settings.bounces, bounce_samples=settings.bounce_samples,
+                                     lobe_samples=settings.lobe_samples)
 
 
 # --------------------------------------------------------------------------------------- rendering
@@ -571,9 +586,8 @@ def vertex_albedo(work: Path, mesh) -> np.ndarray | None:
 
 
 def _render_pixels(view: View, mesh, intersector, lighting, albedo, vertex_colors, pixels: np.ndarray,
-                   supersample: int, background=None, chunk: int = 1 << 16) -> tuple[np.ndarray, np.ndarray]:
-    """Radiance sums (P, 3) and hit counts (P,) of an n x n grid of rays in each listed pixel (flat ids);
-    rays that miss the object add ``background(dirs)`` when given (the environment behind it)."""
+                   supersample: int, chunk: int = 1 << 16) -> tuple[np.ndarray, np.ndarray]:
+    """Radiance sums (P, 3) and hit counts (P,) of an n x n grid of rays in each listed pixel (flat ids)."""
     import trimesh
 
     w = view.camera.width
@@ -588,10 +602,6 @@ def _render_pixels(view: View, mesh, intersector, lighting, albedo, vertex_color
             for start in range(0, len(uv), chunk):
                 origins, dirs = cam.pixel_rays(view.camera, view.R, view.t, uv[start:start + chunk])
                 tri, ray, loc = intersector.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
-                if background is not None:
-                    miss = np.ones(len(dirs), bool)
-                    miss[ray] = False
-                    rgb[start + np.flatnonzero(miss)] += background(dirs[miss])
                 if len(tri) == 0:
                     continue
                 bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], loc)
@@ -606,19 +616,17 @@ def _render_pixels(view: View, mesh, intersector, lighting, albedo, vertex_color
 
 
 def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLighting", albedo, vertex_colors,
-                supersample: int = 1, refine: int = 8, contrast: float = 2.0, background=None) -> np.ndarray:
+                supersample: int = 1, refine: int = 8, contrast: float = 2.0) -> np.ndarray:
     """Linear RGBA (H, W, 4): radiance averaged over an n x n grid of rays per pixel, alpha = hit fraction.
 
     Adaptive refinement (``refine`` > ``supersample``): pixels on the object whose luminance differs
     from a 3 x 3 neighbour's by more than ``contrast`` times the object's mean luminance (sun
     highlights, sharp shadow edges) are rendered again with ``refine`` x ``refine`` rays, since a
     highlight a few pixels wide is otherwise aliased by the few rays of the first pass.
-    ``background`` (dirs -> radiance) fills what the object does not cover; alpha stays its coverage.
     """
     w, h = view.camera.width, view.camera.height
     every = np.arange(w * h)
-    rgb, hits = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, every, supersample,
-                               background)
+    rgb, hits = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, every, supersample)
     n_rays = supersample * supersample
     if refine > supersample and hits.any():
         from scipy import ndimage
@@ -628,8 +636,7 @@ def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLigh
         spread = ndimage.maximum_filter(lum, 3) - ndimage.minimum_filter(lum, 3)
         redo = np.flatnonzero((spread > contrast * float(lum[on].mean())) & ndimage.binary_dilation(on))
         if redo.size:
-            rgb2, hits2 = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, redo, refine,
-                                         background)
+            rgb2, hits2 = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, redo, refine)
             scale = n_rays / (refine * refine)
             rgb[redo], hits[redo] = rgb2 * scale, hits2 * scale
     return np.concatenate([rgb / n_rays, hits[:, None] / n_rays], axis=1).reshape(h, w, 4).astype(np.float32)
@@ -759,7 +766,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     vertex_colors = vertex_albedo(work, mesh)
     lighting = prepare_lighting(light_path, brdf, mesh, settings, capture=capture, vertex_colors=vertex_colors,
                                 with_board=board_occludes(work, settings))
-    albedo = np.asarray(brdf["albedo"], float)
+    albedo = np.asarray(diffuse_color(brdf), float)
     intersector = RayMeshIntersector(mesh)
     folder = out_folder(work, settings)
     folder.mkdir(parents=True, exist_ok=True)
