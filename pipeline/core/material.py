@@ -118,6 +118,20 @@ def sample_ggx_vndf(w_out: np.ndarray, alpha: float, u1: np.ndarray, u2: np.ndar
     return h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), _EPS)
 
 
+def microfacet_reflection(normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray, alpha: float,
+                          ior: float) -> np.ndarray:
+    """Single-scattering GGX reflection F D G2 / (4 mu_in mu_out) (N,) with the exact dielectric
+    Fresnel F(w_in . h): the reciprocal core of the specular lobe (no multiple-scattering factor)."""
+    n, wi, wo = (np.atleast_2d(np.asarray(a, float)) for a in (normal, w_in, w_out))
+    mu_in = np.einsum("ij,ij->i", n, wi)
+    mu_out = np.einsum("ij,ij->i", n, wo)
+    h = wi + wo
+    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), _EPS)
+    value = (fresnel_dielectric(np.einsum("ij,ij->i", wi, h), ior) * ggx_distribution(np.einsum("ij,ij->i", n, h), alpha)
+             * smith_g2(mu_in, mu_out, alpha) / (4.0 * np.maximum(mu_in, _EPS) * np.maximum(mu_out, _EPS)))
+    return np.where((mu_in > 0) & (mu_out > 0), value, 0.0)
+
+
 def unit_square_rule(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """n x n tensor Gauss-Legendre rule on [0, 1)^2: (u1, u2, weights summing to 1)."""
     x, w = gauss_legendre(n, (0.0, 1.0))
