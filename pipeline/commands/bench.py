@@ -38,6 +38,8 @@ SUITES: dict[str, tuple[str, str]] = {
               "with/without shadows", "pipeline.synth:synth_bench_suite"),
     "fit": ("fit time vs samples (10^4-10^7) and vs SH order, per mode (known BRDF, known lighting, factorization)",
             "pipeline.commands.bench_fit:fit_suite"),
+    "render": ("renderer error vs Blender Cycles (tests/data/cycles) vs seconds over lobe samples, interreflection "
+               "rays and bounces; render.png in DIR; seconds per 384x384 view", "pipeline.commands.bench_render:render_suite"),
     "pipeline": ("speed vs accuracy of samples -> fit -> relight on synthetic scenes (SH order, data, fit mode); "
                  "bench.csv + bench.png (Pareto front) in DIR", "pipeline.bench_pipeline:pipeline_suite"),
 }

@@ -136,3 +136,13 @@ def read_brdf(path: str | os.PathLike) -> dict:
 
 def write_brdf(path: str | os.PathLike, brdf: dict) -> Path:
     return write_json(path, validate_brdf(brdf))
+
+
+def material_from_blender(doc: dict) -> dict:
+    """A sigrend material from a Blender-side description (the shared Cycles captures' gt/brdf.json:
+    a Diffuse BSDF's albedo, or a Principled BSDF's base_color / roughness / metallic / ior / tint)."""
+    if "roughness" not in doc:
+        return validate_brdf({"model": "lambert", "albedo": doc["albedo"]})
+    return validate_brdf({"model": "principled", "base_color": doc["base_color"], "roughness": doc["roughness"],
+                          "metallic": doc.get("metallic", 0.0), "ior": doc.get("ior", 1.5),
+                          "specular_tint": doc.get("specular_tint", [1.0, 1.0, 1.0])})

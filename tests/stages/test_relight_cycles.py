@@ -10,20 +10,12 @@ from pathlib import Path
 import pytest
 
 from pipeline.core.image_metrics import block_relative_rmse
-from pipeline.io.brdf import write_brdf
+from pipeline.io.brdf import material_from_blender, write_brdf
 from pipeline.io.images import read_image
 from pipeline.runner import run_stage
 from pipeline.settings import make_settings
 
 DATA = Path(__file__).parents[1] / "data"
-
-
-def sigrend_material(blender_gt: dict) -> dict:
-    """The brdf.json of a shared capture's gt (the Blender node's values) as a sigrend material."""
-    if "roughness" not in blender_gt:
-        return {"model": "lambert", "albedo": blender_gt["albedo"]}
-    return {"model": "principled", "base_color": blender_gt["base_color"], "roughness": blender_gt["roughness"],
-            "metallic": blender_gt["metallic"], "ior": blender_gt["ior"], "specular_tint": blender_gt["specular_tint"]}
 
 
 def relight_with_truth(capture: Path, work: Path, env: Path, views: str, brdf: dict) -> list[Path]:
@@ -49,7 +41,7 @@ CASES = {"bunny_sunrise_diffuse": (0.015, 0.015), "teapot_city_glossy": (0.05, 0
 @pytest.mark.parametrize("scene", sorted(CASES))
 def test_relight_matches_cycles_with_true_lighting_and_material(scene, tmp_path):
     folder = DATA / "cycles" / scene
-    truth = sigrend_material(json.loads((folder / "gt" / "brdf.json").read_text()))
+    truth = material_from_blender(json.loads((folder / "gt" / "brdf.json").read_text()))
     rendered = relight_with_truth(folder, tmp_path / "work", folder / "gt" / "relight" / "env.exr",
                                   str(folder / "gt" / "relight" / "poses.json"), truth)
     refs = [read_image(folder / "gt" / "relight" / "images" / p.name) for p in rendered]
