@@ -515,8 +515,14 @@ class AngularLighting:
                 "shadows": self.shadows, "board_occludes": self.board, "lobe_bands": self.lobe_order,
                 "interreflection": self.renderer.interreflection and self.shadows,
                 "negative_lobes": "clamped" if self.negative is None else "subtracted",
-                "lobe": "none" if self.lobe_order == 0 else
-                ("frequency path (sharper than the cells), unshadowed" if self.sharp_lobe else "angular")}
+                "lobe": self._lobe_method()}
+
+    def _lobe_method(self) -> str:
+        if self.renderer.material is not None:
+            return "principled GGX: bright pixels exactly, the rest by filtered importance sampling, shadowed"
+        if self.lobe_order == 0:
+            return "none"
+        return "frequency path (sharper than the cells), unshadowed" if self.sharp_lobe else "angular"
 
     def shade_hits(self, tri: np.ndarray, bary: np.ndarray, normal: np.ndarray, view_dir: np.ndarray,
                    albedo: np.ndarray) -> np.ndarray:
