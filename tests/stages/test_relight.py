@@ -319,7 +319,8 @@ def test_angular_shadows_in_a_well_match_the_view_factor_of_its_opening():
     """Constant lighting L on a Lambertian floor at the bottom centre of a well (radius a, depth h):
     only the opening is visible, a coaxial disk whose view factor is a^2 / (a^2 + h^2) (the
     differential-area-to-parallel-disk form factor), so B = rho_d L a^2 / (a^2 + h^2); without
-    shadows B = rho_d L."""
+    shadows B = rho_d L.  The wall is black here (bounces=0); with interreflection the floor gets
+    more, never more than rho_d L."""
     a, h, radiance, albedo = 0.05, 0.05, 2.0, 0.5
     mesh = _well(a, h)
     env = np.full((128, 256, 3), radiance)
@@ -327,11 +328,14 @@ def test_angular_shadows_in_a_well_match_the_view_factor_of_its_opening():
     faces, bary, up = np.array([0]), np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
     expected = albedo * radiance * a * a / (a * a + h * h)
     for cells, tolerance in ((64, 0.02), (128, 0.01)):
-        lighting = relight.AngularLighting(brdf, mesh, env=env, cell_height=cells, shadows=True)
+        lighting = relight.AngularLighting(brdf, mesh, env=env, cell_height=cells, shadows=True, bounces=0)
         got = lighting.shade_hits(faces, bary, up, up, np.full(3, albedo))
         # tolerance: the opening's rim (45 deg from the normal) cuts through the (pi/cells)-wide
         # direction cells: a boundary error ~ 1/cells of the visible part, halving with the cell size
         np.testing.assert_allclose(got[0], expected, rtol=tolerance)
+    bounced = relight.AngularLighting(brdf, mesh, env=env, cell_height=64, shadows=True)
+    lit = bounced.shade_hits(faces, bary, up, up, np.full(3, albedo))[0]
+    assert np.all(lit > 1.05 * expected) and np.all(lit <= albedo * radiance * 1.01)
     unshadowed = relight.AngularLighting(brdf, mesh, env=env, cell_height=32, shadows=False)
     np.testing.assert_allclose(unshadowed.shade_hits(faces, bary, up, up, np.full(3, albedo))[0],
                                albedo * radiance, rtol=3e-3)
