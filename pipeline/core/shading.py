@@ -21,8 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.core.envmap import downsample
-from pipeline.core.material import (Principled, ggx_distribution, sample_ggx_vndf, smith_g1, smith_g2,
-                                    unit_square_rule)
+from pipeline.core.material import Principled, ggx_distribution, sample_ggx_vndf, smith_g1, smith_g2
 
 _EPS = 1e-12
 
@@ -103,8 +102,8 @@ class LobeSamples:
 def specular_samples(material: Principled, normal: np.ndarray, view_dir: np.ndarray, n_samples: int,
                      rng: np.random.Generator, base_color: np.ndarray | None = None) -> LobeSamples:
     """GGX VNDF samples of the principled specular lobe at points with unit normals and view
-    directions (P, 3).  A stratified pattern (Gauss-Legendre-free: jittered n x n grid) with one
-    random rotation per point keeps neighbouring pixels' errors uncorrelated."""
+    directions (P, 3).  A stratified n x n grid with one random (Cranley-Patterson) shift per point
+    keeps neighbouring pixels' errors uncorrelated."""
     n = np.asarray(normal, float)
     v = np.asarray(view_dir, float)
     p = n.shape[0]
