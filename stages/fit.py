@@ -170,12 +170,11 @@ def parse_brdf_setting(spec: str) -> tuple[str | None, dict | None]:
     """--brdf -> (model to fit or None for auto, known BRDF dict or None)."""
     if spec == "auto":
         return None, None
-    if spec == "principled" or (spec not in MODEL_PARAMS and parse_brdf_spec(spec)["model"] == "principled"):
+    known = None if spec in MODEL_PARAMS else parse_brdf_spec(spec)
+    if "principled" in (spec, (known or {}).get("model")):
         raise UserError(f"--brdf {spec!r}: the fit's forward model does not take the principled material yet; "
                         "fit with --brdf auto|lambert|phong|microfacet, and relight with a principled brdf.json")
-    if spec in MODEL_PARAMS:
-        return spec, None
-    return None, parse_brdf_spec(spec)
+    return (spec, None) if known is None else (None, known)
 
 
 def _filter_rows(chunk: dict, settings: Settings, min_cos: float) -> np.ndarray:

@@ -118,18 +118,26 @@ def sample_ggx_vndf(w_out: np.ndarray, alpha: float, u1: np.ndarray, u2: np.ndar
     return h / np.maximum(np.linalg.norm(h, axis=-1, keepdims=True), _EPS)
 
 
-def microfacet_reflection(normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray, alpha: float,
-                          ior: float) -> np.ndarray:
-    """Single-scattering GGX reflection F D G2 / (4 mu_in mu_out) (N,) with the exact dielectric
-    Fresnel F(w_in . h): the reciprocal core of the specular lobe (no multiple-scattering factor)."""
+def ggx_lobe_cos(normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray, alpha: float):
+    """The Fresnel-free single-scattering lobe times the cosine, D G2 / (4 mu_out) (N,), and
+    w_out . h (N,) for the Fresnel term; zero unless both directions are above the surface."""
     n, wi, wo = (np.atleast_2d(np.asarray(a, float)) for a in (normal, w_in, w_out))
     mu_in = np.einsum("ij,ij->i", n, wi)
     mu_out = np.einsum("ij,ij->i", n, wo)
     h = wi + wo
     h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), _EPS)
-    value = (fresnel_dielectric(np.einsum("ij,ij->i", wi, h), ior) * ggx_distribution(np.einsum("ij,ij->i", n, h), alpha)
-             * smith_g2(mu_in, mu_out, alpha) / (4.0 * np.maximum(mu_in, _EPS) * np.maximum(mu_out, _EPS)))
-    return np.where((mu_in > 0) & (mu_out > 0), value, 0.0)
+    lobe = ggx_distribution(np.einsum("ij,ij->i", n, h), alpha) * smith_g2(mu_in, mu_out, alpha) / (
+        4.0 * np.maximum(mu_out, _EPS))
+    return np.where((mu_in > 0) & (mu_out > 0), lobe, 0.0), np.einsum("ij,ij->i", wo, h)
+
+
+def microfacet_reflection(normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray, alpha: float,
+                          ior: float) -> np.ndarray:
+    """Single-scattering GGX reflection F D G2 / (4 mu_in mu_out) (N,) with the exact dielectric
+    Fresnel F(w_in . h): the reciprocal core of the specular lobe (no multiple-scattering factor)."""
+    lobe, cos_oh = ggx_lobe_cos(normal, w_in, w_out, alpha)
+    mu_in = np.einsum("ij,ij->i", np.atleast_2d(normal), np.atleast_2d(w_in))
+    return fresnel_dielectric(cos_oh, ior) * lobe / np.maximum(mu_in, _EPS)
 
 
 def unit_square_rule(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -168,9 +176,13 @@ def albedo_table(alpha: float, ior: float) -> np.ndarray:
 
 
 def interpolate_mu(values: np.ndarray, mu: np.ndarray) -> np.ndarray:
-    """Values tabulated on the mu nodes, linearly interpolated at ``mu`` (clamped to [0, 1])."""
+    """Values tabulated on the mu nodes, (n,) or (n, C), linearly interpolated at ``mu`` (N,)
+    (clamped to [0, 1]) -> (N,) or (N, C)."""
     nodes, _ = _mu_nodes()
-    return np.interp(np.clip(mu, 0.0, 1.0), nodes, values)
+    x = np.clip(mu, 0.0, 1.0)
+    if values.ndim == 1:
+        return np.interp(x, nodes, values)
+    return np.stack([np.interp(x, nodes, values[:, c]) for c in range(values.shape[1])], axis=-1)
 
 
 def hemispherical_average(values: np.ndarray) -> float:
@@ -238,8 +250,7 @@ class Principled:
 
     def specular_albedo(self, mu_out: np.ndarray) -> np.ndarray:
         """Directional albedo (N, 3) of the dielectric specular layer (multiple scattering included)."""
-        t = self._tables["spec_albedo"]
-        return np.stack([interpolate_mu(t[:, c], mu_out) for c in range(3)], axis=-1)
+        return interpolate_mu(self._tables["spec_albedo"], mu_out)
 
     def diffuse_weight(self, mu_out: np.ndarray, base_color: np.ndarray | None = None) -> np.ndarray:
         """Lambertian reflectance seen from mu_out (N, 3): (1 - m)(1 - max_rgb A_spec(mu_out)) base;
@@ -261,8 +272,7 @@ class Principled:
         t = self._tables
         f_real = fresnel_dielectric(cos_oh, float(self.ior))
         f_diel = t["offset"][None, :] + t["scale"][None, :] * f_real[:, None]
-        out = (1.0 - self.metallic) * f_diel * np.stack(
-            [interpolate_mu(t["comp_diel"][:, c], mu_out) for c in range(3)], axis=-1)
+        out = (1.0 - self.metallic) * f_diel * interpolate_mu(t["comp_diel"], mu_out)
         if self.metallic > 0:
             f0 = self.base(base_color, n)
             fss = f0 + (1.0 - f0) / 21.0  # 2 int (F0 + (1 - F0)(1 - mu)^5) mu dmu
@@ -292,13 +302,8 @@ class Principled:
         mu_in = np.einsum("ij,ij->i", n, wi)
         mu_out = np.einsum("ij,ij->i", n, wo)
         front = (mu_in > 0) & (mu_out > 0)
-        h = wi + wo
-        h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), _EPS)
-        cos_h = np.einsum("ij,ij->i", n, h)
-        cos_oh = np.einsum("ij,ij->i", wo, h)
+        lobe, cos_oh = ggx_lobe_cos(n, wi, wo, self.alpha)
         diffuse = self.diffuse_weight(mu_out, base_color)
-        lobe = ggx_distribution(cos_h, self.alpha) * smith_g2(mu_in, mu_out, self.alpha) / (
-            4.0 * np.maximum(mu_out, _EPS))
         spec = self.specular_fresnel(cos_oh, mu_out, base_color) * lobe[:, None]
         value = diffuse * (np.maximum(mu_in, 0.0) / np.pi)[:, None] + spec
         return np.where(front[:, None], value, 0.0)

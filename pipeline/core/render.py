@@ -47,7 +47,7 @@ from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_ray
 from pipeline.core.envmap import (downsample, equirect_directions, equirect_solid_angles, lookup)
 from pipeline.core.material import principled_from_dict
 from pipeline.core.shading import (EnvPyramid, lobe_support_cos, specular_over_directions, specular_samples,
-                                   tangent_frames)
+                                   stratified_unit_square, tangent_frames)
 
 _VIS_HORIZON = -0.3  # shadow rays only for directions with n_vertex . w > this (others: occluded)
 _LOBE_CUT_SIGMAS = 4.0  # microfacet support: tan(theta_h) < 4 sigma, D > exp(-16) of its peak
@@ -246,9 +246,8 @@ class Renderer:
                + bary[:, 2:3] * self._visibility[tri[:, 2]])
         pi, di = np.nonzero((vis > 0) & (vis < 1))
         if pi.size:
-            fn = np.asarray(self.mesh.face_normals)[faces[pi]]
-            pts = np.einsum("pk,pkc->pc", bary[pi], self.mesh.triangles[faces[pi]]) + fn * (1e-5 * self._scale)
-            vis[pi, di] = ~self._shadow_rays.intersects_any(pts, self.lights.directions[di])
+            vis[pi, di] = ~self._shadow_rays.intersects_any(self._points_above(faces[pi], bary[pi]),
+                                                            self.lights.directions[di])
         return vis
 
     # -- shading ----------------------------------------------------------------------------
@@ -260,6 +259,23 @@ class Renderer:
             return float(max(0.0, np.exp(np.log(_PHONG_CUT) / float(self.brdf["exponent"]))))
         return None
 
+    def _normals_at(self, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """Unit interpolated vertex normals (P, 3) at points given by their triangles' vertex ids and barycentrics."""
+        n = np.einsum("pk,pkc->pc", bary, self._vertex_normals[tri])
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+    def _points_above(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """Points on faces, lifted along the face normal: ray origins that do not hit their own face."""
+        fn = np.asarray(self.mesh.face_normals)[faces]
+        return np.einsum("pk,pkc->pc", bary, self.mesh.triangles[faces]) + fn * (1e-5 * self._scale)
+
+    def _vertex_base(self) -> np.ndarray:
+        """Per-vertex diffuse colour (V, 3): vertex_albedo, or the material's base colour / albedo."""
+        if self.vertex_albedo is not None:
+            return np.asarray(self.vertex_albedo, float)
+        key = "base_color" if self.material is not None else "albedo"
+        return np.broadcast_to(np.asarray(self.brdf[key], float), (len(self.mesh.vertices), 3))
+
     def _diffuse_albedo(self, mu_out: np.ndarray, base: np.ndarray) -> np.ndarray:
         """Lambertian reflectance seen from mu_out: the material's layered base or the plain albedo."""
         if self.material is None:
@@ -267,13 +283,11 @@ class Renderer:
         return self.material.diffuse_weight(mu_out, base)
 
     def _base(self, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        key = "base_color" if self.material is not None else "albedo"
-        if self.vertex_albedo is not None:
-            return np.einsum("pk,pkc->pc", bary, np.asarray(self.vertex_albedo, float)[tri])
-        return np.broadcast_to(np.asarray(self.brdf[key], float), (tri.shape[0], 3))
+        """Diffuse colour (P, 3) interpolated at points."""
+        return np.einsum("pk,pkc->pc", bary, self._vertex_base()[tri])
 
     # -- interreflection ---------------------------------------------------------------------
-    def vertex_irradiance(self) -> np.ndarray:
+    def vertex_irradiance(self) -> tuple[np.ndarray, np.ndarray]:
         """Per-vertex irradiance (V, 3) with self-shadowing and diffuse interreflection, and the
         indirect part of it (V, 3): ``(E_total, E_indirect)``, computed once per scene.
 
@@ -297,10 +311,8 @@ class Renderer:
         if not self.shadows:  # no occlusion at all: convex treatment, nothing bounces
             self._vertex_irradiance = (e_open, np.zeros_like(e_open))
             return self._vertex_irradiance
-        side = max(1, int(round(np.sqrt(self.bounce_samples))))
-        n_s = side * side
-        grid = (np.stack(np.meshgrid(np.arange(side), np.arange(side), indexing="ij"), -1).reshape(-1, 2) + 0.5) / side
-        u = np.mod(grid[None] + self._rng.random((nv, 1, 2)), 1.0)
+        u = stratified_unit_square(nv, self.bounce_samples, self._rng)
+        n_s = u.shape[1]
         r, phi = np.sqrt(u[..., 0]), 2 * np.pi * u[..., 1]
         local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1 - r * r, 0))], -1)  # cosine pdf
         t, b = tangent_frames(normals)
@@ -325,22 +337,17 @@ class Renderer:
             hf, own, w_h, lh = hit_face[on_mesh], owner[on_mesh], w_hit[on_mesh], loc[on_mesh]
             tri = np.asarray(self.mesh.faces)[hf]
             bary = trimesh.triangles.points_to_barycentric(self.mesh.triangles[hf], lh)
-            n_hit = np.einsum("pk,pkc->pc", bary, normals[tri])
-            n_hit /= np.maximum(np.linalg.norm(n_hit, axis=1, keepdims=True), 1e-12)
-            mu_hit = np.clip(-np.einsum("pc,pc->p", n_hit, w_h), 0.0, 1.0)
+            mu_hit = np.clip(-np.einsum("pc,pc->p", self._normals_at(tri, bary), w_h), 0.0, 1.0)
             layer = self._diffuse_albedo(mu_hit, np.ones((hf.size, 3)))  # (1 - m)(1 - A_s) per channel
-            base_v = (np.asarray(self.vertex_albedo, float) if self.vertex_albedo is not None else
-                      np.broadcast_to(np.asarray(self.brdf["base_color" if self.material is not None else "albedo"],
-                                                 float), (nv, 3)))
-            rows = np.repeat(own, 3)
-            cols = tri.ravel()
+            base_v = self._vertex_base()
+            rows, cols = np.repeat(own, 3), tri.ravel()
+            # one bounce per channel: E_ind[v] = sum over v's occluded rays of pi / S * layer / pi * interp(rho E)
+            bounce = [sp.csr_matrix(((bary * layer[:, c:c + 1]).ravel() / n_s, (rows, cols)), shape=(nv, nv))
+                      for c in range(3)]
             e_total = e_direct
             for _ in range(self.max_bounces):
-                src = base_v * e_total  # rho E at vertices; a hit's radiance = layer * interp(src) / pi
-                new = np.zeros_like(e_direct)
-                for c in range(3):
-                    m = sp.csr_matrix(((bary * layer[:, c:c + 1]).ravel() / n_s, (rows, cols)), shape=(nv, nv))
-                    new[:, c] = m @ src[:, c]  # pi / S * (1 / pi) per ray
+                src = base_v * e_total  # rho E at vertices
+                new = np.stack([bounce[c] @ src[:, c] for c in range(3)], axis=1)
                 step = np.abs(new - e_ind).max() / max(float(np.abs(e_direct).max()), 1e-12)
                 e_ind = new
                 e_total = e_direct + e_ind
@@ -350,7 +357,8 @@ class Renderer:
         return self._vertex_irradiance
 
     def _indirect_at(self, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        if not self.interreflection:
+        """Interreflected irradiance (P, 3) at points (zero without shadows or interreflection)."""
+        if not (self.shadows and self.interreflection):
             return np.zeros((tri.shape[0], 3))
         e_ind = self.vertex_irradiance()[1]
         return np.einsum("pk,pkc->pc", bary, e_ind[tri])
@@ -359,9 +367,7 @@ class Renderer:
         """Diffuse radiance (N, 3) that points on the mesh send along unit ``w_toward`` (N, 3)."""
         tri = np.asarray(self.mesh.faces)[faces]
         bary = trimesh.triangles.points_to_barycentric(self.mesh.triangles[faces], points)
-        n = np.einsum("pk,pkc->pc", bary, self._vertex_normals[tri])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        mu = np.clip(np.einsum("pc,pc->p", n, w_toward), 0.0, 1.0)
+        mu = np.clip(np.einsum("pc,pc->p", self._normals_at(tri, bary), w_toward), 0.0, 1.0)
         e_total = np.einsum("pk,pkc->pc", bary, self.vertex_irradiance()[0][tri])
         return self._diffuse_albedo(mu, self._base(tri, bary)) / np.pi * e_total
 
@@ -381,8 +387,7 @@ class Renderer:
             radiance = np.zeros((q * ns, 3))
             radiance[live] = self._remainder.lookup(dirs[live], samples.solid_angle.reshape(-1)[live])
             if self.shadows:
-                fn = np.asarray(self.mesh.face_normals)[faces[sl]]
-                pts = np.einsum("pk,pkc->pc", bary[sl], self.mesh.triangles[faces[sl]]) + fn * (1e-5 * self._scale)
+                pts = self._points_above(faces[sl], bary[sl])
                 hit_face, ray_id, loc = self._shadow_rays.intersects_id(
                     np.repeat(pts, ns, axis=0)[live], dirs[live], multiple_hits=False, return_locations=True)
                 idx = live[ray_id]
@@ -402,12 +407,8 @@ class Renderer:
         if self.material is not None:
             return self._shade_principled(faces, bary, view_dirs)
         tri = np.asarray(self.mesh.faces)[faces]
-        normals = np.einsum("pk,pkc->pc", bary, self._vertex_normals[tri])
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
-        if self.vertex_albedo is not None:
-            albedo = np.einsum("pk,pkc->pc", bary, np.asarray(self.vertex_albedo, float)[tri])
-        else:
-            albedo = np.broadcast_to(np.asarray(self.brdf["albedo"], float), normals.shape)
+        normals = self._normals_at(tri, bary)
+        albedo = self._base(tri, bary)
         if self.shadows:
             self._ensure_visibility(tri.ravel())
         dirs, power = self.lights.directions, self.lights.power
@@ -425,16 +426,14 @@ class Renderer:
             out[sl] = albedo[sl] / np.pi * (weight @ power)
             if spec_cut is not None:
                 out[sl] += self._specular(n, wo, n_out, cos_in, vis, spec_cut)
-        if self.shadows and self.interreflection:
-            out += albedo / np.pi * self._indirect_at(tri, bary)
+        out += albedo / np.pi * self._indirect_at(tri, bary)
         return out
 
     def _shade_principled(self, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
         """shade() for the principled material: diffuse over the light set (+ interreflection),
         specular exactly over the bright pixels and by filtered importance sampling elsewhere."""
         tri = np.asarray(self.mesh.faces)[faces]
-        normals = np.einsum("pk,pkc->pc", bary, self._vertex_normals[tri])
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+        normals = self._normals_at(tri, bary)
         base = self._base(tri, bary)
         if self.shadows:
             self._ensure_visibility(tri.ravel())
@@ -455,8 +454,7 @@ class Renderer:
                 out[sl] += specular_over_directions(
                     self.material, n, wo, dirs[-nb:], power[-nb:], None if vis is None else vis[:, -nb:],
                     self._spec_cut_cos, None if self.vertex_albedo is None else base[sl])
-        if self.shadows and self.interreflection:
-            out += kd / np.pi * self._indirect_at(tri, bary)
+        out += kd / np.pi * self._indirect_at(tri, bary)
         front = mu_out > 0
         if front.any():
             out[front] += self._specular_sampled(faces[front], bary[front], normals[front], view_dirs[front],

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.core.envmap import downsample
-from pipeline.core.material import Principled, ggx_distribution, sample_ggx_vndf, smith_g1, smith_g2
+from pipeline.core.material import Principled, ggx_distribution, ggx_lobe_cos, sample_ggx_vndf, smith_g1, smith_g2
 
 _EPS = 1e-12
 
@@ -35,6 +35,14 @@ def tangent_frames(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     t = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
     bt = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
     return t, bt
+
+
+def stratified_unit_square(count: int, n_samples: int, rng: np.random.Generator) -> np.ndarray:
+    """(count, S, 2) points in [0, 1)^2: an n x n grid of cell centres (S = n^2 ~ ``n_samples``) with one
+    random (Cranley-Patterson) shift per row, so that neighbouring points' errors are uncorrelated."""
+    side = max(1, int(round(np.sqrt(n_samples))))
+    grid = (np.stack(np.meshgrid(np.arange(side), np.arange(side), indexing="ij"), -1).reshape(-1, 2) + 0.5) / side
+    return np.mod(grid[None] + rng.random((count, 1, 2)), 1.0)
 
 
 @dataclass(frozen=True)
@@ -102,15 +110,11 @@ class LobeSamples:
 def specular_samples(material: Principled, normal: np.ndarray, view_dir: np.ndarray, n_samples: int,
                      rng: np.random.Generator, base_color: np.ndarray | None = None) -> LobeSamples:
     """GGX VNDF samples of the principled specular lobe at points with unit normals and view
-    directions (P, 3).  A stratified n x n grid with one random (Cranley-Patterson) shift per point
-    keeps neighbouring pixels' errors uncorrelated."""
+    directions (P, 3), on a stratified pattern (stratified_unit_square)."""
     n = np.asarray(normal, float)
     v = np.asarray(view_dir, float)
     p = n.shape[0]
-    side = max(1, int(round(np.sqrt(n_samples))))
-    grid = (np.stack(np.meshgrid(np.arange(side), np.arange(side), indexing="ij"), -1).reshape(-1, 2) + 0.5) / side
-    shift = rng.random((p, 1, 2))
-    u = np.mod(grid[None] + shift, 1.0)
+    u = stratified_unit_square(p, n_samples, rng)
     t, b = tangent_frames(n)
     mu_out = np.clip(np.einsum("pk,pk->p", n, v), 1e-4, 1.0)
     v_local = np.stack([np.einsum("pk,pk->p", t, v), np.einsum("pk,pk->p", b, v), mu_out], axis=1)
@@ -121,7 +125,7 @@ def specular_samples(material: Principled, normal: np.ndarray, view_dir: np.ndar
     w_local = 2.0 * c[..., None] * h - v_local[:, None, :]
     mu_in = w_local[..., 2]
     dirs = w_local[..., 0:1] * t[:, None] + w_local[..., 1:2] * b[:, None] + w_local[..., 2:3] * n[:, None]
-    s = side * side
+    s = u.shape[1]
     g1 = smith_g1(mu_out, alpha)[:, None]
     ratio = np.where(mu_in > 0, smith_g2(mu_in, mu_out[:, None], alpha) / g1, 0.0) / s
     mu_rep = np.repeat(mu_out, s)
@@ -149,17 +153,10 @@ def specular_over_directions(material: Principled, normal: np.ndarray, view_dir:
         vis = visibility[pi, di]
         keep = vis > 0
         pi, di, vis = pi[keep], di[keep], vis[keep]
-    wi = dirs[di]
-    h = wi + v[pi]
-    h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), _EPS)
-    mu_in = np.einsum("pk,pk->p", n[pi], wi)
-    alpha = material.alpha
-    lobe = ggx_distribution(np.einsum("pk,pk->p", n[pi], h), alpha) * smith_g2(mu_in, mu_out[pi], alpha) / (
-        4.0 * np.maximum(mu_out[pi], _EPS))
+    lobe, cos_oh = ggx_lobe_cos(n[pi], dirs[di], v[pi], material.alpha)
     if visibility is not None:
         lobe = lobe * vis
-    fres = material.specular_fresnel(np.einsum("pk,pk->p", v[pi], h), mu_out[pi],
-                                     None if base_color is None else np.asarray(base_color, float)[pi])
+    fres = material.specular_fresnel(cos_oh, mu_out[pi], None if base_color is None else np.asarray(base_color, float)[pi])
     contrib = fres * (lobe[:, None] * power[di])
     for c in range(3):
         out[:, c] = np.bincount(pi, weights=contrib[:, c], minlength=n.shape[0])

@@ -49,9 +49,10 @@ def validate_brdf(doc: dict, name: str = "brdf") -> dict:
     unknown key is refused (one line naming the key and what is valid).
     """
     model = doc.get("model")
-    if isinstance(model, str) and model.split(" ")[0] in LEGACY_MODELS:
-        raise UserError(f"{name}: model {model!r} is not a sigrend model; write \"{LEGACY_MODELS[model.split(' ')[0]]}\" "
-                        f"with its parameters ({', '.join(MODEL_PARAMS[LEGACY_MODELS[model.split(' ')[0]]])})")
+    ours = LEGACY_MODELS.get(model.split(" ")[0]) if isinstance(model, str) else None
+    if ours is not None:
+        raise UserError(f"{name}: model {model!r} is not a sigrend model; write \"{ours}\" "
+                        f"with its parameters ({', '.join(MODEL_PARAMS[ours])})")
     if model not in MODEL_PARAMS:
         raise UserError(f"{name}: unknown BRDF model {model!r}; use one of {', '.join(MODEL_PARAMS)}")
     out = dict(doc)
