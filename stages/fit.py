@@ -76,6 +76,14 @@ class Settings:
                                   "(textured only if it beats uniform on the held-out views by more than --parsimony)")
     albedo_smoothness: float = setting(0.001, "weight of the mesh-Laplacian smoothness term of the per-vertex albedo "
                                              "(relative to the mean data weight per vertex)")
+    roughness_candidates: str = setting("0.1,0.2,0.3,0.45,0.65,1.0", "principled fit: the roughness grid "
+                                        "compared on held-out views (the best is refined by a parabola)")
+    ior: float = setting(1.5, "principled fit: index of refraction of the dielectric specular layer")
+    max_sources: int = setting(3, "principled fit: directional sources (the lighting's dual angular part) tried "
+                                  "on top of the SH lighting, each kept only if it explains >= 2% of the residual")
+    physical_samples: int = setting(30000, "principled fit: samples used (random subset)")
+    lobe_samples: int = setting(32, "principled fit: GGX lobe samples per sample in the specular transfer")
+    bounce_samples: int = setting(64, "principled fit: occlusion / bounce rays per vertex (shadows, interreflection)")
     blas_threads: int = setting(1, "BLAS threads during the fit (0 = library default); the fit's many small "
                                    "products ran 7x slower with multithreaded OpenBLAS on a shared 2-core machine")
 
@@ -102,6 +110,11 @@ class Settings:
             raise UserError(f"--folds must be >= 2 (views are held out for validation), got {self.folds}")
         if not 0.0 <= self.min_visibility <= 1.0:
             raise UserError(f"--min-visibility must be in [0, 1], got {self.min_visibility}")
+        if self.ior < 1.0:
+            raise UserError(f"--ior must be >= 1, got {self.ior}")
+        if self.max_sources < 0 or self.physical_samples < 100 or self.lobe_samples < 1 or self.bounce_samples < 1:
+            raise UserError("--max-sources must be >= 0, --physical-samples >= 100, --lobe-samples and "
+                            "--bounce-samples >= 1")
         if self.blas_threads < 0:
             raise UserError(f"--blas-threads must be >= 0, got {self.blas_threads}")
         if self.max_samples < 100 or self.chunk < 100 or self.env_height < 4 or self.iterations < 1:
@@ -171,9 +184,10 @@ def parse_brdf_setting(spec: str) -> tuple[str | None, dict | None]:
     if spec == "auto":
         return None, None
     known = None if spec in MODEL_PARAMS else parse_brdf_spec(spec)
-    if "principled" in (spec, (known or {}).get("model")):
-        raise UserError(f"--brdf {spec!r}: the fit's forward model does not take the principled material yet; "
-                        "fit with --brdf auto|lambert|phong|microfacet, and relight with a principled brdf.json")
+    if (known or {}).get("model") == "principled" and (known.get("metallic", 0.0) > 0
+                                                       or any(v != 1.0 for v in known.get("specular_tint", [1.0]))):
+        raise UserError(f"--brdf {spec!r}: the physical fit takes a dielectric principled material (metallic 0, "
+                        "white specular tint) so far")
     return (spec, None) if known is None else (None, known)
 
 
@@ -526,6 +540,11 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     explicit_order = None if settings.order == "auto" else int(settings.order)
     fit_model, known_brdf = parse_brdf_setting(settings.brdf)
     known_lighting = None if settings.lighting == "unknown" else load_known_lighting(settings.lighting, settings.env_order)
+    if "principled" in (fit_model, (known_brdf or {}).get("model")):
+        from stages import fit_physical
+
+        return fit_physical.run(capture=capture, work=work, settings=settings, keys=keys, known_brdf=known_brdf,
+                                known_lighting=known_lighting)
     hint = known_albedo_hint(capture)
     total = int(meta.get("count", 0))
     valid = sum(len(c["weight"]) for c in iter_sample_chunks(samples_path, settings.chunk, ("weight",))) if not total else total

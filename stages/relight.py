@@ -42,14 +42,14 @@ import numpy as np
 from pipeline.core import camera as cam
 from pipeline.core import forward
 from pipeline.core.brdf import reflect
-from pipeline.core.envmap import downsample, equirect_angles, equirect_solid_angles
+from pipeline.core.envmap import add_sources, downsample, equirect_angles, equirect_solid_angles
 from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envmap
 from pipeline.core.transfer import irradiance_from_sh
 from pipeline.errors import UserError
 from pipeline.io.brdf import diffuse_color, read_brdf
 from pipeline.io.camera_files import srgb_encode
 from pipeline.io.images import read_envmap, write_image
-from pipeline.io.lighting import read_lighting_sh
+from pipeline.io.lighting import read_lighting_sh, read_lighting_sources
 from pipeline.io.poses import Poses, read_poses
 from pipeline.settings import setting
 from pipeline.workdir import write_json
@@ -474,7 +474,8 @@ class AngularLighting:
     def __init__(self, brdf: dict, mesh, *, coeffs: np.ndarray | None = None, env: np.ndarray | None = None,
                  env_height: int = 64, cell_height: int = 32, shadows: bool = True, vertex_albedo=None,
                  board=None, source: str = "", lobe_sh_order: int = 24, prefilter_height: int = 128,
-                 clamp_sh: bool = False, bounces: int = 8, bounce_samples: int = 64, lobe_samples: int = 64):
+                 clamp_sh: bool = False, bounces: int = 8, bounce_samples: int = 64, lobe_samples: int = 64,
+                 sources: tuple | None = None):
         from pipeline.core.render import Renderer
 
         self.source = source
@@ -491,6 +492,8 @@ class AngularLighting:
             if not clamp_sh and env.min() < 0:
                 negative = np.maximum(-env, 0.0)
             env = np.maximum(env, 0.0)
+            if sources is not None and len(sources[0]):  # the fit's directional sources (dual angular part)
+                env = add_sources(env, *sources)
             self.kind, self.order = "sh", order_of(np.asarray(coeffs).shape[0])
         else:
             self.kind, self.order = "envmap", None
@@ -506,7 +509,8 @@ class AngularLighting:
     def from_file(cls, path: Path, brdf: dict, mesh, **kwargs) -> "AngularLighting":
         path = Path(path)
         if path.suffix.lower() == ".json":
-            return cls(brdf, mesh, coeffs=read_lighting_sh(path), source=str(path), **kwargs)
+            return cls(brdf, mesh, coeffs=read_lighting_sh(path), sources=read_lighting_sources(path),
+                       source=str(path), **kwargs)
         return cls(brdf, mesh, env=read_envmap(path), source=str(path), **kwargs)
 
     def describe(self) -> dict:

@@ -59,3 +59,28 @@ def downsample(env: np.ndarray, factor: int) -> np.ndarray:
     flux = (env * omega).reshape(h // factor, factor, w // factor, factor, c).sum(axis=(1, 3))
     new_omega = equirect_solid_angles(h // factor)[:, None, None]
     return flux / new_omega
+
+
+def add_sources(env: np.ndarray, directions: np.ndarray, intensity: np.ndarray) -> np.ndarray:
+    """A copy of an (H, 2H, 3) map with directional sources added: each source's intensity
+    (J, 3) (irradiance it gives at normal incidence, sum L dω) spread bilinearly over the four
+    pixel centres around its direction (J, 3), as radiance intensity x weight / pixel solid angle."""
+    out = np.array(env, dtype=float)
+    d = np.atleast_2d(np.asarray(directions, float))
+    power = np.atleast_2d(np.asarray(intensity, float))
+    if d.size == 0:
+        return out
+    h = out.shape[0]
+    w = 2 * h
+    theta = np.arccos(np.clip(d[:, 2], -1.0, 1.0))
+    phi = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2.0 * np.pi)
+    y = np.clip(theta / np.pi * h - 0.5, 0.0, h - 1.0)
+    x = phi / (2.0 * np.pi) * w - 0.5
+    y0, x0 = np.floor(y).astype(int), np.floor(x).astype(int)
+    fy, fx = y - y0, x - x0
+    omega = equirect_solid_angles(h)
+    for dy, wy in ((0, 1 - fy), (1, fy)):
+        for dx, wx in ((0, 1 - fx), (1, fx)):
+            row, col = np.minimum(y0 + dy, h - 1), np.mod(x0 + dx, w)
+            np.add.at(out, (row, col), power * (wy * wx / omega[row])[:, None])
+    return out

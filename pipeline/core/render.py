@@ -149,6 +149,51 @@ class RenderResult:
     board_mask: np.ndarray  # (H, W) bool: pixel shows the board
 
 
+@dataclass(frozen=True)
+class BounceRays:
+    """Occlusion rays of the vertices (Renderer.bounce_rays): ``per_vertex`` rays each; for the
+    R occluded ones the owner vertex (R,), direction (R, 3) and n . w (R,); for the Rm of them
+    that hit the mesh (``on_mesh`` (R,) bool) the hit's vertex ids (Rm, 3), barycentrics (Rm, 3)
+    and the cosine at the hit towards the owner (Rm,)."""
+
+    per_vertex: int
+    owner: np.ndarray
+    directions: np.ndarray
+    cos: np.ndarray
+    on_mesh: np.ndarray
+    tri: np.ndarray
+    bary: np.ndarray
+    mu_hit: np.ndarray
+
+    def per_owner(self, values: np.ndarray, n_vertices: int) -> np.ndarray:
+        """Sum of per-ray values (R, C) over each vertex's occluded rays -> (V, C)."""
+        import scipy.sparse as sp
+
+        m = sp.csr_matrix((np.ones(self.owner.size), (self.owner, np.arange(self.owner.size))),
+                          shape=(n_vertices, self.owner.size))
+        return np.asarray(m @ values)
+
+
+def bounce_series(bounce: list, base: np.ndarray, direct: np.ndarray, max_bounces: int,
+                  tolerance: float = 5e-3) -> np.ndarray:
+    """Interreflected irradiance of E = E_d + M_c (rho_c E), by iterating bounces until one adds
+    < ``tolerance`` of max |E_d| (at most ``max_bounces``).
+
+    bounce: per channel sparse (V, V) M_c (Renderer.bounce_matrices); base (V, 3) rho; direct
+    (V, C, 3) or (V, 3) E_d (C: lighting columns, e.g. SH transfer) -> E_ind of the same shape.
+    """
+    d = direct if direct.ndim == 3 else direct[:, None, :]
+    e_ind = np.zeros_like(d)
+    scale = max(float(np.abs(d).max()), 1e-12)
+    for _ in range(max_bounces):
+        new = np.stack([bounce[c] @ (base[:, c:c + 1] * (d[..., c] + e_ind[..., c])) for c in range(3)], axis=-1)
+        step = np.abs(new - e_ind).max() / scale
+        e_ind = new
+        if step < tolerance:
+            break
+    return e_ind if direct.ndim == 3 else e_ind[:, 0, :]
+
+
 def _intersector(mesh: trimesh.Trimesh):
     from trimesh.ray.ray_pyembree import RayMeshIntersector
 
@@ -196,6 +241,7 @@ class Renderer:
         self.material = principled_from_dict(self.brdf) if self.brdf["model"] == "principled" else None
         self._rng = np.random.default_rng(self.seed)
         self._vertex_irradiance = None
+        self._bounce_rays = None
         if self.material is not None:
             remainder = self.env.reshape(-1, 3).astype(float).copy()
             remainder[self.lights.bright] = 0.0
@@ -287,30 +333,14 @@ class Renderer:
         return np.einsum("pk,pkc->pc", bary, self._vertex_base()[tri])
 
     # -- interreflection ---------------------------------------------------------------------
-    def vertex_irradiance(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per-vertex irradiance (V, 3) with self-shadowing and diffuse interreflection, and the
-        indirect part of it (V, 3): ``(E_total, E_indirect)``, computed once per scene.
-
-        Each vertex casts ``bounce_samples`` cosine-distributed rays (stratified, one random
-        rotation per vertex).  Direct: the unshadowed irradiance of the light set (exact) minus the
-        occluded rays' share, pi / S * L(w_s) read from the map prefiltered to the ray's solid angle
-        (a control variate: exact on convex parts).  Indirect: an occluded ray sees the hit point's
-        diffuse radiance rho_d(mu) / pi * E_total(hit); the fixed point E = E_d + M (rho E) is
-        iterated until a bounce adds < 0.5 % (at most ``max_bounces``).
-        """
-        if self._vertex_irradiance is not None:
-            return self._vertex_irradiance
+    def bounce_rays(self) -> BounceRays:
+        """The vertices' cosine-distributed occlusion rays, cast once per scene (cached): each
+        vertex casts ``bounce_samples`` rays (stratified, one random rotation per vertex)."""
+        if self._bounce_rays is not None:
+            return self._bounce_rays
         verts = np.asarray(self.mesh.vertices, float)
         normals = self._vertex_normals
         nv = verts.shape[0]
-        dirs, power = self.lights.directions, self.lights.power
-        e_open = np.zeros((nv, 3))
-        per_chunk = max(1, self.chunk_pairs // len(dirs))
-        for s in range(0, nv, per_chunk):
-            e_open[s:s + per_chunk] = np.maximum(normals[s:s + per_chunk] @ dirs.T, 0.0) @ power
-        if not self.shadows:  # no occlusion at all: convex treatment, nothing bounces
-            self._vertex_irradiance = (e_open, np.zeros_like(e_open))
-            return self._vertex_irradiance
         u = stratified_unit_square(nv, self.bounce_samples, self._rng)
         n_s = u.shape[1]
         r, phi = np.sqrt(u[..., 0]), 2 * np.pi * u[..., 1]
@@ -320,41 +350,64 @@ class Renderer:
         origins = np.repeat(verts + normals * (1e-4 * self._scale), n_s, axis=0)
         hit_face, ray_id, loc = self._shadow_rays.intersects_id(origins, w.reshape(-1, 3), multiple_hits=False,
                                                                 return_locations=True)
-        owner = ray_id // n_s
-        w_hit = w.reshape(-1, 3)[ray_id]
-        full = EnvPyramid.build(self.env)
-        cos_s = np.maximum(local.reshape(-1, 3)[ray_id, 2], 1e-3)
-        blocked = full.lookup(w_hit, np.pi / (n_s * cos_s)) * (np.pi / n_s)
-        e_direct = e_open.copy()
-        for c in range(3):
-            e_direct[:, c] -= np.bincount(owner, weights=blocked[:, c], minlength=nv)
-        e_direct = np.maximum(e_direct, 0.0)
-        e_ind = np.zeros_like(e_direct)
         on_mesh = hit_face < len(self.mesh.faces)  # the board (when present) is not a bounce source
-        if self.interreflection and on_mesh.any():
-            import scipy.sparse as sp
+        hf = hit_face[on_mesh]
+        tri = np.asarray(self.mesh.faces)[hf]
+        bary = trimesh.triangles.points_to_barycentric(self.mesh.triangles[hf], loc[on_mesh])
+        w_hit = w.reshape(-1, 3)[ray_id]
+        mu_hit = np.clip(-np.einsum("pc,pc->p", self._normals_at(tri, bary), w_hit[on_mesh]), 0.0, 1.0)
+        self._bounce_rays = BounceRays(n_s, ray_id // n_s, w_hit, np.maximum(local.reshape(-1, 3)[ray_id, 2], 1e-3),
+                                       on_mesh, tri, bary, mu_hit)
+        return self._bounce_rays
 
-            hf, own, w_h, lh = hit_face[on_mesh], owner[on_mesh], w_hit[on_mesh], loc[on_mesh]
-            tri = np.asarray(self.mesh.faces)[hf]
-            bary = trimesh.triangles.points_to_barycentric(self.mesh.triangles[hf], lh)
-            mu_hit = np.clip(-np.einsum("pc,pc->p", self._normals_at(tri, bary), w_h), 0.0, 1.0)
-            layer = self._diffuse_albedo(mu_hit, np.ones((hf.size, 3)))  # (1 - m)(1 - A_s) per channel
-            base_v = self._vertex_base()
-            rows, cols = np.repeat(own, 3), tri.ravel()
-            # one bounce per channel: E_ind[v] = sum over v's occluded rays of pi / S * layer / pi * interp(rho E)
-            bounce = [sp.csr_matrix(((bary * layer[:, c:c + 1]).ravel() / n_s, (rows, cols)), shape=(nv, nv))
-                      for c in range(3)]
-            e_total = e_direct
-            for _ in range(self.max_bounces):
-                src = base_v * e_total  # rho E at vertices
-                new = np.stack([bounce[c] @ src[:, c] for c in range(3)], axis=1)
-                step = np.abs(new - e_ind).max() / max(float(np.abs(e_direct).max()), 1e-12)
-                e_ind = new
-                e_total = e_direct + e_ind
-                if step < 5e-3:
-                    break
+    def bounce_matrices(self, layer: np.ndarray | None = None) -> list:
+        """One diffuse bounce per channel as sparse (V, V) matrices M_c: the irradiance that the
+        occluded rays of vertex v receive from the hit points' radiance, (M_c (rho E))[v] =
+        sum over v's occluded rays of pi / S * layer_c(mu_hit) / pi * interp(rho E)(hit).
+        ``layer`` (Rm, 3): the diffuse layer at the hits (default: this renderer's material's)."""
+        import scipy.sparse as sp
+
+        rays, nv = self.bounce_rays(), len(self.mesh.vertices)
+        if layer is None:  # (1 - m)(1 - A_s) per channel
+            layer = self._diffuse_albedo(rays.mu_hit, np.ones((rays.mu_hit.size, 3)))
+        rows, cols = np.repeat(rays.owner[rays.on_mesh], 3), rays.tri.ravel()
+        return [sp.csr_matrix(((rays.bary * layer[:, c:c + 1]).ravel() / rays.per_vertex, (rows, cols)),
+                              shape=(nv, nv)) for c in range(3)]
+
+    def vertex_irradiance(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-vertex irradiance (V, 3) with self-shadowing and diffuse interreflection, and the
+        indirect part of it (V, 3): ``(E_total, E_indirect)``, computed once per scene.
+
+        Direct: the unshadowed irradiance of the light set (exact) minus the occluded rays'
+        (bounce_rays) share, pi / S * L(w_s) read from the map prefiltered to the ray's solid angle
+        (a control variate: exact on convex parts).  Indirect: an occluded ray sees the hit point's
+        diffuse radiance rho_d(mu) / pi * E_total(hit); the fixed point E = E_d + M (rho E) is
+        iterated until a bounce adds < 0.5 % (at most ``max_bounces``).
+        """
+        if self._vertex_irradiance is not None:
+            return self._vertex_irradiance
+        e_open = self._open_irradiance(self.lights.power)
+        if not self.shadows:  # no occlusion at all: convex treatment, nothing bounces
+            self._vertex_irradiance = (e_open, np.zeros_like(e_open))
+            return self._vertex_irradiance
+        rays = self.bounce_rays()
+        blocked = EnvPyramid.build(self.env).lookup(rays.directions, np.pi / (rays.per_vertex * rays.cos)) \
+            * (np.pi / rays.per_vertex)
+        e_direct = np.maximum(e_open - rays.per_owner(blocked, len(e_open)), 0.0)
+        e_ind = np.zeros_like(e_direct)
+        if self.interreflection and rays.on_mesh.any():
+            e_ind = bounce_series(self.bounce_matrices(), self._vertex_base(), e_direct, self.max_bounces)
         self._vertex_irradiance = (e_direct + e_ind, e_ind)
         return self._vertex_irradiance
+
+    def _open_irradiance(self, power: np.ndarray) -> np.ndarray:
+        """Unshadowed vertex irradiance (V, C) of the light set's directions with power (D, C)."""
+        normals = self._vertex_normals
+        out = np.zeros((normals.shape[0], power.shape[1]))
+        per_chunk = max(1, self.chunk_pairs // len(power))
+        for s in range(0, normals.shape[0], per_chunk):
+            out[s:s + per_chunk] = np.maximum(normals[s:s + per_chunk] @ self.lights.directions.T, 0.0) @ power
+        return out
 
     def _indirect_at(self, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Interreflected irradiance (P, 3) at points (zero without shadows or interreflection)."""

@@ -37,3 +37,19 @@ def write_lighting_sh(path: str | os.PathLike, coeffs: np.ndarray, **extra) -> P
     if coeffs.ndim != 2 or coeffs.shape != ((order + 1) ** 2, 3):
         raise ValueError(f"coefficients must be ((L+1)^2, 3), got {coeffs.shape}")
     return write_json(path, {"order": order, "basis": "real-orthonormal", "coeffs": coeffs.tolist(), **extra})
+
+
+def read_lighting_sources(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """The optional directional sources of a lighting_sh.json (the fit's dual angular part):
+    directions (J, 3) unit and intensities (J, 3) (sum L dω of each source); empty when absent."""
+    path = Path(path)
+    doc = read_json(path)
+    items = doc.get("sources", []) if isinstance(doc, dict) else []
+    try:
+        d = np.asarray([s["direction"] for s in items], float).reshape(-1, 3)
+        p = np.asarray([s["intensity"] for s in items], float).reshape(-1, 3)
+    except (KeyError, TypeError, ValueError):
+        raise UserError(f"{path}: 'sources' must be a list of {{'direction': [x, y, z], 'intensity': [r, g, b]}}") from None
+    if len(d) != len(p) or not np.all(np.isfinite(d)) or np.any(p < 0) or np.any(np.abs(np.linalg.norm(d, axis=1) - 1) > 1e-3):
+        raise UserError(f"{path}: every source needs a unit 'direction' and a non-negative 'intensity'")
+    return d, p

@@ -1,0 +1,312 @@
+"""Lighting and principled material from light-field samples on the physical forward model
+(pipeline.core.prt): the solver maths of the fit stage's physical path (pure NumPy).
+
+For a fixed material the radiance is linear in the SH lighting, B_c = A_c L_c with
+A_c = rho_c kd / pi (D + I_c(rho)) + S_c (prt module docstring), so the lighting solves
+pipeline.core.solve's regularized normal equations, labels from the actual transfer included.
+The material is found around that:
+
+* base colour rho (3,): for fixed lighting, B_c - S_c L_c = rho_c q_c with q_c = kd / pi (D + I_c) L_c
+  is linear in rho_c (I_c is updated with rho between steps);
+* the specular layer of a dielectric has a magnitude fixed by its Fresnel term (ior), so lighting
+  and base colour have an absolute scale: scaling L by s and rho by 1 / s keeps the diffuse part
+  and scales the specular one.  The joint start solves for X_c = rho_c L_c and L_c together
+  (linear) and reads rho_c off the low bands (rho_c = <X_c, L_c> / <L_c, L_c>), then alternates;
+* roughness: each candidate is a full fit, compared on held-out views (pipeline.core.solve
+  cross_validate_orders).  A Lambertian object has no such anchor: its scale follows the
+  fit's convention (a known or default albedo).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.core import prt, solve
+from pipeline.core.material import Principled, ggx_lobe_cos
+from pipeline.core.sh import num_coeffs
+
+
+@dataclass
+class Observations:
+    """Samples as the fit uses them: radiance (N, 3), weight (N,), fold (N,) ints."""
+
+    radiance: np.ndarray
+    weight: np.ndarray
+    fold: np.ndarray
+
+
+@dataclass
+class MaterialFit:
+    """A fitted candidate: material (None: Lambert), base colour (3,), lighting ((L+1)^2, 3), the
+    lighting fit's diagnostics and the candidates' validation table."""
+
+    material: Principled | None
+    base: np.ndarray
+    coeffs: np.ndarray
+    lighting: solve.LightingFit
+    orders: list[dict]
+    validation_rmse: float
+    train_rmse: float
+    sources: "Sources | None" = None
+
+
+def _design(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, spec: np.ndarray | None,
+            base: np.ndarray, order: int) -> np.ndarray:
+    """A_c (3, N, K') truncated to ``order``."""
+    k = num_coeffs(order)
+    diff = (geo.direct[:, :k, None] + indirect[:, :k]) * (layer / np.pi)[:, None, :] * base[None, None, :]
+    if spec is not None:
+        diff = diff + spec[:, :k]
+    return np.moveaxis(diff, 2, 0)
+
+
+def _equations(a: np.ndarray, obs: Observations, order: int, folds: int) -> solve.NormalEquations:
+    eqs = solve.NormalEquations(order, folds, shared=False)
+    eqs.add(a, obs.radiance, obs.weight, obs.fold)
+    return eqs
+
+
+def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: np.ndarray, obs: Observations,
+                order: int) -> np.ndarray:
+    """Base colour (3,) from one linear solve for (X_c = rho_c L_c, L_c): radiance =
+    kd / pi D X_c + S_c L_c, rho_c = <X_c, L_c> / <L_c, L_c> over bands 0-2 (what the diffuse
+    part determines); interreflection is left to the alternation."""
+    k, low = num_coeffs(order), num_coeffs(min(order, 2))
+    sw = np.sqrt(obs.weight)[:, None]
+    base = np.zeros(3)
+    for c in range(3):
+        a = np.concatenate([geo.direct[:, :low] * (layer[:, c:c + 1] / np.pi), spec[:, :k, c]], axis=1) * sw
+        g = a.T @ a
+        z = np.linalg.solve(g + 1e-9 * np.trace(g) / len(g) * np.eye(len(g)), a.T @ (obs.radiance[:, c] * sw[:, 0]))
+        x, y = z[:low], z[low:low + low]
+        base[c] = float(x @ y) / max(float(y @ y), 1e-300)
+    return np.clip(base, 1e-3, 1.0)
+
+
+@dataclass
+class Sources:
+    """The dual angular part of the lighting: directional sources (prt.SourceTransfer) and their
+    radiant intensity per channel (J, 3) (W/sr-like: irradiance at normal incidence)."""
+
+    transfer: prt.SourceTransfer
+    power: np.ndarray
+
+    @property
+    def directions(self) -> np.ndarray:
+        return self.transfer.directions
+
+
+def _source_columns(geo: prt.Geometry, layer: np.ndarray, st: prt.SourceTransfer, indirect: np.ndarray | None,
+                    base: np.ndarray) -> np.ndarray:
+    """Radiance (3, N, J) of each source at unit intensity."""
+    e = st.direct[..., None] + (0.0 if indirect is None else indirect)                 # (N, J, 3)
+    cols = e * (layer / np.pi * base)[:, None, :]
+    if st.specular is not None:
+        cols = cols + st.specular
+    return np.moveaxis(cols, 2, 0)
+
+
+def _source_score(cols: np.ndarray, residual: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Weighted residual power each column (3, N, J) explains with a non-negative intensity (J,)."""
+    num = np.einsum("p,cpj,pc->jc", weight, cols, residual)
+    den = np.einsum("p,cpj->jc", weight, cols * cols)
+    return (np.maximum(num, 0.0) ** 2 / np.maximum(den, 1e-300)).sum(axis=1)
+
+
+def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
+                weight: np.ndarray, rounds: int = 3, chunk: int = 1024) -> tuple[np.ndarray, float]:
+    """The direction (3,) of the one directional source that best explains ``residual`` (N, 3),
+    and the weighted residual power it explains: matching pursuit over the renderer's direction
+    set (point visibility, exact BRDF), then ``rounds`` of 5 x 5 local grids, each 2.5x finer,
+    with exact shadow rays (prt.source_transfer)."""
+    r = geo.renderer
+    dirs = r.lights.directions
+    layer = prt.diffuse_layer(material, geo.mu_out)
+    kd = layer * base / np.pi
+    num = np.zeros((len(dirs), 3))
+    den = np.zeros((len(dirs), 3))
+    for s in range(0, geo.faces.size, chunk):
+        sl = slice(s, s + chunk)
+        vis = r._point_visibility(geo.faces[sl], geo.tri[sl], geo.bary[sl])
+        cos = np.where(geo.mu_out[sl, None] > 0, np.maximum(geo.normals[sl] @ dirs.T, 0.0), 0.0) * vis
+        col = cos[..., None] * kd[sl, None, :]
+        if material is not None:
+            p, d = cos.shape
+            lobe, cos_oh = ggx_lobe_cos(np.repeat(geo.normals[sl], d, 0), np.tile(dirs, (p, 1)),
+                                        np.repeat(geo.view_dirs[sl], d, 0), material.alpha)
+            fres = material.specular_fresnel(cos_oh, np.repeat(np.clip(geo.mu_out[sl], 1e-4, 1), d))
+            col += (fres * (lobe * vis.reshape(-1))[:, None]).reshape(p, d, 3)
+        num += np.einsum("p,pdc,pc->dc", weight[sl], col, residual[sl])
+        den += np.einsum("p,pdc->dc", weight[sl], col * col)
+    score = (np.maximum(num, 0.0) ** 2 / np.maximum(den, 1e-300)).sum(axis=1)
+    best, best_score = dirs[int(np.argmax(score))], float(score.max())
+    step = np.pi / r.lights.directions.shape[0] ** 0.5 * 1.5        # about one cell
+    for _ in range(rounds):
+        t1 = np.cross(best, [0.0, 0.0, 1.0] if abs(best[2]) < 0.9 else [1.0, 0.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(best, t1)
+        off = np.linspace(-step, step, 5)
+        cand = best[None] + off[:, None, None] * t1 + off[None, :, None] * t2
+        cand = cand.reshape(-1, 3) / np.linalg.norm(cand.reshape(-1, 3), axis=1, keepdims=True)
+        st = prt.source_transfer(geo, material, cand)
+        sc = _source_score(_source_columns(geo, layer, st, None, base), residual, weight)
+        if sc.max() > best_score:
+            best, best_score = cand[int(np.argmax(sc))], float(sc.max())
+        step /= 2.5
+    return best, best_score
+
+
+def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observations, *, order: int,
+                 folds: int, base0: np.ndarray, spec: np.ndarray | None = None, iterations: int = 4,
+                 fix_base: bool = False, orders: list[int] | None = None, lighting_kw: dict | None = None,
+                 max_bounces: int = 8, max_sources: int = 0, source_gain: float = 0.02,
+                 source_directions: np.ndarray | None = None, known_coeffs: np.ndarray | None = None,
+                 known_sources: np.ndarray | None = None) -> MaterialFit:
+    """Lighting and base colour for one material candidate (roughness, ior, metallic fixed).
+
+    ``spec``: its specular transfer (prt.specular_transfer; None for Lambert).  ``base0``: the
+    start, kept when ``fix_base`` (the known-material mode, or Lambert's scale convention).
+    Up to ``max_sources`` directional sources join the SH lighting, one at a time after the first
+    SH fit, each only if it removes more than ``source_gain`` of the weighted residual power.
+    ``source_directions`` (J, 3): sources at known directions instead (intensities fitted).
+    ``known_coeffs`` (K', 3) and ``known_sources`` (J, 3) intensities at ``source_directions``: the
+    lighting is known (only the base colour is fitted).
+    The returned fit's lighting order is the held-out best of ``orders`` (default: ``order``).
+    """
+    kw = dict(lighting_kw or {})
+    layer = prt.diffuse_layer(material, geo.mu_out)
+    base = np.asarray(base0, float).copy()
+    if spec is not None and not fix_base and known_coeffs is None:
+        base = joint_start(geo, layer, spec, obs, order)
+    w = obs.weight
+    sources: Sources | None = None
+    if source_directions is not None and len(source_directions):
+        sources = Sources(prt.source_transfer(geo, material, source_directions),
+                          np.zeros((len(source_directions), 3)) if known_sources is None else np.asarray(known_sources))
+    if known_coeffs is not None:
+        known = np.zeros((num_coeffs(order), 3))
+        m = min(len(known), len(known_coeffs))
+        known[:m] = np.asarray(known_coeffs)[:m]
+    for it in range(iterations):
+        indirect = prt.indirect_transfer(geo, material, base, max_bounces)
+        a = _design(geo, layer, indirect, spec, base, order)
+        src_ind = src_cols = None
+        if sources is not None:
+            src_ind = prt.indirect_transfer(geo, material, base, max_bounces, sources.transfer.vertex_direct)
+            src_cols = _source_columns(geo, layer, sources.transfer, src_ind, base)
+        for _ in range(0 if known_coeffs is not None else 2 if sources is not None else 1):  # SH <-> sources
+            target = obs.radiance - (0.0 if sources is None else np.einsum("cpj,jc->pc", src_cols, sources.power))
+            eqs = _equations(a, Observations(target, w, obs.fold), order, folds)
+            g, h, btb, wt = eqs.channel_system(slice(None))
+            coeffs = solve.solve_lighting(g, h, btb, wt, int(eqs.count.sum()), order, **kw).coeffs
+            if sources is not None:
+                sources.power = _source_intensities(src_cols, obs.radiance - np.einsum("cpk,kc->pc", a, coeffs), w)
+        if known_coeffs is not None:
+            coeffs = known
+        if it == 0 and max_sources > 0 and sources is None:
+            sources = _add_sources(geo, material, base, layer, a, coeffs, obs, max_sources, source_gain)
+            if sources is not None:
+                continue
+        if fix_base:
+            break
+        q = np.einsum("pkc,kc->pc", geo.direct[:, :, None] + indirect, coeffs) * layer / np.pi
+        r = obs.radiance - (np.einsum("pkc,kc->pc", spec, coeffs) if spec is not None else 0.0)
+        if sources is not None:
+            e = sources.transfer.direct[..., None] + src_ind
+            q += np.einsum("pjc,jc->pc", e, sources.power) * layer / np.pi
+            if sources.transfer.specular is not None:
+                r = r - np.einsum("pjc,jc->pc", sources.transfer.specular, sources.power)
+        new = np.clip((w[:, None] * q * r).sum(0) / np.maximum((w[:, None] * q * q).sum(0), 1e-300), 1e-3, 1.0)
+        if spec is None:   # Lambert: only the chromaticity is determined; keep the start's mean
+            new *= float(np.mean(base0)) / float(np.mean(new))
+        done = np.abs(new - base).max() < 1e-3
+        base = new
+        if done:
+            break
+    indirect = prt.indirect_transfer(geo, material, base, max_bounces)
+    target = obs.radiance
+    if sources is not None:
+        src_ind = prt.indirect_transfer(geo, material, base, max_bounces, sources.transfer.vertex_direct)
+        target = obs.radiance - np.einsum("cpj,jc->pc", _source_columns(geo, layer, sources.transfer, src_ind, base),
+                                          sources.power)
+    if known_coeffs is not None:
+        pred = np.einsum("cpk,kc->pc", _design(geo, layer, indirect, spec, base, order), known)
+        rmse = float(np.sqrt((w[:, None] * (target - pred) ** 2).sum() / (3 * w.sum())))
+        g, h, btb, wt = _equations(_design(geo, layer, indirect, spec, base, order), Observations(target, w, obs.fold),
+                                   order, folds).channel_system(slice(None))
+        diag = solve.solve_lighting(g, h, btb, wt, len(w), order, **kw)
+        diag.coeffs = known
+        return MaterialFit(material, base, known, diag, [], rmse, rmse, sources)
+    top = order if orders is None else max(orders)
+    eqs = _equations(_design(geo, layer, indirect, spec, base, top), Observations(target, w, obs.fold), top, folds)
+    cands = solve.cross_validate_orders(eqs, orders or [order], None, **kw)
+    best = min(range(len(cands)), key=lambda i: cands[i]["validation_rmse"])
+    fit = cands[best]["fit"]
+    return MaterialFit(material, base, fit.coeffs, fit, [{k: v for k, v in c.items() if k != "fit"} for c in cands],
+                       float(cands[best]["validation_rmse"]), float(cands[best]["train_rmse"]), sources)
+
+
+def _source_intensities(cols: np.ndarray, residual: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Non-negative least-squares intensities (J, 3) of source columns (3, N, J) for ``residual``."""
+    from scipy.optimize import nnls
+
+    sw = np.sqrt(weight)[:, None]
+    return np.stack([nnls(cols[c] * sw, residual[:, c] * sw[:, 0])[0] for c in range(3)], axis=1)
+
+
+def _add_sources(geo, material, base, layer, a, coeffs, obs, max_sources, gain) -> Sources | None:
+    """Greedy matching pursuit of directional sources on the SH fit's residual."""
+    w = obs.weight
+    residual = obs.radiance - np.einsum("cpk,kc->pc", a, coeffs)
+    total = float((w[:, None] * residual ** 2).sum())
+    found = []
+    for _ in range(max_sources):
+        d, explained = find_source(geo, material, base, residual, w)
+        if explained < gain * total:
+            break
+        found.append(d)
+        st = prt.source_transfer(geo, material, np.array(found))
+        cols = _source_columns(geo, layer, st, None, base)
+        power = _source_intensities(cols, obs.radiance - np.einsum("cpk,kc->pc", a, coeffs), w)
+        residual = obs.radiance - np.einsum("cpk,kc->pc", a, coeffs) - np.einsum("cpj,jc->pc", cols, power)
+    if not found:
+        return None
+    return Sources(st, power)
+
+
+def predict(geo: prt.Geometry, fit: MaterialFit, spec: np.ndarray | None) -> np.ndarray:
+    """Radiance (N, 3) of a fitted candidate at the samples (its lighting: SH + sources)."""
+    layer = prt.diffuse_layer(fit.material, geo.mu_out)
+    indirect = prt.indirect_transfer(geo, fit.material, fit.base)
+    order = int(round(np.sqrt(fit.coeffs.shape[0]))) - 1
+    out = np.einsum("cpk,kc->pc", _design(geo, layer, indirect, spec, fit.base, order), fit.coeffs)
+    if fit.sources is not None:
+        st = fit.sources.transfer
+        src_ind = prt.indirect_transfer(geo, fit.material, fit.base, vertex_direct=st.vertex_direct)
+        out += np.einsum("cpj,jc->pc", _source_columns(geo, layer, st, src_ind, fit.base), fit.sources.power)
+    return out
+
+
+def roughness_interval(roughness: np.ndarray, errors: np.ndarray, tolerance: float) -> tuple[float, float]:
+    """The range of candidate roughness whose held-out error is within ``tolerance`` (relative)
+    of the best: what the data cannot tell apart."""
+    roughness, errors = np.asarray(roughness, float), np.asarray(errors, float)
+    ok = errors <= errors.min() * (1.0 + tolerance)
+    return float(roughness[ok].min()), float(roughness[ok].max())
+
+
+def refine_minimum(x: np.ndarray, y: np.ndarray) -> float:
+    """Vertex of the parabola through the best grid point and its neighbours, in log x (the
+    grid point itself at the ends)."""
+    i = int(np.argmin(y))
+    if i == 0 or i == len(x) - 1:
+        return float(x[i])
+    lx = np.log(x[i - 1:i + 2])
+    c = np.polyfit(lx, y[i - 1:i + 2], 2)
+    if c[0] <= 0:
+        return float(x[i])
+    return float(np.exp(np.clip(-c[1] / (2 * c[0]), lx[0], lx[2])))
+
+

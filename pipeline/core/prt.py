@@ -1,0 +1,171 @@
+"""Precomputed radiance transfer (Sloan, Kautz & Snyder 2002): the renderer's model of each
+light-field sample, linear in the SH lighting coefficients, for the fit.
+
+A sample p (a point on the mesh seen along w_o) has radiance, per colour channel c,
+
+    B_pc = sum_k [ rho_c kd(mu_o) / pi (D_pk + I_pk,c(rho)) + S_pk,c ] L_kc
+
+* D (N, K) direct irradiance transfer: sum_j max(0, n . w_j) V_pj Y_k(w_j) dω_j over the
+  renderer's direction set (pipeline.core.render: a uniform map's cells), with the renderer's own
+  point visibility (shadow rays where the triangle's vertices disagree) — the same quadrature that
+  renders the pixel.
+* I (N, K, 3) interreflection: the per-vertex bounce series E = E_d + M_c (rho_c E) of
+  Renderer.bounce_matrices applied to the vertices' direct transfer (cosine rays, control
+  variate: the convex transfer minus the occluded rays' pi / S Y_k(w)), interpolated at the
+  sample.  It depends on rho, so the fit updates it when rho changes (bounce_series).
+* kd(mu_o) (N, 3): the diffuse layer (1 - m)(1 - A_spec(mu_o)) of pipeline.core.material
+  (1 for Lambert).
+* S (N, K, 3) specular transfer: sum_s w_s Y_k(w_s) V_s over GGX VNDF samples of the lobe
+  (pipeline.core.shading.specular_samples: F, masking, multiple scattering in w_s), occluded
+  samples contributing 0 (the object's own glow in its reflections is left out of the fit);
+  Y_k is prefiltered over each sample's solid angle, as the renderer prefilters its map.
+
+Everything is computed once per geometry (D, the vertex transfer and bounce matrices) or once
+per roughness (S); the fit is then linear least squares in L for fixed material.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.core.material import Principled
+from pipeline.core.render import Renderer, bounce_series
+from pipeline.core.sh import band_of_index, num_coeffs, sh_basis
+from pipeline.core.shading import specular_over_directions, specular_samples
+
+
+@dataclass
+class Geometry:
+    """What the transfer needs of the samples and the mesh, computed once: ``renderer`` (a
+    uniform-map Renderer: direction set, visibility, bounce rays), the samples' vertex ids
+    (N, 3), barycentrics (N, 3), faces (N,), unit normals and view directions (N, 3), mu_o (N,),
+    the direct transfer D (N, K) and the vertices' direct transfer (V, K)."""
+
+    renderer: Renderer
+    order: int
+    faces: np.ndarray
+    tri: np.ndarray
+    bary: np.ndarray
+    normals: np.ndarray
+    view_dirs: np.ndarray
+    mu_out: np.ndarray
+    direct: np.ndarray
+    vertex_direct: np.ndarray
+
+
+def geometry(mesh, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, order: int, *,
+             cell_height: int = 16, bounce_samples: int = 64, seed: int = 0) -> Geometry:
+    """Direct transfer of samples on ``mesh`` (faces (N,), barycentrics (N, 3), unit view
+    directions (N, 3)) and of its vertices, for SH lighting up to ``order``."""
+    env = np.ones((cell_height, 2 * cell_height, 3), np.float32)
+    r = Renderer(mesh, env, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, cell_height=cell_height,
+                 bounce_samples=bounce_samples, seed=seed)
+    faces = np.asarray(faces, np.int64)
+    bary = np.asarray(bary, float)
+    tri = np.asarray(mesh.faces)[faces]
+    normals = r._normals_at(tri, bary)
+    view_dirs = np.asarray(view_dirs, float)
+    mu_out = np.einsum("pc,pc->p", normals, view_dirs)
+    dirs = r.lights.directions
+    power = sh_basis(dirs, order) * r.lights.power[:, :1]          # (D, K): Y_k(w_j) dω_j
+    r._ensure_visibility(tri.ravel())
+    k = num_coeffs(order)
+    direct = np.zeros((faces.size, k))
+    per_chunk = max(1, r.chunk_pairs // len(dirs))
+    for s in range(0, faces.size, per_chunk):
+        sl = slice(s, s + per_chunk)
+        cos = np.where(mu_out[sl, None] > 0, np.maximum(normals[sl] @ dirs.T, 0.0), 0.0)
+        direct[sl] = (cos * r._point_visibility(faces[sl], tri[sl], bary[sl])) @ power
+    rays = r.bounce_rays()
+    blocked = sh_basis(rays.directions, order) * (np.pi / rays.per_vertex)
+    vertex_direct = r._open_irradiance(power) - rays.per_owner(blocked, len(mesh.vertices))
+    return Geometry(r, order, faces, tri, bary, normals, view_dirs, mu_out, direct, vertex_direct)
+
+
+def diffuse_layer(material: Principled | None, mu_out: np.ndarray) -> np.ndarray:
+    """kd(mu_o) (N, 3): the base colour's weight in the diffuse reflectance (1 for Lambert)."""
+    if material is None:
+        return np.ones((np.asarray(mu_out).shape[0], 3))
+    return material.diffuse_weight(np.clip(mu_out, 0.0, 1.0), np.ones((np.asarray(mu_out).shape[0], 3)))
+
+
+def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarray,
+                      max_bounces: int = 8, vertex_direct: np.ndarray | None = None) -> np.ndarray:
+    """I (N, K, 3): interreflected irradiance transfer at the samples for base colour ``base``
+    (3,) or per vertex (V, 3), from the vertices' bounce series (Renderer.bounce_matrices) of the
+    vertices' direct transfer (V, K) (default: the SH lighting's, geo.vertex_direct)."""
+    r = geo.renderer
+    rays = r.bounce_rays()
+    nv = len(r.mesh.vertices)
+    base_v = np.broadcast_to(np.asarray(base, float), (nv, 3))
+    layer = diffuse_layer(material, rays.mu_hit)
+    direct = geo.vertex_direct if vertex_direct is None else vertex_direct
+    e_ind = bounce_series(r.bounce_matrices(layer), base_v, np.repeat(direct[..., None], 3, axis=2), max_bounces)
+    return np.einsum("pj,pjkc->pkc", geo.bary, e_ind[geo.tri])
+
+
+def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, seed: int = 0,
+                      chunk: int = 2048) -> np.ndarray:
+    """S (N, K, 3): the specular lobe's transfer at the samples (see the module docstring)."""
+    r = geo.renderer
+    rng = np.random.default_rng(seed)
+    n = geo.faces.size
+    out = np.zeros((n, num_coeffs(geo.order), 3))
+    front = np.flatnonzero(geo.mu_out > 0)
+    for s in range(0, front.size, chunk):
+        idx = front[s:s + chunk]
+        lobe = specular_samples(material, geo.normals[idx], geo.view_dirs[idx], n_samples, rng)
+        q, ns = lobe.directions.shape[:2]
+        dirs = lobe.directions.reshape(-1, 3)
+        weight = lobe.weight.reshape(-1, 3).copy()
+        live = np.flatnonzero(weight.max(axis=1) > 0)
+        pts = r._points_above(geo.faces[idx], geo.bary[idx])
+        hit = r._shadow_rays.intersects_any(np.repeat(pts, ns, axis=0)[live], dirs[live])
+        weight[live[hit]] = 0.0
+        # each sample stands for its solid angle 1 / (S pdf): Y_k prefiltered over a cap of that size,
+        # cap average ~ exp(-l(l+1) θ² / 8) with θ² = Ω / π (as the renderer prefilters its map)
+        l = band_of_index(geo.order)
+        soft = np.exp(-np.outer(lobe.solid_angle.reshape(-1) / (8 * np.pi), l * (l + 1)))
+        basis = (sh_basis(dirs, geo.order) * soft).reshape(q, ns, -1)
+        out[idx] = np.einsum("psk,psc->pkc", basis, weight.reshape(q, ns, 3))
+    return out
+
+
+@dataclass
+class SourceTransfer:
+    """Transfer of J directional sources of unit radiant intensity per channel (the dual angular
+    part of the lighting, R&H 2001): direct irradiance at the samples (N, J) = max(0, n . d) V,
+    at the vertices (V, J), and the specular radiance (N, J, 3) = f_spec(d, w_o) max(0, n . d) V."""
+
+    directions: np.ndarray
+    direct: np.ndarray
+    vertex_direct: np.ndarray
+    specular: np.ndarray | None
+
+
+def source_transfer(geo: Geometry, material: Principled | None, directions: np.ndarray) -> SourceTransfer:
+    """SourceTransfer of unit directions (J, 3) with exact shadow rays from the samples and vertices."""
+    r = geo.renderer
+    d = np.atleast_2d(np.asarray(directions, float))
+    n, j = geo.faces.size, d.shape[0]
+    pts = r._points_above(geo.faces, geo.bary)
+    verts = np.asarray(r.mesh.vertices, float)
+    vpts = verts + r._vertex_normals * (1e-4 * r._scale)
+    direct = np.zeros((n, j))
+    vdirect = np.zeros((len(verts), j))
+    spec = None if material is None else np.zeros((n, j, 3))
+    for i in range(j):
+        cos = np.where(geo.mu_out > 0, np.maximum(geo.normals @ d[i], 0.0), 0.0)
+        lit = np.flatnonzero(cos > 0)
+        vis = np.zeros(n)
+        vis[lit] = ~r._shadow_rays.intersects_any(pts[lit], np.broadcast_to(d[i], (lit.size, 3)))
+        direct[:, i] = cos * vis
+        vcos = np.maximum(r._vertex_normals @ d[i], 0.0)
+        vl = np.flatnonzero(vcos > 0)
+        vdirect[vl, i] = vcos[vl] * ~r._shadow_rays.intersects_any(vpts[vl], np.broadcast_to(d[i], (vl.size, 3)))
+        if material is not None:
+            spec[:, i] = specular_over_directions(material, geo.normals, geo.view_dirs, d[i:i + 1], np.ones((1, 3)),
+                                                  vis[:, None], -1.0)
+    return SourceTransfer(d, direct, vdirect, spec)

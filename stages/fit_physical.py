@@ -1,0 +1,182 @@
+"""fit on the physical forward model: lighting (SH + directional sources) and a principled material
+with shadows and interreflection in the transfer (pipeline.core.prt, pipeline.core.material_fit).
+
+Taken by ``sigrend fit --brdf principled`` (material unknown) and by a known principled brdf.json
+(lighting unknown, or both known: check).  Steps:
+  1. a random subset of the samples (``physical_samples``; self-shadowed ones included: the
+     transfer has the shadows) and its transfer (direct with point visibility, interreflection);
+  2. the lighting's dual angular part: directional sources located by matching pursuit on the
+     residual of the first candidate's SH fit (``max_sources``), then kept for all candidates;
+  3. every roughness of ``roughness_candidates`` (dielectric, ``ior``): base colour and lighting
+     fitted (the Fresnel-fixed specular layer sets the absolute scale), the SH order chosen by
+     held-out views (folds = image_id mod folds); the best roughness refined by a parabola in
+     log roughness, and the interval of roughness within ``parsimony`` of the best reported;
+  4. outputs as the convex path: lighting_sh.json (+ "sources"), lighting.exr (sources splatted),
+     brdf.json, report.json, plots.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core import material_fit, prt
+from pipeline.core.envmap import add_sources
+from pipeline.core.material import MIN_ROUGHNESS, Principled, principled_from_dict
+from pipeline.core.sh import envmap_from_sh, order_of
+from pipeline.errors import UserError
+from pipeline.io.brdf import write_brdf
+from pipeline.io.images import write_image
+from pipeline.io.lighting import write_lighting_sh
+from pipeline.io.mesh import mesh_path, read_mesh
+from pipeline.io.report import write_report
+from pipeline.io.samples import iter_sample_chunks
+
+FIELDS = ("face", "bary", "view_dir", "radiance", "image_id", "weight")
+
+
+def load_samples(path: Path, settings, n_faces: int) -> dict:
+    """At most ``physical_samples`` usable samples (positive weight, finite, on the mesh)."""
+    parts = []
+    for chunk in iter_sample_chunks(path, settings.chunk, FIELDS):
+        ok = (chunk["weight"] > 0) & np.all(np.isfinite(chunk["radiance"]), axis=1)
+        ok &= (chunk["face"] >= 0) & (chunk["face"] < n_faces)
+        parts.append({k: v[ok] for k, v in chunk.items()})
+    data = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]} if parts else {}
+    n = len(data.get("weight", []))
+    if n == 0:
+        raise UserError(f"{path}: no samples with positive weight on the mesh; check the samples stage's drop counts")
+    if n > settings.physical_samples:
+        keep = np.sort(np.random.default_rng(settings.seed).choice(n, settings.physical_samples, replace=False))
+        data = {k: v[keep] for k, v in data.items()}
+    return data
+
+
+def roughness_candidates(settings) -> list[float]:
+    try:
+        values = sorted({float(x) for x in settings.roughness_candidates.split(",") if x.strip()})
+    except ValueError:
+        values = []
+    if not values or values[0] < MIN_ROUGHNESS or values[-1] > 1.0:
+        raise UserError(f"--roughness-candidates must be comma-separated numbers in [{MIN_ROUGHNESS}, 1], "
+                        f"got {settings.roughness_candidates!r}")
+    return values
+
+
+def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dict | None,
+        known_lighting: np.ndarray | None) -> list[Path]:
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    mesh = read_mesh(mesh_path(capture))
+    samples_path = Path(work) / "samples.npz"
+    data = load_samples(samples_path, settings, len(mesh.faces))
+    order = int(settings.order) if settings.order != "auto" else settings.factor_order
+    orders = [order] if settings.order != "auto" else list(range(order + 1))
+    t0 = time.perf_counter()
+    geo = prt.geometry(mesh, data["face"], data["bary"], data["view_dir"].astype(float), order,
+                       bounce_samples=settings.bounce_samples, seed=settings.seed)
+    timings["transfer"] = time.perf_counter() - t0
+    obs = material_fit.Observations(data["radiance"].astype(float), data["weight"].astype(float),
+                                    (data["image_id"] % settings.folds).astype(np.int64))
+    kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior,
+              independent_groups=len(np.unique(data["image_id"])))
+
+    def candidate(material: Principled, base0, fix_base: bool, directions):
+        spec = prt.specular_transfer(geo, material, settings.lobe_samples, settings.seed)
+        fit = material_fit.fit_material(geo, material, obs, order=order, folds=settings.folds, base0=base0,
+                                        spec=spec, fix_base=fix_base, orders=orders, lighting_kw=kw,
+                                        max_sources=settings.max_sources if directions is None else 0,
+                                        source_directions=directions, known_coeffs=known_lighting)
+        return fit
+
+    t0 = time.perf_counter()
+    table = []
+    if known_brdf is not None:
+        mode = "check" if known_lighting is not None else "lighting"
+        material = principled_from_dict(known_brdf)
+        best = candidate(material, np.asarray(known_brdf["base_color"], float), True, None)
+        table.append(_row(best))
+        interval = None
+    else:
+        mode = "brdf" if known_lighting is not None else "factorization"
+        grid = roughness_candidates(settings)
+        start = min(grid, key=lambda r: abs(np.log(r / 0.3)))
+        first = candidate(Principled(roughness=start, ior=settings.ior), np.full(3, 0.5), False, None)
+        directions = None if first.sources is None else first.sources.directions
+        fits = {start: first}
+        for r in grid:
+            if r not in fits:
+                fits[r] = candidate(Principled(roughness=r, ior=settings.ior), np.full(3, 0.5), False, directions)
+        rs = np.array(sorted(fits))
+        errors = np.array([fits[r].validation_rmse for r in rs])
+        refined = material_fit.refine_minimum(rs, errors)
+        if not np.any(np.isclose(rs, refined)):
+            fits[refined] = candidate(Principled(roughness=refined, ior=settings.ior), np.full(3, 0.5), False,
+                                      directions)
+        rs = np.array(sorted(fits))
+        errors = np.array([fits[r].validation_rmse for r in rs])
+        best = fits[float(rs[int(np.argmin(errors))])]
+        interval = material_fit.roughness_interval(rs, errors, settings.parsimony)
+        table = [_row(fits[r]) for r in rs]
+    timings["material"] = time.perf_counter() - t0
+
+    brdf = {"model": "principled", "base_color": [float(x) for x in best.base],
+            "roughness": float(best.material.roughness), "metallic": float(best.material.metallic),
+            "ior": float(best.material.ior), "specular_tint": [float(x) for x in best.material.specular_tint]}
+    coeffs = best.coeffs
+    sources = [] if best.sources is None else [
+        {"direction": d.tolist(), "intensity": p.tolist()} for d, p in zip(best.sources.directions, best.sources.power)]
+    report = {"mode": mode, "forward_model": "physical (pipeline.core.prt: shadows, interreflection, GGX)",
+              "order": order_of(coeffs.shape[0]), "brdf_model": "principled", "brdf": brdf,
+              "bands": best.lighting.bands, "labels": {b["l"]: b["label"] for b in best.lighting.bands},
+              "noise_sigma": best.lighting.noise_sigma, "candidates": table, "lighting_orders": best.orders,
+              "sources": sources, "samples": {"used": int(len(obs.weight))},
+              "roughness_interval": None if interval is None else list(interval),
+              "scale_convention": {"source": "the dielectric specular layer (Fresnel from ior "
+                                             f"{brdf['ior']}) fixes the absolute scale of lighting vs base colour"}}
+    if interval is not None:
+        print(f"fit: roughness {brdf['roughness']:.3f} (held-out views cannot tell apart {interval[0]:.3f}-"
+              f"{interval[1]:.3f}), base colour {np.round(best.base, 3).tolist()}, {len(sources)} directional "
+              f"source(s)", file=sys.stderr)
+    out = Path(work) / "fit"
+    pred = material_fit.predict(geo, best, prt.specular_transfer(geo, best.material, settings.lobe_samples,
+                                                                 settings.seed))
+    views = _per_view(obs, pred, data["image_id"], keys, settings.folds)
+    report["residuals_per_view"] = views
+    env = np.maximum(envmap_from_sh(coeffs, settings.env_height), 0.0)
+    if best.sources is not None:
+        env = add_sources(env, best.sources.directions, best.sources.power)
+    from stages.fit import write_plots
+
+    written = [write_lighting_sh(out / "lighting_sh.json", coeffs, source=f"sigrend fit ({mode}, physical)",
+                                 sources=sources),
+               write_image(out / "lighting.exr", env.astype(np.float32), dtype="float"),
+               write_brdf(out / "brdf.json", brdf)]
+    written += write_plots(out, env, best.lighting.bands, views)
+    if (out / "albedo.ply").exists():
+        (out / "albedo.ply").unlink()     # a stale texture from an earlier run would be read by relight
+    timings["total"] = time.perf_counter() - t_start
+    report["timings"] = timings
+    written.insert(3, write_report(out / "report.json", report))
+    return written
+
+
+def _row(fit: material_fit.MaterialFit) -> dict:
+    return {"name": f"principled roughness {fit.material.roughness:.3f}", "roughness": float(fit.material.roughness),
+            "base_color": [float(x) for x in fit.base], "params": 3 + 1 + 3 * fit.coeffs.shape[0],
+            "validation_rmse": fit.validation_rmse, "train_rmse": fit.train_rmse,
+            "sources": 0 if fit.sources is None else len(fit.sources.power)}
+
+
+def _per_view(obs, pred, image_id, keys, folds) -> list[dict]:
+    m = len(keys)
+    r2 = ((obs.radiance - pred) ** 2).sum(axis=1) * obs.weight
+    b2 = (obs.radiance ** 2).sum(axis=1) * obs.weight
+    se, bb = np.bincount(image_id, r2, m), np.bincount(image_id, b2, m)
+    w, cnt = np.bincount(image_id, obs.weight, m), np.bincount(image_id, minlength=m)
+    return [{"image": keys[i], "samples": int(cnt[i]), "fold": int(i % folds),
+             "rmse": float(np.sqrt(se[i] / (3 * w[i]))) if w[i] else None,
+             "relative_rmse": float(np.sqrt(se[i] / bb[i])) if bb[i] else None} for i in range(m)]
