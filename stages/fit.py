@@ -76,6 +76,9 @@ class Settings:
                                   "(textured only if it beats uniform on the held-out views by more than --parsimony)")
     albedo_smoothness: float = setting(0.001, "weight of the mesh-Laplacian smoothness term of the per-vertex albedo "
                                              "(relative to the mean data weight per vertex)")
+    forward: str = setting("physical", "forward model of the fit: 'physical' (the renderer's: shadows, "
+                                       "interreflection, principled GGX, directional sources; lambert and principled) "
+                                       "or 'convex' (R&H closed forms; the only one for phong and microfacet)")
     roughness_candidates: str = setting("0.1,0.2,0.3,0.45,0.65,1.0", "principled fit: the roughness grid "
                                         "compared on held-out views (the best is refined by a parabola)")
     ior: float = setting(1.5, "principled fit: index of refraction of the dielectric specular layer")
@@ -110,6 +113,8 @@ class Settings:
             raise UserError(f"--folds must be >= 2 (views are held out for validation), got {self.folds}")
         if not 0.0 <= self.min_visibility <= 1.0:
             raise UserError(f"--min-visibility must be in [0, 1], got {self.min_visibility}")
+        if self.forward not in ("physical", "convex"):
+            raise UserError(f"--forward must be physical or convex, got {self.forward!r}")
         if self.ior < 1.0:
             raise UserError(f"--ior must be >= 1, got {self.ior}")
         if self.max_sources < 0 or self.physical_samples < 100 or self.lobe_samples < 1 or self.bounce_samples < 1:
@@ -540,11 +545,13 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     explicit_order = None if settings.order == "auto" else int(settings.order)
     fit_model, known_brdf = parse_brdf_setting(settings.brdf)
     known_lighting = None if settings.lighting == "unknown" else load_known_lighting(settings.lighting, settings.env_order)
-    if "principled" in (fit_model, (known_brdf or {}).get("model")):
+    if settings.forward == "physical" and _has_mesh(capture) and (fit_model in (None, "lambert", "principled")
+                                           and (known_brdf or {}).get("model", "lambert") in ("lambert", "principled")):
         from stages import fit_physical
 
+        models = [fit_model] if fit_model else ["lambert", "principled"]
         return fit_physical.run(capture=capture, work=work, settings=settings, keys=keys, known_brdf=known_brdf,
-                                known_lighting=known_lighting)
+                                known_lighting=known_lighting, models=models, hint=known_albedo_hint(capture))
     hint = known_albedo_hint(capture)
     total = int(meta.get("count", 0))
     valid = sum(len(c["weight"]) for c in iter_sample_chunks(samples_path, settings.chunk, ("weight",))) if not total else total
@@ -731,7 +738,17 @@ def choose_albedo(capture: Path, samples_path: Path, settings: Settings, coeffs:
     shade = forward.render_samples(coeffs, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, normal, view)
     spec = (forward.render_samples(coeffs, {**brdf, "albedo": [0.0, 0.0, 0.0]}, normal, view) if with_lobe
             else np.zeros_like(shade))
-    target = data["radiance"].astype(float) - spec
+    return albedo_from_shading(mesh, data, shade, data["radiance"].astype(float) - spec, settings, entry)
+
+
+def albedo_from_shading(mesh, data: dict, shade: np.ndarray, target: np.ndarray, settings: Settings,
+                        entry: dict) -> tuple[dict, np.ndarray | None, object]:
+    """Textured vs uniform albedo from the samples' shading per unit albedo ``shade`` (N, 3) and
+    their radiance less the specular part ``target`` (N, 3) (``data``: face, bary, weight,
+    image_id of the same samples): the choice of :func:`choose_albedo`, for either forward model."""
+    from pipeline.core import texture
+
+    n = len(shade)
     w = data["weight"].astype(float)
     nv = len(mesh.vertices)
     interp = texture.interpolation_matrix(mesh.faces, data["face"], data["bary"].astype(float), nv)
@@ -805,6 +822,13 @@ def _say_limits(limits: dict, settings: Settings) -> None:
     line = model_limits_line(limits, settings.min_visibility)
     if line:
         print(line, file=sys.stderr)
+
+
+def _has_mesh(capture: Path) -> bool:
+    """The physical forward model needs the mesh (shadows, interreflection); samples alone take the convex one."""
+    from pipeline.io.mesh import MESH_NAMES
+
+    return any((Path(capture) / n).exists() for n in MESH_NAMES)
 
 
 def _chosen_prior(cands: list[dict], fit: solve.LightingFit) -> float:

@@ -23,19 +23,22 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core import material_fit, prt
+from pipeline.core import material_fit, prt, solve
 from pipeline.core.envmap import add_sources
 from pipeline.core.material import MIN_ROUGHNESS, Principled, principled_from_dict
-from pipeline.core.sh import envmap_from_sh, order_of
+from pipeline.core.sh import envmap_from_sh, order_of, sh_of_sources
 from pipeline.errors import UserError
-from pipeline.io.brdf import write_brdf
+from pipeline.io.brdf import diffuse_color, write_brdf
 from pipeline.io.images import write_image
 from pipeline.io.lighting import write_lighting_sh
 from pipeline.io.mesh import mesh_path, read_mesh
 from pipeline.io.report import write_report
 from pipeline.io.samples import iter_sample_chunks
 
-FIELDS = ("face", "bary", "view_dir", "radiance", "image_id", "weight")
+DEFAULT_ALBEDO = 0.5     # the Lambertian scale convention without a capture.toml hint (as the convex fit)
+SOURCES_NOTE = ("'coeffs' is the whole lighting to this order, the directional 'sources' included (their SH "
+                "projection); an angular renderer replaces that projection by the sources themselves")
+FIELDS = ("face", "bary", "view_dir", "radiance", "image_id", "weight", "normal")
 
 
 def load_samples(path: Path, settings, n_faces: int) -> dict:
@@ -67,7 +70,7 @@ def roughness_candidates(settings) -> list[float]:
 
 
 def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dict | None,
-        known_lighting: np.ndarray | None) -> list[Path]:
+        known_lighting: np.ndarray | None, models: list[str], hint: list[float] | None) -> list[Path]:
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     mesh = read_mesh(mesh_path(capture))
@@ -82,81 +85,99 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     obs = material_fit.Observations(data["radiance"].astype(float), data["weight"].astype(float),
                                     (data["image_id"] % settings.folds).astype(np.int64))
     kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior,
-              independent_groups=len(np.unique(data["image_id"])))
+              independent_groups=len(np.unique(data["image_id"])), posed_ratio=prt.QUADRATURE_FLOOR)
 
-    def candidate(material: Principled, base0, fix_base: bool, directions):
-        spec = prt.specular_transfer(geo, material, settings.lobe_samples, settings.seed)
-        fit = material_fit.fit_material(geo, material, obs, order=order, folds=settings.folds, base0=base0,
-                                        spec=spec, fix_base=fix_base, orders=orders, lighting_kw=kw,
-                                        max_sources=settings.max_sources if directions is None else 0,
-                                        source_directions=directions, known_coeffs=known_lighting)
-        return fit
+    def candidate(material: Principled | None, base0, fix_base: bool, directions):
+        spec = None if material is None else prt.specular_transfer(geo, material, settings.lobe_samples, settings.seed)
+        return material_fit.fit_material(geo, material, obs, order=order, folds=settings.folds, base0=base0,
+                                         spec=spec, fix_base=fix_base, orders=orders, lighting_kw=kw,
+                                         max_sources=settings.max_sources if directions is None else 0,
+                                         source_directions=directions, known_coeffs=known_lighting)
 
     t0 = time.perf_counter()
-    table = []
+    interval = None
+    grey = np.asarray(hint if hint is not None else [DEFAULT_ALBEDO] * 3, float)
     if known_brdf is not None:
         mode = "check" if known_lighting is not None else "lighting"
-        material = principled_from_dict(known_brdf)
-        best = candidate(material, np.asarray(known_brdf["base_color"], float), True, None)
-        table.append(_row(best))
-        interval = None
+        material = principled_from_dict(known_brdf) if known_brdf["model"] == "principled" else None
+        best = candidate(material, np.asarray(diffuse_color(known_brdf), float), True, None)
+        table = [_row(best)]
     else:
         mode = "brdf" if known_lighting is not None else "factorization"
-        grid = roughness_candidates(settings)
-        start = min(grid, key=lambda r: abs(np.log(r / 0.3)))
-        first = candidate(Principled(roughness=start, ior=settings.ior), np.full(3, 0.5), False, None)
-        directions = None if first.sources is None else first.sources.directions
-        fits = {start: first}
-        for r in grid:
-            if r not in fits:
-                fits[r] = candidate(Principled(roughness=r, ior=settings.ior), np.full(3, 0.5), False, directions)
-        rs = np.array(sorted(fits))
-        errors = np.array([fits[r].validation_rmse for r in rs])
-        refined = material_fit.refine_minimum(rs, errors)
-        if not np.any(np.isclose(rs, refined)):
-            fits[refined] = candidate(Principled(roughness=refined, ior=settings.ior), np.full(3, 0.5), False,
-                                      directions)
-        rs = np.array(sorted(fits))
-        errors = np.array([fits[r].validation_rmse for r in rs])
-        best = fits[float(rs[int(np.argmin(errors))])]
-        interval = material_fit.roughness_interval(rs, errors, settings.parsimony)
-        table = [_row(fits[r]) for r in rs]
+        fits: dict = {}
+        directions = None
+        if "principled" in models:
+            grid = roughness_candidates(settings)
+            start = min(grid, key=lambda r: abs(np.log(r / 0.3)))
+            fits[start] = candidate(Principled(roughness=start, ior=settings.ior), grey, False, None)
+            directions = _directions(fits[start])
+            for r in grid:
+                if r not in fits:
+                    fits[r] = candidate(Principled(roughness=r, ior=settings.ior), grey, False, directions)
+            rs, errors = _curve(fits)
+            refined = material_fit.refine_minimum(rs, errors)
+            if not np.any(np.isclose(rs, refined)):
+                fits[refined] = candidate(Principled(roughness=refined, ior=settings.ior), grey, False, directions)
+            rs, errors = _curve(fits)
+            interval = material_fit.roughness_interval(rs, errors, settings.parsimony)
+        table = [_row(fits[r]) for r in sorted(fits)]
+        if "lambert" in models:
+            lam = candidate(None, grey, False, directions if "principled" in models else None)
+            fits[0.0] = lam
+            table.insert(0, _row(lam))
+        rms = float(np.sqrt((obs.weight[:, None] * obs.radiance ** 2).sum() / (3 * obs.weight.sum())))
+        pick = solve.parsimonious_choice(table, settings.parsimony, noise=settings.noise_floor * rms)
+        best = fits[table[pick]["roughness"]]
+        if best.material is None:
+            interval = None
     timings["material"] = time.perf_counter() - t0
 
-    brdf = {"model": "principled", "base_color": [float(x) for x in best.base],
-            "roughness": float(best.material.roughness), "metallic": float(best.material.metallic),
-            "ior": float(best.material.ior), "specular_tint": [float(x) for x in best.material.specular_tint]}
+    brdf = _brdf_json(best)
     coeffs = best.coeffs
     sources = [] if best.sources is None else [
         {"direction": d.tolist(), "intensity": p.tolist()} for d, p in zip(best.sources.directions, best.sources.power)]
     report = {"mode": mode, "forward_model": "physical (pipeline.core.prt: shadows, interreflection, GGX)",
-              "order": order_of(coeffs.shape[0]), "brdf_model": "principled", "brdf": brdf,
+              "order": order_of(coeffs.shape[0]), "brdf_model": brdf["model"], "brdf": brdf,
               "bands": best.lighting.bands, "labels": {b["l"]: b["label"] for b in best.lighting.bands},
               "noise_sigma": best.lighting.noise_sigma, "candidates": table, "lighting_orders": best.orders,
               "sources": sources, "samples": {"used": int(len(obs.weight))},
               "roughness_interval": None if interval is None else list(interval),
-              "scale_convention": {"source": "the dielectric specular layer (Fresnel from ior "
-                                             f"{brdf['ior']}) fixes the absolute scale of lighting vs base colour"}}
-    if interval is not None:
-        print(f"fit: roughness {brdf['roughness']:.3f} (held-out views cannot tell apart {interval[0]:.3f}-"
-              f"{interval[1]:.3f}), base colour {np.round(best.base, 3).tolist()}, {len(sources)} directional "
-              f"source(s)", file=sys.stderr)
+              "scale_convention": _scale_note(brdf, hint)}
+    print(_summary_line(brdf, interval, len(sources)), file=sys.stderr)
     out = Path(work) / "fit"
-    pred = material_fit.predict(geo, best, prt.specular_transfer(geo, best.material, settings.lobe_samples,
-                                                                 settings.seed))
-    views = _per_view(obs, pred, data["image_id"], keys, settings.folds)
+    spec = None if best.material is None else prt.specular_transfer(geo, best.material, settings.lobe_samples,
+                                                                     settings.seed)
+    shade, specular = material_fit.shading_parts(geo, best, spec)
+    views = _per_view(obs, best.base * shade + specular, data["image_id"], keys, settings.folds)
     report["residuals_per_view"] = views
+    vertex_rho = None
+    entry = {"setting": settings.albedo, "smoothness": settings.albedo_smoothness}
+    if settings.albedo == "uniform":
+        report["albedo"] = {**entry, "choice": "uniform", "note": "--albedo uniform: no per-vertex fit"}
+    else:
+        from stages.fit import albedo_from_shading
+
+        report["albedo"], vertex_rho, _ = albedo_from_shading(mesh, data, shade, obs.radiance - specular, settings, entry)
+        if vertex_rho is not None:
+            key = "albedo" if brdf["model"] == "lambert" else "base_color"
+            brdf[key] = [float(x) for x in np.clip(vertex_rho.mean(axis=0), 0.0, 1.0)]
     env = np.maximum(envmap_from_sh(coeffs, settings.env_height), 0.0)
     if best.sources is not None:
         env = add_sources(env, best.sources.directions, best.sources.power)
     from stages.fit import write_plots
 
-    written = [write_lighting_sh(out / "lighting_sh.json", coeffs, source=f"sigrend fit ({mode}, physical)",
-                                 sources=sources),
+    total = coeffs if best.sources is None else coeffs + sh_of_sources(best.sources.directions, best.sources.power,
+                                                                       order_of(coeffs.shape[0]))
+    written = [write_lighting_sh(out / "lighting_sh.json", total, source=f"sigrend fit ({mode}, physical)",
+                                 sources=sources, sources_note=SOURCES_NOTE),
                write_image(out / "lighting.exr", env.astype(np.float32), dtype="float"),
                write_brdf(out / "brdf.json", brdf)]
     written += write_plots(out, env, best.lighting.bands, views)
-    if (out / "albedo.ply").exists():
+    if vertex_rho is not None:
+        from stages.fit import write_vertex_albedo
+
+        written.append(write_vertex_albedo(out / "albedo.ply", mesh, vertex_rho))
+    elif (out / "albedo.ply").exists():
         (out / "albedo.ply").unlink()     # a stale texture from an earlier run would be read by relight
     timings["total"] = time.perf_counter() - t_start
     report["timings"] = timings
@@ -164,7 +185,46 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     return written
 
 
+def _directions(fit: material_fit.MaterialFit):
+    return None if fit.sources is None else fit.sources.directions
+
+
+def _curve(fits: dict) -> tuple[np.ndarray, np.ndarray]:
+    rs = np.array(sorted(r for r in fits if r > 0))
+    return rs, np.array([fits[r].validation_rmse for r in rs])
+
+
+def _brdf_json(fit: material_fit.MaterialFit) -> dict:
+    base = [float(x) for x in fit.base]
+    if fit.material is None:
+        return {"model": "lambert", "albedo": base}
+    m = fit.material
+    return {"model": "principled", "base_color": base, "roughness": float(m.roughness), "metallic": float(m.metallic),
+            "ior": float(m.ior), "specular_tint": [float(x) for x in m.specular_tint]}
+
+
+def _scale_note(brdf: dict, hint) -> dict:
+    if brdf["model"] == "principled":
+        return {"source": f"the dielectric specular layer (Fresnel from ior {brdf['ior']}) fixes the absolute "
+                          "scale of lighting vs base colour"}
+    return {"source": "capture.toml [fit] known_albedo" if hint is not None else f"default grey albedo {DEFAULT_ALBEDO}",
+            "note": "a Lambertian object determines its albedo's chromaticity, not its level: the mean albedo is "
+                    "set by the convention and the lighting carries the inverse scale"}
+
+
+def _summary_line(brdf: dict, interval, n_sources: int) -> str:
+    if brdf["model"] == "lambert":
+        return f"fit: lambert, albedo {np.round(brdf['albedo'], 3).tolist()}, {n_sources} directional source(s)"
+    return (f"fit: principled roughness {brdf['roughness']:.3f} (held-out views cannot tell apart "
+            f"{interval[0]:.3f}-{interval[1]:.3f}), base colour {np.round(brdf['base_color'], 3).tolist()}, "
+            f"{n_sources} directional source(s)")
+
+
 def _row(fit: material_fit.MaterialFit) -> dict:
+    if fit.material is None:
+        return {"name": "lambert", "roughness": 0.0, "base_color": [float(x) for x in fit.base],
+                "params": 3 + 3 * fit.coeffs.shape[0], "validation_rmse": fit.validation_rmse,
+                "train_rmse": fit.train_rmse, "sources": 0 if fit.sources is None else len(fit.sources.power)}
     return {"name": f"principled roughness {fit.material.roughness:.3f}", "roughness": float(fit.material.roughness),
             "base_color": [float(x) for x in fit.base], "params": 3 + 1 + 3 * fit.coeffs.shape[0],
             "validation_rmse": fit.validation_rmse, "train_rmse": fit.train_rmse,

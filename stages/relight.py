@@ -43,7 +43,7 @@ from pipeline.core import camera as cam
 from pipeline.core import forward
 from pipeline.core.brdf import reflect
 from pipeline.core.envmap import add_sources, downsample, equirect_angles, equirect_solid_angles
-from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envmap
+from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envmap, sh_of_sources
 from pipeline.core.transfer import irradiance_from_sh
 from pipeline.errors import UserError
 from pipeline.io.brdf import diffuse_color, read_brdf
@@ -488,6 +488,8 @@ class AngularLighting:
             brdf = {"model": "lambert", "albedo": brdf["albedo"]}
         negative = None
         if coeffs is not None:
+            if sources is not None and len(sources[0]):  # their SH projection is in coeffs (fit_physical)
+                coeffs = np.asarray(coeffs, float) - sh_of_sources(*sources, order_of(np.asarray(coeffs).shape[0]))
             env = envmap_from_sh(np.asarray(coeffs, float), env_height)
             if not clamp_sh and env.min() < 0:
                 negative = np.maximum(-env, 0.0)

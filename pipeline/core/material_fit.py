@@ -169,7 +169,7 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
     ``spec``: its specular transfer (prt.specular_transfer; None for Lambert).  ``base0``: the
     start, kept when ``fix_base`` (the known-material mode, or Lambert's scale convention).
     Up to ``max_sources`` directional sources join the SH lighting, one at a time after the first
-    SH fit, each only if it removes more than ``source_gain`` of the weighted residual power.
+    SH fit, each only if it lowers the held-out views' RMSE by more than ``source_gain`` (relative).
     ``source_directions`` (J, 3): sources at known directions instead (intensities fitted).
     ``known_coeffs`` (K', 3) and ``known_sources`` (J, 3) intensities at ``source_directions``: the
     lighting is known (only the base colour is fitted).
@@ -206,7 +206,7 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
         if known_coeffs is not None:
             coeffs = known
         if it == 0 and max_sources > 0 and sources is None:
-            sources = _add_sources(geo, material, base, layer, a, coeffs, obs, max_sources, source_gain)
+            sources = _add_sources(geo, material, base, layer, a, obs, max_sources, source_gain, order, folds, kw)
             if sources is not None:
                 continue
         if fix_base:
@@ -256,37 +256,61 @@ def _source_intensities(cols: np.ndarray, residual: np.ndarray, weight: np.ndarr
     return np.stack([nnls(cols[c] * sw, residual[:, c] * sw[:, 0])[0] for c in range(3)], axis=1)
 
 
-def _add_sources(geo, material, base, layer, a, coeffs, obs, max_sources, gain) -> Sources | None:
-    """Greedy matching pursuit of directional sources on the SH fit's residual."""
+def _held_out_rmse(a: np.ndarray, target: np.ndarray, obs: Observations, order: int, folds: int, kw: dict) -> float:
+    """Leave-one-fold-out RMSE of the SH lighting (design ``a`` (3, N, K)) fitted to ``target``."""
+    eqs = _equations(a, Observations(target, obs.weight, obs.fold), order, folds)
+    return float(solve.cross_validate_orders(eqs, [order], None, **kw)[0]["validation_rmse"])
+
+
+def _add_sources(geo, material, base, layer, a, obs, max_sources, gain, order, folds, kw) -> Sources | None:
+    """Greedy matching pursuit of directional sources on the SH fit's residual: each new source
+    is kept only if the held-out views' RMSE (SH refitted around the sources) drops by more than
+    ``gain`` (relative); intensities are fitted on all views (3 numbers a source)."""
     w = obs.weight
-    residual = obs.radiance - np.einsum("cpk,kc->pc", a, coeffs)
-    total = float((w[:, None] * residual ** 2).sum())
-    found = []
+    best = _held_out_rmse(a, obs.radiance, obs, order, folds, kw)
+    eqs = _equations(a, obs, order, folds)
+    g, h, btb, wt = eqs.channel_system(slice(None))
+    residual = obs.radiance - np.einsum("cpk,kc->pc", a, solve.solve_lighting(g, h, btb, wt, len(w), order, **kw).coeffs)
+    found, kept = [], None
     for _ in range(max_sources):
         d, explained = find_source(geo, material, base, residual, w)
-        if explained < gain * total:
+        if explained <= 0:
             break
-        found.append(d)
-        st = prt.source_transfer(geo, material, np.array(found))
+        st = prt.source_transfer(geo, material, np.array(found + [d]))
         cols = _source_columns(geo, layer, st, None, base)
-        power = _source_intensities(cols, obs.radiance - np.einsum("cpk,kc->pc", a, coeffs), w)
-        residual = obs.radiance - np.einsum("cpk,kc->pc", a, coeffs) - np.einsum("cpj,jc->pc", cols, power)
-    if not found:
-        return None
-    return Sources(st, power)
+        power = _source_intensities(cols, residual + (0.0 if kept is None else np.einsum("cpj,jc->pc", kept[1], kept[2])), w)
+        target = obs.radiance - np.einsum("cpj,jc->pc", cols, power)
+        score = _held_out_rmse(a, target, obs, order, folds, kw)
+        if score > best * (1.0 - gain):
+            break
+        best, found, kept = score, found + [d], (st, cols, power)
+        eqs = _equations(a, Observations(target, w, obs.fold), order, folds)
+        g, h, btb, wt = eqs.channel_system(slice(None))
+        residual = target - np.einsum("cpk,kc->pc", a, solve.solve_lighting(g, h, btb, wt, len(w), order, **kw).coeffs)
+    return None if kept is None else Sources(kept[0], kept[2])
+
+
+def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(diffuse radiance per unit base colour (N, 3), specular radiance (N, 3)) of a fitted
+    candidate at the samples, its lighting (SH + sources) and interreflection included."""
+    layer = prt.diffuse_layer(fit.material, geo.mu_out)
+    indirect = prt.indirect_transfer(geo, fit.material, fit.base)
+    k = fit.coeffs.shape[0]
+    shade = np.einsum("pkc,kc->pc", geo.direct[:, :k, None] + indirect[:, :k], fit.coeffs)
+    specular = np.zeros_like(shade) if spec is None else np.einsum("pkc,kc->pc", spec[:, :k], fit.coeffs)
+    if fit.sources is not None:
+        st = fit.sources.transfer
+        src_ind = prt.indirect_transfer(geo, fit.material, fit.base, vertex_direct=st.vertex_direct)
+        shade += np.einsum("pjc,jc->pc", st.direct[..., None] + src_ind, fit.sources.power)
+        if st.specular is not None:
+            specular += np.einsum("pjc,jc->pc", st.specular, fit.sources.power)
+    return shade * layer / np.pi, specular
 
 
 def predict(geo: prt.Geometry, fit: MaterialFit, spec: np.ndarray | None) -> np.ndarray:
     """Radiance (N, 3) of a fitted candidate at the samples (its lighting: SH + sources)."""
-    layer = prt.diffuse_layer(fit.material, geo.mu_out)
-    indirect = prt.indirect_transfer(geo, fit.material, fit.base)
-    order = int(round(np.sqrt(fit.coeffs.shape[0]))) - 1
-    out = np.einsum("cpk,kc->pc", _design(geo, layer, indirect, spec, fit.base, order), fit.coeffs)
-    if fit.sources is not None:
-        st = fit.sources.transfer
-        src_ind = prt.indirect_transfer(geo, fit.material, fit.base, vertex_direct=st.vertex_direct)
-        out += np.einsum("cpj,jc->pc", _source_columns(geo, layer, st, src_ind, fit.base), fit.sources.power)
-    return out
+    shade, specular = shading_parts(geo, fit, spec)
+    return fit.base * shade + specular
 
 
 def roughness_interval(roughness: np.ndarray, errors: np.ndarray, tolerance: float) -> tuple[float, float]:

@@ -91,19 +91,27 @@ def diffuse_layer(material: Principled | None, mu_out: np.ndarray) -> np.ndarray
     return material.diffuse_weight(np.clip(mu_out, 0.0, 1.0), np.ones((np.asarray(mu_out).shape[0], 3)))
 
 
+QUADRATURE_FLOOR = 1e-2  # the direct transfer's relative accuracy on 16-row cells (odd bands of a sphere: 0.5-0.8%)
+INDIRECT_ORDER = 4   # SH bands above this carry < 1% of the interreflected light (Â_l, l > 4: < 2% of Â_0)
+
+
 def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarray,
                       max_bounces: int = 8, vertex_direct: np.ndarray | None = None) -> np.ndarray:
     """I (N, K, 3): interreflected irradiance transfer at the samples for base colour ``base``
     (3,) or per vertex (V, 3), from the vertices' bounce series (Renderer.bounce_matrices) of the
-    vertices' direct transfer (V, K) (default: the SH lighting's, geo.vertex_direct)."""
+    vertices' direct transfer (V, K) (default: the SH lighting's, geo.vertex_direct, whose
+    bands above INDIRECT_ORDER are left out of the bounces: the diffuse hit points filter them)."""
     r = geo.renderer
     rays = r.bounce_rays()
     nv = len(r.mesh.vertices)
     base_v = np.broadcast_to(np.asarray(base, float), (nv, 3))
     layer = diffuse_layer(material, rays.mu_hit)
-    direct = geo.vertex_direct if vertex_direct is None else vertex_direct
+    direct = geo.vertex_direct[:, :num_coeffs(min(geo.order, INDIRECT_ORDER))] if vertex_direct is None else vertex_direct
     e_ind = bounce_series(r.bounce_matrices(layer), base_v, np.repeat(direct[..., None], 3, axis=2), max_bounces)
-    return np.einsum("pj,pjkc->pkc", geo.bary, e_ind[geo.tri])
+    out = np.einsum("pj,pjkc->pkc", geo.bary, e_ind[geo.tri])
+    if vertex_direct is None and out.shape[1] < geo.direct.shape[1]:
+        out = np.concatenate([out, np.zeros((out.shape[0], geo.direct.shape[1] - out.shape[1], 3))], axis=1)
+    return out
 
 
 def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, seed: int = 0,

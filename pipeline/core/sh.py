@@ -163,6 +163,13 @@ def sh_evaluate(coeffs: np.ndarray, dirs: np.ndarray, chunk: int | None = None) 
     return out
 
 
+def sh_of_sources(directions: np.ndarray, intensity: np.ndarray, order: int) -> np.ndarray:
+    """SH coefficients ((order+1)^2, 3) of directional sources: sum_j Y_k(d_j) I_j for unit
+    directions (J, 3) and intensities (J, 3) (sum L dω of each source; a delta's projection)."""
+    d = np.asarray(directions, float).reshape(-1, 3)
+    return sh_basis(d, order).T @ np.asarray(intensity, float).reshape(-1, 3)
+
+
 def band_energy(coeffs: np.ndarray) -> np.ndarray:
     """Energy per band, sum_m c_lm^2 (summed over channels too): (K[, C]) -> (L+1,)."""
     c = np.asarray(coeffs, dtype=float)

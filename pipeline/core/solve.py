@@ -150,10 +150,13 @@ def _solve_ridge(g: np.ndarray, h: np.ndarray, ridge: np.ndarray, keep: np.ndarr
 def solve_lighting(g: np.ndarray, h: np.ndarray, btb: np.ndarray, weight: float, count: int,
                    order: int, *, noise_floor: float = 0.005, min_snr: float = 10.0,
                    band_prior: float = 0.3, labels: list[str] | None = None,
-                   noise_sigma: float | None = None, independent_groups: int = 1) -> LightingFit:
+                   noise_sigma: float | None = None, independent_groups: int = 1,
+                   posed_ratio: float = 1e-6) -> LightingFit:
     """Regularized lighting from per-channel normal equations (see the module docstring).
 
     ``labels`` / ``noise_sigma`` given: reuse them (held-out refits use the full-data labels).
+    ``posed_ratio``: a band whose largest gain is at most this fraction of band 0's is ill-posed
+    (1e-6: exact zeros of closed-form transfer; a quadrature transfer's accuracy is coarser).
     Returns coefficients ((L+1)^2, 3) in the real orthonormal basis of DESIGN.md.
     """
     k = num_coeffs(order)
@@ -162,7 +165,7 @@ def solve_lighting(g: np.ndarray, h: np.ndarray, btb: np.ndarray, weight: float,
     g_mean = g.mean(axis=0)
     gmin, gmax = band_gains(g_mean, weight, order)
     eps = 1e-10 * max(np.trace(g_mean) / k, 1e-300)
-    posed = gmax > 1e-6 * max(gmax[0], 1e-300)
+    posed = gmax > posed_ratio * max(gmax[0], 1e-300)
     keep = posed[bands]
     x0 = _solve_ridge(g, h, np.full(k, eps), keep)
     rss = residual_sum(g, h, btb, x0)

@@ -52,7 +52,8 @@ def test_synth_capture_lambertian_unknown_lighting(tiny_capture, tmp_path):
     work = tmp_path / "work"
     run_stage("samples", capture=capture, work=work, settings=make_settings(samples.Settings), force=True)
     brdf = write_brdf(tmp_path / "brdf.json", {"model": "lambert", "albedo": [0.6, 0.6, 0.6]})
-    run_stage("fit", capture=capture, work=work, settings=make_settings(fit.Settings, brdf=str(brdf), order="auto", max_order=12),
+    run_stage("fit", capture=capture, work=work, settings=make_settings(fit.Settings, brdf=str(brdf), order="auto", max_order=12,
+                                                                factor_order=12),
               force=True)
     fitted = read_lighting_sh(work / "fit" / "lighting_sh.json")
     truth = read_lighting_sh(capture / "gt" / "lighting_sh.json")[:len(fitted)]
@@ -60,9 +61,10 @@ def test_synth_capture_lambertian_unknown_lighting(tiny_capture, tmp_path):
               / np.linalg.norm(truth[l * l:(l + 1) ** 2]) for l in range(3)]
     report = read_report(work / "fit" / "report.json")
     print("synth band errors", errors, [(b["label"], round(b["snr"], 1), round(b["gain_min"], 4), round(b["gain_max"], 4)) for b in report["bands"]], report["samples"])
-    # issue 6: bands 0-2 within 3%.  Measured 1.5% / 1.9% / 2.5%: the views (elevation 15-60 deg)
-    # never see the lower hemisphere of normals, and the sun's bands above the fitted order leak in;
-    # the noise level (hence the labels) comes from the richest candidate (order 12)
-    assert max(errors) < 0.03
+    # issue 11: bands 0-2 within 5%.  Measured on the physical forward model (the sun found as a
+    # directional source, SH to order 12): 2.0% / 2.4% / 3.0% (the convex fit: 1.5% / 1.9% / 2.5%);
+    # the views (elevation 15-60 deg) never see the lower hemisphere of normals, and band 2 is
+    # just below the recoverable SNR, so its ridge shrinks it a little
+    assert max(errors) < 0.05
     labels = [b["label"] for b in read_report(work / "fit" / "report.json")["bands"]]
     assert [labels[l] for l in (3, 5)] == ["ill-posed"] * 2 and "recoverable" not in labels[3:]
