@@ -85,6 +85,9 @@ def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: np.ndarray, obs: Obs
     return np.clip(base, 1e-3, 1.0)
 
 
+MIN_SOURCE_COS = float(np.cos(np.radians(10.0)))   # sources closer than 10 deg are one (extended) light
+
+
 @dataclass
 class Sources:
     """The dual angular part of the lighting: directional sources (prt.SourceTransfer) and their
@@ -116,19 +119,22 @@ def _source_score(cols: np.ndarray, residual: np.ndarray, weight: np.ndarray) ->
 
 
 def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
-                weight: np.ndarray, rounds: int = 3, chunk: int = 1024) -> tuple[np.ndarray, float]:
+                weight: np.ndarray, rounds: int = 3, chunk: int = 1024,
+                scan_samples: int = 8000) -> tuple[np.ndarray, float]:
     """The direction (3,) of the one directional source that best explains ``residual`` (N, 3),
     and the weighted residual power it explains: matching pursuit over the renderer's direction
-    set (point visibility, exact BRDF), then ``rounds`` of 5 x 5 local grids, each 2.5x finer,
-    with exact shadow rays (prt.source_transfer)."""
+    set (point visibility, exact BRDF) on ``scan_samples`` of the samples, then ``rounds`` of
+    5 x 5 local grids, each 2.5x finer, on all samples with exact shadow rays (prt.source_transfer)."""
     r = geo.renderer
     dirs = r.lights.directions
     layer = prt.diffuse_layer(material, geo.mu_out)
     kd = layer * base / np.pi
     num = np.zeros((len(dirs), 3))
     den = np.zeros((len(dirs), 3))
-    for s in range(0, geo.faces.size, chunk):
-        sl = slice(s, s + chunk)
+    # the coarse scan on a subset (every k-th sample: a source lights thousands of them)
+    coarse = np.arange(0, geo.faces.size, max(1, geo.faces.size // scan_samples))
+    for s in range(0, coarse.size, chunk):
+        sl = coarse[s:s + chunk]
         vis = r._point_visibility(geo.faces[sl], geo.tri[sl], geo.bary[sl])
         cos = np.where(geo.mu_out[sl, None] > 0, np.maximum(geo.normals[sl] @ dirs.T, 0.0), 0.0) * vis
         col = cos[..., None] * kd[sl, None, :]
@@ -141,7 +147,7 @@ def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray
         num += np.einsum("p,pdc,pc->dc", weight[sl], col, residual[sl])
         den += np.einsum("p,pdc->dc", weight[sl], col * col)
     score = (np.maximum(num, 0.0) ** 2 / np.maximum(den, 1e-300)).sum(axis=1)
-    best, best_score = dirs[int(np.argmax(score))], float(score.max())
+    best, best_score = dirs[int(np.argmax(score))], -np.inf   # the refinement (centre included) scores all samples
     step = np.pi / r.lights.directions.shape[0] ** 0.5 * 1.5        # about one cell
     for _ in range(rounds):
         t1 = np.cross(best, [0.0, 0.0, 1.0] if abs(best[2]) < 0.9 else [1.0, 0.0, 0.0])
@@ -159,93 +165,136 @@ def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray
 
 
 def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observations, *, order: int,
-                 folds: int, base0: np.ndarray, spec: np.ndarray | None = None, iterations: int = 4,
-                 fix_base: bool = False, orders: list[int] | None = None, lighting_kw: dict | None = None,
-                 max_bounces: int = 8, max_sources: int = 0, source_gain: float = 0.02,
-                 source_directions: np.ndarray | None = None, known_coeffs: np.ndarray | None = None,
-                 known_sources: np.ndarray | None = None) -> MaterialFit:
+                 folds: int, base0: np.ndarray, spec: np.ndarray | None = None, fix_base: bool = False,
+                 orders: list[int] | None = None, lighting_kw: dict | None = None, max_bounces: int = 8,
+                 max_sources: int = 0, source_gain: float = 0.02, source_directions: np.ndarray | None = None,
+                 known_coeffs: np.ndarray | None = None, known_sources: np.ndarray | None = None,
+                 base_grid: int = 7) -> MaterialFit:
     """Lighting and base colour for one material candidate (roughness, ior, metallic fixed).
 
     ``spec``: its specular transfer (prt.specular_transfer; None for Lambert).  ``base0``: the
-    start, kept when ``fix_base`` (the known-material mode, or Lambert's scale convention).
+    start, kept when ``fix_base`` (the known-material mode).  Base colour: with a specular layer
+    and unknown lighting, per channel the rho_c minimizing the training residual with the lighting
+    refitted (channels are independent: a 1-D search on a log grid of ``base_grid`` values in
+    [0.02, 1], refined by a parabola); Lambert: the chromaticity by least squares, the mean kept
+    at base0's (the scale convention); known lighting: least squares.
     Up to ``max_sources`` directional sources join the SH lighting, one at a time after the first
     SH fit, each only if it lowers the held-out views' RMSE by more than ``source_gain`` (relative).
     ``source_directions`` (J, 3): sources at known directions instead (intensities fitted).
     ``known_coeffs`` (K', 3) and ``known_sources`` (J, 3) intensities at ``source_directions``: the
-    lighting is known (only the base colour is fitted).
-    The returned fit's lighting order is the held-out best of ``orders`` (default: ``order``).
+    lighting is known.  The returned lighting order is the held-out best of ``orders`` (default: ``order``).
     """
     kw = dict(lighting_kw or {})
     layer = prt.diffuse_layer(material, geo.mu_out)
     base = np.asarray(base0, float).copy()
-    if spec is not None and not fix_base and known_coeffs is None:
-        base = joint_start(geo, layer, spec, obs, order)
-    w = obs.weight
-    sources: Sources | None = None
-    if source_directions is not None and len(source_directions):
-        sources = Sources(prt.source_transfer(geo, material, source_directions),
-                          np.zeros((len(source_directions), 3)) if known_sources is None else np.asarray(known_sources))
+    known = None
     if known_coeffs is not None:
         known = np.zeros((num_coeffs(order), 3))
         m = min(len(known), len(known_coeffs))
         known[:m] = np.asarray(known_coeffs)[:m]
-    for it in range(iterations):
-        indirect = prt.indirect_transfer(geo, material, base, max_bounces)
-        a = _design(geo, layer, indirect, spec, base, order)
-        src_ind = src_cols = None
-        if sources is not None:
-            src_ind = prt.indirect_transfer(geo, material, base, max_bounces, sources.transfer.vertex_direct)
-            src_cols = _source_columns(geo, layer, sources.transfer, src_ind, base)
-        for _ in range(0 if known_coeffs is not None else 2 if sources is not None else 1):  # SH <-> sources
-            target = obs.radiance - (0.0 if sources is None else np.einsum("cpj,jc->pc", src_cols, sources.power))
-            eqs = _equations(a, Observations(target, w, obs.fold), order, folds)
-            g, h, btb, wt = eqs.channel_system(slice(None))
-            coeffs = solve.solve_lighting(g, h, btb, wt, int(eqs.count.sum()), order, **kw).coeffs
-            if sources is not None:
-                sources.power = _source_intensities(src_cols, obs.radiance - np.einsum("cpk,kc->pc", a, coeffs), w)
-        if known_coeffs is not None:
-            coeffs = known
-        if it == 0 and max_sources > 0 and sources is None:
-            sources = _add_sources(geo, material, base, layer, a, obs, max_sources, source_gain, order, folds, kw)
-            if sources is not None:
-                continue
-        if fix_base:
-            break
-        q = np.einsum("pkc,kc->pc", geo.direct[:, :, None] + indirect, coeffs) * layer / np.pi
-        r = obs.radiance - (np.einsum("pkc,kc->pc", spec, coeffs) if spec is not None else 0.0)
-        if sources is not None:
-            e = sources.transfer.direct[..., None] + src_ind
-            q += np.einsum("pjc,jc->pc", e, sources.power) * layer / np.pi
-            if sources.transfer.specular is not None:
-                r = r - np.einsum("pjc,jc->pc", sources.transfer.specular, sources.power)
-        new = np.clip((w[:, None] * q * r).sum(0) / np.maximum((w[:, None] * q * q).sum(0), 1e-300), 1e-3, 1.0)
-        if spec is None:   # Lambert: only the chromaticity is determined; keep the start's mean
-            new *= float(np.mean(base0)) / float(np.mean(new))
-        done = np.abs(new - base).max() < 1e-3
-        base = new
-        if done:
-            break
+    elif spec is not None and not fix_base:
+        base = joint_start(geo, layer, spec, obs, order)
+    sources: Sources | None = None
+    if source_directions is not None and len(source_directions):
+        sources = Sources(prt.source_transfer(geo, material, source_directions),
+                          np.zeros((len(source_directions), 3)) if known_sources is None else np.asarray(known_sources))
+
+    def solve_at(b: np.ndarray, inner: int = 4):
+        return _lighting_given_base(geo, material, layer, spec, b, sources, obs, order, folds, kw, inner, known,
+                                    max_bounces)
+
+    if max_sources > 0 and sources is None and known is None:
+        a = _design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, order)
+        sources = _add_sources(geo, material, base, layer, a, obs, max_sources, source_gain, order, folds, kw)
+    if not fix_base:
+        if known is not None or spec is None:
+            for _ in range(4):            # least squares in rho given the lighting (+ interreflection update)
+                coeffs = solve_at(base)[0]
+                new = _base_least_squares(geo, material, layer, spec, base, sources, coeffs, obs, max_bounces)
+                if spec is None:          # Lambert: only the chromaticity is determined
+                    new *= float(np.mean(base0)) / float(np.mean(new))
+                done = np.abs(new - base).max() < 1e-3
+                base = new
+                if done:
+                    break
+        else:
+            # one set of band labels and one noise level for the whole search (from the start), so that
+            # the channels stay independent and every grid point minimizes the same objective
+            a = _design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, order)
+            g, h, btb, wt = _equations(a, obs, order, folds).channel_system(slice(None))
+            start = solve.solve_lighting(g, h, btb, wt, len(obs.weight), order, **kw)
+            fixed = {**kw, "labels": start.labels, "noise_sigma": start.noise_sigma}
+            betas = np.geomspace(0.02, 1.0, base_grid)
+            rss = np.array([_lighting_given_base(geo, material, layer, spec, np.full(3, b), sources, obs, order, folds,
+                                                 fixed, 4, None, max_bounces)[1] for b in betas])   # (grid, 3)
+            base = np.array([refine_minimum(betas, rss[:, c]) for c in range(3)])
+    if sources is not None:
+        solve_at(base, 8)                 # the sources' intensities for the final base colour
     indirect = prt.indirect_transfer(geo, material, base, max_bounces)
     target = obs.radiance
     if sources is not None:
         src_ind = prt.indirect_transfer(geo, material, base, max_bounces, sources.transfer.vertex_direct)
         target = obs.radiance - np.einsum("cpj,jc->pc", _source_columns(geo, layer, sources.transfer, src_ind, base),
                                           sources.power)
-    if known_coeffs is not None:
-        pred = np.einsum("cpk,kc->pc", _design(geo, layer, indirect, spec, base, order), known)
-        rmse = float(np.sqrt((w[:, None] * (target - pred) ** 2).sum() / (3 * w.sum())))
-        g, h, btb, wt = _equations(_design(geo, layer, indirect, spec, base, order), Observations(target, w, obs.fold),
-                                   order, folds).channel_system(slice(None))
+    if known is not None:
+        a = _design(geo, layer, indirect, spec, base, order)
+        w = obs.weight
+        rmse = float(np.sqrt((w[:, None] * (target - np.einsum("cpk,kc->pc", a, known)) ** 2).sum() / (3 * w.sum())))
+        g, h, btb, wt = _equations(a, Observations(target, w, obs.fold), order, folds).channel_system(slice(None))
         diag = solve.solve_lighting(g, h, btb, wt, len(w), order, **kw)
         diag.coeffs = known
         return MaterialFit(material, base, known, diag, [], rmse, rmse, sources)
     top = order if orders is None else max(orders)
-    eqs = _equations(_design(geo, layer, indirect, spec, base, top), Observations(target, w, obs.fold), top, folds)
+    eqs = _equations(_design(geo, layer, indirect, spec, base, top), Observations(target, obs.weight, obs.fold), top,
+                     folds)
     cands = solve.cross_validate_orders(eqs, orders or [order], None, **kw)
     best = min(range(len(cands)), key=lambda i: cands[i]["validation_rmse"])
     fit = cands[best]["fit"]
     return MaterialFit(material, base, fit.coeffs, fit, [{k: v for k, v in c.items() if k != "fit"} for c in cands],
                        float(cands[best]["validation_rmse"]), float(cands[best]["train_rmse"]), sources)
+
+
+def _lighting_given_base(geo, material, layer, spec, base, sources, obs, order, folds, kw, inner, known,
+                         max_bounces) -> tuple[np.ndarray, np.ndarray]:
+    """SH lighting (K, 3) for a fixed base colour, alternating with the sources' intensities
+    (updated in ``sources``) ``inner`` times; and the weighted training RSS per channel (3,)."""
+    w = obs.weight
+    a = _design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, order)
+    src_cols = None
+    if sources is not None:
+        src_ind = prt.indirect_transfer(geo, material, base, max_bounces, sources.transfer.vertex_direct)
+        src_cols = _source_columns(geo, layer, sources.transfer, src_ind, base)
+    def sh_fit():
+        if known is not None:
+            return known
+        target = obs.radiance - (0.0 if sources is None else np.einsum("cpj,jc->pc", src_cols, sources.power))
+        g, h, btb, wt = _equations(a, Observations(target, w, obs.fold), order, folds).channel_system(slice(None))
+        return solve.solve_lighting(g, h, btb, wt, len(w), order, **kw).coeffs
+
+    coeffs = sh_fit()
+    if sources is not None and known is None:
+        for _ in range(inner):
+            sources.power = _source_intensities(src_cols, obs.radiance - np.einsum("cpk,kc->pc", a, coeffs), w)
+            coeffs = sh_fit()
+    pred = np.einsum("cpk,kc->pc", a, coeffs)
+    if sources is not None:
+        pred += np.einsum("cpj,jc->pc", src_cols, sources.power)
+    return coeffs, (w[:, None] * (obs.radiance - pred) ** 2).sum(axis=0)
+
+
+def _base_least_squares(geo, material, layer, spec, base, sources, coeffs, obs, max_bounces) -> np.ndarray:
+    """rho (3,) in [1e-3, 1] by least squares for fixed lighting: radiance - specular = rho q."""
+    w = obs.weight
+    indirect = prt.indirect_transfer(geo, material, base, max_bounces)
+    q = np.einsum("pkc,kc->pc", geo.direct[:, :, None] + indirect, coeffs) * layer / np.pi
+    r = obs.radiance - (np.einsum("pkc,kc->pc", spec, coeffs) if spec is not None else 0.0)
+    if sources is not None:
+        st = sources.transfer
+        src_ind = prt.indirect_transfer(geo, material, base, max_bounces, st.vertex_direct)
+        q += np.einsum("pjc,jc->pc", st.direct[..., None] + src_ind, sources.power) * layer / np.pi
+        if st.specular is not None:
+            r = r - np.einsum("pjc,jc->pc", st.specular, sources.power)
+    return np.clip((w[:, None] * q * r).sum(0) / np.maximum((w[:, None] * q * q).sum(0), 1e-300), 1e-3, 1.0)
 
 
 def _source_intensities(cols: np.ndarray, residual: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -274,7 +323,7 @@ def _add_sources(geo, material, base, layer, a, obs, max_sources, gain, order, f
     found, kept = [], None
     for _ in range(max_sources):
         d, explained = find_source(geo, material, base, residual, w)
-        if explained <= 0:
+        if explained <= 0 or any(float(d @ f) > MIN_SOURCE_COS for f in found):
             break
         st = prt.source_transfer(geo, material, np.array(found + [d]))
         cols = _source_columns(geo, layer, st, None, base)

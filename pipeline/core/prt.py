@@ -136,8 +136,12 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
         # cap average ~ exp(-l(l+1) θ² / 8) with θ² = Ω / π (as the renderer prefilters its map)
         l = band_of_index(geo.order)
         soft = np.exp(-np.outer(lobe.solid_angle.reshape(-1) / (8 * np.pi), l * (l + 1)))
-        basis = (sh_basis(dirs, geo.order) * soft).reshape(q, ns, -1)
-        out[idx] = np.einsum("psk,psc->pkc", basis, weight.reshape(q, ns, 3))
+        basis = (sh_basis(dirs, geo.order) * soft).reshape(q, ns, -1).transpose(0, 2, 1)   # (q, K, S)
+        w3 = weight.reshape(q, ns, 3)
+        if np.array_equal(w3[..., 0], w3[..., 2]) and np.array_equal(w3[..., 0], w3[..., 1]):  # grey F (dielectric)
+            out[idx] = np.matmul(basis, w3[..., :1])
+        else:
+            out[idx] = np.matmul(basis, w3)
     return out
 
 
