@@ -169,14 +169,14 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
                  orders: list[int] | None = None, lighting_kw: dict | None = None, max_bounces: int = 8,
                  max_sources: int = 0, source_gain: float = 0.02, source_directions: np.ndarray | None = None,
                  known_coeffs: np.ndarray | None = None, known_sources: np.ndarray | None = None,
-                 base_grid: int = 7) -> MaterialFit:
+                 base_grid: int = 25) -> MaterialFit:
     """Lighting and base colour for one material candidate (roughness, ior, metallic fixed).
 
     ``spec``: its specular transfer (prt.specular_transfer; None for Lambert).  ``base0``: the
     start, kept when ``fix_base`` (the known-material mode).  Base colour: with a specular layer
     and unknown lighting, per channel the rho_c minimizing the training residual with the lighting
-    refitted (channels are independent: a 1-D search on a log grid of ``base_grid`` values in
-    [0.02, 1], refined by a parabola); Lambert: the chromaticity by least squares, the mean kept
+    refitted (_base_search: channels are independent, a 1-D search on a log grid of ``base_grid``
+    values in [0.02, 1], refined by a parabola); Lambert: the chromaticity by least squares, the mean kept
     at base0's (the scale convention); known lighting: least squares.
     Up to ``max_sources`` directional sources join the SH lighting, one at a time after the first
     SH fit, each only if it lowers the held-out views' RMSE by more than ``source_gain`` (relative).
@@ -218,16 +218,15 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
                 if done:
                     break
         else:
-            # one set of band labels and one noise level for the whole search (from the start), so that
-            # the channels stay independent and every grid point minimizes the same objective
             a = _design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, order)
             g, h, btb, wt = _equations(a, obs, order, folds).channel_system(slice(None))
             start = solve.solve_lighting(g, h, btb, wt, len(obs.weight), order, **kw)
-            fixed = {**kw, "labels": start.labels, "noise_sigma": start.noise_sigma}
-            betas = np.geomspace(0.02, 1.0, base_grid)
-            rss = np.array([_lighting_given_base(geo, material, layer, spec, np.full(3, b), sources, obs, order, folds,
-                                                 fixed, 4, None, max_bounces)[1] for b in betas])   # (grid, 3)
-            base = np.array([refine_minimum(betas, rss[:, c]) for c in range(3)])
+            # the ridge is (sigma / (band_prior |L_0|))^2 W / views (pipeline.core.solve): scaled with the
+            # lighting's DC as rho changes, so that no rho is favoured by a relatively weaker prior
+            ridge_dc2 = start.ridge * float(np.mean(start.coeffs[0] ** 2))
+            for _ in range(2):            # the second pass with the interreflection of the first's rho
+                base = _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc2, max_bounces,
+                                    base_grid)
     if sources is not None:
         solve_at(base, 8)                 # the sources' intensities for the final base colour
     indirect = prt.indirect_transfer(geo, material, base, max_bounces)
@@ -252,6 +251,45 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
     fit = cands[best]["fit"]
     return MaterialFit(material, base, fit.coeffs, fit, [{k: v for k, v in c.items() if k != "fit"} for c in cands],
                        float(cands[best]["validation_rmse"]), float(cands[best]["train_rmse"]), sources)
+
+
+def _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc2, max_bounces, grid) -> np.ndarray:
+    """rho (3,): per channel the value on a log grid of ``grid`` points in [0.02, 1] (refined by a
+    parabola) whose training RSS is least with the lighting — SH and source intensities jointly,
+    with the SH ridge ``ridge_dc2`` (K,) / L_0^2 (the DC of an unregularized solve at that rho) — refitted.
+    The design rho_c Dc + Sc makes the normal equations quadratic in rho_c (blocks built once;
+    the interreflection taken at ``base``); the channels are independent."""
+    k = num_coeffs(order)
+    w = obs.weight
+    diffuse = geo.direct[:, :k, None] + prt.indirect_transfer(geo, material, base, max_bounces)[:, :k]
+    specular = spec[:, :k]
+    j = 0
+    if sources is not None:
+        st = sources.transfer
+        j = st.directions.shape[0]
+        src_ind = prt.indirect_transfer(geo, material, base, max_bounces, st.vertex_direct)
+        diffuse = np.concatenate([diffuse, st.direct[..., None] + src_ind], axis=1)
+        specular = np.concatenate([specular, st.specular if st.specular is not None else np.zeros_like(src_ind)], axis=1)
+    reg = np.concatenate([np.asarray(ridge_dc2, float)[:k], np.zeros(j)])
+    sw = np.sqrt(w)[:, None]
+    betas = np.geomspace(0.02, 1.0, grid)
+    out = np.zeros(3)
+    for c in range(3):
+        d = diffuse[..., c] * (layer[:, c:c + 1] / np.pi) * sw
+        s_ = specular[..., c] * sw
+        b = obs.radiance[:, c] * sw[:, 0]
+        dd, ds, ss, hd, hs, bb = d.T @ d, d.T @ s_, s_.T @ s_, d.T @ b, s_.T @ b, float(b @ b)
+
+        def rss(beta: float) -> float:
+            g = beta * beta * dd + beta * (ds + ds.T) + ss
+            h = beta * hd + hs
+            eps = 1e-10 * np.trace(g) / len(g)
+            dc2 = float(np.linalg.solve(g + eps * np.eye(len(g)), h)[0] ** 2)
+            x = np.linalg.solve(g + np.diag(reg / max(dc2, 1e-300) + eps), h)
+            return bb - 2.0 * float(x @ h) + float(x @ g @ x)
+
+        out[c] = refine_minimum(betas, np.array([rss(bt) for bt in betas]))
+    return out
 
 
 def _lighting_given_base(geo, material, layer, spec, base, sources, obs, order, folds, kw, inner, known,

@@ -26,7 +26,7 @@ per roughness (S); the fit is then linear least squares in L for fixed material.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -53,6 +53,16 @@ class Geometry:
     mu_out: np.ndarray
     direct: np.ndarray
     vertex_direct: np.ndarray
+    _bounces: dict = field(default_factory=dict, repr=False)
+
+    def bounce_matrices(self, material: Principled | None) -> list:
+        """The renderer's bounce matrices with this material's diffuse layer at the hits (cached)."""
+        key = None if material is None else (material.roughness, material.ior, material.metallic,
+                                              tuple(material.specular_tint))
+        if key not in self._bounces:
+            layer = diffuse_layer(material, self.renderer.bounce_rays().mu_hit)
+            self._bounces[key] = self.renderer.bounce_matrices(layer)
+        return self._bounces[key]
 
 
 def geometry(mesh, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, order: int, *,
@@ -101,13 +111,10 @@ def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarr
     (3,) or per vertex (V, 3), from the vertices' bounce series (Renderer.bounce_matrices) of the
     vertices' direct transfer (V, K) (default: the SH lighting's, geo.vertex_direct, whose
     bands above INDIRECT_ORDER are left out of the bounces: the diffuse hit points filter them)."""
-    r = geo.renderer
-    rays = r.bounce_rays()
-    nv = len(r.mesh.vertices)
+    nv = len(geo.renderer.mesh.vertices)
     base_v = np.broadcast_to(np.asarray(base, float), (nv, 3))
-    layer = diffuse_layer(material, rays.mu_hit)
     direct = geo.vertex_direct[:, :num_coeffs(min(geo.order, INDIRECT_ORDER))] if vertex_direct is None else vertex_direct
-    e_ind = bounce_series(r.bounce_matrices(layer), base_v, np.repeat(direct[..., None], 3, axis=2), max_bounces)
+    e_ind = bounce_series(geo.bounce_matrices(material), base_v, np.repeat(direct[..., None], 3, axis=2), max_bounces)
     out = np.einsum("pj,pjkc->pkc", geo.bary, e_ind[geo.tri])
     if vertex_direct is None and out.shape[1] < geo.direct.shape[1]:
         out = np.concatenate([out, np.zeros((out.shape[0], geo.direct.shape[1] - out.shape[1], 3))], axis=1)
