@@ -6,7 +6,8 @@ Taken by ``sigrend fit --brdf principled`` (material unknown) and by a known pri
   1. a random subset of the samples (``physical_samples``; self-shadowed ones included: the
      transfer has the shadows) and its transfer (direct with point visibility, interreflection);
   2. the lighting's dual angular part: directional sources located by matching pursuit on the
-     residual of the first candidate's SH fit (``max_sources``), then kept for all candidates;
+     residual of the first candidate's SH fit (``max_sources``), then kept for all candidates
+     (located again through the best roughness's lobe when that is not the first);
   3. every roughness of ``roughness_candidates`` (dielectric, ``ior``): base colour and lighting
      fitted (the Fresnel-fixed specular layer sets the absolute scale), the SH order chosen by
      held-out views (folds = image_id mod folds); the best roughness refined by a parabola in
@@ -58,6 +59,35 @@ def load_samples(path: Path, settings, n_faces: int) -> dict:
     return data
 
 
+KNOWN_SOURCES = 32    # a known map's brightest pixels kept as directional sources, the rest in SH
+
+
+def known_lighting_parts(settings, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A known lighting as the fit's dual representation: (SH coefficients ((order+1)^2, 3),
+    source directions (J, 3), intensities (J, 3)).  An equirect map: its KNOWN_SOURCES brightest
+    pixels (pipeline.core.render.light_set) as sources and the rest projected to SH; a
+    lighting_sh.json: its sources (if any; their projection taken out of its coefficients)."""
+    from pipeline.core.render import light_set
+    from pipeline.core.sh import project_envmap
+    from pipeline.io.lighting import read_lighting_sh, read_lighting_sources
+
+    path = Path(settings.lighting)
+    if path.suffix.lower() == ".json":
+        coeffs, (dirs, power) = read_lighting_sh(path), read_lighting_sources(path)
+        if len(dirs):
+            coeffs = coeffs - sh_of_sources(dirs, power, order_of(coeffs.shape[0]))
+        return coeffs, dirs, power
+    from pipeline.io.images import read_envmap
+
+    env = np.asarray(read_envmap(path), float)
+    lights = light_set(env, cell_height=min(16, env.shape[0]), max_bright=KNOWN_SOURCES)
+    remainder = env.reshape(-1, 3).copy()
+    remainder[lights.bright] = 0.0
+    coeffs = project_envmap(remainder.reshape(env.shape), order)
+    nb = lights.n_bright
+    return coeffs, lights.directions[len(lights) - nb:], lights.power[len(lights) - nb:]
+
+
 def roughness_candidates(settings) -> list[float]:
     try:
         values = sorted({float(x) for x in settings.roughness_candidates.split(",") if x.strip()})
@@ -87,12 +117,19 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior,
               independent_groups=len(np.unique(data["image_id"])), posed_ratio=prt.QUADRATURE_FLOOR)
 
+    known_sources = None
+    if known_lighting is not None:
+        known_lighting, known_dirs, known_sources = known_lighting_parts(settings, order)
+
     def candidate(material: Principled | None, base0, fix_base: bool, directions):
+        if known_sources is not None:
+            directions = known_dirs
         spec = None if material is None else prt.specular_transfer(geo, material, settings.lobe_samples, settings.seed)
         return material_fit.fit_material(geo, material, obs, order=order, folds=settings.folds, base0=base0,
                                          spec=spec, fix_base=fix_base, orders=orders, lighting_kw=kw,
                                          max_sources=settings.max_sources if directions is None else 0,
-                                         source_directions=directions, known_coeffs=known_lighting)
+                                         source_directions=directions, known_coeffs=known_lighting,
+                                         known_sources=known_sources)
 
     t0 = time.perf_counter()
     interval = None
@@ -115,6 +152,16 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
                 if r not in fits:
                     fits[r] = candidate(Principled(roughness=r, ior=settings.ior), grey, False, directions)
             rs, errors = _curve(fits)
+            i = int(np.argmin(errors))
+            if rs[i] != start and settings.max_sources > 0:
+                # the sources were located through the start's lobe: look again through the best one's
+                again = candidate(Principled(roughness=float(rs[i]), ior=settings.ior), grey, False, None)
+                if again.validation_rmse < fits[rs[i]].validation_rmse:
+                    directions = _directions(again)
+                    for r in rs[max(i - 1, 0):i + 2]:
+                        fits[float(r)] = again if r == rs[i] else candidate(
+                            Principled(roughness=float(r), ior=settings.ior), grey, False, directions)
+                rs, errors = _curve(fits)
             refined = material_fit.refine_minimum(rs, errors)
             if not np.any(np.isclose(rs, refined)):
                 fits[refined] = candidate(Principled(roughness=refined, ior=settings.ior), grey, False, directions)
