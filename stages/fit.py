@@ -81,6 +81,8 @@ class Settings:
                                        "or 'convex' (R&H closed forms; the only one for phong and microfacet)")
     roughness_candidates: str = setting("0.1,0.2,0.3,0.45,0.65,1.0", "principled fit: the roughness grid "
                                         "compared on held-out views (the best is refined by a parabola)")
+    roughness_refinements: int = setting(0, "principled fit: rounds of log-bisection around the best roughness "
+                                            "(2 candidates each) before the final parabola")
     ior: float = setting(1.5, "principled fit: index of refraction of the dielectric specular layer")
     max_sources: int = setting(3, "principled fit: directional sources (the lighting's dual angular part) tried "
                                   "on top of the SH lighting, each kept only if it explains >= 2% of the residual")
@@ -117,6 +119,8 @@ class Settings:
             raise UserError(f"--forward must be physical or convex, got {self.forward!r}")
         if self.ior < 1.0:
             raise UserError(f"--ior must be >= 1, got {self.ior}")
+        if self.roughness_refinements < 0:
+            raise UserError(f"--roughness-refinements must be >= 0, got {self.roughness_refinements}")
         if self.max_sources < 0 or self.physical_samples < 100 or self.lobe_samples < 1 or self.bounce_samples < 1:
             raise UserError("--max-sources must be >= 0, --physical-samples >= 100, --lobe-samples and "
                             "--bounce-samples >= 1")

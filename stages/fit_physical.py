@@ -10,8 +10,8 @@ Taken by ``sigrend fit --brdf principled`` (material unknown) and by a known pri
      (located again through the best roughness's lobe when that is not the first);
   3. every roughness of ``roughness_candidates`` (dielectric, ``ior``): base colour and lighting
      fitted (the Fresnel-fixed specular layer sets the absolute scale), the SH order chosen by
-     held-out views (folds = image_id mod folds); the best roughness refined by a parabola in
-     log roughness, and the interval of roughness within ``parsimony`` of the best reported;
+     held-out views (folds = image_id mod folds); the best roughness refined by bisection and a
+     parabola in log roughness, and the interval of roughness within ``parsimony`` of the best reported;
   4. outputs as the convex path: lighting_sh.json (+ "sources"), lighting.exr (sources splatted),
      brdf.json, report.json, plots.
 """
@@ -161,6 +161,13 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
                     for r in rs[max(i - 1, 0):i + 2]:
                         fits[float(r)] = again if r == rs[i] else candidate(
                             Principled(roughness=float(r), ior=settings.ior), grey, False, directions)
+                rs, errors = _curve(fits)
+            for _ in range(settings.roughness_refinements):    # bisect (in log) around the best, then a parabola
+                i = int(np.argmin(errors))
+                for r in (np.sqrt(rs[i] * rs[max(i - 1, 0)]), np.sqrt(rs[i] * rs[min(i + 1, len(rs) - 1)])):
+                    if not np.any(np.isclose(rs, r)):
+                        fits[float(r)] = candidate(Principled(roughness=float(r), ior=settings.ior), grey, False,
+                                                   directions)
                 rs, errors = _curve(fits)
             refined = material_fit.refine_minimum(rs, errors)
             if not np.any(np.isclose(rs, refined)):
