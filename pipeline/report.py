@@ -189,6 +189,22 @@ def _coverage(work: Path) -> str:
     return _section("Sample coverage", body)
 
 
+def principled_sphere(coeffs: np.ndarray, brdf: dict, normal: np.ndarray, view: np.ndarray) -> np.ndarray:
+    """Radiance (P, 3) of a principled sphere under SH lighting (a sphere casts no shadows): the
+    layered diffuse from the irradiance plus the lobe by GGX samples (pipeline.core.shading)."""
+    from pipeline.core.material import principled_from_dict
+    from pipeline.core.sh import sh_evaluate
+    from pipeline.core.shading import specular_samples
+    from pipeline.core.transfer import irradiance_from_sh
+
+    material = principled_from_dict(brdf)
+    mu = np.einsum("pc,pc->p", normal, view)
+    out = material.diffuse_weight(np.clip(mu, 0, 1)) / np.pi * irradiance_from_sh(coeffs, normal)
+    lobe = specular_samples(material, normal, view, 64, np.random.default_rng(0))
+    seen = sh_evaluate(coeffs, lobe.directions.reshape(-1, 3)).reshape(lobe.weight.shape)
+    return out + np.einsum("psc,psc->pc", lobe.weight, np.maximum(seen, 0.0))
+
+
 def sphere_renders(coeffs: np.ndarray, brdf: dict | None, size: int = 128) -> bytes:
     """PNG: orthographic spheres seen from +Y under SH lighting ``coeffs`` (one panel each):
     a mirror sphere (the lighting itself), a white Lambertian sphere, and the fitted BRDF."""
@@ -206,7 +222,9 @@ def sphere_renders(coeffs: np.ndarray, brdf: dict | None, size: int = 128) -> by
     r = 2 * np.sum(normal * view, axis=1, keepdims=True) * normal - view
     panels = {"mirror sphere (lighting)": sh_evaluate(coeffs, r),
               "white Lambertian sphere": irradiance_from_sh(coeffs, normal) / np.pi}
-    if brdf is not None:
+    if brdf is not None and brdf["model"] == "principled":
+        panels["fitted material"] = principled_sphere(coeffs, brdf, normal, np.array(view))
+    elif brdf is not None:
         from stages.relight import Lighting
 
         lighting = Lighting(brdf, coeffs=coeffs)  # the same forward model as relight

@@ -120,7 +120,7 @@ def _source_score(cols: np.ndarray, residual: np.ndarray, weight: np.ndarray) ->
 
 def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
                 weight: np.ndarray, rounds: int = 3, chunk: int = 1024,
-                scan_samples: int = 8000) -> tuple[np.ndarray, float]:
+                scan_samples: int = 8000, exclude: list | None = None) -> tuple[np.ndarray, float]:
     """The direction (3,) of the one directional source that best explains ``residual`` (N, 3),
     and the weighted residual power it explains: matching pursuit over the renderer's direction
     set (point visibility, exact BRDF) on ``scan_samples`` of the samples, then ``rounds`` of
@@ -147,6 +147,8 @@ def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray
         num += np.einsum("p,pdc,pc->dc", weight[sl], col, residual[sl])
         den += np.einsum("p,pdc->dc", weight[sl], col * col)
     score = (np.maximum(num, 0.0) ** 2 / np.maximum(den, 1e-300)).sum(axis=1)
+    for f in exclude or []:
+        score[dirs @ f > MIN_SOURCE_COS] = -np.inf
     best, best_score = dirs[int(np.argmax(score))], -np.inf   # the refinement (centre included) scores all samples
     step = np.pi / r.lights.directions.shape[0] ** 0.5 * 1.5        # about one cell
     for _ in range(rounds):
@@ -360,8 +362,8 @@ def _add_sources(geo, material, base, layer, a, obs, max_sources, gain, order, f
     residual = obs.radiance - np.einsum("cpk,kc->pc", a, solve.solve_lighting(g, h, btb, wt, len(w), order, **kw).coeffs)
     found, kept = [], None
     for _ in range(max_sources):
-        d, explained = find_source(geo, material, base, residual, w)
-        if explained <= 0 or any(float(d @ f) > MIN_SOURCE_COS for f in found):
+        d, explained = find_source(geo, material, base, residual, w, exclude=found)
+        if not explained > 0 or any(float(d @ f) > MIN_SOURCE_COS for f in found):
             break
         st = prt.source_transfer(geo, material, np.array(found + [d]))
         cols = _source_columns(geo, layer, st, None, base)
