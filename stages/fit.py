@@ -79,6 +79,8 @@ class Settings:
     forward: str = setting("physical", "forward model of the fit: 'physical' (the renderer's: shadows, "
                                        "interreflection, principled GGX, directional sources; lambert and principled) "
                                        "or 'convex' (R&H closed forms; the only one for phong and microfacet)")
+    lighting_scale: str = setting("1", "factor applied to a known --lighting (a number), or 'fit': one global "
+                                        "factor fitted to the photos (stated in the report)")
     roughness_candidates: str = setting("0.1,0.2,0.3,0.45,0.65,1.0", "principled fit: the roughness grid "
                                         "compared on held-out views (the best is refined by a parabola)")
     roughness_refinements: int = setting(0, "principled fit: rounds of log-bisection around the best roughness "
@@ -119,6 +121,12 @@ class Settings:
             raise UserError(f"--forward must be physical or convex, got {self.forward!r}")
         if self.ior < 1.0:
             raise UserError(f"--ior must be >= 1, got {self.ior}")
+        if self.lighting_scale != "fit":
+            try:
+                if float(self.lighting_scale) <= 0:
+                    raise ValueError
+            except ValueError:
+                raise UserError(f"--lighting-scale must be a positive number or 'fit', got {self.lighting_scale!r}") from None
         if self.roughness_refinements < 0:
             raise UserError(f"--roughness-refinements must be >= 0, got {self.roughness_refinements}")
         if self.max_sources < 0 or self.physical_samples < 100 or self.lobe_samples < 1 or self.bounce_samples < 1:
@@ -708,7 +716,6 @@ def choose_albedo(capture: Path, samples_path: Path, settings: Settings, coeffs:
     textured vs uniform by the held-out views (folds = image_id mod folds): textured only when its
     validation RMSE is below uniform's by more than ``parsimony``.  Returns (report entry,
     per-vertex albedo (V, 3) or None, mesh)."""
-    from pipeline.core import texture
     from pipeline.io.mesh import mesh_path, read_mesh
 
     entry: dict = {"setting": settings.albedo, "smoothness": settings.albedo_smoothness}

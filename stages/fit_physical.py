@@ -88,6 +88,81 @@ def known_lighting_parts(settings, order: int) -> tuple[np.ndarray, np.ndarray, 
     return coeffs, lights.directions[len(lights) - nb:], lights.power[len(lights) - nb:]
 
 
+SCALE_TOLERANCE = 1.5    # a known map within this factor of the photos is taken as it is (the true maps of
+                         # the shared Cycles captures measure 0.95 (teapot) and 1.24 (night sphere))
+
+
+def check_lighting_scale(geo, obs, settings, best, coeffs, directions, intensity) -> dict:
+    """How the photos compare with a known lighting, measured with the fitted material
+    (material_fit.known_lighting_scale); with ``--lighting-scale fit`` the factor to apply, else
+    a map off by more than SCALE_TOLERANCE is a user error naming the factor and the fix."""
+    spec = None if best.material is None else prt.specular_transfer(geo, best.material, settings.lobe_samples,
+                                                                     settings.seed)
+    given = 1.0 if settings.lighting_scale == "fit" else float(settings.lighting_scale)
+    sources = None
+    if directions is not None and len(directions):
+        sources = material_fit.Sources(prt.source_transfer(geo, best.material, directions), intensity)
+    k, exact = material_fit.known_lighting_scale(geo, best.material, spec, coeffs, sources, obs, best.base)
+    if settings.lighting_scale == "fit":
+        return {"applied": k if exact else max(k, 1.0), "measured": k, "exact": exact,
+                "note": "--lighting-scale fit: one global factor fitted to the photos, then the material refitted"}
+    if (exact and not 1 / SCALE_TOLERANCE <= k <= SCALE_TOLERANCE) or (not exact and k > SCALE_TOLERANCE):
+        word = "at least " if not exact else "about "
+        raise UserError(f"--lighting {settings.lighting}: the photos are {word}x{k:.3g} the radiance this map "
+                        f"predicts{' (with --lighting-scale ' + settings.lighting_scale + ')' if given != 1 else ''}; "
+                        f"rescale the map, or give --lighting-scale {k * given:.3g} (or --lighting-scale fit)")
+    return {"applied": 1.0, "given": given, "measured": k, "exact": exact}
+
+
+def select_material(candidate, settings, models: list[str], obs, grey: np.ndarray):
+    """(best fit, candidates table, roughness interval or None): the principled roughness grid
+    (sources re-located through the best lobe, log bisection, a parabola) and Lambert, compared
+    on held-out views with the parsimony rule."""
+    fits: dict = {}
+    directions = None
+    interval = None
+    if "principled" in models:
+        grid = roughness_candidates(settings)
+        start = min(grid, key=lambda r: abs(np.log(r / 0.3)))
+        fits[start] = candidate(Principled(roughness=start, ior=settings.ior), grey, False, None)
+        directions = _directions(fits[start])
+        for r in grid:
+            if r not in fits:
+                fits[r] = candidate(Principled(roughness=r, ior=settings.ior), grey, False, directions)
+        rs, errors = _curve(fits)
+        i = int(np.argmin(errors))
+        if rs[i] != start and settings.max_sources > 0:
+            # the sources were located through the start's lobe: look again through the best one's
+            again = candidate(Principled(roughness=float(rs[i]), ior=settings.ior), grey, False, None)
+            if again.validation_rmse < fits[rs[i]].validation_rmse:
+                directions = _directions(again)
+                for r in rs[max(i - 1, 0):i + 2]:
+                    fits[float(r)] = again if r == rs[i] else candidate(
+                        Principled(roughness=float(r), ior=settings.ior), grey, False, directions)
+            rs, errors = _curve(fits)
+        for _ in range(settings.roughness_refinements):    # bisect (in log) around the best, then a parabola
+            i = int(np.argmin(errors))
+            for r in (np.sqrt(rs[i] * rs[max(i - 1, 0)]), np.sqrt(rs[i] * rs[min(i + 1, len(rs) - 1)])):
+                if not np.any(np.isclose(rs, r)):
+                    fits[float(r)] = candidate(Principled(roughness=float(r), ior=settings.ior), grey, False,
+                                               directions)
+            rs, errors = _curve(fits)
+        refined = material_fit.refine_minimum(rs, errors)
+        if not np.any(np.isclose(rs, refined)):
+            fits[refined] = candidate(Principled(roughness=refined, ior=settings.ior), grey, False, directions)
+        rs, errors = _curve(fits)
+        interval = material_fit.roughness_interval(rs, errors, settings.parsimony)
+    table = [_row(fits[r]) for r in sorted(fits)]
+    if "lambert" in models:
+        fits[0.0] = candidate(None, grey, False, directions if "principled" in models else None)
+        table.insert(0, _row(fits[0.0]))
+    rms = float(np.sqrt((obs.weight[:, None] * obs.radiance ** 2).sum() / (3 * obs.weight.sum())))
+    key = "validation_rmse" if len(np.unique(obs.fold)) > 1 else "train_rmse"
+    best = fits[table[solve.parsimonious_choice(table, settings.parsimony, key=key,
+                                                noise=settings.noise_floor * rms)]["roughness"]]
+    return best, table, (None if best.material is None else interval)
+
+
 def roughness_candidates(settings) -> list[float]:
     try:
         values = sorted({float(x) for x in settings.roughness_candidates.split(",") if x.strip()})
@@ -117,9 +192,12 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior,
               independent_groups=len(np.unique(data["image_id"])), posed_ratio=prt.QUADRATURE_FLOOR)
 
-    known_sources = None
+    known_sources = known_dirs = scale = None
     if known_lighting is not None:
         known_lighting, known_dirs, known_sources = known_lighting_parts(settings, order)
+        if settings.lighting_scale != "fit":
+            factor = float(settings.lighting_scale)
+            known_lighting, known_sources = known_lighting * factor, known_sources * factor
 
     def candidate(material: Principled | None, base0, fix_base: bool, directions):
         if known_sources is not None:
@@ -131,59 +209,32 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
                                          source_directions=directions, known_coeffs=known_lighting,
                                          known_sources=known_sources)
 
+    def select() -> tuple[material_fit.MaterialFit, list[dict], tuple | None]:
+        if known_brdf is not None:
+            material = principled_from_dict(known_brdf) if known_brdf["model"] == "principled" else None
+            best = candidate(material, np.asarray(diffuse_color(known_brdf), float), True, None)
+            return best, [_row(best)], None
+        return select_material(candidate, settings, models, obs, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float))
+
+    views = len(np.unique(data["image_id"]))
+    if len(np.unique(obs.fold)) < 2 and known_brdf is None:
+        print(f"fit: model selection needs held-out views, but the {views} view(s) fall in one fold "
+              f"(image_id mod --folds {settings.folds}): candidates are compared by their training residual, "
+              "which favours the richest; the choice is in the report", file=sys.stderr)
     t0 = time.perf_counter()
-    interval = None
-    grey = np.asarray(hint if hint is not None else [DEFAULT_ALBEDO] * 3, float)
-    if known_brdf is not None:
-        mode = "check" if known_lighting is not None else "lighting"
-        material = principled_from_dict(known_brdf) if known_brdf["model"] == "principled" else None
-        best = candidate(material, np.asarray(diffuse_color(known_brdf), float), True, None)
-        table = [_row(best)]
-    else:
-        mode = "brdf" if known_lighting is not None else "factorization"
-        fits: dict = {}
-        directions = None
-        if "principled" in models:
-            grid = roughness_candidates(settings)
-            start = min(grid, key=lambda r: abs(np.log(r / 0.3)))
-            fits[start] = candidate(Principled(roughness=start, ior=settings.ior), grey, False, None)
-            directions = _directions(fits[start])
-            for r in grid:
-                if r not in fits:
-                    fits[r] = candidate(Principled(roughness=r, ior=settings.ior), grey, False, directions)
-            rs, errors = _curve(fits)
-            i = int(np.argmin(errors))
-            if rs[i] != start and settings.max_sources > 0:
-                # the sources were located through the start's lobe: look again through the best one's
-                again = candidate(Principled(roughness=float(rs[i]), ior=settings.ior), grey, False, None)
-                if again.validation_rmse < fits[rs[i]].validation_rmse:
-                    directions = _directions(again)
-                    for r in rs[max(i - 1, 0):i + 2]:
-                        fits[float(r)] = again if r == rs[i] else candidate(
-                            Principled(roughness=float(r), ior=settings.ior), grey, False, directions)
-                rs, errors = _curve(fits)
-            for _ in range(settings.roughness_refinements):    # bisect (in log) around the best, then a parabola
-                i = int(np.argmin(errors))
-                for r in (np.sqrt(rs[i] * rs[max(i - 1, 0)]), np.sqrt(rs[i] * rs[min(i + 1, len(rs) - 1)])):
-                    if not np.any(np.isclose(rs, r)):
-                        fits[float(r)] = candidate(Principled(roughness=float(r), ior=settings.ior), grey, False,
-                                                   directions)
-                rs, errors = _curve(fits)
-            refined = material_fit.refine_minimum(rs, errors)
-            if not np.any(np.isclose(rs, refined)):
-                fits[refined] = candidate(Principled(roughness=refined, ior=settings.ior), grey, False, directions)
-            rs, errors = _curve(fits)
-            interval = material_fit.roughness_interval(rs, errors, settings.parsimony)
-        table = [_row(fits[r]) for r in sorted(fits)]
-        if "lambert" in models:
-            lam = candidate(None, grey, False, directions if "principled" in models else None)
-            fits[0.0] = lam
-            table.insert(0, _row(lam))
-        rms = float(np.sqrt((obs.weight[:, None] * obs.radiance ** 2).sum() / (3 * obs.weight.sum())))
-        pick = solve.parsimonious_choice(table, settings.parsimony, noise=settings.noise_floor * rms)
-        best = fits[table[pick]["roughness"]]
-        if best.material is None:
-            interval = None
+    mode = ("check" if known_lighting is not None else "lighting") if known_brdf is not None else \
+        ("brdf" if known_lighting is not None else "factorization")
+    best, table, interval = select()
+    applied = 1.0
+    for _ in range(4 if known_lighting is not None else 0):   # --lighting-scale fit: until the factor settles
+        scale = check_lighting_scale(geo, obs, settings, best, known_lighting, known_dirs, known_sources)
+        if abs(scale["applied"] - 1.0) < 0.02:
+            break
+        applied *= scale["applied"]
+        known_lighting, known_sources = known_lighting * scale["applied"], known_sources * scale["applied"]
+        best, table, interval = select()
+    if scale is not None:
+        scale["applied"] = applied
     timings["material"] = time.perf_counter() - t0
 
     brdf = _brdf_json(best)
@@ -196,7 +247,8 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
               "noise_sigma": best.lighting.noise_sigma, "candidates": table, "lighting_orders": best.orders,
               "sources": sources, "samples": {"used": int(len(obs.weight))},
               "roughness_interval": None if interval is None else list(interval),
-              "scale_convention": _scale_note(brdf, hint)}
+              "scale_convention": _scale_note(brdf, hint) if scale is None else
+              {"source": "the known lighting", "lighting_scale": scale}}
     print(_summary_line(brdf, interval, len(sources)), file=sys.stderr)
     out = Path(work) / "fit"
     spec = None if best.material is None else prt.specular_transfer(geo, best.material, settings.lobe_samples,
@@ -244,8 +296,10 @@ def _directions(fit: material_fit.MaterialFit):
 
 
 def _curve(fits: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate roughness and their held-out RMSE (the training RMSE when no view can be held out)."""
     rs = np.array(sorted(r for r in fits if r > 0))
-    return rs, np.array([fits[r].validation_rmse for r in rs])
+    held = np.array([fits[r].validation_rmse for r in rs])
+    return rs, held if np.all(np.isfinite(held)) else np.array([fits[r].train_rmse for r in rs])
 
 
 def _brdf_json(fit: material_fit.MaterialFit) -> dict:

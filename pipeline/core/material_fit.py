@@ -423,3 +423,27 @@ def refine_minimum(x: np.ndarray, y: np.ndarray) -> float:
     return float(np.exp(np.clip(-c[1] / (2 * c[0]), lx[0], lx[2])))
 
 
+
+
+def known_lighting_scale(geo: prt.Geometry, material: Principled | None, spec: np.ndarray | None,
+                         coeffs: np.ndarray, sources: Sources | None, obs: Observations,
+                         base: np.ndarray, max_bounces: int = 8) -> tuple[float, bool]:
+    """(k, exact): how many times brighter the photos are than a known lighting predicts.
+
+    With a specular layer the layer's Fresnel-fixed magnitude pins it: per channel radiance =
+    x_c Q_c + k_c R_c (Q: the diffuse shading per unit base colour, R: the specular radiance, x_c
+    = k_c rho_c) by least squares, k the R-weighted mean of k_c (exact = True).  Without one only a
+    lower bound: the factor that keeps the least-squares base colour at or below 1 (exact = False).
+    """
+    fit = MaterialFit(material, np.asarray(base, float), np.asarray(coeffs, float), None, [], 0.0, 0.0, sources)
+    shade, specular = shading_parts(geo, fit, spec)
+    w = obs.weight[:, None]
+    if spec is None or not np.any(specular):
+        rho = (w * shade * obs.radiance).sum(0) / np.maximum((w * shade * shade).sum(0), 1e-300)
+        return float(max(1.0, rho.max())), False
+    k = np.zeros(3)
+    energy = (w * specular ** 2).sum(0)
+    for c in range(3):
+        a = np.stack([shade[:, c], specular[:, c]], axis=1) * np.sqrt(w)
+        k[c] = np.linalg.lstsq(a, obs.radiance[:, c] * np.sqrt(w[:, 0]), rcond=None)[0][1]
+    return float((k * energy).sum() / max(energy.sum(), 1e-300)), True
