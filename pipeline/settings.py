@@ -87,7 +87,7 @@ def add_settings_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
             continue
         tp = hints[f.name]
         flag = "--" + f.name.replace("_", "-")
-        help_text = f.metadata.get("help", "")
+        help_text = f.metadata.get("help", "").replace("%", "%%")   # argparse expands % in help
         default = f.default if f.default is not dataclasses.MISSING else (
             f.default_factory() if f.default_factory is not dataclasses.MISSING else None)  # type: ignore[misc]
         if tp is bool:

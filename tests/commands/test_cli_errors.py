@@ -11,3 +11,16 @@ def test_user_error_is_one_line_exit_2(tmp_path):
     assert "Traceback" not in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
     assert proc.stderr.startswith("sigrend: error:")
+
+
+def test_every_command_prints_its_help(capsys):
+    """--help of every command renders (a '%' in a setting's help once broke fit's and relight's)."""
+    import pytest
+
+    from pipeline.cli import main
+
+    for command in ("linearize", "poses", "samples", "fit", "relight", "run", "synth", "bench", "calib", "env"):
+        with pytest.raises(SystemExit) as done:
+            main([command, "--help"])
+        assert done.value.code == 0, command
+        assert "usage:" in capsys.readouterr().out, command
