@@ -27,7 +27,7 @@ import numpy as np
 from pipeline.core import material_fit, prt, solve
 from pipeline.core.envmap import add_sources
 from pipeline.core.material import MIN_ROUGHNESS, Principled, principled_from_dict
-from pipeline.core.sh import envmap_from_sh, order_of, sh_of_sources
+from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, sh_of_sources
 from pipeline.errors import UserError
 from pipeline.io.brdf import diffuse_color, write_brdf
 from pipeline.io.images import write_image
@@ -76,7 +76,9 @@ def known_lighting_parts(settings, order: int) -> tuple[np.ndarray, np.ndarray, 
         coeffs, (dirs, power) = read_lighting_sh(path), read_lighting_sources(path)
         if len(dirs):
             coeffs = coeffs - sh_of_sources(dirs, power, order_of(coeffs.shape[0]))
-        return coeffs, dirs, power
+        out = np.zeros((num_coeffs(order), 3))          # to the fit's order (truncated or zero-padded)
+        out[:min(len(out), len(coeffs))] = coeffs[:len(out)]
+        return out, dirs, power
     from pipeline.io.images import read_envmap
 
     env = np.asarray(read_envmap(path), float)
