@@ -1,20 +1,20 @@
 """Lighting and principled material from light-field samples on the physical forward model
-(pipeline.core.prt): the solver maths of the fit stage's physical path (pure NumPy).
+(pipeline.core.prt): the solver maths of the fit stage's physical path.
 
 For a fixed material the radiance is linear in the SH lighting, B_c = A_c L_c with
 A_c = rho_c kd / pi (D + I_c(rho)) + S_c (prt module docstring), so the lighting solves
 pipeline.core.solve's regularized normal equations, labels from the actual transfer included.
 The material is found around that:
 
-* base colour rho (3,): for fixed lighting, B_c - S_c L_c = rho_c q_c with q_c = kd / pi (D + I_c) L_c
-  is linear in rho_c (I_c is updated with rho between steps);
 * the specular layer of a dielectric has a magnitude fixed by its Fresnel term (ior), so lighting
   and base colour have an absolute scale: scaling L by s and rho by 1 / s keeps the diffuse part
   and scales the specular one.  The joint start solves for X_c = rho_c L_c and L_c together
-  (linear) and reads rho_c off the low bands (rho_c = <X_c, L_c> / <L_c, L_c>), then alternates;
+  (linear) and reads rho_c off the low bands (rho_c = <X_c, L_c> / <L_c, L_c>); then rho_c is
+  searched per channel with the lighting refitted at every value (_base_search);
 * roughness: each candidate is a full fit, compared on held-out views (pipeline.core.solve
   cross_validate_orders).  A Lambertian object has no such anchor: its scale follows the
-  fit's convention (a known or default albedo).
+  fit's convention (a known or default albedo);
+* directional sources (the lighting's dual angular part) by matching pursuit (find_source).
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ import numpy as np
 from pipeline.core import prt, solve
 from pipeline.core.material import Principled, ggx_lobe_cos
 from pipeline.core.sh import num_coeffs
+from pipeline.core.shading import front_cos
 
 
 @dataclass
@@ -66,6 +67,13 @@ def _equations(a: np.ndarray, obs: Observations, order: int, folds: int) -> solv
     eqs = solve.NormalEquations(order, folds, shared=False)
     eqs.add(a, obs.radiance, obs.weight, obs.fold)
     return eqs
+
+
+def _solve_sh(a: np.ndarray, target: np.ndarray, obs: Observations, order: int, folds: int,
+              kw: dict) -> solve.LightingFit:
+    """The regularized SH lighting (pipeline.core.solve.solve_lighting) of design ``a`` (3, N, K) for ``target``."""
+    g, h, btb, wt = _equations(a, Observations(target, obs.weight, obs.fold), order, folds).channel_system(slice(None))
+    return solve.solve_lighting(g, h, btb, wt, len(obs.weight), order, **kw)
 
 
 def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: np.ndarray, obs: Observations,
@@ -111,11 +119,15 @@ def _source_columns(geo: prt.Geometry, layer: np.ndarray, st: prt.SourceTransfer
     return np.moveaxis(cols, 2, 0)
 
 
+def _explained_power(num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    """Residual power (J,) that each column explains with a non-negative intensity, from its
+    per-channel correlations num = <w col, residual> and energies den = <w col, col> (J, 3)."""
+    return (np.maximum(num, 0.0) ** 2 / np.maximum(den, 1e-300)).sum(axis=1)
+
+
 def _source_score(cols: np.ndarray, residual: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """Weighted residual power each column (3, N, J) explains with a non-negative intensity (J,)."""
-    num = np.einsum("p,cpj,pc->jc", weight, cols, residual)
-    den = np.einsum("p,cpj->jc", weight, cols * cols)
-    return (np.maximum(num, 0.0) ** 2 / np.maximum(den, 1e-300)).sum(axis=1)
+    return _explained_power(np.einsum("p,cpj,pc->jc", weight, cols, residual), np.einsum("p,cpj->jc", weight, cols * cols))
 
 
 def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
@@ -136,7 +148,7 @@ def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray
     for s in range(0, coarse.size, chunk):
         sl = coarse[s:s + chunk]
         vis = r._point_visibility(geo.faces[sl], geo.tri[sl], geo.bary[sl])
-        cos = np.where(geo.mu_out[sl, None] > 0, np.maximum(geo.normals[sl] @ dirs.T, 0.0), 0.0) * vis
+        cos = front_cos(geo.normals[sl], geo.mu_out[sl], dirs) * vis
         col = cos[..., None] * kd[sl, None, :]
         if material is not None:
             p, d = cos.shape
@@ -146,7 +158,7 @@ def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray
             col += (fres * (lobe * vis.reshape(-1))[:, None]).reshape(p, d, 3)
         num += np.einsum("p,pdc,pc->dc", weight[sl], col, residual[sl])
         den += np.einsum("p,pdc->dc", weight[sl], col * col)
-    score = (np.maximum(num, 0.0) ** 2 / np.maximum(den, 1e-300)).sum(axis=1)
+    score = _explained_power(num, den)
     for f in exclude or []:
         score[dirs @ f > MIN_SOURCE_COS] = -np.inf
     best, best_score = dirs[int(np.argmax(score))], -np.inf   # the refinement (centre included) scores all samples
@@ -212,7 +224,7 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
         if known is not None or spec is None:
             for _ in range(4):            # least squares in rho given the lighting (+ interreflection update)
                 coeffs = solve_at(base)[0]
-                new = _base_least_squares(geo, material, layer, spec, base, sources, coeffs, obs, max_bounces)
+                new = _base_least_squares(geo, material, spec, base, sources, coeffs, obs, max_bounces)
                 if spec is None:          # Lambert: only the chromaticity is determined
                     new *= float(np.mean(base0)) / float(np.mean(new))
                 done = np.abs(new - base).max() < 1e-3
@@ -221,33 +233,26 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
                     break
         else:
             a = _design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, order)
-            g, h, btb, wt = _equations(a, obs, order, folds).channel_system(slice(None))
-            start = solve.solve_lighting(g, h, btb, wt, len(obs.weight), order, **kw)
+            start = _solve_sh(a, obs.radiance, obs, order, folds, kw)
             # the ridge is (sigma / (band_prior |L_0|))^2 W / views (pipeline.core.solve): scaled with the
             # lighting's DC as rho changes, so that no rho is favoured by a relatively weaker prior
             ridge_dc2 = start.ridge * float(np.mean(start.coeffs[0] ** 2))
             for _ in range(2):            # the second pass with the interreflection of the first's rho
                 base = _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc2, max_bounces,
                                     base_grid)
-    if sources is not None:
-        solve_at(base, 8)                 # the sources' intensities for the final base colour
-    indirect = prt.indirect_transfer(geo, material, base, max_bounces)
-    target = obs.radiance
-    if sources is not None:
-        src_ind = prt.indirect_transfer(geo, material, base, max_bounces, sources.transfer.vertex_direct)
-        target = obs.radiance - np.einsum("cpj,jc->pc", _source_columns(geo, layer, sources.transfer, src_ind, base),
-                                          sources.power)
+    # the design and source columns at the final base colour (and the sources' intensities for it)
+    _, _, a, src_cols = solve_at(base, 8)
+    target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
     if known is not None:
-        a = _design(geo, layer, indirect, spec, base, order)
         w = obs.weight
         rmse = float(np.sqrt((w[:, None] * (target - np.einsum("cpk,kc->pc", a, known)) ** 2).sum() / (3 * w.sum())))
-        g, h, btb, wt = _equations(a, Observations(target, w, obs.fold), order, folds).channel_system(slice(None))
-        diag = solve.solve_lighting(g, h, btb, wt, len(w), order, **kw)
+        diag = _solve_sh(a, target, obs, order, folds, kw)
         diag.coeffs = known
         return MaterialFit(material, base, known, diag, [], rmse, rmse, sources)
     top = order if orders is None else max(orders)
-    eqs = _equations(_design(geo, layer, indirect, spec, base, top), Observations(target, obs.weight, obs.fold), top,
-                     folds)
+    if top != order:
+        a = _design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, top)
+    eqs = _equations(a, Observations(target, obs.weight, obs.fold), top, folds)
     cands = solve.cross_validate_orders(eqs, orders or [order], None, **kw)
     best = min(range(len(cands)), key=lambda i: cands[i]["validation_rmse"])
     fit = cands[best]["fit"]
@@ -295,21 +300,22 @@ def _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc
 
 
 def _lighting_given_base(geo, material, layer, spec, base, sources, obs, order, folds, kw, inner, known,
-                         max_bounces) -> tuple[np.ndarray, np.ndarray]:
+                         max_bounces) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """SH lighting (K, 3) for a fixed base colour, alternating with the sources' intensities
-    (updated in ``sources``) ``inner`` times; and the weighted training RSS per channel (3,)."""
+    (updated in ``sources``) ``inner`` times; the weighted training RSS per channel (3,); the
+    design (3, N, K) and the sources' columns (3, N, J) or None it used."""
     w = obs.weight
     a = _design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, order)
     src_cols = None
     if sources is not None:
         src_ind = prt.indirect_transfer(geo, material, base, max_bounces, sources.transfer.vertex_direct)
         src_cols = _source_columns(geo, layer, sources.transfer, src_ind, base)
+
     def sh_fit():
         if known is not None:
             return known
         target = obs.radiance - (0.0 if sources is None else np.einsum("cpj,jc->pc", src_cols, sources.power))
-        g, h, btb, wt = _equations(a, Observations(target, w, obs.fold), order, folds).channel_system(slice(None))
-        return solve.solve_lighting(g, h, btb, wt, len(w), order, **kw).coeffs
+        return _solve_sh(a, target, obs, order, folds, kw).coeffs
 
     coeffs = sh_fit()
     if sources is not None and known is None:
@@ -319,22 +325,17 @@ def _lighting_given_base(geo, material, layer, spec, base, sources, obs, order, 
     pred = np.einsum("cpk,kc->pc", a, coeffs)
     if sources is not None:
         pred += np.einsum("cpj,jc->pc", src_cols, sources.power)
-    return coeffs, (w[:, None] * (obs.radiance - pred) ** 2).sum(axis=0)
+    return coeffs, (w[:, None] * (obs.radiance - pred) ** 2).sum(axis=0), a, src_cols
 
 
-def _base_least_squares(geo, material, layer, spec, base, sources, coeffs, obs, max_bounces) -> np.ndarray:
-    """rho (3,) in [1e-3, 1] by least squares for fixed lighting: radiance - specular = rho q."""
-    w = obs.weight
-    indirect = prt.indirect_transfer(geo, material, base, max_bounces)
-    q = np.einsum("pkc,kc->pc", geo.direct[:, :, None] + indirect, coeffs) * layer / np.pi
-    r = obs.radiance - (np.einsum("pkc,kc->pc", spec, coeffs) if spec is not None else 0.0)
-    if sources is not None:
-        st = sources.transfer
-        src_ind = prt.indirect_transfer(geo, material, base, max_bounces, st.vertex_direct)
-        q += np.einsum("pjc,jc->pc", st.direct[..., None] + src_ind, sources.power) * layer / np.pi
-        if st.specular is not None:
-            r = r - np.einsum("pjc,jc->pc", st.specular, sources.power)
-    return np.clip((w[:, None] * q * r).sum(0) / np.maximum((w[:, None] * q * q).sum(0), 1e-300), 1e-3, 1.0)
+def _base_least_squares(geo, material, spec, base, sources, coeffs, obs, max_bounces) -> np.ndarray:
+    """rho (3,) in [1e-3, 1] by least squares for fixed lighting: radiance - specular = rho shade
+    (shading_parts, the interreflection taken at ``base``)."""
+    shade, specular = shading_parts(geo, MaterialFit(material, base, coeffs, None, [], 0.0, 0.0, sources), spec,
+                                    max_bounces)
+    w = obs.weight[:, None]
+    r = obs.radiance - specular
+    return np.clip((w * shade * r).sum(0) / np.maximum((w * shade * shade).sum(0), 1e-300), 1e-3, 1.0)
 
 
 def _source_intensities(cols: np.ndarray, residual: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -357,9 +358,7 @@ def _add_sources(geo, material, base, layer, a, obs, max_sources, gain, order, f
     ``gain`` (relative); intensities are fitted on all views (3 numbers a source)."""
     w = obs.weight
     best = _held_out_rmse(a, obs.radiance, obs, order, folds, kw)
-    eqs = _equations(a, obs, order, folds)
-    g, h, btb, wt = eqs.channel_system(slice(None))
-    residual = obs.radiance - np.einsum("cpk,kc->pc", a, solve.solve_lighting(g, h, btb, wt, len(w), order, **kw).coeffs)
+    residual = obs.radiance - np.einsum("cpk,kc->pc", a, _solve_sh(a, obs.radiance, obs, order, folds, kw).coeffs)
     found, kept = [], None
     for _ in range(max_sources):
         d, explained = find_source(geo, material, base, residual, w, exclude=found)
@@ -373,23 +372,22 @@ def _add_sources(geo, material, base, layer, a, obs, max_sources, gain, order, f
         if score > best * (1.0 - gain):
             break
         best, found, kept = score, found + [d], (st, cols, power)
-        eqs = _equations(a, Observations(target, w, obs.fold), order, folds)
-        g, h, btb, wt = eqs.channel_system(slice(None))
-        residual = target - np.einsum("cpk,kc->pc", a, solve.solve_lighting(g, h, btb, wt, len(w), order, **kw).coeffs)
+        residual = target - np.einsum("cpk,kc->pc", a, _solve_sh(a, target, obs, order, folds, kw).coeffs)
     return None if kept is None else Sources(kept[0], kept[2])
 
 
-def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: np.ndarray | None,
+                  max_bounces: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """(diffuse radiance per unit base colour (N, 3), specular radiance (N, 3)) of a fitted
     candidate at the samples, its lighting (SH + sources) and interreflection included."""
     layer = prt.diffuse_layer(fit.material, geo.mu_out)
-    indirect = prt.indirect_transfer(geo, fit.material, fit.base)
+    indirect = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces)
     k = fit.coeffs.shape[0]
     shade = np.einsum("pkc,kc->pc", geo.direct[:, :k, None] + indirect[:, :k], fit.coeffs)
     specular = np.zeros_like(shade) if spec is None else np.einsum("pkc,kc->pc", spec[:, :k], fit.coeffs)
     if fit.sources is not None:
         st = fit.sources.transfer
-        src_ind = prt.indirect_transfer(geo, fit.material, fit.base, vertex_direct=st.vertex_direct)
+        src_ind = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces, st.vertex_direct)
         shade += np.einsum("pjc,jc->pc", st.direct[..., None] + src_ind, fit.sources.power)
         if st.specular is not None:
             specular += np.einsum("pjc,jc->pc", st.specular, fit.sources.power)

@@ -33,7 +33,7 @@ import numpy as np
 from pipeline.core.material import Principled
 from pipeline.core.render import Renderer, bounce_series
 from pipeline.core.sh import band_of_index, num_coeffs, sh_basis
-from pipeline.core.shading import specular_over_directions, specular_samples
+from pipeline.core.shading import front_cos, specular_over_directions, specular_samples
 
 
 @dataclass
@@ -86,7 +86,7 @@ def geometry(mesh, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, o
     per_chunk = max(1, r.chunk_pairs // len(dirs))
     for s in range(0, faces.size, per_chunk):
         sl = slice(s, s + per_chunk)
-        cos = np.where(mu_out[sl, None] > 0, np.maximum(normals[sl] @ dirs.T, 0.0), 0.0)
+        cos = front_cos(normals[sl], mu_out[sl], dirs)
         direct[sl] = (cos * r._point_visibility(faces[sl], tri[sl], bary[sl])) @ power
     rays = r.bounce_rays()
     blocked = sh_basis(rays.directions, order) * (np.pi / rays.per_vertex)
@@ -129,6 +129,7 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
     n = geo.faces.size
     out = np.zeros((n, num_coeffs(geo.order), 3))
     front = np.flatnonzero(geo.mu_out > 0)
+    l = band_of_index(geo.order)
     for s in range(0, front.size, chunk):
         idx = front[s:s + chunk]
         lobe = specular_samples(material, geo.normals[idx], geo.view_dirs[idx], n_samples, rng)
@@ -141,7 +142,6 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
         weight[live[hit]] = 0.0
         # each sample stands for its solid angle 1 / (S pdf): Y_k prefiltered over a cap of that size,
         # cap average ~ exp(-l(l+1) θ² / 8) with θ² = Ω / π (as the renderer prefilters its map)
-        l = band_of_index(geo.order)
         soft = np.exp(-np.outer(lobe.solid_angle.reshape(-1) / (8 * np.pi), l * (l + 1)))
         basis = (sh_basis(dirs, geo.order) * soft).reshape(q, ns, -1).transpose(0, 2, 1)   # (q, K, S)
         w3 = weight.reshape(q, ns, 3)
@@ -170,13 +170,12 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
     d = np.atleast_2d(np.asarray(directions, float))
     n, j = geo.faces.size, d.shape[0]
     pts = r._points_above(geo.faces, geo.bary)
-    verts = np.asarray(r.mesh.vertices, float)
-    vpts = verts + r._vertex_normals * (1e-4 * r._scale)
+    vpts = r.vertices_above()
     direct = np.zeros((n, j))
-    vdirect = np.zeros((len(verts), j))
+    vdirect = np.zeros((len(vpts), j))
     spec = None if material is None else np.zeros((n, j, 3))
     for i in range(j):
-        cos = np.where(geo.mu_out > 0, np.maximum(geo.normals @ d[i], 0.0), 0.0)
+        cos = front_cos(geo.normals, geo.mu_out, d[i:i + 1])[:, 0]
         lit = np.flatnonzero(cos > 0)
         vis = np.zeros(n)
         vis[lit] = ~r._shadow_rays.intersects_any(pts[lit], np.broadcast_to(d[i], (lit.size, 3)))

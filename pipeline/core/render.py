@@ -46,8 +46,8 @@ from pipeline.core.brdf import beckmann_distribution, phong_lobe, vcavity_shadow
 from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays
 from pipeline.core.envmap import (downsample, equirect_directions, equirect_solid_angles, lookup)
 from pipeline.core.material import principled_from_dict
-from pipeline.core.shading import (EnvPyramid, lobe_support_cos, specular_over_directions, specular_samples,
-                                   stratified_unit_square, tangent_frames)
+from pipeline.core.shading import (EnvPyramid, front_cos, lobe_support_cos, specular_over_directions,
+                                   specular_samples, stratified_unit_square, tangent_frames)
 
 _VIS_HORIZON = -0.3  # shadow rays only for directions with n_vertex . w > this (others: occluded)
 _LOBE_CUT_SIGMAS = 4.0  # microfacet support: tan(theta_h) < 4 sigma, D > exp(-16) of its peak
@@ -269,9 +269,8 @@ class Renderer:
         if not self.shadows or todo.size == 0:
             return
         dirs = self.lights.directions
-        pos = np.asarray(self.mesh.vertices, float)[todo]
         nrm = self._vertex_normals[todo]
-        origins = pos + nrm * (1e-4 * self._scale)
+        origins = self.vertices_above()[todo]
         per_chunk = max(1, self.chunk_pairs // len(dirs))
         for s in range(0, todo.size, per_chunk):
             sl = slice(s, s + per_chunk)
@@ -315,6 +314,10 @@ class Renderer:
         fn = np.asarray(self.mesh.face_normals)[faces]
         return np.einsum("pk,pkc->pc", bary, self.mesh.triangles[faces]) + fn * (1e-5 * self._scale)
 
+    def vertices_above(self) -> np.ndarray:
+        """The vertices (V, 3), lifted along their normals: ray origins that do not hit their own surface."""
+        return np.asarray(self.mesh.vertices, float) + self._vertex_normals * (1e-4 * self._scale)
+
     def _vertex_base(self) -> np.ndarray:
         """Per-vertex diffuse colour (V, 3): vertex_albedo, or the material's base colour / albedo."""
         if self.vertex_albedo is not None:
@@ -347,7 +350,7 @@ class Renderer:
         local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1 - r * r, 0))], -1)  # cosine pdf
         t, b = tangent_frames(normals)
         w = local[..., 0:1] * t[:, None] + local[..., 1:2] * b[:, None] + local[..., 2:3] * normals[:, None]
-        origins = np.repeat(verts + normals * (1e-4 * self._scale), n_s, axis=0)
+        origins = np.repeat(self.vertices_above(), n_s, axis=0)
         hit_face, ray_id, loc = self._shadow_rays.intersects_id(origins, w.reshape(-1, 3), multiple_hits=False,
                                                                 return_locations=True)
         on_mesh = hit_face < len(self.mesh.faces)  # the board (when present) is not a bounce source
@@ -499,7 +502,7 @@ class Renderer:
         for s in range(0, faces.shape[0], per_chunk):
             sl = slice(s, s + per_chunk)
             n, wo = normals[sl], view_dirs[sl]
-            cos = np.where(mu_out[sl, None] > 0, np.maximum(n @ dirs.T, 0.0), 0.0)
+            cos = front_cos(n, mu_out[sl], dirs)
             vis = self._point_visibility(faces[sl], tri[sl], bary[sl]) if self.shadows else None
             weight = cos if vis is None else cos * vis
             out[sl] = kd[sl] / np.pi * (weight @ power)

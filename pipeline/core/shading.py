@@ -37,6 +37,12 @@ def tangent_frames(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return t, bt
 
 
+def front_cos(normal: np.ndarray, mu_out: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """max(0, n . w_j) for points (P, 3) seen from the front (mu_out = n . w_o > 0; 0 otherwise)
+    and directions (D, 3): (P, D), the cosine the reflection equation integrates."""
+    return np.where(np.asarray(mu_out)[:, None] > 0, np.maximum(np.asarray(normal) @ np.asarray(dirs).T, 0.0), 0.0)
+
+
 def stratified_unit_square(count: int, n_samples: int, rng: np.random.Generator) -> np.ndarray:
     """(count, S, 2) points in [0, 1)^2: an n x n grid of cell centres (S = n^2 ~ ``n_samples``) with one
     random (Cranley-Patterson) shift per row, so that neighbouring points' errors are uncorrelated."""
