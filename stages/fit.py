@@ -87,7 +87,7 @@ class Settings:
                                             "(2 candidates each) before the final parabola")
     ior: float = setting(1.5, "principled fit: index of refraction of the dielectric specular layer")
     max_sources: int = setting(3, "principled fit: directional sources (the lighting's dual angular part) tried "
-                                  "on top of the SH lighting, each kept only if it explains >= 2% of the residual")
+                                  "on top of the SH lighting, each kept only if it lowers the held-out views' error by 2%")
     physical_samples: int = setting(30000, "principled fit: samples used (random subset)")
     lobe_samples: int = setting(32, "principled fit: GGX lobe samples per sample in the specular transfer")
     bounce_samples: int = setting(64, "principled fit: occlusion / bounce rays per vertex (shadows, interreflection)")
@@ -184,11 +184,17 @@ def known_albedo_hint(capture: Path) -> list[float] | None:
     return arr.tolist()
 
 
-def load_known_lighting(spec: str, env_order: int) -> np.ndarray:
-    """Known lighting as SH ((L+1)^2, 3): a lighting_sh.json, or an equirect map projected to env_order."""
+def known_lighting_path(spec: str) -> Path:
+    """The --lighting file, or a user error when there is none."""
     path = Path(spec)
     if not path.is_file():
         raise UserError(f"--lighting {spec!r}: no such file; give 'unknown', an equirect EXR/HDR or a lighting_sh.json")
+    return path
+
+
+def load_known_lighting(spec: str, env_order: int) -> np.ndarray:
+    """Known lighting as SH ((L+1)^2, 3): a lighting_sh.json, or an equirect map projected to env_order."""
+    path = known_lighting_path(spec)
     if path.suffix.lower() == ".json":
         return read_lighting_sh(path)
     from pipeline.io.images import read_envmap
@@ -556,15 +562,15 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     keys = meta["image_keys"]
     explicit_order = None if settings.order == "auto" else int(settings.order)
     fit_model, known_brdf = parse_brdf_setting(settings.brdf)
-    known_lighting = None if settings.lighting == "unknown" else load_known_lighting(settings.lighting, settings.env_order)
+    hint = known_albedo_hint(capture)
     if settings.forward == "physical" and _has_mesh(capture) and (fit_model in (None, "lambert", "principled")
                                            and (known_brdf or {}).get("model", "lambert") in ("lambert", "principled")):
         from stages import fit_physical
 
         models = [fit_model] if fit_model else ["lambert", "principled"]
         return fit_physical.run(capture=capture, work=work, settings=settings, keys=keys, known_brdf=known_brdf,
-                                known_lighting=known_lighting, models=models, hint=known_albedo_hint(capture))
-    hint = known_albedo_hint(capture)
+                                models=models, hint=hint)
+    known_lighting = None if settings.lighting == "unknown" else load_known_lighting(settings.lighting, settings.env_order)
     total = int(meta.get("count", 0))
     valid = sum(len(c["weight"]) for c in iter_sample_chunks(samples_path, settings.chunk, ("weight",))) if not total else total
 

@@ -35,8 +35,8 @@ from pipeline.io.lighting import write_lighting_sh
 from pipeline.io.mesh import mesh_path, read_mesh
 from pipeline.io.report import write_report
 from pipeline.io.samples import iter_sample_chunks
+from stages.fit import DEFAULT_ALBEDO, albedo_from_shading, known_lighting_path, write_plots, write_vertex_albedo
 
-DEFAULT_ALBEDO = 0.5     # the Lambertian scale convention without a capture.toml hint (as the convex fit)
 SOURCES_NOTE = ("'coeffs' is the whole lighting to this order, the directional 'sources' included (their SH "
                 "projection); an angular renderer replaces that projection by the sources themselves")
 FIELDS = ("face", "bary", "view_dir", "radiance", "image_id", "weight", "normal")
@@ -69,13 +69,11 @@ def known_lighting_parts(settings, order: int) -> tuple[np.ndarray, np.ndarray, 
     lighting_sh.json: its sources (if any; their projection taken out of its coefficients)."""
     from pipeline.core.render import light_set
     from pipeline.core.sh import project_envmap
-    from pipeline.io.lighting import read_lighting_sh, read_lighting_sources
+    from pipeline.io.lighting import read_lighting_parts
 
-    path = Path(settings.lighting)
+    path = known_lighting_path(settings.lighting)
     if path.suffix.lower() == ".json":
-        coeffs, (dirs, power) = read_lighting_sh(path), read_lighting_sources(path)
-        if len(dirs):
-            coeffs = coeffs - sh_of_sources(dirs, power, order_of(coeffs.shape[0]))
+        coeffs, dirs, power = read_lighting_parts(path)
         out = np.zeros((num_coeffs(order), 3))          # to the fit's order (truncated or zero-padded)
         out[:min(len(out), len(coeffs))] = coeffs[:len(out)]
         return out, dirs, power
@@ -177,7 +175,7 @@ def roughness_candidates(settings) -> list[float]:
 
 
 def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dict | None,
-        known_lighting: np.ndarray | None, models: list[str], hint: list[float] | None) -> list[Path]:
+        models: list[str], hint: list[float] | None) -> list[Path]:
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     mesh = read_mesh(mesh_path(capture))
@@ -194,8 +192,8 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior,
               independent_groups=len(np.unique(data["image_id"])), posed_ratio=prt.QUADRATURE_FLOOR)
 
-    known_sources = known_dirs = scale = None
-    if known_lighting is not None:
+    known_lighting = known_sources = known_dirs = scale = None
+    if settings.lighting != "unknown":
         known_lighting, known_dirs, known_sources = known_lighting_parts(settings, order)
         if settings.lighting_scale != "fit":
             factor = float(settings.lighting_scale)
@@ -218,9 +216,8 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
             return best, [_row(best)], None
         return select_material(candidate, settings, models, obs, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float))
 
-    views = len(np.unique(data["image_id"]))
     if len(np.unique(obs.fold)) < 2 and known_brdf is None:
-        print(f"fit: model selection needs held-out views, but the {views} view(s) fall in one fold "
+        print(f"fit: model selection needs held-out views, but the {len(np.unique(data['image_id']))} view(s) fall in one fold "
               f"(image_id mod --folds {settings.folds}): candidates are compared by their training residual, "
               "which favours the richest; the choice is in the report", file=sys.stderr)
     t0 = time.perf_counter()
@@ -263,8 +260,6 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     if settings.albedo == "uniform":
         report["albedo"] = {**entry, "choice": "uniform", "note": "--albedo uniform: no per-vertex fit"}
     else:
-        from stages.fit import albedo_from_shading
-
         report["albedo"], vertex_rho, _ = albedo_from_shading(mesh, data, shade, obs.radiance - specular, settings, entry)
         if vertex_rho is not None:
             key = "albedo" if brdf["model"] == "lambert" else "base_color"
@@ -272,8 +267,6 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     env = np.maximum(envmap_from_sh(coeffs, settings.env_height), 0.0)
     if best.sources is not None:
         env = add_sources(env, best.sources.directions, best.sources.power)
-    from stages.fit import write_plots
-
     total = coeffs if best.sources is None else coeffs + sh_of_sources(best.sources.directions, best.sources.power,
                                                                        order_of(coeffs.shape[0]))
     written = [write_lighting_sh(out / "lighting_sh.json", total, source=f"sigrend fit ({mode}, physical)",
@@ -282,8 +275,6 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
                write_brdf(out / "brdf.json", brdf)]
     written += write_plots(out, env, best.lighting.bands, views)
     if vertex_rho is not None:
-        from stages.fit import write_vertex_albedo
-
         written.append(write_vertex_albedo(out / "albedo.ply", mesh, vertex_rho))
     elif (out / "albedo.ply").exists():
         (out / "albedo.ply").unlink()     # a stale texture from an earlier run would be read by relight

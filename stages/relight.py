@@ -43,13 +43,13 @@ from pipeline.core import camera as cam
 from pipeline.core import forward
 from pipeline.core.brdf import reflect
 from pipeline.core.envmap import add_sources, downsample, equirect_angles, equirect_solid_angles
-from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envmap, sh_of_sources
+from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envmap
 from pipeline.core.transfer import irradiance_from_sh
 from pipeline.errors import UserError
 from pipeline.io.brdf import diffuse_color, read_brdf
 from pipeline.io.camera_files import srgb_encode
 from pipeline.io.images import read_envmap, write_image
-from pipeline.io.lighting import read_lighting_sh, read_lighting_sources
+from pipeline.io.lighting import read_lighting_parts, read_lighting_sh
 from pipeline.io.poses import Poses, read_poses
 from pipeline.settings import setting
 from pipeline.workdir import write_json
@@ -488,8 +488,6 @@ class AngularLighting:
             brdf = {"model": "lambert", "albedo": brdf["albedo"]}
         negative = None
         if coeffs is not None:
-            if sources is not None and len(sources[0]):  # their SH projection is in coeffs (fit_physical)
-                coeffs = np.asarray(coeffs, float) - sh_of_sources(*sources, order_of(np.asarray(coeffs).shape[0]))
             env = envmap_from_sh(np.asarray(coeffs, float), env_height)
             if not clamp_sh and env.min() < 0:
                 negative = np.maximum(-env, 0.0)
@@ -511,8 +509,8 @@ class AngularLighting:
     def from_file(cls, path: Path, brdf: dict, mesh, **kwargs) -> "AngularLighting":
         path = Path(path)
         if path.suffix.lower() == ".json":
-            return cls(brdf, mesh, coeffs=read_lighting_sh(path), sources=read_lighting_sources(path),
-                       source=str(path), **kwargs)
+            coeffs, dirs, power = read_lighting_parts(path)   # the sources' SH projection taken out
+            return cls(brdf, mesh, coeffs=coeffs, sources=(dirs, power), source=str(path), **kwargs)
         return cls(brdf, mesh, env=read_envmap(path), source=str(path), **kwargs)
 
     def describe(self) -> dict:

@@ -53,3 +53,15 @@ def read_lighting_sources(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarr
     if len(d) != len(p) or not np.all(np.isfinite(d)) or np.any(p < 0) or np.any(np.abs(np.linalg.norm(d, axis=1) - 1) > 1e-3):
         raise UserError(f"{path}: every source needs a unit 'direction' and a non-negative 'intensity'")
     return d, p
+
+
+def read_lighting_parts(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A lighting_sh.json split as an angular renderer wants it: (the SH coefficients without the
+    sources' projection ((L+1)^2, 3), source directions (J, 3), intensities (J, 3))."""
+    from pipeline.core.sh import order_of, sh_of_sources
+
+    coeffs = read_lighting_sh(path)
+    dirs, power = read_lighting_sources(path)
+    if len(dirs):
+        coeffs = coeffs - sh_of_sources(dirs, power, order_of(coeffs.shape[0]))
+    return coeffs, dirs, power
