@@ -82,9 +82,10 @@ class Settings:
     lighting_scale: str = setting("1", "factor applied to a known --lighting (a number), or 'fit': one global "
                                         "factor fitted to the photos (stated in the report)")
     roughness_candidates: str = setting("0.1,0.2,0.3,0.45,0.65,1.0", "principled fit: the roughness grid "
-                                        "compared on held-out views (the best is refined by a parabola)")
-    roughness_refinements: int = setting(0, "principled fit: rounds of log-bisection around the best roughness "
-                                            "(2 candidates each) before the final parabola")
+                                        "compared on held-out views (the best is then refined)")
+    roughness_refinements: int = setting(6, "principled fit: most candidates of a bounded Brent search in log "
+                                            "roughness between the best grid point's neighbours; 0 = one candidate at "
+                                            "the parabola through the three")
     ior: float = setting(1.5, "principled fit: index of refraction of the dielectric specular layer")
     max_sources: int = setting(3, "principled fit: directional sources (the lighting's dual angular part) tried "
                                   "on top of the SH lighting, each kept only if it lowers the held-out views' error by 2%")

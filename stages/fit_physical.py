@@ -10,8 +10,11 @@ Taken by ``sigrend fit --brdf principled`` (material unknown) and by a known pri
      (located again through the best roughness's lobe when that is not the first);
   3. every roughness of ``roughness_candidates`` (dielectric, ``ior``): base colour and lighting
      fitted (the Fresnel-fixed specular layer sets the absolute scale), the SH order chosen by
-     held-out views (folds = image_id mod folds); the best roughness refined by bisection and a
-     parabola in log roughness, and the interval of roughness within ``parsimony`` of the best reported;
+     held-out views (folds = image_id mod folds); the best roughness refined by Brent's bounded
+     search in log roughness, and the interval of roughness within ``parsimony`` of the best reported.
+     A known equirect map: every candidate's base colour is fitted under the map itself, with the
+     renderer's own model of each sample (pipeline.core.render.Renderer.shade_parts,
+     material_fit.fit_to_map), the lighting_sh.json written being its SH + brightest-pixel form;
   4. outputs as the convex path: lighting_sh.json (+ "sources"), lighting.exr (sources splatted),
      brdf.json, report.json, plots.
 """
@@ -23,10 +26,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.optimize import minimize_scalar
 
 from pipeline.core import material_fit, prt, solve
 from pipeline.core.envmap import add_sources
-from pipeline.core.material import MIN_ROUGHNESS, Principled, principled_from_dict
+from pipeline.core.material import MIN_ROUGHNESS, Principled, material_dict, principled_from_dict
+from pipeline.core.render import Renderer
 from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, sh_of_sources
 from pipeline.errors import UserError
 from pipeline.io.brdf import diffuse_color, write_brdf
@@ -60,13 +65,15 @@ def load_samples(path: Path, settings, n_faces: int) -> dict:
 
 
 KNOWN_SOURCES = 32    # a known map's brightest pixels kept as directional sources, the rest in SH
+MAP_CELL_HEIGHT = 16  # a known map's remainder (outside its bright pixels) in 16 x 32 cells, as prt.geometry's
 
 
-def known_lighting_parts(settings, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def known_lighting_parts(settings, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """A known lighting as the fit's dual representation: (SH coefficients ((order+1)^2, 3),
-    source directions (J, 3), intensities (J, 3)).  An equirect map: its KNOWN_SOURCES brightest
-    pixels (pipeline.core.render.light_set) as sources and the rest projected to SH; a
-    lighting_sh.json: its sources (if any; their projection taken out of its coefficients)."""
+    source directions (J, 3), intensities (J, 3), the equirect map itself or None).  An equirect
+    map: its KNOWN_SOURCES brightest pixels (pipeline.core.render.light_set) as sources and the
+    rest projected to SH (what lighting_sh.json records; the material is fitted under the map
+    itself); a lighting_sh.json: its sources (if any; their projection taken out of its coefficients)."""
     from pipeline.core.render import light_set
     from pipeline.core.sh import project_envmap
     from pipeline.io.lighting import read_lighting_parts
@@ -76,7 +83,7 @@ def known_lighting_parts(settings, order: int) -> tuple[np.ndarray, np.ndarray, 
         coeffs, dirs, power = read_lighting_parts(path)
         out = np.zeros((num_coeffs(order), 3))          # to the fit's order (truncated or zero-padded)
         out[:min(len(out), len(coeffs))] = coeffs[:len(out)]
-        return out, dirs, power
+        return out, dirs, power, None
     from pipeline.io.images import read_envmap
 
     env = np.asarray(read_envmap(path), float)
@@ -85,7 +92,7 @@ def known_lighting_parts(settings, order: int) -> tuple[np.ndarray, np.ndarray, 
     remainder[lights.bright] = 0.0
     coeffs = project_envmap(remainder.reshape(env.shape), order)
     nb = lights.n_bright
-    return coeffs, lights.directions[len(lights) - nb:], lights.power[len(lights) - nb:]
+    return coeffs, lights.directions[len(lights) - nb:], lights.power[len(lights) - nb:], env
 
 
 SCALE_TOLERANCE = 1.5    # a known map within this factor of the photos is taken as it is (the true maps of
@@ -96,13 +103,16 @@ def check_lighting_scale(geo, obs, settings, best, coeffs, directions, intensity
     """How the photos compare with a known lighting, measured with the fitted material
     (material_fit.known_lighting_scale); with ``--lighting-scale fit`` the factor to apply, else
     a map off by more than SCALE_TOLERANCE is a user error naming the factor and the fix."""
-    spec = None if best.material is None else prt.specular_transfer(geo, best.material, settings.lobe_samples,
-                                                                     settings.seed)
+    spec = None
+    if best.parts is None:       # the SH + sources representation of the known lighting
+        spec = None if best.material is None else prt.specular_transfer(geo, best.material, settings.lobe_samples,
+                                                                         settings.seed)
+        sources = None
+        if directions is not None and len(directions):
+            sources = material_fit.Sources(prt.source_transfer(geo, best.material, directions), intensity)
+        best = material_fit.MaterialFit(best.material, best.base, coeffs, None, [], 0.0, 0.0, sources)
     given = 1.0 if settings.lighting_scale == "fit" else float(settings.lighting_scale)
-    sources = None
-    if directions is not None and len(directions):
-        sources = material_fit.Sources(prt.source_transfer(geo, best.material, directions), intensity)
-    k, exact = material_fit.known_lighting_scale(geo, best.material, spec, coeffs, sources, obs, best.base)
+    k, exact = material_fit.known_lighting_scale(*material_fit.shading_parts(geo, best, spec), obs)
     if settings.lighting_scale == "fit":
         return {"applied": k if exact else max(k, 1.0), "measured": k, "exact": exact,
                 "note": "--lighting-scale fit: one global factor fitted to the photos, then the material refitted"}
@@ -115,7 +125,8 @@ def check_lighting_scale(geo, obs, settings, best, coeffs, directions, intensity
 
 
 def select_material(candidate, settings, models: list[str], obs, grey: np.ndarray):
-    """(best fit, candidates table, roughness interval or None): the principled roughness grid
+    """(best fit, candidates table, roughness interval or None, the best principled fit or None —
+    its Fresnel-fixed layer measures a known lighting's scale): the principled roughness grid
     (sources re-located through the best lobe, log bisection, a parabola) and Lambert, compared
     on held-out views with the parsimony rule."""
     fits: dict = {}
@@ -140,16 +151,22 @@ def select_material(candidate, settings, models: list[str], obs, grey: np.ndarra
                     fits[float(r)] = again if r == rs[i] else candidate(
                         Principled(roughness=float(r), ior=settings.ior), grey, False, directions)
             rs, errors = _curve(fits)
-        for _ in range(settings.roughness_refinements):    # bisect (in log) around the best, then a parabola
-            i = int(np.argmin(errors))
-            for r in (np.sqrt(rs[i] * rs[max(i - 1, 0)]), np.sqrt(rs[i] * rs[min(i + 1, len(rs) - 1)])):
-                if not np.any(np.isclose(rs, r)):
-                    fits[float(r)] = candidate(Principled(roughness=float(r), ior=settings.ior), grey, False,
-                                               directions)
-            rs, errors = _curve(fits)
-        refined = material_fit.refine_minimum(rs, errors)
-        if not np.any(np.isclose(rs, refined)):
-            fits[refined] = candidate(Principled(roughness=refined, ior=settings.ior), grey, False, directions)
+        i = int(np.argmin(errors))
+        if settings.roughness_refinements and 0 < i < len(rs) - 1:
+            # the held-out error is sharp in roughness for glossy objects (a highlight's peak goes as
+            # roughness^-4): Brent's bounded search in log roughness between the best's neighbours
+            def held_out(log_r: float) -> float:
+                r = float(np.exp(log_r))
+                if r not in fits:
+                    fits[r] = candidate(Principled(roughness=r, ior=settings.ior), grey, False, directions)
+                return fits[r].validation_rmse if np.isfinite(fits[r].validation_rmse) else fits[r].train_rmse
+
+            minimize_scalar(held_out, bounds=(np.log(rs[i - 1]), np.log(rs[i + 1])), method="bounded",
+                            options={"maxiter": settings.roughness_refinements, "xatol": ROUGHNESS_XTOL})
+        else:
+            refined = material_fit.refine_minimum(rs, errors)
+            if not np.any(np.isclose(rs, refined)):
+                fits[refined] = candidate(Principled(roughness=refined, ior=settings.ior), grey, False, directions)
         rs, errors = _curve(fits)
         interval = material_fit.roughness_interval(rs, errors, settings.parsimony)
     table = [_row(fits[r]) for r in sorted(fits)]
@@ -160,7 +177,13 @@ def select_material(candidate, settings, models: list[str], obs, grey: np.ndarra
     key = "validation_rmse" if len(np.unique(obs.fold)) > 1 else "train_rmse"
     best = fits[table[solve.parsimonious_choice(table, settings.parsimony, key=key,
                                                 noise=settings.noise_floor * rms)]["roughness"]]
-    return best, table, (None if best.material is None else interval)
+    principled = [f for f in fits.values() if f.material is not None]
+    anchor = min(principled, key=lambda f: f.validation_rmse if np.isfinite(f.validation_rmse) else f.train_rmse,
+                 default=None)
+    return best, table, (None if best.material is None else interval), anchor
+
+
+ROUGHNESS_XTOL = 0.01    # the search stops within 1% of roughness (a highlight's peak: 4%)
 
 
 def roughness_candidates(settings) -> list[float]:
@@ -192,14 +215,23 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior,
               independent_groups=len(np.unique(data["image_id"])), posed_ratio=prt.QUADRATURE_FLOOR)
 
-    known_lighting = known_sources = known_dirs = scale = None
+    known_lighting = known_sources = known_dirs = scale = scene = direct = None
+    map_scale = 1.0
     if settings.lighting != "unknown":
-        known_lighting, known_dirs, known_sources = known_lighting_parts(settings, order)
+        known_lighting, known_dirs, known_sources, env = known_lighting_parts(settings, order)
         if settings.lighting_scale != "fit":
-            factor = float(settings.lighting_scale)
-            known_lighting, known_sources = known_lighting * factor, known_sources * factor
+            map_scale = float(settings.lighting_scale)
+            known_lighting, known_sources = known_lighting * map_scale, known_sources * map_scale
+        if env is not None:      # the material under the map itself: the renderer's model of every sample
+            scene = Renderer(mesh, env, material_dict(None, [DEFAULT_ALBEDO] * 3), cell_height=MAP_CELL_HEIGHT,
+                             lobe_samples=settings.lobe_samples, bounce_samples=settings.bounce_samples,
+                             seed=settings.seed)
+            direct = scene.direct_parts(geo.faces, geo.bary, geo.view_dirs)
 
     def candidate(material: Principled | None, base0, fix_base: bool, directions):
+        if scene is not None:
+            return material_fit.fit_to_map(geo, scene, material, obs, base0=base0, fix_base=fix_base, scale=map_scale,
+                                           direct=direct)
         if known_sources is not None:
             directions = known_dirs
         spec = None if material is None else prt.specular_transfer(geo, material, settings.lobe_samples, settings.seed)
@@ -209,11 +241,11 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
                                          source_directions=directions, known_coeffs=known_lighting,
                                          known_sources=known_sources)
 
-    def select() -> tuple[material_fit.MaterialFit, list[dict], tuple | None]:
+    def select() -> tuple[material_fit.MaterialFit, list[dict], tuple | None, material_fit.MaterialFit | None]:
         if known_brdf is not None:
             material = principled_from_dict(known_brdf) if known_brdf["model"] == "principled" else None
             best = candidate(material, np.asarray(diffuse_color(known_brdf), float), True, None)
-            return best, [_row(best)], None
+            return best, [_row(best)], None, best
         return select_material(candidate, settings, models, obs, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float))
 
     if len(np.unique(obs.fold)) < 2 and known_brdf is None:
@@ -223,17 +255,23 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     t0 = time.perf_counter()
     mode = ("check" if known_lighting is not None else "lighting") if known_brdf is not None else \
         ("brdf" if known_lighting is not None else "factorization")
-    best, table, interval = select()
+    best, table, interval, anchor = select()
     applied = 1.0
     for _ in range(4 if known_lighting is not None else 0):   # --lighting-scale fit: until the factor settles
-        scale = check_lighting_scale(geo, obs, settings, best, known_lighting, known_dirs, known_sources)
+        scale = check_lighting_scale(geo, obs, settings, anchor or best, known_lighting, known_dirs, known_sources)
         if abs(scale["applied"] - 1.0) < 0.02:
             break
         applied *= scale["applied"]
+        map_scale *= scale["applied"]
         known_lighting, known_sources = known_lighting * scale["applied"], known_sources * scale["applied"]
-        best, table, interval = select()
+        best, table, interval, anchor = select()
     if scale is not None:
         scale["applied"] = applied
+    if scene is not None:        # what lighting_sh.json records, and the bands' labels: the SH + sources form
+        scene = None
+        recorded = candidate(best.material, best.base, True, None)
+        best.coeffs, best.lighting, best.sources, best.orders = (recorded.coeffs, recorded.lighting,
+                                                                 recorded.sources, recorded.orders)
     timings["material"] = time.perf_counter() - t0
 
     brdf = _brdf_json(best)
@@ -296,12 +334,7 @@ def _curve(fits: dict) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _brdf_json(fit: material_fit.MaterialFit) -> dict:
-    base = [float(x) for x in fit.base]
-    if fit.material is None:
-        return {"model": "lambert", "albedo": base}
-    m = fit.material
-    return {"model": "principled", "base_color": base, "roughness": float(m.roughness), "metallic": float(m.metallic),
-            "ior": float(m.ior), "specular_tint": [float(x) for x in m.specular_tint]}
+    return material_dict(fit.material, fit.base)
 
 
 def _scale_note(brdf: dict, hint) -> dict:

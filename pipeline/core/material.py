@@ -309,6 +309,16 @@ class Principled:
         return np.where(front[:, None], value, 0.0)
 
 
+def material_dict(material: "Principled | None", base_color) -> dict:
+    """The brdf.json dict (pipeline.io.brdf) of a material (None: Lambert) with a uniform base colour (3,)."""
+    base = [float(x) for x in base_color]
+    if material is None:
+        return {"model": "lambert", "albedo": base}
+    return {"model": "principled", "base_color": base, "roughness": float(material.roughness),
+            "metallic": float(material.metallic), "ior": float(material.ior),
+            "specular_tint": [float(x) for x in material.specular_tint]}
+
+
 def principled_from_dict(brdf: dict) -> Principled:
     """A Principled from a validated brdf.json dict (pipeline.io.brdf)."""
     return Principled(base_color=tuple(float(v) for v in brdf["base_color"]), roughness=float(brdf["roughness"]),

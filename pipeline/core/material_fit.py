@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.core import prt, solve
-from pipeline.core.material import Principled, ggx_lobe_cos
+from pipeline.core.material import Principled, ggx_lobe_cos, material_dict
 from pipeline.core.sh import num_coeffs
 from pipeline.core.shading import front_cos
 
@@ -51,6 +51,8 @@ class MaterialFit:
     validation_rmse: float
     train_rmse: float
     sources: "Sources | None" = None
+    parts: tuple[np.ndarray, np.ndarray] | None = None   # (diffuse per unit base, specular) (N, 3) each, when
+                                                          # the fit ran on a renderer's own shading (fit_to_map)
 
 
 def _design(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, spec: np.ndarray | None,
@@ -333,9 +335,7 @@ def _base_least_squares(geo, material, spec, base, sources, coeffs, obs, max_bou
     (shading_parts, the interreflection taken at ``base``)."""
     shade, specular = shading_parts(geo, MaterialFit(material, base, coeffs, None, [], 0.0, 0.0, sources), spec,
                                     max_bounces)
-    w = obs.weight[:, None]
-    r = obs.radiance - specular
-    return np.clip((w * shade * r).sum(0) / np.maximum((w * shade * shade).sum(0), 1e-300), 1e-3, 1.0)
+    return _base_from_parts(shade, specular, obs, np.ones(obs.weight.size, bool))
 
 
 def _source_intensities(cols: np.ndarray, residual: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -380,6 +380,8 @@ def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: np.ndarray | None,
                   max_bounces: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """(diffuse radiance per unit base colour (N, 3), specular radiance (N, 3)) of a fitted
     candidate at the samples, its lighting (SH + sources) and interreflection included."""
+    if fit.parts is not None:
+        return fit.parts
     layer = prt.diffuse_layer(fit.material, geo.mu_out)
     indirect = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces)
     k = fit.coeffs.shape[0]
@@ -423,20 +425,17 @@ def refine_minimum(x: np.ndarray, y: np.ndarray) -> float:
 
 
 
-def known_lighting_scale(geo: prt.Geometry, material: Principled | None, spec: np.ndarray | None,
-                         coeffs: np.ndarray, sources: Sources | None, obs: Observations,
-                         base: np.ndarray, max_bounces: int = 8) -> tuple[float, bool]:
-    """(k, exact): how many times brighter the photos are than a known lighting predicts.
+def known_lighting_scale(shade: np.ndarray, specular: np.ndarray, obs: Observations) -> tuple[float, bool]:
+    """(k, exact): how many times brighter the photos are than a known lighting predicts, from a
+    candidate's shading under it (shading_parts: diffuse per unit base colour Q, specular R).
 
     With a specular layer the layer's Fresnel-fixed magnitude pins it: per channel radiance =
-    x_c Q_c + k_c R_c (Q: the diffuse shading per unit base colour, R: the specular radiance, x_c
-    = k_c rho_c) by least squares, k the R-weighted mean of k_c (exact = True).  Without one only a
-    lower bound: the factor that keeps the least-squares base colour at or below 1 (exact = False).
+    x_c Q_c + k_c R_c (x_c = k_c rho_c) by least squares, k the R-weighted mean of k_c (exact =
+    True).  Without one only a lower bound: the factor that keeps the least-squares base colour at
+    or below 1 (exact = False).
     """
-    fit = MaterialFit(material, np.asarray(base, float), np.asarray(coeffs, float), None, [], 0.0, 0.0, sources)
-    shade, specular = shading_parts(geo, fit, spec)
     w = obs.weight[:, None]
-    if spec is None or not np.any(specular):
+    if not np.any(specular):
         rho = (w * shade * obs.radiance).sum(0) / np.maximum((w * shade * shade).sum(0), 1e-300)
         return float(max(1.0, rho.max())), False
     k = np.zeros(3)
@@ -445,3 +444,58 @@ def known_lighting_scale(geo: prt.Geometry, material: Principled | None, spec: n
         a = np.stack([shade[:, c], specular[:, c]], axis=1) * np.sqrt(w)
         k[c] = np.linalg.lstsq(a, obs.radiance[:, c] * np.sqrt(w[:, 0]), rcond=None)[0][1]
     return float((k * energy).sum() / max(energy.sum(), 1e-300)), True
+
+
+def fit_to_map(geo: prt.Geometry, scene, material: Principled | None, obs: Observations, *, base0: np.ndarray,
+               fix_base: bool = False, scale: float = 1.0, direct: tuple | None = None) -> MaterialFit:
+    """Base colour of one material candidate (None: Lambert) under a known equirect map, on the
+    renderer's own model of every sample: ``scene`` is a pipeline.core.render.Renderer of the map
+    (times ``scale``) on the samples' mesh, and radiance = rho * diffuse + specular
+    (Renderer.shade_parts).  The map fixes the scale, so rho (3,) is least squares per channel,
+    clipped to [1e-3, 1], with the interreflection updated for it; its held-out RMSE takes rho
+    from the other folds (folds = ``obs.fold``).  ``fix_base``: rho = ``base0`` (a known material).
+    ``direct``: the scene's Renderer.direct_parts at the samples (material-free: computed once).  The returned fit has no SH lighting of its own (coeffs empty, lighting None)."""
+    base = np.asarray(base0, float).copy()
+    r = scene.with_brdf(material_dict(material, base))
+    diffuse, specular = (x * scale for x in r.shade_parts(geo.faces, geo.bary, geo.view_dirs, direct))
+    if not fix_base:
+        kd = prt.diffuse_layer(material, geo.mu_out) * (scale / np.pi)
+        indirect = r._indirect_at(geo.tri, geo.bary)
+        for _ in range(4):
+            new = _base_from_parts(diffuse, specular, obs, np.ones(obs.weight.size, bool))
+            done = np.abs(new - base).max() < 1e-3
+            base = new
+            if done:
+                break
+            again = scene.with_brdf(material_dict(material, base))._indirect_at(geo.tri, geo.bary)
+            diffuse, indirect = diffuse + kd * (again - indirect), again
+    train = trimmed_rmse(obs.radiance - base * diffuse - specular, obs.weight)
+    held = train
+    folds = np.unique(obs.fold)
+    if not fix_base and folds.size > 1:
+        residual = np.zeros_like(obs.radiance)
+        for f in folds:
+            test = obs.fold == f
+            rho = _base_from_parts(diffuse, specular, obs, ~test)
+            residual[test] = obs.radiance[test] - rho * diffuse[test] - specular[test]
+        held = trimmed_rmse(residual, obs.weight)
+    return MaterialFit(material, base, np.zeros((0, 3)), None, [], held, train, None, (diffuse, specular))
+
+
+TRIM_FRACTION = 0.005   # the samples with the largest residuals left out of a known map's score: the peaks of
+                        # highlights of sources smaller than the map's pixels, whose shape the map does not hold
+
+
+def trimmed_rmse(residual: np.ndarray, weight: np.ndarray, fraction: float = TRIM_FRACTION) -> float:
+    """Weighted RMSE of residuals (N, 3) without the ``fraction`` of samples whose squared
+    residual is largest (least trimmed squares: robust to a few samples the model cannot hold)."""
+    e = (np.asarray(residual) ** 2).sum(axis=1)
+    keep = e <= np.quantile(e, 1.0 - fraction)
+    return float(np.sqrt((weight[keep] * e[keep]).sum() / (3 * weight[keep].sum())))
+
+
+def _base_from_parts(diffuse: np.ndarray, specular: np.ndarray, obs: Observations, use: np.ndarray) -> np.ndarray:
+    """rho (3,) in [1e-3, 1]: weighted least squares of radiance - specular = rho diffuse over ``use``."""
+    w = obs.weight[use, None]
+    d, r = diffuse[use], obs.radiance[use] - specular[use]
+    return np.clip((w * d * r).sum(0) / np.maximum((w * d * d).sum(0), 1e-300), 1e-3, 1.0)

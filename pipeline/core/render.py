@@ -37,6 +37,8 @@ testing the frequency-space fit against its images is not circular:
 
 from __future__ import annotations
 
+import copy
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -243,9 +245,7 @@ class Renderer:
         self._vertex_irradiance = None
         self._bounce_rays = None
         if self.material is not None:
-            remainder = self.env.reshape(-1, 3).astype(float).copy()
-            remainder[self.lights.bright] = 0.0
-            self._remainder = EnvPyramid.build(remainder.reshape(self.env.shape))
+            self._remainder = self._remainder_pyramid()
             self._spec_cut_cos = lobe_support_cos(self.material.alpha)
         if self.shadows:
             scene = self.mesh
@@ -260,6 +260,12 @@ class Renderer:
             up = np.clip(d[..., 2], 0.0, None)[..., None]
             omega = equirect_solid_angles(h)[:, None, None]
             self._board_irradiance = (self.env * up * omega).sum(axis=(0, 1))
+
+    def _remainder_pyramid(self) -> EnvPyramid:
+        """The map without its bright pixels, prefiltered for the specular lobe's samples."""
+        remainder = self.env.reshape(-1, 3).astype(float).copy()
+        remainder[self.lights.bright] = 0.0
+        return EnvPyramid.build(remainder.reshape(self.env.shape))
 
     # -- visibility -------------------------------------------------------------------------
     def _ensure_visibility(self, vertices: np.ndarray) -> None:
@@ -460,9 +466,10 @@ class Renderer:
 
         ``view_dirs`` (P, 3) are unit vectors from the point towards the viewer.
         """
-        if self.material is not None:
-            return self._shade_principled(faces, bary, view_dirs)
         tri = np.asarray(self.mesh.faces)[faces]
+        if self.material is not None or self.brdf["model"] == "lambert":
+            diffuse, specular = self.shade_parts(faces, bary, view_dirs)
+            return self._base(tri, bary) * diffuse + specular
         normals = self._normals_at(tri, bary)
         albedo = self._base(tri, bary)
         if self.shadows:
@@ -485,37 +492,73 @@ class Renderer:
         out += albedo / np.pi * self._indirect_at(tri, bary)
         return out
 
-    def _shade_principled(self, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
-        """shade() for the principled material: diffuse over the light set (+ interreflection),
-        specular exactly over the bright pixels and by filtered importance sampling elsewhere."""
+    def direct_parts(self, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What shading takes from the light set whatever the material: (direct irradiance (P, 3)
+        over the light set with point visibility, the bright pixels' visibility (P, B) bool)."""
         tri = np.asarray(self.mesh.faces)[faces]
         normals = self._normals_at(tri, bary)
-        base = self._base(tri, bary)
         if self.shadows:
             self._ensure_visibility(tri.ravel())
-        dirs, power = self.lights.directions, self.lights.power
-        nb = self.lights.n_bright
+        dirs, power, nb = self.lights.directions, self.lights.power, self.lights.n_bright
         mu_out = np.einsum("pc,pc->p", normals, view_dirs)
-        kd = self._diffuse_albedo(np.clip(mu_out, 0, 1), base)
-        out = np.zeros((faces.shape[0], 3))
+        irradiance = np.zeros((faces.shape[0], 3))
+        bright_vis = np.ones((faces.shape[0], nb), bool)
         per_chunk = max(1, self.chunk_pairs // len(dirs))
         for s in range(0, faces.shape[0], per_chunk):
             sl = slice(s, s + per_chunk)
-            n, wo = normals[sl], view_dirs[sl]
-            cos = front_cos(n, mu_out[sl], dirs)
-            vis = self._point_visibility(faces[sl], tri[sl], bary[sl]) if self.shadows else None
-            weight = cos if vis is None else cos * vis
-            out[sl] = kd[sl] / np.pi * (weight @ power)
-            if nb:
-                out[sl] += specular_over_directions(
-                    self.material, n, wo, dirs[-nb:], power[-nb:], None if vis is None else vis[:, -nb:],
-                    self._spec_cut_cos, None if self.vertex_albedo is None else base[sl])
-        out += kd / np.pi * self._indirect_at(tri, bary)
+            cos = front_cos(normals[sl], mu_out[sl], dirs)
+            if self.shadows:
+                vis = self._point_visibility(faces[sl], tri[sl], bary[sl])
+                cos = cos * vis
+                bright_vis[sl] = vis[:, len(dirs) - nb:] > 0.5
+            irradiance[sl] = cos @ power
+        return irradiance, bright_vis
+
+    def shade_parts(self, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray,
+                    direct: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """shade() of a Lambert or principled material as (diffuse radiance per unit base colour
+        (P, 3), specular radiance (P, 3)): radiance = base colour * diffuse + specular.  Diffuse:
+        kd(mu_o) / pi (direct over the light set + interreflection); specular: exactly over the
+        bright pixels and by filtered importance sampling elsewhere.  The interreflection (and a
+        metal's F0, the object's glow in its reflections) are those of this renderer's base colour.
+        ``direct``: direct_parts() of these points, when computed already (it is material-free)."""
+        tri = np.asarray(self.mesh.faces)[faces]
+        normals = self._normals_at(tri, bary)
+        base = self._base(tri, bary)
+        irradiance, bright_vis = self.direct_parts(faces, bary, view_dirs) if direct is None else direct
+        mu_out = np.einsum("pc,pc->p", normals, view_dirs)
+        kd = self._diffuse_albedo(np.clip(mu_out, 0, 1), np.ones_like(base)) / np.pi
+        diffuse = kd * (irradiance + self._indirect_at(tri, bary))
+        specular = np.zeros((faces.shape[0], 3))
+        if self.material is None:
+            return diffuse, specular
+        nb = self.lights.n_bright
+        per_chunk = max(1, self.chunk_pairs // max(nb, 1))
+        for s in range(0, faces.shape[0] if nb else 0, per_chunk):
+            sl = slice(s, s + per_chunk)
+            specular[sl] = specular_over_directions(
+                self.material, normals[sl], view_dirs[sl], self.lights.directions[-nb:], self.lights.power[-nb:],
+                bright_vis[sl].astype(float) if self.shadows else None, self._spec_cut_cos,
+                None if self.vertex_albedo is None else base[sl])
         front = mu_out > 0
         if front.any():
-            out[front] += self._specular_sampled(faces[front], bary[front], normals[front], view_dirs[front],
-                                                 base[front])
-        return out
+            specular[front] += self._specular_sampled(faces[front], bary[front], normals[front], view_dirs[front],
+                                                      base[front])
+        return diffuse, specular
+
+    def with_brdf(self, brdf: dict) -> "Renderer":
+        """This scene (map, light set, visibility, bounce rays: all shared) with another Lambert or
+        principled BRDF dict of uniform colour; the interreflection is recomputed for it."""
+        other = copy.copy(self)
+        other.brdf = brdf
+        other.vertex_albedo = None
+        other._vertex_irradiance = None
+        other.material = principled_from_dict(brdf) if brdf["model"] == "principled" else None
+        if other.material is not None:
+            if self.material is None:
+                other._remainder = self._remainder_pyramid()
+            other._spec_cut_cos = lobe_support_cos(other.material.alpha)
+        return other
 
     def _specular(self, n, wo, n_out, cos_in, vis, spec_cut) -> np.ndarray:
         """Specular lobe of the BRDF summed over the light set for P points: (P, 3).
