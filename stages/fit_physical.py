@@ -126,61 +126,95 @@ def check_lighting_scale(geo, obs, settings, best, coeffs, directions, intensity
 
 def select_material(candidate, settings, models: list[str], obs, grey: np.ndarray):
     """(best fit, candidates table, roughness interval or None, the best principled fit or None —
-    its Fresnel-fixed layer measures a known lighting's scale): the principled roughness grid
-    (sources re-located through the best lobe, log bisection, a parabola) and Lambert, compared
-    on held-out views with the parsimony rule."""
-    fits: dict = {}
-    directions = None
-    interval = None
+    its Fresnel-fixed layer measures a known lighting's scale): the dielectric roughness search
+    (search_roughness), a metal at the dielectric's best roughness and, if it does better, the
+    metal's own search, and Lambert, compared on held-out views with the parsimony rule."""
+    fits: list = []
+    directions = interval = None
     if "principled" in models:
-        grid = roughness_candidates(settings)
-        start = min(grid, key=lambda r: abs(np.log(r / 0.3)))
-        fits[start] = candidate(Principled(roughness=start, ior=settings.ior), grey, False, None)
-        directions = _directions(fits[start])
-        for r in grid:
-            if r not in fits:
-                fits[r] = candidate(Principled(roughness=r, ior=settings.ior), grey, False, directions)
-        rs, errors = _curve(fits)
-        i = int(np.argmin(errors))
-        if rs[i] != start and settings.max_sources > 0:
-            # the sources were located through the start's lobe: look again through the best one's
-            again = candidate(Principled(roughness=float(rs[i]), ior=settings.ior), grey, False, None)
-            if again.validation_rmse < fits[rs[i]].validation_rmse:
-                directions = _directions(again)
-                for r in rs[max(i - 1, 0):i + 2]:
-                    fits[float(r)] = again if r == rs[i] else candidate(
-                        Principled(roughness=float(r), ior=settings.ior), grey, False, directions)
-            rs, errors = _curve(fits)
-        i = int(np.argmin(errors))
-        if settings.roughness_refinements and 0 < i < len(rs) - 1:
-            # the held-out error is sharp in roughness for glossy objects (a highlight's peak goes as
-            # roughness^-4): Brent's bounded search in log roughness between the best's neighbours
-            def held_out(log_r: float) -> float:
-                r = float(np.exp(log_r))
-                if r not in fits:
-                    fits[r] = candidate(Principled(roughness=r, ior=settings.ior), grey, False, directions)
-                return fits[r].validation_rmse if np.isfinite(fits[r].validation_rmse) else fits[r].train_rmse
-
-            minimize_scalar(held_out, bounds=(np.log(rs[i - 1]), np.log(rs[i + 1])), method="bounded",
-                            options={"maxiter": settings.roughness_refinements, "xatol": ROUGHNESS_XTOL})
+        dielectric, directions = search_roughness(candidate, settings, grey, 0.0)
+        rough = min(dielectric, key=lambda r: _score(dielectric[r]))
+        metal = candidate(Principled(roughness=rough, metallic=1.0, ior=settings.ior), grey, False, directions)
+        chosen = dielectric
+        if _score(metal) < _score(dielectric[rough]):
+            chosen, _ = search_roughness(candidate, settings, grey, 1.0, directions, {rough: metal})
+            fits += [dielectric[r] for r in sorted(dielectric)]
         else:
-            refined = material_fit.refine_minimum(rs, errors)
-            if not np.any(np.isclose(rs, refined)):
-                fits[refined] = candidate(Principled(roughness=refined, ior=settings.ior), grey, False, directions)
-        rs, errors = _curve(fits)
-        interval = material_fit.roughness_interval(rs, errors, settings.parsimony)
-    table = [_row(fits[r]) for r in sorted(fits)]
+            fits.append(metal)
+        fits += [chosen[r] for r in sorted(chosen)]
+        rs = np.array(sorted(chosen))
+        interval = material_fit.roughness_interval(rs, np.array([_score(chosen[r]) for r in rs]), settings.parsimony)
     if "lambert" in models:
-        fits[0.0] = candidate(None, grey, False, directions if "principled" in models else None)
-        table.insert(0, _row(fits[0.0]))
+        fits.insert(0, candidate(None, grey, False, directions if "principled" in models else None))
+    table = [_row(f) for f in fits]
+    # roughness is a continuous parameter, not complexity: the best of each model (lambert,
+    # dielectric, metal) by held-out error, then the parsimony rule between models
+    classes: dict = {}
+    for f in fits:
+        kind = None if f.material is None else f.material.metallic
+        if kind not in classes or _score(f) < _score(classes[kind]):
+            classes[kind] = f
+    finalists = list(classes.values())
     rms = float(np.sqrt((obs.weight[:, None] * obs.radiance ** 2).sum() / (3 * obs.weight.sum())))
     key = "validation_rmse" if len(np.unique(obs.fold)) > 1 else "train_rmse"
-    best = fits[table[solve.parsimonious_choice(table, settings.parsimony, key=key,
-                                                noise=settings.noise_floor * rms)]["roughness"]]
-    principled = [f for f in fits.values() if f.material is not None]
-    anchor = min(principled, key=lambda f: f.validation_rmse if np.isfinite(f.validation_rmse) else f.train_rmse,
-                 default=None)
+    best = finalists[solve.parsimonious_choice([_row(f) for f in finalists], settings.parsimony, key=key,
+                                               noise=settings.noise_floor * rms)]
+    anchor = min((f for f in fits if f.material is not None), key=_score, default=None)
     return best, table, (None if best.material is None else interval), anchor
+
+
+def search_roughness(candidate, settings, grey, metallic: float, directions=None, fits: dict | None = None):
+    """({roughness: fit}, source directions) of principled candidates of one ``metallic``: the
+    roughness grid (the directional sources located at the grid point nearest 0.3 unless given,
+    then again through the best one's lobe), refined by Brent's bounded search in log roughness
+    between the best grid point's neighbours (``roughness_refinements`` candidates; 0 = one
+    candidate at the parabola through the three)."""
+    fits = dict(fits or {})
+
+    def fit_at(r: float, dirs):
+        return candidate(Principled(roughness=float(r), metallic=metallic, ior=settings.ior), grey, False, dirs)
+
+    grid = roughness_candidates(settings)
+    start = min(grid, key=lambda r: abs(np.log(r / 0.3)))
+    if directions is None:
+        fits[start] = fit_at(start, None)
+        directions = _directions(fits[start])
+    for r in grid:
+        if r not in fits:
+            fits[r] = fit_at(r, directions)
+    rs = np.array(sorted(fits))
+    i = int(np.argmin([_score(fits[r]) for r in rs]))
+    if rs[i] != start and settings.max_sources > 0:
+        # the sources were located through the start's lobe: look again through the best one's
+        again = fit_at(rs[i], None)
+        if _score(again) < _score(fits[rs[i]]):
+            directions = _directions(again)
+            for r in rs[max(i - 1, 0):i + 2]:
+                fits[float(r)] = again if r == rs[i] else fit_at(r, directions)
+    rs = np.array(sorted(fits))
+    errors = np.array([_score(fits[r]) for r in rs])
+    i = int(np.argmin(errors))
+    if settings.roughness_refinements and 0 < i < len(rs) - 1:
+        # the held-out error is sharp in roughness for glossy objects (a highlight's peak goes as
+        # roughness^-4): Brent's bounded search in log roughness between the best's neighbours
+        def held_out(log_r: float) -> float:
+            r = float(np.exp(log_r))
+            if r not in fits:
+                fits[r] = fit_at(r, directions)
+            return _score(fits[r])
+
+        minimize_scalar(held_out, bounds=(np.log(rs[i - 1]), np.log(rs[i + 1])), method="bounded",
+                        options={"maxiter": settings.roughness_refinements, "xatol": ROUGHNESS_XTOL})
+    else:
+        refined = material_fit.refine_minimum(rs, errors)
+        if not np.any(np.isclose(rs, refined)):
+            fits[refined] = fit_at(refined, directions)
+    return fits, directions
+
+
+def _score(fit: material_fit.MaterialFit) -> float:
+    """A candidate's held-out RMSE (its training RMSE when no view can be held out)."""
+    return fit.validation_rmse if np.isfinite(fit.validation_rmse) else fit.train_rmse
 
 
 ROUGHNESS_XTOL = 0.01    # the search stops within 1% of roughness (a highlight's peak: 4%)
@@ -326,13 +360,6 @@ def _directions(fit: material_fit.MaterialFit):
     return None if fit.sources is None else fit.sources.directions
 
 
-def _curve(fits: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Candidate roughness and their held-out RMSE (the training RMSE when no view can be held out)."""
-    rs = np.array(sorted(r for r in fits if r > 0))
-    held = np.array([fits[r].validation_rmse for r in rs])
-    return rs, held if np.all(np.isfinite(held)) else np.array([fits[r].train_rmse for r in rs])
-
-
 def _brdf_json(fit: material_fit.MaterialFit) -> dict:
     return material_dict(fit.material, fit.base)
 
@@ -359,8 +386,10 @@ def _row(fit: material_fit.MaterialFit) -> dict:
         return {"name": "lambert", "roughness": 0.0, "base_color": [float(x) for x in fit.base],
                 "params": 3 + 3 * fit.coeffs.shape[0], "validation_rmse": fit.validation_rmse,
                 "train_rmse": fit.train_rmse, "sources": 0 if fit.sources is None else len(fit.sources.power)}
-    return {"name": f"principled roughness {fit.material.roughness:.3f}", "roughness": float(fit.material.roughness),
-            "base_color": [float(x) for x in fit.base], "params": 3 + 1 + 3 * fit.coeffs.shape[0],
+    kind = "metal" if fit.material.metallic > 0 else "dielectric"
+    return {"name": f"principled {kind} roughness {fit.material.roughness:.3f}", "roughness": float(fit.material.roughness),
+            "metallic": float(fit.material.metallic), "base_color": [float(x) for x in fit.base],
+            "params": 3 + 1 + 3 * fit.coeffs.shape[0],
             "validation_rmse": fit.validation_rmse, "train_rmse": fit.train_rmse,
             "sources": 0 if fit.sources is None else len(fit.sources.power)}
 

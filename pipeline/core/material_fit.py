@@ -55,13 +55,23 @@ class MaterialFit:
                                                           # the fit ran on a renderer's own shading (fit_to_map)
 
 
-def _design(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, spec: np.ndarray | None,
+def _per_unit_base(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, spec: prt.SpecularTransfer | None,
+                   k: int) -> np.ndarray:
+    """The transfer (N, k, 3) that the base colour multiplies: the diffuse layer's kd / pi (D + I),
+    plus a metal's specular per unit F0."""
+    out = (geo.direct[:, :k, None] + indirect[:, :k]) * (layer / np.pi)[:, None, :]
+    if spec is not None and spec.scaled is not None:
+        out = out + spec.scaled[:, :k]
+    return out
+
+
+def _design(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, spec: prt.SpecularTransfer | None,
             base: np.ndarray, order: int) -> np.ndarray:
-    """A_c (3, N, K') truncated to ``order``."""
+    """A_c (3, N, K') truncated to ``order``: base_c (per-unit-base part) + the fixed specular."""
     k = num_coeffs(order)
-    diff = (geo.direct[:, :k, None] + indirect[:, :k]) * (layer / np.pi)[:, None, :] * base[None, None, :]
+    diff = _per_unit_base(geo, layer, indirect, spec, k) * base[None, None, :]
     if spec is not None:
-        diff = diff + spec[:, :k]
+        diff = diff + spec.fixed[:, :k]
     return np.moveaxis(diff, 2, 0)
 
 
@@ -78,7 +88,7 @@ def _solve_sh(a: np.ndarray, target: np.ndarray, obs: Observations, order: int, 
     return solve.solve_lighting(g, h, btb, wt, len(obs.weight), order, **kw)
 
 
-def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: np.ndarray, obs: Observations,
+def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: prt.SpecularTransfer, obs: Observations,
                 order: int) -> np.ndarray:
     """Base colour (3,) from one linear solve for (X_c = rho_c L_c, L_c): radiance =
     kd / pi D X_c + S_c L_c, rho_c = <X_c, L_c> / <L_c, L_c> over bands 0-2 (what the diffuse
@@ -87,7 +97,7 @@ def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: np.ndarray, obs: Obs
     sw = np.sqrt(obs.weight)[:, None]
     base = np.zeros(3)
     for c in range(3):
-        a = np.concatenate([geo.direct[:, :low] * (layer[:, c:c + 1] / np.pi), spec[:, :k, c]], axis=1) * sw
+        a = np.concatenate([geo.direct[:, :low] * (layer[:, c:c + 1] / np.pi), spec.fixed[:, :k, c]], axis=1) * sw
         g = a.T @ a
         z = np.linalg.solve(g + 1e-9 * np.trace(g) / len(g) * np.eye(len(g)), a.T @ (obs.radiance[:, c] * sw[:, 0]))
         x, y = z[:low], z[low:low + low]
@@ -118,6 +128,8 @@ def _source_columns(geo: prt.Geometry, layer: np.ndarray, st: prt.SourceTransfer
     cols = e * (layer / np.pi * base)[:, None, :]
     if st.specular is not None:
         cols = cols + st.specular
+    if st.specular_scaled is not None:
+        cols = cols + st.specular_scaled * base
     return np.moveaxis(cols, 2, 0)
 
 
@@ -181,7 +193,7 @@ def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray
 
 
 def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observations, *, order: int,
-                 folds: int, base0: np.ndarray, spec: np.ndarray | None = None, fix_base: bool = False,
+                 folds: int, base0: np.ndarray, spec: prt.SpecularTransfer | None = None, fix_base: bool = False,
                  orders: list[int] | None = None, lighting_kw: dict | None = None, max_bounces: int = 8,
                  max_sources: int = 0, source_gain: float = 0.02, source_directions: np.ndarray | None = None,
                  known_coeffs: np.ndarray | None = None, known_sources: np.ndarray | None = None,
@@ -208,7 +220,7 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
         known = np.zeros((num_coeffs(order), 3))
         m = min(len(known), len(known_coeffs))
         known[:m] = np.asarray(known_coeffs)[:m]
-    elif spec is not None and not fix_base:
+    elif spec is not None and spec.scaled is None and not fix_base:
         base = joint_start(geo, layer, spec, obs, order)
     sources: Sources | None = None
     if source_directions is not None and len(source_directions):
@@ -270,21 +282,24 @@ def _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc
     the interreflection taken at ``base``); the channels are independent."""
     k = num_coeffs(order)
     w = obs.weight
-    diffuse = geo.direct[:, :k, None] + prt.indirect_transfer(geo, material, base, max_bounces)[:, :k]
-    specular = spec[:, :k]
+    scaled = _per_unit_base(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, k)
+    specular = spec.fixed[:, :k]
     j = 0
     if sources is not None:
         st = sources.transfer
         j = st.directions.shape[0]
         src_ind = prt.indirect_transfer(geo, material, base, max_bounces, st.vertex_direct)
-        diffuse = np.concatenate([diffuse, st.direct[..., None] + src_ind], axis=1)
+        src_scaled = (st.direct[..., None] + src_ind) * (layer / np.pi)[:, None, :]
+        if st.specular_scaled is not None:
+            src_scaled = src_scaled + st.specular_scaled
+        scaled = np.concatenate([scaled, src_scaled], axis=1)
         specular = np.concatenate([specular, st.specular if st.specular is not None else np.zeros_like(src_ind)], axis=1)
     reg = np.concatenate([np.asarray(ridge_dc2, float)[:k], np.zeros(j)])
     sw = np.sqrt(w)[:, None]
     betas = np.geomspace(0.02, 1.0, grid)
     out = np.zeros(3)
     for c in range(3):
-        d = diffuse[..., c] * (layer[:, c:c + 1] / np.pi) * sw
+        d = scaled[..., c] * sw
         s_ = specular[..., c] * sw
         b = obs.radiance[:, c] * sw[:, 0]
         dd, ds, ss, hd, hs, bb = d.T @ d, d.T @ s_, s_.T @ s_, d.T @ b, s_.T @ b, float(b @ b)
@@ -376,7 +391,7 @@ def _add_sources(geo, material, base, layer, a, obs, max_sources, gain, order, f
     return None if kept is None else Sources(kept[0], kept[2])
 
 
-def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: np.ndarray | None,
+def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | None,
                   max_bounces: int = 8) -> tuple[np.ndarray, np.ndarray]:
     """(diffuse radiance per unit base colour (N, 3), specular radiance (N, 3)) of a fitted
     candidate at the samples, its lighting (SH + sources) and interreflection included."""
@@ -385,18 +400,21 @@ def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: np.ndarray | None,
     layer = prt.diffuse_layer(fit.material, geo.mu_out)
     indirect = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces)
     k = fit.coeffs.shape[0]
-    shade = np.einsum("pkc,kc->pc", geo.direct[:, :k, None] + indirect[:, :k], fit.coeffs)
-    specular = np.zeros_like(shade) if spec is None else np.einsum("pkc,kc->pc", spec[:, :k], fit.coeffs)
+    shade = np.einsum("pkc,kc->pc", _per_unit_base(geo, layer, indirect, spec, k), fit.coeffs)
+    specular = np.zeros_like(shade) if spec is None else np.einsum("pkc,kc->pc", spec.fixed[:, :k], fit.coeffs)
     if fit.sources is not None:
         st = fit.sources.transfer
         src_ind = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces, st.vertex_direct)
-        shade += np.einsum("pjc,jc->pc", st.direct[..., None] + src_ind, fit.sources.power)
+        shade += np.einsum("pjc,jc->pc", (st.direct[..., None] + src_ind) * (layer / np.pi)[:, None, :],
+                           fit.sources.power)
         if st.specular is not None:
             specular += np.einsum("pjc,jc->pc", st.specular, fit.sources.power)
-    return shade * layer / np.pi, specular
+        if st.specular_scaled is not None:
+            shade += np.einsum("pjc,jc->pc", st.specular_scaled, fit.sources.power)
+    return shade, specular
 
 
-def predict(geo: prt.Geometry, fit: MaterialFit, spec: np.ndarray | None) -> np.ndarray:
+def predict(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | None) -> np.ndarray:
     """Radiance (N, 3) of a fitted candidate at the samples (its lighting: SH + sources)."""
     shade, specular = shading_parts(geo, fit, spec)
     return fit.base * shade + specular
@@ -454,14 +472,27 @@ def fit_to_map(geo: prt.Geometry, scene, material: Principled | None, obs: Obser
     (Renderer.shade_parts).  The map fixes the scale, so rho (3,) is least squares per channel,
     clipped to [1e-3, 1], with the interreflection updated for it; its held-out RMSE takes rho
     from the other folds (folds = ``obs.fold``).  ``fix_base``: rho = ``base0`` (a known material).
-    ``direct``: the scene's Renderer.direct_parts at the samples (material-free: computed once).  The returned fit has no SH lighting of its own (coeffs empty, lighting None)."""
+    A metal's F0 (its base colour) is least squares the same way: its specular is linear in F0.
+    ``direct``: the scene's Renderer.direct_parts at the samples (material-free: computed once).
+    The returned fit has no SH lighting of its own (coeffs empty, lighting None)."""
     base = np.asarray(base0, float).copy()
-    r = scene.with_brdf(material_dict(material, base))
-    diffuse, specular = (x * scale for x in r.shade_parts(geo.faces, geo.bary, geo.view_dirs, direct))
-    if not fix_base:
+
+    def parts(b) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(diffuse, specular, interreflected irradiance) at base colour b."""
+        r = scene.with_brdf(material_dict(material, b))
+        d, sp = r.shade_parts(geo.faces, geo.bary, geo.view_dirs, direct)
+        return d * scale, sp * scale, r._indirect_at(geo.tri, geo.bary)
+
+    if material is not None and material.metallic > 0:
+        # F0 = base colour: the specular is linear in it (Schlick's F); no diffuse to interreflect
+        zero, one = parts(np.zeros(3))[1], parts(np.ones(3))[1]
+        diffuse, specular = one - zero, zero
+        if not fix_base:
+            base = _base_from_parts(diffuse, specular, obs, np.ones(obs.weight.size, bool))
+    else:
+        diffuse, specular, indirect = parts(base)
         kd = prt.diffuse_layer(material, geo.mu_out) * (scale / np.pi)
-        indirect = r._indirect_at(geo.tri, geo.bary)
-        for _ in range(4):
+        for _ in range(4 if not fix_base else 0):
             new = _base_from_parts(diffuse, specular, obs, np.ones(obs.weight.size, bool))
             done = np.abs(new - base).max() < 1e-3
             base = new

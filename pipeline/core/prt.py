@@ -26,7 +26,7 @@ per roughness (S); the fit is then linear least squares in L for fixed material.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -121,9 +121,34 @@ def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarr
     return out
 
 
+@dataclass
+class SpecularTransfer:
+    """The specular lobe's SH transfer at the samples: ``fixed`` (N, K, 3), plus ``scaled`` (N, K, 3)
+    per unit base colour for a metal (F0 = base colour: Schlick's F is linear in F0), else None.
+    The specular radiance is (fixed + base colour * scaled) L."""
+
+    fixed: np.ndarray
+    scaled: np.ndarray | None = None
+
+    def upto(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """(fixed, scaled) truncated to the first ``k`` coefficients."""
+        return self.fixed[:, :k], None if self.scaled is None else self.scaled[:, :k]
+
+
 def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, seed: int = 0,
-                      chunk: int = 2048) -> np.ndarray:
-    """S (N, K, 3): the specular lobe's transfer at the samples (see the module docstring)."""
+                      chunk: int = 2048) -> SpecularTransfer:
+    """The specular lobe's transfer at the samples (see the module docstring); a metal's as its
+    transfer at F0 = 0 and the difference to F0 = 1 (the compensation for multiple scattering
+    taken at each end)."""
+    if material.metallic > 0:
+        zero, one = (_specular_transfer(geo, replace(material, base_color=(v, v, v)), n_samples, seed, chunk)
+                     for v in (0.0, 1.0))
+        return SpecularTransfer(zero, one - zero)
+    return SpecularTransfer(_specular_transfer(geo, material, n_samples, seed, chunk))
+
+
+def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed: int, chunk: int) -> np.ndarray:
+    """S (N, K, 3) of one material with a uniform base colour."""
     r = geo.renderer
     rng = np.random.default_rng(seed)
     n = geo.faces.size
@@ -162,6 +187,7 @@ class SourceTransfer:
     direct: np.ndarray
     vertex_direct: np.ndarray
     specular: np.ndarray | None
+    specular_scaled: np.ndarray | None = None   # a metal's: per unit base colour (specular: at F0 = 0)
 
 
 def source_transfer(geo: Geometry, material: Principled | None, directions: np.ndarray) -> SourceTransfer:
@@ -174,6 +200,8 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
     direct = np.zeros((n, j))
     vdirect = np.zeros((len(vpts), j))
     spec = None if material is None else np.zeros((n, j, 3))
+    metal = material is not None and material.metallic > 0
+    scaled = np.zeros((n, j, 3)) if metal else None
     for i in range(j):
         cos = front_cos(geo.normals, geo.mu_out, d[i:i + 1])[:, 0]
         lit = np.flatnonzero(cos > 0)
@@ -184,6 +212,10 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
         vl = np.flatnonzero(vcos > 0)
         vdirect[vl, i] = vcos[vl] * ~r._shadow_rays.intersects_any(vpts[vl], np.broadcast_to(d[i], (vl.size, 3)))
         if material is not None:
-            spec[:, i] = specular_over_directions(material, geo.normals, geo.view_dirs, d[i:i + 1], np.ones((1, 3)),
-                                                  vis[:, None], -1.0)
-    return SourceTransfer(d, direct, vdirect, spec)
+            def lobe(base):
+                return specular_over_directions(material, geo.normals, geo.view_dirs, d[i:i + 1], np.ones((1, 3)),
+                                                vis[:, None], -1.0, base)
+            spec[:, i] = lobe(np.zeros((n, 3)) if metal else None)
+            if metal:
+                scaled[:, i] = lobe(np.ones((n, 3))) - spec[:, i]
+    return SourceTransfer(d, direct, vdirect, spec, scaled)

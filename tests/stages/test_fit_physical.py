@@ -119,3 +119,75 @@ def test_known_lighting_off_in_scale(tmp_path):
                     "--lighting-scale", "fit", *fast], check=True, capture_output=True)
     scale = read_report(work / "fit" / "report.json")["scale_convention"]["lighting_scale"]
     assert abs(scale["applied"] / 2.5 - 1) < 0.1, scale
+
+
+@pytest.mark.slow
+def test_glossy_sphere_known_lighting(tmp_path):
+    """Issue 11, lighting known, on the sharpest lobe (roughness 0.15 under a night city's lamps):
+    the material is fitted under the map itself (the renderer's model of every sample), scored
+    trimmed of the highlight peaks of lamps smaller than the map's pixels.  Measured on the shared
+    capture: roughness 0.152, base (0.101, 0.450, 0.150), relight 8.22% (the true material renders
+    7.46%; the fit on the map's SH + 32 brightest pixels: roughness 0.177, 24.9%)."""
+    light = DATA / "sphere_night_glossy" / "gt" / "lighting.exr"
+    brdf, report, err = fit_and_relight("sphere_night_glossy", tmp_path / "work", "--lighting", str(light))
+    print(brdf, err)
+    assert report["mode"] == "brdf" and brdf["metallic"] == 0.0
+    assert abs(brdf["roughness"] / 0.15 - 1) < 0.10
+    assert np.max(np.abs(np.asarray(brdf["base_color"]) / [0.1, 0.45, 0.15] - 1)) < 0.03
+    assert err.total < 0.10
+
+
+def synth_capture(folder: Path, mesh: str, brdf: str, views: int = 10, size: str = "96x96") -> Path:
+    """A capture rendered by sigrend synth under the Cycles teapot's city map (truth in gt/)."""
+    env = DATA / "teapot_city_glossy" / "gt" / "lighting.exr"
+    subprocess.run([sys.executable, "-m", "pipeline.cli", "synth", "-o", str(folder), "--mesh", mesh, "--mesh-up", "z",
+                    "--env", str(env), "--brdf", brdf, "--views", str(views), "--size", size],
+                   check=True, capture_output=True)
+    return folder
+
+
+def fit_synth(capture: Path, work: Path, *fit_args: str) -> tuple[dict, dict]:
+    subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(capture), "-w", str(work), "--to", "samples"],
+                   check=True, capture_output=True)
+    subprocess.run([sys.executable, "-m", "pipeline.cli", "fit", str(capture), "-w", str(work), "--force",
+                    "--physical-samples", "12000", *fit_args], check=True, capture_output=True)
+    return json.loads((work / "fit" / "brdf.json").read_text()), read_report(work / "fit" / "report.json")
+
+
+@pytest.mark.slow
+def test_synth_metal_teapot(tmp_path):
+    """Issue 11: a metal (F0 = base colour) is told from a dielectric by held-out views, with the
+    lighting known and unknown.  Measured (12 views of 128^2, 30000 samples, the default grid):
+    known lighting roughness 0.2497, base (0.898, 0.597, 0.298) for (0.9, 0.6, 0.3); unknown
+    roughness 0.250, metal chosen, F0 at the upper bound (1, 1, 1) (here 0.253, F0 (1, 1, 1)):
+    with the lighting unknown a metal's F0 trades with the lighting's colour, only Schlick's
+    grazing rise tells them apart."""
+    capture = synth_capture(tmp_path / "metal", str(DATA / "teapot_city_glossy" / "mesh.ply"),
+                            "principled:base_color=0.9,0.6,0.3,roughness=0.25,metallic=1")
+    fast = ("--roughness-candidates", "0.15,0.3,0.6")
+    brdf, report = fit_synth(capture, tmp_path / "known", "--lighting", str(capture / "gt" / "lighting.exr"), *fast)
+    print(brdf)
+    assert brdf["model"] == "principled" and brdf["metallic"] == 1.0
+    assert abs(brdf["roughness"] / 0.25 - 1) < 0.10
+    assert np.max(np.abs(np.asarray(brdf["base_color"]) / [0.9, 0.6, 0.3] - 1)) < 0.03
+    brdf, report = fit_synth(capture, tmp_path / "unknown", *fast)
+    print(brdf)
+    assert brdf["model"] == "principled" and brdf["metallic"] == 1.0
+    assert abs(brdf["roughness"] / 0.25 - 1) < 0.25
+
+
+@pytest.mark.slow
+def test_synth_rough_dielectric(tmp_path):
+    """Issue 11: roughness within 25% and base chromaticity within 3 deg with both unknown at the
+    rough end of the 0.1-0.6 range (a sphere under the city map, sigrend synth's own renderer).
+    Measured: roughness 0.609 for 0.6, base (0.193, 0.501, 0.295) for (0.2, 0.5, 0.3).  The sharp
+    end fails (docs/fit.md): at roughness 0.1 the city sun's highlight is narrower than the
+    located source's precision and the SH order, and a metal of roughness 0.1 wins (residual half
+    of Lambert's), as on the Cycles night sphere."""
+    base = [0.2, 0.5, 0.3]
+    capture = synth_capture(tmp_path / "sphere", "sphere", f"principled:base_color={','.join(map(str, base))},roughness=0.6")
+    brdf, report = fit_synth(capture, tmp_path / "work")
+    print(brdf, report["candidates"])
+    assert brdf["model"] == "principled" and brdf["metallic"] == 0.0
+    assert abs(brdf["roughness"] / 0.6 - 1) < 0.25
+    assert chromaticity_deg(brdf["base_color"], base) < 3.0
