@@ -42,7 +42,7 @@ def render_suite(quick: bool, repeat: int, output: Path):
     rows = []
     scenes = sorted(p for p in DATA.iterdir() if p.is_dir())
     configs = CONFIGS[1:3] if quick else CONFIGS
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig, ax = plt.subplots(figsize=(7.6, 4.4))
     for folder in scenes[:1] if quick else scenes:
         points = []
         for lobe, rays, bounces in configs:
@@ -63,7 +63,7 @@ def render_suite(quick: bool, repeat: int, output: Path):
     ax.set_xscale("log")
     ax.set_xlabel("seconds (relight stage, 4 views of 256², 2 cores)")
     ax.set_ylabel("relative RMSE vs Cycles (%)")
-    ax.set_title("renderer: error vs time (★ = defaults: 64 lobe samples, 64 rays, ≤ 8 bounces)")
+    ax.set_title("renderer vs Cycles: error vs time (★ = defaults: 64 lobe samples, 64 rays, ≤ 8 bounces)", fontsize=10)
     ax.grid(True, alpha=0.3)
     ax.legend()
     output.mkdir(parents=True, exist_ok=True)

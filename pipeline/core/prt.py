@@ -18,7 +18,9 @@ A sample p (a point on the mesh seen along w_o) has radiance, per colour channel
 * S (N, K, 3) specular transfer: sum_s w_s Y_k(w_s) V_s over GGX VNDF samples of the lobe
   (pipeline.core.shading.specular_samples: F, masking, multiple scattering in w_s), occluded
   samples contributing 0 (the object's own glow in its reflections is left out of the fit);
-  Y_k is prefiltered over each sample's solid angle, as the renderer prefilters its map.
+  Y_k is prefiltered over each sample's solid angle, as the renderer prefilters its map.  A
+  metal's S is linear in its F0 = base colour (Schlick): S = S(F0 = 0) + F0 (S(1) - S(0))
+  (SpecularTransfer), so the base colour multiplies that part as it does the diffuse one.
 
 Everything is computed once per geometry (D, the vertex transfer and bounce matrices) or once
 per roughness (S); the fit is then linear least squares in L for fixed material.
@@ -129,10 +131,6 @@ class SpecularTransfer:
 
     fixed: np.ndarray
     scaled: np.ndarray | None = None
-
-    def upto(self, k: int) -> tuple[np.ndarray, np.ndarray | None]:
-        """(fixed, scaled) truncated to the first ``k`` coefficients."""
-        return self.fixed[:, :k], None if self.scaled is None else self.scaled[:, :k]
 
 
 def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, seed: int = 0,
