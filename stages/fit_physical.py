@@ -322,8 +322,8 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
               {"source": "the known lighting", "lighting_scale": scale}}
     print(_summary_line(brdf, interval, len(sources)), file=sys.stderr)
     out = Path(work) / "fit"
-    spec = None if best.material is None else prt.specular_transfer(geo, best.material, settings.lobe_samples,
-                                                                     settings.seed)
+    spec = None if best.material is None or best.parts is not None else prt.specular_transfer(   # parts: fit_to_map's
+        geo, best.material, settings.lobe_samples, settings.seed)
     shade, specular = material_fit.shading_parts(geo, best, spec)
     views = _per_view(obs, best.base * shade + specular, data["image_id"], keys, settings.folds)
     report["residuals_per_view"] = views

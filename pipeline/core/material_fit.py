@@ -124,13 +124,19 @@ class Sources:
 def _source_columns(geo: prt.Geometry, layer: np.ndarray, st: prt.SourceTransfer, indirect: np.ndarray | None,
                     base: np.ndarray) -> np.ndarray:
     """Radiance (3, N, J) of each source at unit intensity."""
-    e = st.direct[..., None] + (0.0 if indirect is None else indirect)                 # (N, J, 3)
-    cols = e * (layer / np.pi * base)[:, None, :]
+    cols = _source_per_unit_base(layer, st, indirect) * base
     if st.specular is not None:
         cols = cols + st.specular
-    if st.specular_scaled is not None:
-        cols = cols + st.specular_scaled * base
     return np.moveaxis(cols, 2, 0)
+
+
+def _source_per_unit_base(layer: np.ndarray, st: prt.SourceTransfer, indirect: np.ndarray | None) -> np.ndarray:
+    """The sources' radiance (N, J, 3) that the base colour multiplies (as _per_unit_base):
+    kd / pi (direct + ``indirect`` (N, J, 3) or None), plus a metal's specular per unit F0."""
+    out = (st.direct[..., None] + (0.0 if indirect is None else indirect)) * (layer / np.pi)[:, None, :]
+    if st.specular_scaled is not None:
+        out = out + st.specular_scaled
+    return out
 
 
 def _explained_power(num: np.ndarray, den: np.ndarray) -> np.ndarray:
@@ -289,10 +295,7 @@ def _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc
         st = sources.transfer
         j = st.directions.shape[0]
         src_ind = prt.indirect_transfer(geo, material, base, max_bounces, st.vertex_direct)
-        src_scaled = (st.direct[..., None] + src_ind) * (layer / np.pi)[:, None, :]
-        if st.specular_scaled is not None:
-            src_scaled = src_scaled + st.specular_scaled
-        scaled = np.concatenate([scaled, src_scaled], axis=1)
+        scaled = np.concatenate([scaled, _source_per_unit_base(layer, st, src_ind)], axis=1)
         specular = np.concatenate([specular, st.specular if st.specular is not None else np.zeros_like(src_ind)], axis=1)
     reg = np.concatenate([np.asarray(ridge_dc2, float)[:k], np.zeros(j)])
     sw = np.sqrt(w)[:, None]
@@ -405,12 +408,9 @@ def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfe
     if fit.sources is not None:
         st = fit.sources.transfer
         src_ind = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces, st.vertex_direct)
-        shade += np.einsum("pjc,jc->pc", (st.direct[..., None] + src_ind) * (layer / np.pi)[:, None, :],
-                           fit.sources.power)
+        shade += np.einsum("pjc,jc->pc", _source_per_unit_base(layer, st, src_ind), fit.sources.power)
         if st.specular is not None:
             specular += np.einsum("pjc,jc->pc", st.specular, fit.sources.power)
-        if st.specular_scaled is not None:
-            shade += np.einsum("pjc,jc->pc", st.specular_scaled, fit.sources.power)
     return shade, specular
 
 
@@ -439,8 +439,6 @@ def refine_minimum(x: np.ndarray, y: np.ndarray) -> float:
     if c[0] <= 0:
         return float(x[i])
     return float(np.exp(np.clip(-c[1] / (2 * c[0]), lx[0], lx[2])))
-
-
 
 
 def known_lighting_scale(shade: np.ndarray, specular: np.ndarray, obs: Observations) -> tuple[float, bool]:
