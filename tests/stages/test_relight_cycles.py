@@ -7,11 +7,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pipeline.core.image_metrics import block_relative_rmse
 from pipeline.io.brdf import material_from_blender, write_brdf
-from pipeline.io.images import read_image
+from pipeline.io.images import read_image, write_image
 from pipeline.runner import run_stage
 from pipeline.settings import make_settings
 
@@ -27,28 +28,48 @@ def relight_with_truth(capture: Path, work: Path, env: Path, views: str, brdf: d
     return sorted((work / "relight").glob("*.exr"))
 
 
-# issue 10 targets: 1.5% (bunny), 4% (night sphere), 5% (teapot).  Measured (relative RMSE / rim /
-# interior): bunny 1.03 / 0.90 / 1.11 (was 7.6% without interreflection), teapot 3.10 / 3.23 / 2.99
-# (was 19.4%).  The night sphere's 7.4% (rim 10.7, interior 2.7; was 40.6%) misses the 4%
-# target: nearly all of it is the city sun's 4-pixel highlight (radiance 500x the mean) whose energy
-# is within 3% but whose shape differs, the sun being one pixel of the 2x2-downsampled map; its
-# interior, away from that highlight, is held to the 4%.
-CASES = {"bunny_sunrise_diffuse": (0.015, 0.015), "teapot_city_glossy": (0.05, 0.05),
-         "sphere_night_glossy": (0.08, 0.04)}
+def blender_world(path: Path, rotation_deg: float) -> np.ndarray:
+    """A Blender world HDRI (tests/data/hdri) as Cycles lit the scene, in DESIGN.md's equirect
+    convention: Blender reads direction d at d' = Rz(rotation) d with u = 0.5 - atan2(d'_y, d'_x) / 2pi,
+    so for a rotation of k whole texels our column j is the file's (W/2 - 1 - j - k) mod W
+    (tests/data/cycles/*/gt/README.md)."""
+    env = read_image(path)[..., :3]
+    width = env.shape[1]
+    k = round(rotation_deg / 360.0 * width)
+    return env[:, (width // 2 - 1 - np.arange(width) - k) % width]
+
+
+# issue 10 targets: 1.5% (bunny), 4% (night sphere), 5% (teapot).  Lit by the HDRI Cycles rendered
+# with (Blender's 1024 x 512 map; gt/relight/env.exr is its 2x2 box-downsampled copy), measured
+# (relative RMSE / rim / interior): bunny 1.02 / 0.89 / 1.11 (was 7.6% without interreflection),
+# teapot 3.08 / 3.16 / 3.02 (was 19.4%), night sphere 6.27 / 9.10 / 2.34 (was 40.6%; 7.46 under
+# the downsampled map).  The night sphere misses the 4% target on one thing: the city sun's
+# highlight (radiance 2000x the view's mean, a few pixels) a few pixels from the silhouette of one
+# view, whose energy is within 3% but whose per-pixel shape differs by up to 15%; the interior is
+# held to the 4% and the rings of the rim away from that highlight match to 1% (docs/relight.md).
+CASES = {"bunny_sunrise_diffuse": ("city", 123.046875, 0.015, 0.015),
+         "teapot_city_glossy": ("sunrise", 144.140625, 0.05, 0.05),
+         "sphere_night_glossy": ("city", 14.0625, 0.07, 0.04)}
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("scene", sorted(CASES))
 def test_relight_matches_cycles_with_true_lighting_and_material(scene, tmp_path):
     folder = DATA / "cycles" / scene
+    hdri, rotation_deg, total, interior = CASES[scene]
+    env = blender_world(DATA / "hdri" / f"{hdri}.exr", rotation_deg)
+    # the rotation is right: the map's 2x2 box average is the capture's downsampled relight map
+    small = read_image(folder / "gt" / "relight" / "env.exr")[..., :3]
+    h, w = small.shape[:2]
+    assert np.abs(env.reshape(h, 2, w, 2, 3).mean(axis=(1, 3)) - small).max() < 1e-3 * small.max()
+    write_image(tmp_path / "env.exr", env, dtype="float")
     truth = material_from_blender(json.loads((folder / "gt" / "brdf.json").read_text()))
-    rendered = relight_with_truth(folder, tmp_path / "work", folder / "gt" / "relight" / "env.exr",
+    rendered = relight_with_truth(folder, tmp_path / "work", tmp_path / "env.exr",
                                   str(folder / "gt" / "relight" / "poses.json"), truth)
     refs = [read_image(folder / "gt" / "relight" / "images" / p.name) for p in rendered]
     assert len(rendered) == 4
     err = block_relative_rmse([read_image(p) for p in rendered], refs)
     print(scene, err)
-    total, interior = CASES[scene]
     assert err.total < total and err.interior < interior, err
     assert all(abs(s - 1) < 0.05 for s in err.scale), err  # the absolute scale is right too
 
