@@ -26,7 +26,8 @@ from types import SimpleNamespace
 
 from pipeline.errors import UserError
 from pipeline.settings import add_settings_arguments, make_settings, settings_from_args
-from pipeline.workdir import is_fresh, record_settings, write_json
+from pipeline.workdir import (is_fresh, record_settings, remove_stale_temporaries, settings_path, transaction,
+                              write_json)
 
 HELP = "Run the whole pipeline on a capture folder (linearize, poses, samples, fit, relight) and write the report."
 
@@ -72,8 +73,10 @@ def run_stage(name: str, *, capture: Path, work: Path, settings, force: bool = F
     start = time.perf_counter()
     if not force and is_fresh(work, record, settings, module.inputs(**kwargs), module.outputs(**kwargs), extra):
         return StageResult(record, list(module.outputs(**kwargs)), time.perf_counter() - start, True)
-    written = module.run(**kwargs)
-    record_settings(work, record, settings, extra)
+    remove_stale_temporaries(work)
+    with transaction(invalidate=settings_path(work, record)):   # outputs and record committed together, last
+        written = module.run(**kwargs)
+        record_settings(work, record, settings, extra)
     return StageResult(record, list(written), time.perf_counter() - start, False)
 
 

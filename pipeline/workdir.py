@@ -3,12 +3,17 @@
 A stage is fresh when all its outputs exist, every output is newer than every input, and the
 settings it was run with (``WORK/<stage>.settings.json``) equal the settings asked for now.
 Every write goes to a temporary file in the same folder that is renamed into place, so an
-interrupted run never leaves a half-written file that a later stage would trust.
+interrupted run never leaves a half-written file that a later stage would trust; inside a
+``transaction`` (a stage run by pipeline.runner.run_stage) the renames wait for the end of the
+stage, so its outputs and its settings record are committed together, last — an interrupted or
+failed stage leaves the previous set byte-identical.  Temporary files left by a killed process
+are removed by ``remove_stale_temporaries`` at the next stage start.
 """
 
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import json
 import os
 import tempfile
@@ -22,24 +27,84 @@ _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
+TEMP_MARK = ".tmp"     # temporary names: .<stem>.<random>.tmp<suffix>
+_pending: contextvars.ContextVar[list | None] = contextvars.ContextVar("pending_renames", default=None)
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path beside ``path`` (same suffix); on success rename it onto ``path``.
+    """Yield a temporary path beside ``path`` (same suffix); on success rename it onto ``path``
+    (inside a ``transaction``: when the transaction commits).
 
     On an exception the temporary file is removed and ``path`` is left as it was.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f"{TEMP_MARK}{path.suffix}", dir=path.parent)
     os.close(fd)
     os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600 files; outputs get the usual permissions
-    tmp_path = Path(tmp)
+    tmp_path: Path | None = Path(tmp)
     try:
         yield tmp_path
-        os.replace(tmp_path, path)
+        pending = _pending.get()
+        if pending is None:
+            os.replace(tmp_path, path)
+        else:
+            pending.append((tmp_path, path))
+            tmp_path = None
     finally:
-        if tmp_path.exists():
+        if tmp_path is not None and tmp_path.exists():
             tmp_path.unlink()
+
+
+@contextlib.contextmanager
+def collected_writes() -> Iterator[list[tuple[Path, Path]]]:
+    """Collect the (temporary, final) renames of the block's ``atomic_path`` writes instead of
+    doing them; on an exception the temporaries are removed.  A worker process returns the list
+    to its parent, which hands it to ``commit_writes``."""
+    pending: list[tuple[Path, Path]] = []
+    token = _pending.set(pending)
+    try:
+        yield pending
+    except BaseException:
+        for tmp, _ in pending:
+            tmp.unlink(missing_ok=True)
+        raise
+    finally:
+        _pending.reset(token)
+
+
+def commit_writes(pending: list[tuple[Path, Path]]) -> None:
+    """Rename collected writes into place now, or queue them in the enclosing transaction."""
+    current = _pending.get()
+    if current is not None:
+        current.extend(pending)
+        return
+    for tmp, path in pending:
+        os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def transaction(invalidate: Path | None = None) -> Iterator[None]:
+    """Defer the renames of every ``atomic_path`` write in the block to its end: on success
+    ``invalidate`` (a freshness record) is removed, then the files are renamed in the order they
+    were written (write the new record last); on an exception, or if the process dies, no file
+    of the block has replaced its old version (the temporaries are removed, or left for
+    ``remove_stale_temporaries``)."""
+    with collected_writes() as pending:
+        yield
+    if invalidate is not None:
+        Path(invalidate).unlink(missing_ok=True)
+    commit_writes(pending)
+
+
+def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files of writes that a killed process never renamed (``atomic_path``
+    names) under ``folder``; returns them."""
+    stale = [p for p in Path(folder).rglob(f".*{TEMP_MARK}*") if p.is_file() and f"{TEMP_MARK}" in p.name]
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale
 
 
 def read_json(path: str | os.PathLike, *, missing: str = "", unreadable: str = "") -> Any:

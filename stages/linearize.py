@@ -45,6 +45,7 @@ from pipeline.io.images import read_image, write_image
 from pipeline.io.linear_manifest import linear_dir, manifest_path, write_manifest
 from pipeline.io.response_json import read_response_json, srgb_inverse_table
 from pipeline.settings import setting, settings_dict
+from pipeline.workdir import collected_writes, commit_writes
 
 ROLLOFF = 0.1  # bracket weights fall linearly to 0 over the top 10 % below the saturation level
 HEADER_KEY = "sigrend:linearize"  # EXR attribute holding the recipe digest and manifest entry
@@ -388,6 +389,14 @@ def build_jobs(capture: Path, work: Path, settings: Settings) -> list[dict]:
     return jobs
 
 
+def _linearize_job_collected(job: dict) -> tuple[dict, list]:
+    """linearize_job in a worker process: its files stay under temporary names, handed back to
+    the parent so that they are committed with the rest of the stage."""
+    with collected_writes() as written:
+        entry = linearize_job(job)
+    return entry, written
+
+
 def run_jobs(jobs: list[dict], workers: int) -> dict[str, dict]:
     """Run ``linearize_job`` for every job not already fresh; serial or in a process pool, with a progress bar."""
     from tqdm import tqdm
@@ -411,10 +420,11 @@ def run_jobs(jobs: list[dict], workers: int) -> dict[str, dict]:
             # forkserver, not fork: OpenImageIO's thread pool in this process would deadlock forked children
             context = multiprocessing.get_context("forkserver")
             with cf.ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=context) as pool:
-                futures = {pool.submit(linearize_job, job): job["key"] for job in todo}
+                futures = {pool.submit(_linearize_job_collected, job): job["key"] for job in todo}
                 try:
                     for fut in cf.as_completed(futures):
-                        entries[futures[fut]] = fut.result()
+                        entries[futures[fut]], written = fut.result()
+                        commit_writes(written)      # into the stage's transaction (pipeline.workdir)
                         bar.update()
                 except BaseException:
                     pool.shutdown(wait=True, cancel_futures=True)

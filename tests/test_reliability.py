@@ -1,0 +1,113 @@
+"""A stage's outputs are committed together, last (issue 17): a stage killed (SIGKILL, by its own
+pid, at a chosen output) or failing half-way leaves the previous outputs byte-identical and the
+next run trusts only a complete set.  The fault injector runs the real CLI in a subprocess whose
+``atomic_path`` kills the process right after the chosen file's n-th write."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pipeline import cli
+
+ROOT = Path(__file__).parents[1]
+
+KILLER = r"""
+import contextlib, os, signal, sys
+from pathlib import Path
+import pipeline.workdir as workdir            # patched before any module imports atomic_path
+target, count, argv = sys.argv[1], int(sys.argv[2]), sys.argv[3:]
+original, seen = workdir.atomic_path, []
+
+@contextlib.contextmanager
+def atomic_path(path):
+    with original(path) as tmp:
+        yield tmp
+    if Path(path).name == target:
+        seen.append(path)
+        if len(seen) >= count:
+            os.kill(os.getpid(), signal.SIGKILL)
+
+workdir.atomic_path = atomic_path
+from pipeline import cli
+sys.exit(cli.main(argv))
+"""
+
+pytestmark = pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning")
+
+
+def kill_at(target: str, count: int, *argv: str) -> int:
+    """Run ``sigrend ARGV`` in a subprocess killed after its ``count``-th write of a file named
+    ``target``; returns the exit code (-SIGKILL when the kill happened)."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    return subprocess.run([sys.executable, "-c", KILLER, target, str(count), *map(str, argv)], env=env,
+                          capture_output=True, text=True).returncode
+
+
+def digest(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture
+def linearized(tiny_capture, tmp_path):
+    capture = tiny_capture(views=6, size=(48, 48))
+    work = tmp_path / "work"
+    assert cli.main(["linearize", str(capture), "-w", str(work)]) == 0
+    return capture, work
+
+
+def test_a_killed_rerun_with_other_settings_leaves_the_outputs_byte_identical(linearized, capsys):
+    capture, work = linearized
+    before = digest(work)
+    # killed after the third mask of a re-run with other settings: nothing of it is committed
+    code = kill_at("0002.png", 1, "linearize", capture, "-w", work, "--saturation", "0.6", "--workers", "1")
+    assert code == -signal.SIGKILL
+    leftovers = [p for p in work.rglob("*") if p.is_file() and ".tmp" in p.name]
+    assert leftovers, "the killed process should have left its uncommitted temporaries"
+    assert {k: v for k, v in digest(work).items() if ".tmp" not in k} == before
+    # the old set is complete and fresh for its own settings; the new settings run again
+    capsys.readouterr()
+    assert cli.main(["linearize", str(capture), "-w", str(work)]) == 0
+    assert "fresh, skipped" in capsys.readouterr().out
+    assert cli.main(["linearize", str(capture), "-w", str(work), "--saturation", "0.6"]) == 0
+    assert "fresh, skipped" not in capsys.readouterr().out
+    assert not [p for p in work.rglob("*") if ".tmp" in p.name]      # stale temporaries removed at the start
+    assert digest(work) != before
+
+
+def test_worker_processes_commit_with_the_stage(linearized):
+    """Images linearized in worker processes are handed to the stage's commit: killed after the
+    manifest (the parent's last write, when every worker has finished), nothing has changed."""
+    capture, work = linearized
+    before = digest(work)
+    assert kill_at("manifest.json", 1, "linearize", capture, "-w", work, "--saturation", "0.6",
+                   "--workers", "2") == -signal.SIGKILL
+    assert {k: v for k, v in digest(work).items() if ".tmp" not in k} == before
+
+
+def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch):
+    from pipeline.errors import UserError
+    from stages import linearize
+
+    capture, work = linearized
+    before = digest(work)
+    real = linearize.write_image
+    calls = []
+
+    def failing(path, *args, **kwargs):
+        calls.append(path)
+        if len(calls) == 3:
+            raise UserError("injected failure after two images")
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(linearize, "write_image", failing)
+    assert cli.main(["linearize", str(capture), "-w", str(work), "--saturation", "0.6", "--workers", "1"]) == 2
+    assert len(calls) == 3
+    assert digest(work) == before           # the two images written before the failure were not committed
