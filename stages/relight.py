@@ -72,7 +72,11 @@ class Settings:
     out_dir: str = setting("", "output folder; empty = WORK/relight")
     compare: bool = setting(False, "compare with the linear photos of the same views: error maps and relative errors "
                                    "(after one global scale when the lighting is the fitted one)")
-    supersample: int = setting(2, "rays per pixel along each axis (n x n); alpha is the covered fraction")
+    supersample: int = setting(2, "rays per pixel along each axis (n x n) at the silhouette (alpha = the covered "
+                                   "fraction); inside it --interior-supersample, refined at highlights")
+    interior_supersample: int = setting(1, "rays per pixel along each axis inside the silhouette (1: the shading "
+                                           "at the pixel centre; 2: bunny 1.02 % against Cycles for 1.35 %, ~2.5x "
+                                           "the time, docs/relight.md)")
     method: str = setting("angular", "'angular': the reflection equation over the lighting's directions with the full "
                                      "BRDF and shadow rays (accurate); 'frequency': the fit's SH / prefiltered "
                                      "forward model (fast, no shadows, reflection-space lobe)")
@@ -101,6 +105,8 @@ class Settings:
             parse_orbit(self.views)
         if not 1 <= self.supersample <= 8:
             raise UserError(f"--supersample {self.supersample}: use 1 to 8 rays per pixel and axis")
+        if not 1 <= self.interior_supersample <= 8:
+            raise UserError(f"--interior-supersample {self.interior_supersample}: use 1 to 8 rays per pixel and axis")
         if self.lobe_sh_order < 2:
             raise UserError(f"--lobe-sh-order {self.lobe_sh_order}: use at least 2")
         if not 8 <= self.prefilter_height <= 1024:
@@ -626,30 +632,38 @@ def _render_pixels(view: View, mesh, intersector, lighting, albedo, vertex_color
 
 
 def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLighting", albedo, vertex_colors,
-                supersample: int = 1, refine: int = 8, contrast: float = 2.0) -> np.ndarray:
-    """Linear RGBA (H, W, 4): radiance averaged over an n x n grid of rays per pixel, alpha = hit fraction.
+                supersample: int = 1, refine: int = 8, contrast: float = 2.0, interior: int = 1) -> np.ndarray:
+    """Linear RGBA (H, W, 4): radiance averaged over the rays of each pixel, alpha = hit fraction.
 
-    Adaptive refinement (``refine`` > ``supersample``): pixels on the object whose luminance differs
-    from a 3 x 3 neighbour's by more than ``contrast`` times the object's mean luminance (sun
-    highlights, sharp shadow edges) are rendered again with ``refine`` x ``refine`` rays, since a
-    highlight a few pixels wide is otherwise aliased by the few rays of the first pass.
+    ``interior`` x ``interior`` rays per pixel, then two adaptive passes: pixels at the silhouette
+    (a hit and a miss among the 3 x 3 pixels' first rays) again with ``supersample`` x
+    ``supersample`` rays for their coverage, and pixels on the object whose luminance differs from a 3 x 3 neighbour's by more
+    than ``contrast`` times the object's mean luminance (sun highlights, sharp shadow edges) with
+    ``refine`` x ``refine`` rays, since a highlight a few pixels wide is aliased by a few rays.
+    Inside the silhouette the shading varies little within a pixel, so one ray there is the
+    pixel's mean to second order in the pixel size (and the renderer's own sampling noise is
+    averaged over fewer points), at a quarter of a 2 x 2 grid's cost.
     """
-    w, h = view.camera.width, view.camera.height
-    every = np.arange(w * h)
-    rgb, hits = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, every, supersample)
-    n_rays = supersample * supersample
-    if refine > supersample and hits.any():
-        from scipy import ndimage
+    from scipy import ndimage
 
-        lum = (rgb.mean(axis=1) / n_rays).reshape(h, w)
-        on = (hits > 0).reshape(h, w)
+    w, h = view.camera.width, view.camera.height
+    rgb, hits = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, np.arange(w * h), interior)
+    rgb, hits = rgb / interior ** 2, hits / interior ** 2
+
+    def again(pixels: np.ndarray, n: int) -> None:
+        if pixels.size:
+            rgb2, hits2 = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, pixels, n)
+            rgb[pixels], hits[pixels] = rgb2 / (n * n), hits2 / (n * n)
+
+    on = (hits > 0).reshape(h, w)
+    if supersample > interior:
+        again(np.flatnonzero(ndimage.binary_dilation(on) & ~ndimage.binary_erosion(on)), supersample)
+    if refine > 1 and on.any():
+        lum = rgb.mean(axis=1).reshape(h, w)
         spread = ndimage.maximum_filter(lum, 3) - ndimage.minimum_filter(lum, 3)
-        redo = np.flatnonzero((spread > contrast * float(lum[on].mean())) & ndimage.binary_dilation(on))
-        if redo.size:
-            rgb2, hits2 = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, redo, refine)
-            scale = n_rays / (refine * refine)
-            rgb[redo], hits[redo] = rgb2 * scale, hits2 * scale
-    return np.concatenate([rgb / n_rays, hits[:, None] / n_rays], axis=1).reshape(h, w, 4).astype(np.float32)
+        again(np.flatnonzero((spread > contrast * float(lum[on].mean())) & ndimage.binary_dilation(on)),
+              max(refine, supersample))
+    return np.concatenate([rgb, hits[:, None]], axis=1).reshape(h, w, 4).astype(np.float32)
 
 
 def preview_exposure(rgb: np.ndarray, mask: np.ndarray) -> float:
@@ -784,7 +798,8 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     rendered, photos, masks, exposures = {}, {}, {}, {}
     manifest = linear_manifest(work) if settings.compare else None
     for view in tqdm(views, desc="relight", unit="view", leave=False):
-        rgba = render_view(view, mesh, intersector, lighting, albedo, vertex_colors, settings.supersample)
+        rgba = render_view(view, mesh, intersector, lighting, albedo, vertex_colors, settings.supersample,
+                           interior=settings.interior_supersample)
         stem = view_stem(view.key)
         written.append(write_image(folder / f"{stem}.exr", rgba, dtype="float"))
         exposures[view.key] = preview_exposure(rgba[..., :3], rgba[..., 3] > 0.5)

@@ -41,9 +41,9 @@ def blender_world(path: Path, rotation_deg: float) -> np.ndarray:
 
 # issue 10 targets: 1.5% (bunny), 4% (night sphere), 5% (teapot).  Lit by the HDRI Cycles rendered
 # with (Blender's 1024 x 512 map; gt/relight/env.exr is its 2x2 box-downsampled copy), measured
-# (relative RMSE / rim / interior): bunny 1.02 / 0.89 / 1.11 (was 7.6% without interreflection),
-# teapot 3.08 / 3.16 / 3.02 (was 19.4%), night sphere 6.27 / 9.10 / 2.34 (was 40.6%; 7.46 under
-# the downsampled map).  The night sphere misses the 4% target on one thing: the city sun's
+# (relative RMSE / rim / interior, one ray per interior pixel: the default): bunny 1.35 / 1.31 / 1.38
+# (was 7.6% without interreflection; 1.02 with 2x2 rays), teapot 3.44 / 3.38 / 3.48 (was 19.4%;
+# 3.08), night sphere 6.26 / 9.08 / 2.34 (was 40.6%; 7.46 under the downsampled map).  The night sphere misses the 4% target on one thing: the city sun's
 # highlight (radiance 2000x the view's mean, a few pixels) a few pixels from the silhouette of one
 # view, whose energy is within 3% but whose per-pixel shape differs by up to 15%; the interior is
 # held to the 4% and the rings of the rim away from that highlight match to 1% (docs/relight.md).
