@@ -26,8 +26,9 @@ from types import SimpleNamespace
 
 from pipeline.errors import UserError
 from pipeline.settings import add_settings_arguments, make_settings, settings_from_args
-from pipeline.workdir import (is_fresh, record_settings, remove_stale_temporaries, settings_path, transaction,
-                              write_json)
+from pipeline import __version__
+from pipeline.workdir import (fingerprints, is_fresh, record_settings, remove_stale_temporaries, settings_path,
+                              transaction, write_json)
 
 HELP = "Run the whole pipeline on a capture folder (linearize, poses, samples, fit, relight) and write the report."
 
@@ -69,14 +70,15 @@ def run_stage(name: str, *, capture: Path, work: Path, settings, force: bool = F
     check_capture(capture)
     work.mkdir(parents=True, exist_ok=True)
     kwargs = dict(capture=capture, work=work, settings=settings)
-    extra = {"capture": str(capture.resolve())}
     start = time.perf_counter()
-    if not force and is_fresh(work, record, settings, module.inputs(**kwargs), module.outputs(**kwargs), extra):
+    provenance = {"capture": str(capture.resolve()), "sigrend": __version__,
+                  "inputs": fingerprints(module.inputs(**kwargs), work)}
+    if not force and is_fresh(work, record, settings, module.outputs(**kwargs), provenance):
         return StageResult(record, list(module.outputs(**kwargs)), time.perf_counter() - start, True)
     remove_stale_temporaries(work)
     with transaction(invalidate=settings_path(work, record)):   # outputs and record committed together, last
         written = module.run(**kwargs)
-        record_settings(work, record, settings, extra)
+        record_settings(work, record, settings, provenance)
     return StageResult(record, list(written), time.perf_counter() - start, False)
 
 

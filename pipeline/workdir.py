@@ -1,7 +1,10 @@
 """The work folder: where each stage writes, atomic writes, and the skip-if-fresh rule.
 
-A stage is fresh when all its outputs exist, every output is newer than every input, and the
-settings it was run with (``WORK/<stage>.settings.json``) equal the settings asked for now.
+A stage is fresh when all its outputs exist and its record (``WORK/<stage>.settings.json``) equals
+what is asked for now: the settings, sigrend's version and the content (sha256) of every input
+file — not file times, which ``cp -p``, ``rsync -a`` or unzip set to the past; a removed input
+changes the set.  Hashes are cached in ``WORK/.fingerprints.json`` by (device, inode, size,
+mtime, ctime), so an unchanged file is not read again (ctime cannot be set back by copying tools).
 Every write goes to a temporary file in the same folder that is renamed into place, so an
 interrupted run never leaves a half-written file that a later stage would trust; inside a
 ``transaction`` (a stage run by pipeline.runner.run_stage) the renames wait for the end of the
@@ -14,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import hashlib
 import json
 import os
 import tempfile
@@ -138,34 +142,69 @@ def write_text(path: str | os.PathLike, text: str) -> Path:
     return path
 
 
+FINGERPRINT_CACHE = ".fingerprints.json"
+_HASH_BLOCK = 1 << 20
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(_HASH_BLOCK), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def fingerprints(paths: Iterable[Path], work: str | os.PathLike) -> dict[str, str]:
+    """{absolute path: sha256 of the content, or "missing"} of ``paths``, cached in ``work``."""
+    cache_path = Path(work) / FINGERPRINT_CACHE
+    try:
+        cache = json.loads(cache_path.read_text())
+    except (OSError, ValueError):
+        cache = {}
+    out, changed = {}, False
+    for path in paths:
+        key = str(Path(path).resolve())
+        try:
+            st = os.stat(key)
+        except OSError:
+            out[key] = "missing"
+            continue
+        stamp = [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns]
+        entry = cache.get(key)
+        if not entry or entry[0] != stamp:
+            entry = cache[key] = [stamp, _sha256(Path(key))]
+            changed = True
+        out[key] = entry[1]
+    if changed:
+        Path(work).mkdir(parents=True, exist_ok=True)
+        tmp = cache_path.with_name(f".{cache_path.name}.{os.getpid()}{TEMP_MARK}")
+        tmp.write_text(json.dumps(cache))
+        os.replace(tmp, cache_path)   # the cache is not a stage output: not deferred by a transaction
+    return out
+
+
 def settings_path(work: str | os.PathLike, stage: str) -> Path:
     """Where the settings of ``stage`` are recorded: ``WORK/<stage>.settings.json``."""
     return Path(work) / f"{stage}.settings.json"
 
 
-def record_settings(work: str | os.PathLike, stage: str, settings: Any, extra: dict | None = None) -> Path:
-    """Write the settings a stage ran with (plus e.g. input paths in ``extra``) beside its outputs."""
-    payload = {"stage": stage, "settings": settings_dict(settings), **(extra or {})}
+def record_settings(work: str | os.PathLike, stage: str, settings: Any, provenance: dict | None = None) -> Path:
+    """Write the settings a stage ran with and its ``provenance`` (input fingerprints, version,
+    e.g. the capture path) beside its outputs."""
+    payload = {"stage": stage, "settings": settings_dict(settings), **(provenance or {})}
     return write_json(settings_path(work, stage), payload)
 
 
-def is_fresh(work: str | os.PathLike, stage: str, settings: Any, inputs: Iterable[Path],
-             outputs: Iterable[Path], extra: dict | None = None) -> bool:
+def is_fresh(work: str | os.PathLike, stage: str, settings: Any, outputs: Iterable[Path],
+             provenance: dict | None = None) -> bool:
     """True when ``stage`` need not run again (see the module docstring)."""
     outputs = [Path(p) for p in outputs]
-    inputs = [Path(p) for p in inputs]
     if not outputs or not all(p.exists() for p in outputs):
         return False
     rec = settings_path(work, stage)
-    if not rec.exists():
-        return False
     try:
         recorded = json.loads(rec.read_text())
-    except (OSError, json.JSONDecodeError):
+    except (OSError, ValueError):
         return False
-    wanted = {"stage": stage, "settings": settings_dict(settings), **(extra or {})}
-    if json.loads(json.dumps(wanted)) != recorded:
-        return False
-    newest_input = max((p.stat().st_mtime for p in inputs if p.exists()), default=0.0)
-    oldest_output = min(p.stat().st_mtime for p in outputs)
-    return oldest_output >= newest_input
+    wanted = {"stage": stage, "settings": settings_dict(settings), **(provenance or {})}
+    return json.loads(json.dumps(wanted)) == recorded

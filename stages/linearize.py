@@ -45,7 +45,7 @@ from pipeline.io.images import read_image, write_image
 from pipeline.io.linear_manifest import linear_dir, manifest_path, write_manifest
 from pipeline.io.response_json import read_response_json, srgb_inverse_table
 from pipeline.settings import setting, settings_dict
-from pipeline.workdir import collected_writes, commit_writes
+from pipeline.workdir import collected_writes, commit_writes, fingerprints
 
 ROLLOFF = 0.1  # bracket weights fall linearly to 0 over the top 10 % below the saturation level
 HEADER_KEY = "sigrend:linearize"  # EXR attribute holding the recipe digest and manifest entry
@@ -220,12 +220,10 @@ def _read_header_entry(exr: Path) -> dict | None:
 
 
 def _fresh_entry(job: dict) -> dict | None:
-    """The manifest entry recorded in an existing, newer-than-its-inputs output with the same recipe."""
+    """The manifest entry recorded in an existing output with the same recipe (settings, sources
+    and the content of every file it depends on: the job's ``content``)."""
     exr, mask = Path(job["exr"]), Path(job["mask"])
     if not (exr.exists() and mask.exists()):
-        return None
-    newest = max(Path(p).stat().st_mtime for p in job["depends_on"])
-    if min(exr.stat().st_mtime, mask.stat().st_mtime) < newest:
         return None
     header = _read_header_entry(exr)
     if not header or header.get("recipe") != _digest(job):
@@ -371,6 +369,7 @@ def build_jobs(capture: Path, work: Path, settings: Settings) -> list[dict]:
     inverse = read_response_json(config.response) if config.response else srgb_inverse_table()
     raw_wb, rgb_gains, wb_record = resolve_white_balance(settings, config, probes, inverse, settings.saturation)
     extra = [str(p) for p in _capture_files(capture, config)]
+    content = fingerprints(files + [Path(p) for p in extra], work)   # in each job's recipe: a replaced file redoes it
     folder = linear_dir(work)
     jobs = []
     for key, members in groups.items():
@@ -385,7 +384,7 @@ def build_jobs(capture: Path, work: Path, settings: Settings) -> list[dict]:
                      "response": str(config.response) if config.response else None,
                      "vignetting": str(config.vignetting) if config.vignetting else None,
                      "settings": {k: v for k, v in settings_dict(settings).items() if k != "workers"},
-                     "depends_on": [str(m) for m in members] + extra})
+                     "content": {p: content[str(Path(p).resolve())] for p in [str(m) for m in members] + extra}})
     return jobs
 
 
@@ -439,4 +438,9 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     jobs = build_jobs(Path(capture), Path(work), settings)
     entries = run_jobs(jobs, settings.workers)
     manifest = write_manifest(work, entries)
-    return [Path(j["exr"]) for j in jobs] + [Path(j["mask"]) for j in jobs] + [manifest]
+    written = [Path(j["exr"]) for j in jobs] + [Path(j["mask"]) for j in jobs]
+    folder = linear_dir(work)
+    previous = [p for p in [*folder.glob("*.exr"), *(folder / "masks").glob("*.png")] if not p.name.startswith(".")]
+    for stale in set(previous) - set(written):
+        stale.unlink()        # a photo removed from the capture leaves no linear image behind
+    return written + [manifest]

@@ -6,15 +6,19 @@ next run trusts only a complete set.  The fault injector runs the real CLI in a 
 from __future__ import annotations
 
 import hashlib
+import json
+import shutil
 import os
 import signal
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pipeline import cli
+from pipeline.io.images import read_image
 
 ROOT = Path(__file__).parents[1]
 
@@ -111,3 +115,39 @@ def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch):
     assert cli.main(["linearize", str(capture), "-w", str(work), "--saturation", "0.6", "--workers", "1"]) == 2
     assert len(calls) == 3
     assert digest(work) == before           # the two images written before the failure were not committed
+
+
+def test_freshness_is_by_content_not_file_times(tiny_capture, tmp_path, capsys):
+    """A photo replaced by another with an older time (cp -p, rsync -a, unzip) is noticed: its
+    linear image is redone and the stages after it are not trusted; a removed photo too."""
+    source = tiny_capture(views=6, size=(48, 48))
+    capture = tmp_path / "capture"
+    shutil.copytree(source, capture)
+    work = tmp_path / "work"
+    assert cli.main(["linearize", str(capture), "-w", str(work)]) == 0
+    before = digest(work / "linear")
+    pixels_2 = read_image(work / "linear" / "0002.exr")
+    capsys.readouterr()
+    assert cli.main(["linearize", str(capture), "-w", str(work)]) == 0
+    assert "fresh, skipped" in capsys.readouterr().out
+    # swap two photos' contents and set their times back by a day
+    a, b = capture / "images" / "0001.exr", capture / "images" / "0002.exr"
+    old = a.stat().st_mtime - 86400
+    data_a, data_b = a.read_bytes(), b.read_bytes()
+    a.write_bytes(data_b)
+    b.write_bytes(data_a)
+    for p in (a, b):
+        os.utime(p, (old, old))
+    assert cli.main(["linearize", str(capture), "-w", str(work)]) == 0
+    assert "fresh, skipped" not in capsys.readouterr().out
+    after = digest(work / "linear")
+    assert after["0000.exr"] == before["0000.exr"]        # the others were not redone
+    assert after["0001.exr"] != before["0001.exr"] and after["0002.exr"] != before["0002.exr"]
+    assert np.array_equal(read_image(work / "linear" / "0001.exr"), pixels_2)   # the swapped content
+    # a removed photo changes the stage's input set
+    (capture / "images" / "0005.exr").unlink()
+    assert cli.main(["linearize", str(capture), "-w", str(work)]) == 0
+    assert "fresh, skipped" not in capsys.readouterr().out
+    manifest = json.loads((work / "linear" / "manifest.json").read_text())
+    assert sorted(manifest["images"]) == ["0000", "0001", "0002", "0003", "0004"]
+    assert not (work / "linear" / "0005.exr").exists() and not (work / "linear" / "masks" / "0005.png").exists()

@@ -69,16 +69,23 @@ def test_resume_skips_fresh_stages_and_force_redoes(capture, tmp_path, capsys):
     assert all(forced[n] > after[n] for n in ("linear/manifest.json", "poses.json", "samples.npz"))
 
 
-def test_a_newer_input_reruns_the_stages_that_depend_on_it(capture, tmp_path):
+def test_a_changed_input_reruns_the_stages_that_depend_on_it(capture, tmp_path):
+    """Freshness is by content (pipeline.workdir): a touched file with the same bytes reruns
+    nothing, a changed one reruns the stages that read it and no other."""
+    import shutil
+
+    capture = shutil.copytree(capture, tmp_path / "capture")
     work = tmp_path / "work"
     assert _run(capture, "-w", work, "--to", "poses") == 0
     before = _mtimes(work, ["linear/manifest.json", "poses.json"])
-    # a poses.json newer than the stage's output: poses reruns, linearize (which does not read it) does not
     pose_file = capture / "poses.json"
-    pose_file.write_text(pose_file.read_text())  # the shared capture's content is unchanged
+    pose_file.write_text(pose_file.read_text())         # newer, same content: nothing reruns
+    assert _run(capture, "-w", work, "--to", "poses") == 0
+    assert _mtimes(work, ["linear/manifest.json", "poses.json"]) == before
+    pose_file.write_text(json.dumps(json.loads(pose_file.read_text()), indent=3))   # other bytes
     assert _run(capture, "-w", work, "--to", "poses") == 0
     after = _mtimes(work, ["linear/manifest.json", "poses.json"])
-    assert after["linear/manifest.json"] == before["linear/manifest.json"]
+    assert after["linear/manifest.json"] == before["linear/manifest.json"]   # linearize does not read it
     assert after["poses.json"] > before["poses.json"]
 
 

@@ -436,7 +436,10 @@ def test_bad_input_is_one_line_and_exit_2(good_work, case, capsys):
     from pipeline.cli import main
 
     capture, work = good_work
-    before = {p.name: p.read_bytes() for p in work.iterdir() if p.is_file()}
+    def outputs() -> dict:     # (dot files: the fingerprint cache, not an output)
+        return {p.name: p.read_bytes() for p in work.iterdir() if p.is_file() and not p.name.startswith(".")}
+
+    before = outputs()
     breaker, message = BAD_INPUTS[case]
     breaker(capture)
     if case in SUBPROCESS_CASES:
@@ -449,4 +452,4 @@ def test_bad_input_is_one_line_and_exit_2(good_work, case, capsys):
     assert code == 2, stderr
     lines = stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], stderr
-    assert {p.name: p.read_bytes() for p in work.iterdir() if p.is_file()} == before
+    assert outputs() == before
