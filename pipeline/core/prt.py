@@ -165,13 +165,14 @@ def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed
         weight[live[hit]] = 0.0
         # each sample stands for its solid angle 1 / (S pdf): Y_k prefiltered over a cap of that size,
         # cap average ~ exp(-l(l+1) θ² / 8) with θ² = Ω / π (as the renderer prefilters its map)
-        soft = np.exp(-np.outer(lobe.solid_angle.reshape(-1) / (8 * np.pi), l * (l + 1)))
-        basis = (sh_basis(dirs, geo.order) * soft).reshape(q, ns, -1).transpose(0, 2, 1)   # (q, K, S)
+        bands = np.arange(geo.order + 1)
+        soft = np.exp(-np.outer(lobe.solid_angle.reshape(-1) / (8 * np.pi), bands * (bands + 1)))[:, l]
+        basis = (sh_basis(dirs, geo.order) * soft).reshape(q, ns, -1)                      # (q, S, K)
         w3 = weight.reshape(q, ns, 3)
         if np.array_equal(w3[..., 0], w3[..., 2]) and np.array_equal(w3[..., 0], w3[..., 1]):  # grey F (dielectric)
-            out[idx] = np.matmul(basis, w3[..., :1])
+            out[idx] = np.einsum("qsk,qs->qk", basis, w3[..., 0], optimize=True)[..., None]
         else:
-            out[idx] = np.matmul(basis, w3)
+            out[idx] = np.einsum("qsk,qsc->qkc", basis, w3, optimize=True)
     return out
 
 
