@@ -40,7 +40,7 @@ from pipeline.errors import UserError
 from pipeline.io.camera_json import read_camera_json
 from pipeline.io.camera_decode import (DECODED_EXTENSIONS, RAW_EXTENSIONS, Probe, decode_other, decode_raw,
                                        probe)
-from pipeline.io.capture_toml import CAPTURE_TOML, CaptureConfig, read_capture_config
+from pipeline.io.capture_toml import CAPTURE_TOML, CaptureConfig, did_you_mean, read_capture_config
 from pipeline.io.images import read_image, write_image
 from pipeline.io.linear_manifest import linear_dir, manifest_path, write_manifest
 from pipeline.io.response_json import read_response_json, srgb_inverse_table
@@ -168,6 +168,12 @@ def exposure_scales(probes: list[Probe], config: CaptureConfig) -> dict[str, dic
     A factor absent from every file is equal for all (value None, factor 1, one warning); absent from
     some files only -> UserError naming the first such file.  Zero or negative values -> UserError.
     """
+    names = {pr.path.name for pr in probes}
+    unmatched = sorted(set(config.exposure) - names - {"default"})
+    if unmatched:
+        raise UserError(f"{config.source}: [exposure] names no image of the capture: "
+                        + ", ".join(f"{n!r}{did_you_mean(n, names)}" for n in unmatched)
+                        + " (keys are image file names, or \"default\" for all)")
     resolved = {}
     for pr in probes:
         over = config.exposure_for(pr.path.name)

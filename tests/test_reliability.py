@@ -151,3 +151,26 @@ def test_freshness_is_by_content_not_file_times(tiny_capture, tmp_path, capsys):
     manifest = json.loads((work / "linear" / "manifest.json").read_text())
     assert sorted(manifest["images"]) == ["0000", "0001", "0002", "0003", "0004"]
     assert not (work / "linear" / "0005.exr").exists() and not (work / "linear" / "masks" / "0005.png").exists()
+
+
+# bad capture.toml content -> (its text, a fragment of the one-line message); a new case is one line
+BAD_CAPTURE_TOML = {
+    "misspelt section": ("[exposre]\ndefault = {iso = 100}\n", "unknown [exposre] (did you mean 'exposure'?)"),
+    "misspelt key": ("[white_balance]\nmultiplier = [2, 1, 1.5]\n", "[white_balance] multiplier (did you mean 'multipliers'?)"),
+    "top-level value": ('white_balance = "daylight"\n', "white_balance = ... must be a [white_balance] table"),
+    "section glued": ("[whitebalance]\nmultipliers = [2, 1, 1.5]\n", "(did you mean 'white_balance'?)"),
+    "exposure of no file": ('[exposure]\n"0001.ex" = {iso = 200}\n"IMG_9.jpg" = {iso = 200}\n',
+                            "[exposure] names no image of the capture: '0001.ex' (did you mean '0001.exr'?), 'IMG_9.jpg'"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_CAPTURE_TOML))
+def test_bad_capture_toml_is_one_line_naming_the_key(tiny_capture, tmp_path, capsys, case):
+    text, fragment = BAD_CAPTURE_TOML[case]
+    capture = shutil.copytree(tiny_capture(views=6, size=(48, 48)), tmp_path / "capture")
+    (capture / "capture.toml").write_text(text)
+    capsys.readouterr()
+    assert cli.main(["linearize", str(capture), "-w", str(tmp_path / "work")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and fragment in err[0] and "Traceback" not in err[0], err
+    assert not (tmp_path / "work" / "linear").exists()

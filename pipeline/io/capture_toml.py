@@ -106,6 +106,38 @@ def read_toml(path: Path) -> dict:
         raise UserError(f"{path}: not valid TOML ({exc}); fix the syntax") from None
 
 
+# capture.toml's sections and their keys (None: any key, e.g. image file names)
+SECTIONS: dict[str, set[str] | None] = {
+    "camera": {"path"}, "response": {"path"}, "vignetting": {"path"},
+    "white_balance": {"multipliers", "gray_patch"}, "exposure": None, "brackets": None,
+    "board": {"dictionary", "squares", "square_length", "marker_length", "board_to_object"},
+    "fit": {"known_albedo"},
+}
+
+
+def did_you_mean(name: str, valid) -> str:
+    """' (did you mean X?)' for the closest of ``valid`` to a misspelt ``name``, else ''."""
+    import difflib
+
+    close = difflib.get_close_matches(name, list(valid), n=1, cutoff=0.6)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def check_sections(path: Path, doc: dict) -> None:
+    """UserError naming every unknown section or key of a capture.toml (a typo is otherwise ignored)."""
+    problems = []
+    for section, value in doc.items():
+        if section not in SECTIONS:
+            problems.append(f"[{section}]{did_you_mean(section, SECTIONS)}")
+        elif not isinstance(value, dict):
+            problems.append(f"{section} = ... must be a [{section}] table")
+        elif SECTIONS[section] is not None:
+            problems += [f"[{section}] {key}{did_you_mean(key, SECTIONS[section])}"
+                         for key in value if key not in SECTIONS[section]]
+    if problems:
+        raise UserError(f"{path}: unknown " + "; ".join(problems) + f" — known sections: {', '.join(SECTIONS)}")
+
+
 def _positive(path: Path, where: str, value: Any) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
         raise UserError(f"{path}: {where} must be a positive number, got {value!r}")
@@ -157,6 +189,7 @@ def read_capture_config(capture: str | os.PathLike) -> CaptureConfig:
     if not path.exists():
         return CaptureConfig()
     doc = read_toml(path)
+    check_sections(path, doc)
 
     wb = doc.get("white_balance", {})
     mult = gray = None
