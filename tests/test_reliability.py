@@ -174,3 +174,12 @@ def test_bad_capture_toml_is_one_line_naming_the_key(tiny_capture, tmp_path, cap
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and fragment in err[0] and "Traceback" not in err[0], err
     assert not (tmp_path / "work" / "linear").exists()
+
+
+def test_two_meshes_are_an_error_not_a_guess(tiny_capture, tmp_path, capsys):
+    capture = shutil.copytree(tiny_capture(views=6, size=(48, 48)), tmp_path / "capture")
+    shutil.copy(capture / "mesh.ply", capture / "mesh.obj")
+    capsys.readouterr()
+    assert cli.main(["samples", str(capture), "-w", str(tmp_path / "work")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "mesh.ply and mesh.obj are both there" in err[0], err

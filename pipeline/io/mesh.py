@@ -11,11 +11,15 @@ MESH_NAMES = ("mesh.ply", "mesh.obj", "mesh.glb")
 
 
 def mesh_path(capture: str | os.PathLike) -> Path:
-    """The capture's mesh file (first of mesh.ply, mesh.obj, mesh.glb); UserError if there is none."""
-    for name in MESH_NAMES:
-        if (Path(capture) / name).exists():
-            return Path(capture) / name
-    raise UserError(f"{capture}: no mesh found; put the object's mesh in the capture as {' or '.join(MESH_NAMES)}")
+    """The capture's mesh file (one of mesh.ply, mesh.obj, mesh.glb); UserError if there is none
+    or more than one (which one is the object would be a guess)."""
+    found = [Path(capture) / name for name in MESH_NAMES if (Path(capture) / name).exists()]
+    if len(found) > 1:
+        raise UserError(f"{capture}: {' and '.join(p.name for p in found)} are both there; keep the object's mesh "
+                        "and move the other out of the capture folder")
+    if not found:
+        raise UserError(f"{capture}: no mesh found; put the object's mesh in the capture as {' or '.join(MESH_NAMES)}")
+    return found[0]
 
 
 def read_mesh(path: str | os.PathLike):
