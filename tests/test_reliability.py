@@ -183,3 +183,19 @@ def test_two_meshes_are_an_error_not_a_guess(tiny_capture, tmp_path, capsys):
     assert cli.main(["samples", str(capture), "-w", str(tmp_path / "work")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "mesh.ply and mesh.obj are both there" in err[0], err
+
+
+def test_a_truncated_jpeg_is_an_error_not_grey_pixels(tmp_path):
+    """libjpeg decodes the first half of a truncated JPEG and fills the rest with grey, a "valid"
+    image; OpenImageIO's error flag makes it one line naming the file."""
+    import cv2
+
+    from pipeline.errors import UserError
+
+    image = (np.random.default_rng(0).random((128, 128, 3)) * 255).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "full.jpg"), image)
+    data = (tmp_path / "full.jpg").read_bytes()
+    (tmp_path / "cut.jpg").write_bytes(data[:len(data) // 2])
+    assert read_image(tmp_path / "full.jpg").shape == (128, 128, 3)
+    with pytest.raises(UserError, match="cut.jpg: the decoder reported .*Premature end of JPEG file"):
+        read_image(tmp_path / "cut.jpg")

@@ -48,6 +48,9 @@ def read_image(path: str | os.PathLike, *, with_metadata: bool = False):
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
         if pixels is None:
             raise UserError(f"{path}: image data is unreadable ({inp.geterror().strip()}); the file may be truncated")
+        if inp.has_error:   # decoded, but with an error (a truncated JPEG's missing rows come back grey)
+            raise UserError(f"{path}: the decoder reported {inp.geterror().strip()!r}; the file is damaged or "
+                            "truncated: copy it again or remove it")
         meta = {a.name: a.value for a in spec.extra_attribs} if with_metadata else None
     finally:
         inp.close()
