@@ -24,9 +24,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
+from pipeline import __version__
 from pipeline.errors import UserError
 from pipeline.settings import add_settings_arguments, make_settings, settings_from_args
-from pipeline import __version__
 from pipeline.workdir import (fingerprints, is_fresh, record_settings, remove_stale_temporaries, settings_path,
                               transaction, write_json)
 

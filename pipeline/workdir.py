@@ -105,7 +105,7 @@ def transaction(invalidate: Path | None = None) -> Iterator[None]:
 def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
     """Remove the temporary files of writes that a killed process never renamed (``atomic_path``
     names) under ``folder``; returns them."""
-    stale = [p for p in Path(folder).rglob(f".*{TEMP_MARK}*") if p.is_file() and f"{TEMP_MARK}" in p.name]
+    stale = [p for p in Path(folder).rglob(f".*{TEMP_MARK}*") if p.is_file()]
     for p in stale:
         p.unlink(missing_ok=True)
     return stale
@@ -168,6 +168,9 @@ def fingerprints(paths: Iterable[Path], work: str | os.PathLike) -> dict[str, st
             st = os.stat(key)
         except OSError:
             out[key] = "missing"
+            continue
+        if not os.path.isfile(key):   # a folder: its entries' names
+            out[key] = "folder:" + hashlib.sha256("\n".join(sorted(os.listdir(key))).encode()).hexdigest()
             continue
         stamp = [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns]
         entry = cache.get(key)
