@@ -10,7 +10,10 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
+import signal
 import sys
+import threading
 
 from pipeline.errors import UserError
 
@@ -61,20 +64,41 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a scheduler, ``kill``, a closed terminal's session) handled as Ctrl-C: the running
+    stage's transaction rolls back, earlier outputs are kept (pipeline.workdir)."""
+
+
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     selected = next((a for a in argv if not a.startswith("-")), None)
     if selected not in (*STAGES, *COMMANDS):
         selected = None
+    in_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     try:
         args = build_parser(selected).parse_args(argv)
         code = args._module.main(args)
+        sys.stdout.flush()
     except UserError as exc:
         print(f"sigrend: error: {exc}", file=sys.stderr)
         return UserError.exit_code
+    except Terminated:
+        print("sigrend: terminated; finished outputs are kept, run again to resume", file=sys.stderr)
+        return 128 + signal.SIGTERM
     except KeyboardInterrupt:
         print("sigrend: interrupted; finished outputs are kept, run again to resume", file=sys.stderr)
         return 130
+    except BrokenPipeError:   # `sigrend ... | head`: the reader left; end quietly (Python docs, "SIGPIPE")
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    finally:
+        if in_main_thread:
+            signal.signal(signal.SIGTERM, previous)
     return int(code or 0)
 
 

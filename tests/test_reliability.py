@@ -26,7 +26,8 @@ KILLER = r"""
 import contextlib, os, signal, sys
 from pathlib import Path
 import pipeline.workdir as workdir            # patched before any module imports atomic_path
-target, count, argv = sys.argv[1], int(sys.argv[2]), sys.argv[3:]
+target, count, argv = sys.argv[1], int(sys.argv[2]), sys.argv[4:]
+sig = getattr(signal, sys.argv[3])
 original, seen = workdir.atomic_path, []
 
 @contextlib.contextmanager
@@ -36,7 +37,7 @@ def atomic_path(path):
     if Path(path).name == target:
         seen.append(path)
         if len(seen) >= count:
-            os.kill(os.getpid(), signal.SIGKILL)
+            os.kill(os.getpid(), sig)
 
 workdir.atomic_path = atomic_path
 from pipeline import cli
@@ -46,12 +47,12 @@ sys.exit(cli.main(argv))
 pytestmark = pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning")
 
 
-def kill_at(target: str, count: int, *argv: str) -> int:
-    """Run ``sigrend ARGV`` in a subprocess killed after its ``count``-th write of a file named
-    ``target``; returns the exit code (-SIGKILL when the kill happened)."""
+def kill_at(target: str, count: int, *argv: str, sig: str = "SIGKILL") -> subprocess.CompletedProcess:
+    """Run ``sigrend ARGV`` in a subprocess that sends itself ``sig`` after its ``count``-th write
+    of a file named ``target`` (returncode -9 when SIGKILL happened)."""
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    return subprocess.run([sys.executable, "-c", KILLER, target, str(count), *map(str, argv)], env=env,
-                          capture_output=True, text=True).returncode
+    return subprocess.run([sys.executable, "-c", KILLER, target, str(count), sig, *map(str, argv)], env=env,
+                          capture_output=True, text=True)
 
 
 def digest(folder: Path) -> dict[str, str]:
@@ -71,7 +72,7 @@ def test_a_killed_rerun_with_other_settings_leaves_the_outputs_byte_identical(li
     capture, work = linearized
     before = digest(work)
     # killed after the third mask of a re-run with other settings: nothing of it is committed
-    code = kill_at("0002.png", 1, "linearize", capture, "-w", work, "--saturation", "0.6", "--workers", "1")
+    code = kill_at("0002.png", 1, "linearize", capture, "-w", work, "--saturation", "0.6", "--workers", "1").returncode
     assert code == -signal.SIGKILL
     leftovers = [p for p in work.rglob("*") if p.is_file() and ".tmp" in p.name]
     assert leftovers, "the killed process should have left its uncommitted temporaries"
@@ -92,8 +93,35 @@ def test_worker_processes_commit_with_the_stage(linearized):
     capture, work = linearized
     before = digest(work)
     assert kill_at("manifest.json", 1, "linearize", capture, "-w", work, "--saturation", "0.6",
-                   "--workers", "2") == -signal.SIGKILL
+                   "--workers", "2").returncode == -signal.SIGKILL
     assert {k: v for k, v in digest(work).items() if ".tmp" not in k} == before
+
+
+def test_sigterm_is_handled_as_an_interrupt(linearized):
+    """SIGTERM mid-stage: one line, exit 128 + 15, the transaction rolled back (no temporaries)."""
+    capture, work = linearized
+    before = digest(work)
+    result = kill_at("0002.png", 1, "linearize", capture, "-w", work, "--saturation", "0.6", "--workers", "1",
+                     sig="SIGTERM")
+    assert result.returncode == 128 + signal.SIGTERM, result.stderr
+    lines = [line for line in result.stderr.strip().splitlines() if line.startswith("sigrend:")]
+    assert lines == ["sigrend: terminated; finished outputs are kept, run again to resume"], result.stderr
+    assert "Traceback" not in result.stderr
+    assert digest(work) == before
+
+
+def test_a_closed_stdout_ends_quietly(linearized):
+    """`sigrend ... | head -0`: the reader is gone before the stage prints its outputs."""
+    capture, work = linearized
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        result = subprocess.run([sys.executable, "-m", "pipeline.cli", "linearize", str(capture), "-w", str(work)],
+                                stdout=write, stderr=subprocess.PIPE, text=True, env=env)
+    finally:
+        os.close(write)
+    assert result.returncode == 0 and result.stderr == "", result.stderr
 
 
 def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch):
