@@ -637,9 +637,10 @@ def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLigh
 
     ``interior`` x ``interior`` rays per pixel, then two adaptive passes: pixels at the silhouette
     (a hit and a miss among the 3 x 3 pixels' first rays) again with ``supersample`` x
-    ``supersample`` rays for their coverage, and pixels on the object whose luminance differs from a 3 x 3 neighbour's by more
-    than ``contrast`` times the object's mean luminance (sun highlights, sharp shadow edges) with
-    ``refine`` x ``refine`` rays, since a highlight a few pixels wide is aliased by a few rays.
+    ``supersample`` rays for their coverage, and pixels on the object whose luminance differs
+    from a 3 x 3 neighbour's by more than ``contrast`` times the object's mean luminance (sun
+    highlights, sharp shadow edges) with ``refine`` x ``refine`` rays, since a highlight a few
+    pixels wide is aliased by a few rays; each pass only where it has more rays than the first.
     Inside the silhouette the shading varies little within a pixel, so one ray there is the
     pixel's mean to second order in the pixel size (and the renderer's own sampling noise is
     averaged over fewer points), at a quarter of a 2 x 2 grid's cost.
@@ -658,7 +659,7 @@ def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLigh
     on = (hits > 0).reshape(h, w)
     if supersample > interior:
         again(np.flatnonzero(ndimage.binary_dilation(on) & ~ndimage.binary_erosion(on)), supersample)
-    if refine > 1 and on.any():
+    if refine > interior and on.any():
         lum = rgb.mean(axis=1).reshape(h, w)
         spread = ndimage.maximum_filter(lum, 3) - ndimage.minimum_filter(lum, 3)
         again(np.flatnonzero((spread > contrast * float(lum[on].mean())) & ndimage.binary_dilation(on)),

@@ -28,11 +28,13 @@ def pixel_noise_sigma(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndar
     key = (np.asarray(image_id, np.int64) * span + y) * span + x
     order = np.argsort(key)
     keys = key[order]
+
+    def at(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:    # (sample index, found) of each key
+        i = np.clip(np.searchsorted(keys, k), 0, len(keys) - 1)
+        return order[i], keys[i] == k
+
     second = []
     for step in (1, span):                       # along rows, along columns
-        def at(k):
-            i = np.clip(np.searchsorted(keys, k), 0, len(keys) - 1)
-            return order[i], keys[i] == k
         left, has_left = at(key - step)
         right, has_right = at(key + step)
         both = has_left & has_right

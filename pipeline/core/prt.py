@@ -153,6 +153,7 @@ def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed
     out = np.zeros((n, num_coeffs(geo.order), 3))
     front = np.flatnonzero(geo.mu_out > 0)
     l = band_of_index(geo.order)
+    bands = np.arange(geo.order + 1)
     for s in range(0, front.size, chunk):
         idx = front[s:s + chunk]
         lobe = specular_samples(material, geo.normals[idx], geo.view_dirs[idx], n_samples, rng)
@@ -165,7 +166,6 @@ def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed
         weight[live[hit]] = 0.0
         # each sample stands for its solid angle 1 / (S pdf): Y_k prefiltered over a cap of that size,
         # cap average ~ exp(-l(l+1) θ² / 8) with θ² = Ω / π (as the renderer prefilters its map)
-        bands = np.arange(geo.order + 1)
         soft = np.exp(-np.outer(lobe.solid_angle.reshape(-1) / (8 * np.pi), bands * (bands + 1)))[:, l]
         basis = (sh_basis(dirs, geo.order) * soft).reshape(q, ns, -1)                      # (q, S, K)
         w3 = weight.reshape(q, ns, 3)
