@@ -1,4 +1,4 @@
-"""`sigrend`: one subcommand per stage, plus run, calib, synth, env, planar and bench.
+"""`sigrend`: one subcommand per stage (export included), plus run, calib, synth, env, planar and bench.
 
 Every subcommand lives in a module that provides ``HELP``, ``add_arguments(parser)`` and
 ``main(args) -> int | None``; stages get theirs generically from their ``Settings`` dataclass
@@ -17,7 +17,7 @@ import threading
 
 from pipeline.errors import UserError
 
-STAGES = ("linearize", "poses", "samples", "fit", "relight")
+STAGES = ("linearize", "poses", "samples", "fit", "relight", "export")  # `sigrend NAME CAPTURE -w WORK`
 
 # subcommand -> module providing HELP, add_arguments, main (imported only when needed)
 COMMANDS = {

@@ -50,6 +50,7 @@ from pipeline.io.brdf import diffuse_color, read_brdf
 from pipeline.io.camera_files import srgb_encode
 from pipeline.io.images import read_envmap, write_image
 from pipeline.io.lighting import read_lighting_parts, read_lighting_sh
+from pipeline.io.mesh import read_vertex_albedo
 from pipeline.io.poses import Poses, read_poses
 from pipeline.settings import setting
 from pipeline.workdir import write_json
@@ -590,15 +591,7 @@ def prepare_lighting(path: Path, brdf: dict, mesh, settings: Settings, *, captur
 
 def vertex_albedo(work: Path, mesh) -> np.ndarray | None:
     """Per-vertex linear albedo (V, 3) from WORK/fit/albedo.ply when the fit wrote one."""
-    path = Path(work) / "fit" / "albedo.ply"
-    if not path.exists():
-        return None
-    tex = load_mesh(path)
-    colors = getattr(tex.visual, "vertex_colors", None)
-    if colors is None or len(tex.vertices) != len(mesh.vertices):
-        return None
-    colors = np.asarray(colors, float)[:, :3]
-    return colors / 255.0 if colors.max() > 1.0 else colors
+    return read_vertex_albedo(Path(work) / "fit" / "albedo.ply", len(mesh.vertices))
 
 
 def _render_pixels(view: View, mesh, intersector, lighting, albedo, vertex_colors, pixels: np.ndarray,

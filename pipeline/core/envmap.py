@@ -61,6 +61,17 @@ def downsample(env: np.ndarray, factor: int) -> np.ndarray:
     return flux / new_omega
 
 
+def blender_columns(env: np.ndarray, rotation_texels: int = 0) -> np.ndarray:
+    """An (H, W, C) map's columns reordered between DESIGN.md's convention and Blender's default
+    Environment Texture mapping (also three.js's equirectangular one, in its +Y-up frame after
+    glTF's rotation): Blender reads world direction d at u = 0.5 - atan2(d_y, d_x) / 2pi from the
+    left edge, after a world rotation of ``rotation_texels`` whole texels about +Z, so column j of one
+    is column (W/2 - 1 - j - k) mod W of the other; rows (v = acos(d_z) / pi from the top) agree.
+    The reordering is its own inverse, so it converts either way."""
+    width = env.shape[1]
+    return env[:, (width // 2 - 1 - np.arange(width) - int(rotation_texels)) % width]
+
+
 def add_sources(env: np.ndarray, directions: np.ndarray, intensity: np.ndarray) -> np.ndarray:
     """A copy of an (H, 2H, 3) map with directional sources added: each source's intensity
     (J, 3) (irradiance it gives at normal incidence, sum L dω) spread bilinearly over the four

@@ -5,6 +5,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
+
 from pipeline.errors import UserError
 
 MESH_NAMES = ("mesh.ply", "mesh.obj", "mesh.glb")
@@ -37,3 +39,23 @@ def read_mesh(path: str | os.PathLike):
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise UserError(f"{path}: the mesh has no triangles; a triangle mesh is needed")
     return mesh
+
+
+def read_vertex_albedo(path: str | os.PathLike, n_vertices: int) -> np.ndarray | None:
+    """Per-vertex linear albedo / base colour (V, 3) in [0, 1] from a PLY with vertex colours
+    (fit/albedo.ply, gt/albedo.ply: linear values x 255); None when the file is missing or its
+    vertex count is not ``n_vertices`` (another mesh's)."""
+    import trimesh
+
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        tex = trimesh.load(path, force="mesh", process=False)  # as written: merging would renumber the vertices
+    except Exception as exc:
+        raise UserError(f"{path}: cannot read the per-vertex albedo ({exc}); run `sigrend fit --force` again") from None
+    colors = getattr(tex.visual, "vertex_colors", None)
+    if colors is None or len(tex.vertices) != n_vertices:
+        return None
+    colors = np.asarray(colors, float)[:, :3]
+    return colors / 255.0 if colors.max() > 1.0 else colors

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.core.envmap import blender_columns
 from pipeline.core.image_metrics import block_relative_rmse
 from pipeline.io.brdf import material_from_blender, write_brdf
 from pipeline.io.images import read_image, write_image
@@ -29,14 +30,10 @@ def relight_with_truth(capture: Path, work: Path, env: Path, views: str, brdf: d
 
 
 def blender_world(path: Path, rotation_deg: float) -> np.ndarray:
-    """A Blender world HDRI (tests/data/hdri) as Cycles lit the scene, in DESIGN.md's equirect
-    convention: Blender reads direction d at d' = Rz(rotation) d with u = 0.5 - atan2(d'_y, d'_x) / 2pi,
-    so for a rotation of k whole texels our column j is the file's (W/2 - 1 - j - k) mod W
-    (tests/data/cycles/*/gt/README.md)."""
+    """A Blender world HDRI (tests/data/hdri) rotated about +Z by ``rotation_deg`` (a whole number of
+    texels), as Cycles lit the scene, in DESIGN.md's equirect convention (tests/data/cycles/*/gt/README.md)."""
     env = read_image(path)[..., :3]
-    width = env.shape[1]
-    k = round(rotation_deg / 360.0 * width)
-    return env[:, (width // 2 - 1 - np.arange(width) - k) % width]
+    return blender_columns(env, round(rotation_deg / 360.0 * env.shape[1]))
 
 
 # issue 10 targets: 1.5% (bunny), 4% (night sphere), 5% (teapot).  Lit by the HDRI Cycles rendered

@@ -1,0 +1,126 @@
+"""export: the fitted object as a relightable asset for Blender, game engines and web viewers.
+
+Usage: ``sigrend export CAPTURE -w WORK [-o asset.glb|asset.gltf] [--env-height 512]``.
+Inputs: the mesh (CAPTURE/mesh.*), WORK/fit/brdf.json (lambert or principled), the optional
+per-vertex base colour WORK/fit/albedo.ply and the fitted lighting WORK/fit/lighting_sh.json.
+Outputs (default WORK/export/asset.glb), beside each other:
+
+* ``asset.glb`` (or .gltf, buffer embedded): the mesh with its smooth normals, rotated to glTF's
+  +Y up, and the material as glTF 2.0 metallic-roughness (pipeline.io.gltf).
+* ``asset_lighting.exr``: the fitted lighting as an equirect float map (SH evaluated and clamped
+  at 0, directional sources splatted into their texels) in the column order Blender's
+  Environment Texture node (default mapping) and three.js's equirectangular loader read:
+  pipeline.core.envmap.blender_columns.
+* ``asset_export.json``: the files, the material, the conventions, the energy
+  lost by clamping the lighting's negative lobes.
+
+docs/export.md says how to load them in Blender and three.js.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core.envmap import add_sources, blender_columns, equirect_solid_angles
+from pipeline.core.sh import envmap_from_sh
+from pipeline.errors import UserError
+from pipeline.io.brdf import read_brdf
+from pipeline.io.gltf import FORMATS, write_gltf
+from pipeline.io.images import write_image
+from pipeline.io.lighting import read_lighting_parts
+from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
+from pipeline.settings import setting
+from pipeline.workdir import write_json
+
+EXPORTABLE = ("lambert", "principled")
+
+
+@dataclass(frozen=True)
+class Settings:
+    out: str = setting("", "the asset file, .glb or .gltf; empty = WORK/export/asset.glb")
+    env_height: int = setting(512, "height of the exported lighting map (width = 2 x height)")
+
+    def validate(self) -> None:
+        if self.out and Path(self.out).suffix.lower() not in FORMATS:
+            raise UserError(f"--out {self.out}: write a glTF asset, ending in {' or '.join(FORMATS)}")
+        if not 8 <= self.env_height <= 4096:
+            raise UserError(f"--env-height {self.env_height}: use 8 to 4096")
+
+
+def add_arguments(parser) -> None:
+    """``-o`` = ``--out`` (see pipeline.runner.stage_command)."""
+    import argparse
+
+    parser.add_argument("-o", dest="out", metavar="ASSET", default=argparse.SUPPRESS,
+                        help="the asset file (same as --out)")
+
+
+def asset_path(work: Path, settings: Settings) -> Path:
+    return Path(settings.out) if settings.out else Path(work) / "export" / "asset.glb"
+
+
+def companion(asset: Path, suffix: str) -> Path:
+    """A file written beside the asset: asset.glb -> asset<suffix>."""
+    return asset.with_name(asset.stem + suffix)
+
+
+def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    fit = Path(work) / "fit"
+    paths = [fit / "brdf.json", fit / "albedo.ply", fit / "lighting_sh.json"]
+    try:
+        paths.append(mesh_path(capture))
+    except UserError:
+        pass
+    return paths
+
+
+def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    asset = asset_path(work, settings)
+    return [asset, companion(asset, "_lighting.exr"), companion(asset, "_export.json")]
+
+
+def lighting_map(path: Path, height: int) -> tuple[np.ndarray, float]:
+    """The lighting of a lighting_sh.json as an (H, 2H, 3) map in DESIGN.md's convention (SH
+    clamped at 0, sources splatted), and the energy the clamp removed from the SH's negative
+    lobes as a fraction of the map's (a glTF world cannot hold negative radiance)."""
+    coeffs, dirs, power = read_lighting_parts(path)
+    smooth = envmap_from_sh(coeffs, height)
+    omega = equirect_solid_angles(height)[:, None, None]
+    env = add_sources(np.maximum(smooth, 0.0), dirs, power)
+    kept = float((env * omega).sum())
+    return env, (float(-(np.minimum(smooth, 0.0) * omega).sum()) / kept if kept > 0 else 0.0)
+
+
+def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
+    from pipeline import __version__
+
+    fit = Path(work) / "fit"
+    for name, what in (("brdf.json", "material"), ("lighting_sh.json", "lighting")):
+        if not (fit / name).exists():
+            raise UserError(f"{fit / name}: no fitted {what}; run `sigrend fit` (or `sigrend run`) first")
+    brdf = read_brdf(fit / "brdf.json")
+    if brdf["model"] not in EXPORTABLE:
+        raise UserError(f"{fit / 'brdf.json'}: a {brdf['model']} material has no glTF equivalent; refit with "
+                        "--brdf principled (or lambert)")
+    mesh = read_mesh(mesh_path(capture))
+    colors = read_vertex_albedo(fit / "albedo.ply", len(mesh.vertices))
+    env, clamped = lighting_map(fit / "lighting_sh.json", settings.env_height)
+    asset = asset_path(work, settings)
+    asset.parent.mkdir(parents=True, exist_ok=True)
+    written = [write_gltf(asset, mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, colors,
+                          generator=f"sigrend {__version__}"),
+               write_image(companion(asset, "_lighting.exr"), blender_columns(env).astype(np.float32), dtype="float")]
+    manifest = {
+        "asset": asset.name, "lighting": written[1].name,
+        "material": brdf, "per_vertex_base_color": colors is not None,
+        "frame": "glTF +Y up, metres: (x, y, z)_object -> (x, z, -y)_glTF (Blender's importer turns it back)",
+        "lighting_mapping": "equirect, Blender Environment Texture default mapping / three.js equirectangular: "
+                            "u = 0.5 - atan2(y, x) / 2pi in the object frame, v = acos(z) / pi from the top",
+        "lighting_clamped_fraction": clamped,
+        "source": {"brdf": str(fit / "brdf.json"), "lighting": str(fit / "lighting_sh.json")},
+    }
+    written.append(write_json(companion(asset, "_export.json"), manifest))
+    return written
