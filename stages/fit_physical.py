@@ -360,8 +360,10 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     return written
 
 
-def _directions(fit: material_fit.MaterialFit):
-    return None if fit.sources is None else fit.sources.directions
+def _directions(fit: material_fit.MaterialFit) -> np.ndarray:
+    """The directions (J, 3) of a fit's sources, (0, 3) when its pursuit found none (so later
+    candidates take them as located rather than run the pursuit again)."""
+    return np.zeros((0, 3)) if fit.sources is None else fit.sources.directions
 
 
 def _pixel_noise_note(sigma: float, lighting: solve.LightingFit) -> dict:
