@@ -283,6 +283,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-report", dest="report", action="store_false", help="do not write WORK/report.html")
 
 
+def run_capture(plan: RunPlan, report: bool = True, progress: bool = True) -> dict:
+    """`sigrend run` of one capture: the stages of ``plan``, WORK/run.json (returned as a dict)
+    and, if ``report``, WORK/report.html.  UserError as the stages raise it."""
+    started = time.perf_counter()
+    results = run_pipeline(plan, progress=progress)
+    record = {"capture": str(Path(plan.capture).resolve()), "stages": [
+        {"name": r.name, "skipped": r.skipped, "seconds": r.seconds, "outputs": [str(p) for p in r.outputs]}
+        for r in results], "total_seconds": time.perf_counter() - started}
+    write_json(plan.work / "run.json", record)
+    if report:
+        from pipeline.report import write_report
+
+        record["report"] = str(write_report(plan.capture, plan.work))
+    record["table"] = stage_table(results)
+    return record
+
+
 def main(args: argparse.Namespace) -> int:
     capture = check_capture(args.capture)
     work = Path(args.work or default_work(capture))
@@ -292,17 +309,10 @@ def main(args: argparse.Namespace) -> int:
         if not Path(env).is_file():
             raise UserError(f"--relight {env}: file not found; give an equirect EXR or a lighting_sh.json")
     plan = RunPlan(capture, work, args.first, args.last, args.force, args.holdout, list(args.relight))
-    started = time.perf_counter()
-    results = run_pipeline(plan)
-    table = stage_table(results)
-    write_json(work / "run.json", {"capture": str(capture.resolve()), "stages": [
-        {"name": r.name, "skipped": r.skipped, "seconds": r.seconds, "outputs": [str(p) for p in r.outputs]}
-        for r in results], "total_seconds": time.perf_counter() - started})
-    print(table)
+    record = run_capture(plan, report=args.report)
+    print(record["table"])
     for line in summary_lines(work):
         print(line)
     if args.report:
-        from pipeline.report import write_report
-
-        print(f"report: {write_report(capture, work)}")
+        print(f"report: {record['report']}")
     return 0

@@ -415,6 +415,8 @@ def run_jobs(jobs: list[dict], workers: int) -> dict[str, dict]:
         else:
             todo.append(job)
     workers = workers or os.cpu_count() or 1
+    if multiprocessing.current_process().daemon:
+        workers = 1   # a daemonic process (a Dask worker of `sigrend batch`) may not start children
     bar = tqdm(total=len(todo), desc="linearize", unit="img", disable=None)
     try:
         if workers == 1 or len(todo) <= 1:

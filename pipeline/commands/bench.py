@@ -40,6 +40,8 @@ SUITES: dict[str, tuple[str, str]] = {
             "pipeline.commands.bench_fit:fit_suite"),
     "render": ("renderer error vs Blender Cycles (tests/data/cycles) vs seconds over lobe samples, interreflection "
                "rays and bounces; render.png in DIR; seconds per 384x384 view", "pipeline.commands.bench_render:render_suite"),
+    "batch": ("8 copies of sample_data: sequential `sigrend run` vs `sigrend batch` on 2 workers, and the "
+              "per-task cost when every stage is fresh", "pipeline.commands.bench_batch:batch_suite"),
     "pipeline": ("speed vs accuracy of samples -> fit -> relight on synthetic scenes (SH order, data, fit mode); "
                  "bench.csv + bench.png (Pareto front) in DIR", "pipeline.bench_pipeline:pipeline_suite"),
 }
