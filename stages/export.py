@@ -1,12 +1,13 @@
 """export: the fitted object as a relightable asset for Blender, game engines and web viewers.
 
-Usage: ``sigrend export CAPTURE -w WORK [-o asset.glb|asset.gltf] [--env-height 512]``.
+Usage: ``sigrend export CAPTURE -w WORK [-o asset.glb|.gltf|.usda|.usdc|.usd] [--env-height 512]``.
 Inputs: the mesh (CAPTURE/mesh.*), WORK/fit/brdf.json (lambert or principled), the optional
 per-vertex base colour WORK/fit/albedo.ply and the fitted lighting WORK/fit/lighting_sh.json.
 Outputs (default WORK/export/asset.glb), beside each other:
 
 * ``asset.glb`` (or .gltf, buffer embedded): the mesh with its smooth normals, rotated to glTF's
-  +Y up, and the material as glTF 2.0 metallic-roughness (pipeline.io.gltf).
+  +Y up, and the material as glTF 2.0 metallic-roughness (pipeline.io.gltf); or ``asset.usda``
+  (.usdc, .usd): the mesh in the object frame (Z up) with a UsdPreviewSurface (pipeline.io.usd).
 * ``asset_lighting.exr``: the fitted lighting as an equirect float map (SH evaluated and clamped
   at 0, directional sources splatted into their texels) in the column order Blender's
   Environment Texture node (default mapping) and three.js's equirectangular loader read:
@@ -28,7 +29,7 @@ from pipeline.core.envmap import add_sources, blender_columns, equirect_solid_an
 from pipeline.core.sh import envmap_from_sh
 from pipeline.errors import UserError
 from pipeline.io.brdf import read_brdf
-from pipeline.io.gltf import FORMATS, write_gltf
+from pipeline.io import gltf, usd
 from pipeline.io.images import write_image
 from pipeline.io.lighting import read_lighting_parts
 from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
@@ -36,6 +37,7 @@ from pipeline.settings import setting
 from pipeline.workdir import write_json
 
 EXPORTABLE = ("lambert", "principled")
+WRITERS = {**{suffix: gltf.write_gltf for suffix in gltf.FORMATS}, **{suffix: usd.write_usd for suffix in usd.FORMATS}}
 
 
 @dataclass(frozen=True)
@@ -44,8 +46,8 @@ class Settings:
     env_height: int = setting(512, "height of the exported lighting map (width = 2 x height)")
 
     def validate(self) -> None:
-        if self.out and Path(self.out).suffix.lower() not in FORMATS:
-            raise UserError(f"--out {self.out}: write a glTF asset, ending in {' or '.join(FORMATS)}")
+        if self.out and Path(self.out).suffix.lower() not in WRITERS:
+            raise UserError(f"--out {self.out}: write a glTF or USD asset, ending in {', '.join(WRITERS)}")
         if not 8 <= self.env_height <= 4096:
             raise UserError(f"--env-height {self.env_height}: use 8 to 4096")
 
@@ -110,13 +112,15 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     env, clamped = lighting_map(fit / "lighting_sh.json", settings.env_height)
     asset = asset_path(work, settings)
     asset.parent.mkdir(parents=True, exist_ok=True)
-    written = [write_gltf(asset, mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, colors,
+    write = WRITERS[asset.suffix.lower()]
+    written = [write(asset, mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, colors,
                           generator=f"sigrend {__version__}"),
                write_image(companion(asset, "_lighting.exr"), blender_columns(env).astype(np.float32), dtype="float")]
     manifest = {
         "asset": asset.name, "lighting": written[1].name,
         "material": brdf, "per_vertex_base_color": colors is not None,
-        "frame": "glTF +Y up, metres: (x, y, z)_object -> (x, z, -y)_glTF (Blender's importer turns it back)",
+        "frame": ("glTF +Y up, metres: (x, y, z)_object -> (x, z, -y)_glTF (Blender's importer turns it back)"
+                  if write is gltf.write_gltf else "USD stage upAxis Z, metersPerUnit 1: the object frame as it is"),
         "lighting_mapping": "equirect, Blender Environment Texture default mapping / three.js equirectangular: "
                             "u = 0.5 - atan2(y, x) / 2pi in the object frame, v = acos(z) / pi from the top",
         "lighting_clamped_fraction": clamped,

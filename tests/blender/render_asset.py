@@ -1,4 +1,4 @@
-"""Render a sigrend export in Blender Cycles: import the .glb, light the world with the exported
+"""Render a sigrend export in Blender Cycles: import the .glb (or USD), light the world with the exported
 map (Environment Texture, default mapping), render one OpenCV/COLMAP camera of a poses.json.
 
 Run with a Python that has Blender's ``bpy`` module (PyPI ``bpy``; it pins numpy < 2, so it lives
@@ -19,7 +19,10 @@ from mathutils import Matrix, Vector
 
 def main(asset, lighting, poses_file, key, out, width, height, samples):
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    bpy.ops.import_scene.gltf(filepath=asset)
+    if asset.lower().endswith((".usd", ".usda", ".usdc")):
+        bpy.ops.wm.usd_import(filepath=asset)
+    else:
+        bpy.ops.import_scene.gltf(filepath=asset)
     scene = bpy.context.scene
     poses = json.load(open(poses_file))
     image = poses["images"][key]

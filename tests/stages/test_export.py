@@ -94,6 +94,31 @@ def test_glb_holds_the_mesh_material_and_lighting_in_gltf_conventions(tmp_path):
     assert manifest["per_vertex_base_color"] and manifest["material"]["ior"] == pytest.approx(1.45)
 
 
+def test_usd_holds_the_mesh_in_the_object_frame_and_a_preview_surface(tmp_path):
+    from pxr import Usd, UsdGeom, UsdShade
+
+    brdf = {"model": "principled", "base_color": [0.7, 0.45, 0.1], "roughness": 0.3, "metallic": 0.25, "ior": 1.45}
+    capture, work = make_fit(tmp_path, brdf, textured=True)
+    assert sigrend(["export", str(capture), "-w", str(work), "-o", str(tmp_path / "teapot.usdc")]) == 0
+    stage = Usd.Stage.Open(str(tmp_path / "teapot.usdc"))
+    assert UsdGeom.GetStageUpAxis(stage) == "Z" and UsdGeom.GetStageMetersPerUnit(stage) == 1.0
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/object/mesh"))
+    ours = read_mesh(capture / "mesh.ply")
+    np.testing.assert_allclose(np.array(mesh.GetPointsAttr().Get()), ours.vertices, atol=1e-6)
+    np.testing.assert_array_equal(np.array(mesh.GetFaceVertexIndicesAttr().Get()), ours.faces.reshape(-1))
+    colors = np.array(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("displayColor").Get())
+    z = ours.vertices[:, 2]
+    np.testing.assert_allclose(colors, np.asarray(brdf["base_color"]) * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None],
+                               atol=0.5 / 255 + 1e-6)
+    material, _ = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()
+    shader = material.ComputeSurfaceSource()[0]
+    assert shader.GetIdAttr().Get() == "UsdPreviewSurface"
+    values = {name: shader.GetInput(name).Get() for name in ("roughness", "metallic", "ior", "useSpecularWorkflow")}
+    assert values == {"roughness": pytest.approx(0.3), "metallic": pytest.approx(0.25), "ior": pytest.approx(1.45),
+                      "useSpecularWorkflow": 0}
+    assert shader.GetInput("diffuseColor").HasConnectedSource()      # the per-vertex base colour
+
+
 def test_lambert_is_a_gltf_material_without_specular_layer(tmp_path):
     capture, work = make_fit(tmp_path, {"model": "lambert", "albedo": [0.6, 0.5, 0.4]}, textured=False)
     assert sigrend(["export", str(capture), "-w", str(work)]) == 0
@@ -129,7 +154,8 @@ def blender_python(tmp_path_factory) -> str:
 
 
 @pytest.mark.slow
-def test_blender_renders_the_exported_asset_as_sigrend_relights_it(tmp_path, blender_python):
+@pytest.mark.parametrize("asset_name", ["asset.glb", "asset.usda"])
+def test_blender_renders_the_exported_asset_as_sigrend_relights_it(tmp_path, blender_python, asset_name):
     """Issue 13's round trip: the .glb imported by Blender's glTF importer, the world lit by the
     exported map, Cycles 256 spp at 128 x 128 against `sigrend relight` (2 x 2 rays per pixel) of
     the same view under the same map, no scale fitted.  Limit 3 % (issue 13).  The lighting is the
@@ -139,14 +165,14 @@ def test_blender_renders_the_exported_asset_as_sigrend_relights_it(tmp_path, ble
     on the sphere agrees to 0.05 %."""
     brdf = {"model": "principled", "base_color": [0.7, 0.45, 0.1], "roughness": 0.3}
     capture, work = make_fit(tmp_path, brdf, textured=True, sun=False)
-    assert sigrend(["export", str(capture), "-w", str(work)]) == 0
     asset = work / "export"
+    assert sigrend(["export", str(capture), "-w", str(work), "-o", str(asset / asset_name)]) == 0
     poses = json.loads((TEAPOT / "gt" / "relight" / "poses.json").read_text())
     key = sorted(poses["images"])[0]
     poses["images"] = {key: poses["images"][key]}
     (tmp_path / "view.json").write_text(json.dumps(poses))
     script = Path(__file__).parents[1] / "blender" / "render_asset.py"
-    subprocess.run([blender_python, str(script), str(asset / "asset.glb"), str(asset / "asset_lighting.exr"),
+    subprocess.run([blender_python, str(script), str(asset / asset_name), str(asset / "asset_lighting.exr"),
                     str(tmp_path / "view.json"), key, str(tmp_path / "blender.exr"), "128", "128", "256"],
                    check=True, capture_output=True)
     from pipeline.io.images import write_image

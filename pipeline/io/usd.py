@@ -1,0 +1,89 @@
+"""USD (.usda / .usdc / .usd) of a fitted object, written with Pixar's usd-core (docs/export.md).
+
+Frame: USD stages may be +Z up, so the object frame (DESIGN.md) is kept as it is: upAxis = Z,
+metersPerUnit = 1.  One Mesh (/object/mesh: triangles, vertex normals, ``displayColor`` = the
+per-vertex base colour when there is one) bound to a UsdPreviewSurface material:
+diffuseColor = base_color (or a UsdPrimvarReader_float3 of displayColor), roughness = roughness
+(UsdPreviewSurface's is perceptual, "usually squared before use with a GGX lobe": GGX alpha =
+roughness^2, as brdf.json), metallic = metallic, ior = ior (the metalness workflow derives the
+dielectric F0 = ((ior - 1) / (ior + 1))^2 from it).  A ``lambert`` material is the specular
+workflow with specularColor 0 (no specular layer).  UsdPreviewSurface has no specular tint: a
+tinted principled material is refused.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.workdir import atomic_path
+
+FORMATS = (".usda", ".usdc", ".usd")
+
+
+def preview_surface_inputs(brdf: dict) -> dict:
+    """UsdPreviewSurface input values of a validated brdf.json (lambert or principled)."""
+    if brdf["model"] == "lambert":
+        return {"diffuseColor": [float(c) for c in brdf["albedo"]], "useSpecularWorkflow": 1,
+                "specularColor": [0.0, 0.0, 0.0], "roughness": 1.0, "metallic": 0.0}
+    if [float(c) for c in brdf["specular_tint"]] != [1.0, 1.0, 1.0]:
+        raise UserError("brdf.json: UsdPreviewSurface has no specular tint; export this material as glTF "
+                        "(KHR_materials_specular) instead")
+    return {"diffuseColor": [float(c) for c in brdf["base_color"]], "useSpecularWorkflow": 0,
+            "roughness": float(brdf["roughness"]), "metallic": float(brdf["metallic"]), "ior": float(brdf["ior"])}
+
+
+def write_usd(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
+              brdf: dict, vertex_colors: np.ndarray | None = None, generator: str = "sigrend") -> Path:
+    """Write one mesh (object frame, metres; faces (F, 3); unit vertex normals (V, 3)) with the
+    material of ``brdf`` and optional per-vertex linear base colour (V, 3), atomically; the
+    format (text .usda, binary .usdc/.usd) from the suffix."""
+    from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
+
+    path = Path(path)
+    if path.suffix.lower() not in FORMATS:
+        raise ValueError(f"{path}: a USD file ends in {', '.join(FORMATS)}")
+    faces = np.asarray(faces, np.int32)
+    with atomic_path(path) as tmp:
+        layer = Sdf.Layer.CreateNew(str(tmp), args={"format": "usda" if path.suffix.lower() == ".usda" else "usdc"})
+        stage = Usd.Stage.Open(layer)
+        stage.SetMetadata("comment", f"written by {generator}")
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+        root = UsdGeom.Xform.Define(stage, "/object")
+        stage.SetDefaultPrim(root.GetPrim())
+        mesh = UsdGeom.Mesh.Define(stage, "/object/mesh")
+        mesh.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(vertices, np.float32)))
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), 3, np.int32)))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.reshape(-1)))
+        mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(normals, np.float32)))
+        mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        lo, hi = np.asarray(vertices).min(axis=0), np.asarray(vertices).max(axis=0)
+        mesh.CreateExtentAttr(Vt.Vec3fArray([Gf.Vec3f(*map(float, lo)), Gf.Vec3f(*map(float, hi))]))
+        material = UsdShade.Material.Define(stage, "/object/material")
+        shader = UsdShade.Shader.Define(stage, "/object/material/surface")
+        shader.CreateIdAttr("UsdPreviewSurface")
+        for name, value in preview_surface_inputs(brdf).items():
+            if isinstance(value, list):
+                shader.CreateInput(name, Sdf.ValueTypeNames.Color3f).Set(Gf.Vec3f(*value))
+            elif name == "useSpecularWorkflow":
+                shader.CreateInput(name, Sdf.ValueTypeNames.Int).Set(value)
+            else:
+                shader.CreateInput(name, Sdf.ValueTypeNames.Float).Set(value)
+        if vertex_colors is not None:
+            colors = np.clip(np.asarray(vertex_colors, float)[:, :3], 0.0, 1.0).astype(np.float32)
+            UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("displayColor", Sdf.ValueTypeNames.Color3fArray,
+                                                    UsdGeom.Tokens.vertex).Set(Vt.Vec3fArray.FromNumpy(colors))
+            reader = UsdShade.Shader.Define(stage, "/object/material/base_color")
+            reader.CreateIdAttr("UsdPrimvarReader_float3")
+            reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("displayColor")
+            shader.GetInput("diffuseColor").ConnectToSource(reader.ConnectableAPI(), "result")
+            reader.CreateOutput("result", Sdf.ValueTypeNames.Float3)
+        material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
+        UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+        layer.Save()
+    return path
