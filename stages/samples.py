@@ -29,6 +29,7 @@ below its own threshold (``min_visibility`` is recorded in the meta as the recom
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,7 +42,7 @@ from pipeline.errors import UserError
 from pipeline.io.camera_decode import probe
 from pipeline.io.images import read_image
 from pipeline.io.linear_manifest import linear_dir, manifest_path, read_linear_image, read_manifest, resolve_key
-from pipeline.io.mesh import mesh_path, read_mesh
+from pipeline.io.mesh import check_mesh_quality, mesh_path, read_mesh
 from pipeline.io.poses import Poses, read_poses
 from pipeline.io.samples import SAMPLE_FIELDS, SamplesWriter
 from pipeline.settings import setting, settings_dict
@@ -429,6 +430,9 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     else:
         scales = dict.fromkeys(keys, 1.0)
     mesh = read_mesh(mesh_file)
+    quality, mesh_warnings = check_mesh_quality(mesh_file, mesh)
+    for line in mesh_warnings:
+        warnings.warn(line, UserWarning, stacklevel=2)
     visibility = vertex_visibility(mesh, settings.visibility_rays, settings.chunk_pixels)
     grid = EqualAreaGrid()
     normal_hist = np.zeros(grid.shape)
@@ -502,6 +506,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             },
             "holdout": sorted(settings.holdout),
             "mesh": str(mesh_file),
+            "mesh_quality": quality,
             "poses": str(pose_file),
             "images": per_image,
             "settings": settings_dict(settings),

@@ -227,3 +227,34 @@ def test_a_truncated_jpeg_is_an_error_not_grey_pixels(tmp_path):
     assert read_image(tmp_path / "full.jpg").shape == (128, 128, 3)
     with pytest.raises(UserError, match="cut.jpg: the decoder reported .*Premature end of JPEG file"):
         read_image(tmp_path / "cut.jpg")
+
+
+def _with_mesh(tiny_capture, tmp_path, edit) -> Path:
+    """A copy of a tiny capture whose (closed) sphere mesh has faces edited by ``edit(faces)``."""
+    import trimesh
+
+    capture = shutil.copytree(tiny_capture(views=6, size=(48, 48)), tmp_path / "capture")
+    mesh = trimesh.load(capture / "mesh.ply", process=False)
+    trimesh.Trimesh(mesh.vertices, edit(np.asarray(mesh.faces).copy()), process=False).export(capture / "mesh.ply")
+    return capture
+
+
+@pytest.mark.parametrize("edit, fragment", [
+    (lambda f: np.concatenate([f[:40, ::-1], f[40:]]), "edges join faces wound in opposite directions"),
+    (lambda f: f[:, ::-1], "the mesh is inside out"),
+])
+def test_a_mesh_with_flipped_faces_is_an_error_naming_the_fix(tiny_capture, tmp_path, capsys, edit, fragment):
+    capture = _with_mesh(tiny_capture, tmp_path, edit)
+    capsys.readouterr()
+    assert cli.main(["samples", str(capture), "-w", str(tmp_path / "work")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and fragment in err[0] and "Recalculate Outside" in err[0], err
+    assert not (tmp_path / "work" / "samples.npz").exists()
+
+
+def test_a_mesh_with_holes_is_sampled_with_a_warning_and_counted(tiny_capture, tmp_path):
+    capture = _with_mesh(tiny_capture, tmp_path, lambda f: f[12:])
+    with pytest.warns(UserWarning, match=r"mesh.ply: \d+ boundary edges \(holes"):
+        assert cli.main(["samples", str(capture), "-w", str(tmp_path / "work")]) == 0
+    quality = json.loads((tmp_path / "work" / "samples_summary.json").read_text())["mesh_quality"]
+    assert quality["boundary_edges"] > 0 and quality["inconsistent_edges"] == 0 and not quality["inside_out"]

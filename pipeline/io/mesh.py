@@ -59,3 +59,56 @@ def read_vertex_albedo(path: str | os.PathLike, n_vertices: int) -> np.ndarray |
         return None
     colors = np.asarray(colors, float)[:, :3]
     return colors / 255.0 if colors.max() > 1.0 else colors
+
+
+def mesh_quality(mesh) -> dict:
+    """Counts of what makes a scan a poor model of a surface (trimesh's edge and face structure):
+    boundary edges (holes: edges with one face), non-manifold edges (more than two faces),
+    degenerate faces (zero area), faces wound against their neighbours (across manifold edges),
+    and ``inside_out`` (a closed mesh of negative volume: every normal points in).  Vertices at
+    the same position are merged first: a seam of split normals or UVs is not a hole."""
+    import trimesh
+
+    mesh = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=False)
+    mesh.merge_vertices(merge_tex=True, merge_norm=True)
+    edges = mesh.edges_sorted
+    groups = trimesh.grouping.group_rows(edges, require_count=None)
+    per_edge = np.array([len(g) for g in groups])
+    area = mesh.area_faces
+    degenerate = int(np.sum(area <= 1e-12 * max(float(area.max(initial=0.0)), 1e-300)))
+    # a manifold edge is consistently wound when its two faces traverse it in opposite directions
+    adjacency, shared = mesh.face_adjacency, mesh.face_adjacency_edges
+    def traverses(face_ids):
+        f = mesh.faces[face_ids]
+        a, b = shared[:, 0:1], shared[:, 1:2]
+        nxt = np.roll(f, -1, axis=1)
+        return np.any((f == a) & (nxt == b), axis=1)
+    flipped_pairs = traverses(adjacency[:, 0]) == traverses(adjacency[:, 1])
+    watertight = bool(np.all(per_edge == 2)) if len(per_edge) else False
+    inside_out = bool(watertight and not flipped_pairs.any() and mesh.volume < 0)
+    return {"faces": int(len(mesh.faces)), "boundary_edges": int(np.sum(per_edge == 1)),
+            "non_manifold_edges": int(np.sum(per_edge > 2)), "degenerate_faces": degenerate,
+            "inconsistent_edges": int(flipped_pairs.sum()), "inside_out": inside_out}
+
+
+def check_mesh_quality(path: str | os.PathLike, mesh) -> tuple[dict, list[str]]:
+    """mesh_quality of the capture's mesh, and warnings for what it found; UserError where the
+    samples would be wrong: faces wound against their neighbours (their normals point the other
+    way, so their pixels shade as the inside) and a closed mesh turned inside out."""
+    quality = mesh_quality(mesh)
+    fix = "fix the winding (Blender: Mesh > Normals > Recalculate Outside; trimesh.repair.fix_normals) and run again"
+    if quality["inside_out"]:
+        raise UserError(f"{path}: the mesh is inside out (closed, negative volume: every normal points inwards); {fix}")
+    if quality["inconsistent_edges"]:
+        raise UserError(f"{path}: {quality['inconsistent_edges']} edges join faces wound in opposite directions "
+                        f"(flipped faces: their normals point inwards); {fix}")
+    warnings = []
+    if quality["boundary_edges"]:
+        warnings.append(f"{quality['boundary_edges']} boundary edges (holes, an open scan): shadow and view rays "
+                        "pass through them, so where the real object is closed its shadows and interreflection "
+                        "there are missing")
+    if quality["non_manifold_edges"]:
+        warnings.append(f"{quality['non_manifold_edges']} non-manifold edges (shared by more than two faces)")
+    if quality["degenerate_faces"]:
+        warnings.append(f"{quality['degenerate_faces']} degenerate (zero-area) faces")
+    return quality, [f"{path}: {w}" for w in warnings]
