@@ -28,7 +28,7 @@ from pipeline import __version__
 from pipeline.errors import UserError
 from pipeline.settings import add_settings_arguments, make_settings, settings_from_args
 from pipeline.workdir import (fingerprints, is_fresh, record_settings, remove_stale_temporaries, settings_path,
-                              transaction, write_json)
+                              transaction, work_lock, write_json)
 
 HELP = "Run the whole pipeline on a capture folder (linearize, poses, samples, fit, relight) and write the report."
 
@@ -71,14 +71,15 @@ def run_stage(name: str, *, capture: Path, work: Path, settings, force: bool = F
     work.mkdir(parents=True, exist_ok=True)
     kwargs = dict(capture=capture, work=work, settings=settings)
     start = time.perf_counter()
-    provenance = {"capture": str(capture.resolve()), "sigrend": __version__,
-                  "inputs": fingerprints(module.inputs(**kwargs), work)}
-    if not force and is_fresh(work, record, settings, module.outputs(**kwargs), provenance):
-        return StageResult(record, list(module.outputs(**kwargs)), time.perf_counter() - start, True)
-    remove_stale_temporaries(work)
-    with transaction(invalidate=settings_path(work, record)):   # outputs and record committed together, last
-        written = module.run(**kwargs)
-        record_settings(work, record, settings, provenance)
+    with work_lock(work):   # one sigrend per work folder: the check, the clean-up and the commit are ours
+        provenance = {"capture": str(capture.resolve()), "sigrend": __version__,
+                      "inputs": fingerprints(module.inputs(**kwargs), work)}
+        if not force and is_fresh(work, record, settings, module.outputs(**kwargs), provenance):
+            return StageResult(record, list(module.outputs(**kwargs)), time.perf_counter() - start, True)
+        remove_stale_temporaries(work)
+        with transaction(invalidate=settings_path(work, record)):   # outputs and record committed together, last
+            written = module.run(**kwargs)
+            record_settings(work, record, settings, provenance)
     return StageResult(record, list(written), time.perf_counter() - start, False)
 
 
@@ -287,7 +288,8 @@ def run_capture(plan: RunPlan, report: bool = True, progress: bool = True) -> di
     """`sigrend run` of one capture: the stages of ``plan``, WORK/run.json (returned as a dict)
     and, if ``report``, WORK/report.html.  UserError as the stages raise it."""
     started = time.perf_counter()
-    results = run_pipeline(plan, progress=progress)
+    with work_lock(plan.work):
+        results = run_pipeline(plan, progress=progress)
     record = {"capture": str(Path(plan.capture).resolve()), "stages": [
         {"name": r.name, "skipped": r.skipped, "seconds": r.seconds, "outputs": [str(p) for p in r.outputs]}
         for r in results], "total_seconds": time.perf_counter() - started}

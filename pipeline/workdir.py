@@ -102,6 +102,48 @@ def transaction(invalidate: Path | None = None) -> Iterator[None]:
     commit_writes(pending)
 
 
+LOCK_NAME = ".sigrend.lock"
+_held: set[str] = set()
+
+
+@contextlib.contextmanager
+def work_lock(work: str | os.PathLike) -> Iterator[None]:
+    """Hold WORK/.sigrend.lock for the block: a second sigrend on the same work folder gets a
+    UserError naming the holder instead of interleaving its writes (and its clean-up of
+    temporaries) with the first's.  flock(2): the kernel releases the lock when its holder exits,
+    killed or not, so a lock is never stale.  Re-entrant within a process."""
+    import fcntl
+
+    from pipeline.errors import UserError
+
+    work = Path(work)
+    key = str(work.resolve())
+    if key in _held:
+        yield
+        return
+    work.mkdir(parents=True, exist_ok=True)
+    handle = open(work / LOCK_NAME, "a+")
+    try:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "another process"
+            raise UserError(f"{work}: this work folder is in use by {holder}; wait for it to finish or give "
+                            "another -w") from None
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"sigrend pid {os.getpid()}")
+        handle.flush()
+        _held.add(key)
+        try:
+            yield
+        finally:
+            _held.discard(key)
+    finally:
+        handle.close()
+
+
 def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
     """Remove the temporary files of writes that a killed process never renamed (``atomic_path``
     names) under ``folder``; returns them."""

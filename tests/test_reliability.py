@@ -19,6 +19,7 @@ import pytest
 
 from pipeline import cli
 from pipeline.io.images import read_image
+from pipeline.workdir import LOCK_NAME
 
 ROOT = Path(__file__).parents[1]
 
@@ -56,8 +57,9 @@ def kill_at(target: str, count: int, *argv: str, sig: str = "SIGKILL") -> subpro
 
 
 def digest(folder: Path) -> dict[str, str]:
+    """sha256 of every file in ``folder`` but the lock (it names its last holder's pid)."""
     return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file()}
+            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != LOCK_NAME}
 
 
 @pytest.fixture
@@ -258,3 +260,24 @@ def test_a_mesh_with_holes_is_sampled_with_a_warning_and_counted(tiny_capture, t
         assert cli.main(["samples", str(capture), "-w", str(tmp_path / "work")]) == 0
     quality = json.loads((tmp_path / "work" / "samples_summary.json").read_text())["mesh_quality"]
     assert quality["boundary_edges"] > 0 and quality["inconsistent_edges"] == 0 and not quality["inside_out"]
+
+
+def test_a_second_run_on_a_busy_work_folder_says_so(linearized, capsys):
+    """Two sigrends on one work folder would interleave their commits and clean each other's
+    temporaries: the second one is refused while the first holds WORK/.sigrend.lock (flock: a
+    killed holder releases it, so it is never stale)."""
+    capture, work = linearized
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pipeline.workdir import work_lock\n"
+                               "with work_lock(sys.argv[1]):\n    print('held', flush=True); time.sleep(60)", str(work)],
+                              stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        capsys.readouterr()
+        assert cli.main(["linearize", str(capture), "-w", str(work), "--force"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and f"in use by sigrend pid {holder.pid}" in err[0], err
+    finally:
+        holder.kill()
+        holder.wait()
+        holder.stdout.close()
+    assert cli.main(["linearize", str(capture), "-w", str(work), "--force"]) == 0   # released with its holder
