@@ -102,6 +102,23 @@ def transaction(invalidate: Path | None = None) -> Iterator[None]:
     commit_writes(pending)
 
 
+def make_folder(folder: str | os.PathLike, option: str = "-w") -> Path:
+    """Create an output folder (and its parents) if needed; UserError naming the command-line
+    ``option`` that gave it when it cannot be (a file of that name, no permission, a read-only disk)."""
+    from pipeline.errors import UserError
+
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise UserError(f"{folder}: this is a file, not a folder; give {option} a folder path") from None
+    except OSError as exc:
+        raise UserError(f"{folder}: cannot create this folder ({exc.strerror}); give {option} a writable folder") from None
+    if not os.access(folder, os.W_OK):
+        raise UserError(f"{folder}: the folder is not writable; give {option} a writable folder")
+    return folder
+
+
 LOCK_NAME = ".sigrend.lock"
 _held: set[str] = set()
 
@@ -121,7 +138,7 @@ def work_lock(work: str | os.PathLike) -> Iterator[None]:
     if key in _held:
         yield
         return
-    work.mkdir(parents=True, exist_ok=True)
+    make_folder(work)
     handle = open(work / LOCK_NAME, "a+")
     try:
         try:

@@ -34,7 +34,7 @@ from pipeline.io.images import write_image
 from pipeline.io.lighting import read_lighting_parts
 from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
 from pipeline.settings import setting
-from pipeline.workdir import write_json
+from pipeline.workdir import make_folder, write_json
 
 EXPORTABLE = ("lambert", "principled")
 WRITERS = {**{suffix: gltf.write_gltf for suffix in gltf.FORMATS}, **{suffix: usd.write_usd for suffix in usd.FORMATS}}
@@ -111,7 +111,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     colors = read_vertex_albedo(fit / "albedo.ply", len(mesh.vertices))
     env, clamped = lighting_map(fit / "lighting_sh.json", settings.env_height)
     asset = asset_path(work, settings)
-    asset.parent.mkdir(parents=True, exist_ok=True)
+    make_folder(asset.parent, "-o")
     write = WRITERS[asset.suffix.lower()]
     written = [write(asset, mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, colors,
                           generator=f"sigrend {__version__}"),

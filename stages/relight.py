@@ -53,7 +53,7 @@ from pipeline.io.lighting import read_lighting_parts, read_lighting_sh
 from pipeline.io.mesh import read_vertex_albedo
 from pipeline.io.poses import Poses, read_poses
 from pipeline.settings import setting
-from pipeline.workdir import write_json
+from pipeline.workdir import make_folder, write_json
 from stages.samples import image_source, linear_manifest, load_linear_image, load_mesh, mesh_path, poses_path
 
 DIFFUSE_ORDER = 16         # |Â_l| beyond l = 16 is < 0.15% of Â_0: irradiance of an env map to that level
@@ -787,7 +787,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     albedo = np.asarray(diffuse_color(brdf), float)
     intersector = RayMeshIntersector(mesh)
     folder = out_folder(work, settings)
-    folder.mkdir(parents=True, exist_ok=True)
+    make_folder(folder, "-o")
     written: list[Path] = []
     rendered, photos, masks, exposures = {}, {}, {}, {}
     manifest = linear_manifest(work) if settings.compare else None

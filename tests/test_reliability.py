@@ -191,6 +191,9 @@ BAD_CAPTURE_TOML = {
     "section glued": ("[whitebalance]\nmultipliers = [2, 1, 1.5]\n", "(did you mean 'white_balance'?)"),
     "exposure of no file": ('[exposure]\n"0001.ex" = {iso = 200}\n"IMG_9.jpg" = {iso = 200}\n',
                             "[exposure] names no image of the capture: '0001.ex' (did you mean '0001.exr'?), 'IMG_9.jpg'"),
+    "board transform as a word": ('[board]\ndictionary = "DICT_5X5_100"\nsquares = [8, 6]\nsquare_length = 0.07\n'
+                                  'marker_length = 0.0525\nboard_to_object = "identity"\n',
+                                  "board_to_object must be a finite 4x4 matrix of numbers"),
 }
 
 
@@ -281,3 +284,48 @@ def test_a_second_run_on_a_busy_work_folder_says_so(linearized, capsys):
         holder.wait()
         holder.stdout.close()
     assert cli.main(["linearize", str(capture), "-w", str(work), "--force"]) == 0   # released with its holder
+
+
+def _poses_cameras_as_list(doc):
+    doc["cameras"] = list(doc["cameras"].values())
+
+
+def _poses_camera_as_list(doc):
+    first = sorted(doc["images"])[0]
+    doc["images"][first]["camera"] = [doc["images"][first]["camera"]]
+
+
+@pytest.mark.parametrize("edit, fragment", [
+    (_poses_cameras_as_list, "'cameras' must be an object mapping camera name"),
+    (_poses_camera_as_list, "names unknown camera ['cam0']"),
+])
+def test_malformed_poses_json_is_one_line(tiny_capture, tmp_path, capsys, edit, fragment):
+    capture = shutil.copytree(tiny_capture(views=6, size=(48, 48)), tmp_path / "capture")
+    doc = json.loads((capture / "poses.json").read_text())
+    edit(doc)
+    (capture / "poses.json").write_text(json.dumps(doc))
+    capsys.readouterr()
+    assert cli.main(["samples", str(capture), "-w", str(tmp_path / "work")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and fragment in err[0], err
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["linearize", "{capture}", "-w", "{file}"], "this is a file, not a folder; give -w a folder path"),
+    (["run", "{capture}", "-w", "{file}/work", "--no-report"], "cannot create this folder (Not a directory)"),
+    (["relight", "{capture}", "-w", "{work}", "-o", "{file}"], "give -o a folder path"),
+])
+def test_an_output_path_that_is_a_file_is_one_line(linearized, tmp_path, capsys, args, fragment):
+    from pipeline.io.brdf import write_brdf
+    from pipeline.io.lighting import write_lighting_sh
+
+    capture, work = linearized
+    write_brdf(work / "fit" / "brdf.json", {"model": "lambert", "albedo": [0.5, 0.5, 0.5]})   # what relight reads
+    write_lighting_sh(work / "fit" / "lighting_sh.json", np.ones((1, 3)))
+    (tmp_path / "afile").write_text("not a folder")
+    argv = [a.format(capture=capture, work=work, file=tmp_path / "afile") for a in args]
+    capsys.readouterr()
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and fragment in err[0], err
+    assert (tmp_path / "afile").read_text() == "not a folder"

@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import UserError
-from pipeline.workdir import write_text
+from pipeline.workdir import make_folder, write_text
 
 HELP = "Run many captures (sigrend run each) as tasks on Dask distributed: a local cluster or an existing scheduler."
 STAGE_COLUMNS = ("linearize", "poses", "samples", "fit", "relight-check")
@@ -149,7 +149,7 @@ def main(args: argparse.Namespace) -> int:
     import dask
 
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out, "-o")
     works = work_folders(args.captures, out)
     with dask.config.set({"distributed.scheduler.allowed-failures": args.retries}):
         client, cluster = _client(args)

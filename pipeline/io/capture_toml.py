@@ -170,9 +170,13 @@ def parse_board(path: Path, table: dict) -> BoardSpec:
         raise UserError(f"{path}: [board] squares must be two integers >= 2, got {table['squares']!r}")
     if marker >= square:
         raise UserError(f"{path}: [board] marker_length {marker} must be smaller than square_length {square}")
-    m = np.asarray(table.get("board_to_object", np.eye(4)), dtype=float)
+    try:
+        m = np.asarray(table.get("board_to_object", np.eye(4)), dtype=float)
+    except (TypeError, ValueError):
+        m = np.zeros(0)
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-        raise UserError(f"{path}: [board] board_to_object must be a finite 4x4 matrix")
+        raise UserError(f"{path}: [board] board_to_object must be a finite 4x4 matrix of numbers (rows of the "
+                        f"board -> object transform), got {table.get('board_to_object')!r}")
     return BoardSpec(dictionary, (squares[0], squares[1]), square, marker, m)
 
 

@@ -38,6 +38,10 @@ def read_poses(path: str | os.PathLike) -> Poses:
     if doc.get("frame", "object") != "object" or doc.get("units", "meters") != "meters":
         raise UserError(f"{path}: poses must be in the object frame in meters, got frame={doc.get('frame')!r} "
                         f"units={doc.get('units')!r}")
+    for part, what in (("cameras", "camera name -> {model, width, height, params}"),
+                       ("images", "image key -> {camera, R, t}")):
+        if not isinstance(doc[part], dict):
+            raise UserError(f"{path}: '{part}' must be an object mapping {what}, not a {type(doc[part]).__name__}")
     poses = Poses()
     for name, c in doc["cameras"].items():
         try:
@@ -58,7 +62,7 @@ def read_poses(path: str | os.PathLike) -> Poses:
             t = np.asarray(im["t"], dtype=float)
         except (KeyError, TypeError, ValueError):
             raise UserError(f"{path}: image {key!r} needs camera, R (3x3), t (3)") from None
-        if cam not in poses.cameras:
+        if not isinstance(cam, str) or cam not in poses.cameras:
             raise UserError(f"{path}: image {key!r} names unknown camera {cam!r}")
         if R.shape != (3, 3) or t.shape != (3,) or not (np.all(np.isfinite(R)) and np.all(np.isfinite(t))):
             raise UserError(f"{path}: image {key!r} needs a finite 3x3 R and 3-vector t")
