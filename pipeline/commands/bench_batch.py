@@ -17,8 +17,11 @@ SAMPLE = Path(__file__).resolve().parents[2] / "sample_data" / "capture"
 
 
 def _seconds(cmd: list[str]) -> float:
+    """Wall seconds of a command that must succeed (a failed run would time nothing)."""
     start = time.perf_counter()
-    subprocess.run(cmd, check=False, capture_output=True)
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd[3:5])} failed ({done.returncode}): {done.stderr.strip()[-300:]}")
     return time.perf_counter() - start
 
 
