@@ -290,14 +290,14 @@ def run_capture(plan: RunPlan, report: bool = True, progress: bool = True) -> di
     started = time.perf_counter()
     with work_lock(plan.work):
         results = run_pipeline(plan, progress=progress)
-    record = {"capture": str(Path(plan.capture).resolve()), "stages": [
-        {"name": r.name, "skipped": r.skipped, "seconds": r.seconds, "outputs": [str(p) for p in r.outputs]}
-        for r in results], "total_seconds": time.perf_counter() - started}
-    write_json(plan.work / "run.json", record)
-    if report:
-        from pipeline.report import write_report
+        record = {"capture": str(Path(plan.capture).resolve()), "stages": [
+            {"name": r.name, "skipped": r.skipped, "seconds": r.seconds, "outputs": [str(p) for p in r.outputs]}
+            for r in results], "total_seconds": time.perf_counter() - started}
+        write_json(plan.work / "run.json", record)
+        if report:
+            from pipeline.report import write_report
 
-        record["report"] = str(write_report(plan.capture, plan.work))
+            record["report"] = str(write_report(plan.capture, plan.work))
     record["table"] = stage_table(results)
     return record
 

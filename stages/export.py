@@ -105,7 +105,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             raise UserError(f"{fit / name}: no fitted {what}; run `sigrend fit` (or `sigrend run`) first")
     brdf = read_brdf(fit / "brdf.json")
     if brdf["model"] not in EXPORTABLE:
-        raise UserError(f"{fit / 'brdf.json'}: a {brdf['model']} material has no glTF equivalent; refit with "
+        raise UserError(f"{fit / 'brdf.json'}: a {brdf['model']} material has no glTF or USD equivalent; refit with "
                         "--brdf principled (or lambert)")
     mesh = read_mesh(mesh_path(capture))
     colors = read_vertex_albedo(fit / "albedo.ply", len(mesh.vertices))
@@ -114,7 +114,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     make_folder(asset.parent, "-o")
     write = WRITERS[asset.suffix.lower()]
     written = [write(asset, mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, colors,
-                          generator=f"sigrend {__version__}"),
+                     generator=f"sigrend {__version__}"),
                write_image(companion(asset, "_lighting.exr"), blender_columns(env).astype(np.float32), dtype="float")]
     manifest = {
         "asset": asset.name, "lighting": written[1].name,

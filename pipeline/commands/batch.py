@@ -65,7 +65,7 @@ def run_one(capture: str, work: str, holdout: int, force: bool, threads: int) ->
 
     os.environ["TQDM_DISABLE"] = "1"       # no progress bars or stage listings in the workers' logs
 
-    from pipeline.runner import STAGES, RunPlan, check_capture, run_capture, summary_lines
+    from pipeline.runner import STAGES, RunPlan, check_capture, relight_check, run_capture, summary_lines
 
     row = {"capture": capture, "work": work}
     try:
@@ -85,10 +85,9 @@ def run_one(capture: str, work: str, holdout: int, force: bool, threads: int) ->
     if fit.exists():
         doc = json.loads(fit.read_text())
         row.update(model=doc.get("brdf_model", doc.get("model", "")), order=doc.get("order", ""))
-    check = Path(work) / "relight" / "check" / "relight.json"
-    if check.exists():
-        compare = json.loads(check.read_text()).get("compare") or {}
-        row["heldout_error"] = compare.get("relative_error", "")
+    check = relight_check(Path(work))
+    if check is not None:
+        row["heldout_error"] = check.get("relative_error", "")
     return row
 
 
