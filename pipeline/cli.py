@@ -22,7 +22,7 @@ STAGES = ("linearize", "poses", "samples", "fit", "relight", "export")  # `sigre
 # subcommand -> module providing HELP, add_arguments, main (imported only when needed)
 COMMANDS = {
     "run": "pipeline.runner",
-    "batch": "pipeline.commands.batch",
+    "batch": "pipeline.batch",
     "calib": "pipeline.commands.calib",
     "synth": "pipeline.commands.synth",
     "env": "pipeline.commands.env",

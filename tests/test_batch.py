@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.commands.batch import run_one
+from pipeline.batch import run_one
 
 pytestmark = [pytest.mark.slow,
               pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning")]
