@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import UserError
+from pipeline.runner import STAGES
 from pipeline.workdir import make_folder, write_text
 
 HELP = "Run many captures (sigrend run each) as tasks on Dask distributed: a local cluster or an existing scheduler."
@@ -40,6 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="BLAS / OpenMP threads each task may use (workers x threads <= cores)")
     parser.add_argument("--retries", type=int, default=2,
                         help="times a task is run again after its worker died or it raised an unexpected error")
+    parser.add_argument("--from", dest="first", choices=STAGES, default=STAGES[0], help="as `sigrend run --from`")
+    parser.add_argument("--to", dest="last", choices=STAGES, default=STAGES[-1], help="as `sigrend run --to`")
+    parser.add_argument("--relight", metavar="ENV", nargs="+", default=[], help="as `sigrend run --relight`")
     parser.add_argument("--holdout", type=int, default=4, metavar="N", help="as `sigrend run --holdout`")
     parser.add_argument("--force", action="store_true", help="as `sigrend run --force`: rerun fresh stages too")
 
@@ -55,7 +59,8 @@ def work_folders(captures: list[Path], out: Path) -> list[Path]:
     return folders
 
 
-def run_one(capture: str, work: str, holdout: int, force: bool, threads: int) -> dict:
+def run_one(capture: str, work: str, holdout: int, force: bool, threads: int, first: str = STAGES[0],
+            last: str = STAGES[-1], relight: tuple = ()) -> dict:
     """One capture's `sigrend run`, on a worker: its row of batch.csv (status 'done' or 'failed'
     with the user error's message); an unexpected exception propagates (Dask retries it)."""
     import contextlib
@@ -65,14 +70,14 @@ def run_one(capture: str, work: str, holdout: int, force: bool, threads: int) ->
 
     os.environ["TQDM_DISABLE"] = "1"       # no progress bars or stage listings in the workers' logs
 
-    from pipeline.runner import STAGES, RunPlan, check_capture, relight_check, run_capture, summary_lines
+    from pipeline.runner import RunPlan, check_capture, relight_check, run_capture, summary_lines
 
     row = {"capture": capture, "work": work}
     try:
         with threadpool_limits(threads), contextlib.redirect_stdout(io.StringIO()), \
                 contextlib.redirect_stderr(io.StringIO()):
-            record = run_capture(RunPlan(check_capture(Path(capture)), Path(work), STAGES[0], STAGES[-1], force,
-                                         holdout, []), report=True, progress=False)
+            record = run_capture(RunPlan(check_capture(Path(capture)), Path(work), first, last, force, holdout,
+                                         list(relight)), report=True, progress=False)
     except UserError as exc:
         return {**row, "status": "failed", "message": str(exc)}
     stages = {s["name"]: s for s in record["stages"]}
@@ -141,6 +146,9 @@ def main(args: argparse.Namespace) -> int:
 
     if args.workers < 1 or args.threads_per_worker < 1 or args.retries < 0 or args.holdout < 0:
         raise UserError("--workers and --threads-per-worker must be >= 1, --retries and --holdout >= 0")
+    for env in args.relight:
+        if not Path(env).is_file():
+            raise UserError(f"--relight {env}: file not found; give an equirect EXR or a lighting_sh.json")
     missing = [str(c) for c in args.captures if not Path(c).is_dir()]
     if missing:
         raise UserError(f"{missing[0]}: capture folder not found ({len(missing)} of {len(args.captures)} missing); "
@@ -156,6 +164,8 @@ def main(args: argparse.Namespace) -> int:
             print(f"batch: {len(works)} captures on {client.dashboard_link}", file=sys.stderr)
             futures = client.map(run_one, [str(Path(c).resolve()) for c in args.captures], [str(w) for w in works],
                                  holdout=args.holdout, force=args.force, threads=args.threads_per_worker,
+                                 first=args.first, last=args.last,
+                                 relight=tuple(str(Path(e).resolve()) for e in args.relight),
                                  retries=args.retries, pure=False)
             index = {f.key: i for i, f in enumerate(futures)}
             rows: list[dict | None] = [None] * len(futures)
