@@ -28,7 +28,7 @@ from pipeline import __version__
 from pipeline.errors import UserError
 from pipeline.settings import add_settings_arguments, make_settings, settings_from_args
 from pipeline.workdir import (fingerprints, is_fresh, record_settings, remove_stale_temporaries, settings_path,
-                              make_folder, transaction, work_lock, write_json)
+                              transaction, work_lock, write_json)
 
 HELP = "Run the whole pipeline on a capture folder (linearize, poses, samples, fit, relight) and write the report."
 
@@ -68,7 +68,6 @@ def run_stage(name: str, *, capture: Path, work: Path, settings, force: bool = F
     record = record or name
     capture, work = Path(capture), Path(work)
     check_capture(capture)
-    make_folder(work)
     kwargs = dict(capture=capture, work=work, settings=settings)
     start = time.perf_counter()
     with work_lock(work):   # one sigrend per work folder: the check, the clean-up and the commit are ours

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.io.brdf import diffuse_color
 from pipeline.workdir import atomic_path
 
 FORMATS = (".glb", ".gltf")
@@ -28,7 +29,7 @@ Y_UP_FROM_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]) 
 def gltf_material(brdf: dict, vertex_colors: bool) -> dict:
     """The glTF material dict of a validated brdf.json (lambert or principled; pipeline.io.brdf)."""
     lambert = brdf["model"] == "lambert"
-    color = [1.0, 1.0, 1.0] if vertex_colors else [float(c) for c in brdf["albedo" if lambert else "base_color"]]
+    color = [1.0, 1.0, 1.0] if vertex_colors else [float(c) for c in diffuse_color(brdf)]
     pbr = {"baseColorFactor": [*color, 1.0],
            "metallicFactor": 0.0 if lambert else float(brdf["metallic"]),
            "roughnessFactor": 1.0 if lambert else float(brdf["roughness"])}

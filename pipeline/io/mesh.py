@@ -71,9 +71,7 @@ def mesh_quality(mesh) -> dict:
 
     mesh = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=False)
     mesh.merge_vertices(merge_tex=True, merge_norm=True)
-    edges = mesh.edges_sorted
-    groups = trimesh.grouping.group_rows(edges, require_count=None)
-    per_edge = np.array([len(g) for g in groups])
+    _, per_edge = np.unique(mesh.edges_sorted, axis=0, return_counts=True)   # faces per edge
     area = mesh.area_faces
     degenerate = int(np.sum(area <= 1e-12 * max(float(area.max(initial=0.0)), 1e-300)))
     # a manifold edge is consistently wound when its two faces traverse it in opposite directions
@@ -84,7 +82,7 @@ def mesh_quality(mesh) -> dict:
         nxt = np.roll(f, -1, axis=1)
         return np.any((f == a) & (nxt == b), axis=1)
     flipped_pairs = traverses(adjacency[:, 0]) == traverses(adjacency[:, 1])
-    watertight = bool(np.all(per_edge == 2)) if len(per_edge) else False
+    watertight = bool(len(per_edge) and np.all(per_edge == 2))
     inside_out = bool(watertight and not flipped_pairs.any() and mesh.volume < 0)
     return {"faces": int(len(mesh.faces)), "boundary_edges": int(np.sum(per_edge == 1)),
             "non_manifold_edges": int(np.sum(per_edge > 2)), "degenerate_faces": degenerate,

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import UserError
+from pipeline.io.brdf import diffuse_color
 from pipeline.workdir import atomic_path
 
 FORMATS = (".usda", ".usdc", ".usd")
@@ -26,13 +27,14 @@ FORMATS = (".usda", ".usdc", ".usd")
 
 def preview_surface_inputs(brdf: dict) -> dict:
     """UsdPreviewSurface input values of a validated brdf.json (lambert or principled)."""
+    color = [float(c) for c in diffuse_color(brdf)]
     if brdf["model"] == "lambert":
-        return {"diffuseColor": [float(c) for c in brdf["albedo"]], "useSpecularWorkflow": 1,
+        return {"diffuseColor": color, "useSpecularWorkflow": 1,
                 "specularColor": [0.0, 0.0, 0.0], "roughness": 1.0, "metallic": 0.0}
     if [float(c) for c in brdf["specular_tint"]] != [1.0, 1.0, 1.0]:
         raise UserError("brdf.json: UsdPreviewSurface has no specular tint; export this material as glTF "
                         "(KHR_materials_specular) instead")
-    return {"diffuseColor": [float(c) for c in brdf["base_color"]], "useSpecularWorkflow": 0,
+    return {"diffuseColor": color, "useSpecularWorkflow": 0,
             "roughness": float(brdf["roughness"]), "metallic": float(brdf["metallic"]), "ior": float(brdf["ior"])}
 
 
