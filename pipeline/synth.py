@@ -67,8 +67,8 @@ class SynthSettings:
     distance: float = setting(3.0, "camera distance in units of the framed radius")
     shadows: bool = setting(True, "shadow rays (self-shadowing, board occludes the lower hemisphere)")
     texture: str = setting("none", "per-vertex albedo: 'none', 'stripes[:freq=6,contrast=0.6]' (high frequency), "
-                           "'smooth[:freq=1,contrast=0.5]' (low frequency) or 'noise[:freq=8,contrast=0.7]' "
-                           "(multi-scale, for feature matching); written to gt/albedo.ply")
+                           "'smooth[:freq=1,contrast=0.5]' (low frequency), 'noise[:freq=8,contrast=0.7]' "
+                           "(multi-scale) or 'patches[:freq=8,contrast=0.7]' (sharp-edged: for feature matching); written to gt/albedo.ply")
     cell_height: int = setting(16, "rows of the coarse direction grid for the dim part of the env (render.py)")
     fnumber: float = setting(8.0, "f-number written to EXIF")
     seed: int = setting(0, "random seed (noise)")
@@ -114,7 +114,7 @@ def parse_noise(spec: str, fmt: str) -> dict | None:
 
 
 TEXTURES = {"stripes": {"freq": 6.0, "contrast": 0.6}, "smooth": {"freq": 1.0, "contrast": 0.5},
-            "noise": {"freq": 8.0, "contrast": 0.7}}
+            "noise": {"freq": 8.0, "contrast": 0.7}, "patches": {"freq": 8.0, "contrast": 0.7}}
 
 
 def parse_texture(spec: str) -> tuple[str, dict] | None:
@@ -123,7 +123,7 @@ def parse_texture(spec: str) -> tuple[str, dict] | None:
     if name == "none":
         return None
     if name not in TEXTURES:
-        raise UserError(f"--texture {spec!r}: use 'none' or stripes / smooth / noise [:freq=F,contrast=C]")
+        raise UserError(f"--texture {spec!r}: use 'none' or stripes / smooth / noise / patches [:freq=F,contrast=C]")
     params = dict(TEXTURES[name])
     for token in filter(None, (t.strip() for t in rest.split(","))):
         key, _, value = token.partition("=")
@@ -145,6 +145,8 @@ def texture_albedo(mesh, albedo: np.ndarray, spec: str) -> np.ndarray | None:
     smooth: pattern = (1 + sin(2 pi freq x / size) cos(2 pi freq y / size)) / 2 (low frequency);
     noise: multi-scale (freq/4 .. 2 freq cycles per size) sum of plane waves in fixed pseudo-random
     directions and phases, scaled to [0, 1] (non-periodic texture for feature matching);
+    patches: the noise pattern thresholded at its median (sharp-edged blobs, like printed or painted
+    texture: corners for SIFT on a capture without a board);
     coordinates relative to the bounding-box centre, size = the longest side.
     """
     parsed = parse_texture(spec)
@@ -156,7 +158,7 @@ def texture_albedo(mesh, albedo: np.ndarray, spec: str) -> np.ndarray | None:
     w = 2 * np.pi * p["freq"]
     if name == "stripes":
         pattern = (np.sin(w * q.sum(axis=1)) > 0).astype(float)
-    elif name == "noise":
+    elif name in ("noise", "patches"):
         rng = np.random.default_rng(7)
         pattern = np.zeros(len(q))
         for f in p["freq"] * np.array([0.25, 0.5, 1.0, 2.0]):
@@ -164,6 +166,8 @@ def texture_albedo(mesh, albedo: np.ndarray, spec: str) -> np.ndarray | None:
                 d = rng.normal(size=3)
                 pattern += np.sin(2 * np.pi * f * q @ (d / np.linalg.norm(d)) + rng.uniform(0, 2 * np.pi)) / np.sqrt(f)
         pattern = (pattern - pattern.min()) / max(float(np.ptp(pattern)), 1e-12)
+        if name == "patches":
+            pattern = (pattern > np.median(pattern)).astype(float)
     else:
         pattern = 0.5 * (1 + np.sin(w * q[:, 0]) * np.cos(w * q[:, 1]))
     rgb = np.asarray(albedo, float)[None, :] * (1 - p["contrast"] * pattern)[:, None]

@@ -1,17 +1,22 @@
-"""poses: every photo's camera in the object frame (COLMAP + ChArUco board, or the capture's poses.json).
+"""poses: every photo's camera in the object frame (the capture's poses, imported poses, or COLMAP).
 
 Inputs: the capture's images (or the linearize stage's linear copies), capture.toml ([board], an
-optional calibrated camera), an optional capture poses.json.  Outputs: ``WORK/poses.json``
-(DESIGN.md schema: object frame, metres, world-to-camera R, t, COLMAP pixel convention),
-``WORK/poses_summary.json`` and ``WORK/colmap/`` (8-bit copies, database, sparse model, log).
+optional calibrated camera), the mesh (when poses are registered to it), an optional capture
+poses.json, transforms.json or COLMAP model.  Outputs: ``WORK/poses.json`` (DESIGN.md schema: object
+frame, metres, world-to-camera R, t, COLMAP pixel convention), ``WORK/poses_summary.json`` and
+``WORK/colmap/`` (8-bit copies, database, sparse model, log).
 
-Paths, in order of preference:
+Paths, in order of preference (``--poses-from auto``; docs/poses.md):
 1. the capture brings ``poses.json``: validated and copied unchanged;
-2. COLMAP (pycolmap SIFT + matching + incremental mapping) on 8-bit tone-mapped copies, then a
-   similarity transform COLMAP -> object estimated (RANSAC + Umeyama) from the ChArUco corners
-   triangulated with the COLMAP cameras against their known object coordinates;
-3. fallback when SfM registers too few images but the board is visible: per-image PnP on the
-   board (intrinsics from the calibrated camera, else from a board calibration over all views).
+2. the capture brings a nerfstudio / instant-ngp ``transforms.json`` or a COLMAP model (``sparse/0``):
+   converted (pipeline/io/pose_imports.py), then registered to the mesh by its 3D points
+   (stages/poses_mesh.py) or, with ``--frame object``, taken as the object frame;
+3. COLMAP (pycolmap SIFT + matching + incremental mapping) on 8-bit tone-mapped copies, then
+   - with a ChArUco ``[board]``: a similarity COLMAP -> object estimated (RANSAC + Umeyama) from the
+     board's corners triangulated with the COLMAP cameras against their known object coordinates,
+     with a per-image board PnP fallback when SfM registers too few images;
+   - without a board: the SfM points registered to the mesh (global rotation search + robust
+     point-to-plane ICP), then a bundle adjustment with the points on the mesh held fixed.
 """
 
 from __future__ import annotations
@@ -36,14 +41,20 @@ from pipeline.io.camera_decode import DECODED_EXTENSIONS, RAW_EXTENSIONS
 from pipeline.io.camera_json import read_camera_json
 from pipeline.io.capture_toml import BoardSpec, CaptureConfig, read_capture_config
 from pipeline.io.linear_manifest import manifest_path, read_linear_image
+from pipeline.io.mesh import MESH_NAMES, mesh_path, read_mesh
+from pipeline.io.pose_imports import is_colmap_model, read_colmap_model, read_transforms_json
 from pipeline.io.poses import ImagePose, Poses, read_poses, write_poses
 from pipeline.settings import setting
 from pipeline.workdir import atomic_path, write_json
+from stages import poses_mesh
+from stages.poses_mesh import bundle_adjust
 
 RAW_SUFFIXES = RAW_EXTENSIONS
 DISPLAY_SUFFIXES = {".jpg", ".jpeg", ".png"}  # display-referred 8-bit: copied as they are
 IMAGE_SUFFIXES = RAW_EXTENSIONS | DECODED_EXTENSIONS
 MIN_BOARD_CORNERS = 6  # corners per view for a PnP pose / a usable detection
+COLMAP_MODEL_PLACES = ("sparse/0", "sparse", "colmap/sparse/0")  # COLMAP's and nerfstudio process_data's layouts
+IDENTITY = Similarity(1.0, np.eye(3), np.zeros(3))
 
 
 @dataclass(frozen=True)
@@ -68,6 +79,18 @@ class Settings:
         True, "after registration, bundle-adjust in the object frame with the board corners as known points")
     max_board_disagreement_deg: float = setting(
         5.0, "drop an SfM pose whose rotation differs from the board PnP's by more than this (degrees)")
+    poses_from: str = setting(
+        "auto", "where the poses come from: auto = the capture's poses.json, else its transforms.json, else a COLMAP "
+                "model in sparse/0, sparse or colmap/sparse/0, else COLMAP run here; or a path (relative to the "
+                "capture) of a COLMAP model folder or a nerfstudio / instant-ngp transforms.json")
+    frame: Literal["register", "object"] = setting(
+        "register", "imported poses: register = in an arbitrary frame, registered to the mesh by their 3D points; "
+                    "object = already in the mesh's frame and units, taken as they are")
+    max_registration_residual: float = setting(
+        0.01, "refuse a registration to the mesh whose RMS point-to-surface distance exceeds this fraction of "
+              "the mesh's size (bounding-box diagonal)")
+    mesh_bundle_adjustment: bool = setting(
+        True, "after registering to the mesh, bundle-adjust with the SfM points that lie on it held on the surface")
     seed: int = setting(0, "random seed for COLMAP and RANSAC (runs are reproducible)")
     verbose: bool = setting(False, "show COLMAP's log on the terminal instead of WORK/colmap/colmap.log")
 
@@ -82,6 +105,8 @@ class Settings:
             raise UserError(f"--board-threshold-mm {self.board_threshold_mm} must be positive")
         if self.exhaustive_limit < 2:
             raise UserError(f"--exhaustive-limit {self.exhaustive_limit} must be >= 2")
+        if not 0 < self.max_registration_residual < 1:
+            raise UserError(f"--max-registration-residual {self.max_registration_residual} must be in (0, 1)")
 
 
 # --------------------------------------------------------------------------------------------
@@ -475,26 +500,18 @@ def refine_with_board(reconstruction, similarity: Similarity, detections: dict, 
     if fixed_intrinsics:
         for camera_id in new.cameras:
             config.set_constant_cam_intrinsics(camera_id)
-    options = pycolmap.BundleAdjustmentOptions()
-    options.print_summary = False
-    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    options.ceres.loss_function_scale = 1.0  # pixels
-    # stop when the cost changes by < 1e-6 relative (COLMAP's default 0 runs to the iteration limit)
-    options.ceres.solver_options.function_tolerance = 1e-6
-    options.ceres.solver_options.max_num_iterations = 50
-    pycolmap.create_default_bundle_adjuster(options, config, new).solve()
-    new.update_point_3d_errors()
+    bundle_adjust(new, config)
     return new
 
 
 def poses_from_reconstruction(reconstruction, similarity: Similarity, name_to_key: dict[str, str],
                               camera_names: dict[int, str]) -> Poses:
-    """COLMAP's registered images, carried into the object frame, as DESIGN.md Poses."""
+    """COLMAP's registered images with a photo (``name_to_key``), carried into the object frame, as DESIGN.md Poses."""
     poses = Poses()
     for cam_id, cam in reconstruction.cameras.items():
         poses.cameras[camera_names[cam_id]] = _camera_from_pycolmap(cam)
     for image in reconstruction.images.values():
-        if not image.has_pose:
+        if not image.has_pose or image.name not in name_to_key:  # an imported model's photo not in images/
             continue
         pose = image.cam_from_world()
         R, t = transform_pose(similarity, pose.rotation.matrix(), np.asarray(pose.translation, float))
@@ -600,6 +617,16 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     for extra in (capture / "capture.toml", _capture_poses(capture), Path(work) / "linear" / "manifest.json"):
         if extra.exists():
             paths.append(extra)
+    kind, source = pose_source(capture, settings)
+    if kind == "colmap":
+        paths += sorted(p for p in source.iterdir() if p.is_file())
+    elif kind == "transforms":
+        paths.append(source)
+    uses_mesh = (kind in ("colmap", "transforms") and settings.frame == "register") or (
+        kind == "sfm" and read_capture_config(capture).board is None)
+    if uses_mesh:
+        with contextlib.suppress(UserError):  # no mesh: run() says so
+            paths.append(mesh_path(capture))
     return paths
 
 
@@ -645,34 +672,46 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     if len(keys) < 3:
         raise UserError(f"{capture / 'images'}: {len(keys)} photo(s) found; poses need at least 3 overlapping "
                         "photos (or a poses.json in the capture)")
-    if _capture_poses(capture).exists():
+    kind, source = pose_source(capture, settings)
+    if kind == "poses.json":
         return _pass_through(capture, work, keys)
+    if kind != "sfm":
+        return _imported(capture, work, keys, kind, source, settings)
     config = read_capture_config(capture)
-    spec = config.board
-    if spec is None:
-        raise UserError(f"{capture}: no poses.json and no [board] in capture.toml, so the photos cannot be put in "
-                        "the object frame; add the ChArUco board's [board] section or the capture's poses.json")
-    fixed = calibrated_camera(config)
-    work.mkdir(parents=True, exist_ok=True)
+    if config.board is None:
+        return _sfm_on_mesh(capture, work, keys, config, settings)
+    return _sfm_with_board(capture, work, keys, config, settings)
+
+
+def _enough(registered: int, keys: list[str], settings: Settings) -> bool:
+    return registered >= max(3, int(np.ceil(settings.min_registered * len(keys))))
+
+
+def _named(items: list[str], limit: int = 8) -> str:
+    return ", ".join(items[:limit]) + (f" and {len(items) - limit} more" if len(items) > limit else "")
+
+
+def _colmap_copies(capture: Path, work: Path, keys: list[str], fixed: Camera | None, spec: BoardSpec | None,
+                   timings: dict) -> tuple[Path, dict, dict, dict, dict]:
+    """8-bit copies in WORK/colmap/images, one folder per physical camera, and the board detected on the
+    same pixels when ``spec`` is given.  Returns (colmap folder, key -> camera group, COLMAP name -> key,
+    key -> detection, key -> (width, height))."""
+    import cv2
+    from tqdm import tqdm
+
     colmap_dir = work / "colmap"
     images_dir = colmap_dir / "images"
     if images_dir.exists():
         shutil.rmtree(images_dir)
     images_dir.mkdir(parents=True)
-    timings: dict[str, float] = {}
-
-    # 8-bit copies, one folder per physical camera; board detection on the same pixels
     start = time.perf_counter()
-    group_of_key: dict[str, tuple] = {}
-    for key in keys:
-        group_of_key[key] = ("calibrated",) if fixed is not None else _camera_group_key(capture / "images" / key)
+    group_of_key = {key: ("calibrated",) if fixed is not None else _camera_group_key(capture / "images" / key)
+                    for key in keys}
     group_names = {g: f"cam{i}" for i, g in enumerate(dict.fromkeys(group_of_key.values()))}
     groups = {k: group_names[g] for k, g in group_of_key.items()}
     name_to_key, detections, sizes = {}, {}, {}
-    import cv2
-    from tqdm import tqdm
-
-    for key in tqdm(keys, desc="poses: 8-bit copies + board", unit="img", file=sys.stderr, leave=False):
+    desc = "poses: 8-bit copies" + (" + board" if spec is not None else "")
+    for key in tqdm(keys, desc=desc, unit="img", file=sys.stderr, leave=False):
         rgb = load_8bit_for_colmap(capture, work, key)
         sizes[key] = (rgb.shape[1], rgb.shape[0])
         if fixed is not None and sizes[key] != (fixed.width, fixed.height):
@@ -682,10 +721,76 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         (images_dir / name).parent.mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(images_dir / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         name_to_key[name] = key
-        ids, uv = detect_board(rgb, spec)
-        if len(ids) >= MIN_BOARD_CORNERS:
-            detections[key] = (ids, uv)
-    timings["copies_and_board_detection"] = time.perf_counter() - start
+        if spec is not None:
+            ids, uv = detect_board(rgb, spec)
+            if len(ids) >= MIN_BOARD_CORNERS:
+                detections[key] = (ids, uv)
+    timings["copies_and_board_detection" if spec is not None else "copies"] = time.perf_counter() - start
+    return colmap_dir, groups, name_to_key, detections, sizes
+
+
+def _finish(work: Path, poses: Poses, summary: dict, timings: dict, intrinsics: str, extra: list[Path]) -> list[Path]:
+    """Write poses.json and poses_summary.json (cameras, intrinsics, seconds added); the stage's outputs."""
+    summary["cameras"] = {n: {"model": c.model, "width": c.width, "height": c.height, "params": list(c.params)}
+                          for n, c in poses.cameras.items()}
+    summary["intrinsics"] = intrinsics
+    summary["seconds"] = {k: round(v, 3) for k, v in timings.items()}
+    out = write_poses(work / "poses.json", poses)
+    return [out, _write_summary(work, summary), *extra]
+
+
+def _sfm_on_mesh(capture: Path, work: Path, keys: list[str], config: CaptureConfig, settings: Settings) -> list[Path]:
+    """No board: COLMAP here, its frame registered to the capture's mesh (stages/poses_mesh.py)."""
+    if not any((capture / name).exists() for name in MESH_NAMES):  # before COLMAP: fail at once
+        raise UserError(f"{capture}: no poses (poses.json, transforms.json, a COLMAP model), no [board] in capture.toml "
+                        "and no mesh to register COLMAP's reconstruction to; put the object's mesh in the capture "
+                        f"({' or '.join(MESH_NAMES)}) or add the ChArUco board's [board] section")
+    mesh_file = mesh_path(capture)
+    fixed = calibrated_camera(config)
+    work.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+    colmap_dir, groups, name_to_key, _, _ = _colmap_copies(capture, work, keys, fixed, None, timings)
+    reconstruction = run_colmap(colmap_dir, [colmap_name(groups[k], k) for k in keys], settings, fixed, timings)
+    registered = set() if reconstruction is None else {
+        name_to_key[im.name] for im in reconstruction.images.values() if im.has_pose}
+    unregistered = [k for k in keys if k not in registered]
+    if not _enough(len(registered), keys, settings):
+        why = ("its photos do not overlap (no image pair shares enough features)" if reconstruction is None
+               else f"it registered only {len(registered)} of {len(keys)} photos (unregistered: {_named(unregistered)})")
+        raise UserError(f"COLMAP could not build the capture: {why}; without a board every pose comes from SfM: take "
+                        "overlapping photos of a textured object, or add a board ([board]) or poses.json; see "
+                        f"{colmap_dir / 'colmap.log'}")
+    start = time.perf_counter()
+    surface = poses_mesh.mesh_surface(read_mesh(mesh_file), seed=settings.seed)
+    if (note := poses_mesh.units_note(surface)) is not None:
+        _status(note)
+    _status(f"registering {reconstruction.num_points3D()} SfM points to the mesh")
+    registration = poses_mesh.register_reconstruction(
+        reconstruction, surface, max_residual=settings.max_registration_residual, seed=settings.seed,
+        refine=settings.mesh_bundle_adjustment, fixed_intrinsics=fixed is not None, what="the COLMAP reconstruction")
+    camera_names = {im.camera_id: groups[name_to_key[im.name]] for im in reconstruction.images.values()}
+    poses = poses_from_reconstruction(reconstruction, IDENTITY, name_to_key, camera_names)
+    timings["registration"] = time.perf_counter() - start
+    reconstruction.write(colmap_dir / "sparse")  # the model that was used, in the object frame
+    summary = {
+        "method": "colmap + registration to the mesh" + (" + mesh bundle adjustment"
+                                                         if settings.mesh_bundle_adjustment else ""),
+        "images": len(keys), "registered": len(registered), "unregistered": unregistered,
+        "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
+        "points3D": int(reconstruction.num_points3D()), **registration,
+    }
+    return _finish(work, poses, summary, timings, "calibrated (fixed)" if fixed is not None else "estimated",
+                   [colmap_dir])
+
+
+def _sfm_with_board(capture: Path, work: Path, keys: list[str], config: CaptureConfig,
+                    settings: Settings) -> list[Path]:
+    """COLMAP here registered to the object frame by the ChArUco board (PnP fallback)."""
+    spec = config.board
+    fixed = calibrated_camera(config)
+    work.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+    colmap_dir, groups, name_to_key, detections, sizes = _colmap_copies(capture, work, keys, fixed, spec, timings)
     if not detections:
         raise UserError(f"the ChArUco board of capture.toml ({spec.dictionary}, {spec.squares[0]}x{spec.squares[1]} "
                         f"squares) was not detected in any of the {len(keys)} photos; check [board] dictionary, "
@@ -702,8 +807,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         if reconstruction is not None:
             registered = {name_to_key[im.name] for im in reconstruction.images.values() if im.has_pose}
         unregistered = [k for k in keys if k not in registered]
-        enough = len(registered) >= max(3, int(np.ceil(settings.min_registered * len(keys))))
-        if enough:
+        if _enough(len(registered), keys, settings):
             start = time.perf_counter()
             det_by_name = {colmap_name(groups[k], k): v for k, v in detections.items()}
             similarity, inliers, residual_mm = register_to_object(reconstruction, det_by_name, spec, settings)
@@ -725,7 +829,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
                 with colmap_output(colmap_dir / "colmap.log", settings.verbose):
                     reconstruction = refine_with_board(reconstruction, similarity, det_by_name, spec,
                                                        fixed is not None)
-                similarity = Similarity(1.0, np.eye(3), np.zeros(3))  # already in the object frame
+                similarity = IDENTITY  # already in the object frame
             poses = poses_from_reconstruction(reconstruction, similarity, name_to_key, camera_names)
             timings["registration"] = time.perf_counter() - start
             summary.update({
@@ -740,11 +844,10 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
                 "board_bundle_adjustment": settings.board_bundle_adjustment,
             })
             reconstruction.write(colmap_dir / "sparse")  # the model that was used, at sparse/ top level
-        elif settings.method == "colmap" or len(detections) < max(3, int(np.ceil(settings.min_registered * len(keys)))):
+        elif settings.method == "colmap" or not _enough(len(detections), keys, settings):
             why = ("its photos do not overlap (no image pair shares enough features)" if reconstruction is None
                    else f"it registered only {len(registered)} of {len(keys)} photos")
-            shown = ", ".join(unregistered[:8]) + (f" and {len(unregistered) - 8} more" if len(unregistered) > 8 else "")
-            raise UserError(f"COLMAP could not build the capture: {why} (unregistered: {shown}), and the board is "
+            raise UserError(f"COLMAP could not build the capture: {why} (unregistered: {_named(unregistered)}), and the board is "
                             f"visible in only {len(detections)} photos; take overlapping photos with texture, "
                             f"see {colmap_dir / 'colmap.log'}")
         else:
@@ -767,9 +870,114 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             "per_image_pnp_px": errors,
         })
     summary["board_reprojection_rms_px"] = board_reprojection_px(poses, detections, spec)
-    summary["cameras"] = {n: {"model": c.model, "width": c.width, "height": c.height, "params": list(c.params)}
-                          for n, c in poses.cameras.items()}
-    summary["intrinsics"] = "calibrated (fixed)" if fixed is not None else "estimated"
-    summary["seconds"] = {k: round(v, 3) for k, v in timings.items()}
-    out = write_poses(work / "poses.json", poses)
-    return [out, _write_summary(work, summary), colmap_dir]
+    return _finish(work, poses, summary, timings, "calibrated (fixed)" if fixed is not None else "estimated",
+                   [colmap_dir])
+
+
+# --------------------------------------------------------------------------------------------
+# poses from other tools
+
+
+def pose_source(capture: Path, settings: Settings) -> tuple[str, Path | None]:
+    """Where the poses come from: ("poses.json" | "colmap" | "transforms" | "sfm", path or None).
+
+    ``--poses-from auto``: the capture's poses.json, else its transforms.json, else the first COLMAP model
+    of COLMAP_MODEL_PLACES, else COLMAP run here; a path names a COLMAP model folder or a transforms.json.
+    """
+    capture = Path(capture)
+    if settings.poses_from != "auto":
+        path = capture / settings.poses_from
+        if path.is_dir() and is_colmap_model(path):
+            return "colmap", path
+        if path.is_file() and path.suffix.lower() == ".json":
+            return ("poses.json", path) if path == _capture_poses(capture) else ("transforms", path)
+        raise UserError(f"--poses-from {settings.poses_from}: {path} is neither a COLMAP model folder (with "
+                        "cameras.bin or cameras.txt) nor a transforms.json")
+    if _capture_poses(capture).exists():
+        return "poses.json", _capture_poses(capture)
+    if (capture / "transforms.json").is_file():
+        return "transforms", capture / "transforms.json"
+    for place in COLMAP_MODEL_PLACES:
+        if is_colmap_model(capture / place):
+            return "colmap", capture / place
+    return "sfm", None
+
+
+def match_image_names(names: list[str], keys: list[str], source: Path) -> dict[str, str]:
+    """Image names as another tool wrote them -> the capture's photo keys (relative to images/).
+
+    Tried in order: the name itself, without a leading ./ or images/, then its file name, then its stem
+    (instant-ngp's file_path may lack the extension) when exactly one photo has it.  Names that match no
+    photo are left out; two names for one photo -> UserError.
+    """
+    keyset = set(keys)
+    by_name: dict[str, list[str]] = {}
+    by_stem: dict[str, list[str]] = {}
+    for key in keys:
+        by_name.setdefault(Path(key).name, []).append(key)
+        by_stem.setdefault(Path(key).stem, []).append(key)
+    out: dict[str, str] = {}
+    for name in names:
+        clean = name.replace("\\", "/")
+        while clean.startswith("./"):
+            clean = clean[2:]
+        direct = [c for c in (clean, clean.removeprefix("images/")) if c in keyset]
+        found = direct[:1] or by_name.get(Path(clean).name, [])
+        if len(found) != 1:
+            found = by_stem.get(Path(clean).name, []) if not found else found
+        if len(found) == 1:
+            out[name] = found[0]
+    seen: dict[str, str] = {}
+    for name, key in out.items():
+        if key in seen:
+            raise UserError(f"{source}: both {seen[key]!r} and {name!r} name the photo {key}; remove one")
+        seen[key] = name
+    return out
+
+
+def _imported(capture: Path, work: Path, keys: list[str], kind: str, source: Path, settings: Settings) -> list[Path]:
+    """Poses from a COLMAP model or a transforms.json, taken as the object frame or registered to the mesh."""
+    imported = read_colmap_model(source) if kind == "colmap" else read_transforms_json(source)
+    name_to_key = match_image_names(list(imported.poses.images), keys, source)
+    posed = set(name_to_key.values())
+    unregistered = [k for k in keys if k not in posed]
+    label = "COLMAP model" if kind == "colmap" else "transforms.json"
+    if not _enough(len(posed), keys, settings):
+        raise UserError(f"{source}: the {label} poses {len(posed)} of the {len(keys)} photos in images/ "
+                        f"(no pose: {_named(unregistered)}); its image names must be the photos' file names")
+    summary: dict = {"method": f"imported {label} ({source.relative_to(capture)})", "images": len(keys),
+                     "registered": len(posed), "unregistered": unregistered,
+                     "imported_poses_without_photo": sorted(set(imported.poses.images) - set(name_to_key))}
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    poses = Poses(cameras=dict(imported.poses.cameras),
+                  images={key: imported.poses.images[name] for name, key in name_to_key.items()})
+    extra: list[Path] = []
+    if settings.frame == "object":
+        summary["frame"] = "taken as the object frame (--frame object)"
+    else:
+        surface = poses_mesh.mesh_surface(read_mesh(mesh_path(capture)), seed=settings.seed)
+        if (note := poses_mesh.units_note(surface)) is not None:
+            _status(note)
+        what = f"the {label}"
+        if imported.reconstruction is not None:
+            reconstruction = imported.reconstruction
+            summary.update(poses_mesh.register_reconstruction(
+                reconstruction, surface, max_residual=settings.max_registration_residual, seed=settings.seed,
+                refine=settings.mesh_bundle_adjustment, fixed_intrinsics=False, what=what))
+            camera_names = {cid: f"cam{cid}" for cid in reconstruction.cameras}
+            poses = poses_from_reconstruction(reconstruction, IDENTITY, name_to_key, camera_names)
+            (work / "colmap" / "sparse").mkdir(parents=True, exist_ok=True)
+            reconstruction.write(work / "colmap" / "sparse")  # the imported model, in the object frame
+            extra.append(work / "colmap")
+        elif imported.points is not None:
+            poses, registration = poses_mesh.register_poses(
+                poses, imported.points, surface, max_residual=settings.max_registration_residual,
+                seed=settings.seed, what=what)
+            summary.update(registration)
+        else:
+            raise UserError(f"{source}: no 3D points to register these poses to the mesh (nerfstudio writes them as "
+                            "ply_file_path); pass --frame object if they are already in the mesh's frame and units")
+        summary["frame"] = "registered to the mesh"
+    timings["import_and_registration"] = time.perf_counter() - start
+    return _finish(work, poses, summary, timings, f"from the {label}", extra)

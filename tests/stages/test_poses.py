@@ -129,7 +129,7 @@ def test_too_few_images(tmp_path, capture_dir, capsys):
 def test_no_board_and_no_poses(tmp_path, capture_dir, capsys):
     capture = _partial_capture(capture_dir, tmp_path / "noboard", ["0000.jpg", "0001.jpg", "0002.jpg"],
                                with_toml=False)
-    _expect_user_error(capsys, capture, tmp_path / "work", "no poses.json", "[board]")
+    _expect_user_error(capsys, capture, tmp_path / "work", "no poses", "[board]", "no mesh")
 
 
 def test_board_never_detected(tmp_path, capture_dir, capsys):
