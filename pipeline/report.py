@@ -174,6 +174,11 @@ def _cameras(capture: Path, work: Path) -> str:
         bounds = None
     summary = _json(Path(work) / "poses_summary.json") or {}
     text = f"<p>{len(poses.images)} views from <code>{html.escape(str(path))}</code>.</p>"
+    if "registration_residual_fraction_of_size" in summary:  # registered to the mesh (stages/poses_mesh.py)
+        text += (f"<p>Registered to the mesh: RMS {summary['registration_residual_mm']:.3g} mm "
+                 f"({100 * summary['registration_residual_fraction_of_size']:.2g}% of its size), "
+                 f"{100 * summary['registration_points_used_fraction']:.0f}% of {summary['registration_points']} "
+                 "SfM points on it.</p>")
     if summary:
         text += "<pre>" + html.escape(json.dumps(summary, indent=1)[:2000]) + "</pre>"
     return _section("Cameras", text + _img_tag(camera_plot(poses, bounds, _samples_holdout(work)), "cameras"))

@@ -42,7 +42,7 @@ from pipeline.io.camera_json import read_camera_json
 from pipeline.io.capture_toml import BoardSpec, CaptureConfig, read_capture_config
 from pipeline.io.linear_manifest import manifest_path, read_linear_image
 from pipeline.io.mesh import MESH_NAMES, mesh_path, read_mesh
-from pipeline.io.pose_imports import is_colmap_model, read_colmap_model, read_transforms_json
+from pipeline.io.pose_imports import is_colmap_model, read_colmap_model, read_transforms_json, transforms_files
 from pipeline.io.poses import ImagePose, Poses, read_poses, write_poses
 from pipeline.settings import setting
 from pipeline.workdir import atomic_path, write_json
@@ -621,7 +621,7 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     if kind == "colmap":
         paths += sorted(p for p in source.iterdir() if p.is_file())
     elif kind == "transforms":
-        paths.append(source)
+        paths += transforms_files(source)
     uses_mesh = (kind in ("colmap", "transforms") and settings.frame == "register") or (
         kind == "sfm" and read_capture_config(capture).board is None)
     if uses_mesh:

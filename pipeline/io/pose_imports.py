@@ -153,6 +153,16 @@ def read_transforms_json(path: str | os.PathLike) -> ImportedPoses:
     return ImportedPoses(poses, points)
 
 
+def transforms_files(path: str | os.PathLike) -> list[Path]:
+    """The files a transforms.json import reads: itself and its point cloud (for freshness checks)."""
+    path = Path(path)
+    try:
+        ply = read_json(path).get("ply_file_path")
+    except (UserError, AttributeError):
+        return [path]  # reading it for the import will say what is wrong
+    return [path] + ([path.parent / str(ply)] if ply and (path.parent / str(ply)).is_file() else [])
+
+
 def _is_matrix(value) -> bool:
     return isinstance(value, list) and all(isinstance(row, list) for row in value)
 
