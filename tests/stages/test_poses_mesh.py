@@ -224,7 +224,22 @@ def test_transforms_json_registered_by_its_point_cloud(bunny_capture, tmp_path, 
     assert summary["frame"] == "registered to the mesh"
 
 
+@pytest.mark.slow
+def test_a_photographed_sphere_cannot_fix_the_rotation(tmp_path, capsys):
+    """A textured sphere without a board: COLMAP registers every view, the mesh cannot orient it."""
+    from pipeline.synth import make_test_capture
+
+    trimesh.creation.icosphere(subdivisions=6).export(tmp_path / "sphere.ply")  # fine enough for the patches
+    capture = make_test_capture(tmp_path / "sphere", mesh=str(tmp_path / "sphere.ply"), mesh_up="z", views=16,
+                                size=(800, 600), fmt="jpeg", env="sun+sky:elev=40", poses=False, distance=2.2,
+                                texture="patches:freq=24,contrast=0.8")
+    assert cli_main(["poses", str(capture), "-w", str(tmp_path / "work")]) == 2
+    message = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "does not fix the cameras' rotation" in message and "board" in message
+
+
 def test_a_sphere_cannot_fix_the_rotation(tmp_path, rng, capsys):
+    """The same through an import: a transforms.json with its point cloud, of a sphere."""
     from pipeline.synth import make_test_capture
 
     capture = make_test_capture(tmp_path / "sphere", views=4, size=(48, 48), poses=False)
