@@ -101,6 +101,17 @@ def test_mesh_in_another_frame_and_units(bunny_capture, tmp_path, capsys):
 
 # -- COLMAP models ----------------------------------------------------------------------------------
 
+def _imported_as_object_frame(capture: Path, work: Path, gt: Poses) -> Poses:
+    """Run the stage with --frame object; every true pose must come back to 1e-6."""
+    assert cli_main(["poses", str(capture), "-w", str(work), "--frame", "object"]) == 0
+    est = read_poses(work / "poses.json")
+    assert set(est.images) == set(gt.images)
+    for key, p in est.images.items():
+        assert p.R == pytest.approx(gt.images[key].R, abs=1e-6)
+        assert p.t == pytest.approx(gt.images[key].t, abs=1e-6)
+    return est
+
+
 def _write_colmap_model(poses: Poses, folder: Path, text: bool) -> None:
     import pycolmap
 
@@ -124,12 +135,8 @@ def test_colmap_model_round_trip(bunny_capture, tmp_path, text):
     capture = _copy_capture(bunny_capture, tmp_path / "capture")
     _write_colmap_model(gt, capture / "sparse" / "0", text)
     work = tmp_path / "work"
-    assert cli_main(["poses", str(capture), "-w", str(work), "--frame", "object"]) == 0
-    est = read_poses(work / "poses.json")
-    assert set(est.images) == set(gt.images)
-    for key, p in est.images.items():
-        assert p.R == pytest.approx(gt.images[key].R, abs=1e-6)
-        assert p.t == pytest.approx(gt.images[key].t, abs=1e-6)
+    est = _imported_as_object_frame(capture, work, gt)
+    for key in est.images:
         assert est.camera_of(key).params == pytest.approx(gt.camera_of(key).params, abs=1e-6)
     assert json.loads((work / "poses_summary.json").read_text())["method"] == "imported COLMAP model (sparse/0)"
 
@@ -180,13 +187,7 @@ def test_transforms_json_round_trip(bunny_capture, tmp_path, variant):
     capture = _copy_capture(bunny_capture, tmp_path / "capture")
     doc = _transforms(gt, instant_ngp=variant == "instant-ngp", distortion=distortion)
     (capture / "transforms.json").write_text(json.dumps(doc))
-    work = tmp_path / "work"
-    assert cli_main(["poses", str(capture), "-w", str(work), "--frame", "object"]) == 0
-    est = read_poses(work / "poses.json")
-    assert set(est.images) == set(gt.images)
-    for key, p in est.images.items():
-        assert p.R == pytest.approx(gt.images[key].R, abs=1e-6)
-        assert p.t == pytest.approx(gt.images[key].t, abs=1e-6)
+    est = _imported_as_object_frame(capture, tmp_path / "work", gt)
     camera = next(iter(est.cameras.values()))
     expected = gt.camera_of(next(iter(gt.images))).params
     if variant == "distorted":
