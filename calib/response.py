@@ -3,8 +3,9 @@
 Input: 8-bit photos (JPEG/PNG/TIFF) of one static scene from a tripod at several exposure times
 (EXIF ExposureTime, or --times).  cv2.createCalibrateDebevec (Debevec & Malik 1997: least squares
 for g(Z) = ln E + ln t with a smoothness term, eq. 3).  (cv2's Robertson calibration was tried and
-left out: on the synthetic gamma-1.6 test its curve was 18-27 % off, Debevec's < 2 %.)  The curve is made non-decreasing and each channel is normalized to 1 at
-code 255 (pipeline.io.response_json).  A PNG plot of the curve is written beside the JSON.
+left out: on the synthetic gamma-1.6 test its curve was 18-27 % off, Debevec's < 2 %.)  The curve is made non-decreasing; its channels keep the balance
+Debevec's solution gives them at mid codes, one common scale puts their mean at code 255 at 1
+(pipeline.io.response_json).  A PNG plot of the curve is written beside the JSON.
 """
 
 from __future__ import annotations
@@ -73,7 +74,7 @@ def load_bracket(folder: Path, times: list[float]) -> tuple[list[np.ndarray], np
 
 
 def calibrate_response(images: list[np.ndarray], times: np.ndarray, settings: Settings) -> np.ndarray:
-    """(3, 256) inverse response, non-decreasing, 1 at code 255 per channel."""
+    """(3, 256) inverse response, non-decreasing; the channels balanced at mid codes, their mean at 255 = 1."""
     import cv2
 
     tool = cv2.createCalibrateDebevec(settings.samples, settings.smoothness, False)
@@ -86,12 +87,15 @@ def calibrate_response(images: list[np.ndarray], times: np.ndarray, settings: Se
                             "range of brightness and a bracket spanning several stops")
         curve[c] = np.exp(np.interp(codes, codes[ok], np.log(curve[c, ok])))
     curve = np.maximum.accumulate(curve, axis=1)
-    # The last codes are the worst determined (few samples, clipped pixels): the value at 255 used for the
-    # normalization is extrapolated from a straight line through log(curve) over codes 200..250.
+    # One scale for all channels.  Debevec's solution fixes each channel at mid-range (g(128) = 0,
+    # cv2's normalization), where the codes are best determined, so a neutral grey stays neutral;
+    # rescaling each channel at code 255 instead would take its balance from the noisiest, clipped
+    # codes (on a real phone bracket that tinted grey 1.04 : 1 : 0.44).  The common scale puts the
+    # channels' mean at code 255 — extrapolated by a line through log(curve) over codes 200..250 — at 1.
     top = codes[200:251]
     at_255 = np.array([np.exp(np.polyval(np.polyfit(top, np.log(curve[c, 200:251]), 1), 255)) for c in range(3)])
     curve[:, 251:] = np.maximum(curve[:, 251:], curve[:, 250:251])
-    return curve / at_255[:, None]
+    return curve / float(at_255.mean())
 
 
 def plot_response(path: Path, inverse: np.ndarray) -> Path:
@@ -106,7 +110,7 @@ def plot_response(path: Path, inverse: np.ndarray) -> Path:
     for c, color in enumerate("rgb"):
         ax.semilogx(np.maximum(inverse[c], 1e-5), codes, color=color, label=f"{'RGB'[c]} (calibrated)")
     ax.semilogx(np.maximum(srgb_inverse_table()[0], 1e-5), codes, "k--", lw=1, label="sRGB")
-    ax.set_xlabel("relative exposure (linear, 1 at code 255)")
+    ax.set_xlabel("relative exposure (linear; the channels' mean at code 255 = 1)")
     ax.set_ylabel("8-bit code")
     ax.legend(loc="upper left", fontsize=8)
     ax.grid(True, which="both", alpha=0.3)

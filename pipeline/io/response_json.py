@@ -2,11 +2,11 @@
 
     {"kind": "inverse_response", "codes": 256, "channels": ["R", "G", "B"],
      "inverse": [[...256 values...], [...], [...]],   # relative linear exposure of each code, per channel
-     "normalization": "inverse[c][255] ~ 1 for every channel", "method": "debevec", ...}
+     "normalization": "channels balanced at mid codes; their mean at code 255 ~ 1", "method": "debevec", ...}
 
-Linearizing an 8-bit pixel is a table lookup: linear = inverse[c][code].  Each channel is normalized
-so code 255 maps to (about) 1 (the same convention as the sRGB curve), which keeps the camera's own white
-balance: an 8-bit white stays white.
+Linearizing an 8-bit pixel is a table lookup: linear = inverse[c][code].  The channels keep the balance
+the calibration finds at mid codes (a neutral grey stays neutral) and share one scale, which puts their
+mean at code 255 at about 1 (the sRGB curve: exactly 1 in every channel).
 """
 
 from __future__ import annotations
@@ -49,5 +49,5 @@ def write_response_json(path: str | os.PathLike, inverse: np.ndarray, **info) ->
     inverse = np.asarray(inverse, dtype=float)
     doc = {"kind": "inverse_response", "codes": 256, "channels": ["R", "G", "B"],
            "inverse": [[round(float(v), 8) for v in row] for row in inverse],
-           "normalization": "inverse[c][255] ~ 1 for every channel", **info}
+           "normalization": "channels balanced at mid codes; their mean at code 255 ~ 1", **info}
     return write_json(path, doc)
