@@ -279,6 +279,10 @@ def _brdf(work: Path) -> str:
     rows = "".join(f"<tr><td>{html.escape(str(k))}</td><td>{html.escape(json.dumps(v))}</td></tr>" for k, v in brdf.items())
     body = f"<table>{rows}</table>"
     report = _json(fit / "report.json")
+    selection = (report or {}).get("model_selection") or {}
+    if selection.get("by") == "training residual":
+        body = (f"<p><b>Not validated:</b> {html.escape(selection['why'])} (kept: {html.escape(selection['kept'])}).</p>"
+                + body)
     if report:
         body += ("<details><summary>fit/report.json</summary><pre>"
                  + html.escape(json.dumps(report, indent=1)[:20000]) + "</pre></details>")

@@ -285,7 +285,8 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
             return best, [_row(best)], None, best
         return select_material(candidate, settings, models, obs, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float))
 
-    if len(np.unique(obs.fold)) < 2 and known_brdf is None:
+    one_fold = len(np.unique(obs.fold)) < 2
+    if one_fold and known_brdf is None:
         print(f"fit: model selection needs held-out views, but the {len(np.unique(data['image_id']))} view(s) fall in one fold "
               f"(image_id mod --folds {settings.folds}): candidates are compared by their training residual, "
               "which favours the richest; the choice is in the report", file=sys.stderr)
@@ -321,10 +322,11 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
               "noise_sigma": best.lighting.noise_sigma, "pixel_noise": _pixel_noise_note(pixel_noise, best.lighting),
               "candidates": table, "lighting_orders": best.orders,
               "sources": sources, "samples": {"used": int(len(obs.weight))},
-              "roughness_interval": None if interval is None else list(interval),
+              "roughness_interval": None if interval is None or one_fold else list(interval),
+              "model_selection": _selection_note(one_fold, known_brdf is not None, settings.folds, brdf),
               "scale_convention": _scale_note(brdf, hint) if scale is None else
               {"source": "the known lighting", "lighting_scale": scale}}
-    print(_summary_line(brdf, interval, len(sources)), file=sys.stderr)
+    print(_summary_line(brdf, None if one_fold else interval, len(sources)), file=sys.stderr)
     out = Path(work) / "fit"
     spec = None if best.material is None or best.parts is not None else prt.specular_transfer(   # parts: fit_to_map's
         geo, best.material, settings.lobe_samples, settings.seed)
@@ -389,12 +391,27 @@ def _scale_note(brdf: dict, hint) -> dict:
                     "set by the convention and the lighting carries the inverse scale"}
 
 
+def _selection_note(one_fold: bool, known: bool, folds: int, brdf: dict) -> dict:
+    """How the material was chosen, for report.json (and the report's BRDF section)."""
+    if known:
+        return {"by": "given (known material)"}
+    if one_fold:
+        kept = brdf["model"] + (f", roughness {brdf['roughness']:.3f}" if brdf["model"] == "principled" else "")
+        return {"by": "training residual", "kept": kept,
+                "why": f"every view falls in one fold (image_id mod --folds {folds}): nothing can be held out, so "
+                       "the candidates were compared on the views they were fitted to, which favours the richest "
+                       "and cannot bound the roughness; photograph more views to validate the choice"}
+    return {"by": f"held-out views ({folds} folds, image_id mod {folds})"}
+
+
 def _summary_line(brdf: dict, interval, n_sources: int) -> str:
+    """The fit's stderr line; ``interval`` None when no views were held out (nothing bounds the roughness)."""
     if brdf["model"] == "lambert":
         return f"fit: lambert, albedo {np.round(brdf['albedo'], 3).tolist()}, {n_sources} directional source(s)"
-    return (f"fit: principled roughness {brdf['roughness']:.3f} (held-out views cannot tell apart "
-            f"{interval[0]:.3f}-{interval[1]:.3f}), base colour {np.round(brdf['base_color'], 3).tolist()}, "
-            f"{n_sources} directional source(s)")
+    bound = ("no held-out views: not validated" if interval is None
+             else f"held-out views cannot tell apart {interval[0]:.3f}-{interval[1]:.3f}")
+    return (f"fit: principled roughness {brdf['roughness']:.3f} ({bound}), base colour "
+            f"{np.round(brdf['base_color'], 3).tolist()}, {n_sources} directional source(s)")
 
 
 def _row(fit: material_fit.MaterialFit) -> dict:

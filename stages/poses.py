@@ -669,22 +669,24 @@ def _write_summary(work: Path, summary: dict) -> Path:
 def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     capture, work = Path(capture), Path(work)
     keys = pose_keys(capture, work)
-    if len(keys) < 3:
-        raise UserError(f"{capture / 'images'}: {len(keys)} photo(s) found; poses need at least 3 overlapping "
-                        "photos (or a poses.json in the capture)")
+    if not keys:
+        raise UserError(f"{capture / 'images'}: no photos found; put the capture's photos there")
     kind, source = pose_source(capture, settings)
-    if kind == "poses.json":
+    if kind == "poses.json":  # one photo under a known camera is a capture too (BRDF measurement)
         return _pass_through(capture, work, keys)
     if kind != "sfm":
         return _imported(capture, work, keys, kind, source, settings)
+    if len(keys) < 3:
+        raise UserError(f"{capture / 'images'}: {len(keys)} photo(s) found; COLMAP needs at least 3 overlapping "
+                        "photos — with fewer, bring their poses (poses.json, transforms.json or a COLMAP model)")
     config = read_capture_config(capture)
     if config.board is None:
         return _sfm_on_mesh(capture, work, keys, config, settings)
     return _sfm_with_board(capture, work, keys, config, settings)
 
 
-def _enough(registered: int, keys: list[str], settings: Settings) -> bool:
-    return registered >= max(3, int(np.ceil(settings.min_registered * len(keys))))
+def _enough(registered: int, keys: list[str], settings: Settings, minimum: int = 3) -> bool:
+    return registered >= max(minimum, int(np.ceil(settings.min_registered * len(keys))))
 
 
 def _named(items: list[str], limit: int = 8) -> str:
@@ -942,7 +944,7 @@ def _imported(capture: Path, work: Path, keys: list[str], kind: str, source: Pat
     posed = set(name_to_key.values())
     unregistered = [k for k in keys if k not in posed]
     label = "COLMAP model" if kind == "colmap" else "transforms.json"
-    if not _enough(len(posed), keys, settings):
+    if not _enough(len(posed), keys, settings, minimum=1):
         raise UserError(f"{source}: the {label} poses {len(posed)} of the {len(keys)} photos in images/ "
                         f"(no pose: {_named(unregistered)}); its image names must be the photos' file names")
     summary: dict = {"method": f"imported {label} ({source.relative_to(capture)})", "images": len(keys),

@@ -111,3 +111,29 @@ def test_force_redoes_and_a_bad_capture_keeps_earlier_outputs(interrupted_and_re
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("sigrend: error:")]
     assert len(err) == 1 and photo.name in err[0], err
     assert {name: _mtime(work / name) for name in after} == after
+
+
+def test_one_photo_under_a_known_camera(tiny_capture, tmp_path, capsys):
+    """One photo + its pose (the BRDF-measurement setting): the run goes through, and the fit says its
+    material choice was not validated (nothing to hold out) on stderr, in report.json and the report."""
+    import json
+
+    source = tiny_capture(brdf="principled:base_color=0.5,0.4,0.3,roughness=0.4", env="sun+sky:elev=40",
+                          size=(128, 128), fmt="jpeg")
+    capture = tmp_path / "one"
+    (capture / "images").mkdir(parents=True)
+    shutil.copyfile(source / "images" / "0000.jpg", capture / "images" / "0000.jpg")
+    for name in ("mesh.ply", "capture.toml"):
+        shutil.copyfile(source / name, capture / name)
+    poses = json.loads((source / "poses.json").read_text())
+    poses["images"] = {"0000.jpg": poses["images"]["0000.jpg"]}
+    (capture / "poses.json").write_text(json.dumps(poses))
+    work = tmp_path / "work"
+    assert cli.main(["run", str(capture), "-w", str(work)]) == 0
+    err = capsys.readouterr().err
+    assert "model selection needs held-out views" in err
+    assert "no held-out views: not validated" in err or "fit: lambert" in err
+    report = json.loads((work / "fit" / "report.json").read_text())
+    assert report["model_selection"]["by"] == "training residual"
+    assert report["roughness_interval"] is None
+    assert "Not validated" in (work / "report.html").read_text()
