@@ -19,7 +19,7 @@ import numpy as np
 from pipeline.errors import UserError
 from pipeline.io.camera_decode import DECODED_EXTENSIONS, RAW_EXTENSIONS, decode_other, decode_raw, probe
 from pipeline.io.images import write_image
-from pipeline.io.response_json import read_response_json, srgb_inverse_table
+from pipeline.io.response_json import inverse_table
 from pipeline.settings import setting
 
 HELP = "Vignetting (flat-field gain map) from photos of a uniform, evenly lit target (writes an EXR)."
@@ -84,7 +84,7 @@ def run(*, images: Path, output: Path, settings: Settings) -> list[Path]:
     files = inputs(images=folder, output=output, settings=settings)
     if not files:
         raise UserError(f"{folder}: no flat-field photos found")
-    inverse = read_response_json(settings.response) if settings.response else srgb_inverse_table()
+    inverse = inverse_table(settings.response or None)
     flats = []
     for path in files:
         pr = probe(path)

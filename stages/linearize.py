@@ -30,6 +30,7 @@ import hashlib
 import json
 import multiprocessing
 import os
+import sys
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,7 +44,7 @@ from pipeline.io.camera_decode import (DECODED_EXTENSIONS, RAW_EXTENSIONS, Probe
 from pipeline.io.capture_toml import CAPTURE_TOML, CaptureConfig, did_you_mean, read_capture_config
 from pipeline.io.images import read_image, write_image
 from pipeline.io.linear_manifest import linear_dir, manifest_path, write_manifest
-from pipeline.io.response_json import read_response_json, srgb_inverse_table
+from pipeline.io.response_json import inverse_table
 from pipeline.settings import setting, settings_dict
 from pipeline.workdir import collected_writes, commit_writes, fingerprints
 
@@ -242,7 +243,7 @@ def linearize_job(job: dict) -> dict:
 
     Returns the manifest entry.  Runs in a worker process: everything it needs is in ``job``.
     """
-    inverse = (read_response_json(job["response"]) if job["response"] else srgb_inverse_table())
+    inverse = inverse_table(job["response"], job["response_curve"])
     gain = None
     if job["vignetting"]:
         gain = read_image(job["vignetting"])[:, :, :3]
@@ -292,7 +293,7 @@ def linearize_job(job: dict) -> dict:
     entry = {"exr": f"{key}.exr", "mask": f"masks/{key}.png", "width": int(merged.shape[1]),
              "height": int(merged.shape[0]), "sources": sources, "white_balance": job["white_balance"],
              "saturated_fraction": round(1.0 - valid_fraction, 6), "valid_fraction": round(valid_fraction, 6),
-             "vignetting": job["vignetting"], "response": job["response"] or "srgb"}
+             "vignetting": job["vignetting"], "response": job["response"] or job["response_curve"]}
     header = json.dumps({"recipe": _digest(job), "entry": entry})
     write_image(job["mask"], valid.astype(np.float32), dtype="uint8")
     write_image(job["exr"], merged, dtype="float", attributes={HEADER_KEY: header})
@@ -372,7 +373,7 @@ def build_jobs(capture: Path, work: Path, settings: Settings) -> list[dict]:
     _check_sizes(probes, config)
     by_name = {p.path.name: p for p in probes}
     exposure = exposure_scales(probes, config)
-    inverse = read_response_json(config.response) if config.response else srgb_inverse_table()
+    inverse = inverse_table(config.response, config.response_curve)
     raw_wb, rgb_gains, wb_record = resolve_white_balance(settings, config, probes, inverse, settings.saturation)
     extra = [str(p) for p in _capture_files(capture, config)]
     content = fingerprints(files + [Path(p) for p in extra], work)   # in each job's recipe: a replaced file redoes it
@@ -388,6 +389,7 @@ def build_jobs(capture: Path, work: Path, settings: Settings) -> list[dict]:
                      "mask": str(folder / "masks" / f"{key}.png"), "saturation": settings.saturation,
                      "raw_wb": raw_wb, "rgb_gains": rgb_gains, "white_balance": wb_record,
                      "response": str(config.response) if config.response else None,
+                     "response_curve": config.response_curve,
                      "vignetting": str(config.vignetting) if config.vignetting else None,
                      "settings": {k: v for k, v in settings_dict(settings).items() if k != "workers"},
                      "content": {p: content[str(Path(p).resolve())] for p in [str(m) for m in members] + extra}})
@@ -441,11 +443,25 @@ def run_jobs(jobs: list[dict], workers: int) -> dict[str, dict]:
     return entries
 
 
+def response_note(jobs: list[dict]) -> str | None:
+    """One line saying which curve 8-bit files were linearized with when capture.toml did not give a
+    calibrated response (the curve is then an assumption the user should see)."""
+    eight_bit = [s for j in jobs if j["response"] is None for s in j["sources"] if s["kind"] == "uint8"]
+    if not eight_bit:
+        return None
+    curve = jobs[0]["response_curve"]
+    why = ("no [response] in capture.toml; a linear machine-vision camera needs [response] curve = \"linear\", "
+           "a calibrated one path = \"response.json\"" if curve == "srgb" else "[response] curve in capture.toml")
+    return f"linearize: {len(eight_bit)} 8-bit file(s) linearized with the {curve} curve ({why})"
+
+
 def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     """Linearize every image of the capture; returns the written EXRs, masks and manifest.json."""
     jobs = build_jobs(Path(capture), Path(work), settings)
     entries = run_jobs(jobs, settings.workers)
     manifest = write_manifest(work, entries)
+    if (note := response_note(jobs)) is not None:
+        print(note, file=sys.stderr)
     written = [Path(j["exr"]) for j in jobs] + [Path(j["mask"]) for j in jobs]
     folder = linear_dir(work)
     previous = [p for p in [*folder.glob("*.exr"), *(folder / "masks").glob("*.png")] if not p.name.startswith(".")]

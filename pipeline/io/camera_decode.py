@@ -154,14 +154,18 @@ def decode_raw(path: Path, wb_multipliers: tuple[float, ...], saturation: float,
 def decode_other(path: Path, kind: str, inverse_response: np.ndarray, saturation: float):
     """OpenImageIO decode: (rgb linear float32, valid mask, level in [0, 1] or None, info, all_black)."""
     img = read_image(path)
-    if img.shape[2] == 1 or img.shape[2] == 2:
-        img = np.repeat(img[:, :, :1], 3, axis=2)
-    rgb = img[:, :, :3]
+    # alpha: the last channel of grey+alpha and RGBA files.  Integer files: only opaque pixels are data
+    # (a partly transparent pixel mixes in whatever was behind; OIIO also premultiplies it on read);
+    # float files: alpha > 0, as EXR writers mark coverage.
+    alpha = img[:, :, -1] if img.shape[2] in (2, 4) else None
+    rgb = np.repeat(img[:, :, :1], 3, axis=2) if img.shape[2] < 3 else img[:, :, :3]
     info: dict = {}
     if kind == "uint8":
         codes = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.intp)
         lin = np.stack([inverse_response[c][codes[:, :, c]] for c in range(3)], axis=2).astype(np.float32)
         valid = np.all(codes < saturation * 255.0, axis=2)
+        if alpha is not None:
+            valid &= alpha >= 254.5 / 255.0
         info = {"black_level": 0, "white_level": 255}
         return lin, valid, rgb.max(axis=2), info, int(codes.max()) == 0
     valid = np.all(np.isfinite(rgb), axis=2)
@@ -171,7 +175,7 @@ def decode_other(path: Path, kind: str, inverse_response: np.ndarray, saturation
         level = rgb.max(axis=2)
     else:
         level = None
-    if img.shape[2] == 4:
-        valid &= img[:, :, 3] > 0
+    if alpha is not None:
+        valid &= alpha >= 65534.5 / 65535.0 if kind == "uint16" else alpha > 0
     all_black = not np.any(np.where(valid[:, :, None], rgb, 0) > 0)
     return np.ascontiguousarray(rgb, dtype=np.float32), valid, level, info, all_black

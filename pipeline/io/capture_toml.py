@@ -5,8 +5,9 @@ Every section is optional; paths are relative to the capture folder.
     [camera]
     path = "camera.json"            # intrinsics from `sigrend calib intrinsics` (COLMAP model)
 
-    [response]
-    path = "response.json"          # inverse camera response from `sigrend calib response` (8-bit files)
+    [response]                      # how 8-bit files are linearized (default: the sRGB curve)
+    path = "response.json"          # inverse camera response from `sigrend calib response`; or
+    curve = "linear"                # "srgb" or "linear" (machine-vision cameras with a linear output)
 
     [vignetting]
     path = "vignetting.exr"         # flat-field gain map from `sigrend calib vignetting`
@@ -79,6 +80,7 @@ class CaptureConfig:
 
     camera: Path | None = None
     response: Path | None = None
+    response_curve: str = "srgb"  # without a response path: "srgb" or "linear"
     vignetting: Path | None = None
     wb_multipliers: tuple[float, float, float] | None = None
     wb_gray_patch: tuple[int, int, int, int] | None = None
@@ -108,7 +110,7 @@ def read_toml(path: Path) -> dict:
 
 # capture.toml's sections and their keys (None: any key, e.g. image file names)
 SECTIONS: dict[str, set[str] | None] = {
-    "camera": {"path"}, "response": {"path"}, "vignetting": {"path"},
+    "camera": {"path"}, "response": {"path", "curve"}, "vignetting": {"path"},
     "white_balance": {"multipliers", "gray_patch"}, "exposure": None, "brackets": None,
     "board": {"dictionary", "squares", "square_length", "marker_length", "board_to_object"},
     "fit": {"known_albedo"},
@@ -154,6 +156,22 @@ def _path_entry(path: Path, doc: dict, section: str) -> Path | None:
     if not target.exists():
         raise UserError(f"{path}: [{section}] path {table['path']!r} does not exist ({target})")
     return target
+
+
+RESPONSE_CURVES = ("srgb", "linear")
+
+
+def _response_entry(path: Path, doc: dict) -> tuple[Path | None, str]:
+    """[response]: (path of a response.json, None) or (None, curve name); no section -> (None, "srgb")."""
+    table = doc.get("response")
+    if isinstance(table, dict) and "curve" in table:
+        if "path" in table:
+            raise UserError(f"{path}: [response] has both path and curve; keep one")
+        if table["curve"] not in RESPONSE_CURVES:
+            raise UserError(f"{path}: [response] curve = {table['curve']!r}; use one of {', '.join(RESPONSE_CURVES)} "
+                            'or path = "response.json"')
+        return None, table["curve"]
+    return _path_entry(path, doc, "response"), "srgb"
 
 
 def parse_board(path: Path, table: dict) -> BoardSpec:
@@ -225,6 +243,7 @@ def read_capture_config(capture: str | os.PathLike) -> CaptureConfig:
         brackets[name] = tuple(members)
 
     board = parse_board(path, doc["board"]) if "board" in doc else None
-    return CaptureConfig(camera=_path_entry(path, doc, "camera"), response=_path_entry(path, doc, "response"),
+    response, curve = _response_entry(path, doc)
+    return CaptureConfig(camera=_path_entry(path, doc, "camera"), response=response, response_curve=curve,
                          vignetting=_path_entry(path, doc, "vignetting"), wb_multipliers=mult, wb_gray_patch=gray,
                          exposure=exposure, brackets=brackets, board=board, source=path)

@@ -28,6 +28,16 @@ def srgb_inverse_table() -> np.ndarray:
     return np.repeat(lin[None, :], 3, axis=0)
 
 
+def inverse_table(path: str | os.PathLike | None, curve: str = "srgb") -> np.ndarray:
+    """The (3, 256) table 8-bit files are linearized with: a response.json, else the named curve
+    ("srgb": IEC 61966-2-1; "linear": code / 255)."""
+    if path is not None:
+        return read_response_json(path)
+    if curve == "linear":
+        return np.repeat((np.arange(256) / 255.0)[None, :], 3, axis=0)
+    return srgb_inverse_table()
+
+
 def read_response_json(path: str | os.PathLike) -> np.ndarray:
     """The (3, 256) inverse response table; UserError when the file is missing or malformed."""
     path = Path(path)

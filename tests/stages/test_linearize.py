@@ -204,6 +204,45 @@ def test_calibrated_response_from_capture_toml(tmp_path):
     assert rel_err(rgb_srgb, radiance(L), valid) > 0.1  # the wrong curve is visibly wrong
 
 
+@pytest.mark.parametrize("channels", ["rgba", "grey+alpha"])
+def test_8bit_alpha_is_honoured(tmp_path, channels):
+    """A cut-out PNG: transparent and partly transparent pixels are not data; opaque ones are exact."""
+    L = scene()
+    value = srgb_encode(exposed(L, T_REF))
+    alpha = np.ones((H, W, 1))
+    alpha[:, : W // 3] = 0.0  # transparent: background removed
+    alpha[:, W // 3: W // 3 + 4] = 0.5  # the cut-out's soft edge
+    pixels = np.concatenate([value, alpha], axis=2) if channels == "rgba" else \
+        np.concatenate([value[:, :, 1:2], alpha], axis=2)
+    cap = tmp_path / "cap"
+    write_image(cap / "images" / "p.png", pixels, dtype="uint8",
+                attributes={"ExposureTime": T_REF, "FNumber": N_REF, "Exif:PhotographicSensitivity": 100})
+    run_stage(cap, tmp_path / "work")
+    rgb, valid = read_linear_image(tmp_path / "work", "p")
+    assert not valid[:, : W // 3 + 4].any()
+    assert valid[:, W // 3 + 4:].all()
+    want = radiance(L) if channels == "rgba" else np.repeat(radiance(L)[:, :, 1:2], 3, axis=2)
+    assert rel_err(rgb, want, valid) < 0.01
+
+
+def test_response_curve_linear_and_the_assumed_curve_is_said(tmp_path, capsys):
+    """A linear machine-vision PNG: [response] curve = "linear" decodes it as code / 255; without it the
+    sRGB curve is assumed and a line says so."""
+    L = scene()
+    cap = tmp_path / "cap"
+    write_jpeg(cap / "images" / "p.png", exposed(L, T_REF), encode=lambda v: np.clip(v, 0, 1))
+    run_stage(cap, tmp_path / "work_srgb")
+    assert "linearized with the srgb curve (no [response] in capture.toml" in capsys.readouterr().err
+    (cap / "capture.toml").write_text('[response]\ncurve = "linear"\n')
+    run_stage(cap, tmp_path / "work")
+    assert "with the linear curve" in capsys.readouterr().err
+    rgb, valid = read_linear_image(tmp_path / "work", "p")
+    assert rel_err(rgb, radiance(L), valid) < 0.01
+    (cap / "capture.toml").write_text('[response]\ncurve = "gamma"\n')
+    with pytest.raises(UserError, match="curve = 'gamma'; use one of srgb, linear"):
+        run_stage(cap, tmp_path / "work_bad")
+
+
 def test_bracket_merges_to_ground_truth_including_highlights(tmp_path):
     L = scene(highlights=6.0)  # a highlight 6x the reference full scale
     cap = tmp_path / "cap"
