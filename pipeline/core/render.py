@@ -290,16 +290,16 @@ class Renderer:
         self._vis_done[todo] = True
 
     def _point_visibility(self, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        """Visibility (P, D) of the light set at points: the vertices' visibility where all three
+        """Visibility (P, D) bool of the light set at points: the vertices' visibility where all three
         of the point's vertices agree, an exact shadow ray from the point where they do not
         (shadow edges crossing the triangle), so shadows are sharp at any mesh resolution."""
-        vis = (bary[:, 0:1] * self._visibility[tri[:, 0]] + bary[:, 1:2] * self._visibility[tri[:, 1]]
-               + bary[:, 2:3] * self._visibility[tri[:, 2]])
-        pi, di = np.nonzero((vis > 0) & (vis < 1))
+        v0, v1, v2 = (self._visibility[tri[:, k]] for k in range(3))
+        lit = v0 & v1 & v2
+        pi, di = np.nonzero((v0 | v1 | v2) & ~lit)  # bool planes: 8x less memory traffic than weights
         if pi.size:
-            vis[pi, di] = ~self._shadow_rays.intersects_any(self._points_above(faces[pi], bary[pi]),
+            lit[pi, di] = ~self._shadow_rays.intersects_any(self._points_above(faces[pi], bary[pi]),
                                                             self.lights.directions[di])
-        return vis
+        return lit
 
     # -- shading ----------------------------------------------------------------------------
     def _spec_cut(self) -> float | None:
@@ -510,7 +510,7 @@ class Renderer:
             if self.shadows:
                 vis = self._point_visibility(faces[sl], tri[sl], bary[sl])
                 cos = cos * vis
-                bright_vis[sl] = vis[:, len(dirs) - nb:] > 0.5
+                bright_vis[sl] = vis[:, len(dirs) - nb:]
             irradiance[sl] = cos @ power
         return irradiance, bright_vis
 
@@ -538,7 +538,7 @@ class Renderer:
             sl = slice(s, s + per_chunk)
             specular[sl] = specular_over_directions(
                 self.material, normals[sl], view_dirs[sl], self.lights.directions[-nb:], self.lights.power[-nb:],
-                bright_vis[sl].astype(float) if self.shadows else None, self._spec_cut_cos,
+                bright_vis[sl] if self.shadows else None, self._spec_cut_cos,
                 None if self.vertex_albedo is None else base[sl])
         front = mu_out > 0
         if front.any():

@@ -155,12 +155,12 @@ def specular_over_directions(material: Principled, normal: np.ndarray, view_dir:
     out = np.zeros((n.shape[0], 3))
     if pi.size == 0:
         return out
-    if visibility is not None:
+    if visibility is not None:  # (P, D) bool, or weights in [0, 1]
         vis = visibility[pi, di]
         keep = vis > 0
         pi, di, vis = pi[keep], di[keep], vis[keep]
     lobe, cos_oh = ggx_lobe_cos(n[pi], dirs[di], v[pi], material.alpha)
-    if visibility is not None:
+    if visibility is not None and vis.dtype != bool:
         lobe = lobe * vis
     fres = material.specular_fresnel(cos_oh, mu_out[pi], None if base_color is None else np.asarray(base_color, float)[pi])
     contrib = fres * (lobe[:, None] * power[di])
