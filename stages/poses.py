@@ -34,6 +34,7 @@ import numpy as np
 
 from calib.charuco import detect, make_board
 from pipeline.core.camera import Camera, project
+from pipeline.core.registration import rotation_angle_deg
 from pipeline.core.similarity import Similarity, ransac_similarity, transform_pose
 from pipeline.errors import UserError
 from pipeline.io.camera_files import srgb_encode
@@ -445,8 +446,7 @@ def board_disagreement_deg(reconstruction, similarity: Similarity, detections: d
             R_pnp, _, _ = pnp_pose(_camera_from_pycolmap(image.camera), ids, uv, spec)
         except ValueError:
             continue
-        cos = (np.trace(R @ R_pnp.T) - 1.0) / 2.0
-        out[image.name] = float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+        out[image.name] = rotation_angle_deg(R, R_pnp)
     return out
 
 

@@ -17,6 +17,7 @@ from pipeline.core.camera import camera_center
 from pipeline.core.registration import project_to_surface, register_to_surface, scale_guess, viewing_center
 from pipeline.core.similarity import Similarity
 from pipeline.errors import UserError
+from pipeline.io.pose_imports import reconstruction_points
 
 SURFACE_SAMPLES = 60000  # area-uniform samples of the mesh for nearest-surface queries
 NEAR_FRACTION = 0.6  # points farther than this x the median camera distance from the view centre: background
@@ -95,9 +96,7 @@ def reconstruction_geometry(reconstruction) -> tuple[np.ndarray, np.ndarray, np.
             R = pose.rotation.matrix()
             centers.append(camera_center(R, np.asarray(pose.translation, float)))
             axes.append(R[2])  # the camera's +z (viewing direction) in world coordinates
-    points = np.array([p.xyz for p in reconstruction.points3D.values() if p.track.length() >= 2 and p.error < 2.0],
-                      float).reshape(-1, 3)
-    return points, np.array(centers).reshape(-1, 3), np.array(axes).reshape(-1, 3)
+    return reconstruction_points(reconstruction), np.array(centers).reshape(-1, 3), np.array(axes).reshape(-1, 3)
 
 
 def register_reconstruction(reconstruction, surface: Surface, *, max_residual: float, seed: int, refine: bool,

@@ -108,10 +108,6 @@ def _trimmed_icp(x: np.ndarray, tree: cKDTree, surface: np.ndarray, start: Simil
     return sim, float(np.sqrt(np.mean(trimmed ** 2)) / sim.scale)
 
 
-def _rodrigues(w: np.ndarray) -> np.ndarray:
-    return Rotation.from_rotvec(w).as_matrix()
-
-
 def point_to_plane_icp(x: np.ndarray, tree: cKDTree, surface: np.ndarray, normals: np.ndarray,
                        start: Similarity, *, iterations: int = 40, cut_sigmas: float = 3.0,
                        tolerance: float = 1e-7) -> tuple[Similarity, np.ndarray, np.ndarray]:
@@ -137,7 +133,7 @@ def point_to_plane_icp(x: np.ndarray, tree: cKDTree, surface: np.ndarray, normal
         # damped: at most 10 % scale and 0.1 rad per step, so a far start cannot shrink the cloud onto a patch
         ds, w, dt = float(np.clip(delta[0], -0.1, 0.1)), delta[1:4], delta[4:7]
         w = w * min(1.0, 0.1 / max(float(np.linalg.norm(w)), 1e-300))
-        Rw = _rodrigues(w)
+        Rw = Rotation.from_rotvec(w).as_matrix()
         sim = Similarity((1 + ds) * sim.scale, Rw @ sim.R, (1 + ds) * Rw @ (sim.t - c) + c + dt)
         if abs(ds) < tolerance and np.linalg.norm(w) < tolerance:
             break

@@ -69,9 +69,14 @@ def read_colmap_model(folder: str | os.PathLike, *, min_track_length: int = 2,
             pose = image.cam_from_world()
             poses.images[image.name] = ImagePose(f"cam{image.camera_id}", pose.rotation.matrix(),
                                                  np.asarray(pose.translation, float))
-    points = np.array([p.xyz for p in reconstruction.points3D.values()
-                       if p.track.length() >= min_track_length and p.error < max_error_px], float).reshape(-1, 3)
-    return ImportedPoses(poses, points, reconstruction)
+    return ImportedPoses(poses, reconstruction_points(reconstruction, min_track_length, max_error_px), reconstruction)
+
+
+def reconstruction_points(reconstruction, min_track_length: int = 2, max_error_px: float = 2.0) -> np.ndarray:
+    """(N, 3) points of a pycolmap.Reconstruction seen in >= ``min_track_length`` images with a mean
+    reprojection error < ``max_error_px``: the ones trusted for registration."""
+    return np.array([p.xyz for p in reconstruction.points3D.values()
+                     if p.track.length() >= min_track_length and p.error < max_error_px], float).reshape(-1, 3)
 
 
 # nerfstudio / instant-ngp ------------------------------------------------------------------------
