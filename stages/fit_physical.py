@@ -305,6 +305,11 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
         best, table, interval, anchor = select()
     if scale is not None:
         scale["applied"] = applied
+    level = None
+    if best.material is None and known_lighting is None and known_brdf is None and hint is None:
+        t1 = time.perf_counter()
+        best, level = search_albedo_level(candidate, best, geo, obs, settings, kw)
+        timings["albedo_level"] = time.perf_counter() - t1
     if scene is not None:        # what lighting_sh.json records, and the bands' labels: the SH + sources form
         scene = None
         recorded = candidate(best.material, best.base, True, None)
@@ -324,7 +329,7 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
               "sources": sources, "samples": {"used": int(len(obs.weight))},
               "roughness_interval": None if interval is None or one_fold else list(interval),
               "model_selection": _selection_note(one_fold, known_brdf is not None, settings.folds, brdf),
-              "scale_convention": _scale_note(brdf, hint) if scale is None else
+              "scale_convention": _scale_note(brdf, hint, level) if scale is None else
               {"source": "the known lighting", "lighting_scale": scale}}
     print(_summary_line(brdf, None if one_fold else interval, len(sources)), file=sys.stderr)
     out = Path(work) / "fit"
@@ -382,13 +387,36 @@ def _brdf_json(fit: material_fit.MaterialFit) -> dict:
     return material_dict(fit.material, fit.base)
 
 
-def _scale_note(brdf: dict, hint) -> dict:
+def _scale_note(brdf: dict, hint, level: dict | None = None) -> dict:
     if brdf["model"] == "principled":
         return {"source": f"the dielectric specular layer (Fresnel from ior {brdf['ior']}) fixes the absolute "
                           "scale of lighting vs base colour"}
+    if level is not None and level["determined"]:
+        return {"source": "interreflection", "albedo_level": level,
+                "note": "light bounced between parts of the object goes as the albedo squared, direct light as the "
+                        "albedo: the held-out views fix the albedo's level (material_fit.albedo_level), and the "
+                        "lighting carries the inverse scale; the chromaticity is the least-squares one"}
     return {"source": "capture.toml [fit] known_albedo" if hint is not None else f"default grey albedo {DEFAULT_ALBEDO}",
-            "note": "a Lambertian object determines its albedo's chromaticity, not its level: the mean albedo is "
-                    "set by the convention and the lighting carries the inverse scale"}
+            "note": "a Lambertian object determines its albedo's chromaticity, not its level (no interreflection "
+                    "strong enough to fix it): the mean albedo is set by the convention and the lighting carries "
+                    "the inverse scale", **({} if level is None else {"albedo_level": level})}
+
+
+def search_albedo_level(candidate, fit: material_fit.MaterialFit, geo, obs, settings, kw) -> tuple:
+    """A Lambertian fit with its albedo's level where interreflection fixes it
+    (material_fit.albedo_level, the SH order, the sources' directions and the chromaticity of ``fit``
+    kept), refitted; ``fit`` itself where the held-out curve is flat (a convex object).
+    -> (fit, note for report.json)."""
+    def score(base: np.ndarray) -> np.ndarray:
+        return material_fit.lambert_held_out(geo, obs, base, fit, folds=settings.folds, lighting_kw=kw)
+
+    s, determined, curve = material_fit.albedo_level(score, fit.base)
+    note = {"determined": determined, "tolerance": material_fit.LEVEL_EVIDENCE,
+            "curve": [{"mean_albedo": float(fit.base.mean() * k), "validation_rmse": e} for k, e in curve]}
+    if not determined:
+        return fit, note
+    note["mean_albedo"] = float(fit.base.mean() * s)
+    return candidate(None, fit.base * s, False, _directions(fit)), note
 
 
 def _selection_note(one_fold: bool, known: bool, folds: int, brdf: dict) -> dict:

@@ -245,7 +245,7 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
             for _ in range(4):            # least squares in rho given the lighting (+ interreflection update)
                 coeffs = solve_at(base)[0]
                 new = _base_least_squares(geo, material, spec, base, sources, coeffs, obs, max_bounces)
-                if spec is None:          # Lambert: only the chromaticity is determined
+                if spec is None and known is None:   # Lambert, lighting unknown: only the chromaticity
                     new *= float(np.mean(base0)) / float(np.mean(new))
                 done = np.abs(new - base).max() < 1e-3
                 base = new
@@ -278,6 +278,58 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
     fit = cands[best]["fit"]
     return MaterialFit(material, base, fit.coeffs, fit, [{k: v for k, v in c.items() if k != "fit"} for c in cands],
                        float(cands[best]["validation_rmse"]), float(cands[best]["train_rmse"]), sources)
+
+
+def lambert_held_out(geo: prt.Geometry, obs: Observations, base: np.ndarray, fit: MaterialFit, *, folds: int,
+                     lighting_kw: dict, max_bounces: int = 8) -> np.ndarray:
+    """Held-out RMSE per channel (3,) of a Lambertian albedo ``base`` (3,), the lighting refitted
+    around it in the form of the Lambertian ``fit`` (its SH order, its sources' directions; their
+    intensities start from the fit's scaled by fit.base / base, which keeps the direct light),
+    interreflection at ``base``.  A channel's error depends on its own albedo (and weakly, through
+    the shared noise level of the band labels, on the others')."""
+    layer = prt.diffuse_layer(None, geo.mu_out)
+    order = int(round(np.sqrt(fit.coeffs.shape[0]))) - 1
+    sources = None
+    if fit.sources is not None:
+        sources = Sources(fit.sources.transfer, fit.sources.power * fit.base / base)
+    _, _, a, src_cols = _lighting_given_base(geo, None, layer, None, base, sources, obs, order, folds, lighting_kw, 4,
+                                             None, max_bounces)
+    target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
+    eqs = _equations(a, Observations(target, obs.weight, obs.fold), order, folds)
+    return np.asarray(solve.cross_validate_orders(eqs, [order], None, **lighting_kw)[0]["validation_rmse_per_channel"])
+
+
+LEVEL_RANGE = (0.03, 1.0)   # albedo levels searched (the brightest channel at most 1)
+LEVEL_EVIDENCE = 0.02       # the level counts as determined when both ends of the range fit the held-out views
+                            # worse than the best by more than this (relative); a convex object's curve is flat
+LEVEL_XTOL = 0.01           # the search stops within 1% of the level
+
+
+def albedo_level(score, chroma: np.ndarray) -> tuple[float, bool, list]:
+    """The scale s of a Lambertian albedo ``chroma`` (3,) that fits held-out views best, where
+    interreflection fixes it: scaling the albedo by s and the lighting by 1/s keeps the direct light
+    but scales the light bounced between parts of the object by s (it goes as the albedo squared),
+    so on a concave object the held-out error has a minimum in s; on a convex one it is flat.
+    ``score(albedo (3,)) -> (3,)`` held-out RMSE per channel (lambert_held_out).  Brent's bounded
+    search in log s over LEVEL_RANGE (levels of the brightest channel).  -> (s, determined: both
+    ends worse than the best by LEVEL_EVIDENCE, the curve [(s, held-out RMSE), ...] in s order)."""
+    from scipy.optimize import minimize_scalar
+
+    chroma = np.asarray(chroma, float)
+    curve: dict[float, float] = {}
+
+    def held_out(log_s: float) -> float:
+        e = score(chroma * np.exp(log_s))
+        curve[float(np.exp(log_s))] = float(np.sqrt(np.mean(e ** 2)))
+        return curve[float(np.exp(log_s))]
+
+    lo, hi = np.log(np.array(LEVEL_RANGE) / chroma.max())
+    ends = held_out(lo), held_out(hi)
+    if abs(held_out(0.5 * (lo + hi)) / min(ends) - 1.0) < 0.1 * LEVEL_EVIDENCE and abs(ends[0] / ends[1] - 1.0) < 0.1 * LEVEL_EVIDENCE:
+        return 1.0, False, sorted(curve.items())      # flat: no bounced light to measure the level by
+    found = minimize_scalar(held_out, bounds=(lo, hi), method="bounded", options={"xatol": LEVEL_XTOL})
+    determined = min(ends) > float(found.fun) * (1.0 + LEVEL_EVIDENCE)
+    return float(np.exp(found.x)), bool(determined), sorted(curve.items())
 
 
 def _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc2, max_bounces, grid) -> np.ndarray:

@@ -203,7 +203,7 @@ def cross_validate_orders(eqs: NormalEquations, orders: list[int], scale: np.nda
 
     Per order: the full-data fit fixes the band labels and the noise; each fold is refit without
     its own rows and scored on them.  Returns one dict per order: order, params, train_rmse,
-    validation_rmse, seconds.
+    validation_rmse (and validation_rmse_per_channel (3,)), seconds.
     """
     out = []
     all_folds = slice(None)
@@ -217,7 +217,7 @@ def cross_validate_orders(eqs: NormalEquations, orders: list[int], scale: np.nda
         t0 = time.perf_counter()
         g, h, btb, w = eqs.channel_system(all_folds, scale, order)
         full = solve_lighting(g, h, btb, w, int(eqs.count.sum()), order, **solve_kwargs)
-        val_rss, val_w = 0.0, 0.0
+        val_rss, val_w = np.zeros(3), 0.0
         for f in range(eqs.folds):
             if eqs.count[f] == 0:
                 continue
@@ -228,11 +228,12 @@ def cross_validate_orders(eqs: NormalEquations, orders: list[int], scale: np.nda
             fit = solve_lighting(gt, ht, bt, wt, int(eqs.count[train].sum()), order,
                                  **{**solve_kwargs, "labels": full.labels})
             gv, hv, bv, wv = eqs.channel_system(np.array([f]), scale, order)
-            val_rss += float(residual_sum(gv, hv, bv, fit.coeffs).sum())
+            val_rss += residual_sum(gv, hv, bv, fit.coeffs)
             val_w += wv
+        per_channel = np.sqrt(np.maximum(val_rss, 0.0) / val_w) if val_w else np.full(3, np.nan)
         out.append({"order": order, "params": 3 * num_coeffs(order), "train_rmse": full.residual_rms,
-                    "validation_rmse": float(np.sqrt(max(val_rss, 0.0) / (3 * val_w))) if val_w else float("nan"),
-                    "seconds": time.perf_counter() - t0, "fit": full})
+                    "validation_rmse": float(np.sqrt(max(val_rss.sum(), 0.0) / (3 * val_w))) if val_w else float("nan"),
+                    "validation_rmse_per_channel": [float(x) for x in per_channel], "seconds": time.perf_counter() - t0, "fit": full})
     return out
 
 
