@@ -34,10 +34,14 @@ the model is that of the fit (docs/relight.md gives both methods' measured error
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from pipeline.core import camera as cam
 from pipeline.core import forward
@@ -98,6 +102,7 @@ class Settings:
     lobe_sh_order: int = setting(24, "a lobe that needs more SH bands than this is read from a prefiltered "
                                      "angular-space map instead (sharp lobes)")
     prefilter_height: int = setting(128, "height of the prefiltered equirect map used for sharp lobes")
+    threads: int = setting(0, "threads shading the pixels (0: one per core); the images do not depend on it")
 
     def validate(self) -> None:
         if self.size:
@@ -108,6 +113,8 @@ class Settings:
             raise UserError(f"--supersample {self.supersample}: use 1 to 8 rays per pixel and axis")
         if not 1 <= self.interior_supersample <= 8:
             raise UserError(f"--interior-supersample {self.interior_supersample}: use 1 to 8 rays per pixel and axis")
+        if self.threads < 0:
+            raise UserError(f"--threads {self.threads}: use 0 (one per core) or more")
         if self.lobe_sh_order < 2:
             raise UserError(f"--lobe-sh-order {self.lobe_sh_order}: use at least 2")
         if not 8 <= self.prefilter_height <= 1024:
@@ -437,6 +444,10 @@ class Lighting:
             out[s:s + chunk] = np.einsum("nl,nlc->nc", filt, bands)
         return out
 
+    def prepare(self) -> "Lighting":
+        """Nothing is cached lazily here: shade_hits may run in threads as it is."""
+        return self
+
     def radiance(self, normal: np.ndarray, view_dir: np.ndarray, albedo: np.ndarray) -> np.ndarray:
         """Outgoing radiance (N, 3) at unit normals and unit directions to the viewer (N, 3).
 
@@ -520,6 +531,13 @@ class AngularLighting:
             return cls(brdf, mesh, coeffs=coeffs, sources=(dirs, power), source=str(path), **kwargs)
         return cls(brdf, mesh, env=read_envmap(path), source=str(path), **kwargs)
 
+    def prepare(self) -> "AngularLighting":
+        """Shared caches computed up front, so that shade_hits may run in threads (Renderer.prepare)."""
+        for renderer in (self.renderer, self.negative):
+            if renderer is not None:
+                renderer.prepare()
+        return self
+
     def describe(self) -> dict:
         return {"path": self.source, "kind": self.kind, "sh_order": self.order, "method": "angular",
                 "map_height": int(self.renderer.env.shape[0]), "directions": len(self.renderer.lights),
@@ -595,8 +613,10 @@ def vertex_albedo(work: Path, mesh) -> np.ndarray | None:
 
 
 def _render_pixels(view: View, mesh, intersector, lighting, albedo, vertex_colors, pixels: np.ndarray,
-                   supersample: int, chunk: int = 1 << 16) -> tuple[np.ndarray, np.ndarray]:
-    """Radiance sums (P, 3) and hit counts (P,) of an n x n grid of rays in each listed pixel (flat ids)."""
+                   supersample: int, pool=None, chunk: int = 1 << 13) -> tuple[np.ndarray, np.ndarray]:
+    """Radiance sums (P, 3) and hit counts (P,) of an n x n grid of rays in each listed pixel (flat ids),
+    shaded in chunks of ``chunk`` rays, by the threads of ``pool`` (a concurrent.futures executor)
+    when given: the chunks are the same either way, and so is the result."""
     import trimesh
 
     w = view.camera.width
@@ -605,27 +625,31 @@ def _render_pixels(view: View, mesh, intersector, lighting, albedo, vertex_color
     rgb = np.zeros((pixels.size, 3))
     hits = np.zeros(pixels.size)
     normals = np.asarray(mesh.vertex_normals, float)
+
+    def shade(uv: np.ndarray, start: int) -> tuple[np.ndarray, np.ndarray]:
+        origins, dirs = cam.pixel_rays(view.camera, view.R, view.t, uv)
+        tri, ray, loc = intersector.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+        if len(tri) == 0:
+            return np.zeros(0, np.int64), np.zeros((0, 3))
+        bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], loc)
+        n = np.einsum("ij,ijk->ik", bary, normals[mesh.faces[tri]])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        rho = albedo if vertex_colors is None else np.einsum("ij,ijk->ik", bary, vertex_colors[mesh.faces[tri]])
+        return start + ray, lighting.shade_hits(tri, bary, n, -dirs[ray], rho)
+
     for oy in offsets:
         for ox in offsets:
             uv = centres + np.array([ox, oy])
-            for start in range(0, len(uv), chunk):
-                origins, dirs = cam.pixel_rays(view.camera, view.R, view.t, uv[start:start + chunk])
-                tri, ray, loc = intersector.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
-                if len(tri) == 0:
-                    continue
-                bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], loc)
-                n = np.einsum("ij,ijk->ik", bary, normals[mesh.faces[tri]])
-                n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-                v = -dirs[ray]
-                rho = albedo if vertex_colors is None else np.einsum("ij,ijk->ik", bary, vertex_colors[mesh.faces[tri]])
-                idx = start + ray
-                rgb[idx] += lighting.shade_hits(tri, bary, n, v, rho)
+            jobs = [(uv[s:s + chunk], s) for s in range(0, len(uv), chunk)]
+            for idx, values in (pool.map(lambda job: shade(*job), jobs) if pool else (shade(*j) for j in jobs)):
+                rgb[idx] += values
                 hits[idx] += 1
     return rgb, hits
 
 
 def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLighting", albedo, vertex_colors,
-                supersample: int = 1, refine: int = 8, contrast: float = 2.0, interior: int = 1) -> np.ndarray:
+                supersample: int = 1, refine: int = 8, contrast: float = 2.0, interior: int = 1,
+                pool=None) -> np.ndarray:
     """Linear RGBA (H, W, 4): radiance averaged over the rays of each pixel, alpha = hit fraction.
 
     ``interior`` x ``interior`` rays per pixel, then two adaptive passes: pixels at the silhouette
@@ -634,6 +658,7 @@ def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLigh
     from a 3 x 3 neighbour's by more than ``contrast`` times the object's mean luminance (sun
     highlights, sharp shadow edges) with ``refine`` x ``refine`` rays, since a highlight a few
     pixels wide is aliased by a few rays; each pass only where it has more rays than the first.
+    ``pool``: an executor whose threads shade the chunks of rays (_render_pixels).
     Inside the silhouette the shading varies little within a pixel, so one ray there is the
     pixel's mean to second order in the pixel size (and the renderer's own sampling noise is
     averaged over fewer points), at a quarter of a 2 x 2 grid's cost.
@@ -641,12 +666,13 @@ def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLigh
     from scipy import ndimage
 
     w, h = view.camera.width, view.camera.height
-    rgb, hits = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, np.arange(w * h), interior)
+    rgb, hits = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, np.arange(w * h), interior,
+                               pool)
     rgb, hits = rgb / interior ** 2, hits / interior ** 2
 
     def again(pixels: np.ndarray, n: int) -> None:
         if pixels.size:
-            rgb2, hits2 = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, pixels, n)
+            rgb2, hits2 = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, pixels, n, pool)
             rgb[pixels], hits[pixels] = rgb2 / (n * n), hits2 / (n * n)
 
     on = (hits > 0).reshape(h, w)
@@ -791,22 +817,28 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     written: list[Path] = []
     rendered, photos, masks, exposures = {}, {}, {}, {}
     manifest = linear_manifest(work) if settings.compare else None
-    for view in tqdm(views, desc="relight", unit="view", leave=False):
-        rgba = render_view(view, mesh, intersector, lighting, albedo, vertex_colors, settings.supersample,
-                           interior=settings.interior_supersample)
-        stem = view_stem(view.key)
-        written.append(write_image(folder / f"{stem}.exr", rgba, dtype="float"))
-        exposures[view.key] = preview_exposure(rgba[..., :3], rgba[..., 3] > 0.5)
-        written.append(write_preview(folder / f"{stem}.png", rgba[..., :3], exposures[view.key], rgba[..., 3]))
-        if settings.compare and view.has_photo:
-            photo, weight, _ = load_linear_image(capture, work, view.key, manifest)
-            photo = photo.astype(float)
-            if photo.shape[:2] != rgba.shape[:2]:
-                raise UserError(f"{view.key}: the photo is {photo.shape[1]}x{photo.shape[0]} but the render is "
-                                f"{rgba.shape[1]}x{rgba.shape[0]}; --compare needs the native size (drop --size)")
-            valid = weight > 0.999  # fully valid pixels only (linearize's masks, alpha)
-            rendered[view.key], photos[view.key] = rgba, photo
-            masks[view.key] = _interior(rgba[..., 3]) & valid & np.all(np.isfinite(photo), axis=-1)
+    threads = settings.threads or os.cpu_count() or 1
+    if threads > 1:
+        lighting.prepare()
+    with ExitStack() as stack:      # threads shade the chunks of each view; BLAS keeps to one per thread
+        pool = stack.enter_context(ThreadPoolExecutor(threads)) if threads > 1 else None
+        stack.enter_context(threadpool_limits(1))
+        for view in tqdm(views, desc="relight", unit="view", leave=False):
+            rgba = render_view(view, mesh, intersector, lighting, albedo, vertex_colors, settings.supersample,
+                               interior=settings.interior_supersample, pool=pool)
+            stem = view_stem(view.key)
+            written.append(write_image(folder / f"{stem}.exr", rgba, dtype="float"))
+            exposures[view.key] = preview_exposure(rgba[..., :3], rgba[..., 3] > 0.5)
+            written.append(write_preview(folder / f"{stem}.png", rgba[..., :3], exposures[view.key], rgba[..., 3]))
+            if settings.compare and view.has_photo:
+                photo, weight, _ = load_linear_image(capture, work, view.key, manifest)
+                photo = photo.astype(float)
+                if photo.shape[:2] != rgba.shape[:2]:
+                    raise UserError(f"{view.key}: the photo is {photo.shape[1]}x{photo.shape[0]} but the render is "
+                                    f"{rgba.shape[1]}x{rgba.shape[0]}; --compare needs the native size (drop --size)")
+                valid = weight > 0.999  # fully valid pixels only (linearize's masks, alpha)
+                rendered[view.key], photos[view.key] = rgba, photo
+                masks[view.key] = _interior(rgba[..., 3]) & valid & np.all(np.isfinite(photo), axis=-1)
     summary = {"views": [v.key for v in views], "method": settings.method, "lighting": lighting.describe(), "brdf": brdf,
                "size": settings.size or "native", "out_dir": str(folder)}
     if settings.compare and rendered:

@@ -38,6 +38,7 @@ testing the frequency-space fit against its images is not circular:
 from __future__ import annotations
 
 import copy
+import hashlib
 
 from dataclasses import dataclass, field
 
@@ -261,6 +262,20 @@ class Renderer:
             omega = equirect_solid_angles(h)[:, None, None]
             self._board_irradiance = (self.env * up * omega).sum(axis=(0, 1))
 
+    def prepare(self) -> "Renderer":
+        """Compute what shading caches lazily and shares between points (the interreflected vertex
+        irradiance and its bounce rays), so that shade() may then run in several threads at once."""
+        if self.shadows and self.interreflection:
+            self.vertex_irradiance()
+        return self
+
+    def _points_rng(self, faces: np.ndarray, bary: np.ndarray) -> np.random.Generator:
+        """A generator seeded by this renderer's seed and the points themselves: the same points get
+        the same samples whichever thread shades them, in whatever order (reproducible images)."""
+        digest = hashlib.blake2b(np.ascontiguousarray(faces).tobytes() + np.ascontiguousarray(bary).tobytes(),
+                                 digest_size=8).digest()
+        return np.random.default_rng([self.seed, *np.frombuffer(digest, np.uint32).tolist()])
+
     def _remainder_pyramid(self) -> EnvPyramid:
         """The map without its bright pixels, prefiltered for the specular lobe's samples."""
         remainder = self.env.reshape(-1, 3).astype(float).copy()
@@ -438,10 +453,11 @@ class Renderer:
         with the occluded samples seeing the object's diffuse radiance instead of the map."""
         p = faces.shape[0]
         out = np.zeros((p, 3))
+        rng = self._points_rng(faces, bary)
         per_chunk = max(1, (1 << 16) // max(self.lobe_samples, 1))
         for s in range(0, p, per_chunk):
             sl = slice(s, s + per_chunk)
-            samples = specular_samples(self.material, normals[sl], view_dirs[sl], self.lobe_samples, self._rng,
+            samples = specular_samples(self.material, normals[sl], view_dirs[sl], self.lobe_samples, rng,
                                        None if self.vertex_albedo is None else base[sl])
             q, ns = samples.directions.shape[:2]
             dirs = samples.directions.reshape(-1, 3)
