@@ -56,6 +56,7 @@ from pipeline.io.images import read_envmap, write_image
 from pipeline.io.lighting import read_lighting_parts, read_lighting_sh
 from pipeline.io.mesh import read_vertex_albedo
 from pipeline.io.poses import Poses, read_poses
+from pipeline.raycast import first_hits, intersector
 from pipeline.settings import setting
 from pipeline.workdir import make_folder, write_json
 from stages.samples import image_source, linear_manifest, load_linear_image, load_mesh, mesh_path, poses_path
@@ -612,30 +613,22 @@ def vertex_albedo(work: Path, mesh) -> np.ndarray | None:
     return read_vertex_albedo(Path(work) / "fit" / "albedo.ply", len(mesh.vertices))
 
 
-def _render_pixels(view: View, mesh, intersector, lighting, albedo, vertex_colors, pixels: np.ndarray,
+def _render_pixels(view: View, mesh, rays, lighting, albedo, vertex_colors, pixels: np.ndarray,
                    supersample: int, pool=None, chunk: int = 1 << 13) -> tuple[np.ndarray, np.ndarray]:
     """Radiance sums (P, 3) and hit counts (P,) of an n x n grid of rays in each listed pixel (flat ids),
     shaded in chunks of ``chunk`` rays, by the threads of ``pool`` (a concurrent.futures executor)
     when given: the chunks are the same either way, and so is the result."""
-    import trimesh
-
     w = view.camera.width
     centres = cam.pixel_centers(w, view.camera.height)[pixels]
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
     rgb = np.zeros((pixels.size, 3))
     hits = np.zeros(pixels.size)
-    normals = np.asarray(mesh.vertex_normals, float)
 
     def shade(uv: np.ndarray, start: int) -> tuple[np.ndarray, np.ndarray]:
         origins, dirs = cam.pixel_rays(view.camera, view.R, view.t, uv)
-        tri, ray, loc = intersector.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
-        if len(tri) == 0:
-            return np.zeros(0, np.int64), np.zeros((0, 3))
-        bary = trimesh.triangles.points_to_barycentric(mesh.triangles[tri], loc)
-        n = np.einsum("ij,ijk->ik", bary, normals[mesh.faces[tri]])
-        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
-        rho = albedo if vertex_colors is None else np.einsum("ij,ijk->ik", bary, vertex_colors[mesh.faces[tri]])
-        return start + ray, lighting.shade_hits(tri, bary, n, -dirs[ray], rho)
+        h = first_hits(mesh, rays, origins, dirs)
+        rho = albedo if vertex_colors is None else np.einsum("ij,ijk->ik", h.bary, vertex_colors[mesh.faces[h.face]])
+        return start + h.ray, lighting.shade_hits(h.face, h.bary, h.normal, -dirs[h.ray], rho)
 
     for oy in offsets:
         for ox in offsets:
@@ -647,7 +640,7 @@ def _render_pixels(view: View, mesh, intersector, lighting, albedo, vertex_color
     return rgb, hits
 
 
-def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLighting", albedo, vertex_colors,
+def render_view(view: View, mesh, rays, lighting: "Lighting | AngularLighting", albedo, vertex_colors,
                 supersample: int = 1, refine: int = 8, contrast: float = 2.0, interior: int = 1,
                 pool=None) -> np.ndarray:
     """Linear RGBA (H, W, 4): radiance averaged over the rays of each pixel, alpha = hit fraction.
@@ -666,13 +659,13 @@ def render_view(view: View, mesh, intersector, lighting: "Lighting | AngularLigh
     from scipy import ndimage
 
     w, h = view.camera.width, view.camera.height
-    rgb, hits = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, np.arange(w * h), interior,
+    rgb, hits = _render_pixels(view, mesh, rays, lighting, albedo, vertex_colors, np.arange(w * h), interior,
                                pool)
     rgb, hits = rgb / interior ** 2, hits / interior ** 2
 
     def again(pixels: np.ndarray, n: int) -> None:
         if pixels.size:
-            rgb2, hits2 = _render_pixels(view, mesh, intersector, lighting, albedo, vertex_colors, pixels, n, pool)
+            rgb2, hits2 = _render_pixels(view, mesh, rays, lighting, albedo, vertex_colors, pixels, n, pool)
             rgb[pixels], hits[pixels] = rgb2 / (n * n), hits2 / (n * n)
 
     on = (hits > 0).reshape(h, w)
@@ -794,7 +787,6 @@ def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
 
 
 def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
-    from trimesh.ray.ray_pyembree import RayMeshIntersector
     from tqdm import tqdm
 
     capture, work = Path(capture), Path(work)
@@ -811,7 +803,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     lighting = prepare_lighting(light_path, brdf, mesh, settings, capture=capture, vertex_colors=vertex_colors,
                                 with_board=board_occludes(work, settings))
     albedo = np.asarray(diffuse_color(brdf), float)
-    intersector = RayMeshIntersector(mesh)
+    rays = intersector(mesh)
     folder = out_folder(work, settings)
     make_folder(folder, "-o")
     written: list[Path] = []
@@ -824,7 +816,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         pool = stack.enter_context(ThreadPoolExecutor(threads)) if threads > 1 else None
         stack.enter_context(threadpool_limits(1))
         for view in tqdm(views, desc="relight", unit="view", leave=False):
-            rgba = render_view(view, mesh, intersector, lighting, albedo, vertex_colors, settings.supersample,
+            rgba = render_view(view, mesh, rays, lighting, albedo, vertex_colors, settings.supersample,
                                interior=settings.interior_supersample, pool=pool)
             stem = view_stem(view.key)
             written.append(write_image(folder / f"{stem}.exr", rgba, dtype="float"))

@@ -45,6 +45,7 @@ from pipeline.io.linear_manifest import linear_dir, manifest_path, read_linear_i
 from pipeline.io.mesh import check_mesh_quality, mesh_path, read_mesh
 from pipeline.io.poses import Poses, read_poses
 from pipeline.io.samples import SAMPLE_FIELDS, SamplesWriter
+from pipeline.raycast import first_hits, occluded
 from pipeline.settings import setting, settings_dict
 from pipeline.workdir import atomic_path, write_json
 
@@ -223,7 +224,7 @@ def vertex_visibility(mesh, rays: int, chunk: int = 262144) -> np.ndarray:
         dirs = (local[None, :, 0:1] * t1[sl, None] + local[None, :, 1:2] * t2[sl, None]
                 + local[None, :, 2:3] * normals[sl, None]).reshape(-1, 3)
         orig = np.repeat(origins[sl], rays, axis=0)
-        blocked = mesh.ray.intersects_any(orig, dirs).reshape(-1, rays)
+        blocked = occluded(mesh.ray, orig, dirs).reshape(-1, rays)
         visible[sl] = 1.0 - blocked.mean(axis=1)
     return visible.astype(np.float32)
 
@@ -300,7 +301,6 @@ def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, rgb: np.nda
     fx, fy, _, _ = camera.focal_principal()
     focal = float(np.sqrt(fx * fy)) / s  # focal length in units of the strided pixel grid
     centre = camera_center(R, t)
-    vertex_normals = np.asarray(mesh.vertex_normals, float)
     faces = np.asarray(mesh.faces)
     face_normals = np.asarray(mesh.face_normals, float)
     halo = settings.edge_px + 1
@@ -314,16 +314,14 @@ def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, rgb: np.nda
         uv[:, 0] = cols[(uv[:, 0] - 0.5).astype(int)] + 0.5
         uv[:, 1] = grid_rows[(uv[:, 1] - 0.5).astype(int)] + 0.5
         origins, dirs = pixel_rays(camera, R, t, uv)
-        tri, ray, loc = mesh.ray.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+        h = first_hits(mesh, mesh.ray, origins, dirs)      # mesh.ray: trimesh's cached (Embree) intersector
         shape = (len(grid_rows), len(cols))
         hit = np.zeros(shape[0] * shape[1], bool)
-        hit[ray] = True
-        face = np.full(hit.shape, -1, np.int64)
-        face[ray] = tri
-        point = np.zeros((hit.size, 3))
-        point[ray] = loc
+        hit[h.ray] = True
+        at = np.full(hit.shape, -1, np.int64)                # each pixel's row in h
+        at[h.ray] = np.arange(h.ray.size)
         depth = np.zeros(hit.size)
-        depth[ray] = (loc @ np.asarray(R, float).T + t)[:, 2]
+        depth[h.ray] = (h.point @ np.asarray(R, float).T + t)[:, 2]
         hit, depth = hit.reshape(shape), depth.reshape(shape)
         edge = _edge_mask(hit, depth, depth / focal, settings)
 
@@ -332,13 +330,8 @@ def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, rgb: np.nda
         flat = np.arange(hit.size).reshape(shape)[inner].ravel()
         drops = {"background": int((~hit_in).sum()), "silhouette_edge": int(edge_in.sum())}
         cand = flat[hit_in & ~edge_in]
-        f = face[cand]
-        p = point[cand]
-        bary = _barycentric(mesh.triangles[f], p)
-        normal = np.einsum("nk,nkj->nj", bary, vertex_normals[faces[f]])
-        length = np.linalg.norm(normal, axis=1, keepdims=True)
-        # vertex normals that cancel (e.g. a crease of opposite faces): fall back to the face normal
-        normal = np.where(length > 1e-6, normal / np.maximum(length, 1e-12), face_normals[f])
+        row = at[cand]
+        f, p, bary, normal = h.face[row], h.point[row], h.bary[row], h.normal[row]
         view = centre - p
         view /= np.linalg.norm(view, axis=1, keepdims=True)
         cos = np.sum(normal * view, axis=1)
@@ -359,19 +352,6 @@ def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, rgb: np.nda
         if progress is not None:
             progress.update(stop - start)
         yield {name: np.asarray(arrays[name], dtype=SAMPLE_FIELDS[name][0]) for name in SAMPLE_FIELDS}, drops
-
-
-def _barycentric(triangles: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(N, 3) barycentrics of points in their triangles, clipped to >= 0 and renormalized (ray hits lie inside)."""
-    from trimesh.triangles import points_to_barycentric
-
-    if len(points) == 0:
-        return np.zeros((0, 3))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        bary = np.clip(points_to_barycentric(triangles, points), 0.0, None)
-        bary = bary / bary.sum(axis=1, keepdims=True)
-    # degenerate (zero-area) triangles have no barycentrics: use the centroid's
-    return np.where(np.all(np.isfinite(bary), axis=1, keepdims=True), bary, 1.0 / 3.0)
 
 
 # ---------------------------------------------------------------------------------------------

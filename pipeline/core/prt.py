@@ -77,7 +77,7 @@ def geometry(mesh, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, o
     faces = np.asarray(faces, np.int64)
     bary = np.asarray(bary, float)
     tri = np.asarray(mesh.faces)[faces]
-    normals = r._normals_at(tri, bary)
+    normals = r._normals_at(faces, bary)
     view_dirs = np.asarray(view_dirs, float)
     mu_out = np.einsum("pc,pc->p", normals, view_dirs)
     dirs = r.lights.directions

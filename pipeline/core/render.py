@@ -49,6 +49,7 @@ from pipeline.core.brdf import beckmann_distribution, phong_lobe, vcavity_shadow
 from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays
 from pipeline.core.envmap import (downsample, equirect_directions, equirect_solid_angles, lookup)
 from pipeline.core.material import principled_from_dict
+from pipeline.core.surface import barycentric, interpolated_normals
 from pipeline.core.shading import (EnvPyramid, front_cos, lobe_support_cos, specular_over_directions,
                                    specular_samples, stratified_unit_square, tangent_frames)
 
@@ -325,10 +326,9 @@ class Renderer:
             return float(max(0.0, np.exp(np.log(_PHONG_CUT) / float(self.brdf["exponent"]))))
         return None
 
-    def _normals_at(self, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        """Unit interpolated vertex normals (P, 3) at points given by their triangles' vertex ids and barycentrics."""
-        n = np.einsum("pk,pkc->pc", bary, self._vertex_normals[tri])
-        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    def _normals_at(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """Unit shading normals (P, 3) at points given by face ids and barycentrics (pipeline.core.surface)."""
+        return interpolated_normals(self._vertex_normals, self.mesh.face_normals, self.mesh.faces, faces, bary)
 
     def _points_above(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Points on faces, lifted along the face normal: ray origins that do not hit their own face."""
@@ -377,9 +377,9 @@ class Renderer:
         on_mesh = hit_face < len(self.mesh.faces)  # the board (when present) is not a bounce source
         hf = hit_face[on_mesh]
         tri = np.asarray(self.mesh.faces)[hf]
-        bary = trimesh.triangles.points_to_barycentric(self.mesh.triangles[hf], loc[on_mesh])
+        bary = barycentric(self.mesh.triangles[hf], loc[on_mesh])
         w_hit = w.reshape(-1, 3)[ray_id]
-        mu_hit = np.clip(-np.einsum("pc,pc->p", self._normals_at(tri, bary), w_hit[on_mesh]), 0.0, 1.0)
+        mu_hit = np.clip(-np.einsum("pc,pc->p", self._normals_at(hf, bary), w_hit[on_mesh]), 0.0, 1.0)
         self._bounce_rays = BounceRays(n_s, ray_id // n_s, w_hit, np.maximum(local.reshape(-1, 3)[ray_id, 2], 1e-3),
                                        on_mesh, tri, bary, mu_hit)
         return self._bounce_rays
@@ -443,8 +443,8 @@ class Renderer:
     def _object_radiance(self, faces: np.ndarray, points: np.ndarray, w_toward: np.ndarray) -> np.ndarray:
         """Diffuse radiance (N, 3) that points on the mesh send along unit ``w_toward`` (N, 3)."""
         tri = np.asarray(self.mesh.faces)[faces]
-        bary = trimesh.triangles.points_to_barycentric(self.mesh.triangles[faces], points)
-        mu = np.clip(np.einsum("pc,pc->p", self._normals_at(tri, bary), w_toward), 0.0, 1.0)
+        bary = barycentric(self.mesh.triangles[faces], points)
+        mu = np.clip(np.einsum("pc,pc->p", self._normals_at(faces, bary), w_toward), 0.0, 1.0)
         e_total = np.einsum("pk,pkc->pc", bary, self.vertex_irradiance()[0][tri])
         return self._diffuse_albedo(mu, self._base(tri, bary)) / np.pi * e_total
 
@@ -486,7 +486,7 @@ class Renderer:
         if self.material is not None or self.brdf["model"] == "lambert":
             diffuse, specular = self.shade_parts(faces, bary, view_dirs)
             return self._base(tri, bary) * diffuse + specular
-        normals = self._normals_at(tri, bary)
+        normals = self._normals_at(faces, bary)
         albedo = self._base(tri, bary)
         if self.shadows:
             self._ensure_visibility(tri.ravel())
@@ -512,7 +512,7 @@ class Renderer:
         """What shading takes from the light set whatever the material: (direct irradiance (P, 3)
         over the light set with point visibility, the bright pixels' visibility (P, B) bool)."""
         tri = np.asarray(self.mesh.faces)[faces]
-        normals = self._normals_at(tri, bary)
+        normals = self._normals_at(faces, bary)
         if self.shadows:
             self._ensure_visibility(tri.ravel())
         dirs, power, nb = self.lights.directions, self.lights.power, self.lights.n_bright
@@ -539,7 +539,7 @@ class Renderer:
         metal's F0, the object's glow in its reflections) are those of this renderer's base colour.
         ``direct``: direct_parts() of these points, when computed already (it is material-free)."""
         tri = np.asarray(self.mesh.faces)[faces]
-        normals = self._normals_at(tri, bary)
+        normals = self._normals_at(faces, bary)
         base = self._base(tri, bary)
         irradiance, bright_vis = self.direct_parts(faces, bary, view_dirs) if direct is None else direct
         mu_out = np.einsum("pc,pc->p", normals, view_dirs)
@@ -634,7 +634,7 @@ class Renderer:
         if self.board is not None:
             radiance, board_mask = self._render_board(camera, R, t, uv, dirs, object_mask, radiance)
         if tri_ids.size:
-            bary = trimesh.triangles.points_to_barycentric(self.mesh.triangles[tri_ids], locations)
+            bary = barycentric(self.mesh.triangles[tri_ids], locations)
             radiance[ray_ids] = self.shade(tri_ids, bary, -dirs[ray_ids])
         return RenderResult(radiance.reshape(h, w, 3).astype(np.float32), object_mask.reshape(h, w),
                             board_mask.reshape(h, w))
