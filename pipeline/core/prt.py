@@ -28,6 +28,8 @@ per roughness (S); the fit is then linear least squares in L for fixed material.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -146,16 +148,19 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
 
 
 def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed: int, chunk: int) -> np.ndarray:
-    """S (N, K, 3) of one material with a uniform base colour."""
+    """S (N, K, 3) of one material with a uniform base colour.  The chunks of samples are computed
+    by one thread per core (Embree and NumPy's large operations release the GIL), each drawing its
+    lobe samples from a generator seeded by (seed, chunk start), so S does not depend on the threads."""
     r = geo.renderer
-    rng = np.random.default_rng(seed)
     n = geo.faces.size
     out = np.zeros((n, num_coeffs(geo.order), 3))
     front = np.flatnonzero(geo.mu_out > 0)
     l = band_of_index(geo.order)
     bands = np.arange(geo.order + 1)
-    for s in range(0, front.size, chunk):
+
+    def one_chunk(s: int) -> None:
         idx = front[s:s + chunk]
+        rng = np.random.default_rng([seed, s])
         lobe = specular_samples(material, geo.normals[idx], geo.view_dirs[idx], n_samples, rng)
         q, ns = lobe.directions.shape[:2]
         dirs = lobe.directions.reshape(-1, 3)
@@ -173,6 +178,9 @@ def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed
             out[idx] = np.einsum("qsk,qs->qk", basis, w3[..., 0], optimize=True)[..., None]
         else:
             out[idx] = np.einsum("qsk,qsc->qkc", basis, w3, optimize=True)
+
+    with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
+        list(pool.map(one_chunk, range(0, front.size, chunk)))
     return out
 
 

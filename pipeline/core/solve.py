@@ -26,7 +26,9 @@ over the noise.  Labels:
 
 from __future__ import annotations
 
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -79,19 +81,27 @@ class NormalEquations:
             starts = np.concatenate([[0], np.flatnonzero(np.diff(fold)) + 1])
         stops = np.append(starts[1:], len(fold))
         sw = None if unit else np.sqrt(weight)
+        runs: dict[int, list[tuple[int, int]]] = {}
         for lo, hi in zip(starts, stops):
-            f = int(fold[lo])
+            runs.setdefault(int(fold[lo]), []).append((int(lo), int(hi)))
             b = radiance[lo:hi] if unit else radiance[lo:hi] * sw[lo:hi, None]
-            for c in range(designs.shape[0]):
+            self.btb[int(fold[lo])] += (b * b).sum(axis=0)
+            self.weight[int(fold[lo])] += weight[lo:hi].sum()
+            self.count[int(fold[lo])] += hi - lo
+
+        def accumulate(f: int, c: int) -> None:     # one (fold, channel) block: no two tasks share one
+            for lo, hi in runs[f]:
+                b = radiance[lo:hi] if unit else radiance[lo:hi] * sw[lo:hi, None]
                 a = designs[c, lo:hi] if unit else designs[c, lo:hi] * sw[lo:hi, None]
                 self.gram[f, c] += a.T @ a
                 if self.shared:
                     self.rhs[f] += (a.T @ b).T
                 else:
                     self.rhs[f, c] += a.T @ b[:, c]
-            self.btb[f] += (b * b).sum(axis=0)
-            self.weight[f] += weight[lo:hi].sum()
-            self.count[f] += hi - lo
+
+        # the (fold, channel) blocks by one thread per core: BLAS products release the GIL
+        with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
+            list(pool.map(lambda fc: accumulate(*fc), [(f, c) for f in runs for c in range(designs.shape[0])]))
 
     def channel_system(self, folds: np.ndarray | slice, scale: np.ndarray | None = None, order: int | None = None):
         """Summed (over ``folds``) per-channel (G (3,K',K'), h (3,K'), btb (3,), W) truncated to
