@@ -17,13 +17,8 @@ import bpy
 from mathutils import Matrix, Vector
 
 
-def main(asset, lighting, poses_file, key, out, width, height, samples):
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    if asset.lower().endswith((".usd", ".usda", ".usdc")):
-        bpy.ops.wm.usd_import(filepath=asset)
-    else:
-        bpy.ops.import_scene.gltf(filepath=asset)
-    scene = bpy.context.scene
+def add_camera(scene, poses_file, key, width, height):
+    """The OpenCV/COLMAP camera of ``key`` in a poses.json as the scene's camera, at width x height."""
     poses = json.load(open(poses_file))
     image = poses["images"][key]
     camera = poses["cameras"][image["camera"]]
@@ -43,15 +38,23 @@ def main(asset, lighting, poses_file, key, out, width, height, samples):
     cam.matrix_world = Matrix.Translation(centre) @ (rot.transposed() @ flip).to_4x4()
     scene.camera = cam
 
+
+def add_world(scene, lighting, interpolation):
+    """An Environment Texture world (default mapping) of the equirect map ``lighting``."""
     world = bpy.data.worlds.new("lighting")
     world.use_nodes = True
     nodes = world.node_tree.nodes
     tex = nodes.new("ShaderNodeTexEnvironment")
     tex.image = bpy.data.images.load(lighting)
-    tex.interpolation = "Closest"                    # texels as sigrend reads them
+    tex.interpolation = interpolation
     world.node_tree.links.new(tex.outputs["Color"], nodes["Background"].inputs["Color"])
     scene.world = world
 
+
+def set_cycles(scene, samples, width, height, out, seed=1):
+    """Cycles as the shared captures were rendered: CPU, no adaptive sampling, no denoiser, no
+    clamping, no glossy filter, 8 bounces of every kind, 1-px box filter, film transparent, a
+    linear RGBA float EXR at ``out``."""
     scene.render.engine = "CYCLES"
     scene.cycles.device = "CPU"
     scene.cycles.samples = samples
@@ -65,7 +68,7 @@ def main(asset, lighting, poses_file, key, out, width, height, samples):
         setattr(scene.cycles, f"{kind}_bounces", 8)
     scene.cycles.pixel_filter_type = "BOX"
     scene.cycles.filter_width = 1.0
-    scene.cycles.seed = 1
+    scene.cycles.seed = seed
     scene.render.film_transparent = True
     scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
@@ -74,6 +77,18 @@ def main(asset, lighting, poses_file, key, out, width, height, samples):
     settings = scene.render.image_settings
     settings.file_format, settings.color_mode, settings.color_depth = "OPEN_EXR", "RGBA", "32"
     scene.render.filepath = out
+
+
+def main(asset, lighting, poses_file, key, out, width, height, samples):
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    if asset.lower().endswith((".usd", ".usda", ".usdc")):
+        bpy.ops.wm.usd_import(filepath=asset)
+    else:
+        bpy.ops.import_scene.gltf(filepath=asset)
+    scene = bpy.context.scene
+    add_camera(scene, poses_file, key, width, height)
+    add_world(scene, lighting, "Closest")            # texels as sigrend reads them
+    set_cycles(scene, samples, width, height, out)
     bpy.ops.render.render(write_still=True)
 
 

@@ -16,9 +16,12 @@ transparent (alpha = coverage, RGB premultiplied), Linear texture interpolation 
 
 import json
 import sys
+from pathlib import Path
 
 import bpy
-from mathutils import Matrix, Vector
+
+sys.path.insert(0, str(Path(__file__).parent))
+from render_asset import add_camera, add_world, set_cycles  # noqa: E402  (beside this script)
 
 
 def main(mesh, brdf_file, world_map, poses_file, key, out, samples, row0, row1, col0, col1, seed):
@@ -39,51 +42,15 @@ def main(mesh, brdf_file, world_map, poses_file, key, out, samples, row0, row1, 
 
     scene = bpy.context.scene
     poses = json.load(open(poses_file))
-    image = poses["images"][key]
-    camera = poses["cameras"][image["camera"]]
-    fx, fy, cx, cy = camera["params"][:4]
+    camera = poses["cameras"][poses["images"][key]["camera"]]
     width, height = camera["width"], camera["height"]
-    data = bpy.data.cameras.new("camera")
-    data.sensor_fit = "HORIZONTAL"
-    data.sensor_width = 36.0
-    data.lens = fx / width * 36.0
-    data.shift_x = -(cx - width / 2) / max(width, height)
-    data.shift_y = (cy - height / 2) / max(width, height)
-    cam = bpy.data.objects.new("camera", data)
-    scene.collection.objects.link(cam)
-    rot = Matrix(image["R"])                             # world -> camera (OpenCV: +Y down, looks along +Z)
-    centre = -(rot.transposed() @ Vector(image["t"]))
-    flip = Matrix(((1, 0, 0), (0, -1, 0), (0, 0, -1)))   # Blender's camera looks along -Z, +Y up
-    cam.matrix_world = Matrix.Translation(centre) @ (rot.transposed() @ flip).to_4x4()
-    scene.camera = cam
-
-    world = bpy.data.worlds.new("lighting")
-    world.use_nodes = True
-    tex = world.node_tree.nodes.new("ShaderNodeTexEnvironment")
-    tex.image = bpy.data.images.load(world_map)
-    tex.interpolation = "Linear"
-    world.node_tree.links.new(tex.outputs["Color"], world.node_tree.nodes["Background"].inputs["Color"])
-    scene.world = world
-
-    cycles = scene.cycles
-    scene.render.engine = "CYCLES"
-    cycles.device, cycles.samples, cycles.seed = "CPU", samples, seed
-    cycles.use_adaptive_sampling = cycles.use_denoising = False
-    cycles.sample_clamp_direct = cycles.sample_clamp_indirect = cycles.blur_glossy = 0.0
-    cycles.max_bounces = 8
-    for kind in ("diffuse", "glossy", "transmission", "volume", "transparent_max"):
-        setattr(cycles, f"{kind}_bounces", 8)
-    cycles.pixel_filter_type, cycles.filter_width = "BOX", 1.0
+    add_camera(scene, poses_file, key, width, height)
+    add_world(scene, world_map, "Linear")               # Blender's default, as the captures were made
+    set_cycles(scene, samples, width, height, out, seed)
     render = scene.render
-    render.film_transparent = True
-    render.resolution_x, render.resolution_y, render.resolution_percentage = width, height, 100
     render.use_border, render.use_crop_to_border = True, False
     render.border_min_x, render.border_max_x = col0 / width, col1 / width
     render.border_min_y, render.border_max_y = 1 - row1 / height, 1 - row0 / height   # Blender's y is up
-    render.threads_mode, render.threads = "FIXED", 2
-    settings = render.image_settings
-    settings.file_format, settings.color_mode, settings.color_depth = "OPEN_EXR", "RGBA", "32"
-    render.filepath = out
     bpy.ops.render.render(write_still=True)
 
 
