@@ -59,7 +59,7 @@ def _array_png(rgb: np.ndarray) -> bytes:
 
 
 def _tonemap(linear: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
-    from stages.relight import preview_exposure, srgb_encode
+    from pipeline.io.images import preview_exposure, srgb_encode
 
     rgb = np.asarray(linear, float)[..., :3]
     m = mask if mask is not None else np.ones(rgb.shape[:2], bool)
@@ -215,7 +215,7 @@ def sphere_renders(coeffs: np.ndarray, brdf: dict | None, size: int = 128) -> by
     a mirror sphere (the lighting itself), a white Lambertian sphere, and the fitted BRDF."""
     from pipeline.core.sh import sh_evaluate
     from pipeline.core.transfer import irradiance_from_sh
-    from stages.relight import srgb_encode
+    from pipeline.io.images import srgb_encode
 
     # orthographic view along -Y (camera on +Y looking at the origin): image x -> world x, image up -> +Z
     u = (np.arange(size) + 0.5) / size * 2 - 1
@@ -318,6 +318,32 @@ def _relight(work: Path) -> str:
     return _section("Relit vs photo", head + "".join(cells) + "".join(extra))
 
 
+def _size(n: int) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if n < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000.0
+    return ""
+
+
+def _export(work: Path) -> str:
+    """The exported asset (WORK/export, `sigrend export`'s default place): its files with their sizes
+    and its previews under two bundled maps; nothing when it has not been exported there."""
+    folder = Path(work) / "export"
+    manifest = _json(folder / "asset_export.json")
+    if not manifest:
+        return ""
+    rows = "".join(f"<tr><td>{html.escape(f['file'])}</td><td>{_size(int(f['bytes']))}</td></tr>"
+                   for f in manifest.get("files", []))
+    previews = "".join(f"<figure>{_file_tag(folder / name, name, THUMB_PX)}<figcaption>under the bundled "
+                       f"{html.escape(spec)} map (sigrend's renderer)</figcaption></figure>"
+                       for spec, name in manifest.get("previews", {}).items())
+    body = (f"<p>{html.escape(manifest.get('frame', ''))}; the lighting map: "
+            f"{html.escape(manifest.get('lighting_mapping', ''))} (docs/export.md).</p>"
+            f"<table>{rows}</table>{previews}")
+    return _section(f"Exported asset ({html.escape(str(folder))})", body)
+
+
 def _settings(work: Path) -> str:
     files = sorted(Path(work).glob("*.settings.json"))
     if not files:
@@ -338,7 +364,7 @@ def build_report(capture: Path, work: Path) -> str:
     """The report as one HTML string (no external references)."""
     capture, work = Path(capture), Path(work)
     sections = [_summary(capture, work), _photos(capture, work), _cameras(capture, work), _coverage(work),
-                _lighting(work), _brdf(work), _relight(work), _settings(work)]
+                _lighting(work), _brdf(work), _relight(work), _export(work), _settings(work)]
     return ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>sigrend report: "
             f"{html.escape(Path(capture).name)}</title><style>{STYLE}</style></head><body>\n"
             f"<h1>sigrend report: {html.escape(Path(capture).resolve().name)}</h1>\n"

@@ -107,6 +107,10 @@ def stage_command(name: str) -> SimpleNamespace:
         print(f"{name}: {state}")
         for path in result.outputs:
             print(f"  {path}")
+        if not result.skipped and (Path(work) / "report.html").exists():   # a run's report shows this stage too
+            from pipeline.report import write_report
+
+            print(f"report: {write_report(args.capture, work)}")
         return 0
 
     doc = (module.__doc__ or name).strip().splitlines()[0]

@@ -78,6 +78,15 @@ def collected_writes() -> Iterator[list[tuple[Path, Path]]]:
         _pending.reset(token)
 
 
+def written_size(path: str | os.PathLike) -> int:
+    """Bytes of ``path`` as the current block wrote it: its temporary when the rename is still
+    pending (inside a ``transaction``), else the file itself."""
+    for tmp, final in reversed(_pending.get() or []):
+        if final == Path(path):
+            return tmp.stat().st_size
+    return Path(path).stat().st_size
+
+
 def commit_writes(pending: list[tuple[Path, Path]]) -> None:
     """Rename collected writes into place now, or queue them in the enclosing transaction."""
     current = _pending.get()

@@ -12,7 +12,11 @@ Outputs (default WORK/export/asset.glb), beside each other:
   at 0, directional sources splatted into their texels) in the column order Blender's
   Environment Texture node (default mapping) and three.js's equirectangular loader read:
   pipeline.core.envmap.blender_columns.
-* ``asset_export.json``: the files, the material, the conventions, the energy
+* ``asset_preview_sunsky.png``, ``asset_preview_room.png``: the asset rendered by sigrend's renderer
+  (pipeline.core.render: shadows, interreflection, the material as exported) under two of the
+  bundled procedural maps (pipeline.core.envmaps ``sun+sky`` and ``room``), one view 20 degrees
+  above the object; the report shows them.
+* ``asset_export.json``: the files with their sizes, the material, the conventions, the energy
   lost by clamping the lighting's negative lobes.
 
 docs/export.md says how to load them in Blender and three.js.
@@ -30,11 +34,11 @@ from pipeline.core.sh import envmap_from_sh
 from pipeline.errors import UserError
 from pipeline.io.brdf import read_brdf
 from pipeline.io import gltf, usd
-from pipeline.io.images import write_image
+from pipeline.io.images import preview_exposure, write_image, write_preview
 from pipeline.io.lighting import read_lighting_parts
 from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
 from pipeline.settings import setting
-from pipeline.workdir import make_folder, write_json
+from pipeline.workdir import make_folder, write_json, written_size
 
 EXPORTABLE = ("lambert", "principled")
 WRITERS = {**{suffix: gltf.write_gltf for suffix in gltf.FORMATS}, **{suffix: usd.write_usd for suffix in usd.FORMATS}}
@@ -79,9 +83,27 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     return paths
 
 
+PREVIEWS = {"sunsky": "sun+sky", "room": "room"}   # preview file tag -> bundled map (pipeline.core.envmaps)
+PREVIEW_PX = 256
+
+
 def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     asset = asset_path(work, settings)
-    return [asset, companion(asset, "_lighting.exr"), companion(asset, "_export.json")]
+    return ([asset, companion(asset, "_lighting.exr")] + [companion(asset, f"_preview_{tag}.png") for tag in PREVIEWS]
+            + [companion(asset, "_export.json")])
+
+
+def preview(mesh, brdf: dict, colors: np.ndarray | None, env_spec: str) -> tuple[np.ndarray, np.ndarray]:
+    """Linear radiance (H, W, 3) and object mask of the asset under a bundled map, one view on a ring
+    20 degrees above the object (pipeline.core.camera.orbit_poses), the map as background."""
+    from pipeline.core.camera import orbit_poses
+    from pipeline.core.envmaps import envmap_from_spec
+    from pipeline.core.render import Renderer
+
+    sphere = mesh.bounding_sphere.primitive
+    camera, [(R, t)] = orbit_poses(sphere.center, float(sphere.radius), 1, PREVIEW_PX, PREVIEW_PX)
+    result = Renderer(mesh, envmap_from_spec(env_spec), brdf, vertex_albedo=colors).render(camera, R, t)
+    return result.radiance, result.object_mask
 
 
 def lighting_map(path: Path, height: int) -> tuple[np.ndarray, float]:
@@ -116,8 +138,13 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     written = [write(asset, mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, colors,
                      generator=f"sigrend {__version__}"),
                write_image(companion(asset, "_lighting.exr"), blender_columns(env).astype(np.float32), dtype="float")]
+    for tag, spec in PREVIEWS.items():
+        rgb, mask = preview(mesh, brdf, colors, spec)
+        written.append(write_preview(companion(asset, f"_preview_{tag}.png"), rgb, preview_exposure(rgb, mask)))
     manifest = {
         "asset": asset.name, "lighting": written[1].name,
+        "previews": {spec: p.name for spec, p in zip(PREVIEWS.values(), written[2:])},
+        "files": [{"file": p.name, "bytes": written_size(p)} for p in written],
         "material": brdf, "per_vertex_base_color": colors is not None,
         "frame": ("glTF +Y up, metres: (x, y, z)_object -> (x, z, -y)_glTF (Blender's importer turns it back)"
                   if write is gltf.write_gltf else "USD stage upAxis Z, metersPerUnit 1: the object frame as it is"),

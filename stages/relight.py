@@ -51,8 +51,7 @@ from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envma
 from pipeline.core.transfer import irradiance_from_sh
 from pipeline.errors import UserError
 from pipeline.io.brdf import diffuse_color, read_brdf
-from pipeline.io.camera_files import srgb_encode
-from pipeline.io.images import read_envmap, write_image
+from pipeline.io.images import preview_exposure, read_envmap, write_image, write_preview
 from pipeline.io.lighting import read_lighting_parts, read_lighting_sh
 from pipeline.io.mesh import read_vertex_albedo
 from pipeline.io.poses import Poses, read_poses
@@ -235,22 +234,12 @@ def orbit_views(n: int, mesh, size: tuple[int, int] | None, reference: Poses | N
     width, height = size or (256, 256)
     centre = np.asarray(mesh.bounding_sphere.primitive.center, float)
     radius = float(mesh.bounding_sphere.primitive.radius)
-    fov = np.radians(40.0)
-    distance = 1.15 * radius / np.sin(fov / 2)
+    distance = 1.15 * radius / np.sin(np.radians(20.0))
     if reference is not None and reference.images:
         centres = [cam.camera_center(p.R, p.t) for p in reference.images.values()]
         distance = max(distance * 0.5, float(np.median([np.linalg.norm(c - centre) for c in centres])))
-    f = 0.5 * min(width, height) / np.tan(fov / 2)
-    camera = cam.Camera("PINHOLE", width, height, (f, f, width / 2, height / 2))
-    elevation = np.radians(20.0)
-    views = []
-    for i in range(n):
-        phi = 2 * np.pi * i / n
-        eye = centre + distance * np.array([np.cos(elevation) * np.cos(phi), np.cos(elevation) * np.sin(phi),
-                                            np.sin(elevation)])
-        R, t = cam.look_at(eye, centre)
-        views.append(View(f"orbit_{i:03d}", camera, R, t, False))
-    return views
+    camera, poses = cam.orbit_poses(centre, radius, n, width, height, distance)
+    return [View(f"orbit_{i:03d}", camera, R, t, False) for i, (R, t) in enumerate(poses)]
 
 
 def resolve_views(*, capture: Path, work: Path, settings: Settings, mesh=None) -> list[View]:
@@ -677,21 +666,6 @@ def render_view(view: View, mesh, rays, lighting: "Lighting | AngularLighting", 
         again(np.flatnonzero((spread > contrast * float(lum[on].mean())) & ndimage.binary_dilation(on)),
               max(refine, supersample))
     return np.concatenate([rgb, hits[:, None]], axis=1).reshape(h, w, 4).astype(np.float32)
-
-
-def preview_exposure(rgb: np.ndarray, mask: np.ndarray) -> float:
-    """Scale that maps the 99th percentile of the object's pixels to 0.9 (for sRGB previews)."""
-    values = rgb[mask].max(axis=-1) if mask.any() else rgb.reshape(-1, rgb.shape[-1]).max(axis=-1)
-    top = float(np.percentile(values, 99)) if values.size else 0.0
-    return 0.9 / top if top > 0 else 1.0
-
-
-def write_preview(path: Path, rgb: np.ndarray, exposure: float, alpha: np.ndarray | None = None) -> Path:
-    """8-bit sRGB PNG of linear ``rgb`` times ``exposure`` (composited over black when alpha is given)."""
-    img = srgb_encode(np.asarray(rgb, float)[..., :3] * exposure)
-    if alpha is not None:
-        img = np.concatenate([img, np.clip(alpha, 0, 1)[..., None]], axis=-1)
-    return write_image(path, img, dtype="uint8")
 
 
 def error_map_image(rel_error: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.io.images import write_image
+from pipeline.io.images import srgb_encode, write_image  # noqa: F401  (srgb_encode: its callers' import)
 from pipeline.workdir import atomic_path
 
 # XYZ (D65) -> linear sRGB: as DNG ColorMatrix1 it makes the camera space linear sRGB
@@ -63,12 +63,6 @@ def add_sensor_noise(value: np.ndarray, rng: np.random.Generator, *, full_well: 
     electrons = np.clip(np.asarray(value, float), 0.0, None) * full_well
     shot = rng.poisson(electrons) / full_well
     return shot + rng.normal(0.0, read_noise, np.shape(value))
-
-
-def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1 sRGB transfer curve of values clipped to [0, 1]."""
-    v = np.clip(linear, 0.0, 1.0)
-    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1.0 / 2.4) - 0.055)
 
 
 def write_exr(path: str | os.PathLike, value: np.ndarray, exposure: Exposure) -> Path:

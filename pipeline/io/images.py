@@ -121,3 +121,24 @@ def validate_envmap(env: np.ndarray, name: str | os.PathLike = "environment map"
                             "it must be linear, non-negative RGB")
         env = np.maximum(env, 0.0)
     return env
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 sRGB transfer curve of values clipped to [0, 1]."""
+    v = np.clip(linear, 0.0, 1.0)
+    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.power(v, 1.0 / 2.4) - 0.055)
+
+
+def preview_exposure(rgb: np.ndarray, mask: np.ndarray) -> float:
+    """Scale that maps the 99th percentile of the object's pixels to 0.9 (for sRGB previews)."""
+    values = rgb[mask].max(axis=-1) if mask.any() else rgb.reshape(-1, rgb.shape[-1]).max(axis=-1)
+    top = float(np.percentile(values, 99)) if values.size else 0.0
+    return 0.9 / top if top > 0 else 1.0
+
+
+def write_preview(path: str | os.PathLike, rgb: np.ndarray, exposure: float, alpha: np.ndarray | None = None) -> Path:
+    """8-bit sRGB PNG of linear ``rgb`` times ``exposure`` (composited over black when alpha is given)."""
+    img = srgb_encode(np.asarray(rgb, float)[..., :3] * exposure)
+    if alpha is not None:
+        img = np.concatenate([img, np.clip(alpha, 0, 1)[..., None]], axis=-1)
+    return write_image(path, img, dtype="uint8")

@@ -120,13 +120,27 @@ def test_usd_holds_the_mesh_in_the_object_frame_and_a_preview_surface(tmp_path):
 
 
 def test_lambert_is_a_gltf_material_without_specular_layer(tmp_path):
+    """... and the export's files with their sizes and its previews under two bundled maps reach
+    the report of the run (issue 13, point 4)."""
     capture, work = make_fit(tmp_path, {"model": "lambert", "albedo": [0.6, 0.5, 0.4]}, textured=False)
+    (work / "report.html").write_text("a run's report")
     assert sigrend(["export", str(capture), "-w", str(work)]) == 0
     doc = pygltflib.GLTF2().load(str(work / "export" / "asset.glb"))
     mat = doc.materials[0]
     assert mat.pbrMetallicRoughness.baseColorFactor == pytest.approx([0.6, 0.5, 0.4, 1.0])
     assert mat.extensions == {"KHR_materials_specular": {"specularFactor": 0.0}}
     assert doc.meshes[0].primitives[0].attributes.COLOR_0 is None
+
+    folder = work / "export"
+    manifest = json.loads((folder / "asset_export.json").read_text())
+    sizes = {f["file"]: f["bytes"] for f in manifest["files"]}
+    assert sizes == {p.name: p.stat().st_size for p in folder.iterdir() if p.name != "asset_export.json"}
+    sky, room = (read_image(folder / manifest["previews"][spec])[..., :3].astype(float) for spec in ("sun+sky", "room"))
+    centre = (slice(96, 160), slice(96, 160))          # the teapot fills the middle of the 256^2 view
+    assert sky[centre].mean() > 0.1 and room[centre].mean() > 0.1
+    assert np.abs(sky - room).mean() > 0.05            # two different lights
+    report = (work / "report.html").read_text()
+    assert "Exported asset" in report and all(f"<td>{name}</td>" in report for name in sizes)
 
 
 def test_export_without_a_fit_or_with_a_seed_lobe_says_what_to_do(tmp_path, capsys):
