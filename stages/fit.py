@@ -51,10 +51,11 @@ class Settings:
     brdf: str = setting("auto", "'auto' (choose among lambert/phong/microfacet), a model name (parameters fitted), "
                                 "or a known BRDF: brdf.json path or inline spec 'model:key=v,...'")
     order: str = setting("auto", "SH order of the fitted lighting: 'auto' (leave-views-out validation) or an integer")
-    max_order: int = setting(12, "largest SH order tried by --order auto (sharp lights seen through a glossy lobe "
-                                 "carry energy to order > 8)")
-    factor_order: int = setting(8, "SH order of the lighting while factorizing (the final lighting is then chosen "
-                                   "up to --max-order for the factorized BRDF)")
+    max_order: int = setting(16, "largest SH order tried by --order auto for the final lighting, with the prior "
+                                 "scales of --band-prior-choices (sharp lights seen through a glossy lobe carry "
+                                 "energy to order > 8)")
+    factor_order: int = setting(8, "SH order of the lighting while the material is chosen (the final lighting is then "
+                                   "chosen up to --max-order for it)")
     env_order: int = setting(16, "SH order to which a known EXR lighting is projected")
     lobe_min_cos: float = setting(0.3, "with a specular lobe in the model, use only samples with n.v >= this: the R&H "
                                        "reflection-space lobe is accurate near normal view (docs/fit.md)")

@@ -41,7 +41,8 @@ from pipeline.io.lighting import write_lighting_sh
 from pipeline.io.mesh import mesh_path, read_mesh
 from pipeline.io.report import write_report
 from pipeline.io.samples import iter_sample_chunks
-from stages.fit import DEFAULT_ALBEDO, albedo_from_shading, known_lighting_path, write_plots, write_vertex_albedo
+from stages.fit import (DEFAULT_ALBEDO, albedo_from_shading, known_lighting_path, prior_choices, write_plots,
+                        write_vertex_albedo)
 
 SOURCES_NOTE = ("'coeffs' is the whole lighting to this order, the directional 'sources' included (their SH "
                 "projection); an angular renderer replaces that projection by the sources themselves")
@@ -243,8 +244,9 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     data, pixel_noise = load_samples(samples_path, settings, len(mesh.faces))
     order = int(settings.order) if settings.order != "auto" else settings.factor_order
     orders = [order] if settings.order != "auto" else list(range(order + 1))
+    top = max(order, settings.max_order) if settings.order == "auto" else order   # the final lighting's orders
     t0 = time.perf_counter()
-    geo = prt.geometry(mesh, data["face"], data["bary"], data["view_dir"].astype(float), order,
+    geo = prt.geometry(mesh, data["face"], data["bary"], data["view_dir"].astype(float), top,
                        bounce_samples=settings.bounce_samples, seed=settings.seed)
     timings["transfer"] = time.perf_counter() - t0
     obs = material_fit.Observations(data["radiance"].astype(float), data["weight"].astype(float),
@@ -271,7 +273,8 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
                                            direct=direct)
         if known_sources is not None:
             directions = known_dirs
-        spec = None if material is None else prt.specular_transfer(geo, material, settings.lobe_samples, settings.seed)
+        spec = None if material is None else prt.specular_transfer(geo, material, settings.lobe_samples, settings.seed,
+                                                                   order=order)
         return material_fit.fit_material(geo, material, obs, order=order, folds=settings.folds, base0=base0,
                                          spec=spec, fix_base=fix_base, orders=orders, lighting_kw=kw,
                                          max_sources=settings.max_sources if directions is None else 0,
@@ -310,6 +313,17 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
         t1 = time.perf_counter()
         best, level = search_albedo_level(candidate, best, geo, obs, settings, kw)
         timings["albedo_level"] = time.perf_counter() - t1
+    refit = None
+    if known_lighting is None and settings.order == "auto" and not one_fold:
+        t1 = time.perf_counter()
+        spec_top = None if best.material is None else prt.specular_transfer(geo, best.material, settings.lobe_samples,
+                                                                            settings.seed, order=top)
+        before = best.validation_rmse
+        best, tried = material_fit.refine_lighting(geo, best, spec_top, obs, order=top, folds=settings.folds,
+                                                   lighting_kw=kw, priors=prior_choices(settings))
+        refit = {"orders": f"0-{top}", "priors": prior_choices(settings), "validation_rmse_before": before,
+                 "validation_rmse": best.validation_rmse, "tried": tried, "seconds": time.perf_counter() - t1}
+        timings["lighting_refit"] = refit["seconds"]
     if scene is not None:        # what lighting_sh.json records, and the bands' labels: the SH + sources form
         scene = None
         recorded = candidate(best.material, best.base, True, None)
@@ -325,13 +339,13 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
               "order": order_of(coeffs.shape[0]), "brdf_model": brdf["model"], "brdf": brdf,
               "bands": best.lighting.bands, "labels": {b["l"]: b["label"] for b in best.lighting.bands},
               "noise_sigma": best.lighting.noise_sigma, "pixel_noise": _pixel_noise_note(pixel_noise, best.lighting),
-              "candidates": table, "lighting_orders": best.orders,
+              "candidates": table, "lighting_orders": best.orders, "lighting_refit": refit,
               "sources": sources, "samples": {"used": int(len(obs.weight))},
               "roughness_interval": None if interval is None or one_fold else list(interval),
               "model_selection": _selection_note(one_fold, known_brdf is not None, settings.folds, brdf),
               "scale_convention": _scale_note(brdf, hint, level) if scale is None else
               {"source": "the known lighting", "lighting_scale": scale}}
-    print(_summary_line(brdf, None if one_fold else interval, len(sources)), file=sys.stderr)
+    print(_summary_line(brdf, None if one_fold else interval, len(sources), known_brdf is not None), file=sys.stderr)
     out = Path(work) / "fit"
     spec = None if best.material is None or best.parts is not None else prt.specular_transfer(   # parts: fit_to_map's
         geo, best.material, settings.lobe_samples, settings.seed)
@@ -432,11 +446,12 @@ def _selection_note(one_fold: bool, known: bool, folds: int, brdf: dict) -> dict
     return {"by": f"held-out views ({folds} folds, image_id mod {folds})"}
 
 
-def _summary_line(brdf: dict, interval, n_sources: int) -> str:
-    """The fit's stderr line; ``interval`` None when no views were held out (nothing bounds the roughness)."""
+def _summary_line(brdf: dict, interval, n_sources: int, given: bool = False) -> str:
+    """The fit's stderr line; ``interval`` None when no views were held out (nothing bounds the
+    roughness) or the material was ``given``."""
     if brdf["model"] == "lambert":
         return f"fit: lambert, albedo {np.round(brdf['albedo'], 3).tolist()}, {n_sources} directional source(s)"
-    bound = ("no held-out views: not validated" if interval is None
+    bound = ("given" if given else "no held-out views: not validated" if interval is None
              else f"held-out views cannot tell apart {interval[0]:.3f}-{interval[1]:.3f}")
     return (f"fit: principled roughness {brdf['roughness']:.3f} ({bound}), base colour "
             f"{np.round(brdf['base_color'], 3).tolist()}, {n_sources} directional source(s)")

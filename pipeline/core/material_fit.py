@@ -59,7 +59,10 @@ def _per_unit_base(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, s
                    k: int) -> np.ndarray:
     """The transfer (N, k, 3) that the base colour multiplies: the diffuse layer's kd / pi (D + I),
     plus a metal's specular per unit F0."""
-    out = (geo.direct[:, :k, None] + indirect[:, :k]) * (layer / np.pi)[:, None, :]
+    out = np.repeat(geo.direct[:, :k, None], 3, axis=2)
+    ki = min(k, indirect.shape[1])          # the interreflection's bands (prt.INDIRECT_ORDER)
+    out[:, :ki] += indirect[:, :ki]
+    out *= (layer / np.pi)[:, None, :]
     if spec is not None and spec.scaled is not None:
         out = out + spec.scaled[:, :k]
     return out
@@ -330,6 +333,48 @@ def albedo_level(score, chroma: np.ndarray) -> tuple[float, bool, list]:
     found = minimize_scalar(held_out, bounds=(lo, hi), method="bounded", options={"xatol": LEVEL_XTOL})
     determined = min(ends) > float(found.fun) * (1.0 + LEVEL_EVIDENCE)
     return float(np.exp(found.x)), bool(determined), sorted(curve.items())
+
+
+def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | None, obs: Observations, *,
+                    order: int, folds: int, lighting_kw: dict, priors: list[float],
+                    max_bounces: int = 8) -> tuple[MaterialFit, list[dict]]:
+    """The lighting of a chosen material refitted richer: SH orders 0..``order`` (``spec``: its
+    specular transfer to that order) and the ill-conditioned bands' prior scale from ``priors``
+    chosen together by held-out views, the sources kept where the fit put them (their intensities
+    refitted once around the new SH).  The material candidates are compared on a cheaper lighting
+    (their fit's order and the default prior); the heavier ridge blurs what sharp lights put in the
+    higher bands, which the final lighting has room for.  The normal equations are built once per
+    source update and shared by every prior and order.  -> (the refitted fit, or ``fit`` when no
+    choice beats its held-out error; the table of (prior, order, held-out RMSE))."""
+    layer = prt.diffuse_layer(fit.material, geo.mu_out)
+    a = _design(geo, layer, prt.indirect_transfer(geo, fit.material, fit.base, max_bounces), spec, fit.base, order)
+    sources = None if fit.sources is None else Sources(fit.sources.transfer, fit.sources.power.copy())
+    src_cols = None
+    if sources is not None:
+        src_ind = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces, sources.transfer.vertex_direct)
+        src_cols = _source_columns(geo, layer, sources.transfer, src_ind, fit.base)
+    table: list[dict] = []
+    best = None
+    for update in range(2 if sources is not None else 1):
+        if update:        # the sources' intensities around the best SH, then the SH again
+            sources = Sources(sources.transfer, _source_intensities(
+                src_cols, obs.radiance - np.einsum("cpk,kc->pc", a[:, :, :best[1].coeffs.shape[0]], best[1].coeffs),
+                obs.weight))
+        target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
+        eqs = _equations(a, Observations(target, obs.weight, obs.fold), order, folds)
+        for prior in priors:
+            cands = solve.cross_validate_orders(eqs, list(range(order + 1)), None, **{**lighting_kw, "band_prior": prior})
+            i = min(range(len(cands)), key=lambda j: cands[j]["validation_rmse"])
+            table.append({"band_prior": prior, "order": cands[i]["order"], "sources_refitted": bool(update),
+                          "validation_rmse": cands[i]["validation_rmse"], "train_rmse": cands[i]["train_rmse"]})
+            if best is None or cands[i]["validation_rmse"] < best[0]:
+                best = (cands[i]["validation_rmse"], cands[i]["fit"], cands, sources)
+    val, lighting, cands, sources = best
+    if not val < fit.validation_rmse:
+        return fit, table
+    return MaterialFit(fit.material, fit.base, lighting.coeffs, lighting,
+                       [{k: v for k, v in c.items() if k != "fit"} for c in cands], float(val),
+                       float(lighting.residual_rms), sources), table
 
 
 def _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc2, max_bounces, grid) -> np.ndarray:

@@ -111,18 +111,16 @@ INDIRECT_ORDER = 4   # SH bands above this carry < 1% of the interreflected ligh
 
 def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarray,
                       max_bounces: int = 8, vertex_direct: np.ndarray | None = None) -> np.ndarray:
-    """I (N, K, 3): interreflected irradiance transfer at the samples for base colour ``base``
+    """I (N, K', 3): interreflected irradiance transfer at the samples for base colour ``base``
     (3,) or per vertex (V, 3), from the vertices' bounce series (Renderer.bounce_matrices) of the
     vertices' direct transfer (V, K) (default: the SH lighting's, geo.vertex_direct, whose
-    bands above INDIRECT_ORDER are left out of the bounces: the diffuse hit points filter them)."""
+    bands above INDIRECT_ORDER are left out of the bounces: the diffuse hit points filter them, and
+    K' is the bands up to INDIRECT_ORDER only; with ``vertex_direct`` (V, J) its J columns)."""
     nv = len(geo.renderer.mesh.vertices)
     base_v = np.broadcast_to(np.asarray(base, float), (nv, 3))
     direct = geo.vertex_direct[:, :num_coeffs(min(geo.order, INDIRECT_ORDER))] if vertex_direct is None else vertex_direct
     e_ind = bounce_series(geo.bounce_matrices(material), base_v, np.repeat(direct[..., None], 3, axis=2), max_bounces)
-    out = np.einsum("pj,pjkc->pkc", geo.bary, e_ind[geo.tri])
-    if vertex_direct is None and out.shape[1] < geo.direct.shape[1]:
-        out = np.concatenate([out, np.zeros((out.shape[0], geo.direct.shape[1] - out.shape[1], 3))], axis=1)
-    return out
+    return np.einsum("pj,pjkc->pkc", geo.bary, e_ind[geo.tri])
 
 
 @dataclass
@@ -136,27 +134,29 @@ class SpecularTransfer:
 
 
 def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, seed: int = 0,
-                      chunk: int = 2048) -> SpecularTransfer:
-    """The specular lobe's transfer at the samples (see the module docstring); a metal's as its
-    transfer at F0 = 0 and the difference to F0 = 1 (the compensation for multiple scattering
-    taken at each end)."""
+                      chunk: int = 2048, order: int | None = None) -> SpecularTransfer:
+    """The specular lobe's transfer at the samples (see the module docstring) for SH lighting up to
+    ``order`` (default the geometry's); a metal's as its transfer at F0 = 0 and the difference to
+    F0 = 1 (the compensation for multiple scattering taken at each end)."""
+    order = geo.order if order is None else min(order, geo.order)
     if material.metallic > 0:
-        zero, one = (_specular_transfer(geo, replace(material, base_color=(v, v, v)), n_samples, seed, chunk)
+        zero, one = (_specular_transfer(geo, replace(material, base_color=(v, v, v)), n_samples, seed, chunk, order)
                      for v in (0.0, 1.0))
         return SpecularTransfer(zero, one - zero)
-    return SpecularTransfer(_specular_transfer(geo, material, n_samples, seed, chunk))
+    return SpecularTransfer(_specular_transfer(geo, material, n_samples, seed, chunk, order))
 
 
-def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed: int, chunk: int) -> np.ndarray:
+def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed: int, chunk: int,
+                       order: int) -> np.ndarray:
     """S (N, K, 3) of one material with a uniform base colour.  The chunks of samples are computed
     by one thread per core (Embree and NumPy's large operations release the GIL), each drawing its
     lobe samples from a generator seeded by (seed, chunk start), so S does not depend on the threads."""
     r = geo.renderer
     n = geo.faces.size
-    out = np.zeros((n, num_coeffs(geo.order), 3))
+    out = np.zeros((n, num_coeffs(order), 3))
     front = np.flatnonzero(geo.mu_out > 0)
-    l = band_of_index(geo.order)
-    bands = np.arange(geo.order + 1)
+    l = band_of_index(order)
+    bands = np.arange(order + 1)
 
     def one_chunk(s: int) -> None:
         idx = front[s:s + chunk]
@@ -172,7 +172,7 @@ def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed
         # each sample stands for its solid angle 1 / (S pdf): Y_k prefiltered over a cap of that size,
         # cap average ~ exp(-l(l+1) θ² / 8) with θ² = Ω / π (as the renderer prefilters its map)
         soft = np.exp(-np.outer(lobe.solid_angle.reshape(-1) / (8 * np.pi), bands * (bands + 1)))[:, l]
-        basis = (sh_basis(dirs, geo.order) * soft).reshape(q, ns, -1)                      # (q, S, K)
+        basis = (sh_basis(dirs, order) * soft).reshape(q, ns, -1)                          # (q, S, K)
         w3 = weight.reshape(q, ns, 3)
         if np.array_equal(w3[..., 0], w3[..., 2]) and np.array_equal(w3[..., 0], w3[..., 1]):  # grey F (dielectric)
             out[idx] = np.einsum("qsk,qs->qk", basis, w3[..., 0], optimize=True)[..., None]

@@ -90,9 +90,12 @@ def test_order_auto_lists_candidates(lambert_scene, tmp_path):
     brdf_file = write_brdf(tmp_path / "brdf.json", {"model": "lambert", "albedo": ALBEDO})
     run_fit(capture, work, brdf=str(brdf_file))
     report = read_report(work / "fit" / "report.json")
-    # every order up to --max-order (12) with every prior scale (0.3 and the choices 1, 3)
+    # every order up to --max-order (its default, 16) with every prior scale (0.3 and the choices 1, 3)
+    from stages import fit
+
+    top = make_settings(fit.Settings).max_order
     tried = {(c["order"], c["band_prior"]) for c in report["candidates"]}
-    assert tried == {(o, p) for o in range(13) for p in (0.3, 1.0, 3.0)}
+    assert top == 16 and tried == {(o, p) for o in range(top + 1) for p in (0.3, 1.0, 3.0)}
     assert report["band_prior"] in (0.3, 1.0, 3.0)
     for c in report["candidates"]:
         assert c["params"] > 0 and c["validation_rmse"] >= 0 and c["train_rmse"] >= 0

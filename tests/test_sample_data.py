@@ -1,0 +1,33 @@
+"""The main job: `sigrend run sample_data/capture` (the README's first command) on the bundled
+capture, checked against its ground truth (sample_data/capture/gt)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main as sigrend
+from pipeline.runner import relight_check
+
+CAPTURE = Path(__file__).parents[1] / "sample_data" / "capture"
+
+
+@pytest.mark.slow
+def test_sample_capture_relights_held_out_views_within_5_percent(tmp_path):
+    """Issue 11 target: held-out views within 5%.  Measured 4.93% (the true lighting and material
+    through the same relight: 3.48%; before the final lighting refit, order 8 and the default
+    prior: 10.47%), roughness 0.376 for 0.35, the three area lights found as sources."""
+    work = tmp_path / "work"
+    assert sigrend(["run", str(CAPTURE), "-w", str(work)]) == 0
+    check = relight_check(work)
+    assert check["heldout"] and len(check["views"]) == 3
+    assert check["relative_error"] < 0.05, check["relative_error"]
+    report = json.loads((work / "fit" / "report.json").read_text())
+    truth = json.loads((CAPTURE / "gt" / "brdf.json").read_text())
+    assert report["brdf"]["model"] == "principled"
+    assert abs(report["brdf"]["roughness"] / truth["roughness"] - 1) < 0.10
+    assert len(report["sources"]) == 3
+    refit = report["lighting_refit"]
+    assert refit["validation_rmse"] < 0.6 * refit["validation_rmse_before"]   # measured 0.0060 from 0.0124
