@@ -25,7 +25,7 @@ import numpy as np
 
 from pipeline.core import prt, solve
 from pipeline.core.material import Principled, ggx_lobe_cos, material_dict
-from pipeline.core.sh import num_coeffs
+from pipeline.core.sh import num_coeffs, order_of
 from pipeline.core.shading import front_cos
 
 
@@ -291,7 +291,7 @@ def lambert_held_out(geo: prt.Geometry, obs: Observations, base: np.ndarray, fit
     interreflection at ``base``.  A channel's error depends on its own albedo (and weakly, through
     the shared noise level of the band labels, on the others')."""
     layer = prt.diffuse_layer(None, geo.mu_out)
-    order = int(round(np.sqrt(fit.coeffs.shape[0]))) - 1
+    order = order_of(fit.coeffs.shape[0])
     sources = None
     if fit.sources is not None:
         sources = Sources(fit.sources.transfer, fit.sources.power * fit.base / base)
@@ -328,7 +328,8 @@ def albedo_level(score, chroma: np.ndarray) -> tuple[float, bool, list]:
 
     lo, hi = np.log(np.array(LEVEL_RANGE) / chroma.max())
     ends = held_out(lo), held_out(hi)
-    if abs(held_out(0.5 * (lo + hi)) / min(ends) - 1.0) < 0.1 * LEVEL_EVIDENCE and abs(ends[0] / ends[1] - 1.0) < 0.1 * LEVEL_EVIDENCE:
+    middle = held_out(0.5 * (lo + hi))
+    if max(ends + (middle,)) < min(ends + (middle,)) * (1.0 + 0.1 * LEVEL_EVIDENCE):
         return 1.0, False, sorted(curve.items())      # flat: no bounced light to measure the level by
     found = minimize_scalar(held_out, bounds=(lo, hi), method="bounded", options={"xatol": LEVEL_XTOL})
     determined = min(ends) > float(found.fun) * (1.0 + LEVEL_EVIDENCE)
