@@ -92,7 +92,10 @@ class Settings:
               "the mesh's size (bounding-box diagonal)")
     mesh_bundle_adjustment: bool = setting(
         True, "after registering to the mesh, bundle-adjust with the SfM points that lie on it held on the surface")
-    seed: int = setting(0, "random seed for COLMAP and RANSAC (runs are reproducible)")
+    seed: int = setting(0, "random seed for COLMAP and RANSAC (runs are reproducible with --mapper-threads 1)")
+    mapper_threads: int = setting(1, "threads of COLMAP's incremental mapping: 1 makes runs reproducible (with more, "
+                                     "the second initial pair and so the registered set can change from run to run); "
+                                     "0 = all cores, faster on large captures")
     verbose: bool = setting(False, "show COLMAP's log on the terminal instead of WORK/colmap/colmap.log")
 
     def validate(self) -> None:
@@ -100,6 +103,8 @@ class Settings:
             raise UserError(f"--max-image-size {self.max_image_size} is too small; use >= 64 (or -1 for full size)")
         if self.max_features < 100:
             raise UserError(f"--max-features {self.max_features} is too small; use >= 100")
+        if self.mapper_threads < 0:
+            raise UserError(f"--mapper-threads {self.mapper_threads}: use 1 (reproducible), more, or 0 (all cores)")
         if not 0.0 < self.min_registered <= 1.0:
             raise UserError(f"--min-registered {self.min_registered} must be in (0, 1]")
         if self.board_threshold_mm <= 0:
@@ -356,6 +361,7 @@ def run_colmap(colmap_dir: Path, names: list[str], settings: Settings, fixed: Ca
     options.triangulation.random_seed = settings.seed
     options.multiple_models = True
     options.min_model_size = 3
+    options.num_threads = settings.mapper_threads or -1
     if fixed is not None:
         options.ba_refine_focal_length = False
         options.ba_refine_principal_point = False
