@@ -234,7 +234,7 @@ def orbit_views(n: int, mesh, size: tuple[int, int] | None, reference: Poses | N
     width, height = size or (256, 256)
     centre = np.asarray(mesh.bounding_sphere.primitive.center, float)
     radius = float(mesh.bounding_sphere.primitive.radius)
-    distance = 1.15 * radius / np.sin(np.radians(20.0))
+    distance = cam.framing_distance(radius)
     if reference is not None and reference.images:
         centres = [cam.camera_center(p.R, p.t) for p in reference.images.values()]
         distance = max(distance * 0.5, float(np.median([np.linalg.norm(c - centre) for c in centres])))

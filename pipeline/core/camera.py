@@ -118,15 +118,20 @@ def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> tuple
     return R, -R @ center
 
 
+def framing_distance(radius: float, fov_deg: float = 40.0) -> float:
+    """Distance at which a sphere of ``radius`` fills a field of view of ``fov_deg`` with a 15% margin."""
+    return 1.15 * radius / np.sin(np.radians(fov_deg) / 2)
+
+
 def orbit_poses(centre: np.ndarray, radius: float, n: int, width: int, height: int, distance: float | None = None,
                 elevation_deg: float = 20.0, fov_deg: float = 40.0) -> tuple[Camera, list[tuple[np.ndarray, np.ndarray]]]:
     """A PINHOLE camera of ``fov_deg`` (across the shorter side) and ``n`` world-to-camera poses (R, t)
     on a ring ``elevation_deg`` above ``centre``, looking at it, the first at azimuth 0 (+X); by
-    default at the distance where a sphere of ``radius`` fills the field of view with a 15% margin."""
+    default at framing_distance(radius, fov_deg)."""
     centre = np.asarray(centre, float)
     fov = np.radians(fov_deg)
     if distance is None:
-        distance = 1.15 * radius / np.sin(fov / 2)
+        distance = framing_distance(radius, fov_deg)
     f = 0.5 * min(width, height) / np.tan(fov / 2)
     camera = Camera("PINHOLE", width, height, (f, f, width / 2, height / 2))
     elevation = np.radians(elevation_deg)
