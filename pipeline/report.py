@@ -319,11 +319,13 @@ def _relight(work: Path) -> str:
 
 
 def _size(n: int) -> str:
-    for unit in ("B", "kB", "MB", "GB"):
-        if n < 1000 or unit == "GB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+    """A file size in B, kB, MB or GB (decimal)."""
+    if n < 1000:
+        return f"{n} B"
+    for unit in ("kB", "MB", "GB"):
         n /= 1000.0
-    return ""
+        if n < 1000 or unit == "GB":
+            return f"{n:.1f} {unit}"
 
 
 def _export(work: Path) -> str:

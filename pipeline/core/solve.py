@@ -81,17 +81,17 @@ class NormalEquations:
             starts = np.concatenate([[0], np.flatnonzero(np.diff(fold)) + 1])
         stops = np.append(starts[1:], len(fold))
         sw = None if unit else np.sqrt(weight)
-        runs: dict[int, list[tuple[int, int]]] = {}
+        runs: dict[int, list[tuple[int, int, np.ndarray]]] = {}   # fold -> its runs (lo, hi, weighted radiance)
         for lo, hi in zip(starts, stops):
-            runs.setdefault(int(fold[lo]), []).append((int(lo), int(hi)))
+            f = int(fold[lo])
             b = radiance[lo:hi] if unit else radiance[lo:hi] * sw[lo:hi, None]
-            self.btb[int(fold[lo])] += (b * b).sum(axis=0)
-            self.weight[int(fold[lo])] += weight[lo:hi].sum()
-            self.count[int(fold[lo])] += hi - lo
+            runs.setdefault(f, []).append((int(lo), int(hi), b))
+            self.btb[f] += (b * b).sum(axis=0)
+            self.weight[f] += weight[lo:hi].sum()
+            self.count[f] += hi - lo
 
         def accumulate(f: int, c: int) -> None:     # one (fold, channel) block: no two tasks share one
-            for lo, hi in runs[f]:
-                b = radiance[lo:hi] if unit else radiance[lo:hi] * sw[lo:hi, None]
+            for lo, hi, b in runs[f]:
                 a = designs[c, lo:hi] if unit else designs[c, lo:hi] * sw[lo:hi, None]
                 self.gram[f, c] += a.T @ a
                 if self.shared:
