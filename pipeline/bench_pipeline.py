@@ -12,9 +12,10 @@ a sphere seen from many directions are generated with the frequency-space forwar
     lobe width is recoverable only when the lighting has the frequencies the lobe passes).
 Writes stability_lighting.png, stability_brdf.png and stability.csv.
 
-``pipeline`` (a few minutes): small synthetic captures rendered by the independent angular-domain
-renderer (pipeline.core.render), run through samples -> fit -> relight with a sweep of SH order,
-data amount (sample stride, number of views) and fit mode; each configuration's time and accuracy
+``pipeline`` (about 20 minutes; --quick: 5): small synthetic captures rendered by the
+angular-domain renderer (pipeline.core.render: a Lambertian and a principled sphere), run through
+samples -> fit (the physical forward model) -> relight with a sweep of SH order, data amount
+(samples fitted, sample stride, number of views) and fit mode; each configuration's time and accuracy
 (lighting error per band against the ground truth, relight error on held-out views) go to
 bench.csv and bench.png (relight error against time, Pareto front marked).
 """
@@ -27,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.sh import band_of_index, num_coeffs, project_envmap
+from pipeline.core.sh import band_of_index, num_coeffs, order_of, project_envmap
 
 NOISE_LEVELS = (0.0, 0.001, 0.003, 0.01, 0.03, 0.1)
 
@@ -246,7 +247,7 @@ def stability_suite(quick: bool, repeat: int, output: Path = Path("bench")) -> l
 
 SCENES = {
     "diffuse": "lambert:albedo=0.6,0.5,0.4",
-    "glossy": "phong:albedo=0.3,0.3,0.3,specular=0.3,exponent=20",
+    "glossy": "principled:base_color=0.5,0.35,0.2,roughness=0.3",
 }
 REPORT_BANDS = 4   # lighting error columns band0 .. band4
 
@@ -273,16 +274,23 @@ def _pareto(times: np.ndarray, errors: np.ndarray) -> np.ndarray:
 
 
 def pipeline_configs(quick: bool) -> list[dict]:
-    """The sweep: per scene, SH order x fit mode at the full data, plus less data at order 4."""
-    orders = (2, 4) if quick else (2, 4, 8)
+    """The sweep on the physical fit: per scene and fit mode, the lighting's SH order (an integer:
+    that order only; 'auto': material chosen at order 8, lighting refitted up to 16) at the full
+    data, plus 'auto' on a third of the fit's samples, on every 3rd pixel and on 4 training views."""
+    orders = ("4", "auto") if quick else ("2", "4", "8", "auto")
     configs = []
     for scene in SCENES:
         for mode in ("known BRDF", "factorization"):
             for order in orders:
-                configs.append({"scene": scene, "mode": mode, "order": order, "train_views": 9, "stride": 1})
+                configs.append({"scene": scene, "mode": mode, "order": order, "train_views": 9, "stride": 1,
+                                "fit_samples": 30000})
             if not quick:
-                configs.append({"scene": scene, "mode": mode, "order": 4, "train_views": 9, "stride": 3})
-                configs.append({"scene": scene, "mode": mode, "order": 4, "train_views": 4, "stride": 1})
+                configs.append({"scene": scene, "mode": mode, "order": "auto", "train_views": 9, "stride": 1,
+                                "fit_samples": 10000})
+                configs.append({"scene": scene, "mode": mode, "order": "auto", "train_views": 9, "stride": 3,
+                                "fit_samples": 30000})
+                configs.append({"scene": scene, "mode": mode, "order": "auto", "train_views": 4, "stride": 1,
+                                "fit_samples": 30000})
     return configs
 
 
@@ -318,24 +326,30 @@ def run_pipeline_bench(out_dir: Path, quick: bool = False) -> tuple[list[dict], 
                                settings=stage_settings("samples", holdout=holdout, stride=config["stride"]))
             sample_runs[data_key] = (work, result.seconds)
         sample_work, samples_s = sample_runs[data_key]
-        name = f"{scene}_{config['mode'].replace(' ', '-')}_L{config['order']}_v{config['train_views']}_s{config['stride']}"
+        name = (f"{scene}_{config['mode'].replace(' ', '-')}_L{config['order']}_v{config['train_views']}"
+                f"_s{config['stride']}_n{config['fit_samples']}")
         work = scratch / scene / name
         work.mkdir(parents=True, exist_ok=True)
         for f in ("samples.npz",):
             if not (work / f).exists():
                 os.link(sample_work / f, work / f)
-        brdf = str(capture / "gt" / "brdf.json") if config["mode"] == "known BRDF" else SCENES[scene].split(":")[0]
+        brdf = str(capture / "gt" / "brdf.json") if config["mode"] == "known BRDF" else "auto"
         fit = run_stage("fit", capture=capture, work=work,
-                        settings=stage_settings("fit", brdf=brdf, order=str(config["order"]), lighting="unknown"))
+                        settings=stage_settings("fit", brdf=brdf, order=config["order"], lighting="unknown",
+                                                physical_samples=config["fit_samples"]))
         relit = run_stage("relight", capture=capture, work=work,
                           settings=stage_settings("relight", views=",".join(validation), compare=True, supersample=1))
         check = json.loads((work / "relight" / "relight.json").read_text())["compare"]
-        band_err, scale = _lighting_band_errors(read_lighting_sh(work / "fit" / "lighting_sh.json"),
+        fitted = read_lighting_sh(work / "fit" / "lighting_sh.json")
+        brdf_fit = json.loads((work / "fit" / "brdf.json").read_text())
+        band_err, scale = _lighting_band_errors(fitted,
                                                 read_lighting_sh(capture / "gt" / "lighting_sh.json"),
                                                 config["mode"] != "known BRDF")
         row = {**config, "samples_s": round(samples_s, 3), "fit_s": round(fit.seconds, 3),
                "time_s": round(samples_s + fit.seconds, 3), "relight_s": round(relit.seconds, 3),
                "relight_error": check["relative_error"], "lighting_scale": scale,
+               "fitted_order": order_of(fitted.shape[0]), "fitted_model": brdf_fit["model"],
+               "fitted_roughness": brdf_fit.get("roughness", ""),
                **{f"band{l}_error": float(e) for l, e in enumerate(band_err)}}
         rows.append(row)
         print(f"{name}: time {row['time_s']:.2f} s, relight error {100 * row['relight_error']:.2f}%")
@@ -356,6 +370,9 @@ def mark_pareto(rows: list[dict]) -> None:
             r["pareto"] = bool(f)
 
 
+ORDER_COLOUR = {"auto": 16}   # 'auto' ends at orders up to --max-order 16
+
+
 def plot_pareto(rows: list[dict], path: Path) -> Path:
     """bench.png: relight error on held-out views against time (samples + fit), one panel per scene,
     each scene's Pareto front marked."""
@@ -366,10 +383,11 @@ def plot_pareto(rows: list[dict], path: Path) -> Path:
     for ax, scene in zip(np.atleast_1d(axes), scenes):
         sub = [r for r in rows if r["scene"] == scene]
         for r in sub:
-            colour = plt.cm.viridis(min(int(r["order"]), 8) / 9)
+            colour = plt.cm.viridis(min(int(ORDER_COLOUR.get(r["order"], r["order"])), 16) / 17)
             ax.scatter(r["time_s"], r["relight_error"] * 100, marker=markers[r["mode"]], color=colour,
                        s=50, edgecolors="k" if r["pareto"] else "none", linewidths=1.2)
-            ax.annotate(f"L{r['order']} v{r['train_views']} s{r['stride']}", (r["time_s"], r["relight_error"] * 100),
+            ax.annotate(f"L{r['order']} v{r['train_views']} s{r['stride']} n{r['fit_samples'] // 1000}k",
+                        (r["time_s"], r["relight_error"] * 100),
                         fontsize=6, xytext=(3, 3), textcoords="offset points")
         front = sorted((r["time_s"], r["relight_error"] * 100) for r in sub if r["pareto"])
         if front:
@@ -380,7 +398,8 @@ def plot_pareto(rows: list[dict], path: Path) -> Path:
         ax.set_yscale("log")
         ax.set_xlabel("time: samples + fit (s, 2 shared cores)")
         ax.set_ylabel("relight error on held-out views (%, relative RMS)")
-        ax.set_title(f"{scene} scene (colour = SH order L; v = training views, s = sample stride)", fontsize=8)
+        ax.set_title(f"{scene} scene (colour = SH order L; v = training views, s = sample stride, "
+                     f"n = samples fitted)", fontsize=8)
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -399,8 +418,8 @@ def pipeline_suite(quick: bool, repeat: int, output: Path = Path("bench")) -> li
     out = []
     for r in rows:
         case = f"{r['scene']} {r['mode']}"
-        size = f"v{r['train_views']} s{r['stride']}"
+        size = f"v{r['train_views']} s{r['stride']} n{r['fit_samples']}"
         note = "pareto" if r["pareto"] else ""
-        out.append(BenchRow(case, r["order"], size, r["time_s"], "s (samples+fit)", note))
-        out.append(BenchRow(case, r["order"], size, r["relight_error"], "relight error", note))
+        out.append(BenchRow(case, r["fitted_order"], size, r["time_s"], "s (samples+fit)", note))
+        out.append(BenchRow(case, r["fitted_order"], size, r["relight_error"], "relight error", note))
     return out + [BenchRow("outputs", 0, "", len(written), "files", ", ".join(str(p) for p in written))]

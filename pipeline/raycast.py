@@ -1,6 +1,7 @@
 """The stages' ray casting against the capture's mesh (trimesh's Embree intersector, embreex):
 first hits of camera rays as surface points — face, point, barycentrics, shading normal by
-pipeline.core.surface's one rule — and occlusion tests.  Used by the samples stage and relight;
+pipeline.core.surface's one rule — occlusion tests, and the surface a pixel sees (its footprint).
+Used by the samples stage, the fit and relight;
 the renderer (pipeline.core.render) holds its own Embree scenes for shadow and bounce rays and
 takes its surface points from the same pipeline.core.surface.
 """
@@ -11,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.core.camera import camera_center, pixel_rays
 from pipeline.core.surface import barycentric, interpolated_normals
 
 
@@ -47,3 +49,24 @@ def first_hits(mesh, rays, origins: np.ndarray, directions: np.ndarray) -> Hits:
 def occluded(rays, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """Whether each ray (origins, unit directions (N, 3)) hits the mesh of ``rays`` at all (N,) bool."""
     return np.asarray(rays.intersects_any(origins, directions), bool)
+
+
+def pixel_footprints(mesh, rays, camera, R: np.ndarray, t: np.ndarray, pixels: np.ndarray, n: int,
+                     normals: np.ndarray, view_dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The surface each pixel integrates: shading normals and unit view directions (P, n*n, 3) at
+    the hits of an n x n grid of rays through each pixel (row, col) of ``pixels`` (P, 2) — a
+    one-pixel box filter, as a sensor's pixel or a path tracer's box filter averages.  A ray that
+    misses the mesh takes the pixel's own ``normals`` / ``view_dirs`` (P, 3) (the centre's)."""
+    pixels = np.asarray(pixels)
+    k = n * n
+    offsets = (np.arange(n) + 0.5) / n - 0.5
+    ox, oy = (a.ravel() for a in np.meshgrid(offsets, offsets))
+    uv = np.stack([(pixels[:, 1, None] + 0.5 + ox).ravel(), (pixels[:, 0, None] + 0.5 + oy).ravel()], axis=1)
+    out_n = np.repeat(np.asarray(normals, float)[:, None], k, axis=1).reshape(-1, 3)
+    out_v = np.repeat(np.asarray(view_dirs, float)[:, None], k, axis=1).reshape(-1, 3)
+    origins, dirs = pixel_rays(camera, R, t, uv)
+    h = first_hits(mesh, rays, origins, dirs)
+    out_n[h.ray] = h.normal
+    view = camera_center(R, t) - h.point
+    out_v[h.ray] = view / np.linalg.norm(view, axis=1, keepdims=True)
+    return out_n.reshape(-1, k, 3), out_v.reshape(-1, k, 3)

@@ -121,8 +121,7 @@ def stage_command(name: str) -> SimpleNamespace:
 
 def image_keys(capture: Path, work: Path) -> list[str]:
     """Sorted image keys of the capture's posed views (WORK/poses.json, else CAPTURE/poses.json)."""
-    from pipeline.io.poses import read_poses
-    from stages.samples import poses_path
+    from pipeline.io.poses import poses_path, read_poses
 
     return sorted(read_poses(poses_path(capture, work)).images)
 

@@ -93,6 +93,12 @@ class Settings:
     physical_samples: int = setting(30000, "principled fit: samples used (random subset)")
     lobe_samples: int = setting(32, "principled fit: GGX lobe samples per sample in the specular transfer")
     bounce_samples: int = setting(64, "principled fit: occlusion / bounce rays per vertex (shadows, interreflection)")
+    noise_model: str = setting("measured", "principled fit: 'measured' (samples weighted by 1 / sigma^2 of the "
+                                           "Poisson-Gaussian noise level measured on the photos: bright pixels are "
+                                           "noisier) or 'uniform' (equal weights)")
+    footprint: int = setting(2, "principled fit: n x n rays per sample's pixel; the specular of sharp lights "
+                                "(directional sources, a known map's bright pixels) is averaged over the surface "
+                                "they hit, as the pixel averages it (1: the pixel centre only)")
     blas_threads: int = setting(1, "BLAS threads during the fit (0 = library default); the fit's many small "
                                    "products ran 7x slower with multithreaded OpenBLAS on a shared 2-core machine")
 
@@ -134,6 +140,10 @@ class Settings:
         if self.max_sources < 0 or self.physical_samples < 100 or self.lobe_samples < 1 or self.bounce_samples < 1:
             raise UserError("--max-sources must be >= 0, --physical-samples >= 100, --lobe-samples and "
                             "--bounce-samples >= 1")
+        if self.noise_model not in ("measured", "uniform"):
+            raise UserError(f"--noise-model must be 'measured' or 'uniform', got {self.noise_model!r}")
+        if not 1 <= self.footprint <= 8:
+            raise UserError(f"--footprint must be 1 to 8 rays per pixel axis, got {self.footprint}")
         if self.blas_threads < 0:
             raise UserError(f"--blas-threads must be >= 0, got {self.blas_threads}")
         if self.max_samples < 100 or self.chunk < 100 or self.env_height < 4 or self.iterations < 1:
@@ -153,10 +163,11 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             paths.append(Path(spec))
     if (Path(capture) / "capture.toml").exists():
         paths.append(Path(capture) / "capture.toml")
-    if settings.albedo != "uniform":
-        from pipeline.io.mesh import MESH_NAMES
+    from pipeline.io.mesh import MESH_NAMES
 
-        paths += [Path(capture) / n for n in MESH_NAMES if (Path(capture) / n).exists()][:1]
+    # the mesh (the physical forward model, textured albedo) and the poses (the samples' pixel footprints)
+    paths += [Path(capture) / n for n in MESH_NAMES if (Path(capture) / n).exists()][:1]
+    paths += [p for p in (Path(work) / "poses.json", Path(capture) / "poses.json") if p.exists()][:1]
     return paths
 
 

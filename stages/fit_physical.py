@@ -31,7 +31,7 @@ from scipy.optimize import minimize_scalar
 from pipeline.core import material_fit, prt, solve
 from pipeline.core.envmap import add_sources
 from pipeline.core.material import MIN_ROUGHNESS, Principled, material_dict, principled_from_dict
-from pipeline.core.noise import pixel_noise_sigma
+from pipeline.core.noise import inverse_variance_weights, noise_level_function, pixel_noise_sigma
 from pipeline.core.render import Renderer
 from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, sh_of_sources
 from pipeline.errors import UserError
@@ -39,8 +39,10 @@ from pipeline.io.brdf import diffuse_color, write_brdf
 from pipeline.io.images import write_image
 from pipeline.io.lighting import write_lighting_sh
 from pipeline.io.mesh import mesh_path, read_mesh
+from pipeline.io.poses import poses_path, read_poses
 from pipeline.io.report import write_report
 from pipeline.io.samples import iter_sample_chunks
+from pipeline.raycast import intersector, pixel_footprints
 from stages.fit import (DEFAULT_ALBEDO, albedo_from_shading, known_lighting_path, prior_choices, write_plots,
                         write_vertex_albedo)
 
@@ -49,9 +51,14 @@ SOURCES_NOTE = ("'coeffs' is the whole lighting to this order, the directional '
 FIELDS = ("face", "bary", "view_dir", "radiance", "image_id", "weight", "normal", "pixel")
 
 
-def load_samples(path: Path, settings, n_faces: int) -> tuple[dict, float]:
+def load_samples(path: Path, settings, n_faces: int) -> tuple[dict, dict]:
     """At most ``physical_samples`` usable samples (positive weight, finite, on the mesh), and the
-    photos' pixel noise sigma measured on all of them (pipeline.core.noise; NaN if unmeasurable)."""
+    photos' noise measured on all of them (pipeline.core.noise): {"sigma": the pixel noise (NaN if
+    unmeasurable), "a", "b": the Poisson-Gaussian noise level sigma^2 = a + b B, "weighting"}.
+    With ``--noise-model measured`` each sample's weight is divided by its noise variance
+    (normalized at the median radiance), a floored at (noise_floor x RMS radiance)^2: a highlight
+    pixel 100x the median is ~100x noisier (shot noise, a path tracer's), and unweighted, a few
+    of them at a sphere's rim ruled the roughness (the Cycles night sphere: 0.176 for 0.15)."""
     parts = []
     for chunk in iter_sample_chunks(path, settings.chunk, FIELDS):
         ok = (chunk["weight"] > 0) & np.all(np.isfinite(chunk["radiance"]), axis=1)
@@ -61,11 +68,41 @@ def load_samples(path: Path, settings, n_faces: int) -> tuple[dict, float]:
     n = len(data.get("weight", []))
     if n == 0:
         raise UserError(f"{path}: no samples with positive weight on the mesh; check the samples stage's drop counts")
-    noise = pixel_noise_sigma(data["radiance"], data["image_id"], data["pixel"])
+    noise = {"sigma": pixel_noise_sigma(data["radiance"], data["image_id"], data["pixel"]), "weighting": "uniform"}
+    if settings.noise_model == "measured":
+        a, b = noise_level_function(data["radiance"], data["image_id"], data["pixel"])
+        if np.isfinite(a) and np.isfinite(b):
+            a = max(a, (settings.noise_floor * float(np.sqrt(np.mean(data["radiance"].astype(float) ** 2)))) ** 2)
+            data["weight"] = data["weight"] * inverse_variance_weights(data["radiance"], a, b).astype(np.float32)
+            noise.update(a=a, b=b, weighting="1 / (a + b B), B the sample's channel-mean radiance, normalized at the "
+                                              "median; a floored at (noise_floor x RMS radiance)^2")
+        else:
+            noise["weighting"] = "uniform (the noise level could not be measured: too few neighbouring samples)"
     if n > settings.physical_samples:
         keep = np.sort(np.random.default_rng(settings.seed).choice(n, settings.physical_samples, replace=False))
         data = {k: v[keep] for k, v in data.items()}
     return data, noise
+
+
+def sample_footprints(capture: Path, work: Path, mesh, data: dict, keys: list[str], n: int) -> tuple | None:
+    """Normals and view directions (N, n*n, 3) over each sample's pixel (pipeline.raycast
+    .pixel_footprints, through the poses the samples were made with); None for n = 1."""
+    if n <= 1:
+        return None
+    path = poses_path(capture, work)
+    poses = read_poses(path)
+    rays = intersector(mesh)
+    normals = np.zeros((data["face"].size, n * n, 3))
+    views = np.zeros_like(normals)
+    for i in np.unique(data["image_id"]):
+        key = keys[int(i)]
+        if key not in poses.images:
+            raise UserError(f"{path} has no pose for {key}, which samples.npz was made from; run `sigrend samples` again")
+        sel = np.flatnonzero(data["image_id"] == i)
+        pose = poses.images[key]
+        normals[sel], views[sel] = pixel_footprints(mesh, rays, poses.camera_of(key), pose.R, pose.t,
+                                                    data["pixel"][sel], n, data["normal"][sel], data["view_dir"][sel])
+    return normals, views
 
 
 KNOWN_SOURCES = 32    # a known map's brightest pixels kept as directional sources, the rest in SH
@@ -241,13 +278,14 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     timings: dict[str, float] = {}
     mesh = read_mesh(mesh_path(capture))
     samples_path = Path(work) / "samples.npz"
-    data, pixel_noise = load_samples(samples_path, settings, len(mesh.faces))
+    data, noise = load_samples(samples_path, settings, len(mesh.faces))
     order = int(settings.order) if settings.order != "auto" else settings.factor_order
     orders = [order] if settings.order != "auto" else list(range(order + 1))
     top = max(order, settings.max_order) if settings.order == "auto" else order   # the final lighting's orders
     t0 = time.perf_counter()
     geo = prt.geometry(mesh, data["face"], data["bary"], data["view_dir"].astype(float), top,
-                       bounce_samples=settings.bounce_samples, seed=settings.seed)
+                       bounce_samples=settings.bounce_samples, seed=settings.seed,
+                       footprint=sample_footprints(capture, work, mesh, data, keys, settings.footprint))
     timings["transfer"] = time.perf_counter() - t0
     obs = material_fit.Observations(data["radiance"].astype(float), data["weight"].astype(float),
                                     (data["image_id"] % settings.folds).astype(np.int64))
@@ -338,7 +376,7 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     report = {"mode": mode, "forward_model": "physical (pipeline.core.prt: shadows, interreflection, GGX)",
               "order": order_of(coeffs.shape[0]), "brdf_model": brdf["model"], "brdf": brdf,
               "bands": best.lighting.bands, "labels": {b["l"]: b["label"] for b in best.lighting.bands},
-              "noise_sigma": best.lighting.noise_sigma, "pixel_noise": _pixel_noise_note(pixel_noise, best.lighting),
+              "noise_sigma": best.lighting.noise_sigma, "pixel_noise": _pixel_noise_note(noise, best.lighting),
               "candidates": table, "lighting_orders": best.orders, "lighting_refit": refit,
               "sources": sources, "samples": {"used": int(len(obs.weight))},
               "roughness_interval": None if interval is None or one_fold else list(interval),
@@ -387,12 +425,13 @@ def _directions(fit: material_fit.MaterialFit) -> np.ndarray:
     return np.zeros((0, 3)) if fit.sources is None else fit.sources.directions
 
 
-def _pixel_noise_note(sigma: float, lighting: solve.LightingFit) -> dict:
+def _pixel_noise_note(noise: dict, lighting: solve.LightingFit) -> dict:
     """The photos' own noise (pipeline.core.noise) beside the residual-based noise_sigma that
-    sets the labels and ridges (it holds model error too), and each band's snr against it: what
-    the data would determine if the forward model were exact."""
+    sets the labels and ridges (it holds model error too), each band's snr against it (what the
+    data would determine if the forward model were exact), and the samples' noise weighting."""
+    sigma = noise["sigma"]
     ratio = lighting.noise_sigma / sigma if np.isfinite(sigma) and sigma > 0 else float("nan")
-    return {"sigma": sigma, "snr_per_band": {b["l"]: b["snr"] * ratio for b in lighting.bands},
+    return {**noise, "snr_per_band": {b["l"]: b["snr"] * ratio for b in lighting.bands},
             "note": "noise_sigma (the labels' and ridges' noise) is the fit's residual, model error included; "
                     "measured alone the noise ruled the unknown-lighting fit of a glossy teapot worse (docs/fit.md)"}
 

@@ -54,11 +54,11 @@ from pipeline.io.brdf import diffuse_color, read_brdf
 from pipeline.io.images import preview_exposure, read_envmap, write_image, write_preview
 from pipeline.io.lighting import read_lighting_parts, read_lighting_sh
 from pipeline.io.mesh import read_vertex_albedo
-from pipeline.io.poses import Poses, read_poses
+from pipeline.io.poses import Poses, poses_path, read_poses
 from pipeline.raycast import first_hits, intersector
 from pipeline.settings import setting
 from pipeline.workdir import make_folder, write_json
-from stages.samples import image_source, linear_manifest, load_linear_image, load_mesh, mesh_path, poses_path
+from stages.samples import image_source, linear_manifest, load_linear_image, load_mesh, mesh_path
 
 DIFFUSE_ORDER = 16         # |Â_l| beyond l = 16 is < 0.15% of Â_0: irradiance of an env map to that level
 LOBE_CUTOFF = 1e-3         # a lobe "needs" band l while |A_l| > LOBE_CUTOFF * A_0

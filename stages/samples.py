@@ -43,7 +43,7 @@ from pipeline.io.camera_decode import probe
 from pipeline.io.images import read_image
 from pipeline.io.linear_manifest import linear_dir, manifest_path, read_linear_image, read_manifest, resolve_key
 from pipeline.io.mesh import check_mesh_quality, mesh_path, read_mesh
-from pipeline.io.poses import Poses, read_poses
+from pipeline.io.poses import Poses, poses_path, read_poses
 from pipeline.io.samples import SAMPLE_FIELDS, SamplesWriter
 from pipeline.raycast import first_hits, occluded
 from pipeline.settings import setting, settings_dict
@@ -90,15 +90,6 @@ class Settings:
 
 # ---------------------------------------------------------------------------------------------
 # where things are
-
-
-def poses_path(capture: Path, work: Path) -> Path:
-    """WORK/poses.json when the poses stage has run, else the capture's poses.json."""
-    for path in (Path(work) / "poses.json", Path(capture) / "poses.json"):
-        if path.exists():
-            return path
-    raise UserError(f"no poses: neither {Path(work) / 'poses.json'} nor {Path(capture) / 'poses.json'} exists; "
-                    "run `sigrend poses` first or add poses.json to the capture")
 
 
 def linear_manifest(work: Path) -> dict | None:

@@ -19,7 +19,7 @@ The material is found around that:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -162,6 +162,8 @@ def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray
     5 x 5 local grids, each 2.5x finer, on all samples with exact shadow rays (prt.source_transfer)."""
     r = geo.renderer
     dirs = r.lights.directions
+    # located at the pixel centres (16x cheaper): a pixel footprint blurs a highlight, it does not move it
+    centre = replace(geo, footprint=None)
     layer = prt.diffuse_layer(material, geo.mu_out)
     kd = layer * base / np.pi
     num = np.zeros((len(dirs), 3))
@@ -193,7 +195,7 @@ def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray
         off = np.linspace(-step, step, 5)
         cand = best[None] + off[:, None, None] * t1 + off[None, :, None] * t2
         cand = cand.reshape(-1, 3) / np.linalg.norm(cand.reshape(-1, 3), axis=1, keepdims=True)
-        st = prt.source_transfer(geo, material, cand)
+        st = prt.source_transfer(centre, material, cand)
         sc = _source_score(_source_columns(geo, layer, st, None, base), residual, weight)
         if sc.max() > best_score:
             best, best_score = cand[int(np.argmax(sc))], float(sc.max())
@@ -576,7 +578,7 @@ def fit_to_map(geo: prt.Geometry, scene, material: Principled | None, obs: Obser
     def parts(b) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(diffuse, specular, interreflected irradiance) at base colour b."""
         r = scene.with_brdf(material_dict(material, b))
-        d, sp = r.shade_parts(geo.faces, geo.bary, geo.view_dirs, direct)
+        d, sp = r.shade_parts(geo.faces, geo.bary, geo.view_dirs, direct, geo.footprint)
         return d * scale, sp * scale, r._indirect_at(geo.tri, geo.bary)
 
     if material is not None and material.metallic > 0:

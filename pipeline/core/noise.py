@@ -16,11 +16,9 @@ import numpy as np
 MAD_TO_SIGMA = 1.4826          # sigma / MAD of a normal distribution
 
 
-def pixel_noise_sigma(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray) -> float:
-    """Per-sample noise sigma (radiance units, RMS over channels) of samples (N, 3) at integer
-    ``pixel`` (N, 2) (x, y) of image ``image_id`` (N,), from the second differences of the
-    samples whose left and right (or upper and lower) neighbours are samples too; NaN when
-    there are none (e.g. samples thinned before this was called)."""
+def _second_differences(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Second differences (M, 3) of the samples whose left and right (or upper and lower)
+    neighbours are samples too, and the radiance level (M,) (channel mean) of their centres."""
     radiance = np.asarray(radiance, float)
     x = np.asarray(pixel[:, 0], np.int64)
     y = np.asarray(pixel[:, 1], np.int64)
@@ -33,14 +31,68 @@ def pixel_noise_sigma(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndar
         i = np.clip(np.searchsorted(keys, k), 0, len(keys) - 1)
         return order[i], keys[i] == k
 
-    second = []
+    second, level = [], []
     for step in (1, span):                       # along rows, along columns
         left, has_left = at(key - step)
         right, has_right = at(key + step)
         both = has_left & has_right
         second.append(radiance[left[both]] - 2.0 * radiance[both] + radiance[right[both]])
-    d2 = np.concatenate(second)
+        level.append(radiance[both].mean(axis=1))
+    return np.concatenate(second), np.concatenate(level)
+
+
+def _mad_variance(d2: np.ndarray) -> np.ndarray:
+    """Per-channel noise variance (3,) from second differences (M, 3) by their MAD."""
+    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
+    return (MAD_TO_SIGMA * mad) ** 2 / 6.0
+
+
+def pixel_noise_sigma(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray) -> float:
+    """Per-sample noise sigma (radiance units, RMS over channels) of samples (N, 3) at integer
+    ``pixel`` (N, 2) of image ``image_id`` (N,), from the second differences of the samples whose
+    left and right (or upper and lower) neighbours are samples too; NaN when there are none (e.g.
+    samples thinned before this was called)."""
+    d2, _ = _second_differences(radiance, image_id, pixel)
     if len(d2) == 0:
         return float("nan")
-    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
-    return float(np.sqrt(np.mean((MAD_TO_SIGMA * mad) ** 2 / 6.0)))
+    return float(np.sqrt(np.mean(_mad_variance(d2))))
+
+
+NLF_BINS = 10            # radiance-level bins (equal counts) of the noise level function
+NLF_TOP_QUANTILE = 0.99  # levels above this are left out: there a highlight's curvature is signal, not noise
+
+
+def noise_level_function(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray) -> tuple[float, float]:
+    """(a, b) of the Poisson-Gaussian noise model sigma^2(B) = a + b B (Foi et al. 2008, "Practical
+    Poissonian-Gaussian noise modeling"; B the channel-mean radiance, a, b >= 0): the MAD variance
+    of second differences in NLF_BINS bins of equal counts below the NLF_TOP_QUANTILE level,
+    fitted by non-negative least squares in relative terms (each bin's row divided by its
+    variance).  A path tracer's noise grows with B as a camera's shot noise does.  (NaN, NaN)
+    when fewer than 3 bins can be measured."""
+    from scipy.optimize import nnls
+
+    d2, level = _second_differences(radiance, image_id, pixel)
+    if len(d2) < 20 * NLF_BINS:
+        return float("nan"), float("nan")
+    keep = level <= np.quantile(level, NLF_TOP_QUANTILE)
+    d2, level = d2[keep], level[keep]
+    edges = np.quantile(level, np.linspace(0, 1, NLF_BINS + 1))
+    rows, var = [], []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = (level >= lo) & (level <= hi)
+        v = float(np.mean(_mad_variance(d2[m])))
+        if m.sum() >= 20 and v > 0:
+            rows.append([1.0, float(np.mean(level[m]))])
+            var.append(v)
+    if len(rows) < 3:
+        return float("nan"), float("nan")
+    rows, var = np.array(rows), np.array(var)
+    (a, b), _ = nnls(rows / var[:, None], np.ones(len(var)))
+    return float(a), float(b)
+
+
+def inverse_variance_weights(radiance: np.ndarray, a: float, b: float) -> np.ndarray:
+    """Weights (N,) proportional to 1 / sigma^2(B) of the noise level a + b B (B the samples' (N, 3)
+    channel-mean radiance, clipped at 0), normalized to 1 at the median B."""
+    level = np.maximum(np.asarray(radiance, float).mean(axis=1), 0.0)
+    return (a + b * float(np.median(level))) / (a + b * level)

@@ -37,7 +37,7 @@ import numpy as np
 from pipeline.core.material import Principled
 from pipeline.core.render import Renderer, bounce_series
 from pipeline.core.sh import band_of_index, num_coeffs, sh_basis
-from pipeline.core.shading import front_cos, specular_over_directions, specular_samples
+from pipeline.core.shading import front_cos, specular_over_directions, specular_over_footprint, specular_samples
 
 
 @dataclass
@@ -45,7 +45,9 @@ class Geometry:
     """What the transfer needs of the samples and the mesh, computed once: ``renderer`` (a
     uniform-map Renderer: direction set, visibility, bounce rays), the samples' vertex ids
     (N, 3), barycentrics (N, 3), faces (N,), unit normals and view directions (N, 3), mu_o (N,),
-    the direct transfer D (N, K) and the vertices' direct transfer (V, K)."""
+    the direct transfer D (N, K) and the vertices' direct transfer (V, K); ``footprint``: the
+    normals and view directions (N, F, 3) of F points over each sample's pixel, or None (the
+    centre only) — the specular of directional sources is averaged over it."""
 
     renderer: Renderer
     order: int
@@ -57,6 +59,7 @@ class Geometry:
     mu_out: np.ndarray
     direct: np.ndarray
     vertex_direct: np.ndarray
+    footprint: tuple[np.ndarray, np.ndarray] | None = None
     _bounces: dict = field(default_factory=dict, repr=False)
 
     def bounce_matrices(self, material: Principled | None) -> list:
@@ -70,9 +73,11 @@ class Geometry:
 
 
 def geometry(mesh, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, order: int, *,
-             cell_height: int = 16, bounce_samples: int = 64, seed: int = 0) -> Geometry:
+             cell_height: int = 16, bounce_samples: int = 64, seed: int = 0,
+             footprint: tuple[np.ndarray, np.ndarray] | None = None) -> Geometry:
     """Direct transfer of samples on ``mesh`` (faces (N,), barycentrics (N, 3), unit view
-    directions (N, 3)) and of its vertices, for SH lighting up to ``order``."""
+    directions (N, 3)) and of its vertices, for SH lighting up to ``order``; ``footprint``: see
+    Geometry."""
     env = np.ones((cell_height, 2 * cell_height, 3), np.float32)
     r = Renderer(mesh, env, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, cell_height=cell_height,
                  bounce_samples=bounce_samples, seed=seed)
@@ -95,7 +100,7 @@ def geometry(mesh, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, o
     rays = r.bounce_rays()
     blocked = sh_basis(rays.directions, order) * (np.pi / rays.per_vertex)
     vertex_direct = r._open_irradiance(power) - rays.per_owner(blocked, len(mesh.vertices))
-    return Geometry(r, order, faces, tri, bary, normals, view_dirs, mu_out, direct, vertex_direct)
+    return Geometry(r, order, faces, tri, bary, normals, view_dirs, mu_out, direct, vertex_direct, footprint)
 
 
 def diffuse_layer(material: Principled | None, mu_out: np.ndarray) -> np.ndarray:
@@ -198,7 +203,8 @@ class SourceTransfer:
 
 
 def source_transfer(geo: Geometry, material: Principled | None, directions: np.ndarray) -> SourceTransfer:
-    """SourceTransfer of unit directions (J, 3) with exact shadow rays from the samples and vertices."""
+    """SourceTransfer of unit directions (J, 3) with exact shadow rays from the samples and vertices;
+    the specular averaged over the samples' pixel footprints when the geometry has them."""
     r = geo.renderer
     d = np.atleast_2d(np.asarray(directions, float))
     n, j = geo.faces.size, d.shape[0]
@@ -220,6 +226,9 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
         vdirect[vl, i] = vcos[vl] * ~r._shadow_rays.intersects_any(vpts[vl], np.broadcast_to(d[i], (vl.size, 3)))
         if material is not None:
             def lobe(base):
+                if geo.footprint is not None:
+                    return specular_over_footprint(material, *geo.footprint, d[i:i + 1], np.ones((1, 3)),
+                                                   vis[:, None], -1.0, base)
                 return specular_over_directions(material, geo.normals, geo.view_dirs, d[i:i + 1], np.ones((1, 3)),
                                                 vis[:, None], -1.0, base)
             spec[:, i] = lobe(np.zeros((n, 3)) if metal else None)

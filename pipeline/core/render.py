@@ -51,7 +51,7 @@ from pipeline.core.envmap import (downsample, equirect_directions, equirect_soli
 from pipeline.core.material import principled_from_dict
 from pipeline.core.surface import barycentric, interpolated_normals
 from pipeline.core.shading import (EnvPyramid, front_cos, lobe_support_cos, specular_over_directions,
-                                   specular_samples, stratified_unit_square, tangent_frames)
+                                   specular_over_footprint, specular_samples, stratified_unit_square, tangent_frames)
 
 _VIS_HORIZON = -0.3  # shadow rays only for directions with n_vertex . w > this (others: occluded)
 _LOBE_CUT_SIGMAS = 4.0  # microfacet support: tan(theta_h) < 4 sigma, D > exp(-16) of its peak
@@ -531,13 +531,16 @@ class Renderer:
         return irradiance, bright_vis
 
     def shade_parts(self, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray,
-                    direct: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                    direct: tuple[np.ndarray, np.ndarray] | None = None,
+                    footprint: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """shade() of a Lambert or principled material as (diffuse radiance per unit base colour
         (P, 3), specular radiance (P, 3)): radiance = base colour * diffuse + specular.  Diffuse:
         kd(mu_o) / pi (direct over the light set + interreflection); specular: exactly over the
         bright pixels and by filtered importance sampling elsewhere.  The interreflection (and a
         metal's F0, the object's glow in its reflections) are those of this renderer's base colour.
-        ``direct``: direct_parts() of these points, when computed already (it is material-free)."""
+        ``direct``: direct_parts() of these points, when computed already (it is material-free).
+        ``footprint``: normals and view directions (P, F, 3) over each point's pixel: the bright
+        pixels' specular is averaged over them (shading.specular_over_footprint)."""
         tri = np.asarray(self.mesh.faces)[faces]
         normals = self._normals_at(faces, bary)
         base = self._base(tri, bary)
@@ -552,10 +555,12 @@ class Renderer:
         per_chunk = max(1, self.chunk_pairs // max(nb, 1))
         for s in range(0, faces.shape[0] if nb else 0, per_chunk):
             sl = slice(s, s + per_chunk)
-            specular[sl] = specular_over_directions(
-                self.material, normals[sl], view_dirs[sl], self.lights.directions[-nb:], self.lights.power[-nb:],
-                bright_vis[sl] if self.shadows else None, self._spec_cut_cos,
-                None if self.vertex_albedo is None else base[sl])
+            args = (self.lights.directions[-nb:], self.lights.power[-nb:], bright_vis[sl] if self.shadows else None,
+                    self._spec_cut_cos, None if self.vertex_albedo is None else base[sl])
+            if footprint is None:
+                specular[sl] = specular_over_directions(self.material, normals[sl], view_dirs[sl], *args)
+            else:
+                specular[sl] = specular_over_footprint(self.material, footprint[0][sl], footprint[1][sl], *args)
         front = mu_out > 0
         if front.any():
             specular[front] += self._specular_sampled(faces[front], bary[front], normals[front], view_dirs[front],

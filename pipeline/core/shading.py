@@ -149,20 +149,83 @@ def specular_over_directions(material: Principled, normal: np.ndarray, view_dir:
     within the lobe's support (cos to the mirror direction > ``cut_cos``)."""
     n = np.asarray(normal, float)
     v = np.asarray(view_dir, float)
+    pi, di, vis = _lobe_pairs(n, v, dirs, visibility, cut_cos)
+    return _lobe_sum(material, n, v, dirs, power, pi, di, vis, base_color)
+
+
+FOOTPRINT_SHARPNESS = 0.25   # a footprint whose mirror directions spread less than this x alpha (rad) is shaded
+                             # at its mean: a box of width s over a lobe of width w changes it by ~ s^2 / 24 w^2
+
+
+def specular_over_footprint(material: Principled, normals: np.ndarray, view_dirs: np.ndarray, dirs: np.ndarray,
+                            power: np.ndarray, visibility: np.ndarray | None, cut_cos: float,
+                            base_color: np.ndarray | None = None) -> np.ndarray:
+    """specular_over_directions (P, 3) averaged over each point's pixel footprint: ``normals`` and
+    ``view_dirs`` (P, K, 3) at K points of the surface one pixel sees (pipeline.raycast
+    .pixel_footprints), ``visibility`` (P, D) shared by them.  A highlight of a small source a few
+    pixels wide is the lobe averaged over the pixel, not the lobe at its centre: at the centre only,
+    the Cycles night sphere's highlights fit roughness 0.17 for 0.15 under the true lighting.
+    The pairs are found once, around the footprint's mean mirror direction with the support
+    widened by the footprint's own spread of mirror directions; a footprint narrow against the
+    lobe (FOOTPRINT_SHARPNESS) and on one side of the horizon is shaded once, at its mean normal
+    and view direction."""
+    n = np.asarray(normals, float)
+    v = np.asarray(view_dirs, float)
+    k = n.shape[1]
+    mirror = 2.0 * np.einsum("pkc,pkc->pk", n, v)[..., None] * n - v                  # (P, K, 3)
+    mean = mirror.sum(axis=1)
+    mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
+    spread = np.arccos(np.clip(np.einsum("pkc,pc->pk", mirror, mean).min(axis=1), -1.0, 1.0))    # (P,)
+    out = np.zeros((n.shape[0], 3))
+    front = np.einsum("pkc,pkc->pk", n, v) > 0
+    small = (spread <= FOOTPRINT_SHARPNESS * material.alpha) & (front.all(axis=1) | ~front.any(axis=1))
+    narrow = np.flatnonzero(small)
+    if narrow.size:
+        n0, v0 = (a[narrow].sum(axis=1) for a in (n, v))
+        n0, v0 = (a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12) for a in (n0, v0))
+        out[narrow] = specular_over_directions(material, n0, v0, dirs, power,
+                                               None if visibility is None else visibility[narrow], cut_cos,
+                                               None if base_color is None else np.asarray(base_color)[narrow])
+    wide = np.flatnonzero(~small)
+    if wide.size == 0:
+        return out
+    widened = np.cos(np.minimum(np.pi, np.arccos(np.clip(cut_cos, -1.0, 1.0)) + spread[wide]))
+    pi, di = np.nonzero(mean[wide] @ dirs.T > widened[:, None])
+    vis = None
+    if visibility is not None:
+        vis = visibility[wide][pi, di]
+        keep = vis > 0
+        pi, di, vis = pi[keep], di[keep], vis[keep]
+    base = None if base_color is None else np.asarray(base_color)[wide]
+    out[wide] = sum(_lobe_sum(material, n[wide, i], v[wide, i], dirs, power, pi, di, vis, base) for i in range(k)) / k
+    return out
+
+
+def _lobe_pairs(n: np.ndarray, v: np.ndarray, dirs: np.ndarray, visibility: np.ndarray | None, cut_cos: float):
+    """(point ids, direction ids, their visibility or None) of the pairs within the lobe's support."""
     mu_out = np.einsum("pk,pk->p", n, v)
     r = 2.0 * mu_out[:, None] * n - v
     pi, di = np.nonzero((r @ dirs.T > cut_cos) & (n @ dirs.T > 0) & (mu_out[:, None] > 0))
-    out = np.zeros((n.shape[0], 3))
-    if pi.size == 0:
-        return out
+    vis = None
     if visibility is not None:  # (P, D) bool, or weights in [0, 1]
         vis = visibility[pi, di]
         keep = vis > 0
         pi, di, vis = pi[keep], di[keep], vis[keep]
+    return pi, di, vis
+
+
+def _lobe_sum(material: Principled, n: np.ndarray, v: np.ndarray, dirs: np.ndarray, power: np.ndarray,
+              pi: np.ndarray, di: np.ndarray, vis: np.ndarray | None, base_color: np.ndarray | None) -> np.ndarray:
+    """sum over the pairs (pi, di) of power V f_spec max(0, n.w) per point (P, 3); pairs with
+    either direction below the surface give 0 (ggx_lobe_cos)."""
+    out = np.zeros((n.shape[0], 3))
+    if pi.size == 0:
+        return out
+    mu_out = np.clip(np.einsum("pk,pk->p", n[pi], v[pi]), 0.0, 1.0)
     lobe, cos_oh = ggx_lobe_cos(n[pi], dirs[di], v[pi], material.alpha)
-    if visibility is not None and vis.dtype != bool:
+    if vis is not None and vis.dtype != bool:
         lobe = lobe * vis
-    fres = material.specular_fresnel(cos_oh, mu_out[pi], None if base_color is None else np.asarray(base_color, float)[pi])
+    fres = material.specular_fresnel(cos_oh, mu_out, None if base_color is None else np.asarray(base_color, float)[pi])
     contrib = fres * (lobe[:, None] * power[di])
     for c in range(3):
         out[:, c] = np.bincount(pi, weights=contrib[:, c], minlength=n.shape[0])

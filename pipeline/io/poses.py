@@ -29,6 +29,15 @@ class Poses:
         return self.cameras[self.images[key].camera]
 
 
+def poses_path(capture: Path, work: Path) -> Path:
+    """WORK/poses.json when the poses stage has run, else the capture's poses.json."""
+    for path in (Path(work) / "poses.json", Path(capture) / "poses.json"):
+        if path.exists():
+            return path
+    raise UserError(f"no poses: neither {Path(work) / 'poses.json'} nor {Path(capture) / 'poses.json'} exists; "
+                    "run `sigrend poses` first or add poses.json to the capture")
+
+
 def read_poses(path: str | os.PathLike) -> Poses:
     """Read and validate poses.json; any problem -> UserError naming the file and the entry."""
     path = Path(path)

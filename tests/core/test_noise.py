@@ -35,3 +35,26 @@ def test_pixel_noise_sigma_needs_neighbouring_samples():
     radiance, ids, pixel = _samples(0.01)
     every_other = (pixel[:, 0] % 2 == 0) & (pixel[:, 1] % 2 == 0)
     assert np.isnan(pixel_noise_sigma(radiance[every_other], ids[every_other], pixel[every_other]))
+
+
+@pytest.mark.parametrize("a, b", [(1e-6, 4e-4), (4e-4, 0.0), (0.0, 1e-3)])
+def test_noise_level_function_recovers_poisson_gaussian_noise(a, b):
+    """sigma^2(B) = a + b B (Foi et al. 2008) on the smooth image with highlights and an edge:
+    the fitted (a, b) give each level's noise within 10% (levels 0.05-1.3 of the smooth part)."""
+    from pipeline.core.noise import noise_level_function
+
+    clean, ids, pixel = _samples(0.0)
+    rng = np.random.default_rng(3)
+    level = np.maximum(clean.mean(axis=1, keepdims=True), 0.0)
+    noisy = clean + rng.normal(size=clean.shape) * np.sqrt(a + b * level)
+    a_fit, b_fit = noise_level_function(noisy, ids, pixel)
+    for x in (0.05, 0.3, 1.3):
+        assert np.sqrt(a_fit + b_fit * x) == pytest.approx(np.sqrt(a + b * x), rel=0.10)
+
+
+def test_noise_level_function_needs_neighbouring_samples():
+    from pipeline.core.noise import noise_level_function
+
+    radiance, ids, pixel = _samples(0.01)
+    every_other = (pixel[:, 0] % 2 == 0) & (pixel[:, 1] % 2 == 0)
+    assert np.all(np.isnan(noise_level_function(radiance[every_other], ids[every_other], pixel[every_other])))

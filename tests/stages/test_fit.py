@@ -205,6 +205,8 @@ def test_bad_inputs_are_one_line_errors_and_keep_outputs(lambert_scene, tmp_path
     bad_basis.write_text(json.dumps({"order": 1, "basis": "complex", "coeffs": [[1, 1, 1]] * 4}))
     _one_line_error(_cli(capture, "-w", work, "--lighting", bad_basis, "--force"), "real-orthonormal")
     _one_line_error(_cli(capture, "-w", work, "--order", "many"), "--order")
+    _one_line_error(_cli(capture, "-w", work, "--footprint", "0"), "--footprint")
+    _one_line_error(_cli(capture, "-w", work, "--noise-model", "poisson"), "--noise-model")
     assert (work / "fit" / "lighting_sh.json").read_bytes() == before
     # no samples file / no samples left
     _one_line_error(_cli(capture, "-w", tmp_path / "empty", "--force"), "sigrend samples")
