@@ -20,6 +20,7 @@ import contextvars
 import hashlib
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Iterator
@@ -32,6 +33,7 @@ os.umask(_UMASK)
 
 
 TEMP_MARK = ".tmp"     # temporary names: .<stem>.<random>.tmp<suffix>
+SPOOL_MARK = ".spool"  # temporary folders of streamed writes: .<stem>.<random>.spool (pipeline.io.samples)
 _pending: contextvars.ContextVar[list | None] = contextvars.ContextVar("pending_renames", default=None)
 
 
@@ -172,11 +174,15 @@ def work_lock(work: str | os.PathLike) -> Iterator[None]:
 
 def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
     """Remove the temporary files of writes that a killed process never renamed (``atomic_path``
-    names) under ``folder``; returns them."""
+    names) and the spool folders of streamed writes it never finished (``.*.spool``) under
+    ``folder``; returns them."""
     stale = [p for p in Path(folder).rglob(f".*{TEMP_MARK}*") if p.is_file()]
+    spools = [p for p in Path(folder).rglob(f".*{SPOOL_MARK}") if p.is_dir()]
     for p in stale:
         p.unlink(missing_ok=True)
-    return stale
+    for p in spools:
+        shutil.rmtree(p, ignore_errors=True)
+    return stale + spools
 
 
 def read_json(path: str | os.PathLike, *, missing: str = "", unreadable: str = "") -> Any:

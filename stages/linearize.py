@@ -404,6 +404,27 @@ def _linearize_job_collected(job: dict) -> tuple[dict, list]:
     return entry, written
 
 
+def exit_with(stage_pid: int, every_s: float = 0.5) -> None:
+    """Pool worker initializer: a daemon thread ends the worker (os._exit) once the stage's process
+    ``stage_pid`` is gone.  A ``kill -9`` of sigrend otherwise leaves the workers blocked on the
+    pool's queue for good, and the forkserver with them (every forkserver child holds its
+    keep-alive pipe, so prctl's PR_SET_PDEATHSIG on the forkserver parent would not fire)."""
+    import threading
+    import time
+
+    def watch() -> None:
+        while True:
+            time.sleep(every_s)
+            try:
+                os.kill(stage_pid, 0)
+            except ProcessLookupError:
+                os._exit(1)
+            except PermissionError:     # the pid now belongs to another user's process: ours is gone
+                os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="exit-with-stage").start()
+
+
 def run_jobs(jobs: list[dict], workers: int) -> dict[str, dict]:
     """Run ``linearize_job`` for every job not already fresh; serial or in a process pool, with a progress bar."""
     from tqdm import tqdm
@@ -428,7 +449,8 @@ def run_jobs(jobs: list[dict], workers: int) -> dict[str, dict]:
         else:
             # forkserver, not fork: OpenImageIO's thread pool in this process would deadlock forked children
             context = multiprocessing.get_context("forkserver")
-            with cf.ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=context) as pool:
+            with cf.ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=context,
+                                        initializer=exit_with, initargs=(os.getpid(),)) as pool:
                 futures = {pool.submit(_linearize_job_collected, job): job["key"] for job in todo}
                 try:
                     for fut in cf.as_completed(futures):

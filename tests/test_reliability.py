@@ -99,6 +99,75 @@ def test_worker_processes_commit_with_the_stage(linearized):
     assert {k: v for k, v in digest(work).items() if ".tmp" not in k} == before
 
 
+def test_a_killed_samples_run_leaves_no_spool_behind(linearized):
+    """samples.npz streams its rows through a spool folder beside it: killed right after the npz is
+    written (before the spool is removed), the folder stays; the next stage start removes it."""
+    capture, work = linearized
+    assert kill_at("samples.npz", 1, "samples", capture, "-w", work).returncode == -signal.SIGKILL
+    assert list(work.glob(".samples.*.spool")), "the killed process should have left its spool"
+    assert cli.main(["samples", str(capture), "-w", str(work)]) == 0
+    assert not list(work.glob(".samples.*.spool")) and not [p for p in work.rglob("*") if ".tmp" in p.name]
+
+
+def _process_states() -> dict[int, tuple[str, int]]:
+    """pid -> (state, parent pid) of every process, from /proc."""
+    out = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:        # ended while we read
+            continue
+        out[int(stat.parent.name)] = (fields[0], int(fields[1]))
+    return out
+
+
+def _descendants(pid: int) -> set[int]:
+    """Processes below ``pid``."""
+    parents = {p: parent for p, (_, parent) in _process_states().items()}
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = {p for p, parent in parents.items() if parent in frontier} - found
+        found |= frontier
+    return found
+
+
+def _running(pids: set[int]) -> set[int]:
+    """Those of ``pids`` that still run (zombies do not)."""
+    states = _process_states()
+    return {p for p in pids if p in states and states[p][0] != "Z"}
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc; PR_SET_PDEATHSIG is Linux's")
+def test_worker_processes_die_with_a_killed_stage(tmp_path):
+    """kill -9 of `sigrend linearize --workers 2` while its workers are busy: every process it
+    started (the forkserver, its resource tracker and the pool's workers) is gone within 10 s."""
+    import time
+
+    import cv2
+
+    images = tmp_path / "capture" / "images"
+    images.mkdir(parents=True)
+    photo = np.random.default_rng(0).integers(0, 256, (1200, 1600, 3), dtype=np.uint8)
+    for i in range(60):
+        cv2.imwrite(str(images / f"{i:03d}.jpg"), np.roll(photo, i, axis=1))
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "linearize", str(tmp_path / "capture"), "-w",
+                             str(tmp_path / "work"), "--workers", "2"], env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    started, deadline = set(), time.monotonic() + 60
+    while len(started) < 3 and proc.poll() is None and time.monotonic() < deadline:   # forkserver + 2 workers
+        started = _descendants(proc.pid)
+        time.sleep(0.05)
+    assert len(started) >= 3 and proc.poll() is None, "the stage ended before its workers could be seen"
+    proc.kill()
+    proc.wait()
+    deadline = time.monotonic() + 10
+    while _running(started) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    left = _running(started)
+    assert not left, f"processes of the killed stage still running: {sorted(left)}"
+
+
 def test_sigterm_is_handled_as_an_interrupt(linearized):
     """SIGTERM mid-stage: one line, exit 128 + 15, the transaction rolled back (no temporaries)."""
     capture, work = linearized

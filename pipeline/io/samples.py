@@ -50,7 +50,7 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.workdir import atomic_path
+from pipeline.workdir import SPOOL_MARK, atomic_path
 
 SCHEMA = "sigrend.samples/1"
 
@@ -107,7 +107,7 @@ class SamplesWriter:
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._spool = Path(tempfile.mkdtemp(prefix=f".{self.path.stem}.", suffix=".spool", dir=self.path.parent))
+        self._spool = Path(tempfile.mkdtemp(prefix=f".{self.path.stem}.", suffix=SPOOL_MARK, dir=self.path.parent))
         self._files = {f: open(self._spool / f"{f}.bin", "wb") for f in SAMPLE_FIELDS}
         self.count = 0
 
