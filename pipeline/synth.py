@@ -70,6 +70,9 @@ class SynthSettings:
                            "'smooth[:freq=1,contrast=0.5]' (low frequency), 'noise[:freq=8,contrast=0.7]' "
                            "(multi-scale) or 'patches[:freq=8,contrast=0.7]' (sharp-edged: for feature matching); written to gt/albedo.ply")
     cell_height: int = setting(16, "rows of the coarse direction grid for the dim part of the env (render.py)")
+    supersample: int = setting(1, "n > 1: highlight and shadow-edge pixels are the mean of n x n rays, as a "
+                                  "sensor's pixel averages them (the fit models each sample as its pixel: fit "
+                                  "--footprint); 1 = one ray per pixel centre")
     fnumber: float = setting(8.0, "f-number written to EXIF")
     seed: int = setting(0, "random seed (noise)")
 
@@ -83,6 +86,8 @@ class SynthSettings:
             raise UserError(f"--size {w}x{h}: a Bayer DNG needs even width and height")
         if self.format not in FORMATS:
             raise UserError(f"--format {self.format!r}: use one of {', '.join(FORMATS)}")
+        if not 1 <= self.supersample <= 8:
+            raise UserError(f"--supersample {self.supersample}: use 1 to 8 rays per pixel and axis")
         if self.brackets < 1:
             raise UserError(f"--brackets must be >= 1, got {self.brackets}")
         if not 0 <= self.vary_exposure <= 6:
@@ -375,7 +380,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
                disable=None if progress else True)  # None: no bar when stderr is not a terminal
     for i, (R, t) in bar:
         try:
-            result = renderer.render(camera, R, t)
+            result = renderer.render(camera, R, t, highlight_supersample=settings.supersample)
         except InsideMeshError:
             raise UserError(f"view {i}: the camera is inside the mesh; increase --distance "
                             f"(now {settings.distance}) or check the mesh") from None

@@ -65,6 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-shadows", dest="shadows", action="store_false", help="no shadow rays")
     parser.add_argument("--texture", default=d.texture, help=_help("texture"))
     parser.add_argument("--cell-height", type=int, default=d.cell_height, help=_help("cell_height"))
+    parser.add_argument("--supersample", type=int, default=d.supersample, help=_help("supersample"))
     parser.add_argument("--fnumber", type=float, default=d.fnumber, help=_help("fnumber"))
     parser.add_argument("--seed", type=int, default=d.seed, help=_help("seed"))
 

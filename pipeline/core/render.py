@@ -618,9 +618,14 @@ class Renderer:
         return specular[None, :] * s1 + (1.0 - specular[None, :]) * s2
 
     # -- views ------------------------------------------------------------------------------
-    def render(self, camera: Camera, R: np.ndarray, t: np.ndarray) -> RenderResult:
+    def render(self, camera: Camera, R: np.ndarray, t: np.ndarray, highlight_supersample: int = 1,
+               contrast: float = 2.0) -> RenderResult:
         """Render one view: radiance (H, W, 3), object and board masks.
 
+        One ray per pixel centre; with ``highlight_supersample`` n > 1 the object's pixels whose
+        luminance differs from a 3 x 3 neighbour's by more than ``contrast`` times the object's
+        mean (highlights a few pixels wide, shadow edges) are the mean of n x n rays, as a
+        sensor's pixel (and a path tracer's box filter) averages them.
         Raises InsideMeshError when most camera rays hit back faces (camera inside the mesh).
         """
         w, h = camera.width, camera.height
@@ -641,8 +646,36 @@ class Renderer:
         if tri_ids.size:
             bary = barycentric(self.mesh.triangles[tri_ids], locations)
             radiance[ray_ids] = self.shade(tri_ids, bary, -dirs[ray_ids])
+            if highlight_supersample > 1:
+                self._supersample_highlights(camera, R, t, radiance, object_mask, highlight_supersample, contrast)
         return RenderResult(radiance.reshape(h, w, 3).astype(np.float32), object_mask.reshape(h, w),
                             board_mask.reshape(h, w))
+
+    def _supersample_highlights(self, camera, R, t, radiance, object_mask, n: int, contrast: float) -> None:
+        """render()'s second pass, in place on radiance (H*W, 3): the contrasted object pixels as
+        the mean of n x n rays (rays that miss the object see the map)."""
+        from scipy import ndimage
+
+        w, h = camera.width, camera.height
+        lum = np.where(object_mask, radiance.mean(axis=1), 0.0).reshape(h, w)
+        spread = ndimage.maximum_filter(lum, 3) - ndimage.minimum_filter(lum, 3)
+        pixels = np.flatnonzero((spread.ravel() > contrast * float(lum.ravel()[object_mask].mean())) & object_mask)
+        if pixels.size == 0:
+            return
+        offsets = (np.arange(n) + 0.5) / n - 0.5
+        total = np.zeros((pixels.size, 3))
+        for oy in offsets:
+            for ox in offsets:
+                uv = pixel_centers(w, h)[pixels] + np.array([ox, oy])
+                origins, dirs = pixel_rays(camera, R, t, uv)
+                tri_ids, ray_ids, locations = self._camera_rays.intersects_id(
+                    origins, dirs, multiple_hits=False, return_locations=True)
+                sub = lookup(self.env, dirs).astype(float)
+                if tri_ids.size:
+                    sub[ray_ids] = self.shade(tri_ids, barycentric(self.mesh.triangles[tri_ids], locations),
+                                              -dirs[ray_ids])
+                total += sub
+        radiance[pixels] = total / (n * n)
 
     def _render_board(self, camera, R, t, uv, dirs, object_mask, radiance):
         """Board radiance for pixels whose centre ray misses the object.

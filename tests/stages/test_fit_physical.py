@@ -149,10 +149,14 @@ def synth_capture(folder: Path, mesh: str, brdf: str, views: int = 10, size: str
 
 
 def fit_synth(capture: Path, work: Path, *fit_args: str) -> tuple[dict, dict]:
+    """The fit of a synth capture.  synth renders one ray per pixel centre (its --supersample 1), so
+    the fit models each sample as a point (--footprint 1): with its default pixel footprint the
+    metal's known-lighting base colour came out 8% low (0.828, 0.559, 0.287); against synth
+    --supersample 4 images, 3.4% low (0.869, 0.580, 0.291), roughness 0.250."""
     subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(capture), "-w", str(work), "--to", "samples"],
                    check=True, capture_output=True)
     subprocess.run([sys.executable, "-m", "pipeline.cli", "fit", str(capture), "-w", str(work), "--force",
-                    "--physical-samples", "12000", *fit_args], check=True, capture_output=True)
+                    "--physical-samples", "12000", "--footprint", "1", *fit_args], check=True, capture_output=True)
     return json.loads((work / "fit" / "brdf.json").read_text()), read_report(work / "fit" / "report.json")
 
 
