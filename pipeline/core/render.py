@@ -663,10 +663,11 @@ class Renderer:
         if pixels.size == 0:
             return
         offsets = (np.arange(n) + 0.5) / n - 0.5
+        centres = pixel_centers(w, h)[pixels]
         total = np.zeros((pixels.size, 3))
         for oy in offsets:
             for ox in offsets:
-                uv = pixel_centers(w, h)[pixels] + np.array([ox, oy])
+                uv = centres + np.array([ox, oy])
                 origins, dirs = pixel_rays(camera, R, t, uv)
                 tri_ids, ray_ids, locations = self._camera_rays.intersects_id(
                     origins, dirs, multiple_hits=False, return_locations=True)

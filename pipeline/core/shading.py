@@ -191,11 +191,7 @@ def specular_over_footprint(material: Principled, normals: np.ndarray, view_dirs
         return out
     widened = np.cos(np.minimum(np.pi, np.arccos(np.clip(cut_cos, -1.0, 1.0)) + spread[wide]))
     pi, di = np.nonzero(mean[wide] @ dirs.T > widened[:, None])
-    vis = None
-    if visibility is not None:
-        vis = visibility[wide][pi, di]
-        keep = vis > 0
-        pi, di, vis = pi[keep], di[keep], vis[keep]
+    pi, di, vis = _visible_pairs(pi, di, None if visibility is None else visibility[wide])
     base = None if base_color is None else np.asarray(base_color)[wide]
     out[wide] = sum(_lobe_sum(material, n[wide, i], v[wide, i], dirs, power, pi, di, vis, base) for i in range(k)) / k
     return out
@@ -206,12 +202,17 @@ def _lobe_pairs(n: np.ndarray, v: np.ndarray, dirs: np.ndarray, visibility: np.n
     mu_out = np.einsum("pk,pk->p", n, v)
     r = 2.0 * mu_out[:, None] * n - v
     pi, di = np.nonzero((r @ dirs.T > cut_cos) & (n @ dirs.T > 0) & (mu_out[:, None] > 0))
-    vis = None
-    if visibility is not None:  # (P, D) bool, or weights in [0, 1]
-        vis = visibility[pi, di]
-        keep = vis > 0
-        pi, di, vis = pi[keep], di[keep], vis[keep]
-    return pi, di, vis
+    return _visible_pairs(pi, di, visibility)
+
+
+def _visible_pairs(pi: np.ndarray, di: np.ndarray, visibility: np.ndarray | None):
+    """The pairs (point ids, direction ids) whose visibility (P, D) bool or weights in [0, 1] is
+    positive, with that visibility (None when there is none)."""
+    if visibility is None:
+        return pi, di, None
+    vis = visibility[pi, di]
+    keep = vis > 0
+    return pi[keep], di[keep], vis[keep]
 
 
 def _lobe_sum(material: Principled, n: np.ndarray, v: np.ndarray, dirs: np.ndarray, power: np.ndarray,
