@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.core.camera import camera_center, pixel_rays
+from pipeline.core.camera import camera_center, pixel_rays, subpixel_offsets
 from pipeline.core.surface import barycentric, interpolated_normals
 
 
@@ -59,7 +59,7 @@ def pixel_footprints(mesh, rays, camera, R: np.ndarray, t: np.ndarray, pixels: n
     misses the mesh takes the pixel's own ``normals`` / ``view_dirs`` (P, 3) (the centre's)."""
     pixels = np.asarray(pixels)
     k = n * n
-    offsets = (np.arange(n) + 0.5) / n - 0.5
+    offsets = subpixel_offsets(n)
     ox, oy = (a.ravel() for a in np.meshgrid(offsets, offsets))
     uv = np.stack([(pixels[:, 1, None] + 0.5 + ox).ravel(), (pixels[:, 0, None] + 0.5 + oy).ravel()], axis=1)
     out_n = np.repeat(np.asarray(normals, float)[:, None], k, axis=1).reshape(-1, 3)

@@ -609,7 +609,7 @@ def _render_pixels(view: View, mesh, rays, lighting, albedo, vertex_colors, pixe
     when given: the chunks are the same either way, and so is the result."""
     w = view.camera.width
     centres = cam.pixel_centers(w, view.camera.height)[pixels]
-    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+    offsets = cam.subpixel_offsets(supersample)
     rgb = np.zeros((pixels.size, 3))
     hits = np.zeros(pixels.size)
 

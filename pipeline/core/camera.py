@@ -98,6 +98,11 @@ def pixel_centers(width: int, height: int) -> np.ndarray:
     return np.stack([u.ravel() + 0.5, v.ravel() + 0.5], axis=1).astype(float)
 
 
+def subpixel_offsets(n: int) -> np.ndarray:
+    """Offsets (n,) from a pixel's centre of an n x n grid of rays filling it (a one-pixel box filter)."""
+    return (np.arange(n) + 0.5) / n - 0.5
+
+
 def camera_center(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Camera centre in world coordinates, C = -R^T t."""
     return -np.asarray(R, float).T @ np.asarray(t, float)

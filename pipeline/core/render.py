@@ -46,7 +46,7 @@ import numpy as np
 import trimesh
 
 from pipeline.core.brdf import beckmann_distribution, phong_lobe, vcavity_shadowing
-from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays
+from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays, subpixel_offsets
 from pipeline.core.envmap import (downsample, equirect_directions, equirect_solid_angles, lookup)
 from pipeline.core.material import principled_from_dict
 from pipeline.core.surface import barycentric, interpolated_normals
@@ -662,7 +662,7 @@ class Renderer:
         pixels = np.flatnonzero((spread.ravel() > contrast * float(lum.ravel()[object_mask].mean())) & object_mask)
         if pixels.size == 0:
             return
-        offsets = (np.arange(n) + 0.5) / n - 0.5
+        offsets = subpixel_offsets(n)
         centres = pixel_centers(w, h)[pixels]
         total = np.zeros((pixels.size, 3))
         for oy in offsets:
