@@ -9,11 +9,13 @@ line on stderr and exit code 2.  Anything else is a bug and keeps its traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
 import signal
 import sys
 import threading
+import warnings
 
 from pipeline.errors import UserError
 
@@ -83,7 +85,12 @@ def main(argv: list[str] | None = None) -> int:
     previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     try:
         args = build_parser(selected).parse_args(argv)
-        code = args._module.main(args)
+        # warnings are held back until the command succeeds: an error stays the one line of stderr
+        # (in the main thread only: catch_warnings swaps process-wide state)
+        with warnings.catch_warnings(record=True) if in_main_thread else contextlib.nullcontext([]) as deferred:
+            code = args._module.main(args)
+        for w in deferred:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         sys.stdout.flush()
     except UserError as exc:
         print(f"sigrend: error: {exc}", file=sys.stderr)

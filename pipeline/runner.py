@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib
+import inspect
 import json
 import sys
 import time
@@ -76,6 +77,8 @@ def run_stage(name: str, *, capture: Path, work: Path, settings, force: bool = F
         if not force and is_fresh(work, record, settings, module.outputs(**kwargs), provenance):
             return StageResult(record, list(module.outputs(**kwargs)), time.perf_counter() - start, True)
         remove_stale_temporaries(work)
+        if force and "force" in inspect.signature(module.run).parameters:
+            kwargs["force"] = True     # a stage that reuses its own per-item outputs (linearize) redoes them
         with transaction(invalidate=settings_path(work, record)):   # outputs and record committed together, last
             written = module.run(**kwargs)
             record_settings(work, record, settings, provenance)
@@ -175,17 +178,25 @@ def run_pipeline(plan: RunPlan, progress: bool = True) -> list[StageResult]:
     names = _stage_range(plan.first, plan.last)
     results: list[StageResult] = []
     common = dict(capture=plan.capture, work=plan.work)
-    bar = tqdm(names, desc="sigrend run", unit="stage", file=sys.stderr, disable=not progress)
-    for name in bar:
-        bar.set_postfix_str(name)
-        if name == "samples" and supports_holdout():
-            held = heldout_keys(image_keys(plan.capture, plan.work), plan.holdout)
-            settings = stage_settings("samples", **{HOLDOUT_FIELD: tuple(held)})
-            results.append(run_stage("samples", settings=settings, force=plan.force, **common))
-        elif name == "relight":
-            results.extend(_relight_runs(plan))
-        else:
-            results.append(run_stage(name, settings=stage_settings(name), force=plan.force, **common))
+    # disable=None: no bar when stderr is not a terminal (a log file); on an error the bar is erased
+    # so the error stays the one line of stderr
+    bar = tqdm(names, desc="sigrend run", unit="stage", file=sys.stderr, disable=None if progress else True)
+    try:
+        for name in bar:
+            bar.set_postfix_str(name)
+            if name == "samples" and supports_holdout():
+                held = heldout_keys(image_keys(plan.capture, plan.work), plan.holdout)
+                settings = stage_settings("samples", **{HOLDOUT_FIELD: tuple(held)})
+                results.append(run_stage("samples", settings=settings, force=plan.force, **common))
+            elif name == "relight":
+                results.extend(_relight_runs(plan))
+            else:
+                results.append(run_stage(name, settings=stage_settings(name), force=plan.force, **common))
+    except BaseException:
+        bar.leave = False
+        raise
+    finally:
+        bar.close()
     return results
 
 

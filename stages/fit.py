@@ -39,6 +39,7 @@ from pipeline.io.capture_toml import read_toml
 from pipeline.io.lighting import read_lighting_sh, write_lighting_sh
 from pipeline.io.report import write_report
 from pipeline.io.samples import iter_sample_chunks, read_samples_meta
+from pipeline.io.values import number_array
 from pipeline.settings import setting, settings_dict
 
 FIELDS = ("normal", "view_dir", "radiance", "image_id", "weight", "visibility")
@@ -190,10 +191,11 @@ def known_albedo_hint(capture: Path) -> list[float] | None:
     value = doc.get("fit", {}).get("known_albedo")
     if value is None:
         return None
-    arr = np.atleast_1d(np.asarray(value, dtype=float))
+    what = "one or three numbers in (0, 1]"
+    arr = np.atleast_1d(number_array(value, f"{path}: [fit] known_albedo", what))
     arr = np.repeat(arr, 3) if arr.size == 1 else arr
     if arr.shape != (3,) or np.any(arr <= 0) or np.any(arr > 1):
-        raise UserError(f"{path}: [fit] known_albedo must be one or three numbers in (0, 1], got {value!r}")
+        raise UserError(f"{path}: [fit] known_albedo must be {what}, got {value!r}")
     return arr.tolist()
 
 

@@ -425,14 +425,15 @@ def exit_with(stage_pid: int, every_s: float = 0.5) -> None:
     threading.Thread(target=watch, daemon=True, name="exit-with-stage").start()
 
 
-def run_jobs(jobs: list[dict], workers: int) -> dict[str, dict]:
-    """Run ``linearize_job`` for every job not already fresh; serial or in a process pool, with a progress bar."""
+def run_jobs(jobs: list[dict], workers: int, force: bool = False) -> dict[str, dict]:
+    """Run ``linearize_job`` for every job not already fresh (every job with ``force``); serial or
+    in a process pool, with a progress bar."""
     from tqdm import tqdm
 
     entries: dict[str, dict] = {}
     todo = []
     for job in jobs:
-        fresh = _fresh_entry(job)
+        fresh = None if force else _fresh_entry(job)
         if fresh is not None:
             entries[job["key"]] = fresh
         else:
@@ -477,10 +478,11 @@ def response_note(jobs: list[dict]) -> str | None:
     return f"linearize: {len(eight_bit)} 8-bit file(s) linearized with the {curve} curve ({why})"
 
 
-def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
-    """Linearize every image of the capture; returns the written EXRs, masks and manifest.json."""
+def run(*, capture: Path, work: Path, settings: Settings, force: bool = False) -> list[Path]:
+    """Linearize every image of the capture (``force``: even those whose EXR records the same
+    recipe); returns the written EXRs, masks and manifest.json."""
     jobs = build_jobs(Path(capture), Path(work), settings)
-    entries = run_jobs(jobs, settings.workers)
+    entries = run_jobs(jobs, settings.workers, force)
     manifest = write_manifest(work, entries)
     if (note := response_note(jobs)) is not None:
         print(note, file=sys.stderr)

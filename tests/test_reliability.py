@@ -398,3 +398,94 @@ def test_an_output_path_that_is_a_file_is_one_line(linearized, tmp_path, capsys,
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and fragment in err[0], err
     assert (tmp_path / "afile").read_text() == "not a folder"
+
+
+# a wrong type or value in a JSON file the stages read -> (file, its edit, a fragment of the one-line
+# message); every reader type-checks (pipeline.io.values): a number is never a string or a bool
+def _set(*path_and_value):
+    *path, value = path_and_value
+
+    def edit(doc):
+        target = doc
+        for key in path[:-1]:
+            target = target[key] if not callable(key) else key(target)
+        target[path[-1]] = value
+    return edit
+
+
+def _first_image(doc):
+    return doc["images"][sorted(doc["images"])[0]]
+
+
+BAD_JSON_VALUES = {
+    "camera width as a string": ("poses.json", _set("cameras", "cam0", "width", "48"),
+                                 "width and height must be positive whole numbers of pixels, got '48'"),
+    "camera width infinite": ("poses.json", _set("cameras", "cam0", "width", float("inf")),
+                              "width and height must be positive whole numbers"),
+    "camera model as a list": ("poses.json", _set("cameras", "cam0", "model", []), "has unsupported model []"),
+    "camera params as numbers in strings": ("poses.json", _set("cameras", "cam0", "params", ["64", "64", "24", "24"]),
+                                            "(PINHOLE) needs params: a list of 4 numbers"),
+    "negative focal length": ("poses.json", _set("cameras", "cam0", "params", [-64.0, 64.0, 24.0, 24.0]),
+                              "the focal length must be positive"),
+    "rotation of strings": ("poses.json", _set(_first_image, "R", "identity"), "needs camera, R (3x3), t (3)"),
+    "brdf albedo as a word": ("fit/brdf.json", _set("albedo", "grey"), "albedo must be one or three non-negative numbers"),
+    "brdf albedo as booleans": ("fit/brdf.json", _set("albedo", [True, True, True]),
+                                "albedo must be one or three non-negative numbers"),
+    "brdf model as a list": ("fit/brdf.json", _set("model", ["lambert"]), "unknown BRDF model ['lambert']"),
+    "lighting order infinite": ("fit/lighting_sh.json", _set("order", float("inf")), "'order' must be a whole number"),
+    "lighting coefficients ragged": ("fit/lighting_sh.json", _set("coeffs", [[1, 1, 1], [1]]),
+                                     "'coeffs' must be (order+1)^2 rows of [r, g, b] numbers"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_JSON_VALUES))
+def test_a_wrong_type_in_a_json_file_is_one_line(linearized, tmp_path, capsys, case):
+    from pipeline.io.brdf import write_brdf
+    from pipeline.io.lighting import write_lighting_sh
+
+    rel, edit, fragment = BAD_JSON_VALUES[case]
+    capture, work = linearized
+    capture = shutil.copytree(capture, tmp_path / "capture")
+    write_brdf(work / "fit" / "brdf.json", {"model": "lambert", "albedo": [0.5, 0.5, 0.5]})
+    write_lighting_sh(work / "fit" / "lighting_sh.json", np.ones((1, 3)))
+    path = (capture if rel == "poses.json" else work) / rel
+    doc = json.loads(path.read_text())
+    edit(doc)
+    path.write_text(json.dumps(doc))
+    argv = (["samples", str(capture), "-w", str(work)] if rel == "poses.json" else
+            ["relight", str(capture), "-w", str(work), "-o", str(tmp_path / "out")])
+    capsys.readouterr()
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and fragment in err[0] and "Traceback" not in err[0], err
+
+
+def test_warnings_wait_until_the_command_succeeds(tiny_capture, tmp_path, capsys):
+    """A warning issued before a user error does not precede the error line (issue 17, point 4):
+    no EXIF exposure warns (shown when linearize succeeds), then a grey patch outside the image fails."""
+    import warnings
+
+    capture = shutil.copytree(tiny_capture(views=6, size=(48, 48)), tmp_path / "capture")
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        assert cli.main(["linearize", str(capture), "-w", str(tmp_path / "work")]) == 0
+    assert any("in any image's EXIF" in str(w.message) for w in shown)
+    (capture / "capture.toml").write_text("[white_balance]\ngray_patch = [0, 0, 1000, 1000]\n")
+    capsys.readouterr()
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        assert cli.main(["linearize", str(capture), "-w", str(tmp_path / "work")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "lies outside the 48x48 image" in err[0], err
+    assert not shown     # held back, then dropped with the failed command
+
+
+def test_force_redoes_every_linear_image(linearized):
+    """--force redoes what it says, even images whose EXR records the same recipe (a hand-edited
+    or damaged EXR is otherwise reused: its header still matches)."""
+    capture, work = linearized
+    exr = work / "linear" / "0000.exr"
+    before = exr.stat()
+    assert cli.main(["linearize", str(capture), "-w", str(work), "--force"]) == 0
+    after = exr.stat()
+    assert (after.st_ino, after.st_mtime_ns) != (before.st_ino, before.st_mtime_ns)

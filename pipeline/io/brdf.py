@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import UserError
+from pipeline.io.values import is_number, number_array
 from pipeline.workdir import read_json, write_json
 
 MODEL_PARAMS = {
@@ -53,7 +54,7 @@ def validate_brdf(doc: dict, name: str = "brdf") -> dict:
     if ours is not None:
         raise UserError(f"{name}: model {model!r} is not a sigrend model; write \"{ours}\" "
                         f"with its parameters ({', '.join(MODEL_PARAMS[ours])})")
-    if model not in MODEL_PARAMS:
+    if not isinstance(model, str) or model not in MODEL_PARAMS:
         raise UserError(f"{name}: unknown BRDF model {model!r}; use one of {', '.join(MODEL_PARAMS)}")
     out = dict(doc)
     optional = OPTIONAL_PARAMS.get(model, {})
@@ -70,7 +71,7 @@ def validate_brdf(doc: dict, name: str = "brdf") -> dict:
             raise UserError(f"{name}: model {model!r} needs parameter {key!r}")
         value = out[key]
         if key in RGB_PARAMS:
-            arr = np.atleast_1d(np.asarray(value, dtype=float))
+            arr = np.atleast_1d(number_array(value, f"{name}: {key}", "one or three non-negative numbers"))
             if arr.size == 1:
                 arr = np.repeat(arr, 3)
             if arr.shape != (3,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
@@ -80,10 +81,9 @@ def validate_brdf(doc: dict, name: str = "brdf") -> dict:
                                 "it receives)")
             out[key] = arr.tolist()
         else:
-            try:
-                v = float(value)
-            except (TypeError, ValueError):
-                raise UserError(f"{name}: {key} must be a number, got {value!r}") from None
+            if not is_number(value):
+                raise UserError(f"{name}: {key} must be a number, got {value!r}")
+            v = float(value)
             lower_ok = v >= 0 if key == "metallic" else v > 0
             if not np.isfinite(v) or not lower_ok or (key in UNIT_PARAMS and v > 1):
                 valid = "a number in [0, 1]" if key in UNIT_PARAMS else "a positive number"

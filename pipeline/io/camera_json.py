@@ -18,7 +18,28 @@ import numpy as np
 
 from pipeline.core.camera import MODELS, Camera
 from pipeline.errors import UserError
+from pipeline.io.values import is_number
 from pipeline.workdir import write_json
+
+
+def camera_from_dict(entry, where: str) -> Camera:
+    """A Camera from a ``{model, width, height, params}`` entry (camera.json, a poses.json camera);
+    any wrong type or value -> UserError beginning with ``where`` (the file and entry)."""
+    needs = "needs model, width, height, params"
+    if not isinstance(entry, dict) or not all(k in entry for k in ("model", "width", "height", "params")):
+        raise UserError(f"{where} {needs}")
+    model, w, h, params = entry["model"], entry["width"], entry["height"], entry["params"]
+    if not isinstance(model, str) or model not in MODELS:
+        raise UserError(f"{where} has unsupported model {model!r}; use one of {', '.join(MODELS)}")
+    if not all(is_number(v) and v > 0 and float(v).is_integer() for v in (w, h)):
+        raise UserError(f"{where}: width and height must be positive whole numbers of pixels, got {w!r}, {h!r}")
+    if not isinstance(params, list) or len(params) != MODELS[model] or not all(is_number(v) for v in params):
+        raise UserError(f"{where} ({model}) needs params: a list of {MODELS[model]} numbers, got {params!r}")
+    camera = Camera(model, int(w), int(h), tuple(float(v) for v in params))
+    fx, fy, cx, cy = camera.focal_principal()
+    if not (np.all(np.isfinite(camera.params)) and fx > 0 and fy > 0):
+        raise UserError(f"{where}: the focal length must be positive and every param finite, got {params!r}")
+    return camera
 
 
 def read_camera_json(path: str | os.PathLike) -> Camera:
@@ -26,21 +47,13 @@ def read_camera_json(path: str | os.PathLike) -> Camera:
     path = Path(path)
     try:
         doc = json.loads(path.read_text())
-        model, w, h = doc["model"], int(doc["width"]), int(doc["height"])
-        params = tuple(float(v) for v in doc["params"])
     except FileNotFoundError:
         raise UserError(f"{path}: file not found") from None
-    except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise UserError(f"{path}: not a camera.json (needs model, width, height, params; {exc}); "
-                        "write it with `sigrend calib intrinsics`") from None
-    if doc.get("pixel_convention", "colmap") != "colmap":
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(f"{path}: not a camera.json ({exc}); write it with `sigrend calib intrinsics`") from None
+    if isinstance(doc, dict) and doc.get("pixel_convention", "colmap") != "colmap":
         raise UserError(f"{path}: pixel_convention must be 'colmap' (top-left pixel centre at 0.5, 0.5)")
-    if model not in MODELS or len(params) != MODELS[model]:
-        raise UserError(f"{path}: model {model!r} with {len(params)} params is not one of "
-                        + ", ".join(f"{m} ({n})" for m, n in MODELS.items()))
-    if w <= 0 or h <= 0 or params[0] <= 0 or not np.all(np.isfinite(params)):
-        raise UserError(f"{path}: camera has a non-positive size or focal length, or non-finite params")
-    return Camera(model, w, h, params)
+    return camera_from_dict(doc, f"{path}: camera.json")
 
 
 def write_camera_json(path: str | os.PathLike, camera: Camera, **evidence) -> Path:

@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import UserError
+from pipeline.io.values import is_number
 
 try:
     import tomllib
@@ -141,7 +142,7 @@ def check_sections(path: Path, doc: dict) -> None:
 
 
 def _positive(path: Path, where: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
+    if not is_number(value) or not np.isfinite(value) or value <= 0:
         raise UserError(f"{path}: {where} must be a positive number, got {value!r}")
     return float(value)
 

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import UserError
+from pipeline.io.values import number_array, whole_number
 from pipeline.workdir import read_json, write_json
 
 
@@ -19,11 +20,10 @@ def read_lighting_sh(path: str | os.PathLike) -> np.ndarray:
         raise UserError(f"{path}: a lighting file is a JSON object with 'order' and 'coeffs'")
     if doc.get("basis", "real-orthonormal") != "real-orthonormal":
         raise UserError(f"{path}: SH basis {doc.get('basis')!r} is not 'real-orthonormal' (DESIGN.md); convert it")
-    try:
-        order = int(doc["order"])
-        coeffs = np.asarray(doc["coeffs"], dtype=float)
-    except (KeyError, TypeError, ValueError):
-        raise UserError(f"{path}: needs 'order' and 'coeffs' ((order+1)^2 rows of [r, g, b])") from None
+    if "order" not in doc or "coeffs" not in doc:
+        raise UserError(f"{path}: needs 'order' and 'coeffs' ((order+1)^2 rows of [r, g, b])")
+    order = whole_number(doc["order"], f"{path}: 'order'", "a whole number >= 0")
+    coeffs = number_array(doc["coeffs"], f"{path}: 'coeffs'", "(order+1)^2 rows of [r, g, b] numbers")
     if order < 0 or coeffs.shape != ((order + 1) ** 2, 3) or not np.all(np.isfinite(coeffs)):
         raise UserError(f"{path}: order {order} needs {(order + 1) ** 2} finite rows of [r, g, b], "
                         f"got shape {coeffs.shape}")

@@ -8,8 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.camera import MODELS, Camera
+from pipeline.core.camera import Camera
 from pipeline.errors import UserError
+from pipeline.io.camera_json import camera_from_dict
 from pipeline.workdir import read_json, write_json
 
 
@@ -53,17 +54,7 @@ def read_poses(path: str | os.PathLike) -> Poses:
             raise UserError(f"{path}: '{part}' must be an object mapping {what}, not a {type(doc[part]).__name__}")
     poses = Poses()
     for name, c in doc["cameras"].items():
-        try:
-            model, w, h, params = c["model"], int(c["width"]), int(c["height"]), tuple(float(v) for v in c["params"])
-        except (KeyError, TypeError, ValueError):
-            raise UserError(f"{path}: camera {name!r} needs model, width, height, params") from None
-        if model not in MODELS:
-            raise UserError(f"{path}: camera {name!r} has unsupported model {model!r}; use one of {', '.join(MODELS)}")
-        if len(params) != MODELS[model]:
-            raise UserError(f"{path}: camera {name!r} ({model}) needs {MODELS[model]} params, got {len(params)}")
-        if w <= 0 or h <= 0 or params[0] <= 0 or not all(np.isfinite(params)):
-            raise UserError(f"{path}: camera {name!r} has non-positive size or focal length")
-        poses.cameras[name] = Camera(model, w, h, params)
+        poses.cameras[name] = camera_from_dict(c, f"{path}: camera {name!r}")
     for key, im in doc["images"].items():
         try:
             cam = im["camera"]

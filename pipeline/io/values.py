@@ -1,0 +1,37 @@
+"""Type checks for values read from JSON and TOML files: a number is an int or a float, never a
+bool or a string; a wrong type is a UserError naming where the value came from."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import UserError
+
+
+def is_number(value: Any) -> bool:
+    """True for a JSON/TOML number (int or float; not bool, which Python counts as an int)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def number_array(value: Any, where: str, what: str) -> np.ndarray:
+    """A number or a (nested, rectangular) list of numbers as a float array; anything else ->
+    UserError "{where} must be {what}, got {value!r}"."""
+    def numbers_only(v) -> bool:
+        return all(numbers_only(x) for x in v) if isinstance(v, list) else is_number(v)
+
+    if numbers_only(value):
+        try:
+            return np.asarray(value, dtype=float)
+        except ValueError:       # ragged lists
+            pass
+    shown = repr(value) if len(repr(value)) <= 80 else repr(value)[:77] + "..."
+    raise UserError(f"{where} must be {what}, got {shown}")
+
+
+def whole_number(value: Any, where: str, what: str) -> int:
+    """A whole number (an int, or a float with no fraction) as int; else UserError as number_array."""
+    if not (is_number(value) and np.isfinite(value) and float(value).is_integer()):
+        raise UserError(f"{where} must be {what}, got {value!r}")
+    return int(value)
