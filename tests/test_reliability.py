@@ -489,3 +489,15 @@ def test_force_redoes_every_linear_image(linearized):
     assert cli.main(["linearize", str(capture), "-w", str(work), "--force"]) == 0
     after = exr.stat()
     assert (after.st_ino, after.st_mtime_ns) != (before.st_ino, before.st_mtime_ns)
+
+
+def test_an_all_transparent_exr_is_named_transparent_not_black(tiny_capture, tmp_path, capsys):
+    from pipeline.io.images import read_image, write_image
+
+    capture = shutil.copytree(tiny_capture(views=6, size=(48, 48)), tmp_path / "capture")
+    rgb = read_image(capture / "images" / "0002.exr")[:, :, :3]
+    write_image(capture / "images" / "0002.exr", np.dstack([rgb, np.zeros(rgb.shape[:2], np.float32)]))
+    capsys.readouterr()
+    assert cli.main(["linearize", str(capture), "-w", str(tmp_path / "work")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "0002.exr: every pixel is transparent (alpha = 0)" in err[0], err

@@ -158,6 +158,9 @@ def decode_other(path: Path, kind: str, inverse_response: np.ndarray, saturation
     # (a partly transparent pixel mixes in whatever was behind; OIIO also premultiplies it on read);
     # float files: alpha > 0, as EXR writers mark coverage.
     alpha = img[:, :, -1] if img.shape[2] in (2, 4) else None
+    if alpha is not None and not np.any(alpha > 0):
+        raise UserError(f"{path}: every pixel is transparent (alpha = 0), so nothing in it can be measured; "
+                        "export it again with the object covered (alpha = coverage) or remove it")
     rgb = np.repeat(img[:, :, :1], 3, axis=2) if img.shape[2] < 3 else img[:, :, :3]
     info: dict = {}
     if kind == "uint8":

@@ -111,13 +111,13 @@ def _intrinsics(doc: dict, frame: dict, where: str) -> Camera:
         cx, cy = float(get("cx", w / 2)), float(get("cy", h / 2))
         k1, k2, p1, p2 = (float(get(k, 0.0)) for k in ("k1", "k2", "p1", "p2"))
         higher = [k for k in ("k3", "k4") if float(get(k, 0.0)) != 0.0]
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise UserError(f"{where}: needs w, h and fl_x (or camera_angle_x) as numbers") from None
     if higher:
         raise UserError(f"{where}: radial terms {', '.join(higher)} are not in sigrend's OPENCV model (k1, k2, p1, p2); "
                         "undistort the images or re-run COLMAP with the OPENCV model")
-    if min(w, h, fx, fy) <= 0:
-        raise UserError(f"{where}: non-positive image size or focal length")
+    if not (min(w, h, fx, fy) > 0 and np.all(np.isfinite([fx, fy, cx, cy, k1, k2, p1, p2]))):
+        raise UserError(f"{where}: non-positive image size or focal length, or a value that is not finite")
     if k1 == k2 == p1 == p2 == 0.0:
         return Camera("PINHOLE", w, h, (fx, fy, cx, cy))
     return Camera("OPENCV", w, h, (fx, fy, cx, cy, k1, k2, p1, p2))
