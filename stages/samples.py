@@ -226,9 +226,13 @@ def _units_hint(mesh, poses: Poses, totals: dict) -> str:
     size = float(np.linalg.norm(mesh.extents))
     centre = np.asarray(mesh.bounds, float).mean(axis=0)
     centres = np.array([camera_center(p.R, p.t) for p in poses.images.values()])
-    distance = float(np.median(np.linalg.norm(centres - centre, axis=1)))
+    # the scale of the camera rig from the cameras alone (their spread about their centroid): measured
+    # from the mesh's centre instead, a mesh 1000x too large puts the cameras inside it at ~its radius
+    distance = float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1)))
+    if not distance > 0:      # one camera (or all at one point): its distance to the mesh
+        distance = float(np.median(np.linalg.norm(centres - centre, axis=1)))
     ratio = size / max(distance, 1e-300)
-    sizes = f"(bounding box {size:.3g} across, median camera distance {distance:.3g})"
+    sizes = f"(bounding box {size:.3g} across, cameras {distance:.3g} from their centre)"
     if ratio > 20:  # an object is normally about as large as (or smaller than) its distance to the camera
         unit = "millimetres" if ratio >= 100 else "centimetres"
         return (f"the mesh is {ratio:.0f}x larger than the camera distances {sizes}: is it in {unit}? "

@@ -419,7 +419,9 @@ def scale_mesh(capture, factor=1.0, shift=(0.0, 0.0, 0.0), invert=False):
 
 
 BAD_INPUTS = {
-    "millimetres": (lambda c: scale_mesh(c, 1000.0), "larger than the camera distances (bounding box 346 across, median camera distance 0.51): is it in millimetres"),
+    "millimetres": (lambda c: scale_mesh(c, 1000.0), "larger than the camera distances (bounding box 346 across, cameras"),
+    # modelled standing on the origin: the cameras sit inside the mesh, about its radius from its centre
+    "millimetres, off-centre": (lambda c: scale_mesh(c, 1000.0, shift=(0.0, 0.0, 60.0)), "is it in millimetres?"),
     "other frame": (lambda c: scale_mesh(c, shift=(0.0, 0.0, 50.0)), "different frames"),
     "inward normals": (lambda c: scale_mesh(c, invert=True), "the mesh is inside out"),
     "missing image": (lambda c: (c / "images" / "0001.exr").unlink(), "0001.exr: image listed in"),
