@@ -76,7 +76,13 @@ def _raise_terminated(signum, frame):
     raise Terminated()
 
 
+def _format_warning(message, category, filename, lineno, line=None) -> str:
+    return f"sigrend: warning: {message}\n"
+
+
 def main(argv: list[str] | None = None) -> int:
+    if argv is None:      # the command line (not a caller in Python): warnings as one line each, no source line
+        warnings.formatwarning = _format_warning
     argv = sys.argv[1:] if argv is None else list(argv)
     selected = next((a for a in argv if not a.startswith("-")), None)
     if selected not in (*STAGES, *COMMANDS):

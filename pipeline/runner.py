@@ -21,6 +21,7 @@ import inspect
 import json
 import sys
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
@@ -28,7 +29,7 @@ from types import SimpleNamespace
 from pipeline import __version__
 from pipeline.errors import UserError
 from pipeline.settings import add_settings_arguments, make_settings, settings_from_args
-from pipeline.workdir import (fingerprints, is_fresh, record_settings, remove_stale_temporaries, settings_path,
+from pipeline.workdir import (changed_settings, fingerprints, is_fresh, record_settings, remove_stale_temporaries, settings_path,
                               transaction, work_lock, write_json)
 
 HELP = "Run the whole pipeline on a capture folder (linearize, poses, samples, fit, relight) and write the report."
@@ -191,13 +192,26 @@ def run_pipeline(plan: RunPlan, progress: bool = True) -> list[StageResult]:
             elif name == "relight":
                 results.extend(_relight_runs(plan))
             else:
-                results.append(run_stage(name, settings=stage_settings(name), force=plan.force, **common))
+                settings = stage_settings(name)
+                _say_if_replacing(plan.work, name, settings)
+                results.append(run_stage(name, settings=settings, force=plan.force, **common))
     except BaseException:
         bar.leave = False
         raise
     finally:
         bar.close()
     return results
+
+
+def _say_if_replacing(work: Path, name: str, settings) -> None:
+    """A stage last run on its own with other settings (``sigrend fit --order 4``) is run again
+    with run's: say so (held back until the run succeeds, like every warning)."""
+    changed = changed_settings(work, name, settings)
+    if changed:
+        was = ", ".join(f"--{k.replace('_', '-')} {old}" for k, (old, _) in sorted(changed.items()))
+        warnings.warn(f"{name} was last made with {was}; `sigrend run` ran it again with its own settings "
+                      f"(to keep a custom {name}, run the stages after it alone, e.g. `sigrend relight`)",
+                      UserWarning, stacklevel=2)
 
 
 def _relight_runs(plan: RunPlan) -> list[StageResult]:

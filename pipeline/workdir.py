@@ -272,6 +272,19 @@ def record_settings(work: str | os.PathLike, stage: str, settings: Any, provenan
     return write_json(settings_path(work, stage), payload)
 
 
+def changed_settings(work: str | os.PathLike, stage: str, settings: Any) -> dict[str, tuple]:
+    """{name: (recorded value, new value)} of the settings in which ``stage``'s last committed run
+    differs from ``settings``; empty when nothing was recorded (or it cannot be read)."""
+    try:
+        recorded = json.loads(settings_path(work, stage).read_text())["settings"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+    new = json.loads(json.dumps(settings_dict(settings)))
+    if not isinstance(recorded, dict):
+        return {}
+    return {k: (recorded.get(k), v) for k, v in new.items() if k in recorded and recorded[k] != v}
+
+
 def is_fresh(work: str | os.PathLike, stage: str, settings: Any, outputs: Iterable[Path],
              provenance: dict | None = None) -> bool:
     """True when ``stage`` need not run again (see the module docstring)."""

@@ -89,6 +89,24 @@ def test_a_changed_input_reruns_the_stages_that_depend_on_it(capture, tmp_path):
     assert after["poses.json"] > before["poses.json"]
 
 
+def test_run_says_when_it_replaces_a_stage_made_with_other_settings(capture, tmp_path):
+    """A stage last run on its own with other settings is run again with run's: the run says so
+    (issue 17: a custom `sigrend fit --order 4` was replaced without a word)."""
+    import warnings
+
+    work = tmp_path / "work"
+    assert cli.main(["linearize", str(capture), "-w", str(work), "--saturation", "0.9"]) == 0
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        assert _run(capture, "-w", work, "--to", "linearize") == 0
+    said = [str(w.message) for w in shown if "was last made with" in str(w.message)]
+    assert len(said) == 1 and said[0].startswith("linearize was last made with --saturation 0.9"), said
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        assert _run(capture, "-w", work, "--to", "linearize") == 0     # now run's own: nothing to say
+    assert not [w for w in shown if "was last made with" in str(w.message)]
+
+
 def test_failing_stage_is_one_line_and_keeps_earlier_outputs(capture, tmp_path, capsys):
     bad = tmp_path / "bad"
     bad.mkdir()
