@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import errno
 import importlib
 import os
 import signal
@@ -76,6 +77,9 @@ def _raise_terminated(signum, frame):
     raise Terminated()
 
 
+DISK_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM}
+
+
 def _format_warning(message, category, filename, lineno, line=None) -> str:
     return f"sigrend: warning: {message}\n"
 
@@ -110,6 +114,14 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:   # `sigrend ... | head`: the reader left; end quietly (Python docs, "SIGPIPE")
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except OSError as exc:
+        if exc.errno not in DISK_ERRORS:
+            raise
+        # the machine, not sigrend: a full disk or quota, a read-only or forbidden folder (the stage's
+        # transaction has rolled back, so earlier outputs are intact)
+        print(f"sigrend: error: {exc.filename or 'writing the outputs'}: {exc.strerror}; free some space or give "
+              "-w a writable folder, then run again", file=sys.stderr)
+        return UserError.exit_code
     finally:
         if in_main_thread:
             signal.signal(signal.SIGTERM, previous)

@@ -216,6 +216,32 @@ def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch):
     assert digest(work) == before           # the two images written before the failure were not committed
 
 
+def test_a_full_disk_is_one_line_and_commits_nothing(linearized, monkeypatch, capsys):
+    """A full disk (ENOSPC) half-way through a stage: one line naming the file, exit 2, and the
+    previous outputs byte-identical (the machine's error, not a bug: no traceback)."""
+    import errno
+
+    from stages import linearize
+
+    capture, work = linearized
+    before = digest(work)
+    real = linearize.write_image
+    calls = []
+
+    def disk_full(path, *args, **kwargs):
+        calls.append(path)
+        if len(calls) == 3:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(linearize, "write_image", disk_full)
+    capsys.readouterr()
+    assert cli.main(["linearize", str(capture), "-w", str(work), "--saturation", "0.6", "--workers", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "No space left on device; free some space" in err[0] and str(calls[-1]) in err[0], err
+    assert digest(work) == before
+
+
 def test_freshness_is_by_content_not_file_times(tiny_capture, tmp_path, capsys):
     """A photo replaced by another with an older time (cp -p, rsync -a, unzip) is noticed: its
     linear image is redone and the stages after it are not trusted; a removed photo too."""
