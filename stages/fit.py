@@ -85,7 +85,7 @@ class Settings:
                                         "factor fitted to the photos (stated in the report)")
     roughness_candidates: str = setting("0.1,0.2,0.3,0.45,0.65,1.0", "principled fit: the roughness grid "
                                         "compared on held-out views (the best is then refined)")
-    roughness_refinements: int = setting(6, "principled fit: most candidates of a bounded Brent search in log "
+    roughness_refinements: int = setting(4, "principled fit: most candidates of a bounded Brent search in log "
                                             "roughness between the best grid point's neighbours; 0 = one candidate at "
                                             "the parabola through the three")
     ior: float = setting(1.5, "principled fit: index of refraction of the dielectric specular layer")

@@ -8,7 +8,8 @@ Taken by ``sigrend fit --brdf principled`` (material unknown) and by a known pri
   2. the lighting's dual angular part: directional sources located by matching pursuit on the
      residual of the first candidate's SH fit (``max_sources``), then kept for all candidates
      (located again through the best roughness's lobe when that is not the first);
-  3. every roughness of ``roughness_candidates`` (dielectric, ``ior``): base colour and lighting
+  3. the roughness of ``roughness_candidates`` (dielectric, ``ior``), descended from 0.3 to the bracket
+     of the best (descend_grid): base colour and lighting
      fitted (the Fresnel-fixed specular layer sets the absolute scale), the SH order chosen by
      held-out views (folds = image_id mod folds); the best roughness refined by Brent's bounded
      search in log roughness, and the interval of roughness within ``parsimony`` of the best reported.
@@ -206,8 +207,9 @@ def select_material(candidate, settings, models: list[str], obs, grey: np.ndarra
 
 def search_roughness(candidate, settings, grey, metallic: float, directions=None, fits: dict | None = None):
     """({roughness: fit}, source directions) of principled candidates of one ``metallic``: the
-    roughness grid (the directional sources located at the grid point nearest 0.3 unless given,
-    then again through the best one's lobe), refined by Brent's bounded search in log roughness
+    roughness grid, descended from the point nearest 0.3 to the bracket of its best
+    (descend_grid; the directional sources located at that start point unless given, then again
+    through the best one's lobe), refined by Brent's bounded search in log roughness
     between the best grid point's neighbours (``roughness_refinements`` candidates; 0 = one
     candidate at the parabola through the three)."""
     fits = dict(fits or {})
@@ -220,9 +222,13 @@ def search_roughness(candidate, settings, grey, metallic: float, directions=None
     if directions is None:
         fits[start] = fit_at(start, None)
         directions = _directions(fits[start])
-    for r in grid:
+
+    def score_at(r: float) -> float:
         if r not in fits:
             fits[r] = fit_at(r, directions)
+        return _score(fits[r])
+
+    descend_grid(grid, score_at, grid.index(start))
     rs = np.array(sorted(fits))
     i = int(np.argmin([_score(fits[r]) for r in rs]))
     if rs[i] != start and settings.max_sources > 0:
@@ -251,6 +257,21 @@ def search_roughness(candidate, settings, grey, metallic: float, directions=None
         if not np.any(np.isclose(rs, refined)):
             fits[refined] = fit_at(refined, directions)
     return fits, directions
+
+
+def descend_grid(grid: list[float], score_at, start: int) -> None:
+    """Score grid points outward from ``grid[start]`` until the best scored one has both its
+    neighbours scored (or is at an end): the bracket of a minimum, found without scoring the
+    whole grid (the held-out error is unimodal in roughness on every capture measured, and each
+    point is a full candidate fit)."""
+    scores = {start: score_at(grid[start])}
+    while True:
+        best = min(scores, key=scores.get)
+        todo = [j for j in (best - 1, best + 1) if 0 <= j < len(grid) and j not in scores]
+        if not todo:
+            return
+        for j in todo:
+            scores[j] = score_at(grid[j])
 
 
 def _score(fit: material_fit.MaterialFit) -> float:

@@ -160,7 +160,6 @@ def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed
     n = geo.faces.size
     out = np.zeros((n, num_coeffs(order), 3))
     front = np.flatnonzero(geo.mu_out > 0)
-    l = band_of_index(order)
     bands = np.arange(order + 1)
 
     def one_chunk(s: int) -> None:
@@ -175,14 +174,19 @@ def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed
         hit = r._shadow_rays.intersects_any(np.repeat(pts, ns, axis=0)[live], dirs[live])
         weight[live[hit]] = 0.0
         # each sample stands for its solid angle 1 / (S pdf): Y_k prefiltered over a cap of that size,
-        # cap average ~ exp(-l(l+1) θ² / 8) with θ² = Ω / π (as the renderer prefilters its map)
-        soft = np.exp(-np.outer(lobe.solid_angle.reshape(-1) / (8 * np.pi), bands * (bands + 1)))[:, l]
-        basis = (sh_basis(dirs, order) * soft).reshape(q, ns, -1)                          # (q, S, K)
+        # cap average ~ exp(-l(l+1) θ² / 8) with θ² = Ω / π (as the renderer prefilters its map);
+        # the factor depends on the band only, so it goes into the weights, one band at a time
+        soft = np.exp(-np.outer(lobe.solid_angle.reshape(-1) / (8 * np.pi), bands * (bands + 1)))  # (q S, L+1)
+        basis = sh_basis(dirs, order).reshape(q, ns, -1)                                     # (q, S, K)
+        soft = soft.reshape(q, ns, -1)
         w3 = weight.reshape(q, ns, 3)
-        if np.array_equal(w3[..., 0], w3[..., 2]) and np.array_equal(w3[..., 0], w3[..., 1]):  # grey F (dielectric)
-            out[idx] = np.einsum("qsk,qs->qk", basis, w3[..., 0], optimize=True)[..., None]
-        else:
-            out[idx] = np.einsum("qsk,qsc->qkc", basis, w3, optimize=True)
+        grey = np.array_equal(w3[..., 0], w3[..., 2]) and np.array_equal(w3[..., 0], w3[..., 1])  # dielectric F
+        for b in bands:
+            block = slice(b * b, (b + 1) * (b + 1))
+            if grey:
+                out[idx, block] = np.einsum("qsk,qs->qk", basis[:, :, block], w3[..., 0] * soft[..., b])[..., None]
+            else:
+                out[idx, block] = np.einsum("qsk,qsc->qkc", basis[:, :, block], w3 * soft[..., b, None])
 
     with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
         list(pool.map(one_chunk, range(0, front.size, chunk)))
