@@ -32,7 +32,7 @@ from scipy.optimize import minimize_scalar
 from pipeline.core import material_fit, prt, solve
 from pipeline.core.envmap import add_sources
 from pipeline.core.material import MIN_ROUGHNESS, Principled, material_dict, principled_from_dict
-from pipeline.core.noise import inverse_variance_weights, noise_level_function, pixel_noise_sigma
+from pipeline.core.noise import inverse_variance_weights, noise_level_function, pixel_noise_sigma, weighted_noise_sigma
 from pipeline.core.render import Renderer
 from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, sh_of_sources
 from pipeline.errors import UserError
@@ -69,14 +69,16 @@ def load_samples(path: Path, settings, n_faces: int) -> tuple[dict, dict]:
     n = len(data.get("weight", []))
     if n == 0:
         raise UserError(f"{path}: no samples with positive weight on the mesh; check the samples stage's drop counts")
-    noise = {"sigma": pixel_noise_sigma(data["radiance"], data["image_id"], data["pixel"]), "weighting": "uniform"}
+    sigma = pixel_noise_sigma(data["radiance"], data["image_id"], data["pixel"])
+    noise = {"sigma": sigma, "unit_sigma": sigma, "weighting": "uniform"}
     if settings.noise_model == "measured":
         a, b = noise_level_function(data["radiance"], data["image_id"], data["pixel"])
         if np.isfinite(a) and np.isfinite(b):
             a = max(a, (settings.noise_floor * float(np.sqrt(np.mean(data["radiance"].astype(float) ** 2)))) ** 2)
             data["weight"] = data["weight"] * inverse_variance_weights(data["radiance"], a, b).astype(np.float32)
-            noise.update(a=a, b=b, weighting="1 / (a + b B), B the sample's channel-mean radiance, normalized at the "
-                                              "median; a floored at (noise_floor x RMS radiance)^2")
+            noise.update(a=a, b=b, unit_sigma=weighted_noise_sigma(data["weight"], data["radiance"], a, b),
+                         weighting="1 / (a + b B), B the sample's channel-mean radiance, normalized at the "
+                                   "median; a floored at (noise_floor x RMS radiance)^2")
         else:
             noise["weighting"] = "uniform (the noise level could not be measured: too few neighbouring samples)"
     if n > settings.physical_samples:
@@ -392,12 +394,13 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
 
     brdf = _brdf_json(best)
     coeffs = best.coeffs
+    bands = solve.data_labels(best.lighting.bands, best.lighting.noise_sigma, noise["unit_sigma"], settings.min_snr)
     sources = [] if best.sources is None else [
         {"direction": d.tolist(), "intensity": p.tolist()} for d, p in zip(best.sources.directions, best.sources.power)]
     report = {"mode": mode, "forward_model": "physical (pipeline.core.prt: shadows, interreflection, GGX)",
               "order": order_of(coeffs.shape[0]), "brdf_model": brdf["model"], "brdf": brdf,
-              "bands": best.lighting.bands, "labels": {b["l"]: b["label"] for b in best.lighting.bands},
-              "noise_sigma": best.lighting.noise_sigma, "pixel_noise": _pixel_noise_note(noise, best.lighting),
+              "bands": bands, "labels": {b["l"]: b["label"] for b in bands},
+              "noise_sigma": best.lighting.noise_sigma, "pixel_noise": _pixel_noise_note(noise),
               "candidates": table, "lighting_orders": best.orders, "lighting_refit": refit,
               "sources": sources, "samples": {"used": int(len(obs.weight))},
               "roughness_interval": None if interval is None or one_fold else list(interval),
@@ -429,7 +432,7 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
                                  sources=sources, sources_note=SOURCES_NOTE),
                write_image(out / "lighting.exr", env.astype(np.float32), dtype="float"),
                write_brdf(out / "brdf.json", brdf)]
-    written += write_plots(out, env, best.lighting.bands, views)
+    written += write_plots(out, env, bands, views)
     if vertex_rho is not None:
         written.append(write_vertex_albedo(out / "albedo.ply", mesh, vertex_rho))
     elif (out / "albedo.ply").exists():
@@ -446,15 +449,12 @@ def _directions(fit: material_fit.MaterialFit) -> np.ndarray:
     return np.zeros((0, 3)) if fit.sources is None else fit.sources.directions
 
 
-def _pixel_noise_note(noise: dict, lighting: solve.LightingFit) -> dict:
-    """The photos' own noise (pipeline.core.noise) beside the residual-based noise_sigma that
-    sets the labels and ridges (it holds model error too), each band's snr against it (what the
-    data would determine if the forward model were exact), and the samples' noise weighting."""
-    sigma = noise["sigma"]
-    ratio = lighting.noise_sigma / sigma if np.isfinite(sigma) and sigma > 0 else float("nan")
-    return {**noise, "snr_per_band": {b["l"]: b["snr"] * ratio for b in lighting.bands},
-            "note": "noise_sigma (the labels' and ridges' noise) is the fit's residual, model error included; "
-                    "measured alone the noise ruled the unknown-lighting fit of a glossy teapot worse (docs/fit.md)"}
+def _pixel_noise_note(noise: dict) -> dict:
+    """The photos' own noise (pipeline.core.noise) and what it is used for."""
+    return {**noise, "note": "the bands' labels and snr_data are against unit_sigma, the photos' noise as the "
+                             "weighted residual would hold it with an exact model (what the data determine); the ridges and each band's 'regularized' against "
+                             "noise_sigma, the fit's residual with model error included (measured alone the noise "
+                             "ruled the unknown-lighting fit of a glossy teapot worse, docs/fit.md)"}
 
 
 def _brdf_json(fit: material_fit.MaterialFit) -> dict:

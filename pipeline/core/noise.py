@@ -96,3 +96,13 @@ def inverse_variance_weights(radiance: np.ndarray, a: float, b: float) -> np.nda
     channel-mean radiance, clipped at 0), normalized to 1 at the median B."""
     level = np.maximum(np.asarray(radiance, float).mean(axis=1), 0.0)
     return (a + b * float(np.median(level))) / (a + b * level)
+
+
+
+def weighted_noise_sigma(weight: np.ndarray, radiance: np.ndarray, a: float, b: float) -> float:
+    """sqrt(sum w sigma^2 / sum w), sigma^2 = a + b B the noise level of each sample (B its channel-mean
+    radiance): the RMS a weighted least-squares residual (weights ``weight`` (N,)) would have if
+    the model were exact, the photos' noise alone."""
+    level = np.maximum(np.asarray(radiance, float).mean(axis=1), 0.0)
+    w = np.asarray(weight, float)
+    return float(np.sqrt(np.sum(w * (a + b * level)) / max(np.sum(w), 1e-300)))

@@ -207,6 +207,23 @@ def solve_lighting(g: np.ndarray, h: np.ndarray, btb: np.ndarray, weight: float,
                        float(np.sqrt(max(rss.sum(), 0.0) / (3 * max(weight, 1e-300)))), ridge)
 
 
+def data_labels(bands: list[dict], noise_sigma: float, data_sigma: float, min_snr: float = 10.0) -> list[dict]:
+    """The bands of a LightingFit (``bands``, labelled against ``noise_sigma``, the fit's residual:
+    model error included) labelled again against ``data_sigma``, the photos' own noise measured
+    apart from model error (pipeline.core.noise): what the data determine through this transfer if
+    the forward model were exact.  snr_data = snr * noise_sigma / data_sigma; ill-posed stays
+    ill-posed.  Each band keeps whether its ridge shrank it as ``regularized`` (the fit's own label
+    was ill-conditioned); with no usable ``data_sigma`` the labels are kept and snr_data is None."""
+    usable = np.isfinite(data_sigma) and data_sigma > 0
+    out = []
+    for b in bands:
+        snr_data = b["snr"] * noise_sigma / data_sigma if usable else None
+        label = b["label"] if not usable or b["label"] == "ill-posed" else \
+            "recoverable" if snr_data >= min_snr else "ill-conditioned"
+        out.append({**b, "label": label, "snr_data": snr_data, "regularized": b["label"] == "ill-conditioned"})
+    return out
+
+
 def cross_validate_orders(eqs: NormalEquations, orders: list[int], scale: np.ndarray | None = None,
                           **solve_kwargs) -> list[dict]:
     """Leave-one-fold-out errors of every candidate order from one set of per-fold normal equations.

@@ -58,3 +58,18 @@ def test_noise_level_function_needs_neighbouring_samples():
     radiance, ids, pixel = _samples(0.01)
     every_other = (pixel[:, 0] % 2 == 0) & (pixel[:, 1] % 2 == 0)
     assert np.all(np.isnan(noise_level_function(radiance[every_other], ids[every_other], pixel[every_other])))
+
+
+def test_weighted_noise_sigma_is_the_weighted_rms_of_pure_noise():
+    """An exact model leaves the noise alone as the residual: its weighted RMS under inverse-variance
+    weights (times other per-sample weights) is weighted_noise_sigma, within 1% on 2e5 samples."""
+    from pipeline.core.noise import inverse_variance_weights, weighted_noise_sigma
+
+    rng = np.random.default_rng(5)
+    radiance = rng.uniform(0.0, 2.0, (200_000, 3)) * rng.uniform(0.1, 1.0, (200_000, 1))
+    a, b = 1e-5, 2e-3
+    sigma = np.sqrt(a + b * radiance.mean(axis=1, keepdims=True))
+    residual = rng.normal(size=radiance.shape) * sigma
+    w = inverse_variance_weights(radiance, a, b) * rng.uniform(0.2, 1.0, 200_000)
+    rms = np.sqrt(np.sum(w[:, None] * residual ** 2) / (3 * np.sum(w)))
+    assert weighted_noise_sigma(w, radiance, a, b) == pytest.approx(rms, rel=0.01)

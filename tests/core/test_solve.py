@@ -117,3 +117,19 @@ def test_parsimonious_choice_prefers_the_smaller_model_within_noise():
     assert solve.parsimonious_choice(cands, 0.05) == 1
     assert solve.parsimonious_choice(cands, 0.0) == 3
     assert solve.parsimonious_choice(cands, 0.0, noise=0.01) == 1
+
+
+def test_data_labels_rank_bands_against_the_photos_noise_not_the_residual():
+    """A residual 4x the photos' noise (model error) labels band 1 ill-conditioned; against the
+    photos' noise its snr is 4x and it is recoverable, still marked regularized (its ridge came
+    from the residual); an ill-posed band stays ill-posed whatever the noise."""
+    from pipeline.core.solve import data_labels
+
+    bands = [{"l": 0, "label": "recoverable", "snr": 40.0}, {"l": 1, "label": "ill-conditioned", "snr": 5.0},
+             {"l": 2, "label": "ill-conditioned", "snr": 1.0}, {"l": 3, "label": "ill-posed", "snr": 0.0}]
+    out = data_labels(bands, noise_sigma=4.0, data_sigma=1.0, min_snr=10.0)
+    assert [b["label"] for b in out] == ["recoverable", "recoverable", "ill-conditioned", "ill-posed"]
+    assert [b["snr_data"] for b in out] == [160.0, 20.0, 4.0, 0.0]
+    assert [b["regularized"] for b in out] == [False, True, True, False]
+    kept = data_labels(bands, noise_sigma=4.0, data_sigma=float("nan"))
+    assert [b["label"] for b in kept] == [b["label"] for b in bands] and kept[0]["snr_data"] is None
