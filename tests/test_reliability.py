@@ -195,8 +195,21 @@ def test_a_closed_stdout_ends_quietly(linearized):
     assert result.returncode == 0 and result.stderr == "", result.stderr
 
 
-def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch):
+def _user_error(path):
     from pipeline.errors import UserError
+    return UserError("injected failure after two images")
+
+
+def _disk_full(path):
+    import errno
+    return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+
+
+# a stage failing half-way: a user error, or the machine's (a full disk: one line naming the file, no
+# traceback) -> a fragment of the one-line message; either way nothing of the stage is committed
+@pytest.mark.parametrize("fault, fragment", [(_user_error, "injected failure after two images"),
+                                             (_disk_full, "No space left on device; free some space")])
+def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch, capsys, fault, fragment):
     from stages import linearize
 
     capture, work = linearized
@@ -207,39 +220,16 @@ def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch):
     def failing(path, *args, **kwargs):
         calls.append(path)
         if len(calls) == 3:
-            raise UserError("injected failure after two images")
+            raise fault(path)
         return real(path, *args, **kwargs)
 
     monkeypatch.setattr(linearize, "write_image", failing)
-    assert cli.main(["linearize", str(capture), "-w", str(work), "--saturation", "0.6", "--workers", "1"]) == 2
-    assert len(calls) == 3
-    assert digest(work) == before           # the two images written before the failure were not committed
-
-
-def test_a_full_disk_is_one_line_and_commits_nothing(linearized, monkeypatch, capsys):
-    """A full disk (ENOSPC) half-way through a stage: one line naming the file, exit 2, and the
-    previous outputs byte-identical (the machine's error, not a bug: no traceback)."""
-    import errno
-
-    from stages import linearize
-
-    capture, work = linearized
-    before = digest(work)
-    real = linearize.write_image
-    calls = []
-
-    def disk_full(path, *args, **kwargs):
-        calls.append(path)
-        if len(calls) == 3:
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
-        return real(path, *args, **kwargs)
-
-    monkeypatch.setattr(linearize, "write_image", disk_full)
     capsys.readouterr()
     assert cli.main(["linearize", str(capture), "-w", str(work), "--saturation", "0.6", "--workers", "1"]) == 2
+    assert len(calls) == 3
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "No space left on device; free some space" in err[0] and str(calls[-1]) in err[0], err
-    assert digest(work) == before
+    assert len(err) == 1 and fragment in err[0], err
+    assert digest(work) == before           # the two images written before the failure were not committed
 
 
 def test_freshness_is_by_content_not_file_times(tiny_capture, tmp_path, capsys):
