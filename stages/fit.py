@@ -7,7 +7,7 @@ Modes (the inverse-rendering table, DESIGN.md "The inverse problems"):
   lighting       BRDF known (a file or inline spec), lighting unknown: regularized linear least
                  squares for the SH coefficients with per-band conditioning labels.
   brdf           lighting known (equirect EXR or lighting_sh.json), BRDF unknown: variable
-                 projection (nlopt over the lobe width, non-negative LS for albedo and specular).
+                 projection (Brent's bounded search over the lobe width, non-negative LS for albedo and specular).
   factorization  both unknown: alternating lighting / BRDF fits from the Lambertian start; the
                  scale ambiguity (one per colour channel) is fixed by capture.toml
                  ``[fit] known_albedo = [r, g, b]`` or else by the default grey albedo 0.5.

@@ -5,7 +5,7 @@ forward model), grouped by image as in a samples file; up to 10^6 they are gener
 timed call, at 10^7 chunk by chunk inside it (memory O(chunk); the time then includes generation).  Cases:
   lighting (known BRDF)  chunked normal equations + per-band solve (Lambert: one shared Gram;
                          microfacet: one Gram per channel), order 8 vs N, and vs order at N = 10^5
-  brdf (known lighting)  variable projection (nlopt over roughness + NNLS) on N in-memory samples
+  brdf (known lighting)  variable projection (Brent over roughness + NNLS) on N in-memory samples
   factorization          joint linear start + 3 alternations, microfacet, order 8
 Target (issue 6): Lambert lighting at order 8 from 10^6 samples well under 2 s on 2 cores.
 OpenBLAS threads fight other processes for the 2 cores: OPENBLAS_NUM_THREADS=1 is often faster.

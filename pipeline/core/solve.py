@@ -1,5 +1,5 @@
 """Regularized deconvolution in SH space: chunked normal equations, per-band conditioning labels,
-variable-projection BRDF fits, leave-views-out model selection (pure NumPy/SciPy + nlopt).
+variable-projection BRDF fits, leave-views-out model selection (pure NumPy/SciPy).
 
 Inverse lighting (DESIGN.md "The inverse problems"): for a fixed BRDF the radiance is linear in the
 lighting, B_c = A_c L_c (pipeline.core.forward), so L_c solves the weighted normal equations
@@ -361,7 +361,8 @@ def angular_width(model: str, width: float) -> float:
 
 def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.005, grid: int = 13,
              max_evals: int = 25) -> dict:
-    """Variable projection: nlopt (LN_COBYLA, bounded, in log width) over the lobe width; for each
+    """Variable projection: Brent's bounded search (in log width, between the best grid point's
+    neighbours) over the lobe width; for each
     width :func:`linear_brdf` gives the linear parameters.  ``filter_fn(model, width)`` -> A_l.
 
     The residual profile on a log grid of widths is kept: the width counts as recoverable when the
@@ -369,7 +370,7 @@ def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.00
     at ``noise_floor`` x RMS radiance) span at most a factor 3 in angular width; otherwise the
     profile is flat within noise and the width is reported unrecoverable.
     """
-    import nlopt
+    from scipy.optimize import minimize_scalar
 
     wsum = float(data.weight.sum())
     rms_signal = float(np.sqrt((data.radiance ** 2 * data.weight[:, None]).sum() / (3 * wsum)))
@@ -386,17 +387,11 @@ def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.00
     log_grid = np.linspace(np.log(lo), np.log(hi), grid)
     profile = np.array([mse_at(x) for x in log_grid])
     start = float(log_grid[int(np.argmin(profile))])
-    opt = nlopt.opt(nlopt.LN_COBYLA, 1)
-    opt.set_lower_bounds([np.log(lo)])
-    opt.set_upper_bounds([np.log(hi)])
-    opt.set_min_objective(lambda x, grad: mse_at(float(x[0])))
-    opt.set_initial_step([float(log_grid[1] - log_grid[0]) / 2])
-    opt.set_xtol_abs(1e-3)
-    opt.set_maxeval(max_evals)
-    try:
-        best_log = float(opt.optimize([start])[0])
-    except (nlopt.RoundoffLimited, ValueError, RuntimeError):
-        best_log = start
+    step = float(log_grid[1] - log_grid[0])
+    # Brent's bounded search between the best grid point's neighbours (the bracket of its minimum)
+    found = minimize_scalar(mse_at, bounds=(max(start - step, np.log(lo)), min(start + step, np.log(hi))),
+                            method="bounded", options={"xatol": 1e-3, "maxiter": max_evals})
+    best_log = float(found.x) if np.isfinite(found.fun) else start
     if mse_at(best_log) > profile.min():
         best_log = start
     width = float(np.exp(best_log))

@@ -1,0 +1,128 @@
+"""The house's layering (DESIGN.md, "The house"; issue 15): every import of every module — at the
+top or inside a function — points down the arrows
+
+    pipeline/core  <-  pipeline/io, raycast, workdir, settings, errors  <-  stages/, calib/
+                   <-  pipeline/runner, batch, report (and the commands beside them)  <-  pipeline/cli
+
+pipeline/core imports only the standard library, NumPy and SciPy.  Within a layer an import is
+sideways, and a break too: between two stages (a stage's method modules, stages/<name>_*.py, are
+part of it), between stages and calib, and between the modules of the runner's layer.
+
+KNOWN_BREAKS lists the edges that still break the layering (issue 15 is fixing them): a new
+edge fails this test, and so does a listed edge that is gone (take it off the list).
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).parents[1]
+PACKAGES = ("pipeline", "stages", "calib")
+CORE_LIBRARIES = {"numpy", "scipy"}
+
+KNOWN_BREAKS = {
+    ("pipeline.core.render", "trimesh"),               # the renderer casts its own rays (DESIGN.md: raycast)
+    ("pipeline.core.render", "trimesh.ray.ray_pyembree"),
+    ("pipeline.core.render", "cv2"),
+    ("pipeline.report", "pipeline.runner"),            # report <-> runner: a cycle
+    ("pipeline.runner", "pipeline.report"),
+    ("pipeline.batch", "pipeline.runner"),
+    ("pipeline.synth", "pipeline.commands.bench"),
+    ("pipeline.bench_pipeline", "pipeline.commands.bench"),
+    ("pipeline.bench_pipeline", "pipeline.runner"),
+    ("pipeline.bench_pipeline", "pipeline.synth"),
+    ("pipeline.commands.bench_render", "pipeline.runner"),
+    ("pipeline.commands.synth", "pipeline.synth"),
+    ("stages.poses", "calib.charuco"),                 # board detection shared by poses and calib
+    ("stages.relight", "stages.samples"),
+}
+
+
+def layer(module: str) -> int | None:
+    """The module's rank in the arrows above (0 = core), None for a module outside the project."""
+    if module == "pipeline.core" or module.startswith("pipeline.core."):
+        return 0
+    if module == "pipeline.cli":
+        return 4
+    if module.startswith(("stages", "calib")):
+        return 2
+    if module.startswith(("pipeline.runner", "pipeline.batch", "pipeline.report", "pipeline.synth",
+                          "pipeline.bench", "pipeline.commands")):
+        return 3
+    if module.split(".")[0] == "pipeline":
+        return 1
+    return None
+
+
+def unit(module: str) -> str:
+    """What a sideways import is measured between: a stage with its method modules (a command with
+    its parts: commands/bench_*.py), a calib module, a module of the runner's layer."""
+    parts = module.split(".")
+    if (parts[0] == "stages" or parts[:2] == ["pipeline", "commands"]) and len(parts) > 1:
+        head = parts[:-1]
+        return ".".join(head + [parts[-1].split("_")[0]])
+    return ".".join(parts[:2]) if parts[0] == "calib" else module
+
+
+def module_name(path: Path, root: Path = ROOT) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imports(path: Path, root: Path = ROOT) -> set[str]:
+    """Every module ``path`` (under ``root``) imports, at the top or inside functions (relative
+    imports resolved; ``from package import module`` counts the module)."""
+    here = module_name(path, root).split(".")
+    package = here if path.name == "__init__.py" else here[:-1]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = package[:len(package) - node.level + 1] if node.level else []
+            module = ".".join(base + ([node.module] if node.module else []))
+            found.add(module)
+            found.update(f"{module}.{a.name}" for a in node.names if f"{module}.{a.name}" in MODULES)
+    return found
+
+
+FILES = sorted(p for pkg in PACKAGES for p in (ROOT / pkg).rglob("*.py"))
+MODULES = {module_name(p) for p in FILES}
+
+
+def edges() -> set[tuple[str, str]]:
+    """(importer, imported) pairs that break the layering."""
+    breaks = set()
+    for path in FILES:
+        importer = module_name(path)
+        low = layer(importer)
+        for imported in imports(path):
+            if imported in ("pipeline", "stages", "calib") or imported == importer:
+                continue
+            rank = layer(imported)
+            if low == 0 and rank is None and imported.split(".")[0] not in CORE_LIBRARIES | set(sys.stdlib_module_names):
+                breaks.add((importer, imported))          # core imports a library
+            elif rank is not None and (rank > low or (rank == low and low in (2, 3) and unit(imported) != unit(importer))):
+                breaks.add((importer, imported))          # up, or sideways
+    return breaks
+
+
+def test_imports_follow_the_layering():
+    found = edges()
+    new = sorted(found - KNOWN_BREAKS)
+    assert not new, f"imports against DESIGN.md's layering: {new}"
+    fixed = sorted(KNOWN_BREAKS - found)
+    assert not fixed, f"fixed, take them off KNOWN_BREAKS: {fixed}"
+
+
+def test_the_checker_sees_imports_inside_functions_and_relative_ones(tmp_path):
+    """The checker itself: an import inside a function and a relative one are found."""
+    probe = tmp_path / "pipeline" / "core" / "probe.py"
+    probe.parent.mkdir(parents=True)
+    probe.write_text("from . import sh\n"
+                     "def f():\n"
+                     "    from pipeline.io.images import read_image\n"
+                     "    import trimesh\n")
+    assert imports(probe, tmp_path) == {"pipeline.core", "pipeline.core.sh", "pipeline.io.images", "trimesh"}
