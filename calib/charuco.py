@@ -15,11 +15,12 @@ from typing import Literal
 
 import numpy as np
 
+from pipeline.board import detect, make_board
 from pipeline.core.camera import Camera
 from pipeline.errors import UserError
 from pipeline.io.camera_decode import DECODED_EXTENSIONS, RAW_EXTENSIONS
 from pipeline.io.camera_json import write_camera_json
-from pipeline.io.capture_toml import BoardSpec, read_board
+from pipeline.io.capture_toml import read_board
 from pipeline.io.images import read_image
 from pipeline.settings import setting
 
@@ -45,23 +46,6 @@ class Settings:
             raise UserError(f"--min-corners {self.min_corners}: need at least 6 (a homography has 8 unknowns)")
 
 
-def make_board(spec: BoardSpec):
-    """The cv2.aruco.CharucoBoard of ``spec`` (board frame: origin at the top-left board corner, x right,
-    y down, z into the board, metres; OpenCV >= 4.6 pattern)."""
-    import cv2
-
-    name = spec.dictionary.upper()
-    if not name.startswith("DICT_") or not hasattr(cv2.aruco, name):
-        raise UserError(f"board dictionary {spec.dictionary!r} is not a cv2.aruco predefined dictionary "
-                        "(e.g. DICT_5X5_100)")
-    dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
-    board = cv2.aruco.CharucoBoard(spec.squares, spec.square_length, spec.marker_length, dictionary)
-    n_markers = (spec.squares[0] * spec.squares[1]) // 2
-    if n_markers > dictionary.bytesList.shape[0]:
-        raise UserError(f"board needs {n_markers} markers but {spec.dictionary} has only {dictionary.bytesList.shape[0]}")
-    return board
-
-
 def to_gray8(rgb: np.ndarray, *, linear: bool) -> np.ndarray:
     """8-bit gray for detection; linear data is scaled to its 99th percentile and gamma-encoded (1/2.2)."""
     gray = np.nan_to_num(rgb[:, :, :3].mean(axis=2) if rgb.ndim == 3 else rgb)
@@ -84,18 +68,6 @@ def read_gray(path: Path) -> np.ndarray:
         return to_gray8(rgb, linear=False)
     rgb = read_image(path)
     return to_gray8(rgb, linear=path.suffix.lower() in (".exr", ".hdr"))
-
-
-def detect(board, gray: np.ndarray):
-    """ChArUco corners of one image: (object points (N, 3) metres, image points (N, 2) OpenCV pixels)."""
-    import cv2
-
-    detector = cv2.aruco.CharucoDetector(board)
-    corners, ids, _, _ = detector.detectBoard(gray)
-    if ids is None or len(ids) == 0:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 2), np.float32)
-    obj, img = board.matchImagePoints(corners, ids)
-    return obj.reshape(-1, 3).astype(np.float32), img.reshape(-1, 2).astype(np.float32)
 
 
 def list_photos(folder: Path) -> list[Path]:

@@ -70,7 +70,8 @@ def run_one(capture: str, work: str, holdout: int, force: bool, threads: int, fi
 
     os.environ["TQDM_DISABLE"] = "1"       # no progress bars or stage listings in the workers' logs
 
-    from pipeline.runner import RunPlan, check_capture, relight_check, run_capture, summary_lines
+    from pipeline.io.run_summary import relight_check, summary_lines
+    from pipeline.runner import RunPlan, check_capture, run_capture
 
     row = {"capture": capture, "work": work}
     try:

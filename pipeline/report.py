@@ -90,7 +90,7 @@ def _json(path: Path) -> dict | None:
 # --------------------------------------------------------------------------------------- sections
 
 def _summary(capture: Path, work: Path) -> str:
-    from pipeline.runner import stage_table, summary_lines, StageResult
+    from pipeline.io.run_summary import StageResult, stage_table, summary_lines
 
     parts = [f"<p>capture <code>{html.escape(str(Path(capture).resolve()))}</code>, "
              f"work folder <code>{html.escape(str(Path(work).resolve()))}</code></p>"]
@@ -158,7 +158,7 @@ def camera_plot(poses, bounds: np.ndarray | None, heldout: list[str]) -> bytes:
 
 def _cameras(capture: Path, work: Path) -> str:
     from pipeline.io.poses import read_poses
-    from pipeline.runner import _samples_holdout
+    from pipeline.io.run_summary import samples_holdout
     from stages.relight import capture_poses_path
 
     path = capture_poses_path(capture, work)
@@ -167,9 +167,9 @@ def _cameras(capture: Path, work: Path) -> str:
     poses = read_poses(path)
     bounds = None
     try:
-        from stages.samples import load_mesh, mesh_path
+        from pipeline.io.mesh import mesh_path, read_mesh
 
-        bounds = load_mesh(mesh_path(capture)).bounds
+        bounds = read_mesh(mesh_path(capture)).bounds
     except Exception:  # the report shows what it can; a bad mesh is reported by the stages
         bounds = None
     summary = _json(Path(work) / "poses_summary.json") or {}
@@ -181,7 +181,7 @@ def _cameras(capture: Path, work: Path) -> str:
                  "SfM points on it.</p>")
     if summary:
         text += "<pre>" + html.escape(json.dumps(summary, indent=1)[:2000]) + "</pre>"
-    return _section("Cameras", text + _img_tag(camera_plot(poses, bounds, _samples_holdout(work)), "cameras"))
+    return _section("Cameras", text + _img_tag(camera_plot(poses, bounds, samples_holdout(work)), "cameras"))
 
 
 def _coverage(work: Path) -> str:
@@ -290,7 +290,7 @@ def _brdf(work: Path) -> str:
 
 
 def _relight(work: Path) -> str:
-    from pipeline.runner import method_description, relight_check
+    from pipeline.io.run_summary import method_description, relight_check
 
     folder = Path(work) / "relight" / "check"
     check = relight_check(work)

@@ -18,7 +18,6 @@ import argparse
 import dataclasses
 import importlib
 import inspect
-import json
 import sys
 import time
 import warnings
@@ -28,6 +27,7 @@ from types import SimpleNamespace
 
 from pipeline import __version__
 from pipeline.errors import UserError
+from pipeline.io.run_summary import HOLDOUT_FIELD, StageResult, samples_holdout, stage_table, summary_lines
 from pipeline.settings import add_settings_arguments, make_settings, settings_from_args
 from pipeline.workdir import (changed_settings, fingerprints, is_fresh, record_settings, remove_stale_temporaries, settings_path,
                               transaction, work_lock, write_json)
@@ -35,7 +35,6 @@ from pipeline.workdir import (changed_settings, fingerprints, is_fresh, record_s
 HELP = "Run the whole pipeline on a capture folder (linearize, poses, samples, fit, relight) and write the report."
 
 STAGES = ("linearize", "poses", "samples", "fit", "relight")
-HOLDOUT_FIELD = "holdout"  # samples.Settings field naming the image keys to leave out
 
 
 def default_work(capture: Path) -> Path:
@@ -49,14 +48,6 @@ def check_capture(capture: Path) -> Path:
     if not capture.is_dir():
         raise UserError(f"{capture}: capture folder not found (it should hold images/ and a mesh)")
     return capture
-
-
-@dataclass
-class StageResult:
-    name: str
-    outputs: list[Path]
-    seconds: float
-    skipped: bool
 
 
 def run_stage(name: str, *, capture: Path, work: Path, settings, force: bool = False,
@@ -217,7 +208,7 @@ def _say_if_replacing(work: Path, name: str, settings) -> None:
 def _relight_runs(plan: RunPlan) -> list[StageResult]:
     results = []
     common = dict(capture=plan.capture, work=plan.work, force=plan.force)
-    held = _samples_holdout(plan.work)
+    held = samples_holdout(plan.work)
     views = "heldout" if held else "capture"
     settings = stage_settings("relight", views=views, compare=True, out_dir=str(Path(plan.work) / "relight" / "check"))
     results.append(run_stage("relight", settings=settings, record="relight-check", **common))
@@ -226,75 +217,6 @@ def _relight_runs(plan: RunPlan) -> list[StageResult]:
         settings = stage_settings("relight", env=str(Path(env).resolve()), views="capture", out_dir=str(out))
         results.append(run_stage("relight", settings=settings, record=f"relight-{Path(env).stem}", **common))
     return results
-
-
-def _samples_holdout(work: Path) -> list[str]:
-    """The keys the samples stage actually held out (its meta), [] when none or unknown."""
-    from pipeline.io.samples import read_samples_meta
-
-    path = Path(work) / "samples.npz"
-    if not path.exists():
-        return []
-    return [str(k) for k in (read_samples_meta(path).get(HOLDOUT_FIELD) or [])]
-
-
-def relight_check(work: Path) -> dict | None:
-    """The relight comparison written by the run (WORK/relight/check/relight.json 'compare'), if any."""
-    path = Path(work) / "relight" / "check" / "relight.json"
-    if not path.exists():
-        return None
-    doc = json.loads(path.read_text())
-    check = doc.get("compare")
-    if check is not None:
-        check = dict(check, heldout=bool(_samples_holdout(work)), method=doc.get("method", "frequency"),
-                     lighting=doc.get("lighting", {}))
-    return check
-
-
-def method_description(check: dict) -> str:
-    """One phrase naming the relight method that made the compared images (from relight.json)."""
-    if check.get("method") == "angular":
-        light = check.get("lighting", {})
-        shadows = "with shadows" if light.get("shadows") else "without shadows"
-        lobe = light.get("lobe", "")
-        note = "; sharp lobe via the frequency path" if str(lobe).startswith("frequency") else ""
-        return f"angular method: reflection equation, full BRDF, {shadows}{note}"
-    return "frequency method: SH / prefiltered lobe, no shadows"
-
-
-def stage_table(results: list[StageResult]) -> str:
-    """The closing table: stage, status, seconds, number of outputs."""
-    lines = [f"{'stage':<16} {'status':<8} {'seconds':>8} {'outputs':>8}"]
-    for r in results:
-        lines.append(f"{r.name:<16} {'skipped' if r.skipped else 'ran':<8} {r.seconds:>8.1f} {len(r.outputs):>8d}")
-    lines.append(f"{'total':<16} {'':<8} {sum(r.seconds for r in results):>8.1f}")
-    return "\n".join(lines)
-
-
-def summary_lines(work: Path) -> list[str]:
-    """What the run found: fitted model (fit/report.json) and the relight error on held-out views."""
-    lines = []
-    report = Path(work) / "fit" / "report.json"
-    if report.exists():
-        try:
-            doc = json.loads(report.read_text())
-        except json.JSONDecodeError:
-            doc = {}
-        chosen = {k: doc[k] for k in ("mode", "model", "order", "brdf_model", "sh_order") if k in doc}
-        if chosen:
-            lines.append("fit: " + ", ".join(f"{k} {v}" for k, v in chosen.items()))
-        if doc.get("model_limits"):
-            from stages.fit import model_limits_line
-
-            min_visibility = doc.get("settings", {}).get("min_visibility", "?")
-            lines.append(model_limits_line(doc["model_limits"], min_visibility))
-    check = relight_check(work)
-    if check is not None:
-        which = "held-out views" if check["heldout"] else "training views (nothing held out)"
-        scale = f" after one global scale {check['scale']:.3g}" if check.get("scale_fitted") else ""
-        lines.append(f"relight error on {len(check['views'])} {which}: "
-                     f"{100 * check['relative_error']:.2f}% (relative RMS{scale}; {method_description(check)})")
-    return lines
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

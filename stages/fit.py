@@ -835,21 +835,10 @@ def write_vertex_albedo(path: Path, mesh, albedo: np.ndarray) -> Path:
     return path
 
 
-def model_limits_line(limits: dict, min_visibility: float) -> str:
-    """One line: how far the forward model is from the data where it is used, and on the
-    self-shadowed samples it leaves out ('' when there is nothing to say)."""
-    shadow = limits.get("shadowed", {})
-    parts = [f"{100 * g['relative_rmse']:.1f}% on the {100 * g['fraction']:.0f}% visible with {name[9:]}"
-             for name, g in limits.items() if name.startswith("visible") and g["relative_rmse"] is not None]
-    parts[:1] = ["fit: relative RMS residual " + p for p in parts[:1]]
-    if shadow.get("samples") and shadow.get("relative_rmse") is not None:
-        parts.append(f"{100 * shadow['relative_rmse']:.1f}% on the {100 * shadow['fraction']:.0f}% self-shadowed ones "
-                     f"(visibility < {min_visibility}; the forward model has no shadows, they are left out)")
-    return "; ".join(parts)
-
-
 def _say_limits(limits: dict, settings: Settings) -> None:
     import sys
+
+    from pipeline.io.run_summary import model_limits_line
 
     line = model_limits_line(limits, settings.min_visibility)
     if line:

@@ -32,7 +32,7 @@ from typing import Iterator, Literal
 
 import numpy as np
 
-from calib.charuco import detect, make_board
+from pipeline.board import detect, make_board
 from pipeline.core.camera import Camera, project
 from pipeline.core.registration import rotation_angle_deg
 from pipeline.core.similarity import Similarity, ransac_similarity, transform_pose

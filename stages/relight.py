@@ -53,12 +53,12 @@ from pipeline.errors import UserError
 from pipeline.io.brdf import diffuse_color, read_brdf
 from pipeline.io.images import preview_exposure, read_envmap, write_image, write_preview
 from pipeline.io.lighting import read_lighting_parts, read_lighting_sh
-from pipeline.io.mesh import read_vertex_albedo
+from pipeline.io.linear_manifest import image_source, linear_manifest, load_linear_image
+from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
 from pipeline.io.poses import Poses, poses_path, read_poses
 from pipeline.raycast import first_hits, intersector
 from pipeline.settings import setting
 from pipeline.workdir import make_folder, write_json
-from stages.samples import image_source, linear_manifest, load_linear_image, load_mesh, mesh_path
 
 DIFFUSE_ORDER = 16         # |Â_l| beyond l = 16 is < 0.15% of Â_0: irradiance of an env map to that level
 LOBE_CUTOFF = 1e-3         # a lobe "needs" band l while |A_l| > LOBE_CUTOFF * A_0
@@ -250,7 +250,7 @@ def resolve_views(*, capture: Path, work: Path, settings: Settings, mesh=None) -
     if spec.startswith("orbit:"):
         reference = read_poses(capture_poses) if capture_poses.exists() else None
         if mesh is None:
-            mesh = load_mesh(mesh_path(capture))
+            mesh = read_mesh(mesh_path(capture))
         return orbit_views(parse_orbit(spec), mesh, size, reference)
     if spec.endswith(".json"):
         poses, keys, own = read_poses(spec), None, False
@@ -772,7 +772,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     if not light_path.exists():
         raise UserError(f"{light_path}: lighting not found; give --env NEW.exr|lighting_sh.json or run `sigrend fit`")
     brdf = read_brdf(brdf_path)
-    mesh = load_mesh(mesh_path(capture))
+    mesh = read_mesh(mesh_path(capture))
     views = resolve_views(capture=capture, work=work, settings=settings, mesh=mesh)
     vertex_colors = vertex_albedo(work, mesh)
     lighting = prepare_lighting(light_path, brdf, mesh, settings, capture=capture, vertex_colors=vertex_colors,

@@ -40,8 +40,7 @@ from pipeline.core.brdf import reflect
 from pipeline.core.coverage import EqualAreaGrid, coverage_stats
 from pipeline.errors import UserError
 from pipeline.io.camera_decode import probe
-from pipeline.io.images import read_image
-from pipeline.io.linear_manifest import linear_dir, manifest_path, read_linear_image, read_manifest, resolve_key
+from pipeline.io.linear_manifest import LINEAR_SUFFIXES, image_source, linear_manifest, load_linear_image
 from pipeline.io.mesh import check_mesh_quality, mesh_path, read_mesh
 from pipeline.io.poses import Poses, poses_path, read_poses
 from pipeline.io.samples import SAMPLE_FIELDS, SamplesWriter
@@ -49,8 +48,6 @@ from pipeline.raycast import first_hits, occluded
 from pipeline.settings import setting, settings_dict
 from pipeline.workdir import atomic_path, write_json
 
-LINEAR_SUFFIXES = (".exr", ".hdr", ".tif", ".tiff")
-load_mesh = read_mesh  # the name pipeline/report.py imports from here
 DROP_REASONS = ("background", "silhouette_edge", "hidden", "grazing", "masked", "max_samples")
 
 
@@ -92,18 +89,6 @@ class Settings:
 # where things are
 
 
-def linear_manifest(work: Path) -> dict | None:
-    """linearize's manifest when WORK/linear/ holds its output, else None (read the capture's images)."""
-    return read_manifest(work) if manifest_path(work).exists() else None
-
-
-def image_source(capture: Path, work: Path, key: str, manifest: dict | None) -> Path:
-    """The file an image key is read from: linearize's EXR when ``manifest`` is given, else CAPTURE/images/key."""
-    if manifest is not None:
-        return linear_dir(work) / manifest["images"][resolve_key(manifest, key)]["exr"]
-    return Path(capture) / "images" / key
-
-
 def exposure_scales(capture: Path, keys: list[str]) -> dict[str, float]:
     """Per capture image: N² / (t · ISO/100) from its EXIF, the linearize stage's convention.
 
@@ -122,38 +107,6 @@ def exposure_scales(capture: Path, keys: list[str]) -> dict[str, float]:
         t, iso, n = exif.get("time") or 1.0, exif.get("iso") or 100.0, exif.get("fnumber") or 1.0
         scales[key] = n * n / (t * iso / 100.0)
     return scales
-
-
-def load_linear_image(capture: Path, work: Path, key: str, manifest: dict | None,
-                      scale: float = 1.0) -> tuple[np.ndarray, np.ndarray, Path]:
-    """Linear RGB (H, W, 3) float32, pixel weight (H, W) float32 in [0, 1] (0 = masked) and the file read.
-
-    With linearize's ``manifest``: its EXR and valid mask (pipeline.io.linear_manifest).  Without:
-    an EXR/HDR/TIFF in CAPTURE/images/ times ``scale`` (from :func:`exposure_scales`; an alpha
-    channel, if any, is the weight).  NaN or Inf in a pixel that is not masked is a UserError
-    naming the file.
-    """
-    name = image_source(capture, work, key, manifest)
-    if manifest is not None:
-        rgb, valid = read_linear_image(work, key, manifest)
-        weight = np.asarray(valid, dtype=np.float32)
-    else:
-        if not name.exists():
-            raise UserError(f"{name}: image listed in poses.json is missing from the capture; "
-                            "restore it or remove it from poses.json")
-        if name.suffix.lower() not in LINEAR_SUFFIXES:
-            raise UserError(f"{name}: not a linear image ({name.suffix}); run `sigrend linearize` first")
-        img = read_image(name)
-        if img.shape[2] == 1:
-            img = np.repeat(img, 3, axis=2)
-        rgb = img[:, :, :3] * np.float32(scale)
-        weight = np.clip(img[:, :, 3], 0.0, 1.0) if img.shape[2] >= 4 else np.ones(img.shape[:2], np.float32)
-    rgb = np.asarray(rgb, dtype=np.float32)
-    bad = ~np.all(np.isfinite(rgb), axis=2) & (weight > 0)
-    if bad.any():
-        raise UserError(f"{name}: {int(bad.sum())} pixels are NaN or Inf; re-export the image "
-                        "(or mask those pixels) and run again")
-    return rgb, weight, name
 
 
 def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:

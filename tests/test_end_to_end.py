@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from pipeline import cli
-from pipeline.runner import relight_check
+from pipeline.io.run_summary import relight_check
 from stages import relight
 
 pytestmark = pytest.mark.slow

@@ -12,7 +12,8 @@ import pytest
 
 from pipeline import cli
 from pipeline.io.samples import read_samples_meta
-from pipeline.runner import STAGES, heldout_keys, stage_table, StageResult
+from pipeline.io.run_summary import StageResult, stage_table
+from pipeline.runner import STAGES, heldout_keys
 
 
 

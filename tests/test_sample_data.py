@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main as sigrend
-from pipeline.runner import relight_check
+from pipeline.io.run_summary import relight_check
 
 CAPTURE = Path(__file__).parents[1] / "sample_data" / "capture"
 

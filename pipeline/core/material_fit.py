@@ -153,23 +153,26 @@ def _source_score(cols: np.ndarray, residual: np.ndarray, weight: np.ndarray) ->
     return _explained_power(np.einsum("p,cpj,pc->jc", weight, cols, residual), np.einsum("p,cpj->jc", weight, cols * cols))
 
 
-def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
-                weight: np.ndarray, rounds: int = 3, chunk: int = 1024,
-                scan_samples: int = 8000, exclude: list | None = None) -> tuple[np.ndarray, float]:
-    """The direction (3,) of the one directional source that best explains ``residual`` (N, 3),
-    and the weighted residual power it explains: matching pursuit over the renderer's direction
-    set (point visibility, exact BRDF) on ``scan_samples`` of the samples, then ``rounds`` of
-    5 x 5 local grids, each 2.5x finer, on all samples with exact shadow rays (prt.source_transfer)."""
+@dataclass
+class SourceScan:
+    """The coarse scan of matching pursuit: every direction of the renderer's set (D, 3) as a
+    column of radiance at unit intensity (P, D, 3) on a subset ``samples`` (P,) of the samples
+    (point visibility, exact BRDF); the columns do not depend on the residual, so one scan serves
+    every source the pursuit adds."""
+
+    samples: np.ndarray
+    columns: np.ndarray
+
+
+def source_scan(geo: prt.Geometry, material: Principled | None, base: np.ndarray, scan_samples: int = 8000,
+                chunk: int = 1024) -> SourceScan:
+    """SourceScan on every k-th sample (a source lights thousands of them), about ``scan_samples``."""
     r = geo.renderer
     dirs = r.lights.directions
-    # located at the pixel centres (16x cheaper): a pixel footprint blurs a highlight, it does not move it
-    centre = replace(geo, footprint=None)
     layer = prt.diffuse_layer(material, geo.mu_out)
     kd = layer * base / np.pi
-    num = np.zeros((len(dirs), 3))
-    den = np.zeros((len(dirs), 3))
-    # the coarse scan on a subset (every k-th sample: a source lights thousands of them)
     coarse = np.arange(0, geo.faces.size, max(1, geo.faces.size // scan_samples))
+    columns = np.zeros((coarse.size, len(dirs), 3), np.float32)
     for s in range(0, coarse.size, chunk):
         sl = coarse[s:s + chunk]
         vis = r._point_visibility(geo.faces[sl], geo.tri[sl], geo.bary[sl])
@@ -181,8 +184,26 @@ def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray
                                         np.repeat(geo.view_dirs[sl], d, 0), material.alpha)
             fres = material.specular_fresnel(cos_oh, np.repeat(np.clip(geo.mu_out[sl], 1e-4, 1), d))
             col += (fres * (lobe * vis.reshape(-1))[:, None]).reshape(p, d, 3)
-        num += np.einsum("p,pdc,pc->dc", weight[sl], col, residual[sl])
-        den += np.einsum("p,pdc->dc", weight[sl], col * col)
+        columns[s:s + sl.size] = col
+    return SourceScan(coarse, columns)
+
+
+def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
+                weight: np.ndarray, rounds: int = 3, scan: SourceScan | None = None,
+                exclude: list | None = None) -> tuple[np.ndarray, float]:
+    """The direction (3,) of the one directional source that best explains ``residual`` (N, 3),
+    and the weighted residual power it explains: matching pursuit over the renderer's direction
+    set on the coarse ``scan`` (source_scan; made here when not given), then ``rounds`` of
+    5 x 5 local grids, each 2.5x finer, on all samples with exact shadow rays (prt.source_transfer)."""
+    r = geo.renderer
+    dirs = r.lights.directions
+    # located at the pixel centres (16x cheaper): a pixel footprint blurs a highlight, it does not move it
+    centre = replace(geo, footprint=None)
+    layer = prt.diffuse_layer(material, geo.mu_out)
+    scan = source_scan(geo, material, base) if scan is None else scan
+    sl = scan.samples
+    num = np.einsum("p,pdc,pc->dc", weight[sl], scan.columns, residual[sl])
+    den = np.einsum("p,pdc->dc", weight[sl], scan.columns * scan.columns)
     score = _explained_power(num, den)
     for f in exclude or []:
         score[dirs @ f > MIN_SOURCE_COS] = -np.inf
@@ -478,8 +499,9 @@ def _add_sources(geo, material, base, layer, a, obs, max_sources, gain, order, f
     best = _held_out_rmse(a, obs.radiance, obs, order, folds, kw)
     residual = obs.radiance - np.einsum("cpk,kc->pc", a, _solve_sh(a, obs.radiance, obs, order, folds, kw).coeffs)
     found, kept = [], None
+    scan = source_scan(geo, material, base) if max_sources > 0 else None
     for _ in range(max_sources):
-        d, explained = find_source(geo, material, base, residual, w, exclude=found)
+        d, explained = find_source(geo, material, base, residual, w, scan=scan, exclude=found)
         if not explained > 0 or any(float(d @ f) > MIN_SOURCE_COS for f in found):
             break
         st = prt.source_transfer(geo, material, np.array(found + [d]))

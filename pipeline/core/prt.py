@@ -36,7 +36,7 @@ import numpy as np
 
 from pipeline.core.material import Principled
 from pipeline.core.render import Renderer, bounce_series
-from pipeline.core.sh import band_of_index, num_coeffs, sh_basis
+from pipeline.core.sh import num_coeffs, sh_basis
 from pipeline.core.shading import front_cos, specular_over_directions, specular_over_footprint, specular_samples
 
 

@@ -31,6 +31,7 @@ from pipeline.workdir import read_json, write_json
 LINEAR_DIR = "linear"
 MANIFEST = "manifest.json"
 EXPOSURE_CONVENTION = "radiance = linear pixel value * N^2 / (t_seconds * ISO/100)"
+LINEAR_SUFFIXES = (".exr", ".hdr", ".tif", ".tiff")   # capture images read without linearize
 
 
 def linear_dir(work: str | os.PathLike) -> Path:
@@ -84,3 +85,47 @@ def read_linear_image(work: str | os.PathLike, key: str, manifest: dict | None =
     if mask.shape != rgb.shape[:2]:
         raise UserError(f"{folder / entry['mask']}: mask size differs from its image; run linearize --force")
     return rgb, mask & np.all(np.isfinite(rgb), axis=2)
+
+
+def linear_manifest(work: str | os.PathLike) -> dict | None:
+    """linearize's manifest when WORK/linear/ holds its output, else None (read the capture's images)."""
+    return read_manifest(work) if manifest_path(work).exists() else None
+
+
+def image_source(capture: Path, work: Path, key: str, manifest: dict | None) -> Path:
+    """The file an image key is read from: linearize's EXR when ``manifest`` is given, else CAPTURE/images/key."""
+    if manifest is not None:
+        return linear_dir(work) / manifest["images"][resolve_key(manifest, key)]["exr"]
+    return Path(capture) / "images" / key
+
+
+def load_linear_image(capture: Path, work: Path, key: str, manifest: dict | None,
+                      scale: float = 1.0) -> tuple[np.ndarray, np.ndarray, Path]:
+    """Linear RGB (H, W, 3) float32, pixel weight (H, W) float32 in [0, 1] (0 = masked) and the file read.
+
+    With linearize's ``manifest``: its EXR and valid mask (pipeline.io.linear_manifest).  Without:
+    an EXR/HDR/TIFF in CAPTURE/images/ times ``scale`` (from :func:`exposure_scales`; an alpha
+    channel, if any, is the weight).  NaN or Inf in a pixel that is not masked is a UserError
+    naming the file.
+    """
+    name = image_source(capture, work, key, manifest)
+    if manifest is not None:
+        rgb, valid = read_linear_image(work, key, manifest)
+        weight = np.asarray(valid, dtype=np.float32)
+    else:
+        if not name.exists():
+            raise UserError(f"{name}: image listed in poses.json is missing from the capture; "
+                            "restore it or remove it from poses.json")
+        if name.suffix.lower() not in LINEAR_SUFFIXES:
+            raise UserError(f"{name}: not a linear image ({name.suffix}); run `sigrend linearize` first")
+        img = read_image(name)
+        if img.shape[2] == 1:
+            img = np.repeat(img, 3, axis=2)
+        rgb = img[:, :, :3] * np.float32(scale)
+        weight = np.clip(img[:, :, 3], 0.0, 1.0) if img.shape[2] >= 4 else np.ones(img.shape[:2], np.float32)
+    rgb = np.asarray(rgb, dtype=np.float32)
+    bad = ~np.all(np.isfinite(rgb), axis=2) & (weight > 0)
+    if bad.any():
+        raise UserError(f"{name}: {int(bad.sum())} pixels are NaN or Inf; re-export the image "
+                        "(or mask those pixels) and run again")
+    return rgb, weight, name

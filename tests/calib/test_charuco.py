@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from calib import charuco
+from pipeline.board import make_board
 from pipeline.cli import main as cli_main
 from pipeline.core.camera import look_at
 from pipeline.errors import UserError
@@ -35,7 +36,7 @@ SS = 4  # supersampling factor of the rendering
 
 def render_views(folder: Path, rng: np.random.Generator, n_views: int = N_VIEWS) -> None:
     spec = BoardSpec("DICT_5X5_100", (9, 7), 0.03, 0.022)
-    board = charuco.make_board(spec)
+    board = make_board(spec)
     px_per_m = 3000.0  # board image resolution: 90 px per 3 cm square, close to the views' scale
     board_img = board.generateImage((int(9 * 0.03 * px_per_m), int(7 * 0.03 * px_per_m)), marginSize=0)
     # board-image OpenCV pixel (centre of pixel 0 at 0) -> board metres: x = (u + 0.5) / px_per_m
