@@ -33,9 +33,9 @@ SUITES: dict[str, tuple[str, str]] = {
     "poses": ("poses stage seconds for 24 photos at 1 and 6 MP: extraction, matching, mapping, registration; "
               "accuracy vs ground truth", "pipeline.commands.bench_poses:poses_suite"),
     "stability": ("error vs noise: inverse lighting (Lambertian vs glossy), BRDF estimation (sharp vs soft "
-                  "lighting); charts + stability.csv in DIR", "pipeline.bench_pipeline:stability_suite"),
+                  "lighting); charts + stability.csv in DIR", "pipeline.commands.bench_pipeline:stability_suite"),
     "synth": ("reference renderer: seconds per 512x512 bunny view under a 128x64 env, Lambert/microfacet, "
-              "with/without shadows", "pipeline.synth:synth_bench_suite"),
+              "with/without shadows", "pipeline.commands.bench_synth:synth_suite"),
     "fit": ("fit time vs samples (10^4-10^7) and vs SH order, per mode (known BRDF, known lighting, factorization)",
             "pipeline.commands.bench_fit:fit_suite"),
     "render": ("renderer error vs Blender Cycles (tests/data/cycles) vs seconds over lobe samples, interreflection "
@@ -43,7 +43,7 @@ SUITES: dict[str, tuple[str, str]] = {
     "batch": ("8 copies of sample_data: sequential `sigrend run` vs `sigrend batch` on 2 workers, and the "
               "per-task cost when every stage is fresh", "pipeline.commands.bench_batch:batch_suite"),
     "pipeline": ("speed vs accuracy of samples -> fit -> relight on synthetic scenes (SH order, data, fit mode); "
-                 "bench.csv + bench.png (Pareto front) in DIR", "pipeline.bench_pipeline:pipeline_suite"),
+                 "bench.csv + bench.png (Pareto front) in DIR", "pipeline.commands.bench_pipeline:pipeline_suite"),
 }
 
 
