@@ -242,11 +242,17 @@ def run_capture(plan: RunPlan, report: bool = True, progress: bool = True) -> di
         record = {"capture": str(Path(plan.capture).resolve()), "stages": [
             {"name": r.name, "skipped": r.skipped, "seconds": r.seconds, "outputs": [str(p) for p in r.outputs]}
             for r in results], "total_seconds": time.perf_counter() - started}
-        write_json(plan.work / "run.json", record)
-        if report:
-            from pipeline.report import write_report
+        page = plan.work / "report.html"
+        if report and all(r.skipped for r in results) and page.exists() and (plan.work / "run.json").exists():
+            # nothing ran: run.json and report.html still describe the run that made these outputs
+            # (and an unchanged re-run does not spend seconds redrawing the same page)
+            record["report"] = str(page)
+        else:
+            write_json(plan.work / "run.json", record)
+            if report:
+                from pipeline.report import write_report
 
-            record["report"] = str(write_report(plan.capture, plan.work))
+                record["report"] = str(write_report(plan.capture, plan.work))
     record["table"] = stage_table(results)
     return record
 

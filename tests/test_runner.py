@@ -70,6 +70,20 @@ def test_resume_skips_fresh_stages_and_force_redoes(capture, tmp_path, capsys):
     assert all(forced[n] > after[n] for n in ("linear/manifest.json", "poses.json", "samples.npz"))
 
 
+def test_an_unchanged_rerun_keeps_the_report_and_run_record(capture, tmp_path):
+    """Nothing ran: report.html and run.json still describe the run that made the outputs (and are
+    not redrawn); a stage that runs rewrites both."""
+    work = tmp_path / "work"
+    assert cli.main(["run", str(capture), "-w", str(work), "--to", "poses"]) == 0
+    before = _mtimes(work, ["report.html", "run.json"])
+    assert not any(s["skipped"] for s in json.loads((work / "run.json").read_text())["stages"])
+    assert cli.main(["run", str(capture), "-w", str(work), "--to", "poses"]) == 0
+    assert _mtimes(work, ["report.html", "run.json"]) == before
+    assert cli.main(["run", str(capture), "-w", str(work), "--to", "poses", "--force"]) == 0
+    after = _mtimes(work, ["report.html", "run.json"])
+    assert all(after[n] > before[n] for n in before)
+
+
 def test_a_changed_input_reruns_the_stages_that_depend_on_it(capture, tmp_path):
     """Freshness is by content (pipeline.workdir): a touched file with the same bytes reruns
     nothing, a changed one reruns the stages that read it and no other."""
