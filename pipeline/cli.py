@@ -77,7 +77,13 @@ def _raise_terminated(signum, frame):
     raise Terminated()
 
 
-DISK_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM}
+DISK_ERRORS = {   # the machine's errors, not sigrend's -> what to do
+    errno.ENOSPC: "free some space or give -w a folder on another disk",
+    errno.EDQUOT: "free some space or give -w a folder on another disk",
+    errno.EROFS: "give -w a writable folder",
+    errno.EACCES: "check the permissions of this file or folder (or give -w a writable folder)",
+    errno.EPERM: "check the permissions of this file or folder (or give -w a writable folder)",
+}
 
 
 def _format_warning(message, category, filename, lineno, line=None) -> str:
@@ -119,8 +125,9 @@ def main(argv: list[str] | None = None) -> int:
             raise
         # the machine, not sigrend: a full disk or quota, a read-only or forbidden folder (the stage's
         # transaction has rolled back, so earlier outputs are intact)
-        print(f"sigrend: error: {exc.filename or 'writing the outputs'}: {exc.strerror}; free some space or give "
-              "-w a writable folder, then run again", file=sys.stderr)
+        fix = DISK_ERRORS[exc.errno]
+        print(f"sigrend: error: {exc.filename or 'writing the outputs'}: {exc.strerror}; {fix}, then run again",
+              file=sys.stderr)
         return UserError.exit_code
     finally:
         if in_main_thread:
