@@ -197,3 +197,23 @@ def test_synth_rough_dielectric(tmp_path):
     assert brdf["model"] == "principled" and brdf["metallic"] == 0.0
     assert abs(brdf["roughness"] / 0.6 - 1) < 0.25
     assert chromaticity_deg(brdf["base_color"], base) < 3.0
+
+
+@pytest.mark.parametrize("minimum, scored", [(0.5, [0.3, 0.2, 0.45, 0.65]), (0.12, [0.3, 0.2, 0.45, 0.1]),
+                                             (0.9, [0.3, 0.2, 0.45, 0.65, 1.0]), (0.3, [0.3, 0.2, 0.45])])
+def test_descend_grid_scores_the_bracket_of_a_minimum_not_the_whole_grid(minimum, scored):
+    """From 0.3, outward until the best scored point has both neighbours scored (or is at an end):
+    the bracket of a unimodal held-out error, in the order the candidates are fitted."""
+    from stages.fit_physical import descend_grid
+
+    grid = [0.1, 0.2, 0.3, 0.45, 0.65, 1.0]
+    seen = []
+
+    def score_at(r):
+        seen.append(r)
+        return abs(np.log(r / minimum))
+
+    descend_grid(grid, score_at, grid.index(0.3))
+    assert seen == scored
+    i = grid.index(min(seen, key=lambda r: abs(np.log(r / minimum))))
+    assert all(grid[j] in seen for j in (i - 1, i + 1) if 0 <= j < len(grid))
