@@ -452,9 +452,10 @@ def _directions(fit: material_fit.MaterialFit) -> np.ndarray:
 def _pixel_noise_note(noise: dict) -> dict:
     """The photos' own noise (pipeline.core.noise) and what it is used for."""
     return {**noise, "note": "the bands' labels and snr_data are against unit_sigma, the photos' noise as the "
-                             "weighted residual would hold it with an exact model (what the data determine); the ridges and each band's 'regularized' against "
-                             "noise_sigma, the fit's residual with model error included (measured alone the noise "
-                             "ruled the unknown-lighting fit of a glossy teapot worse, docs/fit.md)"}
+                             "weighted residual would hold it with an exact model (what the data determine); the "
+                             "ridges and each band's 'regularized' against noise_sigma, the fit's residual with model "
+                             "error included (measured alone the noise ruled the unknown-lighting fit of a glossy "
+                             "teapot worse, docs/fit.md)"}
 
 
 def _brdf_json(fit: material_fit.MaterialFit) -> dict:
