@@ -189,18 +189,17 @@ def source_scan(geo: prt.Geometry, material: Principled | None, base: np.ndarray
 
 
 def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
-                weight: np.ndarray, rounds: int = 3, scan: SourceScan | None = None,
+                weight: np.ndarray, scan: SourceScan, rounds: int = 3,
                 exclude: list | None = None) -> tuple[np.ndarray, float]:
     """The direction (3,) of the one directional source that best explains ``residual`` (N, 3),
     and the weighted residual power it explains: matching pursuit over the renderer's direction
-    set on the coarse ``scan`` (source_scan; made here when not given), then ``rounds`` of
+    set on the coarse ``scan`` (source_scan), then ``rounds`` of
     5 x 5 local grids, each 2.5x finer, on all samples with exact shadow rays (prt.source_transfer)."""
     r = geo.renderer
     dirs = r.lights.directions
     # located at the pixel centres (16x cheaper): a pixel footprint blurs a highlight, it does not move it
     centre = replace(geo, footprint=None)
     layer = prt.diffuse_layer(material, geo.mu_out)
-    scan = source_scan(geo, material, base) if scan is None else scan
     sl = scan.samples
     num = np.einsum("p,pdc,pc->dc", weight[sl], scan.columns, residual[sl])
     den = np.einsum("p,pdc->dc", weight[sl], scan.columns * scan.columns)

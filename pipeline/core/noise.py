@@ -98,7 +98,6 @@ def inverse_variance_weights(radiance: np.ndarray, a: float, b: float) -> np.nda
     return (a + b * float(np.median(level))) / (a + b * level)
 
 
-
 def weighted_noise_sigma(weight: np.ndarray, radiance: np.ndarray, a: float, b: float) -> float:
     """sqrt(sum w sigma^2 / sum w), sigma^2 = a + b B the noise level of each sample (B its channel-mean
     radiance): the RMS a weighted least-squares residual (weights ``weight`` (N,)) would have if

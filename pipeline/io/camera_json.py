@@ -25,9 +25,8 @@ from pipeline.workdir import write_json
 def camera_from_dict(entry, where: str) -> Camera:
     """A Camera from a ``{model, width, height, params}`` entry (camera.json, a poses.json camera);
     any wrong type or value -> UserError beginning with ``where`` (the file and entry)."""
-    needs = "needs model, width, height, params"
     if not isinstance(entry, dict) or not all(k in entry for k in ("model", "width", "height", "params")):
-        raise UserError(f"{where} {needs}")
+        raise UserError(f"{where} needs model, width, height, params")
     model, w, h, params = entry["model"], entry["width"], entry["height"], entry["params"]
     if not isinstance(model, str) or model not in MODELS:
         raise UserError(f"{where} has unsupported model {model!r}; use one of {', '.join(MODELS)}")
@@ -36,7 +35,7 @@ def camera_from_dict(entry, where: str) -> Camera:
     if not isinstance(params, list) or len(params) != MODELS[model] or not all(is_number(v) for v in params):
         raise UserError(f"{where} ({model}) needs params: a list of {MODELS[model]} numbers, got {params!r}")
     camera = Camera(model, int(w), int(h), tuple(float(v) for v in params))
-    fx, fy, cx, cy = camera.focal_principal()
+    fx, fy, _, _ = camera.focal_principal()
     if not (np.all(np.isfinite(camera.params)) and fx > 0 and fy > 0):
         raise UserError(f"{where}: the focal length must be positive and every param finite, got {params!r}")
     return camera
