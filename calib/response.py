@@ -19,14 +19,15 @@ import numpy as np
 from pipeline.errors import UserError
 from pipeline.io.camera_decode import probe
 from pipeline.io.images import read_image
+from pipeline.io.photos import photo_files
 from pipeline.io.response_json import srgb_inverse_table, write_response_json
 from pipeline.settings import setting
 from pipeline.workdir import atomic_path
 
 HELP = "Camera response curve from a bracket of 8-bit photos of one static scene (writes response.json + PNG)."
-IMAGES_HELP = "folder of 8-bit photos (JPEG/PNG/TIFF) of one scene at different exposure times"
+IMAGES_HELP = "folder or files of 8-bit photos (JPEG/PNG/TIFF) of one scene at different exposure times"
 DEFAULT_OUTPUT = "response.json"
-EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+EXTENSIONS = frozenset({".jpg", ".jpeg", ".png", ".tif", ".tiff"})
 
 
 @dataclass(frozen=True)
@@ -43,16 +44,13 @@ class Settings:
             raise UserError("--samples must be >= 10 and --smoothness > 0")
 
 
-def load_bracket(folder: Path, times: list[float]) -> tuple[list[np.ndarray], np.ndarray, list[str]]:
-    """8-bit (H, W, 3) uint8 images and exposure times (s) of the bracket in ``folder``."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise UserError(f"{folder}: folder not found")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in EXTENSIONS and not p.name.startswith("."))
+def load_bracket(images: Path | list[Path], times: list[float]) -> tuple[list[np.ndarray], np.ndarray, list[str]]:
+    """8-bit (H, W, 3) uint8 images and exposure times (s) of the bracket in ``images`` (a folder or files)."""
+    files = photo_files(images, EXTENSIONS)
     if len(files) < 2:
-        raise UserError(f"{folder}: need at least 2 8-bit photos (JPEG/PNG/TIFF) at different exposures, found {len(files)}")
+        raise UserError(f"{files[0]}: need at least 2 8-bit photos (JPEG/PNG/TIFF) at different exposures, found 1")
     if times and len(times) != len(files):
-        raise UserError(f"--times gives {len(times)} exposure times for {len(files)} photos in {folder}")
+        raise UserError(f"--times gives {len(times)} exposure times for {len(files)} photos")
     images, found = [], []
     for i, path in enumerate(files):
         if probe(path).kind != "uint8":
@@ -69,7 +67,7 @@ def load_bracket(folder: Path, times: list[float]) -> tuple[list[np.ndarray], np
         found.append(float(t))
     t = np.asarray(found, dtype=np.float32)
     if len(np.unique(t)) < 2:
-        raise UserError(f"{folder}: all photos have the same exposure time {t[0]} s; shoot a bracket (e.g. 1 EV steps)")
+        raise UserError(f"{files[0].parent}: all photos have the same exposure time {t[0]} s; shoot a bracket (e.g. 1 EV steps)")
     return images, t, [p.name for p in files]
 
 
@@ -121,15 +119,15 @@ def plot_response(path: Path, inverse: np.ndarray) -> Path:
     return path
 
 
-def inputs(*, images: Path, output: Path, settings: Settings) -> list[Path]:
-    return sorted(p for p in Path(images).iterdir() if p.suffix.lower() in EXTENSIONS)
+def inputs(*, images: Path | list[Path], output: Path, settings: Settings) -> list[Path]:
+    return photo_files(images, EXTENSIONS)
 
 
 def outputs(*, images: Path, output: Path, settings: Settings) -> list[Path]:
     return [Path(output), Path(output).with_suffix(".png")]
 
 
-def run(*, images: Path, output: Path, settings: Settings) -> list[Path]:
+def run(*, images: Path | list[Path], output: Path, settings: Settings) -> list[Path]:
     """Calibrate from the bracket in ``images``; write response.json and response.png."""
     imgs, times, names = load_bracket(images, list(settings.times))
     inverse = calibrate_response(imgs, times, settings)

@@ -19,11 +19,12 @@ import numpy as np
 from pipeline.errors import UserError
 from pipeline.io.camera_decode import DECODED_EXTENSIONS, RAW_EXTENSIONS, decode_other, decode_raw, probe
 from pipeline.io.images import write_image
+from pipeline.io.photos import photo_files
 from pipeline.io.response_json import inverse_table
 from pipeline.settings import setting
 
 HELP = "Vignetting (flat-field gain map) from photos of a uniform, evenly lit target (writes an EXR)."
-IMAGES_HELP = "folder of flat-field photos (any format linearize reads), one camera, one size"
+IMAGES_HELP = "folder or files of flat-field photos (any format linearize reads), one camera, one size"
 DEFAULT_OUTPUT = "vignetting.exr"
 
 
@@ -68,22 +69,17 @@ def flat_field_gain(flats: list[tuple[np.ndarray, np.ndarray]], degree: int) -> 
     return (gain / gain.max(axis=(0, 1))).astype(np.float32)
 
 
-def inputs(*, images: Path, output: Path, settings: Settings) -> list[Path]:
-    return sorted(p for p in Path(images).iterdir() if p.suffix.lower() in RAW_EXTENSIONS | DECODED_EXTENSIONS)
+def inputs(*, images: Path | list[Path], output: Path, settings: Settings) -> list[Path]:
+    return photo_files(images, RAW_EXTENSIONS | DECODED_EXTENSIONS)
 
 
 def outputs(*, images: Path, output: Path, settings: Settings) -> list[Path]:
     return [Path(output)]
 
 
-def run(*, images: Path, output: Path, settings: Settings) -> list[Path]:
-    """Average, smooth and normalize the flats in ``images``; write the gain map EXR."""
-    folder = Path(images)
-    if not folder.is_dir():
-        raise UserError(f"{folder}: folder not found")
-    files = inputs(images=folder, output=output, settings=settings)
-    if not files:
-        raise UserError(f"{folder}: no flat-field photos found")
+def run(*, images: Path | list[Path], output: Path, settings: Settings) -> list[Path]:
+    """Average, smooth and normalize the flats in ``images`` (a folder or files); write the gain map EXR."""
+    files = inputs(images=images, output=output, settings=settings)
     inverse = inverse_table(settings.response or None)
     flats = []
     for path in files:

@@ -246,7 +246,7 @@ def board_corners_object(spec: BoardSpec) -> np.ndarray:
 def detect_board(image_rgb8: np.ndarray, spec: BoardSpec) -> tuple[np.ndarray, np.ndarray]:
     """ChArUco corners in one 8-bit photo: ids (K,) and pixel positions (K, 2) in COLMAP's convention.
 
-    Detection is calib.charuco.detect (OpenCV pixel coordinates, pixel centres at integers); +0.5
+    Detection is pipeline.board.detect (OpenCV pixel coordinates, pixel centres at integers); +0.5
     converts to COLMAP's (top-left corner of the image at (0, 0)).  A corner's id is its index in
     the board's chessboard corners, recovered from its board coordinates.
     """
@@ -570,8 +570,7 @@ def pnp_pose(camera: Camera, ids: np.ndarray, uv: np.ndarray, spec: BoardSpec) -
 
     fx, fy, cx, cy = camera.focal_principal()
     K = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])  # OpenCV pixel convention
-    k1, k2, p1, p2 = camera.distortion()
-    dist = np.array([k1, k2, p1, p2, 0.0])
+    dist = np.array(camera.distortion())  # OpenCV's distCoeffs order
     obj = np.asarray(make_board(spec).getChessboardCorners(), float).reshape(-1, 3)[ids]
     img = np.asarray(uv, float) - 0.5
     ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)

@@ -223,10 +223,7 @@ def _scaled(camera: cam.Camera, size: tuple[int, int] | None) -> cam.Camera:
     """The camera with its image resized to ``size`` = (W, H): focal lengths and principal point scale."""
     if size is None or size == (camera.width, camera.height):
         return camera
-    sx, sy = size[0] / camera.width, size[1] / camera.height
-    fx, fy, cx, cy = camera.focal_principal()
-    k = camera.distortion()
-    return cam.Camera("OPENCV", size[0], size[1], (fx * sx, fy * sy, cx * sx, cy * sy, *k))
+    return camera.resized(*size)
 
 
 def orbit_views(n: int, mesh, size: tuple[int, int] | None, reference: Poses | None) -> list[View]:

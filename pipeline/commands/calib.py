@@ -12,9 +12,9 @@ from pathlib import Path
 
 from pipeline.settings import add_settings_arguments, settings_from_args
 
-HELP = "Calibrate the camera: intrinsics (ChArUco board), response (8-bit brackets), vignetting (flat fields)."
+HELP = "Calibrate the camera: intrinsics (ChArUco board or chessboard), response (8-bit brackets), vignetting (flat fields)."
 
-SUBCOMMANDS = {"intrinsics": "calib.charuco", "response": "calib.response", "vignetting": "calib.vignetting"}
+SUBCOMMANDS = {"intrinsics": "calib.intrinsics", "response": "calib.response", "vignetting": "calib.vignetting"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         module = importlib.import_module(module_name)
         p = sub.add_parser(name, help=module.HELP, description=module.HELP,
                            formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-        p.add_argument("images", type=Path, help=module.IMAGES_HELP)
+        p.add_argument("images", type=Path, nargs="+", help=module.IMAGES_HELP)
         p.add_argument("-o", "--output", type=Path, default=Path(module.DEFAULT_OUTPUT), help="output file")
         add_settings_arguments(p, module.Settings)
         p.set_defaults(_calib_module=module)

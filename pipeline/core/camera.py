@@ -4,7 +4,9 @@ World-to-camera: x_cam = R @ x_world + t; the camera looks along +Z_cam, +X righ
 Pixel coordinates put the top-left *corner* of the image at (0, 0), so the centre of pixel
 (row i, column j) is (u, v) = (j + 0.5, i + 0.5).
 Supported models (COLMAP parameter order): SIMPLE_PINHOLE (f, cx, cy), PINHOLE (fx, fy, cx, cy),
-SIMPLE_RADIAL (f, cx, cy, k), RADIAL (f, cx, cy, k1, k2), OPENCV (fx, fy, cx, cy, k1, k2, p1, p2).
+SIMPLE_RADIAL (f, cx, cy, k), RADIAL (f, cx, cy, k1, k2), OPENCV (fx, fy, cx, cy, k1, k2, p1, p2),
+FULL_OPENCV (fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6: OpenCV's rational model; with k4..k6 = 0
+it is OpenCV's default five-coefficient model).
 """
 
 from __future__ import annotations
@@ -13,7 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-MODELS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8}
+MODELS = {"SIMPLE_PINHOLE": 3, "PINHOLE": 4, "SIMPLE_RADIAL": 4, "RADIAL": 5, "OPENCV": 8, "FULL_OPENCV": 12}
+DISTORTION_SLICE = {"SIMPLE_RADIAL": (3, 4), "RADIAL": (3, 5), "OPENCV": (4, 8), "FULL_OPENCV": (4, 12)}
 
 
 @dataclass(frozen=True)
@@ -32,16 +35,20 @@ class Camera:
             return p[0], p[0], p[1], p[2]
         return p[0], p[1], p[2], p[3]
 
-    def distortion(self) -> tuple[float, float, float, float]:
-        """(k1, k2, p1, p2); zeros for undistorted models."""
-        p = self.params
-        return {
-            "SIMPLE_PINHOLE": (0.0, 0.0, 0.0, 0.0),
-            "PINHOLE": (0.0, 0.0, 0.0, 0.0),
-            "SIMPLE_RADIAL": (p[3], 0.0, 0.0, 0.0) if len(p) > 3 else (0.0,) * 4,
-            "RADIAL": (p[3], p[4], 0.0, 0.0) if len(p) > 4 else (0.0,) * 4,
-            "OPENCV": tuple(p[4:8]) if len(p) > 7 else (0.0,) * 4,
-        }[self.model]
+    def distortion(self) -> tuple[float, ...]:
+        """(k1, k2, p1, p2, k3, k4, k5, k6): OpenCV's order of distCoeffs; zeros where the model has none."""
+        first, end = DISTORTION_SLICE.get(self.model, (0, 0))
+        k = self.params[first:end]
+        return tuple(float(v) for v in k) + (0.0,) * (8 - len(k))
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same lens for the image resampled to ``width`` x ``height``: focal lengths and principal
+        point scale with the image (distortion acts on normalized coordinates and is unchanged)."""
+        sx, sy = width / self.width, height / self.height
+        fx, fy, cx, cy = self.focal_principal()
+        k = self.distortion()
+        model = "FULL_OPENCV" if any(k[4:]) else "OPENCV"
+        return Camera(model, width, height, (fx * sx, fy * sy, cx * sx, cy * sy, *k[:MODELS[model] - 4]))
 
     def K(self) -> np.ndarray:
         """3x3 intrinsic matrix in COLMAP's pixel convention (subtract 0.5 from cx, cy for OpenCV)."""
@@ -49,9 +56,13 @@ class Camera:
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
-def _distort(xn: np.ndarray, yn: np.ndarray, k1: float, k2: float, p1: float, p2: float):
+def _distort(xn: np.ndarray, yn: np.ndarray, k: tuple[float, ...]):
+    """OpenCV's distortion of normalized coordinates, k = (k1, k2, p1, p2, k3, k4, k5, k6): radial
+    (1 + k1 r² + k2 r⁴ + k3 r⁶) / (1 + k4 r² + k5 r⁴ + k6 r⁶) and tangential p1, p2 (as COLMAP's
+    FULL_OPENCV; OPENCV is the case k3 = .. = k6 = 0)."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = k
     r2 = xn * xn + yn * yn
-    radial = 1.0 + k1 * r2 + k2 * r2 * r2
+    radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
     xd = xn * radial + 2 * p1 * xn * yn + p2 * (r2 + 2 * xn * xn)
     yd = yn * radial + p1 * (r2 + 2 * yn * yn) + 2 * p2 * xn * yn
     return xd, yd
@@ -63,9 +74,9 @@ def project(camera: Camera, R: np.ndarray, t: np.ndarray, points: np.ndarray):
     z = pc[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         xn, yn = pc[:, 0] / z, pc[:, 1] / z
-    k1, k2, p1, p2 = camera.distortion()
-    if k1 or k2 or p1 or p2:
-        xn, yn = _distort(xn, yn, k1, k2, p1, p2)
+    k = camera.distortion()
+    if any(k):
+        xn, yn = _distort(xn, yn, k)
     fx, fy, cx, cy = camera.focal_principal()
     return np.stack([fx * xn + cx, fy * yn + cy], axis=1), z
 
@@ -78,11 +89,11 @@ def pixel_rays(camera: Camera, R: np.ndarray, t: np.ndarray, uv: np.ndarray):
     fx, fy, cx, cy = camera.focal_principal()
     uv = np.asarray(uv, float)
     xd, yd = (uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy
-    k1, k2, p1, p2 = camera.distortion()
+    k = camera.distortion()
     xn, yn = xd.copy(), yd.copy()
-    if k1 or k2 or p1 or p2:
+    if any(k):
         for _ in range(20):
-            xe, ye = _distort(xn, yn, k1, k2, p1, p2)
+            xe, ye = _distort(xn, yn, k)
             xn, yn = xn - (xe - xd), yn - (ye - yd)
     d_cam = np.stack([xn, yn, np.ones_like(xn)], axis=1)
     d_cam /= np.linalg.norm(d_cam, axis=1, keepdims=True)

@@ -25,6 +25,7 @@ Every section is optional; paths are relative to the capture folder.
     view_00 = ["IMG_0001.jpg", "IMG_0002.jpg", "IMG_0003.jpg"]   # output linear/view_00.exr
 
     [board]                         # ChArUco board (written by `sigrend synth`, read by calib and poses)
+    pattern = "charuco"             # or "chessboard" (calib intrinsics only: no dictionary, no markers)
     dictionary = "DICT_5X5_100"     # a cv2.aruco predefined dictionary name
     squares = [7, 5]                # squares along x (columns) and y (rows)
     square_length = 0.04            # metres
@@ -32,7 +33,8 @@ Every section is optional; paths are relative to the capture folder.
     board_to_object = [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]   # 4x4, board frame -> object frame
 
 A board file for ``sigrend calib intrinsics --board`` holds the same ``[board]`` table (or its keys
-at the top level).  Malformed content raises ``UserError`` naming the file and the key.
+at the top level); OpenCV's 9 x 6-corner chessboard is ``pattern = "chessboard"``, ``squares = [10, 7]``
+(squares, as for ChArUco) and its ``square_length``.  Malformed content raises ``UserError`` naming the file and the key.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -66,13 +68,15 @@ class ExposureOverride:
 
 @dataclass(frozen=True)
 class BoardSpec:
-    """A ChArUco board: cv2.aruco dictionary name, squares (x, y), lengths in metres, pose in the object."""
+    """A ChArUco board: cv2.aruco dictionary name, squares (x, y), lengths in metres, pose in the object;
+    or a plain chessboard (pattern "chessboard": no dictionary, marker_length 0)."""
 
     dictionary: str
     squares: tuple[int, int]
     square_length: float
     marker_length: float
     board_to_object: np.ndarray = field(default_factory=lambda: np.eye(4))
+    pattern: Literal["charuco", "chessboard"] = "charuco"
 
 
 @dataclass(frozen=True)
@@ -113,7 +117,7 @@ def read_toml(path: Path) -> dict:
 SECTIONS: dict[str, set[str] | None] = {
     "camera": {"path"}, "response": {"path", "curve"}, "vignetting": {"path"},
     "white_balance": {"multipliers", "gray_patch"}, "exposure": None, "brackets": None,
-    "board": {"dictionary", "squares", "square_length", "marker_length", "board_to_object"},
+    "board": {"pattern", "dictionary", "squares", "square_length", "marker_length", "board_to_object"},
     "fit": {"known_albedo"},
 }
 
@@ -160,6 +164,7 @@ def _path_entry(path: Path, doc: dict, section: str) -> Path | None:
 
 
 RESPONSE_CURVES = ("srgb", "linear")
+BOARD_PATTERNS = ("charuco", "chessboard")
 
 
 def _response_entry(path: Path, doc: dict) -> tuple[Path | None, str]:
@@ -177,17 +182,25 @@ def _response_entry(path: Path, doc: dict) -> tuple[Path | None, str]:
 
 def parse_board(path: Path, table: dict) -> BoardSpec:
     """A ``[board]`` table -> BoardSpec (UserError naming ``path`` on a bad key)."""
+    pattern = table.get("pattern", "charuco")
+    if pattern not in BOARD_PATTERNS:
+        raise UserError(f"{path}: [board] pattern = {pattern!r}; use one of {', '.join(map(repr, BOARD_PATTERNS))}")
+    chessboard = pattern == "chessboard"
     try:
-        dictionary = str(table["dictionary"])
+        dictionary = "" if chessboard else str(table["dictionary"])
         squares = tuple(int(v) for v in table["squares"])
         square = _positive(path, "[board] square_length", table["square_length"])
-        marker = _positive(path, "[board] marker_length", table["marker_length"])
+        marker = 0.0 if chessboard else _positive(path, "[board] marker_length", table["marker_length"])
     except (KeyError, TypeError, ValueError) as exc:
-        raise UserError(f"{path}: [board] needs dictionary, squares = [x, y], square_length and marker_length "
-                        f"(metres); problem with {exc}") from None
+        needs = "squares = [x, y] and square_length" if chessboard else \
+            "dictionary, squares = [x, y], square_length and marker_length"
+        raise UserError(f"{path}: [board] needs {needs} (metres); problem with {exc}") from None
+    if chessboard and min(squares, default=0) < 3:
+        raise UserError(f"{path}: [board] a chessboard needs squares >= [3, 3] (squares, not inner corners: "
+                        f"OpenCV's 9 x 6-corner board is [10, 7]), got {table['squares']!r}")
     if len(squares) != 2 or min(squares) < 2:
         raise UserError(f"{path}: [board] squares must be two integers >= 2, got {table['squares']!r}")
-    if marker >= square:
+    if marker >= square and not chessboard:
         raise UserError(f"{path}: [board] marker_length {marker} must be smaller than square_length {square}")
     try:
         m = np.asarray(table.get("board_to_object", np.eye(4)), dtype=float)
@@ -196,7 +209,7 @@ def parse_board(path: Path, table: dict) -> BoardSpec:
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
         raise UserError(f"{path}: [board] board_to_object must be a finite 4x4 matrix of numbers (rows of the "
                         f"board -> object transform), got {table.get('board_to_object')!r}")
-    return BoardSpec(dictionary, (squares[0], squares[1]), square, marker, m)
+    return BoardSpec(dictionary, (squares[0], squares[1]), square, marker, m, pattern)
 
 
 def read_board(path: str | os.PathLike) -> BoardSpec:

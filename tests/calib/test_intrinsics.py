@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from calib import charuco
+from calib import intrinsics
 from pipeline.board import make_board
 from pipeline.cli import main as cli_main
 from pipeline.core.camera import look_at
@@ -68,8 +68,8 @@ def board_views(tmp_path_factory):
 
 def test_intrinsics_recovered_from_rendered_views(board_views):
     out = board_views / "camera.json"
-    settings = make_settings(charuco.Settings, board=str(board_views / "board.toml"), model="PINHOLE")
-    charuco.run(images=board_views / "views", output=out, settings=settings)
+    settings = make_settings(intrinsics.Settings, board=str(board_views / "board.toml"), model="PINHOLE")
+    intrinsics.run(images=board_views / "views", output=out, settings=settings)
     cam = read_camera_json(out)
     fx, fy, cx, cy = cam.focal_principal()
     # Issue tolerances: focal length within 0.5 %, principal point within 1 px.
@@ -100,12 +100,12 @@ def test_no_board_found_is_a_user_error(tmp_path):
     for i in range(3):
         write_image(tmp_path / "views" / f"{i}.png", np.full((60, 80), 0.5), dtype="uint8")
     (tmp_path / "board.toml").write_text(BOARD_TOML)
-    settings = make_settings(charuco.Settings, board=str(tmp_path / "board.toml"))
+    settings = make_settings(intrinsics.Settings, board=str(tmp_path / "board.toml"))
     with pytest.raises(UserError, match="found in only 0 photos"):
-        charuco.run(images=tmp_path / "views", output=tmp_path / "c.json", settings=settings)
+        intrinsics.run(images=tmp_path / "views", output=tmp_path / "c.json", settings=settings)
     assert not (tmp_path / "c.json").exists()
 
 
 def test_missing_board_option_is_a_user_error():
     with pytest.raises(UserError, match="--board"):
-        make_settings(charuco.Settings)
+        make_settings(intrinsics.Settings)
