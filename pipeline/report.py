@@ -246,6 +246,36 @@ def sphere_renders(coeffs: np.ndarray, brdf: dict | None, size: int = 128) -> by
     return _fig_png(fig)
 
 
+def texture_views(vertices: np.ndarray, faces: np.ndarray, colour: np.ndarray, size: float = 3.0) -> bytes:
+    """PNG: a mesh's per-vertex linear colour (V, 3), unlit, seen orthographically from the four
+    sides and from above (+Z up): each face in its vertices' mean colour, sRGB-encoded, nearer faces
+    drawn over farther ones."""
+    from matplotlib.collections import PolyCollection
+
+    from pipeline.io.images import srgb_encode
+
+    sides = {"from +X": (1, 2, 0), "from +Y": (0, 2, 1), "from −X": (1, 2, 0), "from −Y": (0, 2, 1), "from above": (0, 1, 2)}
+    # (image x, image y, towards the viewer) signs: from +X the image's right is +Y, from +Y it is -X
+    signs = {"from +X": (1, 1, 1), "from +Y": (-1, 1, 1), "from −X": (-1, 1, -1), "from −Y": (1, 1, -1),
+             "from above": (1, 1, 1)}
+    tri = np.asarray(vertices, float)[np.asarray(faces)]                       # (F, 3 corners, 3)
+    face_rgb = np.clip(srgb_encode(np.asarray(colour, float)[np.asarray(faces)].mean(axis=1)), 0, 1)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    plt = _figure()
+    fig, axes = plt.subplots(1, len(sides), figsize=(size * len(sides), size))
+    for ax, (title, (a, b, depth)) in zip(axes, sides.items()):
+        sa, sb, sd = signs[title]
+        facing = normal[:, depth] * sd > 0
+        order = np.argsort(sd * tri[facing][:, :, depth].mean(axis=1))           # far first
+        xy = np.stack([sa * tri[facing][order][:, :, a], sb * tri[facing][order][:, :, b]], axis=-1)
+        ax.add_collection(PolyCollection(xy, facecolors=face_rgb[facing][order], edgecolors="none"))
+        ax.autoscale_view()
+        ax.set_aspect("equal")
+        ax.set_title(title, fontsize=9)
+        ax.axis("off")
+    return _fig_png(fig)
+
+
 def _lighting(work: Path) -> str:
     from pipeline.io.brdf import read_brdf
     from pipeline.io.images import read_image
@@ -278,6 +308,17 @@ def _brdf(work: Path) -> str:
         return _section("BRDF", _missing("no fitted BRDF yet (the fit stage has not run)"))
     rows = "".join(f"<tr><td>{html.escape(str(k))}</td><td>{html.escape(json.dumps(v))}</td></tr>" for k, v in brdf.items())
     body = f"<table>{rows}</table>"
+    if (fit / "albedo.ply").exists():
+        import trimesh
+
+        from pipeline.io.mesh import read_vertex_albedo
+
+        tex = trimesh.load(fit / "albedo.ply", force="mesh", process=False)
+        colour = read_vertex_albedo(fit / "albedo.ply", len(tex.vertices))
+        if colour is not None:
+            word = "albedo" if brdf.get("model") == "lambert" else "base colour"
+            body += (f"<h3>Textured {word} (fit/albedo.ply; the table holds its mean)</h3>"
+                     + _img_tag(texture_views(np.asarray(tex.vertices), np.asarray(tex.faces), colour), "texture"))
     report = _json(fit / "report.json")
     selection = (report or {}).get("model_selection") or {}
     if selection.get("by") == "training residual":

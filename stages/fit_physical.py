@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from pipeline.core import material_fit, prt, solve
+from pipeline.core import material_fit, prt, solve, texture
 from pipeline.core.envmap import add_sources
 from pipeline.core.material import MIN_ROUGHNESS, Principled, material_dict, principled_from_dict
 from pipeline.core.noise import inverse_variance_weights, noise_level_function, pixel_noise_sigma, weighted_noise_sigma
@@ -212,8 +212,8 @@ def search_roughness(candidate, settings, grey, metallic: float, directions=None
     roughness grid, descended from the point nearest 0.3 to the bracket of its best
     (descend_grid; the directional sources located at that start point unless given, then again
     through the best one's lobe), refined by Brent's bounded search in log roughness
-    between the best grid point's neighbours (``roughness_refinements`` candidates; 0 = one
-    candidate at the parabola through the three)."""
+    between the best grid point's neighbours, or the valid range's end where it has none
+    (``roughness_refinements`` candidates; 0 = one candidate at the parabola through the three)."""
     fits = dict(fits or {})
 
     def fit_at(r: float, dirs):
@@ -243,16 +243,20 @@ def search_roughness(candidate, settings, grey, metallic: float, directions=None
     rs = np.array(sorted(fits))
     errors = np.array([_score(fits[r]) for r in rs])
     i = int(np.argmin(errors))
-    if settings.roughness_refinements and 0 < i < len(rs) - 1:
+    if settings.roughness_refinements:
         # the held-out error is sharp in roughness for glossy objects (a highlight's peak goes as
-        # roughness^-4): Brent's bounded search in log roughness between the best's neighbours
+        # roughness^-4): Brent's bounded search in log roughness between the best's neighbours, or
+        # between the valid range's end and the neighbour when the best is the grid's end (a
+        # mirror-like object below the grid's 0.1 must not stop there)
         def held_out(log_r: float) -> float:
             r = float(np.exp(log_r))
             if r not in fits:
                 fits[r] = fit_at(r, directions)
             return _score(fits[r])
 
-        minimize_scalar(held_out, bounds=(np.log(rs[i - 1]), np.log(rs[i + 1])), method="bounded",
+        low = rs[i - 1] if i > 0 else MIN_ROUGHNESS
+        high = rs[i + 1] if i < len(rs) - 1 else 1.0
+        minimize_scalar(held_out, bounds=(np.log(low), np.log(high)), method="bounded",
                         options={"maxiter": settings.roughness_refinements, "xatol": ROUGHNESS_XTOL})
     else:
         refined = material_fit.refine_minimum(rs, errors)
@@ -407,13 +411,10 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
               "model_selection": _selection_note(one_fold, known_brdf is not None, settings.folds, brdf),
               "scale_convention": _scale_note(brdf, hint, level) if scale is None else
               {"source": "the known lighting", "lighting_scale": scale}}
-    print(_summary_line(brdf, None if one_fold else interval, len(sources), known_brdf is not None), file=sys.stderr)
     out = Path(work) / "fit"
     spec = None if best.material is None or best.parts is not None else prt.specular_transfer(   # parts: fit_to_map's
         geo, best.material, settings.lobe_samples, settings.seed)
     shade, specular = material_fit.shading_parts(geo, best, spec)
-    views = _per_view(obs, best.base * shade + specular, data["image_id"], keys, settings.folds)
-    report["residuals_per_view"] = views
     vertex_rho = None
     entry = {"setting": settings.albedo, "smoothness": settings.albedo_smoothness}
     if settings.albedo == "uniform":
@@ -423,6 +424,13 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
         if vertex_rho is not None:
             key = "albedo" if brdf["model"] == "lambert" else "base_color"
             brdf[key] = [float(x) for x in np.clip(vertex_rho.mean(axis=0), 0.0, 1.0)]
+    # the residuals and the summary of the chosen model: a texture's colour at each sample
+    rho = best.base if vertex_rho is None else texture.interpolation_matrix(
+        mesh.faces, data["face"], data["bary"].astype(float), len(mesh.vertices)) @ vertex_rho
+    views = _per_view(obs, rho * shade + specular, data["image_id"], keys, settings.folds)
+    report["residuals_per_view"] = views
+    print(_summary_line(brdf, None if one_fold else interval, len(sources), known_brdf is not None,
+                        textured=vertex_rho is not None), file=sys.stderr)
     env = np.maximum(envmap_from_sh(coeffs, settings.env_height), 0.0)
     if best.sources is not None:
         env = add_sources(env, best.sources.directions, best.sources.power)
@@ -507,14 +515,17 @@ def _selection_note(one_fold: bool, known: bool, folds: int, brdf: dict) -> dict
     return {"by": f"held-out views ({folds} folds, image_id mod {folds})"}
 
 
-def _summary_line(brdf: dict, interval, n_sources: int, given: bool = False) -> str:
+def _summary_line(brdf: dict, interval, n_sources: int, given: bool = False, textured: bool = False) -> str:
     """The fit's stderr line; ``interval`` None when no views were held out (nothing bounds the
-    roughness) or the material was ``given``."""
+    roughness) or the material was ``given``; ``textured``: the colour is a per-vertex texture
+    (fit/albedo.ply), brdf.json's its mean."""
     if brdf["model"] == "lambert":
-        return f"fit: lambert, albedo {np.round(brdf['albedo'], 3).tolist()}, {n_sources} directional source(s)"
+        colour = "albedo " + ("textured, mean " if textured else "")
+        return f"fit: lambert, {colour}{np.round(brdf['albedo'], 3).tolist()}, {n_sources} directional source(s)"
     bound = ("given" if given else "no held-out views: not validated" if interval is None
              else f"held-out views cannot tell apart {interval[0]:.3f}-{interval[1]:.3f}")
-    return (f"fit: principled roughness {brdf['roughness']:.3f} ({bound}), base colour "
+    colour = "base colour " + ("textured (fit/albedo.ply), mean " if textured else "")
+    return (f"fit: principled roughness {brdf['roughness']:.3f} ({bound}), {colour}"
             f"{np.round(brdf['base_color'], 3).tolist()}, {n_sources} directional source(s)")
 
 

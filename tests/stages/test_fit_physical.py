@@ -199,6 +199,29 @@ def test_synth_rough_dielectric(tmp_path):
     assert chromaticity_deg(brdf["base_color"], base) < 3.0
 
 
+@pytest.mark.parametrize("minimum", [0.05, 0.14, 0.37, 0.8])
+def test_roughness_search_finds_minima_between_and_beyond_the_grid(minimum):
+    """Grid descent then Brent's search: a minimum between grid points, or below the grid's lowest
+    point 0.1 (a near-mirror: the search used to stop at 0.1 there, the grid's end), is found
+    within the search's tolerance, each roughness fitted once."""
+    from types import SimpleNamespace
+
+    from stages.fit_physical import ROUGHNESS_XTOL, search_roughness
+
+    settings = SimpleNamespace(roughness_candidates="0.1,0.2,0.3,0.45,0.65,1.0", roughness_refinements=6,
+                               max_sources=0, ior=1.5)
+    fitted = []
+
+    def candidate(material, grey, textured, directions):
+        fitted.append(material.roughness)
+        return SimpleNamespace(validation_rmse=abs(np.log(material.roughness / minimum)), train_rmse=0.0, sources=None)
+
+    fits, _ = search_roughness(candidate, settings, np.ones(3), 0.0)
+    best = min(fits, key=lambda r: fits[r].validation_rmse)
+    assert abs(np.log(best / minimum)) < 3 * ROUGHNESS_XTOL
+    assert len(fitted) == len(set(fitted)) <= 11
+
+
 @pytest.mark.parametrize("minimum, scored", [(0.5, [0.3, 0.2, 0.45, 0.65]), (0.12, [0.3, 0.2, 0.45, 0.1]),
                                              (0.9, [0.3, 0.2, 0.45, 0.65, 1.0]), (0.3, [0.3, 0.2, 0.45])])
 def test_descend_grid_scores_the_bracket_of_a_minimum_not_the_whole_grid(minimum, scored):

@@ -15,6 +15,7 @@ import numpy as np
 
 from pipeline.io.mesh import read_mesh
 from pipeline.io.samples import read_samples
+from pipeline.report import build_report
 from pipeline.settings import make_settings
 from pipeline.synth import make_test_capture
 from stages import fit, relight
@@ -37,8 +38,9 @@ def _fit(tmp_path: Path, texture: str, **more):
     return capture, work, report
 
 
-def test_stripes_textured(tmp_path):
+def test_stripes_textured(tmp_path, capsys):
     capture, work, report = _fit(tmp_path, "stripes")
+    assert "fit: lambert, albedo textured, mean" in capsys.readouterr().err
     entry = report["albedo"]
     assert entry["choice"] == "textured"
     assert (work / "fit" / "albedo.ply").exists()
@@ -55,6 +57,14 @@ def test_stripes_textured(tmp_path):
     assert np.median(rel) < MEDIAN_TOLERANCE
     brdf = json.loads((work / "fit" / "brdf.json").read_text())
     np.testing.assert_allclose(brdf["albedo"], got.mean(axis=0), rtol=0.02)
+    # issue 16, point 7: the residuals are the chosen (textured) model's, and the report shows the texture
+    views = report["residuals_per_view"]
+    per_view = np.sqrt(sum(v["rmse"] ** 2 * v["samples"] for v in views) / sum(v["samples"] for v in views))
+    uniform, textured = entry["candidates"][0]["train_rmse"], entry["candidates"][1]["train_rmse"]
+    print("per-view", per_view, "uniform", uniform, "textured", textured)
+    assert per_view < 0.5 * uniform and abs(per_view / textured - 1) < 0.2
+    page = build_report(capture, work)
+    assert "Textured albedo (fit/albedo.ply" in page
 
 
 def test_uniform_stays_uniform(tmp_path):
