@@ -29,18 +29,12 @@ from pipeline import __version__
 from pipeline.errors import UserError
 from pipeline.io.run_summary import HOLDOUT_FIELD, StageResult, samples_holdout, stage_table, summary_lines
 from pipeline.settings import add_settings_arguments, make_settings, settings_from_args
-from pipeline.workdir import (changed_settings, fingerprints, is_fresh, record_settings, remove_stale_temporaries,
-                              settings_path, transaction, work_lock, write_json)
+from pipeline.workdir import (changed_settings, default_work, fingerprints, is_fresh, record_settings,
+                              remove_stale_temporaries, settings_path, transaction, work_lock, write_json)
 
 HELP = "Run the whole pipeline on a capture folder (linearize, poses, samples, fit, relight) and write the report."
 
 STAGES = ("linearize", "poses", "samples", "fit", "relight")
-
-
-def default_work(capture: Path) -> Path:
-    """The work folder used when none is given: ``<capture>-work`` beside the capture."""
-    capture = Path(capture).resolve()
-    return capture.parent / f"{capture.name}-work"
 
 
 def check_capture(capture: Path) -> Path:

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from pipeline.errors import UserError
+from pipeline.io.values import number
 
 S = TypeVar("S")
 
@@ -71,10 +72,12 @@ def _cli_type(tp: Any):
     if origin in (tuple, list):
         elem = args[0] if args else str
         nargs = "+" if origin is list or (len(args) == 2 and args[1] is Ellipsis) else len(args)
-        return elem, nargs, None
+        return number if elem is float else elem, nargs, None
     if tp is Path:
         return Path, None, None
-    if tp in (int, float, str):
+    if tp is float:
+        return number, None, None       # '1/250' as well as '0.004'
+    if tp in (int, str):
         return tp, None, None
     return str, None, None
 

@@ -298,3 +298,9 @@ def is_fresh(work: str | os.PathLike, stage: str, settings: Any, outputs: Iterab
         return False
     wanted = {"stage": stage, "settings": settings_dict(settings), **(provenance or {})}
     return json.loads(json.dumps(wanted)) == recorded
+
+
+def default_work(capture: Path) -> Path:
+    """The work folder used when none is given: ``<capture>-work`` beside the capture."""
+    capture = Path(capture).resolve()
+    return capture.parent / f"{capture.name}-work"

@@ -35,7 +35,7 @@ from pipeline.core.sh import band_of_index, num_coeffs, order_of, project_envmap
 from pipeline.core.transfer import lambert_filter
 from pipeline.errors import UserError
 from pipeline.io.brdf import MODEL_PARAMS, parse_brdf_spec, write_brdf
-from pipeline.io.capture_toml import read_toml
+from pipeline.io.capture_toml import read_capture_config, read_toml
 from pipeline.io.lighting import read_lighting_sh, write_lighting_sh
 from pipeline.io.report import write_report
 from pipeline.io.samples import iter_sample_chunks, read_samples_meta
@@ -164,6 +164,10 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             paths.append(Path(spec))
     if (Path(capture) / "capture.toml").exists():
         paths.append(Path(capture) / "capture.toml")
+        try:     # the maps of a lighting per photo
+            paths += [light.path for light in read_capture_config(capture).lighting.values() if light.path]
+        except UserError:
+            pass      # a malformed capture.toml is reported when the stage runs
     from pipeline.io.mesh import MESH_NAMES
 
     # the mesh (the physical forward model, textured albedo) and the poses (the samples' pixel footprints)
@@ -585,6 +589,10 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         models = [fit_model] if fit_model else ["lambert", "principled"]
         return fit_physical.run(capture=capture, work=work, settings=settings, keys=keys, known_brdf=known_brdf,
                                 models=models, hint=hint)
+    if read_capture_config(capture).lighting:
+        raise UserError(f"{Path(capture) / 'capture.toml'}: [lighting] (a lighting per photo) is fitted on the physical "
+                        "forward model only: the capture needs a mesh, and --forward physical with --brdf auto, "
+                        "lambert or principled")
     known_lighting = None if settings.lighting == "unknown" else load_known_lighting(settings.lighting, settings.env_order)
     total = int(meta.get("count", 0))
     valid = sum(len(c["weight"]) for c in iter_sample_chunks(samples_path, settings.chunk, ("weight",))) if not total else total

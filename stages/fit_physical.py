@@ -33,10 +33,11 @@ from pipeline.core import material_fit, prt, solve, texture
 from pipeline.core.envmap import add_sources
 from pipeline.core.material import MIN_ROUGHNESS, Principled, material_dict, principled_from_dict
 from pipeline.core.noise import inverse_variance_weights, noise_level_function, pixel_noise_sigma, weighted_noise_sigma
-from pipeline.core.render import Renderer
+from pipeline.core.render import Renderer, SceneGroups
 from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, sh_of_sources
 from pipeline.errors import UserError
 from pipeline.io.brdf import diffuse_color, write_brdf
+from pipeline.io.capture_toml import read_capture_config
 from pipeline.io.images import write_image
 from pipeline.io.lighting import write_lighting_sh
 from pipeline.io.mesh import mesh_path, read_mesh
@@ -113,13 +114,10 @@ MAP_CELL_HEIGHT = 16  # a known map's remainder (outside its bright pixels) in 1
 
 
 def known_lighting_parts(settings, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
-    """A known lighting as the fit's dual representation: (SH coefficients ((order+1)^2, 3),
-    source directions (J, 3), intensities (J, 3), the equirect map itself or None).  An equirect
-    map: its KNOWN_SOURCES brightest pixels (pipeline.core.render.light_set) as sources and the
-    rest projected to SH (what lighting_sh.json records; the material is fitted under the map
-    itself); a lighting_sh.json: its sources (if any; their projection taken out of its coefficients)."""
-    from pipeline.core.render import light_set
-    from pipeline.core.sh import project_envmap
+    """A known lighting (--lighting) as the fit's dual representation: (SH coefficients ((order+1)^2,
+    3), source directions (J, 3), intensities (J, 3), the equirect map itself or None).  A
+    lighting_sh.json: its sources (if any; their projection taken out of its coefficients); an
+    equirect map: map_lighting_parts."""
     from pipeline.io.lighting import read_lighting_parts
 
     path = known_lighting_path(settings.lighting)
@@ -130,13 +128,43 @@ def known_lighting_parts(settings, order: int) -> tuple[np.ndarray, np.ndarray, 
         return out, dirs, power, None
     from pipeline.io.images import read_envmap
 
-    env = np.asarray(read_envmap(path), float)
+    return map_lighting_parts(np.asarray(read_envmap(path), float), order)
+
+
+def map_lighting_parts(env: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """An equirect map as (SH coefficients, source directions, intensities, the map): its
+    KNOWN_SOURCES brightest pixels (pipeline.core.render.light_set) as sources and the rest
+    projected to SH (what lighting_sh.json records; the material is fitted under the map itself)."""
+    from pipeline.core.render import light_set
+    from pipeline.core.sh import project_envmap
+
     lights = light_set(env, cell_height=min(16, env.shape[0]), max_bright=KNOWN_SOURCES)
     remainder = env.reshape(-1, 3).copy()
     remainder[lights.bright] = 0.0
     coeffs = project_envmap(remainder.reshape(env.shape), order)
     nb = lights.n_bright
     return coeffs, lights.directions[len(lights) - nb:], lights.power[len(lights) - nb:], env
+
+
+def per_image_lighting(capture: Path, keys: list[str], image_id: np.ndarray) -> tuple[list[np.ndarray], np.ndarray] | None:
+    """capture.toml [lighting] (several known lightings of one object): the distinct maps and each
+    sample's index into them; None when the capture has no [lighting]."""
+    from pipeline.io.lighting import known_light_map
+
+    config = read_capture_config(capture)
+    if not config.lighting:
+        return None
+    maps, index, of_image = [], {}, np.zeros(len(keys), np.int64)
+    for i, key in enumerate(keys):
+        light = config.lighting_for(key)
+        if light is None:
+            raise UserError(f"{config.source}: [lighting] has no entry for {key} and no default; give every photo "
+                            "its lighting (or a default)")
+        if light not in index:
+            index[light] = len(maps)
+            maps.append(known_light_map(light))
+        of_image[i] = index[light]
+    return maps, of_image[np.asarray(image_id)]
 
 
 SCALE_TOLERANCE = 1.5    # a known map within this factor of the photos is taken as it is (the true maps of
@@ -162,7 +190,8 @@ def check_lighting_scale(geo, obs, settings, best, coeffs, directions, intensity
                 "note": "--lighting-scale fit: one global factor fitted to the photos, then the material refitted"}
     if (exact and not 1 / SCALE_TOLERANCE <= k <= SCALE_TOLERANCE) or (not exact and k > SCALE_TOLERANCE):
         word = "at least " if not exact else "about "
-        raise UserError(f"--lighting {settings.lighting}: the photos are {word}x{k:.3g} the radiance this map "
+        given_as = "capture.toml [lighting]" if settings.lighting == "unknown" else f"--lighting {settings.lighting}"
+        raise UserError(f"{given_as}: the photos are {word}x{k:.3g} the radiance this map "
                         f"predicts{' (with --lighting-scale ' + settings.lighting_scale + ')' if given != 1 else ''}; "
                         f"rescale the map, or give --lighting-scale {k * given:.3g} (or --lighting-scale fit)")
     return {"applied": 1.0, "given": given, "measured": k, "exact": exact}
@@ -321,15 +350,25 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
 
     known_lighting = known_sources = known_dirs = scale = scene = direct = None
     map_scale = 1.0
-    if settings.lighting != "unknown":
-        known_lighting, known_dirs, known_sources, env = known_lighting_parts(settings, order)
+    per_image = per_image_lighting(capture, keys, data["image_id"])
+    if per_image is not None and settings.lighting != "unknown":
+        raise UserError(f"the lighting is given twice: --lighting {settings.lighting} and capture.toml [lighting]; "
+                        "keep one")
+    if settings.lighting != "unknown" or per_image is not None:
+        if per_image is None:
+            known_lighting, known_dirs, known_sources, env = known_lighting_parts(settings, order)
+            maps = None if env is None else [env]
+        else:    # several lightings: lighting_sh.json will record the first photo's
+            maps, group = per_image
+            known_lighting, known_dirs, known_sources, env = map_lighting_parts(maps[0], order)
         if settings.lighting_scale != "fit":
             map_scale = float(settings.lighting_scale)
             known_lighting, known_sources = known_lighting * map_scale, known_sources * map_scale
-        if env is not None:      # the material under the map itself: the renderer's model of every sample
-            scene = Renderer(mesh, env, material_dict(None, [DEFAULT_ALBEDO] * 3), cell_height=MAP_CELL_HEIGHT,
-                             lobe_samples=settings.lobe_samples, bounce_samples=settings.bounce_samples,
-                             seed=settings.seed)
+        if maps is not None:     # the material under the map itself: the renderer's model of every sample
+            scenes = [Renderer(mesh, m, material_dict(None, [DEFAULT_ALBEDO] * 3), cell_height=MAP_CELL_HEIGHT,
+                               lobe_samples=settings.lobe_samples, bounce_samples=settings.bounce_samples,
+                               seed=settings.seed) for m in maps]
+            scene = scenes[0] if len(scenes) == 1 else SceneGroups(scenes, group)
             direct = scene.direct_parts(geo.faces, geo.bary, geo.view_dirs)
 
     def candidate(material: Principled | None, base0, fix_base: bool, directions):
@@ -411,6 +450,13 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
               "model_selection": _selection_note(one_fold, known_brdf is not None, settings.folds, brdf),
               "scale_convention": _scale_note(brdf, hint, level) if scale is None else
               {"source": "the known lighting", "lighting_scale": scale}}
+    if per_image is not None:
+        config = read_capture_config(capture)
+        report["lighting_per_image"] = {
+            "source": f"{config.source} [lighting]", "lightings": len(per_image[0]),
+            "recorded": "lighting_sh.json and lighting.exr hold the first photo's lighting",
+            "images": {k: str(light.path) if light.path else {"direction": light.direction, "intensity": light.intensity}
+                       for k, light in ((k, config.lighting_for(k)) for k in keys)}}
     out = Path(work) / "fit"
     spec = None if best.material is None or best.parts is not None else prt.specular_transfer(   # parts: fit_to_map's
         geo, best.material, settings.lobe_samples, settings.seed)

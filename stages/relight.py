@@ -52,13 +52,14 @@ from pipeline.core.transfer import irradiance_from_sh
 from pipeline.errors import UserError
 from pipeline.io.brdf import diffuse_color, read_brdf
 from pipeline.io.images import preview_exposure, read_envmap, write_image, write_preview
-from pipeline.io.lighting import read_lighting_parts, read_lighting_sh
+from pipeline.io.capture_toml import KnownLight, read_capture_config
+from pipeline.io.lighting import known_light_map, read_lighting_parts, read_lighting_sh
 from pipeline.io.linear_manifest import image_source, linear_manifest, load_linear_image
 from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
 from pipeline.io.poses import Poses, poses_path, read_poses
 from pipeline.raycast import first_hits, intersector
 from pipeline.settings import setting
-from pipeline.workdir import make_folder, write_json
+from pipeline.workdir import default_work, make_folder, write_json
 
 DIFFUSE_ORDER = 16         # |Â_l| beyond l = 16 is < 0.15% of Â_0: irradiance of an env map to that level
 LOBE_CUTOFF = 1e-3         # a lobe "needs" band l while |A_l| > LOBE_CUTOFF * A_0
@@ -77,6 +78,11 @@ class Settings:
     out_dir: str = setting("", "output folder; empty = WORK/relight")
     compare: bool = setting(False, "compare with the linear photos of the same views: error maps and relative errors "
                                    "(after one global scale when the lighting is the fitted one)")
+    compare_with: str = setting("", "another capture of the same object (Stanford-ORB's protocol: fit under one "
+                                    "lighting, check under another): render its posed views under its lighting "
+                                    "(its capture.toml [lighting], or --env) and compare with its photos")
+    compare_work: str = setting("", "--compare-with's work folder, with its linear images and poses (`sigrend run "
+                                    "OTHER --to poses`); empty = OTHER-work")
     supersample: int = setting(2, "rays per pixel along each axis (n x n) at the silhouette (alpha = the covered "
                                    "fraction); inside it --interior-supersample, refined at highlights")
     interior_supersample: int = setting(1, "rays per pixel along each axis inside the silhouette (1: the shading "
@@ -179,6 +185,40 @@ def lighting_path(work: Path, settings: Settings) -> Path:
 def uses_fitted_lighting(work: Path, settings: Settings) -> bool:
     """True when the lighting is the one fitted from these photos (then one global scale is free)."""
     return lighting_path(work, settings).resolve() == fitted_lighting_path(work).resolve()
+
+
+def photo_source(capture: Path, work: Path, settings: Settings) -> tuple[Path, Path]:
+    """(capture, work folder) whose posed views and photos are rendered and compared: this capture's,
+    or --compare-with's (its work folder --compare-work, default OTHER-work)."""
+    if not settings.compare_with:
+        return Path(capture), Path(work)
+    other = Path(settings.compare_with)
+    if not other.is_dir():
+        raise UserError(f"--compare-with {other}: no such capture folder")
+    other_work = Path(settings.compare_work) if settings.compare_work else default_work(other)
+    if not (other_work / "linear").is_dir():
+        raise UserError(f"--compare-with {other}: no linear photos in {other_work}; run `sigrend run {other} "
+                        f"-w {other_work} --to poses` first (or give --compare-work)")
+    return other, other_work
+
+
+def view_lights(capture: Path, views: list) -> dict:
+    """Each view's known lighting from ``capture``'s capture.toml [lighting] (KnownLight by view key);
+    a user error naming a view without one."""
+    config = read_capture_config(capture)
+    lights = {v.key: config.lighting_for(v.key) for v in views}
+    missing = [k for k, light in lights.items() if light is None]
+    if missing and not config.lighting:
+        raise UserError(f"--compare-with {capture}: its capture.toml has no [lighting]; name each photo's lighting "
+                        "there (or a default), or give --env")
+    if missing:
+        raise UserError(f"--compare-with {capture}: its capture.toml [lighting] gives no lighting for "
+                        f"{', '.join(missing[:3])}; name each photo's lighting there (or a default), or give --env")
+    return lights
+
+
+def compares(settings: Settings) -> bool:
+    return settings.compare or bool(settings.compare_with)
 
 
 def capture_poses_path(capture: Path, work: Path) -> Path:
@@ -518,6 +558,15 @@ class AngularLighting:
             return cls(brdf, mesh, coeffs=coeffs, sources=(dirs, power), source=str(path), **kwargs)
         return cls(brdf, mesh, env=read_envmap(path), source=str(path), **kwargs)
 
+    @classmethod
+    def from_known_light(cls, light: KnownLight, brdf: dict, mesh, **kwargs) -> "AngularLighting":
+        """A capture.toml [lighting] entry: its map file, or its directional light drawn into a map
+        (pipeline.io.lighting.known_light_map)."""
+        if light.path is not None:
+            return cls.from_file(light.path, brdf, mesh, **kwargs)
+        return cls(brdf, mesh, env=known_light_map(light), source=f"directional light {light.direction} "
+                   f"intensity {light.intensity}", **kwargs)
+
     def prepare(self) -> "AngularLighting":
         """Shared caches computed up front, so that shade_hits may run in threads (Renderer.prepare)."""
         for renderer in (self.renderer, self.negative):
@@ -574,22 +623,27 @@ def board_occludes(work: Path, settings: Settings) -> bool:
     return settings.board == "on" or not uses_fitted_lighting(work, settings)
 
 
-def prepare_lighting(path: Path, brdf: dict, mesh, settings: Settings, *, capture: Path | None = None,
+def prepare_lighting(path: Path | KnownLight, brdf: dict, mesh, settings: Settings, *, capture: Path | None = None,
                      vertex_colors=None, with_board: bool = False):
-    """The lighting at ``path`` prepared for ``settings.method`` (Lighting or AngularLighting)."""
+    """The lighting at ``path`` (or a capture.toml [lighting] entry) prepared for ``settings.method``
+    (Lighting or AngularLighting)."""
     if settings.method == "frequency" and brdf["model"] == "principled":
         raise UserError("--method frequency renders the seed's convex lobes (lambert, phong, microfacet) only; "
                         "a principled material needs --method angular (the default)")
+    if isinstance(path, KnownLight) and (path.path is not None or settings.method == "frequency"):
+        if path.path is None:
+            raise UserError("a directional light of capture.toml [lighting] needs --method angular (the default)")
+        path = path.path
     if settings.method == "frequency":
         return Lighting.from_file(path, brdf, lobe_sh_order=settings.lobe_sh_order,
                                   prefilter_height=settings.prefilter_height)
     board = board_occluder(capture) if capture is not None and with_board else None
-    return AngularLighting.from_file(path, brdf, mesh, env_height=settings.env_height,
-                                     cell_height=settings.cell_height, shadows=settings.shadows,
-                                     vertex_albedo=vertex_colors, board=board, lobe_sh_order=settings.lobe_sh_order,
-                                     prefilter_height=settings.prefilter_height, clamp_sh=settings.clamp_sh,
-                                     bounces=settings.bounces, bounce_samples=settings.bounce_samples,
-                                     lobe_samples=settings.lobe_samples)
+    make = AngularLighting.from_known_light if isinstance(path, KnownLight) else AngularLighting.from_file
+    return make(path, brdf, mesh, env_height=settings.env_height, cell_height=settings.cell_height,
+                shadows=settings.shadows, vertex_albedo=vertex_colors, board=board,
+                lobe_sh_order=settings.lobe_sh_order, prefilter_height=settings.prefilter_height,
+                clamp_sh=settings.clamp_sh, bounces=settings.bounces, bounce_samples=settings.bounce_samples,
+                lobe_samples=settings.lobe_samples)
 
 
 # --------------------------------------------------------------------------------------- rendering
@@ -731,17 +785,26 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     except UserError:
         pass
     views = settings.views.strip()
+    try:
+        source, source_work = photo_source(capture, work, settings)
+    except UserError:
+        return paths     # --compare-with not ready: run() says so
+    if settings.compare_with and not settings.env:
+        try:
+            paths += [light.path for light in read_capture_config(source).lighting.values() if light.path]
+        except UserError:
+            pass
     if views.endswith(".json"):
         paths.append(Path(views))
     elif not views.startswith("orbit:"):
-        paths.append(capture_poses_path(capture, work))
+        paths.append(capture_poses_path(source, source_work))
         if views == "heldout":
-            paths.append(Path(work) / "samples.npz")
-        if settings.compare:
+            paths.append(source_work / "samples.npz")
+        if compares(settings):
             try:
-                manifest = linear_manifest(work)
-                paths += [image_source(capture, work, v.key, manifest)
-                          for v in resolve_views(capture=capture, work=work, settings=settings) if v.has_photo]
+                manifest = linear_manifest(source_work)
+                paths += [image_source(source, source_work, v.key, manifest)
+                          for v in resolve_views(capture=source, work=source_work, settings=settings) if v.has_photo]
             except (UserError, KeyError):
                 pass
     return paths
@@ -751,8 +814,9 @@ def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     folder = out_folder(work, settings)
     paths = [folder / "relight.json"]
     try:
-        for view in resolve_views(capture=capture, work=work, settings=settings):
-            paths += _view_outputs(folder, view.key, settings.compare and view.has_photo)
+        source, source_work = photo_source(capture, work, settings)
+        for view in resolve_views(capture=source, work=source_work, settings=settings):
+            paths += _view_outputs(folder, view.key, compares(settings) and view.has_photo)
     except UserError:
         pass  # views not resolvable yet (no poses): the stage is not fresh anyway
     return paths
@@ -762,6 +826,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     from tqdm import tqdm
 
     capture, work = Path(capture), Path(work)
+    source, source_work = photo_source(capture, work, settings)
     brdf_path = work / "fit" / "brdf.json"
     if not brdf_path.exists():
         raise UserError(f"{brdf_path}: no fitted BRDF; run `sigrend fit` first")
@@ -770,32 +835,37 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         raise UserError(f"{light_path}: lighting not found; give --env NEW.exr|lighting_sh.json or run `sigrend fit`")
     brdf = read_brdf(brdf_path)
     mesh = read_mesh(mesh_path(capture))
-    views = resolve_views(capture=capture, work=work, settings=settings, mesh=mesh)
+    compare = compares(settings)
+    views = resolve_views(capture=source, work=source_work, settings=settings, mesh=mesh)
     vertex_colors = vertex_albedo(work, mesh)
-    lighting = prepare_lighting(light_path, brdf, mesh, settings, capture=capture, vertex_colors=vertex_colors,
-                                with_board=board_occludes(work, settings))
+    lights = view_lights(source, views) if settings.compare_with and not settings.env else {}
+    lightings = {light: prepare_lighting(light, brdf, mesh, settings, capture=source, vertex_colors=vertex_colors,
+                                         with_board=board_occludes(work, settings))
+                 for light in dict.fromkeys(lights.values() or [light_path])}
     albedo = np.asarray(diffuse_color(brdf), float)
     rays = intersector(mesh)
     folder = out_folder(work, settings)
     make_folder(folder, "-o")
     written: list[Path] = []
     rendered, photos, masks, exposures = {}, {}, {}, {}
-    manifest = linear_manifest(work) if settings.compare else None
+    manifest = linear_manifest(source_work) if compare else None
     threads = settings.threads or os.cpu_count() or 1
     if threads > 1:
-        lighting.prepare()
+        for lighting in lightings.values():
+            lighting.prepare()
     with ExitStack() as stack:      # threads shade the chunks of each view; BLAS keeps to one per thread
         pool = stack.enter_context(ThreadPoolExecutor(threads)) if threads > 1 else None
         stack.enter_context(threadpool_limits(1))
         for view in tqdm(views, desc="relight", unit="view", leave=False):
+            lighting = lightings[lights.get(view.key, light_path)]
             rgba = render_view(view, mesh, rays, lighting, albedo, vertex_colors, settings.supersample,
                                interior=settings.interior_supersample, pool=pool)
             stem = view_stem(view.key)
             written.append(write_image(folder / f"{stem}.exr", rgba, dtype="float"))
             exposures[view.key] = preview_exposure(rgba[..., :3], rgba[..., 3] > 0.5)
             written.append(write_preview(folder / f"{stem}.png", rgba[..., :3], exposures[view.key], rgba[..., 3]))
-            if settings.compare and view.has_photo:
-                photo, weight, _ = load_linear_image(capture, work, view.key, manifest)
+            if compare and view.has_photo:
+                photo, weight, _ = load_linear_image(source, source_work, view.key, manifest)
                 photo = photo.astype(float)
                 if photo.shape[:2] != rgba.shape[:2]:
                     raise UserError(f"{view.key}: the photo is {photo.shape[1]}x{photo.shape[0]} but the render is "
@@ -803,10 +873,15 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
                 valid = weight > 0.999  # fully valid pixels only (linearize's masks, alpha)
                 rendered[view.key], photos[view.key] = rgba, photo
                 masks[view.key] = _interior(rgba[..., 3]) & valid & np.all(np.isfinite(photo), axis=-1)
-    summary = {"views": [v.key for v in views], "method": settings.method, "lighting": lighting.describe(), "brdf": brdf,
+    described = [lighting.describe() for lighting in lightings.values()]
+    summary = {"views": [v.key for v in views], "method": settings.method,
+               "lighting": described[0] if len(described) == 1 else described, "brdf": brdf,
                "size": settings.size or "native", "out_dir": str(folder)}
-    if settings.compare and rendered:
-        result = compare_views(rendered, photos, masks, uses_fitted_lighting(work, settings))
+    if settings.compare_with:
+        summary["compare_with"] = {"capture": str(source), "work": str(source_work),
+                                   "lighting": "--env" if settings.env else f"{source / 'capture.toml'} [lighting]"}
+    if compare and rendered:
+        result = compare_views(rendered, photos, masks, uses_fitted_lighting(work, settings) and not settings.compare_with)
         for key, img in rendered.items():
             stem = view_stem(key)
             exposure = exposures[key] / result["scale"] if result["scale"] > 0 else exposures[key]

@@ -733,6 +733,40 @@ class Renderer:
         return radiance, board_mask
 
 
+@dataclass(frozen=True)
+class SceneGroups:
+    """One object under several lightings (capture.toml [lighting]: a map per photo): sample i is
+    lit by ``scenes[group[i]]`` (Renderers of one mesh).  The part of the Renderer interface the
+    material fit uses (with_brdf, direct_parts, shade_parts, _indirect_at), each scene shading
+    its own samples; ``direct`` is a list of the scenes' direct_parts."""
+
+    scenes: list
+    group: np.ndarray
+
+    def _rows(self) -> list[np.ndarray]:
+        return [np.flatnonzero(self.group == g) for g in range(len(self.scenes))]
+
+    def with_brdf(self, brdf: dict) -> "SceneGroups":
+        return SceneGroups([s.with_brdf(brdf) for s in self.scenes], self.group)
+
+    def direct_parts(self, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray) -> list:
+        return [s.direct_parts(faces[i], bary[i], view_dirs[i]) for s, i in zip(self.scenes, self._rows())]
+
+    def shade_parts(self, faces, bary, view_dirs, direct: list | None = None, footprint=None):
+        diffuse, specular = np.zeros((len(faces), 3)), np.zeros((len(faces), 3))
+        for g, (s, i) in enumerate(zip(self.scenes, self._rows())):
+            part = None if footprint is None else (footprint[0][i], footprint[1][i])
+            diffuse[i], specular[i] = s.shade_parts(faces[i], bary[i], view_dirs[i],
+                                                    None if direct is None else direct[g], part)
+        return diffuse, specular
+
+    def _indirect_at(self, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(tri), 3))
+        for s, i in zip(self.scenes, self._rows()):
+            out[i] = s._indirect_at(tri[i], bary[i])
+        return out
+
+
 def render_view(mesh: trimesh.Trimesh, env: np.ndarray, brdf: dict, camera: Camera, R: np.ndarray,
                 t: np.ndarray, **options) -> RenderResult:
     """One-off convenience: ``Renderer(mesh, env, brdf, **options).render(camera, R, t)``."""

@@ -18,11 +18,17 @@ Every section is optional; paths are relative to the capture folder.
     gray_patch = [x0, y0, x1, y1]   # a gray card in the first image (pixels, x right, y down, end exclusive)
 
     [exposure]                      # overrides of EXIF, per image file name, or "default" for all
-    default = {time = 0.01, iso = 100, fnumber = 8.0}
+    default = {time = 0.01, iso = 100, fnumber = 8.0}   # time also as "1/250"
     "IMG_0003.jpg" = {time = 0.04}  # seconds, ISO arithmetic, f-number; any subset
 
     [brackets]                      # several exposures of one view, merged into one HDR image
     view_00 = ["IMG_0001.jpg", "IMG_0002.jpg", "IMG_0003.jpg"]   # output linear/view_00.exr
+
+    [lighting]                      # known lighting per photo (light stages, several lightings of one object):
+    default = "light/studio.exr"    # an equirect map (DESIGN.md convention) for every photo without its own;
+    "IMG_0007.jpg" = {direction = [0.3, -0.2, 0.93], intensity = [4.0, 4.0, 4.0]}  # or a directional light:
+                                    # unit direction towards it (object frame), irradiance at normal incidence
+                                    # in the photos' units (a number or [r, g, b])
 
     [board]                         # ChArUco board (written by `sigrend synth`, read by calib and poses)
     pattern = "charuco"             # or "chessboard" (calib intrinsics only: no dictionary, no markers)
@@ -47,7 +53,7 @@ from typing import Any, Literal
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.io.values import is_number
+from pipeline.io.values import is_number, number
 
 try:
     import tomllib
@@ -80,6 +86,16 @@ class BoardSpec:
 
 
 @dataclass(frozen=True)
+class KnownLight:
+    """A photo's known lighting from capture.toml [lighting]: an equirect map (``path``), or one
+    directional light (unit ``direction`` towards it, ``intensity`` = irradiance at normal incidence, RGB)."""
+
+    path: Path | None = None
+    direction: tuple[float, float, float] | None = None
+    intensity: tuple[float, float, float] | None = None
+
+
+@dataclass(frozen=True)
 class CaptureConfig:
     """Parsed capture.toml (absent file -> all defaults). Paths are absolute."""
 
@@ -92,6 +108,7 @@ class CaptureConfig:
     exposure: dict[str, ExposureOverride] = field(default_factory=dict)
     brackets: dict[str, tuple[str, ...]] = field(default_factory=dict)
     board: BoardSpec | None = None
+    lighting: dict[str, KnownLight] = field(default_factory=dict)
     source: Path | None = None
 
     def exposure_for(self, name: str) -> ExposureOverride:
@@ -100,6 +117,14 @@ class CaptureConfig:
         base = self.exposure.get("default", ExposureOverride())
         return ExposureOverride(*(a if a is not None else b for a, b in
                                   zip((own.time, own.iso, own.fnumber), (base.time, base.iso, base.fnumber))))
+
+    def lighting_for(self, name: str) -> KnownLight | None:
+        """[lighting] of image ``name``: its entry, or the entry of the same file stem (a linear
+        image's key for the photo it was made from), else ``default``, else None."""
+        if name in self.lighting:
+            return self.lighting[name]
+        same = [light for key, light in self.lighting.items() if Path(key).stem == Path(name).stem]
+        return same[0] if same else self.lighting.get("default")
 
 
 def read_toml(path: Path) -> dict:
@@ -116,7 +141,7 @@ def read_toml(path: Path) -> dict:
 # capture.toml's sections and their keys (None: any key, e.g. image file names)
 SECTIONS: dict[str, set[str] | None] = {
     "camera": {"path"}, "response": {"path", "curve"}, "vignetting": {"path"},
-    "white_balance": {"multipliers", "gray_patch"}, "exposure": None, "brackets": None,
+    "white_balance": {"multipliers", "gray_patch"}, "exposure": None, "brackets": None, "lighting": None,
     "board": {"pattern", "dictionary", "squares", "square_length", "marker_length", "board_to_object"},
     "fit": {"known_albedo"},
 }
@@ -143,6 +168,14 @@ def check_sections(path: Path, doc: dict) -> None:
                          for key in value if key not in SECTIONS[section]]
     if problems:
         raise UserError(f"{path}: unknown " + "; ".join(problems) + f" — known sections: {', '.join(SECTIONS)}")
+
+
+def _fraction(value: Any) -> Any:
+    """A string written as cameras print exposure times ("1/250") as its number; anything else as it is."""
+    try:
+        return number(value) if isinstance(value, str) else value
+    except ValueError:
+        return value
 
 
 def _positive(path: Path, where: str, value: Any) -> float:
@@ -219,6 +252,32 @@ def read_board(path: str | os.PathLike) -> BoardSpec:
     return parse_board(path, doc["board"] if isinstance(doc.get("board"), dict) else doc)
 
 
+def parse_lighting(path: Path, table: dict) -> dict[str, KnownLight]:
+    """[lighting]: image name (or "default") -> KnownLight (UserError naming ``path`` and the key)."""
+    out = {}
+    for name, entry in table.items():
+        where = f"{path}: [lighting] {name!r}"
+        if isinstance(entry, str):
+            target = (path.parent / entry).resolve()
+            if not target.is_file():
+                raise UserError(f"{where}: {entry!r} does not exist ({target})")
+            out[name] = KnownLight(path=target)
+            continue
+        if not isinstance(entry, dict) or set(entry) != {"direction", "intensity"}:
+            raise UserError(f'{where} must be a map file name ("light.exr") or {{direction = [x, y, z], '
+                            "intensity = [r, g, b]}")
+        d, i = entry["direction"], entry["intensity"]
+        i = [i] * 3 if is_number(i) else i
+        if (not isinstance(d, list) or len(d) != 3 or not all(is_number(v) for v in d)
+                or not isinstance(i, list) or len(i) != 3 or not all(is_number(v) and v >= 0 for v in i)):
+            raise UserError(f"{where}: direction must be three numbers and intensity one or three numbers >= 0")
+        norm = float(np.linalg.norm(np.asarray(d, float)))
+        if not np.isfinite(norm) or norm == 0 or not np.all(np.isfinite(i)):
+            raise UserError(f"{where}: direction must be a finite non-zero vector (towards the light)")
+        out[name] = KnownLight(direction=tuple(float(v) / norm for v in d), intensity=tuple(float(v) for v in i))
+    return out
+
+
 def read_capture_config(capture: str | os.PathLike) -> CaptureConfig:
     """Parse ``capture/capture.toml``; a missing file gives the defaults."""
     path = Path(capture) / CAPTURE_TOML
@@ -248,7 +307,7 @@ def read_capture_config(capture: str | os.PathLike) -> CaptureConfig:
         if not isinstance(entry, dict) or set(entry) - {"time", "iso", "fnumber"}:
             raise UserError(f"{path}: [exposure] {name!r} must be a table with time, iso and/or fnumber")
         exposure[name] = ExposureOverride(
-            **{k: _positive(path, f"[exposure] {name}.{k}", v) for k, v in entry.items()})
+            **{k: _positive(path, f"[exposure] {name}.{k}", _fraction(v)) for k, v in entry.items()})
 
     brackets = {}
     for name, members in doc.get("brackets", {}).items():
@@ -260,4 +319,5 @@ def read_capture_config(capture: str | os.PathLike) -> CaptureConfig:
     response, curve = _response_entry(path, doc)
     return CaptureConfig(camera=_path_entry(path, doc, "camera"), response=response, response_curve=curve,
                          vignetting=_path_entry(path, doc, "vignetting"), wb_multipliers=mult, wb_gray_patch=gray,
-                         exposure=exposure, brackets=brackets, board=board, source=path)
+                         exposure=exposure, brackets=brackets, board=board,
+                         lighting=parse_lighting(path, doc.get("lighting", {})), source=path)

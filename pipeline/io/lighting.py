@@ -65,3 +65,18 @@ def read_lighting_parts(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray
     if len(dirs):
         coeffs = coeffs - sh_of_sources(dirs, power, order_of(coeffs.shape[0]))
     return coeffs, dirs, power
+
+
+KNOWN_LIGHT_HEIGHT = 256   # a directional light of capture.toml [lighting] is drawn into a map this tall
+
+
+def known_light_map(light, height: int = KNOWN_LIGHT_HEIGHT) -> np.ndarray:
+    """The equirect map (H, 2H, 3) of a capture.toml [lighting] entry (io.capture_toml.KnownLight): its
+    map file as it is, or its directional light spread over the four pixel centres around it
+    (core.envmap.add_sources, as relight draws the fit's sources) on a black map ``height`` rows tall."""
+    from pipeline.core.envmap import add_sources
+    from pipeline.io.images import read_envmap
+
+    if light.path is not None:
+        return np.asarray(read_envmap(light.path), float)
+    return add_sources(np.zeros((height, 2 * height, 3)), np.asarray([light.direction]), np.asarray([light.intensity]))

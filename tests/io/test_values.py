@@ -1,0 +1,37 @@
+"""Numbers as people type them: exposure fractions on the command line and in capture.toml."""
+
+import argparse
+
+import pytest
+
+from calib import response
+from pipeline.errors import UserError
+from pipeline.io.capture_toml import read_capture_config
+from pipeline.io.values import number
+from pipeline.settings import add_settings_arguments, settings_from_args
+
+
+@pytest.mark.parametrize("text, value", [("1/250", 0.004), ("0.004", 0.004), (" 4e-3 ", 0.004), ("2", 2.0)])
+def test_number_reads_decimals_and_fractions(text, value):
+    assert number(text) == pytest.approx(value)
+
+
+@pytest.mark.parametrize("text", ["1/0", "x", "1/", "nan", "inf"])
+def test_number_refuses_what_is_not_a_finite_number(text):
+    with pytest.raises(ValueError):
+        number(text)
+
+
+def test_exposure_times_as_fractions_on_the_command_line():
+    parser = argparse.ArgumentParser()
+    add_settings_arguments(parser, response.Settings)
+    settings = settings_from_args(response.Settings, parser.parse_args(["--times", "1/250", "1/125", "0.016"]))
+    assert settings.times == pytest.approx([0.004, 0.008, 0.016])
+
+
+def test_exposure_time_as_a_fraction_in_capture_toml(tmp_path):
+    (tmp_path / "capture.toml").write_text('[exposure]\ndefault = {time = "1/250", iso = 200}\n')
+    assert read_capture_config(tmp_path).exposure_for("a.jpg").time == pytest.approx(0.004)
+    (tmp_path / "capture.toml").write_text('[exposure]\ndefault = {time = "fast"}\n')
+    with pytest.raises(UserError, match="time must be a positive number"):
+        read_capture_config(tmp_path)
