@@ -1,9 +1,9 @@
 """The stages' ray casting against the capture's mesh (trimesh's Embree intersector, embreex):
 first hits of camera rays as surface points — face, point, barycentrics, shading normal by
 pipeline.core.surface's one rule — occlusion tests, and the surface a pixel sees (its footprint).
-Used by the samples stage, the fit and relight;
-the renderer (pipeline.core.render) holds its own Embree scenes for shadow and bounce rays and
-takes its surface points from the same pipeline.core.surface.
+Used by the samples stage, the fit and relight; the renderer (pipeline.core.render) casts its
+camera, shadow and bounce rays through a RayMesh made here (ray_mesh), so that core imports
+neither trimesh nor Embree, and takes its surface points from the same pipeline.core.surface.
 """
 
 from __future__ import annotations
@@ -33,6 +33,39 @@ def intersector(mesh):
     from trimesh.ray.ray_pyembree import RayMeshIntersector
 
     return RayMeshIntersector(mesh)
+
+
+@dataclass(frozen=True)
+class RayMesh:
+    """A mesh as the renderer (pipeline.core.render.Renderer) takes it: its arrays (vertices (V, 3),
+    faces (F, 3), unit vertex and face normals, triangles (F, 3, 3), extents (3,) of its box) and
+    its Embree intersector ``rays`` (intersects_id, intersects_any); ``mesh`` is the trimesh mesh."""
+
+    mesh: object
+    vertices: np.ndarray
+    faces: np.ndarray
+    vertex_normals: np.ndarray
+    face_normals: np.ndarray
+    triangles: np.ndarray
+    extents: np.ndarray
+    rays: object
+
+    def with_occluder(self, corners: np.ndarray):
+        """An intersector of the mesh together with a planar quad (corners (4, 3), in order), e.g.
+        the capture's board, which shadows the object."""
+        import trimesh
+
+        quad = trimesh.Trimesh(np.asarray(corners, float), [[0, 1, 2], [0, 2, 3]], process=False)
+        return intersector(trimesh.util.concatenate([self.mesh, quad]))
+
+
+def ray_mesh(mesh) -> RayMesh:
+    """The RayMesh of a trimesh mesh (its intersector built once, shared by every Renderer of it)."""
+    if isinstance(mesh, RayMesh):
+        return mesh
+    return RayMesh(mesh, np.asarray(mesh.vertices, float), np.asarray(mesh.faces), np.asarray(mesh.vertex_normals, float),
+                   np.asarray(mesh.face_normals, float), np.asarray(mesh.triangles, float), np.asarray(mesh.extents, float),
+                   intersector(mesh))
 
 
 def first_hits(mesh, rays, origins: np.ndarray, directions: np.ndarray) -> Hits:

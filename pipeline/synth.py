@@ -354,6 +354,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     from pipeline.io.camera_files import Exposure, add_sensor_noise, sensor_value, write_camera_file
     from pipeline.io.images import write_image
     from pipeline.io.poses import ImagePose, Poses, write_poses
+    from pipeline.raycast import ray_mesh
     from pipeline.workdir import atomic_path, write_json, write_text
 
     settings.validate()
@@ -365,8 +366,8 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
                                                 seed=settings.seed)
     camera, view_poses = make_views(mesh, settings, board_size)
     vertex_albedo = texture_albedo(mesh, diffuse_color(brdf), settings.texture)
-    renderer = Renderer(mesh, env, brdf, shadows=settings.shadows, board=board, cell_height=settings.cell_height,
-                        vertex_albedo=vertex_albedo)
+    renderer = Renderer(ray_mesh(mesh), env, brdf, shadows=settings.shadows, board=board,
+                        cell_height=settings.cell_height, vertex_albedo=vertex_albedo)
     noise = parse_noise(settings.noise, settings.format)
     rng = np.random.default_rng(settings.seed)
     exposure_rng = np.random.default_rng([settings.seed, 1])  # independent of the noise stream

@@ -99,10 +99,11 @@ def preview(mesh, brdf: dict, colors: np.ndarray | None, env_spec: str) -> tuple
     from pipeline.core.camera import orbit_poses
     from pipeline.core.envmaps import envmap_from_spec
     from pipeline.core.render import Renderer
+    from pipeline.raycast import ray_mesh
 
     sphere = mesh.bounding_sphere.primitive
     camera, [(R, t)] = orbit_poses(sphere.center, float(sphere.radius), 1, PREVIEW_PX, PREVIEW_PX)
-    result = Renderer(mesh, envmap_from_spec(env_spec), brdf, vertex_albedo=colors).render(camera, R, t)
+    result = Renderer(ray_mesh(mesh), envmap_from_spec(env_spec), brdf, vertex_albedo=colors).render(camera, R, t)
     return result.radiance, result.object_mask
 
 

@@ -44,7 +44,7 @@ from pipeline.io.mesh import mesh_path, read_mesh
 from pipeline.io.poses import poses_path, read_poses
 from pipeline.io.report import write_report
 from pipeline.io.samples import iter_sample_chunks
-from pipeline.raycast import intersector, pixel_footprints
+from pipeline.raycast import RayMesh, pixel_footprints, ray_mesh
 from stages.fit import (DEFAULT_ALBEDO, albedo_from_shading, known_lighting_path, prior_choices, write_plots,
                         write_vertex_albedo)
 
@@ -88,14 +88,15 @@ def load_samples(path: Path, settings, n_faces: int) -> tuple[dict, dict]:
     return data, noise
 
 
-def sample_footprints(capture: Path, work: Path, mesh, data: dict, keys: list[str], n: int) -> tuple | None:
+def sample_footprints(capture: Path, work: Path, mesh: RayMesh, data: dict, keys: list[str], n: int) -> tuple | None:
     """Normals and view directions (N, n*n, 3) over each sample's pixel (pipeline.raycast
-    .pixel_footprints, through the poses the samples were made with); None for n = 1."""
+    .pixel_footprints on ``mesh``'s intersector, through the poses the samples were made with);
+    None for n = 1."""
     if n <= 1:
         return None
     path = poses_path(capture, work)
     poses = read_poses(path)
-    rays = intersector(mesh)
+    rays = mesh.rays
     normals = np.zeros((data["face"].size, n * n, 3))
     views = np.zeros_like(normals)
     for i in np.unique(data["image_id"]):
@@ -333,15 +334,16 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     mesh = read_mesh(mesh_path(capture))
+    rays = ray_mesh(mesh)        # the renderer's view of the mesh: arrays and ray intersector, built once
     samples_path = Path(work) / "samples.npz"
     data, noise = load_samples(samples_path, settings, len(mesh.faces))
     order = int(settings.order) if settings.order != "auto" else settings.factor_order
     orders = [order] if settings.order != "auto" else list(range(order + 1))
     top = max(order, settings.max_order) if settings.order == "auto" else order   # the final lighting's orders
     t0 = time.perf_counter()
-    geo = prt.geometry(mesh, data["face"], data["bary"], data["view_dir"].astype(float), top,
+    geo = prt.geometry(rays, data["face"], data["bary"], data["view_dir"].astype(float), top,
                        bounce_samples=settings.bounce_samples, seed=settings.seed,
-                       footprint=sample_footprints(capture, work, mesh, data, keys, settings.footprint))
+                       footprint=sample_footprints(capture, work, rays, data, keys, settings.footprint))
     timings["transfer"] = time.perf_counter() - t0
     obs = material_fit.Observations(data["radiance"].astype(float), data["weight"].astype(float),
                                     (data["image_id"] % settings.folds).astype(np.int64))
@@ -365,7 +367,7 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
             map_scale = float(settings.lighting_scale)
             known_lighting, known_sources = known_lighting * map_scale, known_sources * map_scale
         if maps is not None:     # the material under the map itself: the renderer's model of every sample
-            scenes = [Renderer(mesh, m, material_dict(None, [DEFAULT_ALBEDO] * 3), cell_height=MAP_CELL_HEIGHT,
+            scenes = [Renderer(rays, m, material_dict(None, [DEFAULT_ALBEDO] * 3), cell_height=MAP_CELL_HEIGHT,
                                lobe_samples=settings.lobe_samples, bounce_samples=settings.bounce_samples,
                                seed=settings.seed) for m in maps]
             scene = scenes[0] if len(scenes) == 1 else SceneGroups(scenes, group)

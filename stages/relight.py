@@ -57,7 +57,7 @@ from pipeline.io.lighting import known_light_map, read_lighting_parts, read_ligh
 from pipeline.io.linear_manifest import image_source, linear_manifest, load_linear_image
 from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
 from pipeline.io.poses import Poses, poses_path, read_poses
-from pipeline.raycast import first_hits, intersector
+from pipeline.raycast import first_hits, ray_mesh
 from pipeline.settings import setting
 from pipeline.workdir import default_work, make_folder, write_json
 
@@ -547,6 +547,7 @@ class AngularLighting:
         options = dict(shadows=self.shadows, vertex_albedo=vertex_albedo, board=board if self.shadows else None,
                        cell_height=cell_height, interreflection=bounces > 0, max_bounces=max(bounces, 1),
                        bounce_samples=bounce_samples, lobe_samples=lobe_samples)
+        mesh = ray_mesh(mesh)
         self.renderer = Renderer(mesh, env, brdf, **options)
         self.negative = None if negative is None else Renderer(mesh, negative, brdf, **options)
 
@@ -839,11 +840,12 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     views = resolve_views(capture=source, work=source_work, settings=settings, mesh=mesh)
     vertex_colors = vertex_albedo(work, mesh)
     lights = view_lights(source, views) if settings.compare_with and not settings.env else {}
-    lightings = {light: prepare_lighting(light, brdf, mesh, settings, capture=source, vertex_colors=vertex_colors,
-                                         with_board=board_occludes(work, settings))
+    scene_mesh = ray_mesh(mesh)     # one intersector for the camera rays and every lighting's renderer
+    lightings = {light: prepare_lighting(light, brdf, scene_mesh, settings, capture=source,
+                                         vertex_colors=vertex_colors, with_board=board_occludes(work, settings))
                  for light in dict.fromkeys(lights.values() or [light_path])}
     albedo = np.asarray(diffuse_color(brdf), float)
-    rays = intersector(mesh)
+    rays = scene_mesh.rays
     folder = out_folder(work, settings)
     make_folder(folder, "-o")
     written: list[Path] = []

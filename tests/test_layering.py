@@ -23,11 +23,7 @@ ROOT = Path(__file__).parents[1]
 PACKAGES = ("pipeline", "stages", "calib")
 CORE_LIBRARIES = {"numpy", "scipy"}
 
-KNOWN_BREAKS = {
-    ("pipeline.core.render", "trimesh"),               # the renderer casts its own rays (DESIGN.md: raycast)
-    ("pipeline.core.render", "trimesh.ray.ray_pyembree"),
-    ("pipeline.core.render", "cv2"),
-}
+KNOWN_BREAKS: set[tuple[str, str]] = set()   # none left: the renderer casts rays through a raycast.RayMesh
 
 
 def layer(module: str) -> int | None:

@@ -24,6 +24,7 @@ def synth_suite(quick: bool, repeat: int) -> list:
     """
     from pipeline.core.envmaps import make_envmap
     from pipeline.core.render import Renderer
+    from pipeline.raycast import ray_mesh
 
     mesh_spec = str(BENCH_MESH) if BENCH_MESH.is_file() else "sphere"
     mesh = load_mesh(mesh_spec, 0.2, "y")
@@ -37,7 +38,7 @@ def synth_suite(quick: bool, repeat: int) -> list:
     rows = []
     for name, brdf in brdfs.items():
         for shadows in (False, True):
-            renderer = Renderer(mesh, env, brdf, shadows=shadows)
+            renderer = Renderer(ray_mesh(mesh), env, brdf, shadows=shadows)
             case = f"{name} {'shadows' if shadows else 'no shadows'}"
             note = f"{Path(mesh_spec).name}, {len(renderer.lights)} light directions, 128x64 env"
             for label, pose in (("first view", poses[0]), ("second view", poses[1])):

@@ -6,8 +6,9 @@ testing the frequency-space fit against its images is not circular:
 
     B(x, w_o) = sum_j  L_j dω_j  V(x, w_j)  f_r(w_j, w_o) max(0, n . w_j)
 
-* Camera rays (DESIGN.md poses convention, pipeline.core.camera) are cast with Embree through
-  trimesh; a hit gives the point, the face and the barycentric-interpolated vertex normal
+* Camera rays (DESIGN.md poses convention, pipeline.core.camera) are cast through the mesh's
+  intersector (a pipeline.raycast.RayMesh: Embree through trimesh, built outside core so that
+  core imports neither); a hit gives the point, the face and the barycentric-interpolated vertex normal
   (optionally a barycentric-interpolated per-vertex albedo).
 * Directions ("light set", ``light_set``): the map is split into *bright* pixels, kept at full
   resolution one by one (sun disks, area lights, lamps: every pixel brighter than
@@ -43,7 +44,6 @@ import hashlib
 from dataclasses import dataclass, field
 
 import numpy as np
-import trimesh
 
 from pipeline.core.brdf import beckmann_distribution, phong_lobe, vcavity_shadowing
 from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays, subpixel_offsets
@@ -198,21 +198,16 @@ def bounce_series(bounce: list, base: np.ndarray, direct: np.ndarray, max_bounce
     return e_ind if direct.ndim == 3 else e_ind[:, 0, :]
 
 
-def _intersector(mesh: trimesh.Trimesh):
-    from trimesh.ray.ray_pyembree import RayMeshIntersector
-
-    return RayMeshIntersector(mesh)
-
-
 @dataclass
 class Renderer:
-    """A prepared scene: mesh (object frame, metres), environment map, BRDF dict (pipeline.io.brdf).
+    """A prepared scene: mesh (object frame, metres: a pipeline.raycast.RayMesh, its arrays and
+    its ray intersector), environment map, BRDF dict (pipeline.io.brdf).
 
     ``vertex_albedo`` (V, 3) replaces brdf["albedo"] per vertex (linear).  Build once, call
     ``render`` per view: the light set and the per-vertex visibility are shared by all views.
     """
 
-    mesh: trimesh.Trimesh
+    mesh: object           # pipeline.raycast.RayMesh (ray_mesh(trimesh mesh))
     env: np.ndarray
     brdf: dict
     shadows: bool = True
@@ -236,7 +231,9 @@ class Renderer:
             raise ValueError("mesh has no faces")
         self.env = np.asarray(self.env, dtype=np.float32)
         self.lights = light_set(self.env, self.cell_height, self.max_bright)
-        self._camera_rays = _intersector(self.mesh)
+        if not hasattr(self.mesh, "rays"):
+            raise TypeError("Renderer takes the mesh as pipeline.raycast.ray_mesh(mesh): its arrays and ray intersector")
+        self._camera_rays = self.mesh.rays
         self._vertex_normals = np.asarray(self.mesh.vertex_normals, float)
         nv, nd = len(self.mesh.vertices), len(self.lights)
         self._visibility = np.ones((nv, nd), dtype=bool)
@@ -250,12 +247,8 @@ class Renderer:
             self._remainder = self._remainder_pyramid()
             self._spec_cut_cos = lobe_support_cos(self.material.alpha)
         if self.shadows:
-            scene = self.mesh
-            if self.board is not None:
-                c = self.board.corners_object()
-                quad = trimesh.Trimesh(c, [[0, 1, 2], [0, 2, 3]], process=False)
-                scene = trimesh.util.concatenate([self.mesh, quad])
-            self._shadow_rays = _intersector(scene)
+            self._shadow_rays = (self.mesh.rays if self.board is None
+                                 else self.mesh.with_occluder(self.board.corners_object()))
         if self.board is not None:
             h = self.env.shape[0]
             d = equirect_directions(h)
@@ -686,7 +679,7 @@ class Renderer:
         ``board_supersample``^2 rays, and pixels only partly on the board mix board and background
         by coverage.
         """
-        import cv2
+        from scipy.ndimage import maximum_filter, minimum_filter
 
         ss = max(1, int(self.board_supersample))
         centre = camera_center(R, t)
@@ -708,8 +701,7 @@ class Renderer:
         # sentinel codes so that min/max filters see board edges, object edges and background
         coded = np.where(free, np.where(np.isfinite(albedo), albedo, -1.0), -2.0).astype(np.float32)
         coded = coded.reshape(camera.height, camera.width)
-        kernel = np.ones((3, 3), np.uint8)
-        varies = (cv2.dilate(coded, kernel) != cv2.erode(coded, kernel)).ravel()
+        varies = (maximum_filter(coded, 3, mode="nearest") != minimum_filter(coded, 3, mode="nearest")).ravel()
         total = np.where(np.isfinite(albedo), albedo, 0.0) * ss**2
         hits = np.where(np.isfinite(albedo), float(ss**2), 0.0)
         edge = np.flatnonzero(varies & free)
@@ -765,9 +757,3 @@ class SceneGroups:
         for s, i in zip(self.scenes, self._rows()):
             out[i] = s._indirect_at(tri[i], bary[i])
         return out
-
-
-def render_view(mesh: trimesh.Trimesh, env: np.ndarray, brdf: dict, camera: Camera, R: np.ndarray,
-                t: np.ndarray, **options) -> RenderResult:
-    """One-off convenience: ``Renderer(mesh, env, brdf, **options).render(camera, R, t)``."""
-    return Renderer(mesh, env, brdf, **options).render(camera, R, t)

@@ -14,6 +14,7 @@ from pipeline.core.camera import Camera, look_at, pixel_centers, pixel_rays
 from pipeline.core.envmap import equirect_solid_angles
 from pipeline.core.envmaps import ENV_PARAMS, make_envmap, smooth_coefficients
 from pipeline.core.render import InsideMeshError, Renderer, light_set
+from pipeline.raycast import ray_mesh
 
 RADIUS = 0.1
 
@@ -48,7 +49,7 @@ def test_lambert_sphere_matches_closed_form_irradiance():
     direction); the issue asks for 1 %.
     """
     env = make_envmap("smooth", 64)
-    renderer = Renderer(sphere(), env, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, shadows=False,
+    renderer = Renderer(ray_mesh(sphere()), env, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, shadows=False,
                         cell_height=64)
     camera, R, t = view()
     result = renderer.render(camera, R, t)
@@ -71,7 +72,7 @@ def test_white_furnace_lambert_returns_the_radiance():
     """
     env = make_envmap("constant", 32, value=2.0)
     for shadows in (False, True):
-        renderer = Renderer(sphere(4), env, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, shadows=shadows,
+        renderer = Renderer(ray_mesh(sphere(4)), env, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, shadows=shadows,
                             cell_height=32)
         result = renderer.render(*view())
         got = result.radiance[result.object_mask]
@@ -89,7 +90,7 @@ def test_microfacet_lobe_never_returns_more_than_it_receives(roughness):
     """F0 = 1 (F = 1), no diffuse, L = 1: B(w_o) is the lobe's directional albedo, <= 1 (+ quadrature)."""
     env = make_envmap("constant", 64)
     brdf = {"model": "microfacet", "albedo": [0.0, 0.0, 0.0], "specular": [1.0, 1.0, 1.0], "roughness": roughness}
-    renderer = Renderer(sphere(4), env, brdf, shadows=False, cell_height=64)
+    renderer = Renderer(ray_mesh(sphere(4)), env, brdf, shadows=False, cell_height=64)
     result = renderer.render(*view())
     got = result.radiance[result.object_mask]
     # 64-row pixel quadrature of a lobe of width >= 0.15 rad: error measured < 0.5 %; bound 1 %
@@ -105,7 +106,7 @@ def test_specular_sum_matches_brute_force_over_the_light_set(rng):
     env = make_envmap("area", 32)
     for brdf in ({"model": "microfacet", "albedo": [0.2, 0.3, 0.5], "specular": [0.04, 0.5, 0.9], "roughness": 0.3},
                  {"model": "phong", "albedo": [0.2, 0.3, 0.5], "specular": [0.3, 0.2, 0.1], "exponent": 20.0}):
-        renderer = Renderer(mesh, env, brdf, shadows=False, cell_height=8)
+        renderer = Renderer(ray_mesh(mesh), env, brdf, shadows=False, cell_height=8)
         faces = rng.integers(0, len(mesh.faces), 40)
         bary = rng.dirichlet([1, 1, 1], 40)
         w_out = rng.normal(size=(40, 3))
@@ -162,8 +163,8 @@ def test_concave_box_floor_gets_the_view_factor_of_its_opening():
     faces = np.array([centre_face, corner_face])
     bary = np.concatenate([bary, [[1 / 3, 1 / 3, 1 / 3]]])
     up = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
-    shadowed = Renderer(mesh, env, brdf, shadows=True, cell_height=64, interreflection=False).shade(faces, bary, up)
-    unshadowed = Renderer(mesh, env, brdf, shadows=False, cell_height=64).shade(faces, bary, up)
+    shadowed = Renderer(ray_mesh(mesh), env, brdf, shadows=True, cell_height=64, interreflection=False).shade(faces, bary, up)
+    unshadowed = Renderer(ray_mesh(mesh), env, brdf, shadows=False, cell_height=64).shade(faces, bary, up)
     X = 0.5 / depth
     view_factor = 4 / np.pi * X / np.sqrt(1 + X * X) * np.arctan(X / np.sqrt(1 + X * X))
     np.testing.assert_allclose(unshadowed, 1.0, rtol=5e-3)
@@ -192,7 +193,7 @@ def test_every_procedural_env_covers_the_sphere():
 
 
 def test_camera_inside_a_closed_mesh_is_refused():
-    renderer = Renderer(sphere(3), make_envmap("constant", 8), {"model": "lambert", "albedo": [0.5] * 3},
+    renderer = Renderer(ray_mesh(sphere(3)), make_envmap("constant", 8), {"model": "lambert", "albedo": [0.5] * 3},
                         shadows=False)
     camera = Camera("PINHOLE", 16, 16, (16.0, 16.0, 8.0, 8.0))
     R, t = look_at(np.array([0.0, 0.0, 0.01]), np.array([1.0, 0.0, 0.0]))
@@ -209,7 +210,7 @@ def test_principled_white_furnace_through_the_renderer():
     for roughness in (0.15, 0.5):
         brdf = {"model": "principled", "base_color": [1.0, 1.0, 1.0], "roughness": roughness, "metallic": 0.0,
                 "ior": 1.5, "specular_tint": [1.0, 1.0, 1.0]}
-        result = Renderer(sphere(4), make_envmap("constant", 32), brdf, shadows=False).render(camera, R, t)
+        result = Renderer(ray_mesh(sphere(4)), make_envmap("constant", 32), brdf, shadows=False).render(camera, R, t)
         values = result.radiance[result.object_mask]
         assert abs(values.mean() - 1.0) < 3e-3 and np.abs(values - 1.0).max() < 0.05, (roughness, values.min(),
                                                                                        values.max())
@@ -228,8 +229,8 @@ def test_interreflection_closes_the_furnace_of_a_concave_object():
     brdf = {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}
     camera, R, t = view(48, eye=(0.05, 0.02, 0.5))
     env = make_envmap("constant", 32)
-    lit = Renderer(bowl, env, brdf, shadows=True, max_bounces=64).render(camera, R, t)
-    dark = Renderer(bowl, env, brdf, shadows=True, interreflection=False).render(camera, R, t)
+    lit = Renderer(ray_mesh(bowl), env, brdf, shadows=True, max_bounces=64).render(camera, R, t)
+    dark = Renderer(ray_mesh(bowl), env, brdf, shadows=True, interreflection=False).render(camera, R, t)
     with_bounces, without = lit.radiance[lit.object_mask], dark.radiance[dark.object_mask]
     assert np.median(without) < 0.5  # concavity matters: the test can fail
     assert abs(with_bounces.mean() - 1.0) < 0.01 and np.percentile(with_bounces, 5) > 0.93, (

@@ -15,6 +15,7 @@ from pipeline.io.camera_files import (DNG_BLACK, DNG_WHITE, Exposure, add_sensor
                                       sensor_value, srgb_encode, write_dng, write_exr, write_jpeg_srgb,
                                       write_tiff16)
 from pipeline.io.images import read_image
+from pipeline.raycast import ray_mesh
 
 FULL_WELL, READ = 20000.0, 0.0005
 
@@ -27,7 +28,7 @@ def rendered() -> tuple[np.ndarray, np.ndarray]:
     mesh = trimesh.creation.icosphere(subdivisions=4, radius=0.1)
     camera = Camera("PINHOLE", 64, 64, (150.0, 150.0, 32.0, 32.0))
     R, t = look_at(np.array([0.4, 0.2, 0.2]), np.zeros(3))
-    result = Renderer(mesh, make_envmap("overcast", 32), {"model": "lambert", "albedo": [0.6, 0.5, 0.4]},
+    result = Renderer(ray_mesh(mesh), make_envmap("overcast", 32), {"model": "lambert", "albedo": [0.6, 0.5, 0.4]},
                       shadows=False).render(camera, R, t)
     interior = cv2.erode(result.object_mask.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
     return result.radiance.astype(float), interior
