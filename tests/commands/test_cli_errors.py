@@ -3,13 +3,13 @@
 import subprocess
 import sys
 
+from helpers import assert_one_line_error
+
 
 def test_user_error_is_one_line_exit_2(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(tmp_path / "nope")],
                           capture_output=True, text=True)
-    assert proc.returncode == 2
-    assert "Traceback" not in proc.stderr
-    assert len(proc.stderr.strip().splitlines()) == 1
+    assert_one_line_error(proc.stderr, code=proc.returncode)
     assert proc.stderr.startswith("sigrend: error:")
 
 

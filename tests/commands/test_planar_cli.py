@@ -4,6 +4,7 @@ import subprocess
 import sys
 
 import pytest
+from helpers import assert_one_line_error
 
 from pipeline.cli import main
 from pipeline.commands.planar import FIGURES
@@ -26,9 +27,7 @@ def test_figures_written(tmp_path, capsys):
 def test_bad_arguments_one_line_exit_2(tmp_path, args):
     proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "planar", "figures",
                            "-o", str(tmp_path / "f"), *args], capture_output=True, text=True)
-    assert proc.returncode == 2
-    assert "Traceback" not in proc.stderr
-    assert len(proc.stderr.strip().splitlines()) == 1
+    assert_one_line_error(proc.stderr, code=proc.returncode)
     assert not (tmp_path / "f").exists()
 
 

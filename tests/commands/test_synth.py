@@ -3,6 +3,7 @@
 import cv2
 import numpy as np
 import pytest
+from helpers import assert_one_line_error
 
 from pipeline.cli import main as cli_main
 from pipeline.core.camera import project
@@ -138,10 +139,7 @@ def test_bad_input_is_one_line_exit_2(tmp_path, capsys):
         out = tmp_path / words.replace(" ", "_")
         code = cli_main(["synth", "--size", "16x16", "--views", "1", *map(str, args), "-o", str(out)])
         err = capsys.readouterr().err
-        assert code == 2, (words, err)
-        assert "Traceback" not in err
-        assert len(err.strip().splitlines()) == 1, err
-        assert words in err, err
+        assert_one_line_error(err, words, code=code)
         assert not (out / "images").exists() or not any((out / "images").iterdir())
 
 

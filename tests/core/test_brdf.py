@@ -57,8 +57,17 @@ def test_microfacet_never_returns_more_than_it_receives(roughness, view_cos):
     assert 0.5 < total <= 1.0 + 2e-3  # F = 1: the lobe keeps most energy, never creates any
 
 
-def test_reflect_is_an_involution():
+def test_reflect_is_the_mirror_direction():
+    """r = 2 (n.w) n - w: the same angle to n on the other side, in the plane of n and w — the
+    normal itself comes back, a tangent direction flips, and reflecting twice is the identity
+    (the identity alone would pass that last check, not the first two)."""
     rng = np.random.default_rng(0)
     n = rng.normal(size=(10, 3)); n /= np.linalg.norm(n, axis=1, keepdims=True)
     w = rng.normal(size=(10, 3)); w /= np.linalg.norm(w, axis=1, keepdims=True)
-    np.testing.assert_allclose(reflect(reflect(w, n), n), w, atol=1e-12)
+    r = reflect(w, n)
+    np.testing.assert_allclose(np.sum(r * n, axis=1), np.sum(w * n, axis=1), atol=1e-12)     # same angle to n
+    np.testing.assert_allclose(r + w, 2 * np.sum(w * n, axis=1, keepdims=True) * n, atol=1e-12)  # in-plane mirror
+    np.testing.assert_allclose(reflect(n, n), n, atol=1e-12)
+    tangent = np.cross(n, w)
+    np.testing.assert_allclose(reflect(tangent, n), -tangent, atol=1e-12)
+    np.testing.assert_allclose(reflect(r, n), w, atol=1e-12)

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pygltflib
 import pytest
+from helpers import assert_one_line_error
 
 from pipeline.cli import main as sigrend
 from pipeline.core.envmap import blender_columns, equirect_directions, equirect_solid_angles
@@ -149,8 +150,7 @@ def test_export_without_a_fit_or_with_a_seed_lobe_says_what_to_do(tmp_path, caps
     assert sigrend(["export", str(capture), "-w", str(work)]) == 2
     assert "refit with --brdf principled" in capsys.readouterr().err
     assert sigrend(["export", str(capture), "-w", str(tmp_path / "empty")]) == 2
-    err = capsys.readouterr().err.strip()
-    assert "run `sigrend fit`" in err and len(err.splitlines()) == 1
+    assert_one_line_error(capsys.readouterr().err, "run `sigrend fit`")
     assert sigrend(["export", str(capture), "-w", str(work), "-o", str(tmp_path / "a.usdz")]) == 2
     assert not (work / "export").exists()
 

@@ -1,5 +1,5 @@
 """fit stage end to end on sphere samples whose radiance is integrated numerically over an
-environment map (tests/stages/fit_scenes.py), not produced by the SH forward model."""
+environment map (tests/fit_scenes.py), not produced by the SH forward model."""
 
 from __future__ import annotations
 
@@ -9,6 +9,8 @@ import sys
 
 import numpy as np
 import pytest
+from fit_scenes import integrate_radiance, sharp_env, smooth_env, sphere_views, write_scene
+from helpers import assert_one_line_error
 
 from pipeline.core.forward import render_samples
 from pipeline.core.sh import band_energy, project_envmap
@@ -18,9 +20,6 @@ from pipeline.io.report import read_report
 from pipeline.runner import run_stage
 from pipeline.settings import make_settings
 from stages import fit
-
-sys.path.insert(0, str(__import__("pathlib").Path(__file__).parent))
-from fit_scenes import integrate_radiance, sharp_env, smooth_env, sphere_views, write_scene  # noqa: E402
 
 ALBEDO = [0.6, 0.5, 0.4]
 GLOSSY = {"model": "microfacet", "albedo": [0.3, 0.25, 0.2], "specular": [0.9, 0.9, 0.9], "roughness": 0.1}
@@ -185,9 +184,7 @@ def _cli(*args):
 
 
 def _one_line_error(proc, needle):
-    assert proc.returncode == 2, proc.stderr
-    assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
-    assert needle in proc.stderr, proc.stderr
+    assert_one_line_error(proc.stderr, needle, code=proc.returncode)
 
 
 def test_bad_inputs_are_one_line_errors_and_keep_outputs(lambert_scene, tmp_path):

@@ -61,8 +61,7 @@ def test_stripes_textured(tmp_path, capsys):
     views = report["residuals_per_view"]
     per_view = np.sqrt(sum(v["rmse"] ** 2 * v["samples"] for v in views) / sum(v["samples"] for v in views))
     uniform, textured = entry["candidates"][0]["train_rmse"], entry["candidates"][1]["train_rmse"]
-    print("per-view", per_view, "uniform", uniform, "textured", textured)
-    assert per_view < 0.5 * uniform and abs(per_view / textured - 1) < 0.2
+    assert per_view < 0.5 * uniform and abs(per_view / textured - 1) < 0.2, (per_view, uniform, textured)
     page = build_report(capture, work)
     assert "Textured albedo (fit/albedo.ply" in page
 

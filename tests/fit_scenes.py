@@ -70,4 +70,4 @@ def write_scene(work: Path, normal, view_dir, image_id, radiance, visibility=Non
               "image_id": image_id, "pixel": np.zeros((n, 2)), "face": np.zeros(n), "bary": np.zeros((n, 3)),
               "weight": np.ones(n), "visibility": np.ones(n) if visibility is None else visibility,
               "image_keys": [f"{i:04d}.exr" for i in range(int(image_id.max()) + 1)]}
-    return write_samples(Path(work) / "samples.npz", arrays, {"source": "tests/stages/fit_scenes.py"})
+    return write_samples(Path(work) / "samples.npz", arrays, {"source": "tests/fit_scenes.py"})
