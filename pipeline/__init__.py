@@ -5,3 +5,5 @@ Layering (DESIGN.md, "The house"): pipeline.core <- pipeline.io <- stages, calib
 """
 
 __version__ = "0.1.0"
+
+STAGES = ("linearize", "poses", "samples", "fit", "relight")   # what `sigrend run` runs, in this order

@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import UserError
-from pipeline.runner import STAGES
+from pipeline import STAGES
 from pipeline.workdir import make_folder, write_text
 
 HELP = "Run many captures (sigrend run each) as tasks on Dask distributed: a local cluster or an existing scheduler."

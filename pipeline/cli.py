@@ -18,9 +18,10 @@ import sys
 import threading
 import warnings
 
+from pipeline import STAGES
 from pipeline.errors import UserError
 
-STAGES = ("linearize", "poses", "samples", "fit", "relight", "export")  # `sigrend NAME CAPTURE -w WORK`
+STAGE_COMMANDS = (*STAGES, "export")  # `sigrend NAME CAPTURE -w WORK`: the run's stages, then export
 
 # subcommand -> module providing HELP, add_arguments, main (imported only when needed)
 COMMANDS = {
@@ -35,7 +36,7 @@ COMMANDS = {
 
 
 def _command_module(name: str):
-    if name in STAGES:
+    if name in STAGE_COMMANDS:
         from pipeline.runner import stage_command
 
         return stage_command(name)
@@ -51,7 +52,7 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
 
     parser.add_argument("--version", action="version", version=f"sigrend {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in (*STAGES, *COMMANDS):
+    for name in (*STAGE_COMMANDS, *COMMANDS):
         if selected is not None and name != selected:
             sub.add_parser(name, add_help=False)
             continue
@@ -95,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         warnings.formatwarning = _format_warning
     argv = sys.argv[1:] if argv is None else list(argv)
     selected = next((a for a in argv if not a.startswith("-")), None)
-    if selected not in (*STAGES, *COMMANDS):
+    if selected not in (*STAGE_COMMANDS, *COMMANDS):
         selected = None
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None

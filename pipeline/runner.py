@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
-from pipeline import __version__
+from pipeline import STAGES, __version__
 from pipeline.errors import UserError
 from pipeline.io.run_summary import HOLDOUT_FIELD, StageResult, samples_holdout, stage_table, summary_lines
 from pipeline.settings import add_settings_arguments, make_settings, settings_from_args
@@ -34,7 +34,6 @@ from pipeline.workdir import (changed_settings, default_work, fingerprints, is_f
 
 HELP = "Run the whole pipeline on a capture folder (linearize, poses, samples, fit, relight) and write the report."
 
-STAGES = ("linearize", "poses", "samples", "fit", "relight")
 
 
 def check_capture(capture: Path) -> Path:

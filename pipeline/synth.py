@@ -339,9 +339,11 @@ def _capture_toml(board_table: dict | None, brackets: dict[str, list[str]], iso:
 
 def _auto_exposure_time(radiance: np.ndarray, mask: np.ndarray, fnumber: float, iso: float) -> float:
     """Exposure time mapping the 99.5th-percentile radiance in ``mask`` to 0.7 of full scale (3 significant digits)."""
+    from pipeline.io.camera_files import Exposure
+
     values = radiance[mask] if mask.any() else radiance.reshape(-1, 3)
     level = float(np.percentile(values.max(axis=1), 99.5)) if values.size else 1.0
-    t = 0.7 * fnumber**2 / (max(level, 1e-12) * iso / 100.0)
+    t = 0.7 / (max(level, 1e-12) * Exposure(1.0, iso, fnumber).scale)     # value = radiance t (ISO/100) / N^2
     return float(f"{t:.3g}")
 
 
@@ -353,6 +355,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     from pipeline.io.brdf import diffuse_color, parse_brdf_spec, write_brdf
     from pipeline.io.camera_files import Exposure, add_sensor_noise, sensor_value, write_camera_file
     from pipeline.io.images import write_image
+    from pipeline.io.mesh import write_vertex_albedo
     from pipeline.io.poses import ImagePose, Poses, write_poses
     from pipeline.raycast import ray_mesh
     from pipeline.workdir import atomic_path, write_json, write_text
@@ -415,11 +418,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
         mesh.export(tmp, file_type="ply")
     written.append(mesh_path)
     if vertex_albedo is not None:  # DESIGN.md: per-vertex linear albedo as PLY vertex colours (x 255)
-        textured = mesh.copy()
-        textured.visual.vertex_colors = np.round(vertex_albedo * 255).astype(np.uint8)
-        with atomic_path(out / "gt" / "albedo.ply") as tmp:
-            textured.export(tmp, file_type="ply")
-        written.append(out / "gt" / "albedo.ply")
+        written.append(write_vertex_albedo(out / "gt" / "albedo.ply", mesh, vertex_albedo))
     written.append(write_text(out / "capture.toml", _capture_toml(board_table, brackets, iso)))
     written.append(write_image(out / "gt" / "lighting.exr", env, dtype="float"))
     written.append(write_brdf(out / "gt" / "brdf.json", brdf))

@@ -725,6 +725,8 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
                write_brdf(out / "brdf.json", brdf)]
     written += write_plots(out, env, bands, views)
     if vertex_rho is not None:
+        from pipeline.io.mesh import write_vertex_albedo
+
         written.append(write_vertex_albedo(out / "albedo.ply", tex_mesh, vertex_rho))
     elif (out / "albedo.ply").exists():
         (out / "albedo.ply").unlink()     # a stale texture from an earlier run would be read by relight
@@ -828,19 +830,6 @@ def albedo_from_shading(mesh, data: dict, shade: np.ndarray, target: np.ndarray,
     if choice != "textured":
         return entry, None, mesh
     return entry, np.clip(rho, 0.0, None), mesh
-
-
-def write_vertex_albedo(path: Path, mesh, albedo: np.ndarray) -> Path:
-    """fit/albedo.ply: the mesh with per-vertex linear albedo as vertex colours x 255 (uint8, as
-    gt/albedo.ply and stages/relight.vertex_albedo read it; values above 1 are clipped)."""
-    from pipeline.workdir import atomic_path
-
-    out = mesh.copy()
-    out.visual.vertex_colors = np.round(np.clip(albedo, 0.0, 1.0) * 255).astype(np.uint8)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        out.export(tmp, file_type="ply")
-    return path
 
 
 def _say_limits(limits: dict, settings: Settings) -> None:

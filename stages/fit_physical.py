@@ -40,13 +40,12 @@ from pipeline.io.brdf import diffuse_color, write_brdf
 from pipeline.io.capture_toml import read_capture_config
 from pipeline.io.images import write_image
 from pipeline.io.lighting import write_lighting_sh
-from pipeline.io.mesh import mesh_path, read_mesh
+from pipeline.io.mesh import mesh_path, read_mesh, write_vertex_albedo
 from pipeline.io.poses import poses_path, read_poses
 from pipeline.io.report import write_report
 from pipeline.io.samples import iter_sample_chunks
 from pipeline.raycast import RayMesh, pixel_footprints, ray_mesh
-from stages.fit import (DEFAULT_ALBEDO, albedo_from_shading, known_lighting_path, prior_choices, write_plots,
-                        write_vertex_albedo)
+from stages.fit import DEFAULT_ALBEDO, albedo_from_shading, known_lighting_path, prior_choices, write_plots
 
 SOURCES_NOTE = ("'coeffs' is the whole lighting to this order, the directional 'sources' included (their SH "
                 "projection); an angular renderer replaces that projection by the sources themselves")

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import UserError
+from pipeline.io.camera_files import Exposure
 from pipeline.io.camera_json import read_camera_json
 from pipeline.io.camera_decode import (DECODED_EXTENSIONS, RAW_EXTENSIONS, Probe, decode_other, decode_raw,
                                        probe)
@@ -195,9 +196,9 @@ def exposure_scales(probes: list[Probe], config: CaptureConfig) -> dict[str, dic
                           "image", UserWarning, stacklevel=2)
     out = {}
     for name, v in resolved.items():
-        t, iso, n = v["time"] or 1.0, v["iso"] or 100.0, v["fnumber"] or 1.0
+        shot = Exposure(v["time"] or 1.0, v["iso"] or 100.0, v["fnumber"] or 1.0)
         out[name] = {"exposure_time_s": v["time"], "iso": v["iso"], "f_number": v["fnumber"],
-                     "scale": n * n / (t * iso / 100.0)}
+                     "scale": 1.0 / shot.scale}
     return out
 
 

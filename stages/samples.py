@@ -40,6 +40,7 @@ from pipeline.core.brdf import reflect
 from pipeline.core.coverage import EqualAreaGrid, coverage_stats
 from pipeline.errors import UserError
 from pipeline.io.camera_decode import probe
+from pipeline.io.camera_files import Exposure
 from pipeline.io.linear_manifest import LINEAR_SUFFIXES, image_source, linear_manifest, load_linear_image
 from pipeline.io.mesh import check_mesh_quality, mesh_path, read_mesh
 from pipeline.io.poses import Poses, poses_path, read_poses
@@ -104,8 +105,8 @@ def exposure_scales(capture: Path, keys: list[str]) -> dict[str, float]:
                             "[exposure] can give the value)")
     scales = {}
     for key, exif in exifs.items():
-        t, iso, n = exif.get("time") or 1.0, exif.get("iso") or 100.0, exif.get("fnumber") or 1.0
-        scales[key] = n * n / (t * iso / 100.0)
+        shot = Exposure(exif.get("time") or 1.0, exif.get("iso") or 100.0, exif.get("fnumber") or 1.0)
+        scales[key] = 1.0 / shot.scale     # radiance per unit value, N^2 / (t ISO/100)
     return scales
 
 

@@ -10,10 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import cli
-from pipeline.io.samples import read_samples_meta
+from pipeline import STAGES, cli
 from pipeline.io.run_summary import StageResult, stage_table
-from pipeline.runner import STAGES, heldout_keys
+from pipeline.io.samples import read_samples_meta
+from pipeline.runner import heldout_keys
 
 
 

@@ -61,6 +61,21 @@ def read_vertex_albedo(path: str | os.PathLike, n_vertices: int) -> np.ndarray |
     return colors / 255.0 if colors.max() > 1.0 else colors
 
 
+def write_vertex_albedo(path: str | os.PathLike, mesh, albedo: np.ndarray) -> Path:
+    """The mesh with per-vertex linear albedo / base colour (V, 3) as PLY vertex colours x 255
+    (uint8; values outside [0, 1] clipped): fit/albedo.ply and synth's gt/albedo.ply, which
+    read_vertex_albedo reads."""
+    from pipeline.workdir import atomic_path
+
+    path = Path(path)
+    out = mesh.copy()
+    out.visual.vertex_colors = np.round(np.clip(albedo, 0.0, 1.0) * 255).astype(np.uint8)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        out.export(tmp, file_type="ply")
+    return path
+
+
 def mesh_quality(mesh) -> dict:
     """Counts of what makes a scan a poor model of a surface (trimesh's edge and face structure):
     boundary edges (holes: edges with one face), non-manifold edges (more than two faces),

@@ -24,9 +24,8 @@ from pipeline.io.brdf import write_brdf
 from pipeline.io.gltf import Y_UP_FROM_Z_UP
 from pipeline.io.images import read_image
 from pipeline.io.lighting import write_lighting_sh
-from pipeline.io.mesh import read_mesh
+from pipeline.io.mesh import read_mesh, write_vertex_albedo
 from stages.export import lighting_map
-from stages.fit import write_vertex_albedo
 
 DATA = Path(__file__).parents[1] / "data"
 TEAPOT = DATA / "cycles" / "teapot_city_glossy"
