@@ -220,8 +220,8 @@ def load_env(spec: str) -> np.ndarray:
 
 # -- board ----------------------------------------------------------------------------------------
 
-def make_board(mesh_size: float, *, charuco: bool = True, table: bool = False, seed: int = 0,
-               texels_per_square: int = 80):
+def board_plane(mesh_size: float, *, charuco: bool = True, table: bool = False, seed: int = 0,
+                texels_per_square: int = 80):
     """The z = 0 plane under the object: a ChArUco board and/or a noise-textured table around it.
 
     Board: 8 x 6 squares of 0.35 mesh_size (DICT_5X5_100, markers 0.75 of a square), centred under
@@ -235,7 +235,9 @@ def make_board(mesh_size: float, *, charuco: bool = True, table: bool = False, s
     """
     import cv2
 
+    from pipeline.board import make_board
     from pipeline.core.render import BoardPlane
+    from pipeline.io.capture_toml import BoardSpec
 
     if not (charuco or table):
         return None, None, None
@@ -248,12 +250,11 @@ def make_board(mesh_size: float, *, charuco: bool = True, table: bool = False, s
     board_table = None
     albedo = np.full((th, tw), 0.8)
     if charuco:
-        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, BOARD_DICTIONARY))
-        board = cv2.aruco.CharucoBoard((sx, sy), square, marker, dictionary)
-        image = board.generateImage((tw, th), marginSize=0, borderBits=1)
+        spec = BoardSpec(BOARD_DICTIONARY, (sx, sy), float(square), float(marker), to_object)
+        image = make_board(spec).generateImage((tw, th), marginSize=0, borderBits=1)
         albedo = np.where(image > 127, 0.8, 0.04)  # white paper / black print
-        board_table = {"dictionary": BOARD_DICTIONARY, "squares": [sx, sy], "square_length": square,
-                       "marker_length": marker, "board_to_object": to_object.tolist()}
+        board_table = {"dictionary": BOARD_DICTIONARY, "squares": [int(sx), int(sy)], "square_length": float(square),
+                       "marker_length": float(marker), "board_to_object": to_object.tolist()}
     if not table:
         return BoardPlane(albedo, (w, h), to_object), board_table, (w, h)
     rng = np.random.default_rng([seed, 2])
@@ -314,27 +315,14 @@ def make_views(mesh, settings: SynthSettings, board_size: tuple[float, float] | 
 
 # -- the capture ----------------------------------------------------------------------------------
 
-def _toml_value(v) -> str:
-    if isinstance(v, str):
-        return f'"{v}"'
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    return repr(float(v)) if isinstance(v, float) else str(v)
-
-
-def _capture_toml(board_table: dict | None, brackets: dict[str, list[str]], iso: float) -> str:
-    lines = ["# written by sigrend synth", "", "[exposure]", f"default = {{iso = {iso:g}}}", ""]
+def _capture_tables(board_table: dict | None, brackets: dict[str, list[str]], iso: float) -> dict:
+    """capture.toml's tables: [exposure] (ISO), [brackets] when any, [board] when there is one."""
+    doc: dict = {"exposure": {"default": {"iso": float(iso)}}}
     if brackets:
-        lines.append("[brackets]")
-        lines += [f'{k} = {_toml_value(v)}' for k, v in brackets.items()]
-        lines.append("")
+        doc["brackets"] = {k: list(v) for k, v in brackets.items()}
     if board_table:
-        lines.append("[board]")
-        lines += [f"{k} = {_toml_value(v)}" for k, v in board_table.items()]
-        lines.append("")
-    return "\n".join(lines)
+        doc["board"] = board_table
+    return doc
 
 
 def _auto_exposure_time(radiance: np.ndarray, mask: np.ndarray, fnumber: float, iso: float) -> float:
@@ -354,18 +342,19 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     from pipeline.core.render import InsideMeshError, Renderer
     from pipeline.io.brdf import diffuse_color, parse_brdf_spec, write_brdf
     from pipeline.io.camera_files import Exposure, add_sensor_noise, sensor_value, write_camera_file
+    from pipeline.io.capture_toml import write_capture_toml
     from pipeline.io.images import write_image
     from pipeline.io.mesh import write_vertex_albedo
     from pipeline.io.poses import ImagePose, Poses, write_poses
     from pipeline.raycast import ray_mesh
-    from pipeline.workdir import atomic_path, write_json, write_text
+    from pipeline.workdir import atomic_path, write_json
 
     settings.validate()
     out = Path(out_dir)
     brdf = parse_brdf_spec(settings.brdf)
     env = load_env(settings.env)
     mesh = load_mesh(settings.mesh, settings.mesh_size, settings.mesh_up)
-    board, board_table, board_size = make_board(settings.mesh_size, charuco=settings.board, table=settings.table,
+    board, board_table, board_size = board_plane(settings.mesh_size, charuco=settings.board, table=settings.table,
                                                 seed=settings.seed)
     camera, view_poses = make_views(mesh, settings, board_size)
     vertex_albedo = texture_albedo(mesh, diffuse_color(brdf), settings.texture)
@@ -419,7 +408,8 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     written.append(mesh_path)
     if vertex_albedo is not None:  # DESIGN.md: per-vertex linear albedo as PLY vertex colours (x 255)
         written.append(write_vertex_albedo(out / "gt" / "albedo.ply", mesh, vertex_albedo))
-    written.append(write_text(out / "capture.toml", _capture_toml(board_table, brackets, iso)))
+    written.append(write_capture_toml(out / "capture.toml", _capture_tables(board_table, brackets, iso),
+                                      "written by sigrend synth"))
     written.append(write_image(out / "gt" / "lighting.exr", env, dtype="float"))
     written.append(write_brdf(out / "gt" / "brdf.json", brdf))
     written.append(_write_lighting_sh(out / "gt" / "lighting_sh.json", env))

@@ -22,6 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.commands.bench import BenchRow
 from pipeline.core.camera import Camera, camera_center, look_at, pixel_centers, pixel_rays
+from pipeline.io.capture_toml import write_capture_toml
 from pipeline.io.poses import ImagePose, Poses, write_poses
 
 BOARD = dict(dictionary="DICT_5X5_100", squares=(7, 5), square_length=0.03, marker_length=0.022)
@@ -42,10 +43,11 @@ def noise_texture(rng, size: int) -> np.ndarray:
 
 def scene_quads(rng, textured: bool = True, texture_scale: int = 1) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """Scene as textured rectangles: (origin, edge a, edge b, 8-bit texture); point = o + u·a + v·b."""
-    import cv2.aruco as aruco
+    from pipeline.board import make_board
+    from pipeline.io.capture_toml import BoardSpec
 
-    board = aruco.CharucoBoard(BOARD["squares"], BOARD["square_length"], BOARD["marker_length"],
-                               aruco.getPredefinedDictionary(getattr(aruco, BOARD["dictionary"])))
+    board = make_board(BoardSpec(BOARD["dictionary"], tuple(BOARD["squares"]), BOARD["square_length"],
+                                 BOARD["marker_length"]))
     sx, sy = BOARD["squares"]
     board_img = board.generateImage((sx * 100, sy * 100), marginSize=0)
     R, t = BOARD_TO_OBJECT[:3, :3], BOARD_TO_OBJECT[:3, 3]
@@ -117,12 +119,10 @@ def make_textured_capture(folder: Path, *, n_views: int = 14, size=(400, 300), f
         cv2.imwrite(str(folder / "images" / f"{i:04d}.jpg"), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
         gt.images[f"{i:04d}.jpg"] = ImagePose("cam0", R, t)
     if board:
-        rows = ",".join("[" + ",".join(repr(float(v)) for v in row) + "]" for row in BOARD_TO_OBJECT)
-        (folder / "capture.toml").write_text(
-            "[board]\n"
-            f'dictionary = "{BOARD["dictionary"]}"\nsquares = [{BOARD["squares"][0]}, {BOARD["squares"][1]}]\n'
-            f'square_length = {BOARD["square_length"]}\nmarker_length = {BOARD["marker_length"]}\n'
-            f"board_to_object = [{rows}]\n")
+        write_capture_toml(folder / "capture.toml", {"board": {
+            "dictionary": BOARD["dictionary"], "squares": list(BOARD["squares"]),
+            "square_length": BOARD["square_length"], "marker_length": BOARD["marker_length"],
+            "board_to_object": np.asarray(BOARD_TO_OBJECT, float).tolist()}})
     (folder / "gt").mkdir()
     write_poses(folder / "gt" / "poses.json", gt)
     return gt

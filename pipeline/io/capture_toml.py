@@ -278,6 +278,16 @@ def parse_lighting(path: Path, table: dict) -> dict[str, KnownLight]:
     return out
 
 
+def write_capture_toml(path: str | os.PathLike, doc: dict, comment: str = "") -> Path:
+    """A capture.toml from its tables (plain Python values) through tomli_w (strings escaped), with
+    ``comment`` as a first line: what synth and the poses bench write, read back by read_capture_config."""
+    import tomli_w
+
+    from pipeline.workdir import write_text
+
+    return write_text(path, (f"# {comment}\n\n" if comment else "") + tomli_w.dumps(doc))
+
+
 def read_capture_config(capture: str | os.PathLike) -> CaptureConfig:
     """Parse ``capture/capture.toml``; a missing file gives the defaults."""
     path = Path(capture) / CAPTURE_TOML
