@@ -187,9 +187,9 @@ def test_synth_rough_dielectric(tmp_path):
     """Issue 11: roughness within 25% and base chromaticity within 3 deg with both unknown at the
     rough end of the 0.1-0.6 range (a sphere under the city map, sigrend synth's own renderer).
     Measured: roughness 0.609 for 0.6, base (0.193, 0.501, 0.295) for (0.2, 0.5, 0.3).  The sharp
-    end fails (docs/fit.md): at roughness 0.1 the city sun's highlight is narrower than the
-    located source's precision and the SH order, and a metal of roughness 0.1 wins (residual half
-    of Lambert's), as on the Cycles night sphere."""
+    end fails (docs/fit.md, 2026-12-03): at roughness 0.1 the roughness comes out 0.116 but the
+    base colour at its bound (0.59, 1, 1): the city map's detail seen in so sharp a lobe is not in
+    SH 16 + 3 sources (45 % residual with the true material), and a dimmer lighting shrinks it."""
     base = [0.2, 0.5, 0.3]
     capture = synth_capture(tmp_path / "sphere", "sphere", f"principled:base_color={','.join(map(str, base))},roughness=0.6")
     brdf, report = fit_synth(capture, tmp_path / "work")
