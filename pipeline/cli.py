@@ -43,9 +43,17 @@ def _command_module(name: str):
     return importlib.import_module(COMMANDS[name])
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse, with a bad command line as the house's one line (exit 2): the error and where the
+    options are listed, without the usage block above it."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     """The full parser; modules are imported only for ``selected`` (or all, for --help)."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="sigrend",
         description="Lighting and BRDF from photos of a known shape, in frequency space.")
     from pipeline import __version__

@@ -54,6 +54,12 @@ def make_settings(cls: type[S], **values: Any) -> S:
         obj = cls(**values)
     except (TypeError, ValueError) as exc:
         raise UserError(f"invalid settings for {cls.__name__}: {exc}") from None
+    hints = typing.get_type_hints(cls)
+    for f in dataclasses.fields(cls):      # a choice is a Literal: checked here, once, for every caller
+        choices = typing.get_args(hints[f.name]) if typing.get_origin(hints[f.name]) is typing.Literal else ()
+        if choices and getattr(obj, f.name) not in choices:
+            raise UserError(f"--{f.name.replace('_', '-')} {getattr(obj, f.name)!r}: use one of "
+                            f"{', '.join(map(str, choices))}")
     validate = getattr(obj, "validate", None)
     if validate is not None:
         validate()

@@ -84,8 +84,6 @@ class SynthSettings:
             raise UserError(f"--size {w}x{h} is too small; use at least 8x8")
         if self.format == "dng" and (w % 2 or h % 2):
             raise UserError(f"--size {w}x{h}: a Bayer DNG needs even width and height")
-        if self.format not in FORMATS:
-            raise UserError(f"--format {self.format!r}: use one of {', '.join(FORMATS)}")
         if not 1 <= self.supersample <= 8:
             raise UserError(f"--supersample {self.supersample}: use 1 to 8 rays per pixel and axis")
         if self.brackets < 1:

@@ -26,6 +26,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -74,11 +75,11 @@ class Settings:
     chunk: int = setting(262144, "samples per chunk when streaming the normal equations")
     env_height: int = setting(64, "height of fit/lighting.exr (width = 2 x height)")
     seed: int = setting(0, "random seed of the sample subset")
-    albedo: str = setting("auto", "diffuse albedo: 'uniform', 'textured' (per vertex, fit/albedo.ply) or 'auto' "
+    albedo: Literal["auto", "uniform", "textured"] = setting("auto", "diffuse albedo: 'uniform', 'textured' (per vertex, fit/albedo.ply) or 'auto' "
                                   "(textured only if it beats uniform on the held-out views by more than --parsimony)")
     albedo_smoothness: float = setting(0.001, "weight of the mesh-Laplacian smoothness term of the per-vertex albedo "
                                              "(relative to the mean data weight per vertex)")
-    forward: str = setting("physical", "forward model of the fit: 'physical' (the renderer's: shadows, "
+    forward: Literal["physical", "convex"] = setting("physical", "forward model of the fit: 'physical' (the renderer's: shadows, "
                                        "interreflection, principled GGX, directional sources; lambert and principled) "
                                        "or 'convex' (R&H closed forms; the only one for phong and microfacet)")
     lighting_scale: str = setting("1", "factor applied to a known --lighting (a number), or 'fit': one global "
@@ -94,7 +95,7 @@ class Settings:
     physical_samples: int = setting(30000, "principled fit: samples used (random subset)")
     lobe_samples: int = setting(32, "principled fit: GGX lobe samples per sample in the specular transfer")
     bounce_samples: int = setting(64, "principled fit: occlusion / bounce rays per vertex (shadows, interreflection)")
-    noise_model: str = setting("measured", "principled fit: 'measured' (samples weighted by 1 / sigma^2 of the "
+    noise_model: Literal["measured", "uniform"] = setting("measured", "principled fit: 'measured' (samples weighted by 1 / sigma^2 of the "
                                            "Poisson-Gaussian noise level measured on the photos: bright pixels are "
                                            "noisier) or 'uniform' (equal weights)")
     footprint: int = setting(2, "principled fit: n x n rays per sample's pixel; the specular of sharp lights "
@@ -118,16 +119,12 @@ class Settings:
         except ValueError:
             raise UserError(f"--band-prior-choices must be comma-separated positive numbers, got "
                             f"{self.band_prior_choices!r}") from None
-        if self.albedo not in ("auto", "uniform", "textured"):
-            raise UserError(f"--albedo must be auto, uniform or textured, got {self.albedo!r}")
         if self.albedo_smoothness < 0:
             raise UserError(f"--albedo-smoothness must be >= 0, got {self.albedo_smoothness}")
         if self.folds < 2:
             raise UserError(f"--folds must be >= 2 (views are held out for validation), got {self.folds}")
         if not 0.0 <= self.min_visibility <= 1.0:
             raise UserError(f"--min-visibility must be in [0, 1], got {self.min_visibility}")
-        if self.forward not in ("physical", "convex"):
-            raise UserError(f"--forward must be physical or convex, got {self.forward!r}")
         if self.ior < 1.0:
             raise UserError(f"--ior must be >= 1, got {self.ior}")
         if self.lighting_scale != "fit":
@@ -141,8 +138,6 @@ class Settings:
         if self.max_sources < 0 or self.physical_samples < 100 or self.lobe_samples < 1 or self.bounce_samples < 1:
             raise UserError("--max-sources must be >= 0, --physical-samples >= 100, --lobe-samples and "
                             "--bounce-samples >= 1")
-        if self.noise_model not in ("measured", "uniform"):
-            raise UserError(f"--noise-model must be 'measured' or 'uniform', got {self.noise_model!r}")
         if not 1 <= self.footprint <= 8:
             raise UserError(f"--footprint must be 1 to 8 rays per pixel axis, got {self.footprint}")
         if self.blas_threads < 0:

@@ -39,6 +39,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -65,7 +66,6 @@ DIFFUSE_ORDER = 16         # |Â_l| beyond l = 16 is < 0.15% of Â_0: irradiance
 LOBE_CUTOFF = 1e-3         # a lobe "needs" band l while |A_l| > LOBE_CUTOFF * A_0
 MAX_LOBE_ORDER = 400       # the filter is examined up to this band
 ERROR_MAP_RANGE = 0.2      # error maps: relative error 0 .. 20% spans the colour map
-METHODS = ("angular", "frequency")
 
 
 @dataclass(frozen=True)
@@ -88,7 +88,7 @@ class Settings:
     interior_supersample: int = setting(1, "rays per pixel along each axis inside the silhouette (1: the shading "
                                            "at the pixel centre; 2: bunny 1.02 % against Cycles for 1.35 %, ~2.5x "
                                            "the time, docs/relight.md)")
-    method: str = setting("angular", "'angular': the reflection equation over the lighting's directions with the full "
+    method: Literal["angular", "frequency"] = setting("angular", "'angular': the reflection equation over the lighting's directions with the full "
                                      "BRDF and shadow rays (accurate); 'frequency': the fit's SH / prefiltered "
                                      "forward model (fast, no shadows, reflection-space lobe)")
     env_height: int = setting(64, "angular method: height of the equirect map an SH lighting is synthesized to")
@@ -101,7 +101,7 @@ class Settings:
                               "bounce adds < 0.5%); 0 = none")
     bounce_samples: int = setting(64, "angular method: hemisphere rays per vertex for interreflection")
     lobe_samples: int = setting(64, "angular method, principled material: importance samples of the specular lobe per ray")
-    board: str = setting("auto", "angular method with shadows: the capture's board (capture.toml [board]) occludes the "
+    board: Literal["auto", "on", "off"] = setting("auto", "angular method with shadows: the capture's board (capture.toml [board]) occludes the "
                                  "object: 'on', 'off', or 'auto' = on under a given --env (a whole environment, "
                                  "the board was in the scene), off under the fitted lighting (the fit saw the "
                                  "board's shadow as darkness from below: it is already in the lighting)")
@@ -125,12 +125,8 @@ class Settings:
             raise UserError(f"--lobe-sh-order {self.lobe_sh_order}: use at least 2")
         if not 8 <= self.prefilter_height <= 1024:
             raise UserError(f"--prefilter-height {self.prefilter_height}: use 8 to 1024")
-        if self.method not in METHODS:
-            raise UserError(f"--method {self.method!r}: use one of {', '.join(METHODS)}")
         if not 8 <= self.env_height <= 1024:
             raise UserError(f"--env-height {self.env_height}: use 8 to 1024")
-        if self.board not in ("auto", "on", "off"):
-            raise UserError(f"--board {self.board!r}: use auto, on or off")
         if not 4 <= self.cell_height <= 512:
             raise UserError(f"--cell-height {self.cell_height}: use 4 to 512")
         if not 0 <= self.bounces <= 64:
