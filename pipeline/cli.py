@@ -20,6 +20,7 @@ import warnings
 
 from pipeline import STAGES
 from pipeline.errors import UserError
+from pipeline.logs import configure as configure_logging
 
 STAGE_COMMANDS = (*STAGES, "export")  # `sigrend NAME CAPTURE -w WORK`: the run's stages, then export
 
@@ -59,6 +60,7 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     from pipeline import __version__
 
     parser.add_argument("--version", action="version", version=f"sigrend {__version__}")
+    parser.add_argument("-v", "--verbose", action="store_true", help="say what is being done (each stage's settings)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in (*STAGE_COMMANDS, *COMMANDS):
         if selected is not None and name != selected:
@@ -110,6 +112,7 @@ def main(argv: list[str] | None = None) -> int:
     previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     try:
         args = build_parser(selected).parse_args(argv)
+        configure_logging(args.verbose)
         # warnings are held back until the command succeeds: an error stays the one line of stderr
         # (in the main thread only: catch_warnings swaps process-wide state)
         with warnings.catch_warnings(record=True) if in_main_thread else contextlib.nullcontext([]) as deferred:

@@ -18,6 +18,7 @@ import argparse
 import dataclasses
 import importlib
 import inspect
+import json
 import sys
 import time
 import warnings
@@ -28,7 +29,8 @@ from types import SimpleNamespace
 from pipeline import STAGES, __version__
 from pipeline.errors import UserError
 from pipeline.io.run_summary import HOLDOUT_FIELD, StageResult, samples_holdout, stage_table, summary_lines
-from pipeline.settings import add_settings_arguments, make_settings, settings_from_args
+from pipeline.logs import LOGGER
+from pipeline.settings import add_settings_arguments, make_settings, settings_dict, settings_from_args
 from pipeline.workdir import (changed_settings, default_work, fingerprints, is_fresh, record_settings,
                               remove_stale_temporaries, settings_path, transaction, work_lock, write_json)
 
@@ -62,6 +64,7 @@ def run_stage(name: str, *, capture: Path, work: Path, settings, force: bool = F
         if not force and is_fresh(work, record, settings, module.outputs(**kwargs), provenance):
             return StageResult(record, list(module.outputs(**kwargs)), time.perf_counter() - start, True)
         remove_stale_temporaries(work)
+        LOGGER.info("%s: running with %s", record, json.dumps(settings_dict(settings)))
         if force and "force" in inspect.signature(module.run).parameters:
             kwargs["force"] = True     # a stage that reuses its own per-item outputs (linearize) redoes them
         with transaction(invalidate=settings_path(work, record)):   # outputs and record committed together, last

@@ -6,6 +6,8 @@ tiny synthetic EXR capture that brings its own poses.json (no COLMAP).
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -168,3 +170,16 @@ def test_report_is_self_contained_and_says_what_is_missing(capture, tmp_path, ca
     for title in ("Summary", "Photos and masks", "Cameras", "Sample coverage", "Fitted lighting", "Relit vs photo"):
         assert f"<h2>{title}</h2>" in html
     assert "the fit stage has not run" in html
+
+
+def test_verbose_logs_each_stage_settings_at_its_start(tmp_path):
+    """`sigrend -v`: the package logger (pipeline.logs, configured once by the command line) says
+    each stage's settings as it starts; without -v it says nothing."""
+    capture = Path(__file__).parents[1] / "sample_data" / "capture"
+    args = [sys.executable, "-m", "pipeline.cli"]
+    loud = subprocess.run([*args, "-v", "linearize", str(capture), "-w", str(tmp_path / "w")], capture_output=True, text=True)
+    assert loud.returncode == 0, loud.stderr
+    line = next(x for x in loud.stderr.splitlines() if x.startswith("sigrend: linearize: running with "))
+    assert json.loads(line.split("running with ", 1)[1])["saturation"] == 0.98
+    quiet = subprocess.run([*args, "linearize", str(capture), "-w", str(tmp_path / "q")], capture_output=True, text=True)
+    assert quiet.returncode == 0 and "running with" not in quiet.stderr
