@@ -272,7 +272,7 @@ def search_roughness(candidate, settings, grey, metallic: float, directions=None
     rs = np.array(sorted(fits))
     errors = np.array([_score(fits[r]) for r in rs])
     i = int(np.argmin(errors))
-    if settings.roughness_refinements:
+    if settings.roughness_refinements and len(rs) > 1:    # (one roughness given: that one)
         # the held-out error is sharp in roughness for glossy objects (a highlight's peak goes as
         # roughness^-4): Brent's bounded search in log roughness between the best's neighbours, or
         # between the valid range's end and the neighbour when the best is the grid's end (a

@@ -220,6 +220,10 @@ def test_roughness_search_finds_minima_between_and_beyond_the_grid(minimum):
     best = min(fits, key=lambda r: fits[r].validation_rmse)
     assert abs(np.log(best / minimum)) < 3 * ROUGHNESS_XTOL
     assert len(fitted) == len(set(fitted)) <= 11
+    fitted.clear()      # one roughness given: that one only
+    one = SimpleNamespace(**{**vars(settings), "roughness_candidates": "0.3"})
+    fits, _ = search_roughness(candidate, one, np.ones(3), 0.0)
+    assert list(fits) == [0.3] and fitted == [0.3]
 
 
 @pytest.mark.parametrize("minimum, scored", [(0.5, [0.3, 0.2, 0.45, 0.65]), (0.12, [0.3, 0.2, 0.45, 0.1]),
