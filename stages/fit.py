@@ -462,20 +462,31 @@ def apply_scale_convention(coeffs: np.ndarray, brdf: dict, target: np.ndarray) -
 
 
 def residuals_per_view(path: Path, settings: Settings, coeffs: np.ndarray, brdf: dict,
-                       keys: list[str]) -> tuple[list[dict], dict]:
+                       keys: list[str], texture: tuple | None = None) -> tuple[list[dict], dict]:
     """Weighted RMS and relative RMS residual per image over the samples the fit uses, and the
     model's limits: the relative RMS residual of the samples left out as self-shadowed
-    (visibility < min_visibility) and of the used ones by n.v (one pass over the samples)."""
+    (visibility < min_visibility) and of the used ones by n.v (one pass over the samples).
+    ``texture`` (mesh faces (F, 3), per-vertex albedo (V, 3)): the chosen textured albedo, each
+    sample's interpolated at its point, instead of brdf's uniform one."""
     m = len(keys)
     se, bb, w, cnt = np.zeros(m), np.zeros(m), np.zeros(m), np.zeros(m, dtype=np.int64)
     groups = {"visible, n.v >= lobe_min_cos": [0.0, 0.0, 0], "visible, n.v < lobe_min_cos": [0.0, 0.0, 0],
               "shadowed": [0.0, 0.0, 0]}
-    for chunk in iter_sample_chunks(path, settings.chunk, FIELDS):
+    fields = FIELDS if texture is None else FIELDS + ("face", "bary")
+    for chunk in iter_sample_chunks(path, settings.chunk, fields):
         ok = (chunk["weight"] > 0) & np.all(np.isfinite(chunk["radiance"]), axis=1)
+        if texture is not None:
+            ok &= (chunk["face"] >= 0) & (chunk["face"] < len(texture[0]))
         if not ok.any():
             continue
         chunk = {k: (v[ok].astype(np.float64) if v.dtype.kind == "f" else v[ok]) for k, v in chunk.items()}
         pred = forward.render_samples(coeffs, brdf, chunk["normal"], chunk["view_dir"])
+        if texture is not None:     # radiance is linear in the diffuse albedo: swap the uniform one for the texture's
+            faces, rho = texture
+            white = forward.render_samples(coeffs, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, chunk["normal"],
+                                           chunk["view_dir"])
+            at = np.einsum("pk,pkc->pc", chunk["bary"], rho[faces[chunk["face"]]])
+            pred = pred + (at - np.asarray(brdf["albedo"], float)) * white
         r2 = ((chunk["radiance"] - pred) ** 2).sum(axis=1) * chunk["weight"]
         b2 = (chunk["radiance"] ** 2).sum(axis=1) * chunk["weight"]
         used = chunk["visibility"] >= settings.min_visibility
@@ -711,7 +722,8 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     from pipeline.io.images import write_image
 
     env = np.maximum(envmap_from_sh(coeffs, settings.env_height), 0.0)
-    views, limits = residuals_per_view(samples_path, settings, coeffs, brdf, keys)
+    views, limits = residuals_per_view(samples_path, settings, coeffs, brdf, keys,
+                                       None if vertex_rho is None else (np.asarray(tex_mesh.faces), vertex_rho))
     report["residuals_per_view"] = views
     report["model_limits"] = limits
     _say_limits(limits, settings)

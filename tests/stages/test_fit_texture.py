@@ -71,3 +71,15 @@ def test_uniform_stays_uniform(tmp_path):
     print(json.dumps(report["albedo"], indent=1))
     assert report["albedo"]["choice"] == "uniform"
     assert not (work / "fit" / "albedo.ply").exists()
+
+
+def test_convex_path_residuals_are_the_textures_too(tmp_path):
+    """The convex forward model (--forward convex) chooses the texture the same way; its per-view
+    residuals are the textured model's as well (issue 16, point 7)."""
+    _, _, report = _fit(tmp_path, "stripes", forward="convex")
+    entry = report["albedo"]
+    assert entry["choice"] == "textured"
+    views = report["residuals_per_view"]
+    per_view = np.sqrt(sum(v["rmse"] ** 2 * v["samples"] for v in views) / sum(v["samples"] for v in views))
+    uniform, textured = entry["candidates"][0]["train_rmse"], entry["candidates"][1]["train_rmse"]
+    assert per_view < 0.5 * uniform and abs(per_view / textured - 1) < 0.2, (per_view, uniform, textured)
