@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -349,28 +350,12 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior,
               independent_groups=len(np.unique(data["image_id"])), posed_ratio=prt.QUADRATURE_FLOOR)
 
-    known_lighting = known_sources = known_dirs = scale = scene = direct = None
+    known = known_lighting_setup(capture, keys, data["image_id"], settings, order, rays, geo)
+    known_lighting = known_sources = known_dirs = scale = scene = direct = per_image = None
     map_scale = 1.0
-    per_image = per_image_lighting(capture, keys, data["image_id"])
-    if per_image is not None and settings.lighting != "unknown":
-        raise UserError(f"the lighting is given twice: --lighting {settings.lighting} and capture.toml [lighting]; "
-                        "keep one")
-    if settings.lighting != "unknown" or per_image is not None:
-        if per_image is None:
-            known_lighting, known_dirs, known_sources, env = known_lighting_parts(settings, order)
-            maps = None if env is None else [env]
-        else:    # several lightings: lighting_sh.json will record the first photo's
-            maps, group = per_image
-            known_lighting, known_dirs, known_sources, env = map_lighting_parts(maps[0], order)
-        if settings.lighting_scale != "fit":
-            map_scale = float(settings.lighting_scale)
-            known_lighting, known_sources = known_lighting * map_scale, known_sources * map_scale
-        if maps is not None:     # the material under the map itself: the renderer's model of every sample
-            scenes = [Renderer(rays, m, material_dict(None, [DEFAULT_ALBEDO] * 3), cell_height=MAP_CELL_HEIGHT,
-                               lobe_samples=settings.lobe_samples, bounce_samples=settings.bounce_samples,
-                               seed=settings.seed) for m in maps]
-            scene = scenes[0] if len(scenes) == 1 else SceneGroups(scenes, group)
-            direct = scene.direct_parts(geo.faces, geo.bary, geo.view_dirs)
+    if known is not None:
+        known_lighting, known_dirs, known_sources = known.coeffs, known.directions, known.intensity
+        scene, direct, map_scale, per_image = known.scene, known.direct, known.scale, known.per_image
 
     def candidate(material: Principled | None, base0, fix_base: bool, directions):
         if scene is not None:
@@ -478,23 +463,76 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     report["residuals_per_view"] = views
     print(_summary_line(brdf, None if one_fold else interval, len(sources), known_brdf is not None,
                         textured=vertex_rho is not None), file=sys.stderr)
+    timings["total"] = time.perf_counter() - t_start
+    report["timings"] = timings
+    return write_outputs(out, best, brdf, report, settings, (mesh, vertex_rho), f"sigrend fit ({mode}, physical)")
+
+
+@dataclass(frozen=True)
+class KnownLighting:
+    """A known lighting as the fit takes it: its SH + sources form (coeffs ((L+1)^2, 3), source
+    directions (J, 3), intensities (J, 3)), scaled by ``scale`` (--lighting-scale); ``scene`` the
+    Renderer of its map (a SceneGroups for a lighting per photo) or None for a lighting_sh.json,
+    with ``direct`` its material-free direct_parts at the samples; ``per_image`` the maps and each
+    sample's index into them (capture.toml [lighting]) or None."""
+
+    coeffs: np.ndarray
+    directions: np.ndarray
+    intensity: np.ndarray
+    scene: object
+    direct: object
+    scale: float
+    per_image: tuple | None
+
+
+def known_lighting_setup(capture: Path, keys: list[str], image_id: np.ndarray, settings, order: int, rays,
+                         geo: prt.Geometry) -> KnownLighting | None:
+    """The known lighting (--lighting, or capture.toml [lighting] per photo; both is a user error),
+    None when the lighting is unknown."""
+    per_image = per_image_lighting(capture, keys, image_id)
+    if per_image is not None and settings.lighting != "unknown":
+        raise UserError(f"the lighting is given twice: --lighting {settings.lighting} and capture.toml [lighting]; "
+                        "keep one")
+    if settings.lighting == "unknown" and per_image is None:
+        return None
+    if per_image is None:
+        coeffs, dirs, power, env = known_lighting_parts(settings, order)
+        maps, group = (None if env is None else [env]), None
+    else:    # several lightings: lighting_sh.json will record the first photo's
+        maps, group = per_image
+        coeffs, dirs, power, _ = map_lighting_parts(maps[0], order)
+    scale = 1.0 if settings.lighting_scale == "fit" else float(settings.lighting_scale)
+    scene = direct = None
+    if maps is not None:     # the material under the map itself: the renderer's model of every sample
+        scenes = [Renderer(rays, m, material_dict(None, [DEFAULT_ALBEDO] * 3), cell_height=MAP_CELL_HEIGHT,
+                           lobe_samples=settings.lobe_samples, bounce_samples=settings.bounce_samples,
+                           seed=settings.seed) for m in maps]
+        scene = scenes[0] if len(scenes) == 1 else SceneGroups(scenes, group)
+        direct = scene.direct_parts(geo.faces, geo.bary, geo.view_dirs)
+    return KnownLighting(coeffs * scale, dirs, power * scale, scene, direct, scale, per_image)
+
+
+def write_outputs(out: Path, best: material_fit.MaterialFit, brdf: dict, report: dict, settings,
+                  texture: tuple, source: str) -> list[Path]:
+    """fit/: lighting_sh.json (the SH with the sources' projection, and the sources), lighting.exr
+    (the SH map with the sources drawn in), brdf.json, report.json, the plots, and albedo.ply when
+    ``texture`` = (mesh, per-vertex albedo or None) has one (a stale one is removed: relight reads it)."""
+    coeffs = best.coeffs
     env = np.maximum(envmap_from_sh(coeffs, settings.env_height), 0.0)
     if best.sources is not None:
         env = add_sources(env, best.sources.directions, best.sources.power)
     total = coeffs if best.sources is None else coeffs + sh_of_sources(best.sources.directions, best.sources.power,
                                                                        order_of(coeffs.shape[0]))
-    written = [write_lighting_sh(out / "lighting_sh.json", total, source=f"sigrend fit ({mode}, physical)",
-                                 sources=sources, sources_note=SOURCES_NOTE),
+    written = [write_lighting_sh(out / "lighting_sh.json", total, source=source, sources=report["sources"],
+                                 sources_note=SOURCES_NOTE),
                write_image(out / "lighting.exr", env.astype(np.float32), dtype="float"),
-               write_brdf(out / "brdf.json", brdf)]
-    written += write_plots(out, env, bands, views)
+               write_brdf(out / "brdf.json", brdf), write_report(out / "report.json", report)]
+    written += write_plots(out, env, report["bands"], report["residuals_per_view"])
+    mesh, vertex_rho = texture
     if vertex_rho is not None:
         written.append(write_vertex_albedo(out / "albedo.ply", mesh, vertex_rho))
     elif (out / "albedo.ply").exists():
         (out / "albedo.ply").unlink()     # a stale texture from an earlier run would be read by relight
-    timings["total"] = time.perf_counter() - t_start
-    report["timings"] = timings
-    written.insert(3, write_report(out / "report.json", report))
     return written
 
 
