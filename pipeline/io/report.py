@@ -10,38 +10,19 @@ samples (counts).  Floats are plain JSON numbers; NaN is written as null.
 from __future__ import annotations
 
 import json
-import math
 import os
 from pathlib import Path
-from typing import Any
-
-import numpy as np
 
 from pipeline.errors import UserError
+from pipeline.io.values import json_ready
 from pipeline.workdir import write_json
 
 SCHEMA = "sigrend.fit-report/1"
 
 
-def _clean(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _clean(obj.tolist())
-    if isinstance(obj, np.generic):
-        return _clean(obj.item())
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
 def write_report(path: str | os.PathLike, report: dict) -> Path:
     """Write the report atomically (NaN/inf -> null, arrays -> lists)."""
-    return write_json(path, _clean({"schema": SCHEMA, **report}))
+    return write_json(path, json_ready({"schema": SCHEMA, **report}))
 
 
 def read_report(path: str | os.PathLike) -> dict:

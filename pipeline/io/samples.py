@@ -50,6 +50,7 @@ from typing import Any, Iterable, Iterator
 import numpy as np
 
 from pipeline.errors import UserError
+from pipeline.io.values import json_ready
 from pipeline.workdir import SPOOL_MARK, atomic_path
 
 SCHEMA = "sigrend.samples/1"
@@ -127,7 +128,7 @@ class SamplesWriter:
         for f in self._files.values():
             f.close()
         meta = {"schema": SCHEMA, **meta, "count": int(self.count), "image_count": int(len(keys))}
-        meta_arr = np.asarray(json.dumps(meta, default=_json_default))
+        meta_arr = np.asarray(json.dumps(json_ready(meta)))
         with atomic_path(self.path) as tmp:
             with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
                 for field, (dtype, tail) in SAMPLE_FIELDS.items():
@@ -153,16 +154,6 @@ class SamplesWriter:
 
     def __exit__(self, *exc) -> None:
         self._cleanup()
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serializable: {type(obj).__name__}")
 
 
 def write_samples(path: str | os.PathLike, arrays: dict[str, Any], meta: dict) -> Path:

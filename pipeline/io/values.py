@@ -3,6 +3,7 @@ bool or a string; a wrong type is a UserError naming where the value came from."
 
 from __future__ import annotations
 
+from pathlib import PurePath
 from typing import Any
 
 import numpy as np
@@ -48,3 +49,21 @@ def number(text: str) -> float:
     if not np.isfinite(value):
         raise ValueError(f"not a finite number: {text!r}")
     return value
+
+
+def json_ready(obj: Any) -> Any:
+    """``obj`` with what JSON cannot hold made plain: arrays -> lists, NumPy scalars -> Python
+    numbers, NaN/inf -> None (JSON has no NaN), paths -> strings, keys -> strings."""
+    if isinstance(obj, dict):
+        return {str(k): json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_ready(obj.tolist())
+    if isinstance(obj, np.generic):
+        return json_ready(obj.item())
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    if isinstance(obj, PurePath):
+        return str(obj)
+    return obj

@@ -35,3 +35,18 @@ def test_exposure_time_as_a_fraction_in_capture_toml(tmp_path):
     (tmp_path / "capture.toml").write_text('[exposure]\ndefault = {time = "fast"}\n')
     with pytest.raises(UserError, match="time must be a positive number"):
         read_capture_config(tmp_path)
+
+
+def test_json_ready_makes_what_json_cannot_hold_plain():
+    import json
+    from pathlib import Path
+
+    import numpy as np
+
+    from pipeline.io.values import json_ready
+
+    doc = {1: np.float32(0.5), "a": np.arange(3), "nan": float("nan"), "inf": np.inf, "p": Path("x/y"),
+           "t": (np.int64(2), [np.bool_(True)])}
+    ready = json_ready(doc)
+    assert ready == {"1": 0.5, "a": [0, 1, 2], "nan": None, "inf": None, "p": "x/y", "t": [2, [True]]}
+    json.dumps(ready, allow_nan=False)     # strict JSON
