@@ -1,0 +1,62 @@
+"""pipeline.core.texture against closed forms: barycentric interpolation, the graph Laplacian's
+null space, the uniform albedo's normal equation, and the per-vertex solve's two limits (no
+smoothing: the exact texture where every vertex is seen; heavy smoothing: the uniform albedo)."""
+
+import numpy as np
+import trimesh
+
+from pipeline.core import texture
+
+
+def sampled_sphere(rng, n: int = 6000):
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    face = rng.integers(0, len(mesh.faces), n)
+    bary = rng.dirichlet(np.ones(3), n)
+    return mesh, face, bary
+
+
+def test_interpolation_reproduces_linear_functions(rng):
+    mesh, face, bary = sampled_sphere(rng)
+    interp = texture.interpolation_matrix(mesh.faces, face, bary, len(mesh.vertices))
+    np.testing.assert_allclose(np.asarray(interp.sum(axis=1)).ravel(), 1.0, atol=1e-12)
+    points = np.einsum("pk,pkc->pc", bary, mesh.vertices[mesh.faces[face]])
+    np.testing.assert_allclose(interp @ mesh.vertices, points, atol=1e-12)   # x, y, z are linear
+
+
+def test_laplacian_is_symmetric_psd_with_constants_in_its_null_space():
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    lap = texture.graph_laplacian(mesh.faces, len(mesh.vertices)).toarray()
+    np.testing.assert_allclose(lap, lap.T)
+    np.testing.assert_allclose(lap @ np.ones(len(lap)), 0.0, atol=1e-12)
+    assert np.linalg.eigvalsh(lap).min() > -1e-9
+    np.testing.assert_array_equal(np.diag(lap), [len(mesh.vertex_neighbors[i]) for i in range(len(lap))])
+
+
+def test_uniform_albedo_is_the_weighted_least_squares_ratio(rng):
+    shade = rng.uniform(0.2, 1.0, (500, 3))
+    weight = rng.uniform(0.5, 2.0, 500)
+    rho = np.array([0.6, 0.4, 0.2])
+    target = shade * rho + rng.normal(0, 0.01, (500, 3))
+    got = texture.uniform_albedo(shade, target, weight)
+    want = [np.sum(weight * shade[:, c] * target[:, c]) / np.sum(weight * shade[:, c] ** 2) for c in range(3)]
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    np.testing.assert_allclose(got, rho, atol=0.005)
+
+
+def test_vertex_albedo_limits(rng):
+    """Noise-free samples of a per-vertex albedo: smoothness 0 gives it back (every vertex seen by
+    ~40 samples); a smoothness of 1e6 gives the uniform least-squares albedo everywhere."""
+    mesh, face, bary = sampled_sphere(rng)
+    nv = len(mesh.vertices)
+    truth = rng.uniform(0.1, 0.9, (nv, 3))
+    interp = texture.interpolation_matrix(mesh.faces, face, bary, nv)
+    shade = rng.uniform(0.3, 1.0, (len(face), 3))
+    target = texture.predict(interp, shade, truth)
+    weight = np.ones(len(face))
+    lap = texture.graph_laplacian(mesh.faces, nv)
+    sharp = texture.fit_vertex_albedo(interp, shade, target, weight, lap, 0.0)
+    np.testing.assert_allclose(sharp, truth, atol=1e-4)     # only EPS = 1e-6 pulls towards the mean
+    flat = texture.fit_vertex_albedo(interp, shade, target, weight, lap, 1e6)
+    np.testing.assert_allclose(flat, np.broadcast_to(texture.uniform_albedo(shade, target, weight), flat.shape),
+                               atol=2e-3)
+    assert texture.weighted_rmse(texture.predict(interp, shade, sharp), target, weight) < 1e-4
