@@ -280,8 +280,10 @@ def search_roughness(candidate, settings, grey, metallic: float, directions=None
         # mirror-like object below the grid's 0.1 must not stop there)
         def held_out(log_r: float) -> float:
             r = float(np.exp(log_r))
-            if r not in fits:
-                fits[r] = fit_at(r, directions)
+            near = [x for x in fits if abs(np.log(x / r)) < ROUGHNESS_XTOL / 2]
+            if near:      # Brent's last steps land within its tolerance of a fitted point: that fit
+                return _score(fits[near[0]])
+            fits[r] = fit_at(r, directions)
             return _score(fits[r])
 
         low = rs[i - 1] if i > 0 else MIN_ROUGHNESS
