@@ -97,3 +97,35 @@ def test_atomic_writes_have_ordinary_permissions(tmp_path):
     umask = os.umask(0)
     os.umask(umask)
     assert stat.S_IMODE(path.stat().st_mode) == 0o666 & ~umask
+
+
+def test_report_json_round_trip(tmp_path):
+    """report.json: arrays as lists, NaN and inf as null, the schema stamped; another file is refused."""
+    from pipeline.io.report import SCHEMA, read_report, write_report
+
+    write_report(tmp_path / "report.json", {"mode": "brdf", "bands": np.array([0.5, 0.25]), "rmse": float("nan"),
+                                            "nested": {"k": np.float32(2.0)}})
+    doc = read_report(tmp_path / "report.json")
+    assert doc == {"schema": SCHEMA, "mode": "brdf", "bands": [0.5, 0.25], "rmse": None, "nested": {"k": 2.0}}
+    (tmp_path / "other.json").write_text('{"schema": "something else"}')
+    with pytest.raises(UserError, match="not a sigrend fit report"):
+        read_report(tmp_path / "other.json")
+    with pytest.raises(UserError, match="run `sigrend fit` first"):
+        read_report(tmp_path / "missing.json")
+
+
+def test_linear_manifest_round_trip(tmp_path):
+    """linear/manifest.json: entries sorted by key, read back as written; a missing or foreign
+    manifest names the linearize run that makes it."""
+    from pipeline.io.linear_manifest import read_manifest, write_manifest
+
+    entries = {"b.jpg": {"file": "b.exr", "scale": 2.0}, "a.jpg": {"file": "a.exr", "scale": 1.0}}
+    (tmp_path / "linear").mkdir()
+    write_manifest(tmp_path, entries)
+    doc = read_manifest(tmp_path)
+    assert doc["images"] == entries and list(doc["images"]) == ["a.jpg", "b.jpg"] and doc["version"] == 1
+    with pytest.raises(UserError, match="sigrend linearize"):
+        read_manifest(tmp_path / "nowhere")
+    (tmp_path / "linear" / "manifest.json").write_text('{"something": 1}')
+    with pytest.raises(UserError, match="not a linearize manifest"):
+        read_manifest(tmp_path)
