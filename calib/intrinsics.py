@@ -77,7 +77,7 @@ def read_gray(path: Path) -> np.ndarray:
 
         try:
             with rawpy.imread(str(path)) as raw:
-                rgb = raw.postprocess(use_camera_wb=True).astype(np.float32) / 255.0
+                rgb = raw.postprocess(use_camera_wb=True, user_flip=0).astype(np.float32) / 255.0  # as stored
         except (rawpy.LibRawError, OSError) as exc:
             raise UserError(f"{path}: LibRaw cannot read this RAW file ({exc}); remove it or copy it again") from None
         return to_gray8(rgb, linear=False)

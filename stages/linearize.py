@@ -393,6 +393,7 @@ def build_jobs(capture: Path, work: Path, settings: Settings) -> list[dict]:
                      "response_curve": config.response_curve,
                      "vignetting": str(config.vignetting) if config.vignetting else None,
                      "settings": {k: v for k, v in settings_dict(settings).items() if k != "workers"},
+                     "orientation": "as stored",   # in the recipe: RAW outputs made when LibRaw turned them are redone
                      "content": {p: content[str(Path(p).resolve())] for p in [str(m) for m in members] + extra}})
     return jobs
 

@@ -197,8 +197,8 @@ def tone_map(linear: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
 
 
 def load_8bit(path: Path) -> np.ndarray:
-    """Any capture photo as 8-bit RGB (H, W, 3), oriented as linearize orients it (RAW: LibRaw's flip,
-    other formats: stored pixel order)."""
+    """Any capture photo as 8-bit RGB (H, W, 3), oriented as linearize orients it: the stored pixel
+    order, RAW included (EXIF orientation ignored, as COLMAP does)."""
     suffix = path.suffix.lower()
     if suffix in RAW_SUFFIXES:
         import rawpy
@@ -206,7 +206,7 @@ def load_8bit(path: Path) -> np.ndarray:
         try:
             with rawpy.imread(str(path)) as raw:
                 rgb = raw.postprocess(use_camera_wb=True, output_bps=16, gamma=(1, 1),
-                                      no_auto_bright=True)
+                                      no_auto_bright=True, user_flip=0)
         except (rawpy.LibRawError, OSError) as exc:
             raise UserError(f"{path}: cannot decode this RAW file ({exc})") from None
         return tone_map(rgb.astype(np.float32) / 65535.0)

@@ -43,8 +43,9 @@ def _open_raw(path: Path):
 
 
 def _raw_output_size(raw) -> tuple[int, int]:
+    """(width, height) of the decoded image: the pixels as stored (user_flip=0, see decode_raw)."""
     s = raw.sizes
-    return (s.height, s.width) if s.flip in (5, 6) else (s.width, s.height)
+    return s.width, s.height
 
 
 @dataclass
@@ -103,11 +104,6 @@ def probe(path: Path) -> Probe:
 # Decoding one file -> (linear RGB before exposure scaling, valid mask, level for bracket weights, info)
 
 
-def _flip_like_libraw(mask: np.ndarray, flip: int) -> np.ndarray:
-    """Rotate a raw-orientation mask as LibRaw rotates the image (3: 180 deg, 5: 90 CCW, 6: 90 CW)."""
-    return {3: np.rot90(mask, 2), 5: np.rot90(mask, 1), 6: np.rot90(mask, -1)}.get(flip, mask)
-
-
 def decode_raw(path: Path, wb_multipliers: tuple[float, ...], saturation: float, *, camera_space: bool = False,
                want_level: bool = True):
     """LibRaw linear decode: (rgb float32 in [0, ~1], valid mask, level (H, W) in [0, 1], info dict).
@@ -127,9 +123,8 @@ def decode_raw(path: Path, wb_multipliers: tuple[float, ...], saturation: float,
             white_level = int(raw.white_level)
             rgb16 = raw.postprocess(
                 gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=False, user_wb=wb,
-                highlight_mode=rawpy.HighlightMode.Clip, adjust_maximum_thr=0.0,
-                output_color=rawpy.ColorSpace.raw if camera_space else rawpy.ColorSpace.sRGB)
-            flip = raw.sizes.flip
+                highlight_mode=rawpy.HighlightMode.Clip, adjust_maximum_thr=0.0, user_flip=0,   # as stored:
+                output_color=rawpy.ColorSpace.raw if camera_space else rawpy.ColorSpace.sRGB)  # COLMAP's rule
         except (rawpy.LibRawError, rawpy.NotSupportedError) as exc:
             raise UserError(f"{path}: LibRaw cannot decode this RAW file ({type(exc).__name__}: {exc}); "
                             "the file may be truncated or corrupt: copy it again or remove it") from None
@@ -141,7 +136,6 @@ def decode_raw(path: Path, wb_multipliers: tuple[float, ...], saturation: float,
 
     kernel = np.ones((2 * DEMOSAIC_RADIUS + 1,) * 2, np.uint8)
     clipped = cv2.dilate(clipped.astype(np.uint8), kernel) > 0
-    clipped = _flip_like_libraw(clipped, flip)
     if clipped.shape != rgb16.shape[:2]:
         clipped = cv2.resize(clipped.astype(np.uint8), rgb16.shape[1::-1], interpolation=cv2.INTER_NEAREST) > 0
     clipped |= rgb16.max(axis=2) == 65535  # channels clipped by white balance or the colour matrix

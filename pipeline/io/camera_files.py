@@ -96,14 +96,15 @@ def _rational(values, den: int) -> tuple[int, ...]:
 
 
 def write_dng(path: str | os.PathLike, value: np.ndarray, exposure: Exposure, *,
-              black: int = DNG_BLACK, white: int = DNG_WHITE) -> Path:
+              black: int = DNG_BLACK, white: int = DNG_WHITE, orientation: int = 1) -> Path:
     """Bayer (RGGB) DNG of an (H, W, 3) linear value image (1 = white level), via tifffile.
 
     Raw counts = round(black + value * (white - black)), clipped to [0, white] (noise, if any,
     must already be in ``value``).  Tags: NewSubFileType 0, PhotometricInterpretation CFA (32803),
     CFARepeatPatternDim 2x2 and CFAPattern RGGB (0,1,1,2), DNGVersion 1.4, UniqueCameraModel,
     BlackLevel, WhiteLevel, ColorMatrix1 = XYZ->sRGB with CalibrationIlluminant1 D65 (21),
-    AsShotNeutral 1,1,1, ExposureTime and FNumber.  ISO is not written: LibRaw reads it only from
+    AsShotNeutral 1,1,1, ExposureTime and FNumber, and Orientation (EXIF 1-8: how a viewer turns the
+    stored pixels) when not 1.  ISO is not written: LibRaw reads it only from
     an EXIF sub-IFD, which tifffile does not write; captures give it in capture.toml [exposure].
     """
     value = np.asarray(value, float)
@@ -124,7 +125,7 @@ def write_dng(path: str | os.PathLike, value: np.ndarray, exposure: Exposure, *,
         (50728, 5, 3, _rational((1.0, 1.0, 1.0), 10000), True),  # AsShotNeutral
         (33434, 5, 1, _rational([exposure.time], 1000000), True),  # ExposureTime
         (33437, 5, 1, _rational([exposure.fnumber], 100), True),  # FNumber
-    ]
+    ] + ([(274, "H", 1, (int(orientation),), True)] if orientation != 1 else [])  # Orientation
     import tifffile
 
     path = Path(path)

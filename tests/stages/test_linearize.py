@@ -131,6 +131,33 @@ def test_dng_linearizes_to_ground_truth_and_exposures_agree(tmp_path, rng):
     assert doc["images"]["a"]["white_balance"]["policy"] == "camera"
 
 
+def test_exif_orientation_is_ignored_for_raw_and_jpeg_alike(tmp_path):
+    """A portrait-tagged shot (EXIF Orientation 6, "turn 90° clockwise to view") is linearized as
+    stored, RAW and JPEG alike — the pixel order COLMAP and hloc use, so a model made from either
+    file matches (LibRaw's default would turn the RAW and not the JPEG).  Measured: the tagged DNG's
+    linear image equals the untagged one's exactly."""
+    L = scene()
+    cap = tmp_path / "cap"
+    write_camera_dng(cap / "images" / "upright.dng", exposed(L, T_REF), Exposure(time=T_REF, iso=100.0, fnumber=N_REF),
+                     black=BLACK, white=WHITE)
+    write_camera_dng(cap / "images" / "turned.dng", exposed(L, T_REF), Exposure(time=T_REF, iso=100.0, fnumber=N_REF),
+                     black=BLACK, white=WHITE, orientation=6)
+    write_jpeg(cap / "images" / "turned.jpg", exposed(L, T_REF))
+    import OpenImageIO as oiio
+
+    buf = oiio.ImageBuf(str(cap / "images" / "turned.jpg"))
+    buf.specmod().attribute("Orientation", 6)
+    buf.write(str(cap / "images" / "turned_tag.jpg"))
+    (cap / "images" / "turned.jpg").unlink()
+    (cap / "capture.toml").write_text('[exposure]\ndefault = {iso = 100}\n')    # DNGs here carry no ISO
+    run_stage(cap, tmp_path / "work")
+    upright, _ = read_linear_image(tmp_path / "work", "upright")
+    turned, _ = read_linear_image(tmp_path / "work", "turned")
+    jpeg, _ = read_linear_image(tmp_path / "work", "turned_tag")
+    assert upright.shape == turned.shape == jpeg.shape == (H, W, 3)
+    np.testing.assert_array_equal(turned, upright)
+
+
 def test_raw_saturation_masked_before_demosaic_and_dilated(tmp_path):
     L = scene()
     v = exposed(L, T_REF)
