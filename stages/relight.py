@@ -88,9 +88,10 @@ class Settings:
     interior_supersample: int = setting(1, "rays per pixel along each axis inside the silhouette (1: the shading "
                                            "at the pixel centre; 2: bunny 1.02 % against Cycles for 1.35 %, ~2.5x "
                                            "the time, docs/relight.md)")
-    method: Literal["angular", "frequency"] = setting("angular", "'angular': the reflection equation over the lighting's directions with the full "
-                                     "BRDF and shadow rays (accurate); 'frequency': the fit's SH / prefiltered "
-                                     "forward model (fast, no shadows, reflection-space lobe)")
+    method: Literal["angular", "frequency"] = setting(
+        "angular", "'angular': the reflection equation over the lighting's directions with the full BRDF and shadow "
+                   "rays (accurate); 'frequency': the fit's SH / prefiltered forward model (fast, no shadows, "
+                   "reflection-space lobe)")
     env_height: int = setting(64, "angular method: height of the equirect map an SH lighting is synthesized to")
     clamp_sh: bool = setting(False, "angular method: clamp the map synthesized from an SH lighting at 0; off = keep "
                                     "its negative lobes (rendered as a second, subtracted map), as the fit did")
@@ -101,10 +102,11 @@ class Settings:
                               "bounce adds < 0.5%); 0 = none")
     bounce_samples: int = setting(64, "angular method: hemisphere rays per vertex for interreflection")
     lobe_samples: int = setting(64, "angular method, principled material: importance samples of the specular lobe per ray")
-    board: Literal["auto", "on", "off"] = setting("auto", "angular method with shadows: the capture's board (capture.toml [board]) occludes the "
-                                 "object: 'on', 'off', or 'auto' = on under a given --env (a whole environment, "
-                                 "the board was in the scene), off under the fitted lighting (the fit saw the "
-                                 "board's shadow as darkness from below: it is already in the lighting)")
+    board: Literal["auto", "on", "off"] = setting(
+        "auto", "angular method with shadows: the capture's board (capture.toml [board]) occludes the object: 'on', "
+                "'off', or 'auto' = on under a given --env (a whole environment, the board was in the scene), off "
+                "under the fitted lighting (the fit saw the board's shadow as darkness from below: it is already in "
+                "the lighting)")
     lobe_sh_order: int = setting(24, "a lobe that needs more SH bands than this is read from a prefiltered "
                                      "angular-space map instead (sharp lobes)")
     prefilter_height: int = setting(128, "height of the prefiltered equirect map used for sharp lobes")
@@ -556,11 +558,8 @@ class AngularLighting:
         return cls(brdf, mesh, env=read_envmap(path), source=str(path), **kwargs)
 
     @classmethod
-    def from_known_light(cls, light: KnownLight, brdf: dict, mesh, **kwargs) -> "AngularLighting":
-        """A capture.toml [lighting] entry: its map file, or its directional light drawn into a map
-        (pipeline.io.lighting.known_light_map)."""
-        if light.path is not None:
-            return cls.from_file(light.path, brdf, mesh, **kwargs)
+    def from_directional_light(cls, light: KnownLight, brdf: dict, mesh, **kwargs) -> "AngularLighting":
+        """A directional light of capture.toml [lighting], drawn into a map (io.lighting.known_light_map)."""
         return cls(brdf, mesh, env=known_light_map(light), source=f"directional light {light.direction} "
                    f"intensity {light.intensity}", **kwargs)
 
@@ -627,15 +626,15 @@ def prepare_lighting(path: Path | KnownLight, brdf: dict, mesh, settings: Settin
     if settings.method == "frequency" and brdf["model"] == "principled":
         raise UserError("--method frequency renders the seed's convex lobes (lambert, phong, microfacet) only; "
                         "a principled material needs --method angular (the default)")
-    if isinstance(path, KnownLight) and (path.path is not None or settings.method == "frequency"):
-        if path.path is None:
-            raise UserError("a directional light of capture.toml [lighting] needs --method angular (the default)")
-        path = path.path
+    if isinstance(path, KnownLight) and path.path is not None:
+        path = path.path              # a map file: as any --env
+    if isinstance(path, KnownLight) and settings.method == "frequency":
+        raise UserError("a directional light of capture.toml [lighting] needs --method angular (the default)")
     if settings.method == "frequency":
         return Lighting.from_file(path, brdf, lobe_sh_order=settings.lobe_sh_order,
                                   prefilter_height=settings.prefilter_height)
     board = board_occluder(capture) if capture is not None and with_board else None
-    make = AngularLighting.from_known_light if isinstance(path, KnownLight) else AngularLighting.from_file
+    make = AngularLighting.from_directional_light if isinstance(path, KnownLight) else AngularLighting.from_file
     return make(path, brdf, mesh, env_height=settings.env_height, cell_height=settings.cell_height,
                 shadows=settings.shadows, vertex_albedo=vertex_colors, board=board,
                 lobe_sh_order=settings.lobe_sh_order, prefilter_height=settings.prefilter_height,

@@ -130,3 +130,24 @@ def test_compare_with_needs_the_other_captures_work_and_lighting(captures, tmp_p
     both, other = captures
     proc = sigrend("relight", both, "-w", tmp_path / "w", "--compare-with", other, "--compare-work", tmp_path / "none")
     assert_one_line_error(proc.stderr, "--to poses", code=proc.returncode)
+
+
+def test_relight_draws_a_directional_light():
+    """relight under a [lighting] directional light: its renderer's light set holds the light's
+    irradiance, towards the light; --method frequency refuses it in one line."""
+    import trimesh
+
+    from pipeline.io.capture_toml import KnownLight
+    from pipeline.settings import make_settings
+    from stages import relight
+
+    light = KnownLight(direction=(0.0, 0.6, 0.8), intensity=(2.0, 1.5, 1.0))
+    mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    lambert = {"model": "lambert", "albedo": [0.5, 0.5, 0.5]}
+    lighting = relight.prepare_lighting(light, lambert, mesh, make_settings(relight.Settings))
+    lights = lighting.renderer.lights
+    np.testing.assert_allclose(lights.power.sum(axis=0), [2.0, 1.5, 1.0], rtol=1e-6)
+    brightest = lights.directions[np.argmax(lights.power.sum(axis=1))]
+    assert np.degrees(np.arccos(brightest @ np.array(light.direction))) < 1.0
+    with pytest.raises(UserError, match="needs --method angular"):
+        relight.prepare_lighting(light, lambert, mesh, make_settings(relight.Settings, method="frequency"))
