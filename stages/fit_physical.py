@@ -147,25 +147,19 @@ def map_lighting_parts(env: np.ndarray, order: int) -> tuple[np.ndarray, np.ndar
     return coeffs, lights.directions[len(lights) - nb:], lights.power[len(lights) - nb:], env
 
 
-def per_image_lighting(capture: Path, keys: list[str], image_id: np.ndarray) -> tuple[list[np.ndarray], np.ndarray] | None:
-    """capture.toml [lighting] (several known lightings of one object): the distinct maps and each
-    sample's index into them; None when the capture has no [lighting]."""
+def per_image_lighting(capture: Path, keys: list[str], image_id: np.ndarray) -> tuple | None:
+    """capture.toml [lighting] (several known lightings of one object): (the distinct maps, each
+    sample's index into them, each image's KnownLight); None when the capture has no [lighting]."""
     from pipeline.io.lighting import known_light_map
 
     config = read_capture_config(capture)
     if not config.lighting:
         return None
-    maps, index, of_image = [], {}, np.zeros(len(keys), np.int64)
-    for i, key in enumerate(keys):
-        light = config.lighting_for(key)
-        if light is None:
-            raise UserError(f"{config.source}: [lighting] has no entry for {key} and no default; give every photo "
-                            "its lighting (or a default)")
-        if light not in index:
-            index[light] = len(maps)
-            maps.append(known_light_map(light))
-        of_image[i] = index[light]
-    return maps, of_image[np.asarray(image_id)]
+    lights = config.lights_for(keys)
+    index = {light: i for i, light in enumerate(dict.fromkeys(lights.values()))}
+    maps = [known_light_map(light) for light in index]
+    of_image = np.array([index[lights[key]] for key in keys], np.int64)
+    return maps, of_image[np.asarray(image_id)], lights
 
 
 SCALE_TOLERANCE = 1.5    # a known map within this factor of the photos is taken as it is (the true maps of
@@ -439,12 +433,11 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
               "scale_convention": _scale_note(brdf, hint, level) if scale is None else
               {"source": "the known lighting", "lighting_scale": scale}}
     if per_image is not None:
-        config = read_capture_config(capture)
         report["lighting_per_image"] = {
-            "source": f"{config.source} [lighting]", "lightings": len(per_image[0]),
+            "source": f"{Path(capture) / 'capture.toml'} [lighting]", "lightings": len(per_image[0]),
             "recorded": "lighting_sh.json and lighting.exr hold the first photo's lighting",
             "images": {k: str(light.path) if light.path else {"direction": light.direction, "intensity": light.intensity}
-                       for k, light in ((k, config.lighting_for(k)) for k in keys)}}
+                       for k, light in per_image[2].items()}}
     out = Path(work) / "fit"
     spec = None if best.material is None or best.parts is not None else prt.specular_transfer(   # parts: fit_to_map's
         geo, best.material, settings.lobe_samples, settings.seed)
@@ -475,7 +468,7 @@ class KnownLighting:
     """A known lighting as the fit takes it: its SH + sources form (coeffs ((L+1)^2, 3), source
     directions (J, 3), intensities (J, 3)), scaled by ``scale`` (--lighting-scale); ``scene`` the
     Renderer of its map (a SceneGroups for a lighting per photo) or None for a lighting_sh.json,
-    with ``direct`` its material-free direct_parts at the samples; ``per_image`` the maps and each
+    with ``direct`` its material-free direct_parts at the samples; ``per_image`` per_image_lighting's
     sample's index into them (capture.toml [lighting]) or None."""
 
     coeffs: np.ndarray
@@ -501,7 +494,7 @@ def known_lighting_setup(capture: Path, keys: list[str], image_id: np.ndarray, s
         coeffs, dirs, power, env = known_lighting_parts(settings, order)
         maps, group = (None if env is None else [env]), None
     else:    # several lightings: lighting_sh.json will record the first photo's
-        maps, group = per_image
+        maps, group, _ = per_image
         coeffs, dirs, power, _ = map_lighting_parts(maps[0], order)
     scale = 1.0 if settings.lighting_scale == "fit" else float(settings.lighting_scale)
     scene = direct = None

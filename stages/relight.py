@@ -203,16 +203,10 @@ def photo_source(capture: Path, work: Path, settings: Settings) -> tuple[Path, P
 def view_lights(capture: Path, views: list) -> dict:
     """Each view's known lighting from ``capture``'s capture.toml [lighting] (KnownLight by view key);
     a user error naming a view without one."""
-    config = read_capture_config(capture)
-    lights = {v.key: config.lighting_for(v.key) for v in views}
-    missing = [k for k, light in lights.items() if light is None]
-    if missing and not config.lighting:
-        raise UserError(f"--compare-with {capture}: its capture.toml has no [lighting]; name each photo's lighting "
-                        "there (or a default), or give --env")
-    if missing:
-        raise UserError(f"--compare-with {capture}: its capture.toml [lighting] gives no lighting for "
-                        f"{', '.join(missing[:3])}; name each photo's lighting there (or a default), or give --env")
-    return lights
+    try:
+        return read_capture_config(capture).lights_for([v.key for v in views])
+    except UserError as exc:
+        raise UserError(f"--compare-with {capture}: {exc}, or give --env") from None
 
 
 def compares(settings: Settings) -> bool:

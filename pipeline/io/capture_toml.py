@@ -126,6 +126,17 @@ class CaptureConfig:
         same = [light for key, light in self.lighting.items() if Path(key).stem == Path(name).stem]
         return same[0] if same else self.lighting.get("default")
 
+    def lights_for(self, names: list[str]) -> dict[str, KnownLight]:
+        """Each image's [lighting] entry (lighting_for); a UserError naming the images without one."""
+        lights = {name: self.lighting_for(name) for name in names}
+        missing = [name for name, light in lights.items() if light is None]
+        if missing and not self.lighting:
+            raise UserError("capture.toml has no [lighting]: name each photo's lighting there (or a default)")
+        if missing:
+            raise UserError(f"{self.source}: [lighting] gives no lighting for {', '.join(missing[:3])}: name each "
+                            "photo's lighting there (or a default)")
+        return lights
+
 
 def read_toml(path: Path) -> dict:
     """Parse a TOML file (tomllib, tomli on Python 3.10); UserError when missing or malformed."""

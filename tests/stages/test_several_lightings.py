@@ -115,6 +115,8 @@ def test_directional_light_entries(tmp_path):
     a = config.lighting_for("a.jpg")
     assert a.direction == pytest.approx((0, 0.6, 0.8)) and a.intensity == (2.5, 2.5, 2.5)
     assert config.lighting_for("c.jpg") is None
+    with pytest.raises(UserError, match="gives no lighting for c.jpg"):
+        config.lights_for(["a.jpg", "c.jpg"])
     env = known_light_map(config.lighting_for("b"))          # by stem too
     power = (env * equirect_solid_angles(env.shape[0])[:, None, None]).sum(axis=(0, 1))
     np.testing.assert_allclose(power, [1.0, 2.0, 3.0], rtol=1e-6)
