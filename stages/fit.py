@@ -92,6 +92,10 @@ class Settings:
     ior: float = setting(1.5, "principled fit: index of refraction of the dielectric specular layer")
     max_sources: int = setting(3, "principled fit: directional sources (the lighting's dual angular part) tried "
                                   "on top of the SH lighting, each kept only if it lowers the held-out views' error by 2%")
+    lighting_detail: Literal["auto", "off"] = setting("auto", "principled fit: 'auto' tries the lighting's detail part "
+                                                              "(a map of what the SH bands cannot hold, seen through the "
+                                                              "specular lobe) beside each dielectric candidate and keeps it "
+                                                              "where it lowers the held-out views' error by 2%; 'off'")
     physical_samples: int = setting(30000, "principled fit: samples used (random subset)")
     lobe_samples: int = setting(32, "principled fit: GGX lobe samples per sample in the specular transfer")
     bounce_samples: int = setting(64, "principled fit: occlusion / bounce rays per vertex (shadows, interreflection)")

@@ -201,6 +201,8 @@ def select_material(candidate, settings, models: list[str], obs, grey: np.ndarra
     directions = interval = None
     if "principled" in models:
         dielectric, directions = search_roughness(candidate, settings, grey, 0.0)
+        if settings.lighting_detail == "auto":
+            dielectric = search_with_detail(candidate, settings, grey, dielectric, directions)
         rough = min(dielectric, key=lambda r: _score(dielectric[r]))
         metal = candidate(Principled(roughness=rough, metallic=1.0, ior=settings.ior), grey, False, directions)
         chosen = dielectric
@@ -266,29 +268,59 @@ def search_roughness(candidate, settings, grey, metallic: float, directions=None
                 fits[float(r)] = again if r == rs[i] else fit_at(r, directions)
     rs = np.array(sorted(fits))
     errors = np.array([_score(fits[r]) for r in rs])
-    i = int(np.argmin(errors))
     if settings.roughness_refinements and len(rs) > 1:    # (one roughness given: that one)
-        # the held-out error is sharp in roughness for glossy objects (a highlight's peak goes as
-        # roughness^-4): Brent's bounded search in log roughness between the best's neighbours, or
-        # between the valid range's end and the neighbour when the best is the grid's end (a
-        # mirror-like object below the grid's 0.1 must not stop there)
-        def held_out(log_r: float) -> float:
-            r = float(np.exp(log_r))
-            near = [x for x in fits if abs(np.log(x / r)) < ROUGHNESS_XTOL / 2]
-            if near:      # Brent's last steps land within its tolerance of a fitted point: that fit
-                return _score(fits[near[0]])
-            fits[r] = fit_at(r, directions)
-            return _score(fits[r])
-
-        low = rs[i - 1] if i > 0 else MIN_ROUGHNESS
-        high = rs[i + 1] if i < len(rs) - 1 else 1.0
-        minimize_scalar(held_out, bounds=(np.log(low), np.log(high)), method="bounded",
-                        options={"maxiter": settings.roughness_refinements, "xatol": ROUGHNESS_XTOL})
+        refine_bracket(fits, lambda r: fit_at(r, directions), settings.roughness_refinements)
     else:
         refined = material_fit.refine_minimum(rs, errors)
         if not np.any(np.isclose(rs, refined)):
             fits[refined] = fit_at(refined, directions)
     return fits, directions
+
+
+def refine_bracket(fits: dict, fit_at, refinements: int) -> None:
+    """Add to ``fits`` ({roughness: fit}) Brent's bounded search in log roughness between the best
+    fit's neighbours, or between the valid range's end and the neighbour when the best is at an
+    end (a mirror-like object below the grid's 0.1 must not stop there): the held-out error is
+    sharp in roughness for glossy objects (a highlight's peak goes as roughness^-4).
+    ``fit_at(r)``: a candidate; ``refinements``: the most candidates."""
+    rs = np.array(sorted(fits))
+    i = int(np.argmin([_score(fits[r]) for r in rs]))
+
+    def held_out(log_r: float) -> float:
+        r = float(np.exp(log_r))
+        near = [x for x in fits if abs(np.log(x / r)) < ROUGHNESS_XTOL / 2]
+        if near:      # Brent's last steps land within its tolerance of a fitted point: that fit
+            return _score(fits[near[0]])
+        fits[r] = fit_at(r)
+        return _score(fits[r])
+
+    low = rs[i - 1] if i > 0 else MIN_ROUGHNESS
+    high = rs[i + 1] if i < len(rs) - 1 else 1.0
+    minimize_scalar(held_out, bounds=(np.log(low), np.log(high)), method="bounded",
+                    options={"maxiter": refinements, "xatol": ROUGHNESS_XTOL})
+
+
+def search_with_detail(candidate, settings, grey, fits: dict, directions) -> dict:
+    """The dielectric candidates ``fits`` ({roughness: fit}) searched again with the lighting's
+    detail part (material_fit.with_detail) when it lowers the best one's held-out error: the best
+    refitted with it, then Brent's search between its neighbours (refine_bracket) with it.  Tried
+    at the best only, where the lobe is sharp enough to show the detail: on the Cycles teapot
+    (roughness 0.3) it never wins, and trying it at every candidate cost half the fit's time."""
+    best = min(fits, key=lambda r: _score(fits[r]))
+
+    def fit_at(r: float):
+        return candidate(Principled(roughness=float(r), ior=settings.ior), grey, False, directions, True)
+
+    again = fit_at(best)
+    if again.detail is None:
+        return fits
+    # bracketed by the grid's points (the plain search's own refinements crowd the plain minimum)
+    grid = roughness_candidates(settings)
+    searched = {r: f for r, f in fits.items() if r in grid and abs(np.log(r / best)) >= ROUGHNESS_XTOL / 2}
+    searched[best] = again
+    if settings.roughness_refinements and len(searched) > 1:
+        refine_bracket(searched, fit_at, settings.roughness_refinements)
+    return {**{r: f for r, f in fits.items() if abs(np.log(r / best)) >= ROUGHNESS_XTOL / 2}, **searched}
 
 
 def descend_grid(grid: list[float], score_at, start: int) -> None:
@@ -353,7 +385,9 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
         known_lighting, known_dirs, known_sources = known.coeffs, known.directions, known.intensity
         scene, direct, map_scale, per_image = known.scene, known.direct, known.scale, known.per_image
 
-    def candidate(material: Principled | None, base0, fix_base: bool, directions):
+    detail = material_fit.DetailSetup(settings.lobe_samples, settings.seed) if settings.lighting_detail == "auto" else None
+
+    def candidate(material: Principled | None, base0, fix_base: bool, directions, with_detail: bool = False):
         if scene is not None:
             return material_fit.fit_to_map(geo, scene, material, obs, base0=base0, fix_base=fix_base, scale=map_scale,
                                            direct=direct)
@@ -365,7 +399,7 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
                                          spec=spec, fix_base=fix_base, orders=orders, lighting_kw=kw,
                                          max_sources=settings.max_sources if directions is None else 0,
                                          source_directions=directions, known_coeffs=known_lighting,
-                                         known_sources=known_sources)
+                                         known_sources=known_sources, detail=detail if with_detail else None)
 
     def select() -> tuple[material_fit.MaterialFit, list[dict], tuple | None, material_fit.MaterialFit | None]:
         if known_brdf is not None:
@@ -428,6 +462,7 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
               "noise_sigma": best.lighting.noise_sigma, "pixel_noise": _pixel_noise_note(noise),
               "candidates": table, "lighting_orders": best.orders, "lighting_refit": refit,
               "sources": sources, "samples": {"used": int(len(obs.weight))},
+              "lighting_detail": _detail_note(best, settings),
               "roughness_interval": None if interval is None or one_fold else list(interval),
               "model_selection": _selection_note(one_fold, known_brdf is not None, settings.folds, brdf),
               "scale_convention": _scale_note(brdf, hint, level) if scale is None else
@@ -609,6 +644,16 @@ def _summary_line(brdf: dict, interval, n_sources: int, given: bool = False, tex
             f"{np.round(brdf['base_color'], 3).tolist()}, {n_sources} directional source(s)")
 
 
+def _detail_note(fit: material_fit.MaterialFit, settings) -> dict:
+    """report.json's lighting_detail: whether the chosen candidate has the lighting's detail part."""
+    if fit.detail is None:
+        return {"setting": settings.lighting_detail, "used": False}
+    return {"setting": settings.lighting_detail, "used": True, "rows": fit.detail.height,
+            "validation_rmse_without": fit.detail.validation_rmse_without,
+            "note": "an equirect map of the lighting above the SH order, seen through the specular lobe only; it "
+                    "shapes the material's fit and is not in lighting_sh.json or lighting.exr"}
+
+
 def _row(fit: material_fit.MaterialFit) -> dict:
     if fit.material is None:
         return {"name": "lambert", "roughness": 0.0, "base_color": [float(x) for x in fit.base],
@@ -619,7 +664,8 @@ def _row(fit: material_fit.MaterialFit) -> dict:
             "metallic": float(fit.material.metallic), "base_color": [float(x) for x in fit.base],
             "params": 3 + 1 + 3 * fit.coeffs.shape[0],
             "validation_rmse": fit.validation_rmse, "train_rmse": fit.train_rmse,
-            "sources": 0 if fit.sources is None else len(fit.sources.power)}
+            "sources": 0 if fit.sources is None else len(fit.sources.power),
+            "detail_rows": None if fit.detail is None else fit.detail.height}
 
 
 def _per_view(obs, pred, image_id, keys, folds) -> list[dict]:

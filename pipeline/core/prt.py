@@ -151,35 +151,46 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
     return SpecularTransfer(_specular_transfer(geo, material, n_samples, seed, chunk, order))
 
 
-def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed: int, chunk: int,
-                       order: int) -> np.ndarray:
-    """S (N, K, 3) of one material with a uniform base colour.  The chunks of samples are computed
-    by one thread per core (Embree and NumPy's large operations release the GIL), each drawing its
-    lobe samples from a generator seeded by (seed, chunk start), so S does not depend on the threads."""
+def _lobe_chunks(geo: Geometry, material: Principled, n_samples: int, seed: int, chunk: int, one_chunk) -> None:
+    """Call ``one_chunk(idx, lobe)`` for chunks of the front-facing samples with their GGX VNDF lobe
+    samples (shading.specular_samples; weights of occluded lobe samples set to 0).  The chunks run on
+    one thread per core (Embree and NumPy's large operations release the GIL), each drawing from a
+    generator seeded by (seed, chunk start), so the result does not depend on the threads."""
     r = geo.renderer
-    n = geo.faces.size
-    out = np.zeros((n, num_coeffs(order), 3))
     front = np.flatnonzero(geo.mu_out > 0)
-    bands = np.arange(order + 1)
 
-    def one_chunk(s: int) -> None:
+    def run(s: int) -> None:
         idx = front[s:s + chunk]
-        rng = np.random.default_rng([seed, s])
-        lobe = specular_samples(material, geo.normals[idx], geo.view_dirs[idx], n_samples, rng)
-        q, ns = lobe.directions.shape[:2]
+        lobe = specular_samples(material, geo.normals[idx], geo.view_dirs[idx], n_samples, np.random.default_rng([seed, s]))
+        ns = lobe.directions.shape[1]
         dirs = lobe.directions.reshape(-1, 3)
-        weight = lobe.weight.reshape(-1, 3).copy()
-        live = np.flatnonzero(weight.max(axis=1) > 0)
+        live = np.flatnonzero(lobe.weight.reshape(-1, 3).max(axis=1) > 0)
         pts = r._points_above(geo.faces[idx], geo.bary[idx])
         hit = r._shadow_rays.intersects_any(np.repeat(pts, ns, axis=0)[live], dirs[live])
-        weight[live[hit]] = 0.0
+        blocked = np.zeros(dirs.shape[0], bool)
+        blocked[live[hit]] = True
+        lobe.weight[blocked.reshape(-1, ns)] = 0.0
+        one_chunk(idx, lobe)
+
+    with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
+        list(pool.map(run, range(0, front.size, chunk)))
+
+
+def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed: int, chunk: int,
+                       order: int) -> np.ndarray:
+    """S (N, K, 3) of one material with a uniform base colour (lobe samples by _lobe_chunks)."""
+    out = np.zeros((geo.faces.size, num_coeffs(order), 3))
+    bands = np.arange(order + 1)
+
+    def one_chunk(idx: np.ndarray, lobe) -> None:
+        q, ns = lobe.directions.shape[:2]
         # each sample stands for its solid angle 1 / (S pdf): Y_k prefiltered over a cap of that size,
         # cap average ~ exp(-l(l+1) θ² / 8) with θ² = Ω / π (as the renderer prefilters its map);
         # the factor depends on the band only, so it goes into the weights, one band at a time
         soft = np.exp(-np.outer(lobe.solid_angle.reshape(-1) / (8 * np.pi), bands * (bands + 1)))  # (q S, L+1)
-        basis = sh_basis(dirs, order).reshape(q, ns, -1)                                     # (q, S, K)
+        basis = sh_basis(lobe.directions.reshape(-1, 3), order).reshape(q, ns, -1)          # (q, S, K)
         soft = soft.reshape(q, ns, -1)
-        w3 = weight.reshape(q, ns, 3)
+        w3 = lobe.weight
         grey = np.array_equal(w3[..., 0], w3[..., 2]) and np.array_equal(w3[..., 0], w3[..., 1])  # dielectric F
         for b in bands:
             block = slice(b * b, (b + 1) * (b + 1))
@@ -188,9 +199,50 @@ def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed
             else:
                 out[idx, block] = np.einsum("qsk,qsc->qkc", basis[:, :, block], w3 * soft[..., b, None])
 
-    with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-        list(pool.map(one_chunk, range(0, front.size, chunk)))
+    _lobe_chunks(geo, material, n_samples, seed, chunk, one_chunk)
     return out
+
+
+def detail_height(material: Principled) -> int:
+    """Rows of the equirect grid a detail map (detail_transfer) needs for ``material``'s lobe: cells
+    two thirds of the lobe's width 2 alpha (the spread of its reflected directions), 16-180 rows."""
+    cell_deg = max(1.0, np.degrees(2.0 * material.alpha) / 1.5)
+    return int(np.clip(round(180.0 / cell_deg), 16, 180))
+
+
+def detail_transfer(geo: Geometry, material: Principled, height: int, n_samples: int = 32, seed: int = 0,
+                    chunk: int = 2048):
+    """The specular lobe's transfer (N, H * 2H) (scipy.sparse CSR) of a dielectric to lighting on an
+    H x 2H equirect grid (DESIGN.md convention) interpolated bilinearly between cell centres:
+    row p is sum_s w_s bilinear(w_s) over sample p's lobe samples (the same ones as
+    specular_transfer's with the same seed, occluded ones 0).  Lighting finer than SH bands carry
+    (what a sharp lobe reflects of an environment's detail) is seen through it."""
+    import scipy.sparse as sp
+
+    if material.metallic > 0:
+        raise ValueError("detail_transfer: a dielectric's lobe only (a metal's F depends on its base colour)")
+    width = 2 * height
+    parts: list = []
+
+    def one_chunk(idx: np.ndarray, lobe) -> None:
+        d = lobe.directions.reshape(-1, 3)
+        w = lobe.weight[..., 0].reshape(-1)
+        # continuous pixel coordinates of each lobe sample; bilinear weights of the 4 nearest centres
+        y = np.arccos(np.clip(d[:, 2], -1.0, 1.0)) / np.pi * height - 0.5
+        x = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2.0 * np.pi) / (2.0 * np.pi) * width - 0.5
+        y0, x0 = np.floor(y).astype(np.int64), np.floor(x).astype(np.int64)
+        fy, fx = y - y0, x - x0
+        rows = np.repeat(idx, lobe.directions.shape[1])
+        for dy, wy in ((0, 1.0 - fy), (1, fy)):
+            yy = np.clip(y0 + dy, 0, height - 1)
+            for dx, wx in ((0, 1.0 - fx), (1, fx)):
+                parts.append((rows, yy * width + np.mod(x0 + dx, width), w * wy * wx))
+
+    _lobe_chunks(geo, material, n_samples, seed, chunk, one_chunk)
+    if not parts:
+        return sp.csr_matrix((geo.faces.size, height * width))
+    r, c, v = (np.concatenate(x) for x in zip(*parts))
+    return sp.csr_matrix((v, (r, c)), shape=(geo.faces.size, height * width))
 
 
 @dataclass

@@ -124,6 +124,22 @@ def test_known_lighting_off_in_scale(tmp_path):
 
 
 @pytest.mark.slow
+def test_glossy_sphere_both_unknown(tmp_path):
+    """Issue 11, both unknown on the sharpest lobe (roughness 0.15 under a night city's lamps): the
+    lighting's detail part (material_fit.with_detail) carries what the lobe reflects of the city
+    beyond SH 8 and three sources.  Measured: roughness 0.158, base (0.071, 0.412, 0.121) for
+    (0.1, 0.45, 0.15), relight 10.65 % by the shared score_relight.py (without the detail part:
+    0.161, (0.091, 0.524, 0.140), 21.0 %; the true material: 7.5 %).  The issue's 6 % is not met:
+    the base colour is 8 % low in level and 3.2 deg off in chromaticity (without: 6.2 deg)."""
+    brdf, report, err = fit_and_relight("sphere_night_glossy", tmp_path / "work")
+    print(brdf, err, report["lighting_detail"])
+    assert brdf["model"] == "principled" and brdf["metallic"] == 0.0
+    assert report["lighting_detail"]["used"]
+    assert abs(brdf["roughness"] / 0.15 - 1) < 0.10
+    assert err.total < 0.13
+
+
+@pytest.mark.slow
 def test_glossy_sphere_known_lighting(tmp_path):
     """Issue 11, lighting known, on the sharpest lobe (roughness 0.15 under a night city's lamps):
     the material is fitted under the map itself (the renderer's model of every sample, the bright
