@@ -40,11 +40,11 @@ import numpy as np
 from pipeline.errors import UserError
 from pipeline.io.camera_files import Exposure
 from pipeline.io.camera_json import read_camera_json
-from pipeline.io.camera_decode import (DECODED_EXTENSIONS, RAW_EXTENSIONS, Probe, decode_other, decode_raw,
-                                       probe)
+from pipeline.io.camera_decode import Probe, decode_other, decode_raw, probe
 from pipeline.io.capture_toml import CAPTURE_TOML, CaptureConfig, did_you_mean, read_capture_config
 from pipeline.io.images import read_image, write_image
 from pipeline.io.linear_manifest import linear_dir, manifest_path, write_manifest
+from pipeline.io.photos import capture_photos
 from pipeline.io.response_json import inverse_table
 from pipeline.settings import setting, settings_dict
 from pipeline.workdir import collected_writes, commit_writes, fingerprints
@@ -97,21 +97,6 @@ def parse_wb(text: str) -> tuple[str, tuple]:
 # Planning: which files, which outputs
 
 
-def list_images(capture: Path) -> list[Path]:
-    """Image files of ``capture/images`` sorted by name; UserError on an empty folder or unknown type."""
-    folder = Path(capture) / "images"
-    if not folder.is_dir():
-        raise UserError(f"{folder}: folder not found; put the photos in CAPTURE/images/")
-    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
-    for p in files:
-        if p.suffix.lower() not in RAW_EXTENSIONS | DECODED_EXTENSIONS:
-            raise UserError(f"{p}: unknown image type {p.suffix!r}; linearize reads RAW (DNG, CR2, NEF, ARW, ...), "
-                            "EXR, HDR, TIFF, PNG and JPEG: convert or remove the file")
-    if not files:
-        raise UserError(f"{folder}: no images; put the photos (RAW, EXR, TIFF, PNG or JPEG) in this folder")
-    return files
-
-
 def plan_groups(files: list[Path], config: CaptureConfig, bracket_size: int) -> dict[str, list[Path]]:
     """Output key -> source files (one file, or the members of a bracket)."""
     by_name = {p.name: p for p in files}
@@ -149,12 +134,12 @@ def _capture_files(capture: Path, config: CaptureConfig) -> list[Path]:
 
 def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     config = read_capture_config(capture)
-    return list_images(capture) + _capture_files(capture, config)
+    return capture_photos(capture) + _capture_files(capture, config)
 
 
 def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     config = read_capture_config(capture)
-    keys = plan_groups(list_images(capture), config, settings.bracket_size)
+    keys = plan_groups(capture_photos(capture), config, settings.bracket_size)
     folder = linear_dir(work)
     return ([folder / f"{k}.exr" for k in keys] + [folder / "masks" / f"{k}.png" for k in keys]
             + [manifest_path(work)])
@@ -368,7 +353,7 @@ def _check_sizes(probes: list[Probe], config: CaptureConfig) -> None:
 def build_jobs(capture: Path, work: Path, settings: Settings) -> list[dict]:
     """Probe every file and describe each output as a picklable job (validates the whole capture first)."""
     config = read_capture_config(capture)
-    files = list_images(capture)
+    files = capture_photos(capture)
     groups = plan_groups(files, config, settings.bracket_size)
     probes = [probe(p) for p in files]
     _check_sizes(probes, config)

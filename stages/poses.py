@@ -38,10 +38,11 @@ from pipeline.core.registration import rotation_angle_deg
 from pipeline.core.similarity import Similarity, ransac_similarity, transform_pose
 from pipeline.errors import UserError
 from pipeline.io.camera_files import srgb_encode
-from pipeline.io.camera_decode import DECODED_EXTENSIONS, RAW_EXTENSIONS
+from pipeline.io.camera_decode import RAW_EXTENSIONS
 from pipeline.io.camera_json import read_camera_json
 from pipeline.io.capture_toml import BoardSpec, CaptureConfig, read_capture_config
 from pipeline.io.linear_manifest import manifest_path, read_linear_image
+from pipeline.io.photos import capture_photos
 from pipeline.io.mesh import MESH_NAMES, mesh_path, read_mesh
 from pipeline.io.pose_imports import is_colmap_model, read_colmap_model, read_transforms_json, transforms_files
 from pipeline.io.poses import ImagePose, Poses, read_poses, write_poses
@@ -50,9 +51,7 @@ from pipeline.workdir import atomic_path, write_json
 from stages import poses_mesh
 from stages.poses_mesh import bundle_adjust
 
-RAW_SUFFIXES = RAW_EXTENSIONS
 DISPLAY_SUFFIXES = {".jpg", ".jpeg", ".png"}  # display-referred 8-bit: copied as they are
-IMAGE_SUFFIXES = RAW_EXTENSIONS | DECODED_EXTENSIONS
 MIN_BOARD_CORNERS = 6  # corners per view for a PnP pose / a usable detection
 COLMAP_MODEL_PLACES = ("sparse/0", "sparse", "colmap/sparse/0")  # COLMAP's and nerfstudio process_data's layouts
 IDENTITY = Similarity(1.0, np.eye(3), np.zeros(3))
@@ -119,20 +118,17 @@ class Settings:
 # capture contents
 
 
-def list_images(capture: Path) -> list[str]:
-    """File names of the supported photos directly in capture/images/ (sorted), as linearize lists them."""
-    folder = Path(capture) / "images"
-    if not folder.is_dir():
-        raise UserError(f"{folder}: no images/ folder in the capture; put the photos there")
-    return sorted(p.name for p in folder.iterdir()
-                  if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith("."))
+def photo_names(capture: Path) -> list[str]:
+    """File names (image keys) of the capture's photos (pipeline.io.photos.capture_photos; other
+    files in images/ are linearize's to refuse)."""
+    return [p.name for p in capture_photos(capture, others="skip")]
 
 
 def pose_keys(capture: Path, work: Path) -> list[str]:
     """The photos that get a pose: one per view.  An exposure bracket is one view, posed under its first
     file's name (``read_linear_image`` resolves that name to the merged image): the linearize manifest
     says which files were merged when it exists, else capture.toml's [brackets]."""
-    files = list_images(capture)
+    files = photo_names(capture)
     if manifest_path(work).exists():
         from pipeline.io.linear_manifest import read_manifest
 
@@ -152,7 +148,7 @@ def calibrated_camera(config: CaptureConfig) -> Camera | None:
 def _camera_group_key(path: Path) -> tuple:
     """What identifies a physical camera: EXIF make, model, focal length and the image size."""
     suffix = path.suffix.lower()
-    if suffix in RAW_SUFFIXES:
+    if suffix in RAW_EXTENSIONS:
         try:
             import tifffile
 
@@ -200,7 +196,7 @@ def load_8bit(path: Path) -> np.ndarray:
     """Any capture photo as 8-bit RGB (H, W, 3), oriented as linearize orients it: the stored pixel
     order, RAW included (EXIF orientation ignored, as COLMAP does)."""
     suffix = path.suffix.lower()
-    if suffix in RAW_SUFFIXES:
+    if suffix in RAW_EXTENSIONS:
         import rawpy
 
         try:
@@ -618,7 +614,7 @@ def _capture_poses(capture: Path) -> Path:
 
 def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     capture = Path(capture)
-    paths = [capture / "images" / k for k in list_images(capture)] if (capture / "images").is_dir() else []
+    paths = [capture / "images" / k for k in photo_names(capture)] if (capture / "images").is_dir() else []
     for extra in (capture / "capture.toml", _capture_poses(capture), Path(work) / "linear" / "manifest.json"):
         if extra.exists():
             paths.append(extra)
@@ -647,7 +643,7 @@ def _pass_through(capture: Path, work: Path, keys: list[str]) -> list[Path]:
         shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
         raise UserError(f"{source}: no pose for {len(missing)} of {len(keys)} photos ({shown}); add them or "
                         "delete poses.json to estimate poses with COLMAP")
-    extra = sorted(set(poses.images) - set(list_images(capture)))
+    extra = sorted(set(poses.images) - set(photo_names(capture)))
     if extra:
         raise UserError(f"{source}: poses for photos that are not in images/ ({', '.join(extra[:5])}); "
                         "fix the image keys (file names relative to images/)")

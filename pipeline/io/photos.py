@@ -1,12 +1,34 @@
-"""The photos a command reads (calib intrinsics, response, vignetting): folders and files as given on
-the command line."""
+"""The photos a command reads: a capture's images/ folder (linearize, poses), or folders and files as
+given on the command line (calib intrinsics, response, vignetting)."""
 
 from __future__ import annotations
 
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Literal
 
 from pipeline.errors import UserError
+from pipeline.io.camera_decode import DECODED_EXTENSIONS, RAW_EXTENSIONS
+
+
+def capture_photos(capture: Path, others: Literal["refuse", "skip"] = "refuse") -> list[Path]:
+    """The photo files of ``capture/images`` sorted by name (hidden files skipped); UserError on a
+    missing folder.  ``others="refuse"`` (linearize, which reads every file): UserError on a file
+    of a type linearize cannot read and on an empty folder; ``"skip"`` (poses, after linearize):
+    such files are left out."""
+    folder = Path(capture) / "images"
+    if not folder.is_dir():
+        raise UserError(f"{folder}: folder not found; put the photos in CAPTURE/images/")
+    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    if others == "skip":
+        return [p for p in files if p.suffix.lower() in RAW_EXTENSIONS | DECODED_EXTENSIONS]
+    for p in files:
+        if p.suffix.lower() not in RAW_EXTENSIONS | DECODED_EXTENSIONS:
+            raise UserError(f"{p}: unknown image type {p.suffix!r}; linearize reads RAW (DNG, CR2, NEF, ARW, ...), "
+                            "EXR, HDR, TIFF, PNG and JPEG: convert or remove the file")
+    if not files:
+        raise UserError(f"{folder}: no images; put the photos (RAW, EXR, TIFF, PNG or JPEG) in this folder")
+    return files
 
 
 def photo_files(images: Path | str | Iterable[Path | str], extensions: set[str] | frozenset[str]) -> list[Path]:
