@@ -38,6 +38,7 @@ import numpy as np
 from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays, project
 from pipeline.core.brdf import reflect
 from pipeline.core.coverage import EqualAreaGrid, coverage_stats
+from pipeline.core.surface import POINT_LIFT, lifted
 from pipeline.errors import UserError
 from pipeline.io.camera_decode import probe
 from pipeline.io.camera_files import Exposure
@@ -160,8 +161,9 @@ def vertex_visibility(mesh, rays: int, chunk: int = 262144) -> np.ndarray:
     t1 = np.cross(normals, helper)
     t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
     t2 = np.cross(normals, t1)
-    offset = 1e-5 * float(np.linalg.norm(mesh.extents))  # lift origins off the surface (no self-hit)
-    origins = np.asarray(mesh.vertices, float) + offset * normals
+    # the face lift, not the renderer's VERTEX_LIFT: the lift scales with the mesh's diagonal, and at
+    # 1e-4 of a 2 km scene the origins rise 0.2 m above the floor they stand on (the wall test)
+    origins = lifted(mesh.vertices, normals, float(np.linalg.norm(mesh.extents)), POINT_LIFT)
     visible = np.zeros(len(normals))
     per = max(1, chunk // rays)
     for start in tqdm(range(0, len(normals), per), desc="visibility", unit="chunk", leave=False, disable=None):

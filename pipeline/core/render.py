@@ -49,7 +49,7 @@ from pipeline.core.brdf import beckmann_distribution, phong_lobe, vcavity_shadow
 from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays, subpixel_offsets
 from pipeline.core.envmap import (downsample, equirect_directions, equirect_solid_angles, lookup)
 from pipeline.core.material import principled_from_dict
-from pipeline.core.surface import barycentric, interpolated_normals
+from pipeline.core.surface import POINT_LIFT, VERTEX_LIFT, barycentric, interpolated_normals, lifted
 from pipeline.core.shading import (EnvPyramid, front_cos, lobe_support_cos, specular_over_directions,
                                    specular_over_footprint, specular_samples, stratified_unit_square, tangent_frames)
 
@@ -326,11 +326,11 @@ class Renderer:
     def _points_above(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Points on faces, lifted along the face normal: ray origins that do not hit their own face."""
         fn = np.asarray(self.mesh.face_normals)[faces]
-        return np.einsum("pk,pkc->pc", bary, self.mesh.triangles[faces]) + fn * (1e-5 * self._scale)
+        return lifted(np.einsum("pk,pkc->pc", bary, self.mesh.triangles[faces]), fn, self._scale, POINT_LIFT)
 
     def vertices_above(self) -> np.ndarray:
         """The vertices (V, 3), lifted along their normals: ray origins that do not hit their own surface."""
-        return np.asarray(self.mesh.vertices, float) + self._vertex_normals * (1e-4 * self._scale)
+        return lifted(self.mesh.vertices, self._vertex_normals, self._scale, VERTEX_LIFT)
 
     def _vertex_base(self) -> np.ndarray:
         """Per-vertex diffuse colour (V, 3): vertex_albedo, or the material's base colour / albedo."""

@@ -7,6 +7,10 @@
 * The shading normal is the barycentric interpolation of the vertex normals, normalized; where the
   vertex normals cancel (|n| <= 1e-6: a crease of opposite faces, a non-manifold fold) it is the
   face's geometric normal.
+* Ray origins on the surface are lifted off it so that they do not hit their own triangle: a
+  point on a face along the face normal by 1e-5 of the mesh's diagonal (POINT_LIFT), a vertex along
+  its vertex normal by 1e-4 (VERTEX_LIFT: a vertex normal leaves the faces around a concave vertex
+  at an angle, so it needs the larger lift).
 """
 
 from __future__ import annotations
@@ -14,6 +18,14 @@ from __future__ import annotations
 import numpy as np
 
 DEGENERATE_NORMAL = 1e-6   # interpolated vertex normals shorter than this fall back to the face normal
+POINT_LIFT = 1e-5          # ray origins on a face: lifted along the face normal by this x the mesh's diagonal
+VERTEX_LIFT = 1e-4         # ray origins at a vertex: lifted along the vertex normal by this x the diagonal
+
+
+def lifted(points: np.ndarray, normals: np.ndarray, diagonal: float, lift: float) -> np.ndarray:
+    """Ray origins (N, 3): ``points`` moved along unit ``normals`` by ``lift`` (POINT_LIFT or
+    VERTEX_LIFT) x the mesh's ``diagonal``."""
+    return np.asarray(points, float) + np.asarray(normals, float) * (lift * diagonal)
 
 
 def barycentric(triangles: np.ndarray, points: np.ndarray) -> np.ndarray:
