@@ -52,7 +52,13 @@ def test_glossy_teapot_both_unknown(tmp_path):
     """Issue 11 targets: relight <= 7%, roughness within 25%, base colour chromaticity within 3 deg.
     Measured: relight 5.05% (rim 6.35, interior 3.83; the convex fit: 77.2%), roughness 0.300
     (truth 0.3), base (0.752, 0.471, 0.096) for (0.7, 0.45, 0.1): 1.6 deg; the city sun found as
-    one directional source; the renderer with the true material scores 3.11%."""
+    one directional source; the renderer with the true material scores 3.11%.  The lighting's
+    bands 0-2 (lighting_sh.json, sources included) after one scale per channel against the SH of
+    the map Cycles rendered with (the issue's 5 %): 0.43 / 0.34 / 0.84 %."""
+    from pipeline.core.sh import project_envmap
+    from pipeline.io.images import read_envmap
+    from pipeline.io.lighting import read_lighting_sh
+
     brdf, report, err = fit_and_relight("teapot_city_glossy", tmp_path / "work")
     print(brdf, err)
     assert brdf["model"] == "principled" and report["mode"] == "factorization"
@@ -62,6 +68,12 @@ def test_glossy_teapot_both_unknown(tmp_path):
     lo, hi = report["roughness_interval"]
     assert lo <= brdf["roughness"] <= hi
     assert len(report["sources"]) >= 1
+    fitted = read_lighting_sh(tmp_path / "work" / "fit" / "lighting_sh.json")[:9]
+    truth = project_envmap(np.asarray(read_envmap(DATA / "teapot_city_glossy" / "gt" / "lighting.exr"))[..., :3], 2)
+    fitted = fitted * (fitted * truth).sum(axis=0) / (fitted * fitted).sum(axis=0)   # the scale convention's
+    errors = [np.linalg.norm(fitted[l * l:(l + 1) ** 2] - truth[l * l:(l + 1) ** 2])
+              / np.linalg.norm(truth[l * l:(l + 1) ** 2]) for l in range(3)]
+    assert max(errors) < 0.05, errors
 
 
 @pytest.mark.slow
