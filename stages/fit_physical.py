@@ -304,9 +304,12 @@ def search_with_detail(candidate, settings, grey, fits: dict, directions) -> dic
     """The dielectric candidates ``fits`` ({roughness: fit}) searched again with the lighting's
     detail part (material_fit.with_detail) when it lowers the best one's held-out error: the best
     refitted with it, then Brent's search between its neighbours (refine_bracket) with it.  Tried
-    at the best only, where the lobe is sharp enough to show the detail: on the Cycles teapot
-    (roughness 0.3) it never wins, and trying it at every candidate cost half the fit's time."""
+    at the best only (on the Cycles teapot, roughness 0.3, it never wins, and trying it at every
+    candidate cost half the fit's time), and only where the lobe is sharp enough to show detail
+    the SH cannot: its width 2 alpha below half the SH order's resolution 180 deg / order."""
     best = min(fits, key=lambda r: _score(fits[r]))
+    if np.degrees(2.0 * Principled(roughness=best).alpha) >= 90.0 / candidate_order(settings):
+        return fits
 
     def fit_at(r: float):
         return candidate(Principled(roughness=float(r), ior=settings.ior), grey, False, directions, True)
@@ -346,6 +349,11 @@ def _score(fit: material_fit.MaterialFit) -> float:
 ROUGHNESS_XTOL = 0.01    # the search stops within 1% of roughness (a highlight's peak: 4%)
 
 
+def candidate_order(settings) -> int:
+    """The SH order the material candidates are fitted and compared at."""
+    return int(settings.order) if settings.order != "auto" else settings.factor_order
+
+
 def roughness_candidates(settings) -> list[float]:
     try:
         values = sorted({float(x) for x in settings.roughness_candidates.split(",") if x.strip()})
@@ -365,7 +373,7 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     rays = ray_mesh(mesh)        # the renderer's view of the mesh: arrays and ray intersector, built once
     samples_path = Path(work) / "samples.npz"
     data, noise = load_samples(samples_path, settings, len(mesh.faces))
-    order = int(settings.order) if settings.order != "auto" else settings.factor_order
+    order = candidate_order(settings)
     orders = [order] if settings.order != "auto" else list(range(order + 1))
     top = max(order, settings.max_order) if settings.order == "auto" else order   # the final lighting's orders
     t0 = time.perf_counter()
