@@ -443,14 +443,7 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
         timings["albedo_level"] = time.perf_counter() - t1
     refit = None
     if known_lighting is None and settings.order == "auto" and not one_fold:
-        t1 = time.perf_counter()
-        spec_top = None if best.material is None else prt.specular_transfer(geo, best.material, settings.lobe_samples,
-                                                                            settings.seed, order=top)
-        before = best.validation_rmse
-        best, tried = material_fit.refine_lighting(geo, best, spec_top, obs, order=top, folds=settings.folds,
-                                                   lighting_kw=kw, priors=prior_choices(settings))
-        refit = {"orders": f"0-{top}", "priors": prior_choices(settings), "validation_rmse_before": before,
-                 "validation_rmse": best.validation_rmse, "tried": tried, "seconds": time.perf_counter() - t1}
+        best, refit = final_lighting(geo, best, obs, settings, kw, top)
         timings["lighting_refit"] = refit["seconds"]
     if scene is not None:        # what lighting_sh.json records, and the bands' labels: the SH + sources form
         scene = None
@@ -460,28 +453,61 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     timings["material"] = time.perf_counter() - t0
 
     brdf = _brdf_json(best)
-    coeffs = best.coeffs
-    bands = solve.data_labels(best.lighting.bands, best.lighting.noise_sigma, noise["unit_sigma"], settings.min_snr)
-    sources = [] if best.sources is None else [
-        {"direction": d.tolist(), "intensity": p.tolist()} for d, p in zip(best.sources.directions, best.sources.power)]
-    report = {"mode": mode, "forward_model": "physical (pipeline.core.prt: shadows, interreflection, GGX)",
-              "order": order_of(coeffs.shape[0]), "brdf_model": brdf["model"], "brdf": brdf,
-              "bands": bands, "labels": {b["l"]: b["label"] for b in bands},
-              "noise_sigma": best.lighting.noise_sigma, "pixel_noise": _pixel_noise_note(noise),
-              "candidates": table, "lighting_orders": best.orders, "lighting_refit": refit,
-              "sources": sources, "samples": {"used": int(len(obs.weight))},
-              "lighting_detail": _detail_note(best, settings),
+    report = {"mode": mode, **_lighting_report(best, noise, settings), "brdf_model": brdf["model"], "brdf": brdf,
+              "candidates": table, "lighting_refit": refit, "samples": {"used": int(len(obs.weight))},
               "roughness_interval": None if interval is None or one_fold else list(interval),
               "model_selection": _selection_note(one_fold, known_brdf is not None, settings.folds, brdf),
               "scale_convention": _scale_note(brdf, hint, level) if scale is None else
               {"source": "the known lighting", "lighting_scale": scale}}
     if per_image is not None:
-        report["lighting_per_image"] = {
-            "source": f"{Path(capture) / 'capture.toml'} [lighting]", "lightings": len(per_image[0]),
+        report["lighting_per_image"] = _per_image_note(capture, per_image)
+    vertex_rho = texture_and_residuals(mesh, data, geo, obs, best, brdf, report, settings, keys)
+    print(_summary_line(brdf, None if one_fold else interval, len(report["sources"]), known_brdf is not None,
+                        textured=vertex_rho is not None), file=sys.stderr)
+    timings["total"] = time.perf_counter() - t_start
+    report["timings"] = timings
+    return write_outputs(Path(work) / "fit", best, brdf, report, settings, (mesh, vertex_rho),
+                         f"sigrend fit ({mode}, physical)")
+
+
+def final_lighting(geo, best: material_fit.MaterialFit, obs, settings, kw: dict, top: int) -> tuple:
+    """(the chosen candidate with its lighting refitted to SH orders 0-``top`` and the prior scales
+    of --band-prior-choices (material_fit.refine_lighting), report.json's lighting_refit)."""
+    t0 = time.perf_counter()
+    spec = None if best.material is None else prt.specular_transfer(geo, best.material, settings.lobe_samples,
+                                                                    settings.seed, order=top)
+    before = best.validation_rmse
+    best, tried = material_fit.refine_lighting(geo, best, spec, obs, order=top, folds=settings.folds, lighting_kw=kw,
+                                               priors=prior_choices(settings))
+    return best, {"orders": f"0-{top}", "priors": prior_choices(settings), "validation_rmse_before": before,
+                  "validation_rmse": best.validation_rmse, "tried": tried, "seconds": time.perf_counter() - t0}
+
+
+def _lighting_report(best: material_fit.MaterialFit, noise: dict, settings) -> dict:
+    """report.json's lighting entries: order, bands and labels (against the photos' noise), the
+    residual's sigma, the pixel noise, the held-out order table, the sources and the detail part."""
+    bands = solve.data_labels(best.lighting.bands, best.lighting.noise_sigma, noise["unit_sigma"], settings.min_snr)
+    sources = [] if best.sources is None else [
+        {"direction": d.tolist(), "intensity": p.tolist()} for d, p in zip(best.sources.directions, best.sources.power)]
+    return {"forward_model": "physical (pipeline.core.prt: shadows, interreflection, GGX)",
+            "order": order_of(best.coeffs.shape[0]), "bands": bands, "labels": {b["l"]: b["label"] for b in bands},
+            "noise_sigma": best.lighting.noise_sigma, "pixel_noise": _pixel_noise_note(noise),
+            "lighting_orders": best.orders, "sources": sources, "lighting_detail": _detail_note(best, settings)}
+
+
+def _per_image_note(capture: Path, per_image: tuple) -> dict:
+    """report.json's lighting_per_image: which lighting each photo was fitted under."""
+    return {"source": f"{Path(capture) / 'capture.toml'} [lighting]", "lightings": len(per_image[0]),
             "recorded": "lighting_sh.json and lighting.exr hold the first photo's lighting",
             "images": {k: str(light.path) if light.path else {"direction": light.direction, "intensity": light.intensity}
                        for k, light in per_image[2].items()}}
-    out = Path(work) / "fit"
+
+
+def texture_and_residuals(mesh, data: dict, geo, obs, best: material_fit.MaterialFit, brdf: dict, report: dict,
+                          settings, keys: list[str]) -> np.ndarray | None:
+    """The per-vertex albedo choice (stages.fit.albedo_from_shading on the physical shading; brdf's
+    colour becomes the texture's mean when it wins) and the residual per view of the chosen model,
+    a texture's colour at each sample, into ``report``; -> the per-vertex albedo (V, 3) or None."""
     spec = None if best.material is None or best.parts is not None else prt.specular_transfer(   # parts: fit_to_map's
         geo, best.material, settings.lobe_samples, settings.seed)
     shade, specular = material_fit.shading_parts(geo, best, spec)
@@ -494,16 +520,10 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
         if vertex_rho is not None:
             key = "albedo" if brdf["model"] == "lambert" else "base_color"
             brdf[key] = [float(x) for x in np.clip(vertex_rho.mean(axis=0), 0.0, 1.0)]
-    # the residuals and the summary of the chosen model: a texture's colour at each sample
     rho = best.base if vertex_rho is None else texture.interpolation_matrix(
         mesh.faces, data["face"], data["bary"].astype(float), len(mesh.vertices)) @ vertex_rho
-    views = _per_view(obs, rho * shade + specular, data["image_id"], keys, settings.folds)
-    report["residuals_per_view"] = views
-    print(_summary_line(brdf, None if one_fold else interval, len(sources), known_brdf is not None,
-                        textured=vertex_rho is not None), file=sys.stderr)
-    timings["total"] = time.perf_counter() - t_start
-    report["timings"] = timings
-    return write_outputs(out, best, brdf, report, settings, (mesh, vertex_rho), f"sigrend fit ({mode}, physical)")
+    report["residuals_per_view"] = _per_view(obs, rho * shade + specular, data["image_id"], keys, settings.folds)
+    return vertex_rho
 
 
 @dataclass(frozen=True)
