@@ -80,9 +80,6 @@ def test_relight_matches_cycles_with_true_lighting_and_material(scene, tmp_path)
     refs = relight_references(folder, [p.name for p in rendered])
     assert len(rendered) == 4
     err = block_relative_rmse([read_image(p) for p in rendered], refs)
-    print(scene, err, "(against the shared references as they are:",
-          block_relative_rmse([read_image(p) for p in rendered],
-                              [read_image(folder / "gt" / "relight" / "images" / p.name) for p in rendered]), ")")
     assert err.total < total and err.interior < interior, err
     assert all(abs(s - 1) < 0.05 for s in err.scale), err  # the absolute scale is right too
 
