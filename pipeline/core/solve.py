@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.core.forward import WIDTH_PARAM
 from pipeline.core.sh import band_of_index, num_coeffs
 
 LABELS = ("recoverable", "ill-conditioned", "ill-posed")
@@ -379,7 +380,7 @@ def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.00
         return {"brdf": {"model": "lambert", "albedo": albedo.tolist()}, "mse": rss / (3 * wsum),
                 "width": None, "profile": [], "width_recoverable": None}
     lo, hi = WIDTH_BOUNDS[model]
-    param = "exponent" if model == "phong" else "roughness"
+    param = WIDTH_PARAM[model]
 
     def mse_at(log_w: float) -> float:
         return linear_brdf(data, model, filter_fn(model, float(np.exp(log_w)), data.cos_view))[2] / (3 * wsum)
@@ -414,7 +415,7 @@ def brdf_mse(data: BrdfData, brdf: dict, filter_fn) -> float:
     model = brdf["model"]
     pred = np.asarray(brdf["albedo"])[None, :] * data.diffuse
     if model != "lambert":
-        filt = filter_fn(model, float(brdf["exponent" if model == "phong" else "roughness"]), data.cos_view)
+        filt = filter_fn(model, float(brdf[WIDTH_PARAM[model]]), data.cos_view)
         lobe = np.einsum("nlc,nl->nc", data.bands, filt)
         spec = np.asarray(brdf["specular"])[None, :]
         k = spec if model == "phong" else spec * (1.0 - data.grazing[:, None]) + data.grazing[:, None]
