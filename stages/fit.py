@@ -24,7 +24,7 @@ spectrum.png, residuals.png (+ albedo.ply when textured).  Details: docs/fit.md.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -606,135 +606,170 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     known_lighting = None if settings.lighting == "unknown" else load_known_lighting(settings.lighting, settings.env_order)
     total = int(meta.get("count", 0))
     valid = sum(len(c["weight"]) for c in iter_sample_chunks(samples_path, settings.chunk, ("weight",))) if not total else total
-
     report: dict = {"settings": settings_dict(settings), "samples": {"total": valid}}
-    candidates: list[dict] = []
-    bands: list[dict] = []
-    noise = None
     if known_brdf is not None and known_lighting is None:
-        mode = "lighting"
-        brdf = known_brdf
-        max_order = explicit_order if explicit_order is not None else settings.max_order
-        t0 = time.perf_counter()
-        eqs, cover = accumulate(samples_path, settings, brdf, max_order)
-        timings["normal_equations"] = time.perf_counter() - t0
-        _check_counts(eqs, cover, explicit_order, samples_path)
-        t0 = time.perf_counter()
-        fit, cands, order = choose_order(eqs, brdf, settings, cover["carried"], explicit_order, cover["views"])
-        timings["solve"] = time.perf_counter() - t0
-        coeffs, bands, noise = fit.coeffs, fit.bands, fit.noise_sigma
-        report["band_prior"] = _chosen_prior(cands, fit)
-        candidates = _lighting_candidates_json(cands)
-        report["samples"].update(used=int(eqs.count.sum()), coverage=cover)
+        result = _lighting_mode(samples_path, settings, known_brdf, explicit_order, report, timings)
     else:
         with_lobe = (fit_model or "auto") != "lambert" or (known_brdf or {}).get("model") in forward.LOBE_MODELS
         data = load_subset(samples_path, settings, valid, settings.lobe_min_cos if with_lobe else 0.0)
-        n_used = len(data.get("weight", []))
-        if n_used == 0:
+        if len(data.get("weight", [])) == 0:
             raise UserError(f"{samples_path}: no samples left after leaving out zero-weight, non-finite and "
                             f"self-shadowed (visibility < {settings.min_visibility}) ones; lower --min-visibility "
                             "or check the samples stage's drop counts")
-        report["samples"].update(used=n_used)
+        report["samples"].update(used=len(data["weight"]))
         models = [fit_model] if fit_model else ["lambert", "phong", "microfacet"]
         if known_lighting is not None and known_brdf is not None:
-            mode = "check"
-            coeffs, brdf = known_lighting, known_brdf
+            result = ConvexFit("check", known_lighting, known_brdf)
         elif known_lighting is not None:
-            mode = "brdf"
-            coeffs = known_lighting
             t0 = time.perf_counter()
-            bd = brdf_data(data, coeffs, settings.folds)
-            cands = fit_brdf_models(bd, models, settings, order_of(coeffs.shape[0]))
-            pick = solve.parsimonious_choice(cands, settings.parsimony, noise=settings.noise_floor * _rms(data))
-            brdf = cands[pick]["fit"]["brdf"]
-            report["brdf_width"] = {k: v for k, v in cands[pick]["fit"].items() if k not in ("brdf",)}
-            candidates = [{k: v for k, v in c.items() if k != "fit"} for c in cands]
+            result = _brdf_mode(data, known_lighting, models, settings, report)
             timings["brdf_fit"] = time.perf_counter() - t0
         else:
-            mode = "factorization"
-            work_order = explicit_order if explicit_order is not None else min(settings.factor_order, settings.max_order)
-            target = np.asarray(hint if hint is not None else [DEFAULT_ALBEDO] * 3, float)
-            _check_subset_counts(data, work_order, samples_path, explicit_order)
             t0 = time.perf_counter()
-            cands = []
-            for model in models:
-                tm = time.perf_counter()
-                train = {k: v[data["image_id"] % settings.folds != 0] for k, v in data.items()}
-                held = {k: v[data["image_id"] % settings.folds == 0] for k, v in data.items()}
-                if len(train["weight"]) == 0 or len(held["weight"]) == 0:
-                    train = held = data
-                c_t, b_t = factorize(train, model, work_order, target, settings)
-                pred = forward.render_samples(c_t, b_t, held["normal"], held["view_dir"])
-                val = float(np.sqrt(((held["radiance"] - pred) ** 2 * held["weight"][:, None]).sum()
-                                    / (3 * held["weight"].sum())))
-                pred = forward.render_samples(c_t, b_t, train["normal"], train["view_dir"])
-                tr = float(np.sqrt(((train["radiance"] - pred) ** 2 * train["weight"][:, None]).sum()
-                                   / (3 * train["weight"].sum())))
-                n_lobe = 4 if model != "lambert" else 0
-                cands.append({"name": model, "params": 3 * num_coeffs(work_order) + 3 + n_lobe, "train_rmse": tr,
-                              "validation_rmse": val, "seconds": time.perf_counter() - tm})
-            # training error on the training views; only the chosen model is refitted on all views
-            pick = solve.parsimonious_choice(cands, settings.parsimony, noise=settings.noise_floor * _rms(data))
-            tm = time.perf_counter()
-            coeffs, brdf = factorize(data, cands[pick]["name"], work_order, target, settings)
-            cands[pick]["seconds"] += time.perf_counter() - tm
-            coeffs, brdf, scale = apply_scale_convention(coeffs, brdf, target)
-            if brdf["model"] != "lambert":
-                # how well the data pin the lobe width given the factorized lighting (profile only)
-                fn = lambda m, w, c: _filter_fn(m, w, order_of(coeffs.shape[0]), c)  # noqa: E731
-                profile = solve.fit_brdf(brdf_data(data, coeffs, settings.folds), brdf["model"], fn,
-                                         noise_floor=settings.noise_floor)
-                report["brdf_width"] = {k: v for k, v in profile.items() if k != "brdf"}
-                report["brdf_width"]["recoverable_given_fitted_lighting"] = report["brdf_width"].pop("width_recoverable")
-                report["brdf_width"]["width_recoverable"] = None
-                report["brdf_width"]["note"] = ("factorization: a radially symmetric lobe trades its width against "
-                                                "lighting blur and only the diffuse part separates them (weakly), so "
-                                                "the profile, taken with the fitted lighting fixed, overstates certainty")
-            report["scale_convention"] = {
-                "source": "capture.toml [fit] known_albedo" if hint is not None else f"default grey albedo {DEFAULT_ALBEDO}",
-                "albedo": target.tolist(), "applied_channel_scale": scale.tolist(),
-                "note": "lighting and BRDF are determined up to one scale per colour channel; "
-                        "the lighting carries the inverse of the scale applied to the BRDF"}
-            candidates = [{k: v for k, v in c.items() if k != "fit"} for c in cands]
+            result = _factorization_mode(data, models, settings, hint, explicit_order, samples_path, report)
             timings["factorization"] = time.perf_counter() - t0
-        if mode in ("factorization",):
-            # final lighting with labels and order choice for the chosen BRDF
             t0 = time.perf_counter()
-            max_order = explicit_order if explicit_order is not None else settings.max_order
-            eqs = equations_from_arrays(data, settings, brdf, max_order)
-            cells = len(occupied_cells(data["normal"], CELLS_PER_AXIS))
-            fit, cands_o, order = choose_order(eqs, brdf, settings, cells, explicit_order,
-                                               len(np.unique(data["image_id"])))
-            coeffs, bands, noise = fit.coeffs, fit.bands, fit.noise_sigma
-            report["band_prior"] = _chosen_prior(cands_o, fit)
-            candidates += _lighting_candidates_json(cands_o)
+            _final_lighting(result, data, settings, explicit_order, report)
             timings["order_selection"] = time.perf_counter() - t0
-    order = order_of(coeffs.shape[0])
-    report.update(mode=mode, order=order, brdf_model=brdf["model"], brdf=brdf, bands=bands,
-                  noise_sigma=noise, candidates=candidates,
-                  labels={b["l"]: b["label"] for b in bands})
+    report.update(mode=result.mode, order=order_of(result.coeffs.shape[0]), brdf_model=result.brdf["model"],
+                  brdf=result.brdf, bands=result.bands, noise_sigma=result.noise, candidates=result.candidates,
+                  labels={b["l"]: b["label"] for b in result.bands})
+    written = _write_outputs(work / "fit", capture, samples_path, settings, result, keys, report, timings)
+    timings["total"] = time.perf_counter() - t_start
+    report["timings"] = timings
+    written.insert(3, write_report(work / "fit" / "report.json", report))
+    return written
 
-    out = work / "fit"
+
+@dataclass
+class ConvexFit:
+    """The convex path's result: its mode, the lighting's SH coefficients ((L+1)^2, 3), the brdf dict,
+    the lighting's band diagnostics and noise sigma (a lighting fit's; none when the lighting is
+    given) and the candidates table."""
+
+    mode: str
+    coeffs: np.ndarray
+    brdf: dict
+    bands: list = field(default_factory=list)
+    noise: float | None = None
+    candidates: list = field(default_factory=list)
+
+
+def _lighting_mode(samples_path: Path, settings: Settings, brdf: dict, explicit_order: int | None, report: dict,
+                   timings: dict) -> ConvexFit:
+    """Known BRDF, unknown lighting: streamed normal equations, the order chosen by held-out views."""
+    max_order = explicit_order if explicit_order is not None else settings.max_order
     t0 = time.perf_counter()
+    eqs, cover = accumulate(samples_path, settings, brdf, max_order)
+    timings["normal_equations"] = time.perf_counter() - t0
+    _check_counts(eqs, cover, explicit_order, samples_path)
+    t0 = time.perf_counter()
+    fit, cands, order = choose_order(eqs, brdf, settings, cover["carried"], explicit_order, cover["views"])
+    timings["solve"] = time.perf_counter() - t0
+    report["band_prior"] = _chosen_prior(cands, fit)
+    report["samples"].update(used=int(eqs.count.sum()), coverage=cover)
+    return ConvexFit("lighting", fit.coeffs, brdf, fit.bands, fit.noise_sigma, _lighting_candidates_json(cands))
+
+
+def _brdf_mode(data: dict, coeffs: np.ndarray, models: list[str], settings: Settings, report: dict) -> ConvexFit:
+    """Known lighting, unknown BRDF: each model's parameters, the simplest within the parsimony rule."""
+    bd = brdf_data(data, coeffs, settings.folds)
+    cands = fit_brdf_models(bd, models, settings, order_of(coeffs.shape[0]))
+    pick = solve.parsimonious_choice(cands, settings.parsimony, noise=settings.noise_floor * _rms(data))
+    report["brdf_width"] = {k: v for k, v in cands[pick]["fit"].items() if k not in ("brdf",)}
+    return ConvexFit("brdf", coeffs, cands[pick]["fit"]["brdf"],
+                     candidates=[{k: v for k, v in c.items() if k != "fit"} for c in cands])
+
+
+def _factorization_candidate(data: dict, model: str, order: int, target: np.ndarray, settings: Settings) -> dict:
+    """One model of the factorization fitted on the views of folds 1.. and scored on fold 0's."""
+    tm = time.perf_counter()
+    train = {k: v[data["image_id"] % settings.folds != 0] for k, v in data.items()}
+    held = {k: v[data["image_id"] % settings.folds == 0] for k, v in data.items()}
+    if len(train["weight"]) == 0 or len(held["weight"]) == 0:
+        train = held = data
+    c_t, b_t = factorize(train, model, order, target, settings)
+
+    def rmse(part: dict) -> float:
+        pred = forward.render_samples(c_t, b_t, part["normal"], part["view_dir"])
+        return float(np.sqrt(((part["radiance"] - pred) ** 2 * part["weight"][:, None]).sum() / (3 * part["weight"].sum())))
+
+    n_lobe = 4 if model != "lambert" else 0
+    return {"name": model, "params": 3 * num_coeffs(order) + 3 + n_lobe, "train_rmse": rmse(train),
+            "validation_rmse": rmse(held), "seconds": time.perf_counter() - tm}
+
+
+def _factorization_mode(data: dict, models: list[str], settings: Settings, hint, explicit_order: int | None,
+                        samples_path: Path, report: dict) -> ConvexFit:
+    """Both unknown: each model factorized on the training views and scored on the held-out ones
+    (training error on the training views); the chosen one refitted on all views, under the scale
+    convention (capture.toml known_albedo, else the default grey)."""
+    work_order = explicit_order if explicit_order is not None else min(settings.factor_order, settings.max_order)
+    target = np.asarray(hint if hint is not None else [DEFAULT_ALBEDO] * 3, float)
+    _check_subset_counts(data, work_order, samples_path, explicit_order)
+    cands = [_factorization_candidate(data, model, work_order, target, settings) for model in models]
+    pick = solve.parsimonious_choice(cands, settings.parsimony, noise=settings.noise_floor * _rms(data))
+    tm = time.perf_counter()
+    coeffs, brdf = factorize(data, cands[pick]["name"], work_order, target, settings)
+    cands[pick]["seconds"] += time.perf_counter() - tm
+    coeffs, brdf, scale = apply_scale_convention(coeffs, brdf, target)
+    if brdf["model"] != "lambert":
+        # how well the data pin the lobe width given the factorized lighting (profile only)
+        fn = lambda m, w, c: _filter_fn(m, w, order_of(coeffs.shape[0]), c)  # noqa: E731
+        profile = solve.fit_brdf(brdf_data(data, coeffs, settings.folds), brdf["model"], fn,
+                                 noise_floor=settings.noise_floor)
+        report["brdf_width"] = {k: v for k, v in profile.items() if k != "brdf"}
+        report["brdf_width"]["recoverable_given_fitted_lighting"] = report["brdf_width"].pop("width_recoverable")
+        report["brdf_width"]["width_recoverable"] = None
+        report["brdf_width"]["note"] = ("factorization: a radially symmetric lobe trades its width against "
+                                        "lighting blur and only the diffuse part separates them (weakly), so "
+                                        "the profile, taken with the fitted lighting fixed, overstates certainty")
+    report["scale_convention"] = {
+        "source": "capture.toml [fit] known_albedo" if hint is not None else f"default grey albedo {DEFAULT_ALBEDO}",
+        "albedo": target.tolist(), "applied_channel_scale": scale.tolist(),
+        "note": "lighting and BRDF are determined up to one scale per colour channel; "
+                "the lighting carries the inverse of the scale applied to the BRDF"}
+    return ConvexFit("factorization", coeffs, brdf, candidates=[{k: v for k, v in c.items() if k != "fit"} for c in cands])
+
+
+def _final_lighting(result: ConvexFit, data: dict, settings: Settings, explicit_order: int | None,
+                    report: dict) -> None:
+    """The factorization's final lighting for its chosen BRDF: labels and the order by held-out views."""
+    max_order = explicit_order if explicit_order is not None else settings.max_order
+    eqs = equations_from_arrays(data, settings, result.brdf, max_order)
+    cells = len(occupied_cells(data["normal"], CELLS_PER_AXIS))
+    fit, cands_o, order = choose_order(eqs, result.brdf, settings, cells, explicit_order,
+                                       len(np.unique(data["image_id"])))
+    result.coeffs, result.bands, result.noise = fit.coeffs, fit.bands, fit.noise_sigma
+    report["band_prior"] = _chosen_prior(cands_o, fit)
+    result.candidates += _lighting_candidates_json(cands_o)
+
+
+def _write_outputs(out: Path, capture: Path, samples_path: Path, settings: Settings, result: ConvexFit,
+                   keys: list[str], report: dict, timings: dict) -> list[Path]:
+    """The texture choice, the residuals per view, and lighting_sh.json, lighting.exr, brdf.json, the
+    plots and albedo.ply (a stale one removed); report.json is the caller's to write."""
+    from pipeline.core.sh import envmap_from_sh
+    from pipeline.io.images import write_image
+
+    t0 = time.perf_counter()
+    coeffs, brdf = result.coeffs, result.brdf
     report["albedo"], vertex_rho, tex_mesh = choose_albedo(capture, samples_path, settings, coeffs, brdf)
     if vertex_rho is not None:
         brdf = {**brdf, "albedo": [float(x) for x in vertex_rho.mean(axis=0)]}
         report["brdf"] = brdf
     timings["albedo"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    from pipeline.core.sh import envmap_from_sh
-    from pipeline.io.images import write_image
-
     env = np.maximum(envmap_from_sh(coeffs, settings.env_height), 0.0)
     views, limits = residuals_per_view(samples_path, settings, coeffs, brdf, keys,
                                        None if vertex_rho is None else (np.asarray(tex_mesh.faces), vertex_rho))
     report["residuals_per_view"] = views
     report["model_limits"] = limits
     _say_limits(limits, settings)
-    written = [write_lighting_sh(out / "lighting_sh.json", coeffs, source=f"sigrend fit ({mode})"),
+    written = [write_lighting_sh(out / "lighting_sh.json", coeffs, source=f"sigrend fit ({result.mode})"),
                write_image(out / "lighting.exr", env.astype(np.float32), dtype="float"),
                write_brdf(out / "brdf.json", brdf)]
-    written += write_plots(out, env, bands, views)
+    written += write_plots(out, env, result.bands, views)
     if vertex_rho is not None:
         from pipeline.io.mesh import write_vertex_albedo
 
@@ -742,9 +777,6 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     elif (out / "albedo.ply").exists():
         (out / "albedo.ply").unlink()     # a stale texture from an earlier run would be read by relight
     timings["outputs"] = time.perf_counter() - t0
-    timings["total"] = time.perf_counter() - t_start
-    report["timings"] = timings
-    written.insert(3, write_report(out / "report.json", report))
     return written
 
 
