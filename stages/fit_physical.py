@@ -614,6 +614,14 @@ def _brdf_json(fit: material_fit.MaterialFit) -> dict:
 
 
 def _scale_note(brdf: dict, hint, level: dict | None = None) -> dict:
+    """report.json's scale_convention with the lighting unknown: what fixed the base colour's level."""
+    if brdf["model"] == "principled" and brdf.get("metallic", 0.0) > 0:
+        at_bound = [c for c, v in zip("RGB", brdf["base_color"]) if v >= 0.999]
+        return {"source": "the metal's F0 (= base colour) as fitted: only Schlick's rise towards white at grazing "
+                          "angles separates it from the lighting's colour and level, weakly",
+                "note": "a metal's reflection is F0 times the lighting; the lighting carries the inverse of any error "
+                        "in F0, channel by channel" + (f"; F0 is at its bound 1 in {', '.join(at_bound)}: "
+                                                       "the level there is not determined" if at_bound else "")}
     if brdf["model"] == "principled":
         return {"source": f"the dielectric specular layer (Fresnel from ior {brdf['ior']}) fixes the absolute "
                           "scale of lighting vs base colour"}

@@ -201,6 +201,7 @@ def test_synth_metal_teapot(tmp_path):
     brdf, report = fit_synth(capture, tmp_path / "unknown", *fast)
     assert brdf["model"] == "principled" and brdf["metallic"] == 1.0, brdf
     assert abs(brdf["roughness"] / 0.25 - 1) < 0.25
+    assert "metal" in report["scale_convention"]["source"]        # not the dielectric layer's Fresnel
 
 
 @pytest.mark.slow
@@ -278,3 +279,18 @@ def test_descend_grid_scores_the_bracket_of_a_minimum_not_the_whole_grid(minimum
     assert seen == scored
     i = grid.index(min(seen, key=lambda r: abs(np.log(r / minimum))))
     assert all(grid[j] in seen for j in (i - 1, i + 1) if 0 <= j < len(grid))
+
+
+def test_scale_note_says_what_fixed_the_level():
+    """report.json's scale_convention names what set the base colour's level with the lighting
+    unknown: a dielectric's Fresnel layer; for a metal, its own F0 (weakly, and not at all in a
+    channel at its bound); for Lambert, the convention."""
+    from stages.fit_physical import _scale_note
+
+    metal = _scale_note({"model": "principled", "metallic": 1.0, "base_color": [1.0, 0.6, 0.3], "ior": 1.5}, None)
+    assert "metal" in metal["source"] and "bound 1 in R:" in metal["note"]
+    free = _scale_note({"model": "principled", "metallic": 1.0, "base_color": [0.9, 0.6, 0.3], "ior": 1.5}, None)
+    assert "bound" not in free["note"]
+    dielectric = _scale_note({"model": "principled", "metallic": 0.0, "base_color": [0.9, 0.6, 0.3], "ior": 1.5}, None)
+    assert "dielectric" in dielectric["source"]
+    assert "default grey" in _scale_note({"model": "lambert", "albedo": [0.5] * 3}, None)["source"]
