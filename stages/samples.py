@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -335,127 +335,140 @@ class _Reservoir:
 
 
 def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
-    from tqdm import tqdm
-
     capture, work = Path(capture), Path(work)
     started = time.perf_counter()
     mesh_file = mesh_path(capture)
     pose_file = poses_path(capture, work)
     poses = read_poses(pose_file)
-    unknown = sorted(set(settings.holdout) - set(poses.images))
-    if unknown:
-        raise UserError(f"--holdout names image(s) not in {pose_file}: {', '.join(unknown)}")
-    keys = sorted(set(poses.images) - set(settings.holdout))
-    if not keys:
-        raise UserError(f"{pose_file}: no images left to sample"
-                        f"{' after --holdout' if settings.holdout else ''}; nothing to sample")
+    keys = sampled_keys(poses, pose_file, settings.holdout)
     manifest = linear_manifest(work)
-    if manifest is None:
-        for key in keys:
-            if not (capture / "images" / key).exists():
-                raise UserError(f"{capture / 'images' / key}: image listed in {pose_file} is missing from the "
-                                "capture; restore it or remove it from poses.json")
-            if Path(key).suffix.lower() not in LINEAR_SUFFIXES:
-                raise UserError(f"{capture / 'images' / key}: not a linear image; run `sigrend linearize` first")
-        scales = exposure_scales(capture, keys)
-    else:
-        scales = dict.fromkeys(keys, 1.0)
+    scales = dict.fromkeys(keys, 1.0) if manifest is not None else capture_exposure_scales(capture, keys, pose_file)
     mesh = read_mesh(mesh_file)
     quality, mesh_warnings = check_mesh_quality(mesh_file, mesh)
     for line in mesh_warnings:
         warnings.warn(line, UserWarning, stacklevel=2)
     visibility = vertex_visibility(mesh, settings.visibility_rays, settings.chunk_pixels)
-    grid = EqualAreaGrid()
-    normal_hist = np.zeros(grid.shape)
-    reflect_hist = np.zeros(grid.shape)
-    totals = dict.fromkeys(DROP_REASONS, 0)
-    per_image: dict[str, dict] = {}
-    visibility_low = 0
-    visibility_sum = 0.0
-    sees_outside = False
+    tally = Tally(settings.min_visibility)
     rng = np.random.default_rng(settings.seed)
     cap = -(-settings.max_samples // len(keys)) if settings.max_samples else 0
-
     out_npz = work / "samples.npz"
     with SamplesWriter(out_npz) as writer:
         for image_id, key in enumerate(keys):
-            pose = poses.images[key]
-            camera = poses.camera_of(key)
             rgb, weight, name = load_linear_image(capture, work, key, manifest, scales[key])
+            camera = poses.camera_of(key)
             if rgb.shape[:2] != (camera.height, camera.width):
                 raise UserError(f"{name}: image is {rgb.shape[1]}x{rgb.shape[0]} but its camera "
-                                f"{pose.camera!r} in {pose_file} is {camera.width}x{camera.height}")
-            drops = dict.fromkeys(DROP_REASONS, 0)
-            reservoir = _Reservoir(cap, rng) if cap else None
-            kept = 0
-            n_rows = len(range(0, camera.height, settings.stride))
-            with tqdm(total=n_rows, desc=f"samples {key}", unit="row", leave=False, disable=None) as bar:
-                for arrays, chunk_drops in sample_image(mesh, camera, pose.R, pose.t, rgb, weight, image_id,
-                                                        settings, visibility, progress=bar):
-                    for reason, count in chunk_drops.items():
-                        drops[reason] += count
-                    if reservoir is not None:
-                        reservoir.add(arrays)
-                        continue
-                    kept += _record(writer, arrays, grid, normal_hist, reflect_hist)
-                    visibility_low += int((arrays["visibility"] < settings.min_visibility).sum())
-                    visibility_sum += float(arrays["visibility"].sum())
-            if reservoir is not None and reservoir.rows is not None:
-                drops["max_samples"] = reservoir.seen - len(reservoir.keys)
-                kept += _record(writer, reservoir.rows, grid, normal_hist, reflect_hist)
-                visibility_low += int((reservoir.rows["visibility"] < settings.min_visibility).sum())
-                visibility_sum += float(reservoir.rows["visibility"].sum())
-            considered = kept + sum(drops.values())
-            # pixels that reached the hidden test and passed it: the camera sees the mesh's outside
-            sees_outside |= considered - drops["background"] - drops["silhouette_edge"] - drops["hidden"] > 0
-            per_image[key] = {"pixels": considered, "kept": kept, "drops": drops, "exposure_scale": scales[key]}
-            for reason, count in drops.items():
-                totals[reason] += count
-
-        if not sees_outside:
+                                f"{poses.images[key].camera!r} in {pose_file} is {camera.width}x{camera.height}")
+            tally.images[key] = {**sample_view(writer, tally, mesh, poses, key, image_id, rgb, weight, visibility,
+                                               settings, _Reservoir(cap, rng) if cap else None),
+                                 "exposure_scale": scales[key]}
+        if not tally.sees_outside:
             raise UserError(f"{mesh_file}: no pixel of any image sees the outside of the mesh: "
-                            f"{_units_hint(mesh, poses, totals)}")
+                            f"{_units_hint(mesh, poses, tally.drops)}")
         if writer.count == 0:
             raise UserError("no samples left: every pixel that hits the mesh was dropped "
-                            f"({', '.join(f'{r} {c}' for r, c in totals.items() if c)}); check the masks and "
+                            f"({', '.join(f'{r} {c}' for r, c in tally.drops.items() if c)}); check the masks and "
                             "--min-cos / --edge-px")
-        summary = {
-            "count": writer.count,
-            "pixels": sum(v["pixels"] for v in per_image.values()),
-            "drops": totals,
-            "coverage": {
-                "grid": {"type": "equal-area z-phi", "n_bands": grid.n_bands, "n_azimuth": grid.n_azimuth},
-                "normals": coverage_stats(normal_hist),
-                "reflections": coverage_stats(reflect_hist),
-            },
-            "visibility": {
-                "convention": "cosine-weighted unblocked fraction of the hemisphere about the normal",
-                "rays_per_vertex": settings.visibility_rays,
-                "mean": visibility_sum / writer.count,
-                "min_visibility": settings.min_visibility,
-                "below_min_visibility": visibility_low,
-            },
-            "holdout": sorted(settings.holdout),
-            "mesh": str(mesh_file),
-            "mesh_quality": quality,
-            "poses": str(pose_file),
-            "images": per_image,
-            "settings": settings_dict(settings),
-        }
+        summary = {**tally.summary(writer.count, settings), "holdout": sorted(settings.holdout), "mesh": str(mesh_file),
+                   "mesh_quality": quality, "poses": str(pose_file), "images": tally.images,
+                   "settings": settings_dict(settings)}
         writer.finish(keys, {**summary, "min_visibility": settings.min_visibility})
     summary["seconds"] = time.perf_counter() - started
     summary_path = write_json(work / "samples_summary.json", summary)
-    png = plot_coverage(work / "samples_coverage.png", grid, normal_hist, reflect_hist, summary["coverage"])
+    png = plot_coverage(work / "samples_coverage.png", tally.grid, tally.normal_hist, tally.reflect_hist,
+                        summary["coverage"])
     return [out_npz, summary_path, png]
 
 
-def _record(writer: SamplesWriter, arrays: dict, grid: EqualAreaGrid, normal_hist: np.ndarray,
-            reflect_hist: np.ndarray) -> int:
-    """Append a chunk and add it to the coverage histograms; returns its row count."""
-    writer.append(arrays)
-    normal_hist += grid.histogram(arrays["normal"])
-    reflect_hist += grid.histogram(reflect(arrays["view_dir"], arrays["normal"]))
-    return len(arrays["image_id"])
+def sampled_keys(poses: Poses, pose_file: Path, holdout) -> list[str]:
+    """The posed images to sample (sorted), less ``holdout``; UserError on an unknown held-out key or none left."""
+    unknown = sorted(set(holdout) - set(poses.images))
+    if unknown:
+        raise UserError(f"--holdout names image(s) not in {pose_file}: {', '.join(unknown)}")
+    keys = sorted(set(poses.images) - set(holdout))
+    if not keys:
+        raise UserError(f"{pose_file}: no images left to sample{' after --holdout' if holdout else ''}; nothing to sample")
+    return keys
+
+
+def capture_exposure_scales(capture: Path, keys: list[str], pose_file: Path) -> dict[str, float]:
+    """Without linearize's outputs: the capture's own linear images (each must exist and be linear),
+    scaled by capture.toml's exposures (exposure_scales)."""
+    for key in keys:
+        if not (capture / "images" / key).exists():
+            raise UserError(f"{capture / 'images' / key}: image listed in {pose_file} is missing from the "
+                            "capture; restore it or remove it from poses.json")
+        if Path(key).suffix.lower() not in LINEAR_SUFFIXES:
+            raise UserError(f"{capture / 'images' / key}: not a linear image; run `sigrend linearize` first")
+    return exposure_scales(capture, keys)
+
+
+@dataclass
+class Tally:
+    """What the samples stage counts over all views: drop reasons, the coverage histograms of normals
+    and mirror directions, the visibility statistics, whether any camera sees the mesh's outside,
+    and each image's entry for samples_summary.json."""
+
+    min_visibility: float
+    grid: EqualAreaGrid = field(default_factory=EqualAreaGrid)
+    drops: dict = field(default_factory=lambda: dict.fromkeys(DROP_REASONS, 0))
+    images: dict = field(default_factory=dict)
+    visibility_low: int = 0
+    visibility_sum: float = 0.0
+    sees_outside: bool = False
+
+    def __post_init__(self) -> None:
+        self.normal_hist = np.zeros(self.grid.shape)
+        self.reflect_hist = np.zeros(self.grid.shape)
+
+    def record(self, writer: SamplesWriter, arrays: dict) -> int:
+        """Append a chunk of samples and count it; returns its row count."""
+        writer.append(arrays)
+        self.normal_hist += self.grid.histogram(arrays["normal"])
+        self.reflect_hist += self.grid.histogram(reflect(arrays["view_dir"], arrays["normal"]))
+        self.visibility_low += int((arrays["visibility"] < self.min_visibility).sum())
+        self.visibility_sum += float(arrays["visibility"].sum())
+        return len(arrays["image_id"])
+
+    def summary(self, count: int, settings: Settings) -> dict:
+        return {"count": count, "pixels": sum(v["pixels"] for v in self.images.values()), "drops": self.drops,
+                "coverage": {"grid": {"type": "equal-area z-phi", "n_bands": self.grid.n_bands,
+                                      "n_azimuth": self.grid.n_azimuth},
+                             "normals": coverage_stats(self.normal_hist),
+                             "reflections": coverage_stats(self.reflect_hist)},
+                "visibility": {"convention": "cosine-weighted unblocked fraction of the hemisphere about the normal",
+                               "rays_per_vertex": settings.visibility_rays, "mean": self.visibility_sum / count,
+                               "min_visibility": settings.min_visibility, "below_min_visibility": self.visibility_low}}
+
+
+def sample_view(writer: SamplesWriter, tally: Tally, mesh, poses: Poses, key: str, image_id: int, rgb: np.ndarray,
+                weight: np.ndarray, visibility: np.ndarray, settings: Settings, reservoir: "_Reservoir | None") -> dict:
+    """One view's samples (sample_image) written and counted (through ``reservoir`` when
+    --max-samples caps them); -> its samples_summary.json entry (pixels, kept, drops)."""
+    from tqdm import tqdm
+
+    pose, camera = poses.images[key], poses.camera_of(key)
+    drops = dict.fromkeys(DROP_REASONS, 0)
+    kept = 0
+    with tqdm(total=len(range(0, camera.height, settings.stride)), desc=f"samples {key}", unit="row", leave=False,
+              disable=None) as bar:
+        for arrays, chunk_drops in sample_image(mesh, camera, pose.R, pose.t, rgb, weight, image_id, settings,
+                                                visibility, progress=bar):
+            for reason, count in chunk_drops.items():
+                drops[reason] += count
+            if reservoir is not None:
+                reservoir.add(arrays)
+            else:
+                kept += tally.record(writer, arrays)
+    if reservoir is not None and reservoir.rows is not None:
+        drops["max_samples"] = reservoir.seen - len(reservoir.keys)
+        kept += tally.record(writer, reservoir.rows)
+    considered = kept + sum(drops.values())
+    # pixels that reached the hidden test and passed it: the camera sees the mesh's outside
+    tally.sees_outside |= considered - drops["background"] - drops["silhouette_edge"] - drops["hidden"] > 0
+    for reason, count in drops.items():
+        tally.drops[reason] += count
+    return {"pixels": considered, "kept": kept, "drops": drops}
 
 
 def plot_coverage(path: Path, grid: EqualAreaGrid, normal_hist: np.ndarray, reflect_hist: np.ndarray,
