@@ -812,41 +812,10 @@ def _sfm_with_board(capture: Path, work: Path, keys: list[str], config: CaptureC
         unregistered = [k for k in keys if k not in registered]
         if _enough(len(registered), keys, settings):
             start = time.perf_counter()
-            det_by_name = {colmap_name(groups[k], k): v for k, v in detections.items()}
-            similarity, inliers, residual_mm = register_to_object(reconstruction, det_by_name, spec, settings)
-            camera_names = {}
-            for image in reconstruction.images.values():
-                camera_names.setdefault(image.camera_id, groups[name_to_key[image.name]])
-            disagreement = board_disagreement_deg(reconstruction, similarity, det_by_name, spec)
-            rejected = {n: round(d, 1) for n, d in disagreement.items() if d > settings.max_board_disagreement_deg}
-            for image in reconstruction.images.values():
-                if image.name in rejected:
-                    reconstruction.deregister_frame(image.frame_id)
-            if rejected:
-                _status(f"dropped {len(rejected)} SfM pose(s) that contradict the board: "
-                        + ", ".join(f"{name_to_key[n]} ({d}°)" for n, d in rejected.items()))
-                registered -= {name_to_key[n] for n in rejected}
-                unregistered = [k for k in keys if k not in registered]
-            if settings.board_bundle_adjustment:
-                _status("bundle adjustment with the board as known points")
-                with colmap_output(colmap_dir / "colmap.log", settings.verbose):
-                    reconstruction = refine_with_board(reconstruction, similarity, det_by_name, spec,
-                                                       fixed is not None)
-                similarity = IDENTITY  # already in the object frame
-            poses = poses_from_reconstruction(reconstruction, similarity, name_to_key, camera_names)
+            poses, registered, entries = _register_by_board(reconstruction, registered, groups, name_to_key,
+                                                            detections, spec, fixed, settings, colmap_dir)
             timings["registration"] = time.perf_counter() - start
-            summary.update({
-                "method": "colmap + board registration" + (" + board bundle adjustment"
-                                                           if settings.board_bundle_adjustment else ""),
-                "registered": len(registered), "unregistered": unregistered,
-                "rejected_contradicting_board_deg": {name_to_key[n]: d for n, d in rejected.items()},
-                "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
-                "points3D": int(reconstruction.num_points3D()),
-                "registration_residual_mm": residual_mm,
-                "board_corners_used": int(inliers.sum()), "board_corners_triangulated": int(len(inliers)),
-                "board_bundle_adjustment": settings.board_bundle_adjustment,
-            })
-            reconstruction.write(colmap_dir / "sparse")  # the model that was used, at sparse/ top level
+            summary.update({**entries, "unregistered": [k for k in keys if k not in registered]})
         elif settings.method == "colmap" or not _enough(len(detections), keys, settings):
             why = ("its photos do not overlap (no image pair shares enough features)" if reconstruction is None
                    else f"it registered only {len(registered)} of {len(keys)} photos")
@@ -861,13 +830,12 @@ def _sfm_with_board(capture: Path, work: Path, keys: list[str], config: CaptureC
         start = time.perf_counter()
         poses, errors = pnp_poses(keys, groups, detections, spec, fixed, sizes)
         timings["registration"] = time.perf_counter() - start
-        unregistered = [k for k in keys if k not in poses.images]
         if len(poses.images) < 3:
             raise UserError(f"board PnP posed only {len(poses.images)} photos; the board must be visible "
                             f"(>= {MIN_BOARD_CORNERS} corners) in at least 3")
         summary.update({
             "method": "board PnP per image" + (" (fallback)" if settings.method != "pnp" else ""),
-            "registered": len(poses.images), "unregistered": unregistered,
+            "registered": len(poses.images), "unregistered": [k for k in keys if k not in poses.images],
             "mean_reprojection_error_px": float(np.mean(list(errors.values()))),
             "registration_residual_mm": None,
             "per_image_pnp_px": errors,
@@ -875,6 +843,46 @@ def _sfm_with_board(capture: Path, work: Path, keys: list[str], config: CaptureC
     summary["board_reprojection_rms_px"] = board_reprojection_px(poses, detections, spec)
     return _finish(work, poses, summary, timings, "calibrated (fixed)" if fixed is not None else "estimated",
                    [colmap_dir])
+
+
+def _register_by_board(reconstruction, registered: set, groups: dict, name_to_key: dict, detections: dict, spec,
+                       fixed, settings: Settings, colmap_dir: Path) -> tuple[Poses, set, dict]:
+    """COLMAP's reconstruction in the object frame: the similarity from the board's triangulated
+    corners (register_to_object), SfM poses that contradict the board by more than
+    --max-board-disagreement-deg dropped, then (--board-bundle-adjustment) a bundle adjustment with
+    the board as known points; the model used written to sparse/.  -> (poses, the registered keys,
+    samples_summary entries)."""
+    det_by_name = {colmap_name(groups[k], k): v for k, v in detections.items()}
+    similarity, inliers, residual_mm = register_to_object(reconstruction, det_by_name, spec, settings)
+    camera_names = {}
+    for image in reconstruction.images.values():
+        camera_names.setdefault(image.camera_id, groups[name_to_key[image.name]])
+    disagreement = board_disagreement_deg(reconstruction, similarity, det_by_name, spec)
+    rejected = {n: round(d, 1) for n, d in disagreement.items() if d > settings.max_board_disagreement_deg}
+    for image in reconstruction.images.values():
+        if image.name in rejected:
+            reconstruction.deregister_frame(image.frame_id)
+    if rejected:
+        _status(f"dropped {len(rejected)} SfM pose(s) that contradict the board: "
+                + ", ".join(f"{name_to_key[n]} ({d}°)" for n, d in rejected.items()))
+        registered = registered - {name_to_key[n] for n in rejected}
+    if settings.board_bundle_adjustment:
+        _status("bundle adjustment with the board as known points")
+        with colmap_output(colmap_dir / "colmap.log", settings.verbose):
+            reconstruction = refine_with_board(reconstruction, similarity, det_by_name, spec, fixed is not None)
+        similarity = IDENTITY  # already in the object frame
+    poses = poses_from_reconstruction(reconstruction, similarity, name_to_key, camera_names)
+    reconstruction.write(colmap_dir / "sparse")  # the model that was used, at sparse/ top level
+    return poses, registered, {
+        "method": "colmap + board registration" + (" + board bundle adjustment"
+                                                   if settings.board_bundle_adjustment else ""),
+        "registered": len(registered),
+        "rejected_contradicting_board_deg": {name_to_key[n]: d for n, d in rejected.items()},
+        "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
+        "points3D": int(reconstruction.num_points3D()),
+        "registration_residual_mm": residual_mm,
+        "board_corners_used": int(inliers.sum()), "board_corners_triangulated": int(len(inliers)),
+        "board_bundle_adjustment": settings.board_bundle_adjustment}
 
 
 # --------------------------------------------------------------------------------------------
