@@ -108,6 +108,11 @@ class Settings:
     blas_threads: int = setting(1, "BLAS threads during the fit (0 = library default); the fit's many small "
                                    "products ran 7x slower with multithreaded OpenBLAS on a shared 2-core machine")
 
+    @property
+    def explicit_order(self) -> int | None:
+        """--order as a number, or None for 'auto' (checked by validate)."""
+        return None if self.order == "auto" else int(self.order)
+
     def validate(self) -> None:
         if self.order != "auto":
             try:
@@ -589,7 +594,7 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     samples_path = work / "samples.npz"
     meta = read_samples_meta(samples_path)
     keys = meta["image_keys"]
-    explicit_order = None if settings.order == "auto" else int(settings.order)
+    explicit_order = settings.explicit_order
     fit_model, known_brdf = parse_brdf_setting(settings.brdf)
     hint = known_albedo_hint(capture)
     if settings.forward == "physical" and _has_mesh(capture) and (fit_model in (None, "lambert", "principled")

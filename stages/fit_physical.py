@@ -351,7 +351,7 @@ ROUGHNESS_XTOL = 0.01    # the search stops within 1% of roughness (a highlight'
 
 def candidate_order(settings) -> int:
     """The SH order the material candidates are fitted and compared at."""
-    return int(settings.order) if settings.order != "auto" else settings.factor_order
+    return settings.factor_order if settings.explicit_order is None else settings.explicit_order
 
 
 def roughness_candidates(settings) -> list[float]:
@@ -374,8 +374,8 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     samples_path = Path(work) / "samples.npz"
     data, noise = load_samples(samples_path, settings, len(mesh.faces))
     order = candidate_order(settings)
-    orders = [order] if settings.order != "auto" else list(range(order + 1))
-    top = max(order, settings.max_order) if settings.order == "auto" else order   # the final lighting's orders
+    orders = [order] if settings.explicit_order is not None else list(range(order + 1))
+    top = order if settings.explicit_order is not None else max(order, settings.max_order)  # final lighting's orders
     t0 = time.perf_counter()
     geo = prt.geometry(rays, data["face"], data["bary"], data["view_dir"].astype(float), top,
                        bounce_samples=settings.bounce_samples, seed=settings.seed,
@@ -442,7 +442,7 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
         best, level = search_albedo_level(candidate, best, geo, obs, settings, kw)
         timings["albedo_level"] = time.perf_counter() - t1
     refit = None
-    if known_lighting is None and settings.order == "auto" and not one_fold:
+    if known_lighting is None and settings.explicit_order is None and not one_fold:
         best, refit = final_lighting(geo, best, obs, settings, kw, top)
         timings["lighting_refit"] = refit["seconds"]
     if scene is not None:        # what lighting_sh.json records, and the bands' labels: the SH + sources form
