@@ -192,16 +192,17 @@ def check_lighting_scale(geo, obs, settings, best, coeffs, directions, intensity
     return {"applied": 1.0, "given": given, "measured": k, "exact": exact}
 
 
-def select_material(candidate, settings, models: list[str], obs, grey: np.ndarray):
+def select_material(candidate, settings, models: list[str], obs, grey: np.ndarray, detail: bool = False):
     """(best fit, candidates table, roughness interval or None, the best principled fit or None —
     its Fresnel-fixed layer measures a known lighting's scale): the dielectric roughness search
     (search_roughness), a metal at the dielectric's best roughness and, if it does better, the
-    metal's own search, and Lambert, compared on held-out views with the parsimony rule."""
+    metal's own search, and Lambert, compared on held-out views with the parsimony rule; ``detail``:
+    the dielectric search is tried again with the lighting's detail part (search_with_detail)."""
     fits: list = []
     directions = interval = None
     if "principled" in models:
         dielectric, directions = search_roughness(candidate, settings, grey, 0.0)
-        if settings.lighting_detail == "auto":
+        if detail:
             dielectric = search_with_detail(candidate, settings, grey, dielectric, directions)
         rough = min(dielectric, key=lambda r: _score(dielectric[r]))
         metal = candidate(Principled(roughness=rough, metallic=1.0, ior=settings.ior), grey, False, directions)
@@ -393,7 +394,8 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
         known_lighting, known_dirs, known_sources = known.coeffs, known.directions, known.intensity
         scene, direct, map_scale, per_image = known.scene, known.direct, known.scale, known.per_image
 
-    detail = material_fit.DetailSetup(settings.lobe_samples, settings.seed) if settings.lighting_detail == "auto" else None
+    detail = material_fit.DetailSetup(settings.lobe_samples, settings.seed) \
+        if settings.lighting_detail == "auto" and known is None else None     # a known lighting has its own detail
 
     def candidate(material: Principled | None, base0, fix_base: bool, directions, with_detail: bool = False):
         if scene is not None:
@@ -414,7 +416,8 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
             material = principled_from_dict(known_brdf) if known_brdf["model"] == "principled" else None
             best = candidate(material, np.asarray(diffuse_color(known_brdf), float), True, None)
             return best, [_row(best)], None, best
-        return select_material(candidate, settings, models, obs, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float))
+        return select_material(candidate, settings, models, obs, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float),
+                               detail is not None)
 
     one_fold = len(np.unique(obs.fold)) < 2
     if one_fold and known_brdf is None:
