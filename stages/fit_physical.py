@@ -466,7 +466,8 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
         report["lighting_per_image"] = _per_image_note(capture, per_image)
     vertex_rho = texture_and_residuals(mesh, data, geo, obs, best, brdf, report, settings, keys)
     print(_summary_line(brdf, None if one_fold else interval, len(report["sources"]), known_brdf is not None,
-                        textured=vertex_rho is not None), file=sys.stderr)
+                        textured=vertex_rho is not None, detail_rows=report["lighting_detail"].get("rows")),
+          file=sys.stderr)
     timings["total"] = time.perf_counter() - t_start
     report["timings"] = timings
     return write_outputs(Path(work) / "fit", best, brdf, report, settings, (mesh, vertex_rho),
@@ -669,18 +670,20 @@ def _selection_note(one_fold: bool, known: bool, folds: int, brdf: dict) -> dict
     return {"by": f"held-out views ({folds} folds, image_id mod {folds})"}
 
 
-def _summary_line(brdf: dict, interval, n_sources: int, given: bool = False, textured: bool = False) -> str:
+def _summary_line(brdf: dict, interval, n_sources: int, given: bool = False, textured: bool = False,
+                  detail_rows: int | None = None) -> str:
     """The fit's stderr line; ``interval`` None when no views were held out (nothing bounds the
     roughness) or the material was ``given``; ``textured``: the colour is a per-vertex texture
-    (fit/albedo.ply), brdf.json's its mean."""
+    (fit/albedo.ply), brdf.json's its mean; ``detail_rows``: the lighting's detail part's rows, if used."""
     if brdf["model"] == "lambert":
         colour = "albedo " + ("textured, mean " if textured else "")
         return f"fit: lambert, {colour}{np.round(brdf['albedo'], 3).tolist()}, {n_sources} directional source(s)"
     bound = ("given" if given else "no held-out views: not validated" if interval is None
              else f"held-out views cannot tell apart {interval[0]:.3f}-{interval[1]:.3f}")
     colour = "base colour " + ("textured (fit/albedo.ply), mean " if textured else "")
+    detail = "" if detail_rows is None else f" and a {detail_rows}-row detail map (report.json lighting_detail)"
     return (f"fit: principled roughness {brdf['roughness']:.3f} ({bound}), {colour}"
-            f"{np.round(brdf['base_color'], 3).tolist()}, {n_sources} directional source(s)")
+            f"{np.round(brdf['base_color'], 3).tolist()}, {n_sources} directional source(s){detail}")
 
 
 def _detail_note(fit: material_fit.MaterialFit, settings) -> dict:

@@ -294,3 +294,11 @@ def test_scale_note_says_what_fixed_the_level():
     dielectric = _scale_note({"model": "principled", "metallic": 0.0, "base_color": [0.9, 0.6, 0.3], "ior": 1.5}, None)
     assert "dielectric" in dielectric["source"]
     assert "default grey" in _scale_note({"model": "lambert", "albedo": [0.5] * 3}, None)["source"]
+
+
+def test_summary_line_names_the_detail_part():
+    from stages.fit_physical import _summary_line
+
+    brdf = {"model": "principled", "roughness": 0.158, "base_color": [0.07, 0.41, 0.12]}
+    assert "105-row detail map" in _summary_line(brdf, (0.15, 0.17), 3, detail_rows=105)
+    assert "detail" not in _summary_line(brdf, (0.15, 0.17), 3)
