@@ -92,10 +92,11 @@ class Settings:
     ior: float = setting(1.5, "principled fit: index of refraction of the dielectric specular layer")
     max_sources: int = setting(3, "principled fit: directional sources (the lighting's dual angular part) tried "
                                   "on top of the SH lighting, each kept only if it lowers the held-out views' error by 2%")
-    lighting_detail: Literal["auto", "off"] = setting("auto", "principled fit: 'auto' tries the lighting's detail part "
-                                                              "(a map of what the SH bands cannot hold, seen through the "
-                                                              "specular lobe) beside each dielectric candidate and keeps it "
-                                                              "where it lowers the held-out views' error by 2%; 'off'")
+    lighting_detail: Literal["auto", "off"] = setting(
+        "auto", "principled fit, lighting unknown: 'auto' tries the lighting's detail part (a map of what the SH "
+                "bands cannot hold, seen through the specular lobe only) at the best dielectric when its lobe is sharp "
+                "enough, and keeps it, searching the roughness again with it, where it lowers the held-out views' "
+                "error by 2%; 'off'")
     physical_samples: int = setting(30000, "principled fit: samples used (random subset)")
     lobe_samples: int = setting(32, "principled fit: GGX lobe samples per sample in the specular transfer")
     bounce_samples: int = setting(64, "principled fit: occlusion / bounce rays per vertex (shadows, interreflection)")
@@ -697,7 +698,8 @@ def _factorization_candidate(data: dict, model: str, order: int, target: np.ndar
 
     def rmse(part: dict) -> float:
         pred = forward.render_samples(c_t, b_t, part["normal"], part["view_dir"])
-        return float(np.sqrt(((part["radiance"] - pred) ** 2 * part["weight"][:, None]).sum() / (3 * part["weight"].sum())))
+        w = part["weight"][:, None]
+        return float(np.sqrt(((part["radiance"] - pred) ** 2 * w).sum() / (3 * w.sum())))
 
     n_lobe = 4 if model != "lambert" else 0
     return {"name": model, "params": 3 * num_coeffs(order) + 3 + n_lobe, "train_rmse": rmse(train),
@@ -734,7 +736,8 @@ def _factorization_mode(data: dict, models: list[str], settings: Settings, hint,
         "albedo": target.tolist(), "applied_channel_scale": scale.tolist(),
         "note": "lighting and BRDF are determined up to one scale per colour channel; "
                 "the lighting carries the inverse of the scale applied to the BRDF"}
-    return ConvexFit("factorization", coeffs, brdf, candidates=[{k: v for k, v in c.items() if k != "fit"} for c in cands])
+    return ConvexFit("factorization", coeffs, brdf,
+                     candidates=[{k: v for k, v in c.items() if k != "fit"} for c in cands])
 
 
 def _final_lighting(result: ConvexFit, data: dict, settings: Settings, explicit_order: int | None,

@@ -387,7 +387,8 @@ def sampled_keys(poses: Poses, pose_file: Path, holdout) -> list[str]:
         raise UserError(f"--holdout names image(s) not in {pose_file}: {', '.join(unknown)}")
     keys = sorted(set(poses.images) - set(holdout))
     if not keys:
-        raise UserError(f"{pose_file}: no images left to sample{' after --holdout' if holdout else ''}; nothing to sample")
+        raise UserError(f"{pose_file}: no images left to sample{' after --holdout' if holdout else ''}; "
+                        "nothing to sample")
     return keys
 
 

@@ -161,7 +161,8 @@ def _lobe_chunks(geo: Geometry, material: Principled, n_samples: int, seed: int,
 
     def run(s: int) -> None:
         idx = front[s:s + chunk]
-        lobe = specular_samples(material, geo.normals[idx], geo.view_dirs[idx], n_samples, np.random.default_rng([seed, s]))
+        rng = np.random.default_rng([seed, s])
+        lobe = specular_samples(material, geo.normals[idx], geo.view_dirs[idx], n_samples, rng)
         ns = lobe.directions.shape[1]
         dirs = lobe.directions.reshape(-1, 3)
         live = np.flatnonzero(lobe.weight.reshape(-1, 3).max(axis=1) > 0)
