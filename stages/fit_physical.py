@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -388,57 +388,20 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
               independent_groups=len(np.unique(data["image_id"])), posed_ratio=prt.QUADRATURE_FLOOR)
 
     known = known_lighting_setup(capture, keys, data["image_id"], settings, order, rays, geo)
-    known_lighting = known_sources = known_dirs = scale = scene = direct = per_image = None
-    map_scale = 1.0
-    if known is not None:
-        known_lighting, known_dirs, known_sources = known.coeffs, known.directions, known.intensity
-        scene, direct, map_scale, per_image = known.scene, known.direct, known.scale, known.per_image
-
     detail = material_fit.DetailSetup(settings.lobe_samples, settings.seed) \
         if settings.lighting_detail == "auto" and known is None else None     # a known lighting has its own detail
-
-    def candidate(material: Principled | None, base0, fix_base: bool, directions, with_detail: bool = False):
-        if scene is not None:
-            return material_fit.fit_to_map(geo, scene, material, obs, base0=base0, fix_base=fix_base, scale=map_scale,
-                                           direct=direct)
-        if known_sources is not None:
-            directions = known_dirs
-        spec = None if material is None else prt.specular_transfer(geo, material, settings.lobe_samples, settings.seed,
-                                                                   order=order)
-        return material_fit.fit_material(geo, material, obs, order=order, folds=settings.folds, base0=base0,
-                                         spec=spec, fix_base=fix_base, orders=orders, lighting_kw=kw,
-                                         max_sources=settings.max_sources if directions is None else 0,
-                                         source_directions=directions, known_coeffs=known_lighting,
-                                         known_sources=known_sources, detail=detail if with_detail else None)
-
-    def select() -> tuple[material_fit.MaterialFit, list[dict], tuple | None, material_fit.MaterialFit | None]:
-        if known_brdf is not None:
-            material = principled_from_dict(known_brdf) if known_brdf["model"] == "principled" else None
-            best = candidate(material, np.asarray(diffuse_color(known_brdf), float), True, None)
-            return best, [_row(best)], None, best
-        return select_material(candidate, settings, models, obs, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float),
-                               detail is not None)
-
+    candidate = CandidateFit(geo, obs, settings, kw, order, orders, known, detail)
     one_fold = len(np.unique(obs.fold)) < 2
     if one_fold and known_brdf is None:
         print(f"fit: model selection needs held-out views, but the {len(np.unique(data['image_id']))} view(s) fall in one fold "
               f"(image_id mod --folds {settings.folds}): candidates are compared by their training residual, "
               "which favours the richest; the choice is in the report", file=sys.stderr)
     t0 = time.perf_counter()
-    mode = ("check" if known_lighting is not None else "lighting") if known_brdf is not None else \
-        ("brdf" if known_lighting is not None else "factorization")
-    best, table, interval, anchor = select()
-    applied = 1.0
-    for _ in range(4 if known_lighting is not None else 0):   # --lighting-scale fit: until the factor settles
-        scale = check_lighting_scale(geo, obs, settings, anchor or best, known_lighting, known_dirs, known_sources)
-        if abs(scale["applied"] - 1.0) < 0.02:
-            break
-        applied *= scale["applied"]
-        map_scale *= scale["applied"]
-        known_lighting, known_sources = known_lighting * scale["applied"], known_sources * scale["applied"]
-        best, table, interval, anchor = select()
-    if scale is not None:
-        scale["applied"] = applied
+    mode = ("check" if known is not None else "lighting") if known_brdf is not None else \
+        ("brdf" if known is not None else "factorization")
+    candidate, (best, table, interval, anchor), scale = select_with_scale(candidate, known_brdf, models, hint)
+    known_lighting = None if known is None else candidate.known.coeffs
+    per_image = None if known is None else known.per_image
     level = None
     if best.material is None and known_lighting is None and known_brdf is None and hint is None:
         t1 = time.perf_counter()
@@ -448,9 +411,8 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     if known_lighting is None and settings.explicit_order is None and not one_fold:
         best, refit = final_lighting(geo, best, obs, settings, kw, top)
         timings["lighting_refit"] = refit["seconds"]
-    if scene is not None:        # what lighting_sh.json records, and the bands' labels: the SH + sources form
-        scene = None
-        recorded = candidate(best.material, best.base, True, None)
+    if known is not None and known.scene is not None:  # what lighting_sh.json records, and the bands' labels:
+        recorded = candidate.without_map()(best.material, best.base, True, None)       # the SH + sources form
         best.coeffs, best.lighting, best.sources, best.orders = (recorded.coeffs, recorded.lighting,
                                                                  recorded.sources, recorded.orders)
     timings["material"] = time.perf_counter() - t0
@@ -472,6 +434,84 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     report["timings"] = timings
     return write_outputs(Path(work) / "fit", best, brdf, report, settings, (mesh, vertex_rho),
                          f"sigrend fit ({mode}, physical)")
+
+
+@dataclass(frozen=True)
+class CandidateFit:
+    """Fits one material candidate (material or None for Lambert, base colour start, whether the
+    base colour is fixed, source directions or None to find them, whether to try the lighting's
+    detail part) on the fit's shared samples: under a known map on the renderer's own model of each
+    sample (material_fit.fit_to_map), else on the transfer (material_fit.fit_material) with the
+    lighting unknown or given as SH + sources."""
+
+    geo: prt.Geometry
+    obs: material_fit.Observations
+    settings: object
+    kw: dict
+    order: int
+    orders: list[int]
+    known: "KnownLighting | None"
+    detail: material_fit.DetailSetup | None
+
+    def __call__(self, material: Principled | None, base0, fix_base: bool, directions,
+                 with_detail: bool = False) -> material_fit.MaterialFit:
+        known, settings = self.known, self.settings
+        if known is not None and known.scene is not None:
+            return material_fit.fit_to_map(self.geo, known.scene, material, self.obs, base0=base0, fix_base=fix_base,
+                                           scale=known.scale, direct=known.direct)
+        if known is not None:
+            directions = known.directions
+        spec = None if material is None else prt.specular_transfer(self.geo, material, settings.lobe_samples,
+                                                                   settings.seed, order=self.order)
+        return material_fit.fit_material(self.geo, material, self.obs, order=self.order, folds=settings.folds,
+                                         base0=base0, spec=spec, fix_base=fix_base, orders=self.orders,
+                                         lighting_kw=self.kw, max_sources=settings.max_sources if directions is None else 0,
+                                         source_directions=directions,
+                                         known_coeffs=None if known is None else known.coeffs,
+                                         known_sources=None if known is None else known.intensity,
+                                         detail=self.detail if with_detail else None)
+
+    def rescaled(self, factor: float) -> "CandidateFit":
+        """The same with the known lighting scaled by ``factor``."""
+        k = self.known
+        return replace(self, known=replace(k, coeffs=k.coeffs * factor, intensity=k.intensity * factor,
+                                           scale=k.scale * factor))
+
+    def without_map(self) -> "CandidateFit":
+        """The same with a known map taken in its SH + sources form."""
+        return replace(self, known=replace(self.known, scene=None))
+
+
+def select_with_scale(candidate: CandidateFit, known_brdf: dict | None, models: list[str], hint) -> tuple:
+    """(the candidate fitter as finally scaled, select_material's (best, table, interval, anchor),
+    the lighting-scale check or None): the given material, or the selection; with a known
+    lighting, the check of its scale against the photos (check_lighting_scale), and with
+    --lighting-scale fit the selection again under the scaled lighting until the factor settles."""
+    settings, obs = candidate.settings, candidate.obs
+
+    def select() -> tuple:
+        if known_brdf is not None:
+            material = principled_from_dict(known_brdf) if known_brdf["model"] == "principled" else None
+            best = candidate(material, np.asarray(diffuse_color(known_brdf), float), True, None)
+            return best, [_row(best)], None, best
+        return select_material(candidate, settings, models, obs, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float),
+                               candidate.detail is not None)
+
+    chosen = select()
+    if candidate.known is None:
+        return candidate, chosen, None
+    applied = 1.0
+    for _ in range(4):   # --lighting-scale fit: until the factor settles
+        k = candidate.known
+        scale = check_lighting_scale(candidate.geo, obs, settings, chosen[3] or chosen[0], k.coeffs, k.directions,
+                                     k.intensity)
+        if abs(scale["applied"] - 1.0) < 0.02:
+            break
+        applied *= scale["applied"]
+        candidate = candidate.rescaled(scale["applied"])
+        chosen = select()
+    scale["applied"] = applied
+    return candidate, chosen, scale
 
 
 def final_lighting(geo, best: material_fit.MaterialFit, obs, settings, kw: dict, top: int) -> tuple:
