@@ -399,16 +399,14 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     t0 = time.perf_counter()
     mode = ("check" if known is not None else "lighting") if known_brdf is not None else \
         ("brdf" if known is not None else "factorization")
-    candidate, (best, table, interval, anchor), scale = select_with_scale(candidate, known_brdf, models, hint)
-    known_lighting = None if known is None else candidate.known.coeffs
-    per_image = None if known is None else known.per_image
+    candidate, (best, table, interval, _), scale = select_with_scale(candidate, known_brdf, models, hint)
     level = None
-    if best.material is None and known_lighting is None and known_brdf is None and hint is None:
+    if best.material is None and known is None and known_brdf is None and hint is None:
         t1 = time.perf_counter()
         best, level = search_albedo_level(candidate, best, geo, obs, settings, kw)
         timings["albedo_level"] = time.perf_counter() - t1
     refit = None
-    if known_lighting is None and settings.explicit_order is None and not one_fold:
+    if known is None and settings.explicit_order is None and not one_fold:
         best, refit = final_lighting(geo, best, obs, settings, kw, top)
         timings["lighting_refit"] = refit["seconds"]
     if known is not None and known.scene is not None:  # what lighting_sh.json records, and the bands' labels:
@@ -424,8 +422,8 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
               "model_selection": _selection_note(one_fold, known_brdf is not None, settings.folds, brdf),
               "scale_convention": _scale_note(brdf, hint, level) if scale is None else
               {"source": "the known lighting", "lighting_scale": scale}}
-    if per_image is not None:
-        report["lighting_per_image"] = _per_image_note(capture, per_image)
+    if known is not None and known.per_image is not None:
+        report["lighting_per_image"] = _per_image_note(capture, known.per_image)
     vertex_rho = texture_and_residuals(mesh, data, geo, obs, best, brdf, report, settings, keys)
     print(_summary_line(brdf, None if one_fold else interval, len(report["sources"]), known_brdf is not None,
                         textured=vertex_rho is not None, detail_rows=report["lighting_detail"].get("rows")),

@@ -7,6 +7,7 @@ import numpy as np
 import trimesh
 
 from pipeline.core import prt
+from pipeline.core.envmap import equirect_directions
 from pipeline.core.material import Principled
 from pipeline.core.material_fit import Observations, fit_detail_map, held_out_detail
 from pipeline.core.sh import envmap_from_sh, num_coeffs, project_envmap
@@ -65,8 +66,6 @@ def test_detail_map_predicts_held_out_samples_and_leaves_the_sh_bands_alone(rng)
     transfer = prt.detail_transfer(geo, material, height)
     dirs = rng.normal(size=(6, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    from pipeline.core.envmap import equirect_directions
-
     cells = equirect_directions(height).reshape(-1, 3)
     truth = np.zeros((cells.shape[0], 3))
     for d, colour in zip(dirs, rng.uniform(0.5, 2.0, (6, 3))):
