@@ -112,11 +112,15 @@ class Settings:
     prefilter_height: int = setting(128, "height of the prefiltered equirect map used for sharp lobes")
     threads: int = setting(0, "threads shading the pixels (0: one per core); the images do not depend on it")
 
+    @property
+    def view_choice(self) -> "ViewChoice":
+        """--views parsed (parse_views)."""
+        return parse_views(self.views)
+
     def validate(self) -> None:
         if self.size:
             parse_size(self.size)
-        if self.views.startswith("orbit:"):
-            parse_orbit(self.views)
+        parse_views(self.views)
         if not 1 <= self.supersample <= 8:
             raise UserError(f"--supersample {self.supersample}: use 1 to 8 rays per pixel and axis")
         if not 1 <= self.interior_supersample <= 8:
@@ -156,14 +160,36 @@ def parse_size(text: str) -> tuple[int, int]:
     return w, h
 
 
-def parse_orbit(text: str) -> int:
-    try:
-        n = int(text.split(":", 1)[1])
-    except ValueError:
-        raise UserError(f"--views {text!r}: write orbit:N with N the number of views, e.g. orbit:12") from None
-    if not 1 <= n <= 1000:
-        raise UserError(f"--views {text!r}: N must be between 1 and 1000")
-    return n
+@dataclass(frozen=True)
+class ViewChoice:
+    """--views parsed: ``kind`` 'capture' (every posed view), 'heldout' (the views the samples
+    stage left out), 'poses' (the views of ``poses_file``), 'orbit' (``orbit_count`` views on a
+    ring) or 'keys' (the capture's views ``keys``)."""
+
+    kind: Literal["capture", "heldout", "poses", "orbit", "keys"]
+    poses_file: Path | None = None
+    orbit_count: int = 0
+    keys: tuple[str, ...] = ()
+
+
+def parse_views(text: str) -> ViewChoice:
+    """--views text -> ViewChoice; UserError (one line) for a malformed orbit:N."""
+    spec = text.strip()
+    if spec in ("capture", "all", ""):
+        return ViewChoice("capture")
+    if spec == "heldout":
+        return ViewChoice("heldout")
+    if spec.endswith(".json"):
+        return ViewChoice("poses", poses_file=Path(spec))
+    if spec.startswith("orbit:"):
+        try:
+            n = int(spec.split(":", 1)[1])
+        except ValueError:
+            raise UserError(f"--views {text!r}: write orbit:N with N the number of views, e.g. orbit:12") from None
+        if not 1 <= n <= 1000:
+            raise UserError(f"--views {text!r}: N must be between 1 and 1000")
+        return ViewChoice("orbit", orbit_count=n)
+    return ViewChoice("keys", keys=tuple(k.strip() for k in spec.split(",") if k.strip()))
 
 
 # --------------------------------------------------------------------------------------- paths
@@ -274,26 +300,22 @@ def orbit_views(n: int, mesh, size: tuple[int, int] | None, reference: Poses | N
 def resolve_views(*, capture: Path, work: Path, settings: Settings, mesh=None) -> list[View]:
     """The views to render, from ``settings.views`` (see Settings)."""
     size = parse_size(settings.size) if settings.size else None
-    spec = settings.views.strip()
+    choice = settings.view_choice
     capture_poses = capture_poses_path(capture, work)
-    if spec.startswith("orbit:"):
+    if choice.kind == "orbit":
         reference = read_poses(capture_poses) if capture_poses.exists() else None
         if mesh is None:
             mesh = read_mesh(mesh_path(capture))
-        return orbit_views(parse_orbit(spec), mesh, size, reference)
-    if spec.endswith(".json"):
-        poses, keys, own = read_poses(spec), None, False
+        return orbit_views(choice.orbit_count, mesh, size, reference)
+    if choice.kind == "poses":
+        poses, keys, own = read_poses(choice.poses_file), None, False
     else:
         if not capture_poses.exists():
             raise UserError(f"{capture}: no camera poses yet (no WORK/poses.json or CAPTURE/poses.json); "
                             "run `sigrend poses` first or give --views orbit:N or a poses.json")
         poses, own = read_poses(capture_poses), True
-        if spec in ("capture", "all", ""):
-            keys = None
-        elif spec == "heldout":
-            keys = heldout_keys(work)
-        else:
-            keys = [k.strip() for k in spec.split(",") if k.strip()]
+        keys = (None if choice.kind == "capture" else
+                heldout_keys(work) if choice.kind == "heldout" else list(choice.keys))
         if keys is not None:
             missing = [k for k in keys if k not in poses.images]
             if missing:
@@ -774,7 +796,7 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         paths.append(mesh_path(capture))
     except UserError:
         pass
-    views = settings.views.strip()
+    choice = settings.view_choice
     try:
         source, source_work = photo_source(capture, work, settings)
     except UserError:
@@ -784,11 +806,11 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             paths += [light.path for light in read_capture_config(source).lighting.values() if light.path]
         except UserError:
             pass
-    if views.endswith(".json"):
-        paths.append(Path(views))
-    elif not views.startswith("orbit:"):
+    if choice.kind == "poses":
+        paths.append(choice.poses_file)
+    elif choice.kind != "orbit":
         paths.append(capture_poses_path(source, source_work))
-        if views == "heldout":
+        if choice.kind == "heldout":
             paths.append(source_work / "samples.npz")
         if compares(settings):
             try:

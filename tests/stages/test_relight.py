@@ -204,8 +204,22 @@ def test_images_do_not_depend_on_the_threads(tmp_path, rng):
     assert np.array_equal(one, two)
 
 
+@pytest.mark.parametrize("text, expected", [
+    ("capture", relight.ViewChoice("capture")),
+    ("", relight.ViewChoice("capture")),
+    (" heldout ", relight.ViewChoice("heldout")),
+    ("gt/relight/poses.json", relight.ViewChoice("poses", poses_file=Path("gt/relight/poses.json"))),
+    ("orbit:12", relight.ViewChoice("orbit", orbit_count=12)),
+    ("0001.exr, 0003.exr", relight.ViewChoice("keys", keys=("0001.exr", "0003.exr"))),
+])
+def test_views_are_parsed_once_into_a_choice(text, expected):
+    assert relight.parse_views(text) == expected
+    assert make_settings(relight.Settings, views=text).view_choice == expected
+
+
 @pytest.mark.parametrize("values, message", [
     ({"size": "12by7"}, "WxH"),
+    ({"views": "orbit:0"}, "between 1 and 1000"),
     ({"views": "orbit:x"}, "orbit:N"),
     ({"supersample": 0}, "supersample"),
     ({"method": "raytrace"}, "method"),
