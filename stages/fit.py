@@ -110,6 +110,17 @@ class Settings:
                                    "products ran 7x slower with multithreaded OpenBLAS on a shared 2-core machine")
 
     @property
+    def known_lighting_file(self) -> Path | None:
+        """--lighting as the known lighting's file, or None for 'unknown'; a user error when the file is missing."""
+        if self.lighting == "unknown":
+            return None
+        path = Path(self.lighting)
+        if not path.is_file():
+            raise UserError(f"--lighting {self.lighting!r}: no such file; give 'unknown', an equirect EXR/HDR or a "
+                            "lighting_sh.json")
+        return path
+
+    @property
     def explicit_order(self) -> int | None:
         """--order as a number, or None for 'auto' (checked by validate)."""
         return None if self.order == "auto" else int(self.order)
@@ -208,17 +219,8 @@ def known_albedo_hint(capture: Path) -> list[float] | None:
     return arr.tolist()
 
 
-def known_lighting_path(spec: str) -> Path:
-    """The --lighting file, or a user error when there is none."""
-    path = Path(spec)
-    if not path.is_file():
-        raise UserError(f"--lighting {spec!r}: no such file; give 'unknown', an equirect EXR/HDR or a lighting_sh.json")
-    return path
-
-
-def load_known_lighting(spec: str, env_order: int) -> np.ndarray:
+def load_known_lighting(path: Path, env_order: int) -> np.ndarray:
     """Known lighting as SH ((L+1)^2, 3): a lighting_sh.json, or an equirect map projected to env_order."""
-    path = known_lighting_path(spec)
     if path.suffix.lower() == ".json":
         return read_lighting_sh(path)
     from pipeline.io.images import read_envmap
@@ -609,7 +611,8 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         raise UserError(f"{Path(capture) / 'capture.toml'}: [lighting] (a lighting per photo) is fitted on the physical "
                         "forward model only: the capture needs a mesh, and --forward physical with --brdf auto, "
                         "lambert or principled")
-    known_lighting = None if settings.lighting == "unknown" else load_known_lighting(settings.lighting, settings.env_order)
+    lighting_file = settings.known_lighting_file
+    known_lighting = None if lighting_file is None else load_known_lighting(lighting_file, settings.env_order)
     total = int(meta.get("count", 0))
     valid = sum(len(c["weight"]) for c in iter_sample_chunks(samples_path, settings.chunk, ("weight",))) if not total else total
     report: dict = {"settings": settings_dict(settings), "samples": {"total": valid}}

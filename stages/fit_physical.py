@@ -46,7 +46,7 @@ from pipeline.io.poses import poses_path, read_poses
 from pipeline.io.report import write_report
 from pipeline.io.samples import iter_sample_chunks
 from pipeline.raycast import RayMesh, pixel_footprints, ray_mesh
-from stages.fit import DEFAULT_ALBEDO, albedo_from_shading, known_lighting_path, prior_choices, write_plots
+from stages.fit import DEFAULT_ALBEDO, albedo_from_shading, prior_choices, write_plots
 
 SOURCES_NOTE = ("'coeffs' is the whole lighting to this order, the directional 'sources' included (their SH "
                 "projection); an angular renderer replaces that projection by the sources themselves")
@@ -121,7 +121,7 @@ def known_lighting_parts(settings, order: int) -> tuple[np.ndarray, np.ndarray, 
     equirect map: map_lighting_parts."""
     from pipeline.io.lighting import read_lighting_parts
 
-    path = known_lighting_path(settings.lighting)
+    path = settings.known_lighting_file
     if path.suffix.lower() == ".json":
         coeffs, dirs, power = read_lighting_parts(path)
         out = np.zeros((num_coeffs(order), 3))          # to the fit's order (truncated or zero-padded)
@@ -185,7 +185,7 @@ def check_lighting_scale(geo, obs, settings, best, coeffs, directions, intensity
                 "note": "--lighting-scale fit: one global factor fitted to the photos, then the material refitted"}
     if (exact and not 1 / SCALE_TOLERANCE <= k <= SCALE_TOLERANCE) or (not exact and k > SCALE_TOLERANCE):
         word = "at least " if not exact else "about "
-        given_as = "capture.toml [lighting]" if settings.lighting == "unknown" else f"--lighting {settings.lighting}"
+        given_as = "capture.toml [lighting]" if settings.known_lighting_file is None else f"--lighting {settings.lighting}"
         raise UserError(f"{given_as}: the photos are {word}x{k:.3g} the radiance this map "
                         f"predicts{' (with --lighting-scale ' + settings.lighting_scale + ')' if given != 1 else ''}; "
                         f"rescale the map, or give --lighting-scale {k * given:.3g} (or --lighting-scale fit)")
@@ -590,10 +590,11 @@ def known_lighting_setup(capture: Path, keys: list[str], image_id: np.ndarray, s
     """The known lighting (--lighting, or capture.toml [lighting] per photo; both is a user error),
     None when the lighting is unknown."""
     per_image = per_image_lighting(capture, keys, image_id)
-    if per_image is not None and settings.lighting != "unknown":
+    lighting_file = settings.known_lighting_file
+    if per_image is not None and lighting_file is not None:
         raise UserError(f"the lighting is given twice: --lighting {settings.lighting} and capture.toml [lighting]; "
                         "keep one")
-    if settings.lighting == "unknown" and per_image is None:
+    if lighting_file is None and per_image is None:
         return None
     if per_image is None:
         coeffs, dirs, power, env = known_lighting_parts(settings, order)

@@ -197,6 +197,7 @@ def test_bad_inputs_are_one_line_errors_and_keep_outputs(lambert_scene, tmp_path
     bad_basis = tmp_path / "bad_sh.json"
     bad_basis.write_text(json.dumps({"order": 1, "basis": "complex", "coeffs": [[1, 1, 1]] * 4}))
     _one_line_error(_cli(capture, "-w", work, "--lighting", bad_basis, "--force"), "real-orthonormal")
+    _one_line_error(_cli(capture, "-w", work, "--lighting", tmp_path / "nope.exr", "--force"), "no such file")
     _one_line_error(_cli(capture, "-w", work, "--order", "many"), "--order")
     _one_line_error(_cli(capture, "-w", work, "--footprint", "0"), "--footprint")
     _one_line_error(_cli(capture, "-w", work, "--noise-model", "poisson"), "--noise-model")
