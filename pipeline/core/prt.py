@@ -37,7 +37,8 @@ import numpy as np
 from pipeline.core.material import Principled
 from pipeline.core.render import Renderer, bounce_series
 from pipeline.core.sh import num_coeffs, sh_basis
-from pipeline.core.shading import front_cos, specular_over_directions, specular_over_footprint, specular_samples
+from pipeline.core.shading import (LobeSamples, front_cos, specular_over_directions, specular_over_footprint,
+                                   specular_samples)
 
 
 @dataclass
@@ -153,16 +154,27 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
 
 def _lobe_chunks(geo: Geometry, material: Principled, n_samples: int, seed: int, chunk: int, one_chunk) -> None:
     """Call ``one_chunk(idx, lobe)`` for chunks of the front-facing samples with their GGX VNDF lobe
-    samples (shading.specular_samples; weights of occluded lobe samples set to 0).  The chunks run on
-    one thread per core (Embree and NumPy's large operations release the GIL), each drawing from a
-    generator seeded by (seed, chunk start), so the result does not depend on the threads."""
+    samples (shading.specular_samples; weights of occluded lobe samples set to 0), drawn over each
+    sample's pixel footprint when the geometry has one (a pixel averages the lobe over the surface
+    it sees; at the centres only, the night sphere's unknown-lighting fit relit at 10.65 %, not
+    10.21 %).  The chunks run on one thread per core (Embree and NumPy's large operations release
+    the GIL), each drawing from a generator seeded by (seed, chunk start), so the result does not
+    depend on the threads."""
     r = geo.renderer
     front = np.flatnonzero(geo.mu_out > 0)
 
     def run(s: int) -> None:
         idx = front[s:s + chunk]
         rng = np.random.default_rng([seed, s])
-        lobe = specular_samples(material, geo.normals[idx], geo.view_dirs[idx], n_samples, rng)
+        if geo.footprint is None:
+            lobe = specular_samples(material, geo.normals[idx], geo.view_dirs[idx], n_samples, rng)
+        else:   # n_samples / F at each of the F footprint points: the lobe averaged over the pixel
+            normals, view_dirs = (a[idx] for a in geo.footprint)
+            f = normals.shape[1]
+            lobe = specular_samples(material, normals.reshape(-1, 3), view_dirs.reshape(-1, 3),
+                                    max(1, n_samples // f), rng)
+            lobe = LobeSamples(lobe.directions.reshape(idx.size, -1, 3), lobe.weight.reshape(idx.size, -1, 3) / f,
+                               lobe.solid_angle.reshape(idx.size, -1) / f)
         ns = lobe.directions.shape[1]
         dirs = lobe.directions.reshape(-1, 3)
         live = np.flatnonzero(lobe.weight.reshape(-1, 3).max(axis=1) > 0)
