@@ -228,16 +228,26 @@ def load_known_lighting(path: Path, env_order: int) -> np.ndarray:
     return project_envmap(np.asarray(read_envmap(path), dtype=float), env_order)
 
 
-def parse_brdf_setting(spec: str) -> tuple[str | None, dict | None]:
-    """--brdf -> (model to fit or None for auto, known BRDF dict or None)."""
+@dataclass(frozen=True)
+class BrdfChoice:
+    """--brdf parsed: ``fit_model``, the model whose parameters are fitted (None: 'auto', chosen by
+    held-out views), or ``known``, a validated brdf.json dict (pipeline.io.brdf); never both."""
+
+    fit_model: str | None = None
+    known: dict | None = None
+
+
+def parse_brdf_setting(spec: str) -> BrdfChoice:
+    """--brdf -> BrdfChoice; a user error for a malformed spec or a material the fit cannot take."""
     if spec == "auto":
-        return None, None
-    known = None if spec in MODEL_PARAMS else parse_brdf_spec(spec)
-    if (known or {}).get("model") == "principled" and (known.get("metallic", 0.0) > 0
-                                                       or any(v != 1.0 for v in known.get("specular_tint", [1.0]))):
+        return BrdfChoice()
+    if spec in MODEL_PARAMS:
+        return BrdfChoice(fit_model=spec)
+    known = parse_brdf_spec(spec)
+    if known["model"] == "principled" and (known["metallic"] > 0 or any(v != 1.0 for v in known["specular_tint"])):
         raise UserError(f"--brdf {spec!r}: the physical fit takes a dielectric principled material (metallic 0, "
                         "white specular tint) so far")
-    return (spec, None) if known is None else (None, known)
+    return BrdfChoice(known=known)
 
 
 def _filter_rows(chunk: dict, settings: Settings, min_cos: float) -> np.ndarray:
@@ -598,7 +608,8 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     meta = read_samples_meta(samples_path)
     keys = meta["image_keys"]
     explicit_order = settings.explicit_order
-    fit_model, known_brdf = parse_brdf_setting(settings.brdf)
+    choice = parse_brdf_setting(settings.brdf)
+    fit_model, known_brdf = choice.fit_model, choice.known
     hint = known_albedo_hint(capture)
     if settings.forward == "physical" and _has_mesh(capture) and (fit_model in (None, "lambert", "principled")
                                            and (known_brdf or {}).get("model", "lambert") in ("lambert", "principled")):
