@@ -1,5 +1,5 @@
 """Synthetic scenes for the fit tests: an analytic environment, sphere samples seen from several
-views, and radiance by direct numerical integration of the reflection equation over the
+views (as a samples file, or as the physical fit's prt.Geometry: sphere_geometry), and radiance by direct numerical integration of the reflection equation over the
 environment's pixels (independent of the SH forward model the fit inverts)."""
 
 from __future__ import annotations
@@ -7,10 +7,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
+from pipeline.core import prt
 from pipeline.core.brdf import cosine_weighted_brdf
 from pipeline.core.envmap import equirect_directions, equirect_solid_angles
 from pipeline.io.samples import write_samples
+from pipeline.raycast import ray_mesh
 
 
 def sharp_env(height: int = 48, sun_width: float = 0.01, sun_power: float = 20.0) -> np.ndarray:
@@ -71,3 +74,15 @@ def write_scene(work: Path, normal, view_dir, image_id, radiance, visibility=Non
               "weight": np.ones(n), "visibility": np.ones(n) if visibility is None else visibility,
               "image_keys": [f"{i:04d}.exr" for i in range(int(image_id.max()) + 1)]}
     return write_samples(Path(work) / "samples.npz", arrays, {"source": "tests/fit_scenes.py"})
+
+
+def sphere_geometry(rng, n: int = 3000, order: int = 3) -> prt.Geometry:
+    """Samples on a unit icosphere seen from random directions in their front hemisphere."""
+    mesh = trimesh.creation.icosphere(subdivisions=4)
+    faces = rng.integers(0, len(mesh.faces), n)
+    bary = rng.dirichlet([1.0, 1.0, 1.0], n)
+    normals = np.asarray(mesh.face_normals)[faces]
+    view = normals + rng.normal(0.0, 0.6, (n, 3))
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    view[np.einsum("pk,pk->p", view, normals) < 0.05] = normals[np.einsum("pk,pk->p", view, normals) < 0.05]
+    return prt.geometry(ray_mesh(mesh), faces, bary, view, order)

@@ -25,7 +25,7 @@ import numpy as np
 
 from pipeline.core import prt, solve
 from pipeline.core.material import Principled, ggx_lobe_cos, material_dict
-from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envmap
+from pipeline.core.sh import band_of_index, envmap_from_sh, num_coeffs, order_of, project_envmap
 from pipeline.core.shading import front_cos
 
 
@@ -110,6 +110,7 @@ def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: prt.SpecularTransfer
 
 
 MIN_SOURCE_COS = float(np.cos(np.radians(10.0)))   # sources closer than 10 deg are one (extended) light
+BACKFIT_STEP = float(np.radians(2.0))   # relocation's first local grid half-width (2.5x finer x 4 rounds: 0.06 deg)
 
 
 @dataclass
@@ -196,19 +197,28 @@ def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray
     and the weighted residual power it explains: matching pursuit over the renderer's direction
     set on the coarse ``scan`` (source_scan), then ``rounds`` of
     5 x 5 local grids, each 2.5x finer, on all samples with exact shadow rays (prt.source_transfer)."""
-    r = geo.renderer
-    dirs = r.lights.directions
-    # located at the pixel centres (16x cheaper): a pixel footprint blurs a highlight, it does not move it
-    centre = replace(geo, footprint=None)
-    layer = prt.diffuse_layer(material, geo.mu_out)
+    dirs = geo.renderer.lights.directions
     sl = scan.samples
     num = np.einsum("p,pdc,pc->dc", weight[sl], scan.columns, residual[sl])
     den = np.einsum("p,pdc->dc", weight[sl], scan.columns * scan.columns)
     score = _explained_power(num, den)
     for f in exclude or []:
         score[dirs @ f > MIN_SOURCE_COS] = -np.inf
-    best, best_score = dirs[int(np.argmax(score))], -np.inf   # the refinement (centre included) scores all samples
-    step = np.pi / r.lights.directions.shape[0] ** 0.5 * 1.5        # about one cell
+    return refine_direction(geo, material, base, residual, weight, dirs[int(np.argmax(score))],
+                            np.pi / len(dirs) ** 0.5 * 1.5, rounds)     # the first step: about one cell
+
+
+def refine_direction(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
+                     weight: np.ndarray, start: np.ndarray, step: float, rounds: int,
+                     project=None) -> tuple[np.ndarray, float]:
+    """(direction (3,), explained power) of the source that best explains ``residual`` near
+    ``start``: ``rounds`` of 5 x 5 local grids of half-width ``step`` (radians), each 2.5x finer,
+    on all samples with exact shadow rays (prt.source_transfer), the centre included.
+    ``project``: the candidates' columns (3, N, J) are scored by what of them it leaves (sh_complement)."""
+    # located at the pixel centres (16x cheaper): a pixel footprint blurs a highlight, it does not move it
+    centre = replace(geo, footprint=None)
+    layer = prt.diffuse_layer(material, geo.mu_out)
+    best, best_score = np.asarray(start, float), -np.inf
     for _ in range(rounds):
         t1 = np.cross(best, [0.0, 0.0, 1.0] if abs(best[2]) < 0.9 else [1.0, 0.0, 0.0])
         t1 /= np.linalg.norm(t1)
@@ -217,7 +227,8 @@ def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray
         cand = best[None] + off[:, None, None] * t1 + off[None, :, None] * t2
         cand = cand.reshape(-1, 3) / np.linalg.norm(cand.reshape(-1, 3), axis=1, keepdims=True)
         st = prt.source_transfer(centre, material, cand)
-        sc = _source_score(_source_columns(geo, layer, st, None, base), residual, weight)
+        cols = _source_columns(geo, layer, st, None, base)
+        sc = _source_score(cols if project is None else project(cols), residual, weight)
         if sc.max() > best_score:
             best, best_score = cand[int(np.argmax(sc))], float(sc.max())
         step /= 2.5
@@ -571,6 +582,22 @@ def _source_intensities(cols: np.ndarray, residual: np.ndarray, weight: np.ndarr
     return np.stack([nnls(cols[c] * sw, residual[:, c] * sw[:, 0])[0] for c in range(3)], axis=1)
 
 
+def sh_complement(a: np.ndarray, weight: np.ndarray, fit: solve.LightingFit):
+    """cols (3, N, J) -> what of them the regularized SH fit of design ``a`` (3, N, K) does not
+    take up, per channel cols - A (A'WA + diag(ridge))^-1 A'W cols on ``fit``'s kept bands: a
+    source moved against the SH refitted around it is scored by this part only (R&H 2001's dual
+    representation: the angular part holds what the SH cannot)."""
+    keep = np.flatnonzero(np.array([lab != "ill-posed" for lab in fit.labels])[band_of_index(order_of(a.shape[2]))])
+    ak = a[:, :, keep]
+    gram = np.einsum("cpk,p,cpj->ckj", ak, weight, ak) + np.diag(fit.ridge[keep])[None]
+
+    def project(cols: np.ndarray) -> np.ndarray:
+        x = np.linalg.solve(gram, np.einsum("cpk,p,cpj->ckj", ak, weight, cols))
+        return cols - np.einsum("cpk,ckj->cpj", ak, x)
+
+    return project
+
+
 def _held_out_rmse(a: np.ndarray, target: np.ndarray, obs: Observations, order: int, folds: int, kw: dict) -> float:
     """Leave-one-fold-out RMSE of the SH lighting (design ``a`` (3, N, K)) fitted to ``target``."""
     eqs = _equations(a, Observations(target, obs.weight, obs.fold), order, folds)
@@ -599,7 +626,34 @@ def _add_sources(geo, material, base, layer, a, obs, max_sources, gain, order, f
             break
         best, found, kept = score, found + [d], (st, cols, power)
         residual = target - np.einsum("cpk,kc->pc", a, _solve_sh(a, target, obs, order, folds, kw).coeffs)
-    return None if kept is None else Sources(kept[0], kept[2])
+    if kept is None:
+        return None
+    moved, score = _relocate_sources(geo, material, base, layer, a, obs, order, folds, kw, found, kept[1], kept[2])
+    return moved if score < best * (1.0 - gain) else Sources(kept[0], kept[2])   # as a new source must
+
+
+def _relocate_sources(geo, material, base, layer, a, obs, order, folds, kw, found, cols, power):
+    """One more pass over the pursuit's sources: each direction refined (BACKFIT_STEP, 4 rounds)
+    against the SH refitted around the others and scored by its part the SH cannot carry
+    (sh_complement), then all intensities refitted -> (transfer, intensities, held-out RMSE). The
+    pursuit's first SH fit absorbed part of each source, which moved it by about a degree -- and
+    held-out RMSE, hence model selection, is dominated by such sub-degree errors of a sharp source.
+    The caller keeps the move only where it lowers the held-out views' RMSE by more than the
+    gain a new source must bring: where SH and sources cannot carry the lighting (a sharp lobe
+    under a detailed map) the complement is a poor guide and small gains are noise."""
+    w = obs.weight
+    target = obs.radiance - np.einsum("cpj,jc->pc", cols, power)
+    fit = _solve_sh(a, target, obs, order, folds, kw)
+    sh_part = np.einsum("cpk,kc->pc", a, fit.coeffs)
+    project = sh_complement(a, w, fit)
+    own = project(cols) * power.T[:, None, :]                 # (3, N, J): each source's part the SH cannot carry
+    found = [refine_direction(geo, material, base, target - sh_part + own[:, :, j].T, w, d, BACKFIT_STEP, 4,
+                              project)[0] for j, d in enumerate(found)]
+    st = prt.source_transfer(geo, material, np.array(found))
+    cols = _source_columns(geo, layer, st, None, base)
+    power = _source_intensities(cols, obs.radiance - sh_part, w)
+    target = obs.radiance - np.einsum("cpj,jc->pc", cols, power)
+    return Sources(st, power), _held_out_rmse(a, target, obs, order, folds, kw)
 
 
 def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | None,

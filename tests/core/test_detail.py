@@ -4,26 +4,12 @@ the same lobe samples, and material_fit's detail map against a map it must recov
 from __future__ import annotations
 
 import numpy as np
-import trimesh
-
 from pipeline.core import prt
 from pipeline.core.envmap import equirect_directions
 from pipeline.core.material import Principled
 from pipeline.core.material_fit import Observations, fit_detail_map, held_out_detail
 from pipeline.core.sh import envmap_from_sh, num_coeffs, project_envmap
-from pipeline.raycast import ray_mesh
-
-
-def sphere_geometry(rng, n: int = 3000, order: int = 3) -> prt.Geometry:
-    """Samples on a unit icosphere seen from random directions in their front hemisphere."""
-    mesh = trimesh.creation.icosphere(subdivisions=4)
-    faces = rng.integers(0, len(mesh.faces), n)
-    bary = rng.dirichlet([1.0, 1.0, 1.0], n)
-    normals = np.asarray(mesh.face_normals)[faces]
-    view = normals + rng.normal(0.0, 0.6, (n, 3))
-    view /= np.linalg.norm(view, axis=1, keepdims=True)
-    view[np.einsum("pk,pk->p", view, normals) < 0.05] = normals[np.einsum("pk,pk->p", view, normals) < 0.05]
-    return prt.geometry(ray_mesh(mesh), faces, bary, view, order)
+from fit_scenes import sphere_geometry
 
 
 def test_detail_transfer_is_the_sh_transfer_of_the_same_lobe(rng):

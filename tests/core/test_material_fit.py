@@ -1,12 +1,19 @@
 """pipeline.core.material_fit: the albedo level that interreflection fixes (albedo_level), on a
-model whose answer is known in closed form."""
+model whose answer is known in closed form; a directional source located against the SH fitted
+around it (sh_complement)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from fit_scenes import sphere_geometry
 
-from pipeline.core.material_fit import LEVEL_XTOL, albedo_level
+from pipeline.core import prt
+from pipeline.core.material import Principled
+from pipeline.core.material_fit import (LEVEL_XTOL, Observations, _source_columns, albedo_level, fit_material,
+                                        sh_complement)
+from pipeline.core.sh import num_coeffs
+from pipeline.core.solve import LightingFit
 
 
 def bounced_scene(rng, bounce: float, truth: np.ndarray, n: int = 400, folds: int = 4):
@@ -55,3 +62,41 @@ def test_level_within_range(rng, bounce):
     chroma = np.array([0.5, 0.5, 0.5])
     s, determined, _ = albedo_level(bounced_scene(rng, bounce, np.full(3, 0.95)), chroma)
     assert s * chroma.max() <= 1.0 + 1e-9
+
+
+def test_sh_complement_removes_what_the_sh_carries(rng):
+    """Without a ridge the complement is the weighted least-squares residual: a column in the
+    SH design's span goes to 0, and what is left is W-orthogonal to every design column."""
+    a = rng.normal(size=(3, 200, 9))
+    weight = rng.uniform(0.5, 2.0, 200)
+    fit = LightingFit(np.zeros((9, 3)), ["recoverable"] * 3, [], 1.0, 0.0, np.zeros(9))
+    project = sh_complement(a, weight, fit)
+    inside = np.einsum("cpk,kj->cpj", a, rng.normal(size=(9, 2)))
+    assert np.abs(project(inside)).max() < 1e-10
+    left = project(rng.normal(size=(3, 200, 2)))
+    assert np.abs(np.einsum("cpk,p,cpj->ckj", a, weight, left)).max() < 1e-10
+
+
+def test_source_located_against_the_sh_fitted_around_it(rng):
+    """A sun (one directional source) on top of smooth SH lighting, seen by a glossy sphere through
+    the fit's own transfer: the pursuit's first SH fit takes up part of the sun and the scan's
+    refinement places it about a degree off; scored against the SH refitted around it
+    (sh_complement), the direction comes back to within 0.2 deg (measured: 0.10 deg; scored
+    against the first SH fit's residual, 0.51 deg)."""
+    geo = sphere_geometry(rng, n=4000, order=3)
+    material = Principled(roughness=0.2)
+    base = np.array([0.6, 0.4, 0.3])
+    sun = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    coeffs = rng.normal(0.0, 0.1, (num_coeffs(3), 3))
+    coeffs[0] = 1.0
+    spec = prt.specular_transfer(geo, material, order=3)
+    layer = prt.diffuse_layer(material, geo.mu_out)
+    diffuse = geo.direct[:, :, None] * (layer * base / np.pi)[:, None, :] + spec.fixed
+    st = prt.source_transfer(geo, material, sun[None])
+    sun_radiance = np.einsum("cpj,jc->pc", _source_columns(geo, layer, st, None, base), np.array([[30.0, 28.0, 25.0]]))
+    radiance = np.einsum("pkc,kc->pc", diffuse, coeffs) + sun_radiance
+    obs = Observations(radiance, np.ones(len(radiance)), np.arange(len(radiance)) % 4)
+    fit = fit_material(geo, material, obs, order=3, folds=4, base0=base, spec=spec, fix_base=True, max_sources=1,
+                       max_bounces=0)
+    found = fit.sources.transfer.directions[0]
+    assert np.degrees(np.arccos(min(found @ sun, 1.0))) < 0.2
