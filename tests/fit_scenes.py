@@ -1,6 +1,7 @@
 """Synthetic scenes for the fit tests: an analytic environment, sphere samples seen from several
-views (as a samples file, or as the physical fit's prt.Geometry: sphere_geometry), and radiance by direct numerical integration of the reflection equation over the
-environment's pixels (independent of the SH forward model the fit inverts)."""
+views (as a samples file, or as the physical fit's prt.Geometry: sphere_geometry), and radiance
+by direct numerical integration of the reflection equation over the environment's pixels
+(independent of the SH forward model the fit inverts)."""
 
 from __future__ import annotations
 

@@ -635,7 +635,7 @@ def _add_sources(geo, material, base, layer, a, obs, max_sources, gain, order, f
 def _relocate_sources(geo, material, base, layer, a, obs, order, folds, kw, found, cols, power):
     """One more pass over the pursuit's sources: each direction refined (BACKFIT_STEP, 4 rounds)
     against the SH refitted around the others and scored by its part the SH cannot carry
-    (sh_complement), then all intensities refitted -> (transfer, intensities, held-out RMSE). The
+    (sh_complement), then all intensities refitted -> (the moved Sources, their held-out RMSE). The
     pursuit's first SH fit absorbed part of each source, which moved it by about a degree -- and
     held-out RMSE, hence model selection, is dominated by such sub-degree errors of a sharp source.
     The caller keeps the move only where it lowers the held-out views' RMSE by more than the
