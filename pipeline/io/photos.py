@@ -19,7 +19,7 @@ def capture_photos(capture: Path, others: Literal["refuse", "skip"] = "refuse") 
     folder = Path(capture) / "images"
     if not folder.is_dir():
         raise UserError(f"{folder}: folder not found; put the photos in CAPTURE/images/")
-    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    files = _visible_files(folder)
     if others == "skip":
         return [p for p in files if p.suffix.lower() in RAW_EXTENSIONS | DECODED_EXTENSIONS]
     for p in files:
@@ -31,6 +31,11 @@ def capture_photos(capture: Path, others: Literal["refuse", "skip"] = "refuse") 
     return files
 
 
+def _visible_files(folder: Path) -> list[Path]:
+    """The files of ``folder`` sorted by name, hidden ones (dot files) skipped."""
+    return sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+
+
 def photo_files(images: Path | str | Iterable[Path | str], extensions: set[str] | frozenset[str]) -> list[Path]:
     """Files with one of ``extensions`` (lower case, with the dot) among ``images``: a folder (its
     files, sorted, hidden ones skipped), a file, or a list of both; a path named twice is read once."""
@@ -38,8 +43,7 @@ def photo_files(images: Path | str | Iterable[Path | str], extensions: set[str] 
     files: list[Path] = []
     for path in paths:
         if path.is_dir():
-            files += sorted(p for p in path.iterdir()
-                            if p.is_file() and p.suffix.lower() in extensions and not p.name.startswith("."))
+            files += [p for p in _visible_files(path) if p.suffix.lower() in extensions]
         elif path.is_file():
             if path.suffix.lower() not in extensions:
                 raise UserError(f"{path}: not a photo this command reads ({', '.join(sorted(extensions))})")
