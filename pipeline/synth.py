@@ -203,8 +203,8 @@ def load_mesh(spec: str, mesh_size: float, up: str = "y"):
 
 
 def load_env(spec: str) -> np.ndarray:
-    """Equirect map from a file path (validated) or a procedural spec (pipeline.core.envmaps)."""
-    from pipeline.core.envmaps import envmap_from_spec
+    """Equirect map from a file path (validated) or a procedural spec (pipeline.core.procedural_envmaps)."""
+    from pipeline.core.procedural_envmaps import envmap_from_spec
     from pipeline.io.images import read_envmap
 
     path = Path(spec)

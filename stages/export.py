@@ -14,7 +14,7 @@ Outputs (default WORK/export/asset.glb), beside each other:
   pipeline.core.envmap.blender_columns.
 * ``asset_preview_sunsky.png``, ``asset_preview_room.png``: the asset rendered by sigrend's renderer
   (pipeline.core.render: shadows, interreflection, the material as exported) under two of the
-  bundled procedural maps (pipeline.core.envmaps ``sun+sky`` and ``room``), one view 20 degrees
+  bundled procedural maps (pipeline.core.procedural_envmaps ``sun+sky`` and ``room``), one view 20 degrees
   above the object; the report shows them.
 * ``asset_export.json``: the files with their sizes, the material, the conventions, the energy
   lost by clamping the lighting's negative lobes.
@@ -83,7 +83,7 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     return paths
 
 
-PREVIEWS = {"sunsky": "sun+sky", "room": "room"}   # preview file tag -> bundled map (pipeline.core.envmaps)
+PREVIEWS = {"sunsky": "sun+sky", "room": "room"}   # preview file tag -> bundled map (pipeline.core.procedural_envmaps)
 PREVIEW_PX = 256
 
 
@@ -97,7 +97,7 @@ def preview(mesh, brdf: dict, colors: np.ndarray | None, env_spec: str) -> tuple
     """Linear radiance (H, W, 3) and object mask of the asset under a bundled map, one view on a ring
     20 degrees above the object (pipeline.core.camera.orbit_poses), the map as background."""
     from pipeline.core.camera import orbit_poses
-    from pipeline.core.envmaps import envmap_from_spec
+    from pipeline.core.procedural_envmaps import envmap_from_spec
     from pipeline.core.render import Renderer
     from pipeline.raycast import ray_mesh
 

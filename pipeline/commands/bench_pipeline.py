@@ -129,7 +129,7 @@ def brdf_data(normal, view, radiance, coeffs):
 def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
     """BRDF estimation error (lobe width, specular weight) vs noise under sharp and soft lighting."""
     from pipeline.core import forward
-    from pipeline.core.envmaps import make_envmap
+    from pipeline.core.procedural_envmaps import make_envmap
     from pipeline.core.solve import fit_brdf
 
     normal, view = sphere_light_field(600, 16, rng)

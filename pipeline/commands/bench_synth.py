@@ -22,7 +22,7 @@ def synth_suite(quick: bool, repeat: int) -> list:
     of the first view (shading only: visibility is cached per scene).  The mesh is the Stanford
     bunny (``BENCH_MESH``, else the 'sphere'); --quick renders 128 x 128.
     """
-    from pipeline.core.envmaps import make_envmap
+    from pipeline.core.procedural_envmaps import make_envmap
     from pipeline.core.render import Renderer
     from pipeline.raycast import ray_mesh
 

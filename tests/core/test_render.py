@@ -12,7 +12,7 @@ import trimesh
 from pipeline.core.brdf import cosine_weighted_brdf
 from pipeline.core.camera import Camera, look_at, pixel_centers, pixel_rays
 from pipeline.core.envmap import equirect_solid_angles
-from pipeline.core.envmaps import ENV_PARAMS, make_envmap, smooth_coefficients
+from pipeline.core.procedural_envmaps import ENV_PARAMS, make_envmap, smooth_coefficients
 from pipeline.core.render import InsideMeshError, Renderer, light_set
 from pipeline.raycast import ray_mesh
 

@@ -8,7 +8,7 @@ import rawpy
 import trimesh
 
 from pipeline.core.camera import Camera, look_at
-from pipeline.core.envmaps import make_envmap
+from pipeline.core.procedural_envmaps import make_envmap
 from pipeline.core.render import Renderer
 from pipeline.io.camera_decode import decode_raw
 from pipeline.io.camera_files import (DNG_BLACK, DNG_WHITE, Exposure, add_sensor_noise, bayer_mosaic,

@@ -1,11 +1,11 @@
-"""pipeline.core.envmaps against closed forms: the white furnace's power, a sun disk's power and
+"""pipeline.core.procedural_envmaps against closed forms: the white furnace's power, a sun disk's power and
 direction at any map height, the CIE overcast sky's integral, and the spec grammar's errors."""
 
 import numpy as np
 import pytest
 
 from pipeline.core.envmap import equirect_directions, equirect_solid_angles
-from pipeline.core.envmaps import direction_from_angles, envmap_from_spec, make_envmap, parse_env_spec
+from pipeline.core.procedural_envmaps import direction_from_angles, envmap_from_spec, make_envmap, parse_env_spec
 
 
 def power(env: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
