@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.sh import band_of_index, num_coeffs, order_of, project_envmap
+from pipeline.core.sh import band_of_index, band_relative_errors, num_coeffs, order_of, project_envmap
 
 NOISE_LEVELS = (0.0, 0.001, 0.003, 0.01, 0.03, 0.1)
 
@@ -83,15 +83,6 @@ def _solve_lighting(normal, view, radiance, brdf, order) -> np.ndarray:
     return np.stack([np.linalg.lstsq(designs[c], radiance[:, c], rcond=1e-12)[0] for c in range(3)], axis=1)
 
 
-def band_errors(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """Relative error per band ||L̂_l - L_l|| / ||L_l|| (all channels), (L+1,)."""
-    order = int(round(np.sqrt(truth.shape[0]))) - 1
-    bands = band_of_index(order)
-    err = np.bincount(bands, weights=((estimate - truth) ** 2).sum(axis=1), minlength=order + 1)
-    ref = np.bincount(bands, weights=(truth ** 2).sum(axis=1), minlength=order + 1)
-    return np.sqrt(err / ref)
-
-
 def stability_lighting(rng: np.random.Generator, order: int = 8, trials: int = 3) -> list[dict]:
     """Inverse lighting error per band vs noise, Lambertian vs glossy (rows for the CSV)."""
     from pipeline.core import forward
@@ -108,7 +99,7 @@ def stability_lighting(rng: np.random.Generator, order: int = 8, trials: int = 3
                 truth = test_lighting(order, rng)
                 clean = forward.render_samples(truth, brdf, normal, view)
                 noisy = clean + noise * clean.mean() * rng.normal(size=clean.shape)
-                errs.append(band_errors(_solve_lighting(normal, view, noisy, brdf, order), truth))
+                errs.append(band_relative_errors(_solve_lighting(normal, view, noisy, brdf, order), truth))
             med = np.median(errs, axis=0)
             for l, e in enumerate(med):
                 rows.append({"problem": "inverse lighting", "scene": scene, "noise": noise, "quantity": f"band {l}",
@@ -261,7 +252,7 @@ def _lighting_band_errors(fitted: np.ndarray, truth: np.ndarray, scale_free: boo
     padded[:n] = fitted[:n]
     ref = truth[:padded.shape[0]]
     scale = float((padded * ref).sum() / (padded * padded).sum()) if scale_free and (padded ** 2).sum() > 0 else 1.0
-    return band_errors(scale * padded, ref), scale
+    return band_relative_errors(scale * padded, ref), scale
 
 
 def _pareto(times: np.ndarray, errors: np.ndarray) -> np.ndarray:

@@ -178,6 +178,19 @@ def band_energy(coeffs: np.ndarray) -> np.ndarray:
     return np.bincount(band_of_index(order), weights=sq, minlength=order + 1)
 
 
+def band_relative_errors(estimate: np.ndarray, truth: np.ndarray, order: int | None = None) -> np.ndarray:
+    """||L^_l - L_l|| / ||L_l|| per band l = 0..``order`` (default: the truth's), all channels
+    together: (K[, C]) x (K'[, C]) -> (order + 1,).  Rows the estimate lacks count as zero (a band
+    it does not have is error 1); rows beyond ``order`` are ignored."""
+    truth = np.asarray(truth, dtype=float)
+    order = order_of(truth.shape[0]) if order is None else order
+    k = num_coeffs(order)
+    est = np.zeros((k,) + truth.shape[1:])
+    n = min(k, len(estimate))
+    est[:n] = np.asarray(estimate, dtype=float)[:n]
+    return np.sqrt(band_energy(est - truth[:k]) / band_energy(truth[:k]))
+
+
 def project_envmap(env: np.ndarray, order: int, rows_per_chunk: int = 64) -> np.ndarray:
     """SH coefficients of an equirectangular map (DESIGN.md convention): (H, 2H, C) -> ((L+1)^2, C).
 

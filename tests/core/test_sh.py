@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from pipeline.core.envmap import equirect_directions
 from pipeline.core.quadrature import gauss_legendre, sphere_product_rule, sphere_rule_for_degree
 from pipeline.core.sh import (
-    _legendre_table, band_energy, envmap_from_sh, m_of_index, num_coeffs, project_envmap,
+    _legendre_table, band_energy, band_relative_errors, envmap_from_sh, m_of_index, num_coeffs, project_envmap,
     rotate_sh, sh_basis, sh_evaluate, sh_rotation_matrices)
 
 
@@ -221,3 +221,16 @@ def test_product_rule_weights():
     dirs, w = sphere_product_rule(3, 5)
     assert dirs.shape == (15, 3) and w.shape == (15,)
     np.testing.assert_allclose(np.linalg.norm(dirs, axis=1), 1.0, atol=1e-15)
+
+
+def test_band_relative_errors_per_band_and_for_missing_bands():
+    """A per-band scale (1 + e_l) of the truth is relative error e_l in band l, whatever the
+    channels hold; bands the estimate lacks are error 1; rows beyond ``order`` are ignored."""
+    rng = np.random.default_rng(3)
+    truth = rng.normal(size=(num_coeffs(4), 3))
+    e = np.array([0.01, 0.05, 0.2, 0.0, 0.5])
+    bands = np.repeat(np.arange(5), 2 * np.arange(5) + 1)
+    estimate = truth * (1.0 + e[bands])[:, None]
+    np.testing.assert_allclose(band_relative_errors(estimate, truth), e, atol=1e-12)
+    np.testing.assert_allclose(band_relative_errors(estimate, truth, 2), e[:3], atol=1e-12)
+    np.testing.assert_allclose(band_relative_errors(estimate[:4], truth), [0.01, 0.05, 1.0, 1.0, 1.0], atol=1e-12)
