@@ -252,7 +252,7 @@ def view_stem(key: str) -> str:
     return Path(key).stem
 
 
-def heldout_keys(work: Path) -> list[str]:
+def samples_holdout_keys(work: Path) -> list[str]:
     """Image keys the samples stage left out (samples.npz meta 'holdout'), for an honest check."""
     from pipeline.io.samples import read_samples_meta
 
@@ -315,7 +315,7 @@ def resolve_views(*, capture: Path, work: Path, settings: Settings, mesh=None) -
                             "run `sigrend poses` first or give --views orbit:N or a poses.json")
         poses, own = read_poses(capture_poses), True
         keys = (None if choice.kind == "capture" else
-                heldout_keys(work) if choice.kind == "heldout" else list(choice.keys))
+                samples_holdout_keys(work) if choice.kind == "heldout" else list(choice.keys))
         if keys is not None:
             missing = [k for k in keys if k not in poses.images]
             if missing:
@@ -332,7 +332,7 @@ def brdf_lobe_filter(brdf: dict, order: int) -> np.ndarray:
     if brdf["model"] not in forward.LOBE_MODELS:
         return np.zeros(order + 1)
     model = brdf["model"]
-    return np.asarray(forward.lobe_filter(model, float(brdf[forward.WIDTH_PARAM[model]]), order), float)
+    return np.asarray(forward.specular_lobe_filter(model, float(brdf[forward.WIDTH_PARAM[model]]), order), float)
 
 
 def needed_order(filt: np.ndarray) -> int:
@@ -445,7 +445,7 @@ class Lighting:
         """The lobe's filters on forward.VIEW_COS_GRID (one row for a view-independent lobe)."""
         model, width = self._width()
         if model == "phong":
-            return np.asarray(forward.lobe_filter(model, width, order), float)[None, :]
+            return np.asarray(forward.specular_lobe_filter(model, width, order), float)[None, :]
         return np.asarray(forward.sample_lobe_filters(model, width, order, forward.VIEW_COS_GRID), float)
 
     @classmethod

@@ -35,7 +35,7 @@ LOBE_MODELS = ("phong", "microfacet")
 WIDTH_PARAM = {"phong": "exponent", "microfacet": "roughness"}
 
 
-def lobe_filter(model: str, width: float, order: int) -> np.ndarray:
+def specular_lobe_filter(model: str, width: float, order: int) -> np.ndarray:
     """A_l (l = 0..order) of the specular lobe of ``model`` with width parameter ``width``
     (Phong exponent s or Beckmann roughness sigma)."""
     if model == "phong":
@@ -191,7 +191,7 @@ def sample_lobe_filters(model: str, width: float, order: int, cos_view: np.ndarr
     microfacet one is interpolated from :func:`microfacet_filter_table`."""
     cos_view = np.asarray(cos_view, dtype=float).reshape(-1)
     if model == "phong":
-        return np.broadcast_to(lobe_filter(model, width, order), (cos_view.shape[0], order + 1))
+        return np.broadcast_to(specular_lobe_filter(model, width, order), (cos_view.shape[0], order + 1))
     if model != "microfacet":
         raise ValueError(f"model {model!r} has no specular lobe")
     table = microfacet_filter_table(width, order)
