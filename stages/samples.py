@@ -91,7 +91,7 @@ class Settings:
 # where things are
 
 
-def exposure_scales(capture: Path, keys: list[str]) -> dict[str, float]:
+def exif_radiance_scales(capture: Path, keys: list[str]) -> dict[str, float]:
     """Per capture image: N² / (t · ISO/100) from its EXIF, the linearize stage's convention.
 
     Factors absent from every image count as equal (1 s, ISO 100, f/1): plain radiance EXRs get
@@ -394,14 +394,14 @@ def sampled_keys(poses: Poses, pose_file: Path, holdout) -> list[str]:
 
 def capture_exposure_scales(capture: Path, keys: list[str], pose_file: Path) -> dict[str, float]:
     """Without linearize's outputs: the capture's own linear images (each must exist and be linear),
-    scaled by capture.toml's exposures (exposure_scales)."""
+    scaled by their EXIF exposures (exif_radiance_scales)."""
     for key in keys:
         if not (capture / "images" / key).exists():
             raise UserError(f"{capture / 'images' / key}: image listed in {pose_file} is missing from the "
                             "capture; restore it or remove it from poses.json")
         if Path(key).suffix.lower() not in LINEAR_SUFFIXES:
             raise UserError(f"{capture / 'images' / key}: not a linear image; run `sigrend linearize` first")
-    return exposure_scales(capture, keys)
+    return exif_radiance_scales(capture, keys)
 
 
 @dataclass

@@ -107,14 +107,14 @@ def stability_lighting(rng: np.random.Generator, order: int = 8, trials: int = 3
     return rows
 
 
-def brdf_data(normal, view, radiance, coeffs):
+def samples_brdf_data(normal, view, radiance, coeffs):
     """pipeline.core.solve.BrdfData of samples under known SH lighting ``coeffs`` (one fold), built
     by the fit stage's own helper."""
-    from stages.fit import brdf_data as fit_brdf_data
+    from stages.fit import brdf_data
 
     n = len(normal)
-    return fit_brdf_data({"normal": normal, "view_dir": view, "radiance": radiance, "weight": np.ones(n),
-                          "image_id": np.zeros(n, int)}, coeffs, 1)
+    return brdf_data({"normal": normal, "view_dir": view, "radiance": radiance, "weight": np.ones(n),
+                      "image_id": np.zeros(n, int)}, coeffs, 1)
 
 
 def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
@@ -132,7 +132,7 @@ def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
     rows = []
     for name, coeffs in lightings.items():
         clean = forward.render_samples(coeffs, truth, normal, view)
-        data = brdf_data(normal, view, clean, coeffs)
+        data = samples_brdf_data(normal, view, clean, coeffs)
         l_max = data.bands.shape[1] - 1
 
         def filter_fn(model, width, cos_view=None, l_max=l_max, data=data):
