@@ -246,13 +246,10 @@ REPORT_BANDS = 4   # lighting error columns band0 .. band4
 def _lighting_band_errors(fitted: np.ndarray, truth: np.ndarray, scale_free: bool) -> tuple[np.ndarray, float]:
     """Relative error per band (l <= REPORT_BANDS) of fitted vs true SH lighting; bands the fit does not
     have count as error 1.  ``scale_free``: first fit the one global scale (factorization)."""
-    k = min(fitted.shape[0], truth.shape[0])
-    padded = np.zeros((num_coeffs(REPORT_BANDS), 3))
-    n = min(k, padded.shape[0])
-    padded[:n] = fitted[:n]
-    ref = truth[:padded.shape[0]]
-    scale = float((padded * ref).sum() / (padded * padded).sum()) if scale_free and (padded ** 2).sum() > 0 else 1.0
-    return band_relative_errors(scale * padded, ref), scale
+    ref = truth[:num_coeffs(REPORT_BANDS)]
+    est = fitted[:len(ref)]                 # band_relative_errors counts the rows it lacks as zero
+    scale = float((est * ref[:len(est)]).sum() / (est * est).sum()) if scale_free and (est ** 2).sum() > 0 else 1.0
+    return band_relative_errors(scale * est, ref), scale
 
 
 def _pareto(times: np.ndarray, errors: np.ndarray) -> np.ndarray:
