@@ -405,9 +405,9 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
         t1 = time.perf_counter()
         best, level = search_albedo_level(candidate, best, geo, obs, settings, kw)
         timings["albedo_level"] = time.perf_counter() - t1
-    refit = None
+    refit = spec = None
     if known is None and settings.explicit_order is None and not one_fold:
-        best, refit = final_lighting(geo, best, obs, settings, kw, top)
+        best, refit, spec = final_lighting(geo, best, obs, settings, kw, top)
         timings["lighting_refit"] = refit["seconds"]
     if known is not None and known.scene is not None:  # what lighting_sh.json records, and the bands' labels:
         recorded = candidate.without_map()(best.material, best.base, True, None)       # the SH + sources form
@@ -424,7 +424,7 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
               {"source": "the known lighting", "lighting_scale": scale}}
     if known is not None and known.per_image is not None:
         report["lighting_per_image"] = _per_image_note(capture, known.per_image)
-    vertex_rho = texture_and_residuals(mesh, data, geo, obs, best, brdf, report, settings, keys)
+    vertex_rho = texture_and_residuals(mesh, data, geo, obs, best, brdf, report, settings, keys, spec)
     print(_summary_line(brdf, None if one_fold else interval, len(report["sources"]), known_brdf is not None,
                         textured=vertex_rho is not None, detail_rows=report["lighting_detail"].get("rows")),
           file=sys.stderr)
@@ -514,7 +514,8 @@ def select_with_scale(candidate: CandidateFit, known_brdf: dict | None, models: 
 
 def final_lighting(geo, best: material_fit.MaterialFit, obs, settings, kw: dict, top: int) -> tuple:
     """(the chosen candidate with its lighting refitted to SH orders 0-``top`` and the prior scales
-    of --band-prior-choices (material_fit.refine_lighting), report.json's lighting_refit)."""
+    of --band-prior-choices (material_fit.refine_lighting), report.json's lighting_refit, its
+    specular transfer to ``top`` or None)."""
     t0 = time.perf_counter()
     spec = None if best.material is None else prt.specular_transfer(geo, best.material, settings.lobe_samples,
                                                                     settings.seed, order=top)
@@ -522,7 +523,7 @@ def final_lighting(geo, best: material_fit.MaterialFit, obs, settings, kw: dict,
     best, tried = material_fit.refine_lighting(geo, best, spec, obs, order=top, folds=settings.folds, lighting_kw=kw,
                                                priors=prior_choices(settings))
     return best, {"orders": f"0-{top}", "priors": prior_choices(settings), "validation_rmse_before": before,
-                  "validation_rmse": best.validation_rmse, "tried": tried, "seconds": time.perf_counter() - t0}
+                  "validation_rmse": best.validation_rmse, "tried": tried, "seconds": time.perf_counter() - t0}, spec
 
 
 def _lighting_report(best: material_fit.MaterialFit, noise: dict, settings) -> dict:
@@ -546,12 +547,15 @@ def _per_image_note(capture: Path, per_image: tuple) -> dict:
 
 
 def texture_and_residuals(mesh, data: dict, geo, obs, best: material_fit.MaterialFit, brdf: dict, report: dict,
-                          settings, keys: list[str]) -> np.ndarray | None:
+                          settings, keys: list[str], spec: prt.SpecularTransfer | None = None) -> np.ndarray | None:
     """The per-vertex albedo choice (stages.fit.albedo_from_shading on the physical shading; brdf's
     colour becomes the texture's mean when it wins) and the residual per view of the chosen model,
-    a texture's colour at each sample, into ``report``; -> the per-vertex albedo (V, 3) or None."""
-    spec = None if best.material is None or best.parts is not None else prt.specular_transfer(   # parts: fit_to_map's
-        geo, best.material, settings.lobe_samples, settings.seed)
+    a texture's colour at each sample, into ``report``; -> the per-vertex albedo (V, 3) or None.
+    ``spec``: best's specular transfer to the geometry's order if already computed (final_lighting)."""
+    if best.material is None or best.parts is not None:     # parts: fit_to_map's
+        spec = None
+    elif spec is None:
+        spec = prt.specular_transfer(geo, best.material, settings.lobe_samples, settings.seed)
     shade, specular = material_fit.shading_parts(geo, best, spec)
     vertex_rho = None
     entry = {"setting": settings.albedo, "smoothness": settings.albedo_smoothness}

@@ -58,14 +58,17 @@ class MaterialFit:
 
 def _per_unit_base(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, spec: prt.SpecularTransfer | None,
                    k: int) -> np.ndarray:
-    """The transfer (N, k, 3) that the base colour multiplies: the diffuse layer's kd / pi (D + I),
-    plus a metal's specular per unit F0."""
-    out = np.repeat(geo.direct[:, :k, None], 3, axis=2)
+    """The transfer (3, N, k) that the base colour multiplies, channel first (each channel's (N, k)
+    contiguous, as BLAS takes it): the diffuse layer's kd / pi (D + I), plus a metal's specular
+    per unit F0."""
     ki = min(k, indirect.shape[1])          # the interreflection's bands (prt.INDIRECT_ORDER)
-    out[:, :ki] += indirect[:, :ki]
-    out *= (layer / np.pi)[:, None, :]
-    if spec is not None and spec.scaled is not None:
-        out = out + spec.scaled[:, :k]
+    out = np.empty((3, geo.direct.shape[0], k))
+    for c in range(3):
+        kd = (layer[:, c] / np.pi)[:, None]
+        np.multiply(geo.direct[:, :k], kd, out=out[c])
+        out[c, :, :ki] += indirect[:, :ki, c] * kd
+        if spec is not None and spec.scaled is not None:
+            out[c] += spec.scaled[:, :k, c]
     return out
 
 
@@ -73,23 +76,45 @@ def _design(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, spec: pr
             base: np.ndarray, order: int) -> np.ndarray:
     """A_c (3, N, K') truncated to ``order``: base_c (per-unit-base part) + the fixed specular."""
     k = num_coeffs(order)
-    diff = _per_unit_base(geo, layer, indirect, spec, k) * base[None, None, :]
-    if spec is not None:
-        diff = diff + spec.fixed[:, :k]
-    return np.moveaxis(diff, 2, 0)
+    a = _per_unit_base(geo, layer, indirect, spec, k)
+    for c in range(3):
+        a[c] *= base[c]
+        if spec is not None:
+            a[c] += spec.fixed[:, :k, c]
+    return a
 
 
-def _equations(a: np.ndarray, obs: Observations, order: int, folds: int) -> solve.NormalEquations:
-    eqs = solve.NormalEquations(order, folds, shared=False)
-    eqs.add(a, obs.radiance, obs.weight, obs.fold)
-    return eqs
+class ShSystem:
+    """The SH lighting to ``order`` of one design ``a`` (3, N, K) on ``obs``' weights and folds
+    (pipeline.core.solve's regularized normal equations, ``kw`` its settings) for any target
+    radiance (N, 3): the gram is built for the first target and kept, so each further target
+    (a source's intensities changed, another candidate source) costs its right-hand side only."""
 
+    def __init__(self, a: np.ndarray, obs: Observations, order: int, folds: int, kw: dict):
+        self.a, self.obs, self.order, self.folds, self.kw = a, obs, order, folds, kw
+        self._eqs: solve.NormalEquations | None = None
 
-def _solve_sh(a: np.ndarray, target: np.ndarray, obs: Observations, order: int, folds: int,
-              kw: dict) -> solve.LightingFit:
-    """The regularized SH lighting (pipeline.core.solve.solve_lighting) of design ``a`` (3, N, K) for ``target``."""
-    g, h, btb, wt = _equations(a, Observations(target, obs.weight, obs.fold), order, folds).channel_system(slice(None))
-    return solve.solve_lighting(g, h, btb, wt, len(obs.weight), order, **kw)
+    def equations(self, target: np.ndarray) -> solve.NormalEquations:
+        w, fold = self.obs.weight, self.obs.fold
+        if self._eqs is None:
+            self._eqs = solve.NormalEquations(self.order, self.folds, shared=False)
+            self._eqs.add(self.a, target, w, fold)
+            return self._eqs
+        return self._eqs.retargeted(self.a, target, w, fold)
+
+    def solve(self, target: np.ndarray) -> solve.LightingFit:
+        """The regularized SH lighting (pipeline.core.solve.solve_lighting) for ``target``."""
+        g, h, btb, wt = self.equations(target).channel_system(slice(None))
+        return solve.solve_lighting(g, h, btb, wt, len(self.obs.weight), self.order, **self.kw)
+
+    def held_out_rmse(self, target: np.ndarray) -> float:
+        """Leave-one-fold-out RMSE of the SH lighting fitted to ``target``."""
+        return float(solve.cross_validate_orders(self.equations(target), [self.order], None, **self.kw)[0]
+                     ["validation_rmse"])
+
+    def predict(self, coeffs: np.ndarray) -> np.ndarray:
+        """Radiance (N, 3) of SH lighting ``coeffs`` (K, 3)."""
+        return np.einsum("cpk,kc->pc", self.a, coeffs)
 
 
 def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: prt.SpecularTransfer, obs: Observations,
@@ -226,7 +251,7 @@ def refine_direction(geo: prt.Geometry, material: Principled | None, base: np.nd
         off = np.linspace(-step, step, 5)
         cand = best[None] + off[:, None, None] * t1 + off[None, :, None] * t2
         cand = cand.reshape(-1, 3) / np.linalg.norm(cand.reshape(-1, 3), axis=1, keepdims=True)
-        st = prt.source_transfer(centre, material, cand)
+        st = prt.source_transfer(centre, material, cand, vertices=False)
         cols = _source_columns(geo, layer, st, None, base)
         sc = _source_score(cols if project is None else project(cols), residual, weight)
         if sc.max() > best_score:
@@ -278,7 +303,7 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
 
     if max_sources > 0 and sources is None and known is None:
         a = _design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, order)
-        sources = _add_sources(geo, material, base, layer, a, obs, max_sources, source_gain, order, folds, kw)
+        sources = _add_sources(geo, material, base, layer, ShSystem(a, obs, order, folds, kw), max_sources, source_gain)
     if not fix_base:
         if known is not None or spec is None:
             for _ in range(4):            # least squares in rho given the lighting (+ interreflection update)
@@ -292,7 +317,7 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
                     break
         else:
             a = _design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, order)
-            start = _solve_sh(a, obs.radiance, obs, order, folds, kw)
+            start = ShSystem(a, obs, order, folds, kw).solve(obs.radiance)
             # the ridge is (sigma / (band_prior |L_0|))^2 W / views (pipeline.core.solve): scaled with the
             # lighting's DC as rho changes, so that no rho is favoured by a relatively weaker prior
             ridge_dc2 = start.ridge * float(np.mean(start.coeffs[0] ** 2))
@@ -300,19 +325,19 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
                 base = _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc2, max_bounces,
                                     base_grid)
     # the design and source columns at the final base colour (and the sources' intensities for it)
-    _, _, a, src_cols = solve_at(base, 8)
+    _, _, system, src_cols = solve_at(base, 8)
     target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
     if known is not None:
         w = obs.weight
-        rmse = float(np.sqrt((w[:, None] * (target - np.einsum("cpk,kc->pc", a, known)) ** 2).sum() / (3 * w.sum())))
-        diag = _solve_sh(a, target, obs, order, folds, kw)
+        rmse = float(np.sqrt((w[:, None] * (target - system.predict(known)) ** 2).sum() / (3 * w.sum())))
+        diag = system.solve(target)
         diag.coeffs = known
         return MaterialFit(material, base, known, diag, [], rmse, rmse, sources)
     top = order if orders is None else max(orders)
     if top != order:
-        a = _design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, top)
-    eqs = _equations(a, Observations(target, obs.weight, obs.fold), top, folds)
-    cands = solve.cross_validate_orders(eqs, orders or [order], None, **kw)
+        system = ShSystem(_design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, top),
+                          obs, top, folds, kw)
+    cands = solve.cross_validate_orders(system.equations(target), orders or [order], None, **kw)
     best = min(range(len(cands)), key=lambda i: cands[i]["validation_rmse"])
     fit = cands[best]["fit"]
     out = MaterialFit(material, base, fit.coeffs, fit, [{k: v for k, v in c.items() if k != "fit"} for c in cands],
@@ -412,11 +437,11 @@ def lambert_held_out(geo: prt.Geometry, obs: Observations, base: np.ndarray, fit
     sources = None
     if fit.sources is not None:
         sources = Sources(fit.sources.transfer, fit.sources.power * fit.base / base)
-    _, _, a, src_cols = _lighting_given_base(geo, None, layer, None, base, sources, obs, order, folds, lighting_kw, 4,
-                                             None, max_bounces)
+    _, _, system, src_cols = _lighting_given_base(geo, None, layer, None, base, sources, obs, order, folds,
+                                                  lighting_kw, 4, None, max_bounces)
     target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
-    eqs = _equations(a, Observations(target, obs.weight, obs.fold), order, folds)
-    return np.asarray(solve.cross_validate_orders(eqs, [order], None, **lighting_kw)[0]["validation_rmse_per_channel"])
+    return np.asarray(solve.cross_validate_orders(system.equations(target), [order], None, **lighting_kw)[0]
+                      ["validation_rmse_per_channel"])
 
 
 LEVEL_RANGE = (0.03, 1.0)   # albedo levels searched (the brightest channel at most 1)
@@ -469,6 +494,7 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
         obs = Observations(obs.radiance - fit.detail.radiance, obs.weight, obs.fold)
     layer = prt.diffuse_layer(fit.material, geo.mu_out)
     a = _design(geo, layer, prt.indirect_transfer(geo, fit.material, fit.base, max_bounces), spec, fit.base, order)
+    system = ShSystem(a, obs, order, folds, lighting_kw)
     sources = None if fit.sources is None else Sources(fit.sources.transfer, fit.sources.power.copy())
     src_cols = None
     if sources is not None:
@@ -482,7 +508,7 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
                 src_cols, obs.radiance - np.einsum("cpk,kc->pc", a[:, :, :best[1].coeffs.shape[0]], best[1].coeffs),
                 obs.weight))
         target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
-        eqs = _equations(a, Observations(target, obs.weight, obs.fold), order, folds)
+        eqs = system.equations(target)
         for prior in priors:
             cands = solve.cross_validate_orders(eqs, list(range(order + 1)), None, **{**lighting_kw, "band_prior": prior})
             i = min(range(len(cands)), key=lambda j: cands[j]["validation_rmse"])
@@ -507,21 +533,23 @@ def _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc
     k = num_coeffs(order)
     w = obs.weight
     scaled = _per_unit_base(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, k)
-    specular = spec.fixed[:, :k]
+    specular = [spec.fixed[:, :k, c] for c in range(3)]
     j = 0
     if sources is not None:
         st = sources.transfer
         j = st.directions.shape[0]
         src_ind = prt.indirect_transfer(geo, material, base, max_bounces, st.vertex_direct)
-        scaled = np.concatenate([scaled, _source_per_unit_base(layer, st, src_ind)], axis=1)
-        specular = np.concatenate([specular, st.specular if st.specular is not None else np.zeros_like(src_ind)], axis=1)
+        src_scaled = _source_per_unit_base(layer, st, src_ind)
+        src_spec = st.specular if st.specular is not None else np.zeros_like(src_ind)
+        scaled = [np.concatenate([scaled[c], src_scaled[..., c]], axis=1) for c in range(3)]
+        specular = [np.concatenate([specular[c], src_spec[..., c]], axis=1) for c in range(3)]
     reg = np.concatenate([np.asarray(ridge_dc2, float)[:k], np.zeros(j)])
     sw = np.sqrt(w)[:, None]
     betas = np.geomspace(0.02, 1.0, grid)
     out = np.zeros(3)
     for c in range(3):
-        d = scaled[..., c] * sw
-        s_ = specular[..., c] * sw
+        d = scaled[c] * sw
+        s_ = specular[c] * sw
         b = obs.radiance[:, c] * sw[:, 0]
         dd, ds, ss, hd, hs, bb = d.T @ d, d.T @ s_, s_.T @ s_, d.T @ b, s_.T @ b, float(b @ b)
 
@@ -538,12 +566,13 @@ def _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc
 
 
 def _lighting_given_base(geo, material, layer, spec, base, sources, obs, order, folds, kw, inner, known,
-                         max_bounces) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+                         max_bounces) -> tuple[np.ndarray, np.ndarray, ShSystem, np.ndarray | None]:
     """SH lighting (K, 3) for a fixed base colour, alternating with the sources' intensities
     (updated in ``sources``) ``inner`` times; the weighted training RSS per channel (3,); the
-    design (3, N, K) and the sources' columns (3, N, J) or None it used."""
+    SH system of the design (3, N, K) and the sources' columns (3, N, J) or None it used."""
     w = obs.weight
-    a = _design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, order)
+    system = ShSystem(_design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, order),
+                      obs, order, folds, kw)
     src_cols = None
     if sources is not None:
         src_ind = prt.indirect_transfer(geo, material, base, max_bounces, sources.transfer.vertex_direct)
@@ -552,18 +581,18 @@ def _lighting_given_base(geo, material, layer, spec, base, sources, obs, order, 
     def sh_fit():
         if known is not None:
             return known
-        target = obs.radiance - (0.0 if sources is None else np.einsum("cpj,jc->pc", src_cols, sources.power))
-        return _solve_sh(a, target, obs, order, folds, kw).coeffs
+        return system.solve(obs.radiance - (0.0 if sources is None else np.einsum("cpj,jc->pc", src_cols,
+                                                                                 sources.power))).coeffs
 
     coeffs = sh_fit()
     if sources is not None and known is None:
         for _ in range(inner):
-            sources.power = _source_intensities(src_cols, obs.radiance - np.einsum("cpk,kc->pc", a, coeffs), w)
+            sources.power = _source_intensities(src_cols, obs.radiance - system.predict(coeffs), w)
             coeffs = sh_fit()
-    pred = np.einsum("cpk,kc->pc", a, coeffs)
+    pred = system.predict(coeffs)
     if sources is not None:
         pred += np.einsum("cpj,jc->pc", src_cols, sources.power)
-    return coeffs, (w[:, None] * (obs.radiance - pred) ** 2).sum(axis=0), a, src_cols
+    return coeffs, (w[:, None] * (obs.radiance - pred) ** 2).sum(axis=0), system, src_cols
 
 
 def _base_least_squares(geo, material, spec, base, sources, coeffs, obs, max_bounces) -> np.ndarray:
@@ -598,19 +627,13 @@ def sh_complement(a: np.ndarray, weight: np.ndarray, fit: solve.LightingFit):
     return project
 
 
-def _held_out_rmse(a: np.ndarray, target: np.ndarray, obs: Observations, order: int, folds: int, kw: dict) -> float:
-    """Leave-one-fold-out RMSE of the SH lighting (design ``a`` (3, N, K)) fitted to ``target``."""
-    eqs = _equations(a, Observations(target, obs.weight, obs.fold), order, folds)
-    return float(solve.cross_validate_orders(eqs, [order], None, **kw)[0]["validation_rmse"])
-
-
-def _add_sources(geo, material, base, layer, a, obs, max_sources, gain, order, folds, kw) -> Sources | None:
-    """Greedy matching pursuit of directional sources on the SH fit's residual: each new source
-    is kept only if the held-out views' RMSE (SH refitted around the sources) drops by more than
-    ``gain`` (relative); intensities are fitted on all views (3 numbers a source)."""
-    w = obs.weight
-    best = _held_out_rmse(a, obs.radiance, obs, order, folds, kw)
-    residual = obs.radiance - np.einsum("cpk,kc->pc", a, _solve_sh(a, obs.radiance, obs, order, folds, kw).coeffs)
+def _add_sources(geo, material, base, layer, system: ShSystem, max_sources: int, gain: float) -> Sources | None:
+    """Greedy matching pursuit of directional sources on the SH fit's (``system``) residual: each
+    new source is kept only if the held-out views' RMSE (SH refitted around the sources) drops by
+    more than ``gain`` (relative); intensities are fitted on all views (3 numbers a source)."""
+    radiance, w = system.obs.radiance, system.obs.weight
+    best = system.held_out_rmse(radiance)
+    residual = radiance - system.predict(system.solve(radiance).coeffs)
     found, kept = [], None
     scan = source_scan(geo, material, base) if max_sources > 0 else None
     for _ in range(max_sources):
@@ -620,20 +643,22 @@ def _add_sources(geo, material, base, layer, a, obs, max_sources, gain, order, f
         st = prt.source_transfer(geo, material, np.array(found + [d]))
         cols = _source_columns(geo, layer, st, None, base)
         power = _source_intensities(cols, residual + (0.0 if kept is None else np.einsum("cpj,jc->pc", kept[1], kept[2])), w)
-        target = obs.radiance - np.einsum("cpj,jc->pc", cols, power)
-        score = _held_out_rmse(a, target, obs, order, folds, kw)
+        target = radiance - np.einsum("cpj,jc->pc", cols, power)
+        score = system.held_out_rmse(target)
         if score > best * (1.0 - gain):
             break
         best, found, kept = score, found + [d], (st, cols, power)
-        residual = target - np.einsum("cpk,kc->pc", a, _solve_sh(a, target, obs, order, folds, kw).coeffs)
+        residual = target - system.predict(system.solve(target).coeffs)
     if kept is None:
         return None
-    moved, score = _relocate_sources(geo, material, base, layer, a, obs, order, folds, kw, found, kept[1], kept[2])
+    moved, score = _relocate_sources(geo, material, base, layer, system, found, kept[1], kept[2])
     return moved if score < best * (1.0 - gain) else Sources(kept[0], kept[2])   # as a new source must
 
 
-def _relocate_sources(geo, material, base, layer, a, obs, order, folds, kw, found, cols, power):
-    """One more pass over the pursuit's sources: each direction refined (BACKFIT_STEP, 4 rounds)
+def _relocate_sources(geo, material, base, layer, system: ShSystem, found: list, cols: np.ndarray,
+                      power: np.ndarray) -> tuple[Sources, float]:
+    """One more pass over the pursuit's sources (directions ``found``, columns (3, N, J),
+    intensities (J, 3)): each direction refined (BACKFIT_STEP, 4 rounds)
     against the SH refitted around the others and scored by its part the SH cannot carry
     (sh_complement), then all intensities refitted -> (the moved Sources, their held-out RMSE). The
     pursuit's first SH fit absorbed part of each source, which moved it by about a degree -- and
@@ -641,19 +666,19 @@ def _relocate_sources(geo, material, base, layer, a, obs, order, folds, kw, foun
     The caller keeps the move only where it lowers the held-out views' RMSE by more than the
     gain a new source must bring: where SH and sources cannot carry the lighting (a sharp lobe
     under a detailed map) the complement is a poor guide and small gains are noise."""
-    w = obs.weight
-    target = obs.radiance - np.einsum("cpj,jc->pc", cols, power)
-    fit = _solve_sh(a, target, obs, order, folds, kw)
-    sh_part = np.einsum("cpk,kc->pc", a, fit.coeffs)
-    project = sh_complement(a, w, fit)
+    radiance, w = system.obs.radiance, system.obs.weight
+    target = radiance - np.einsum("cpj,jc->pc", cols, power)
+    fit = system.solve(target)
+    sh_part = system.predict(fit.coeffs)
+    project = sh_complement(system.a, w, fit)
     own = project(cols) * power.T[:, None, :]                 # (3, N, J): each source's part the SH cannot carry
     found = [refine_direction(geo, material, base, target - sh_part + own[:, :, j].T, w, d, BACKFIT_STEP, 4,
                               project)[0] for j, d in enumerate(found)]
     st = prt.source_transfer(geo, material, np.array(found))
     cols = _source_columns(geo, layer, st, None, base)
-    power = _source_intensities(cols, obs.radiance - sh_part, w)
-    target = obs.radiance - np.einsum("cpj,jc->pc", cols, power)
-    return Sources(st, power), _held_out_rmse(a, target, obs, order, folds, kw)
+    power = _source_intensities(cols, radiance - sh_part, w)
+    target = radiance - np.einsum("cpj,jc->pc", cols, power)
+    return Sources(st, power), system.held_out_rmse(target)
 
 
 def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | None,
@@ -665,7 +690,7 @@ def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfe
     layer = prt.diffuse_layer(fit.material, geo.mu_out)
     indirect = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces)
     k = fit.coeffs.shape[0]
-    shade = np.einsum("pkc,kc->pc", _per_unit_base(geo, layer, indirect, spec, k), fit.coeffs)
+    shade = np.einsum("cpk,kc->pc", _per_unit_base(geo, layer, indirect, spec, k), fit.coeffs)
     specular = np.zeros_like(shade) if spec is None else np.einsum("pkc,kc->pc", spec.fixed[:, :k], fit.coeffs)
     if fit.sources is not None:
         st = fit.sources.transfer

@@ -37,8 +37,8 @@ import numpy as np
 from pipeline.core.material import Principled
 from pipeline.core.render import Renderer, bounce_series
 from pipeline.core.sh import num_coeffs, sh_basis
-from pipeline.core.shading import (LobeSamples, front_cos, specular_over_directions, specular_over_footprint,
-                                   specular_samples)
+from pipeline.core.shading import (LobeSamples, front_cos, lobe_support_cos, specular_over_directions,
+                                   specular_over_footprint, specular_samples)
 
 
 @dataclass
@@ -266,40 +266,45 @@ class SourceTransfer:
 
     directions: np.ndarray
     direct: np.ndarray
-    vertex_direct: np.ndarray
+    vertex_direct: np.ndarray | None      # None: not computed (source_transfer's vertices=False)
     specular: np.ndarray | None
     specular_scaled: np.ndarray | None = None   # a metal's: per unit base colour (specular: at F0 = 0)
 
 
-def source_transfer(geo: Geometry, material: Principled | None, directions: np.ndarray) -> SourceTransfer:
-    """SourceTransfer of unit directions (J, 3) with exact shadow rays from the samples and vertices;
-    the specular averaged over the samples' pixel footprints when the geometry has them."""
+def source_transfer(geo: Geometry, material: Principled | None, directions: np.ndarray,
+                    vertices: bool = True) -> SourceTransfer:
+    """SourceTransfer of unit directions (J, 3) with exact shadow rays from the samples and vertices
+    (``vertices`` False: not from the vertices, vertex_direct None: for scoring directions, which
+    needs no interreflection); the specular averaged over the samples' pixel footprints when the
+    geometry has them, on the lobe's support (shading.lobe_support_cos, as the renderer's)."""
     r = geo.renderer
     d = np.atleast_2d(np.asarray(directions, float))
     n, j = geo.faces.size, d.shape[0]
     pts = r._points_above(geo.faces, geo.bary)
-    vpts = r.vertices_above()
+    vpts = r.vertices_above() if vertices else None
     direct = np.zeros((n, j))
-    vdirect = np.zeros((len(vpts), j))
+    vdirect = np.zeros((len(vpts), j)) if vertices else None
     spec = None if material is None else np.zeros((n, j, 3))
     metal = material is not None and material.metallic > 0
     scaled = np.zeros((n, j, 3)) if metal else None
+    cut = None if material is None else lobe_support_cos(material.alpha)
     for i in range(j):
         cos = front_cos(geo.normals, geo.mu_out, d[i:i + 1])[:, 0]
         lit = np.flatnonzero(cos > 0)
         vis = np.zeros(n)
         vis[lit] = ~r._shadow_rays.intersects_any(pts[lit], np.broadcast_to(d[i], (lit.size, 3)))
         direct[:, i] = cos * vis
-        vcos = np.maximum(r._vertex_normals @ d[i], 0.0)
-        vl = np.flatnonzero(vcos > 0)
-        vdirect[vl, i] = vcos[vl] * ~r._shadow_rays.intersects_any(vpts[vl], np.broadcast_to(d[i], (vl.size, 3)))
+        if vertices:
+            vcos = np.maximum(r._vertex_normals @ d[i], 0.0)
+            vl = np.flatnonzero(vcos > 0)
+            vdirect[vl, i] = vcos[vl] * ~r._shadow_rays.intersects_any(vpts[vl], np.broadcast_to(d[i], (vl.size, 3)))
         if material is not None:
             def lobe(base):
                 if geo.footprint is not None:
                     return specular_over_footprint(material, *geo.footprint, d[i:i + 1], np.ones((1, 3)),
-                                                   vis[:, None], -1.0, base)
+                                                   vis[:, None], cut, base)
                 return specular_over_directions(material, geo.normals, geo.view_dirs, d[i:i + 1], np.ones((1, 3)),
-                                                vis[:, None], -1.0, base)
+                                                vis[:, None], cut, base)
             spec[:, i] = lobe(np.zeros((n, 3)) if metal else None)
             if metal:
                 scaled[:, i] = lobe(np.ones((n, 3))) - spec[:, i]

@@ -65,9 +65,11 @@ class NormalEquations:
         self.weight = np.zeros(self.folds)
         self.count = np.zeros(self.folds, dtype=np.int64)
 
-    def add(self, designs: np.ndarray, radiance: np.ndarray, weight: np.ndarray, fold: np.ndarray) -> None:
+    def add(self, designs: np.ndarray, radiance: np.ndarray, weight: np.ndarray, fold: np.ndarray, *,
+            gram: bool = True) -> None:
         """Add one chunk: designs (Cd, N, K) with Cd = 1 (shared) or 3, radiance (N, 3),
-        weight (N,), fold (N,) ints in [0, folds).
+        weight (N,), fold (N,) ints in [0, folds).  ``gram`` False: all but the gram (the
+        designs' gram is in already: retargeted).
 
         Samples files list each image's samples together, so folds (= views) come in runs: each
         run is a view of the chunk (no copy); shuffled folds are permuted once instead.
@@ -93,6 +95,10 @@ class NormalEquations:
 
         def accumulate(f: int, c: int) -> None:     # one (fold, channel) block: no two tasks share one
             for lo, hi, b in runs[f]:
+                if not gram:       # A'W b as A' (sqrt(W) b): no weighted copy of the design
+                    bw = b if unit else b * sw[lo:hi, None]
+                    self.rhs[f, c] += designs[c, lo:hi].T @ bw[:, c]
+                    continue
                 a = designs[c, lo:hi] if unit else designs[c, lo:hi] * sw[lo:hi, None]
                 self.gram[f, c] += a.T @ a
                 if self.shared:
@@ -100,9 +106,21 @@ class NormalEquations:
                 else:
                     self.rhs[f, c] += a.T @ b[:, c]
 
+        if not gram and self.shared:
+            raise ValueError("NormalEquations.add(gram=False): per-channel designs only")
         # the (fold, channel) blocks by one thread per core: BLAS products release the GIL
         with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
             list(pool.map(lambda fc: accumulate(*fc), [(f, c) for f in runs for c in range(designs.shape[0])]))
+
+    def retargeted(self, designs: np.ndarray, radiance: np.ndarray, weight: np.ndarray,
+                   fold: np.ndarray) -> "NormalEquations":
+        """The equations of the same ``designs``, weights and folds as the one chunk added to
+        these, for another ``radiance``: the gram shared (the expensive part, N K^2 per channel),
+        right-hand sides and btb accumulated anew (N K)."""
+        out = NormalEquations(self.order, self.folds, self.shared)
+        out.gram = self.gram
+        out.add(designs, radiance, weight, fold, gram=False)
+        return out
 
     def channel_system(self, folds: np.ndarray | slice, scale: np.ndarray | None = None, order: int | None = None):
         """Summed (over ``folds``) per-channel (G (3,K',K'), h (3,K'), btb (3,), W) truncated to

@@ -60,6 +60,23 @@ def test_chunked_normal_equations_equal_one_shot_least_squares(rng):
     assert eqs.count.sum() == len(normal) and abs(wsum - w.sum()) < 1e-9
 
 
+
+def test_retargeted_normal_equations_equal_fresh_ones(rng):
+    normal, view, ids = _sphere(rng, 2000)
+    brdf = {"model": "phong", "albedo": [0.5, 0.4, 0.3], "specular": [0.3, 0.3, 0.3], "exponent": 50.0}
+    designs = forward.channel_designs(forward.design_terms(normal, view, 3, True), brdf, 3)
+    w = rng.uniform(0.5, 1.0, len(normal))
+    first, second = rng.normal(size=(2, len(normal), 3))
+    eqs = solve.NormalEquations(3, 3, shared=False)
+    eqs.add(designs, first, w, ids % 3)
+    fresh = solve.NormalEquations(3, 3, shared=False)
+    fresh.add(designs, second, w, ids % 3)
+    again = eqs.retargeted(designs, second, w, ids % 3)
+    assert again.gram is eqs.gram                    # shared, not rebuilt
+    for name in ("gram", "rhs", "btb", "weight", "count"):
+        np.testing.assert_allclose(getattr(again, name), getattr(fresh, name), rtol=1e-12, atol=1e-12, err_msg=name)
+    np.testing.assert_allclose(eqs.rhs, eqs.retargeted(designs, first, w, ids % 3).rhs, rtol=1e-12, atol=1e-12)
+
 def test_forward_model_against_numerical_integration(rng):
     env = _env(32)
     normal, view, _ = _sphere(rng, 400)
