@@ -283,9 +283,18 @@ def refine_bracket(fits: dict, fit_at, refinements: int) -> None:
     fit's neighbours, or between the valid range's end and the neighbour when the best is at an
     end (a mirror-like object below the grid's 0.1 must not stop there): the held-out error is
     sharp in roughness for glossy objects (a highlight's peak goes as roughness^-4).
+    At the range's upper end (roughness 1) one probe just inside it first: if that is no better,
+    the (unimodal) minimum is at the end and the search stops there (a Lambertian-like object's
+    dielectric candidate: four fits near 1 spared).
     ``fit_at(r)``: a candidate; ``refinements``: the most candidates."""
     rs = np.array(sorted(fits))
     i = int(np.argmin([_score(fits[r]) for r in rs]))
+    if rs[i] >= 1.0 and i > 0:
+        probe = float(np.exp(-END_PROBE))
+        fits[probe] = fit_at(probe)
+        refinements -= 1
+        if _score(fits[probe]) >= _score(fits[rs[i]]) or refinements < 1:
+            return
 
     def held_out(log_r: float) -> float:
         r = float(np.exp(log_r))
@@ -348,6 +357,7 @@ def _score(fit: material_fit.MaterialFit) -> float:
 
 
 ROUGHNESS_XTOL = 0.01    # the search stops within 1% of roughness (a highlight's peak: 4%)
+END_PROBE = 0.05         # refine_bracket's probe inside roughness 1, in log roughness (5 %)
 
 
 def candidate_order(settings) -> int:

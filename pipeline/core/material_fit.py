@@ -19,6 +19,7 @@ The material is found around that:
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -235,7 +236,7 @@ def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray
 
 def refine_direction(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
                      weight: np.ndarray, start: np.ndarray, step: float, rounds: int,
-                     project=None) -> tuple[np.ndarray, float]:
+                     project: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, float]:
     """(direction (3,), explained power) of the source that best explains ``residual`` near
     ``start``: ``rounds`` of 5 x 5 local grids of half-width ``step`` (radians), each 2.5x finer,
     on all samples with exact shadow rays (prt.source_transfer), the centre included.
@@ -611,7 +612,7 @@ def _source_intensities(cols: np.ndarray, residual: np.ndarray, weight: np.ndarr
     return np.stack([nnls(cols[c] * sw, residual[:, c] * sw[:, 0])[0] for c in range(3)], axis=1)
 
 
-def sh_complement(a: np.ndarray, weight: np.ndarray, fit: solve.LightingFit):
+def sh_complement(a: np.ndarray, weight: np.ndarray, fit: solve.LightingFit) -> Callable[[np.ndarray], np.ndarray]:
     """cols (3, N, J) -> what of them the regularized SH fit of design ``a`` (3, N, K) does not
     take up, per channel cols - A (A'WA + diag(ridge))^-1 A'W cols on ``fit``'s kept bands: a
     source moved against the SH refitted around it is scored by this part only (R&H 2001's dual
