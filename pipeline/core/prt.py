@@ -28,6 +28,7 @@ per roughness (S); the fit is then linear least squares in L for fixed material.
 
 from __future__ import annotations
 
+import hashlib
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
@@ -62,11 +63,16 @@ class Geometry:
     vertex_direct: np.ndarray
     footprint: tuple[np.ndarray, np.ndarray] | None = None
     _bounces: dict = field(default_factory=dict, repr=False)
+    _indirect: dict = field(default_factory=dict, repr=False)     # indirect_transfer's recent results
+
+    @staticmethod
+    def _layer_key(material: Principled | None):
+        return None if material is None else (material.roughness, material.ior, material.metallic,
+                                              tuple(material.specular_tint))
 
     def bounce_matrices(self, material: Principled | None) -> list:
         """The renderer's bounce matrices with this material's diffuse layer at the hits (cached)."""
-        key = None if material is None else (material.roughness, material.ior, material.metallic,
-                                              tuple(material.specular_tint))
+        key = self._layer_key(material)
         if key not in self._bounces:
             layer = diffuse_layer(material, self.renderer.bounce_rays().mu_hit)
             self._bounces[key] = self.renderer.bounce_matrices(layer)
@@ -113,6 +119,7 @@ def diffuse_layer(material: Principled | None, mu_out: np.ndarray) -> np.ndarray
 
 QUADRATURE_FLOOR = 1e-2  # the direct transfer's relative accuracy on 16-row cells (odd bands of a sphere: 0.5-0.8%)
 INDIRECT_ORDER = 4   # SH bands above this carry < 1% of the interreflected light (Â_l, l > 4: < 2% of Â_0)
+INDIRECT_CACHE = 8   # indirect_transfer results kept per geometry ((N, 25, 3) floats each: ~18 MB at 30k samples)
 
 
 def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarray,
@@ -122,11 +129,23 @@ def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarr
     vertices' direct transfer (V, K) (default: the SH lighting's, geo.vertex_direct, whose
     bands above INDIRECT_ORDER are left out of the bounces: the diffuse hit points filter them, and
     K' is the bands up to INDIRECT_ORDER only; with ``vertex_direct`` (V, J) its J columns)."""
+    base = np.asarray(base, float)
+    # the fit asks again and again for the same (material, base colour, lighting columns): the
+    # last INDIRECT_CACHE answers are kept, keyed by content, and returned read-only
+    key = (Geometry._layer_key(material), base.shape, base.tobytes(), max_bounces,
+           None if vertex_direct is None else hashlib.blake2b(np.ascontiguousarray(vertex_direct)).digest())
+    if key in geo._indirect:
+        return geo._indirect[key]
     nv = len(geo.renderer.mesh.vertices)
-    base_v = np.broadcast_to(np.asarray(base, float), (nv, 3))
+    base_v = np.broadcast_to(base, (nv, 3))
     direct = geo.vertex_direct[:, :num_coeffs(min(geo.order, INDIRECT_ORDER))] if vertex_direct is None else vertex_direct
     e_ind = bounce_series(geo.bounce_matrices(material), base_v, np.repeat(direct[..., None], 3, axis=2), max_bounces)
-    return np.einsum("pj,pjkc->pkc", geo.bary, e_ind[geo.tri])
+    out = np.einsum("pj,pjkc->pkc", geo.bary, e_ind[geo.tri])
+    out.flags.writeable = False
+    while len(geo._indirect) >= INDIRECT_CACHE:
+        geo._indirect.pop(next(iter(geo._indirect)))
+    geo._indirect[key] = out
+    return out
 
 
 @dataclass

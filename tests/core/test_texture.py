@@ -60,3 +60,25 @@ def test_vertex_albedo_limits(rng):
     np.testing.assert_allclose(flat, np.broadcast_to(texture.uniform_albedo(shade, target, weight), flat.shape),
                                atol=2e-3)
     assert texture.weighted_rmse(texture.predict(interp, shade, sharp), target, weight) < 1e-4
+
+
+def test_solve_spd_equals_a_direct_solve_by_both_paths(rng):
+    """The regularized normal equations of fit_vertex_albedo on an icosphere, solved by conjugate
+    gradients and (given 2 iterations, too few) by the SuperLU fallback, against scipy's spsolve."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    nv = len(mesh.vertices)
+    face = rng.integers(0, len(mesh.faces), 800)                 # samples on a few faces: most vertices unseen
+    bary = rng.dirichlet(np.ones(3), 800)
+    a = texture.interpolation_matrix(mesh.faces, face, bary, nv)
+    lap = texture.graph_laplacian(mesh.faces, nv)
+    lhs = (a.T @ a + 0.1 * (lap.T @ lap) + 1e-6 * sp.identity(nv)).tocsr()
+    rhs = a.T @ rng.uniform(0.2, 0.8, 800)
+    exact = spla.spsolve(lhs.tocsc(), rhs)
+    for maxiter in (1000, 2):
+        x = texture.solve_spd(lhs, rhs, np.full(nv, 0.5), maxiter=maxiter)
+        # CG stops at a relative residual of 1e-10; the condition number (unseen vertices held
+        # by the bi-Laplacian and 1e-6 only) lets that be ~1e-6 in x; SuperLU is exact to rounding
+        np.testing.assert_allclose(x, exact, rtol=0, atol=1e-6 * np.abs(exact).max() if maxiter > 2 else 1e-10)
