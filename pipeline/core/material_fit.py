@@ -135,6 +135,34 @@ def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: prt.SpecularTransfer
     return np.clip(base, 1e-3, 1.0)
 
 
+@dataclass(frozen=True)
+class _Candidate:
+    """What one material candidate's solvers share: the samples' geometry and observations, the
+    material (None: Lambert) with its diffuse layer kd (N, 3) and specular transfer (None:
+    Lambert), the SH order, folds and solver settings (pipeline.core.solve), the interreflection's
+    bounce limit."""
+
+    geo: prt.Geometry
+    obs: Observations
+    material: Principled | None
+    layer: np.ndarray
+    spec: prt.SpecularTransfer | None
+    order: int
+    folds: int
+    kw: dict
+    max_bounces: int
+
+    def indirect(self, base: np.ndarray, vertex_direct: np.ndarray | None = None) -> np.ndarray:
+        """prt.indirect_transfer at base colour ``base`` (of the SH lighting, or of ``vertex_direct``'s columns)."""
+        return prt.indirect_transfer(self.geo, self.material, base, self.max_bounces, vertex_direct)
+
+    def system(self, base: np.ndarray, order: int | None = None) -> ShSystem:
+        """The SH lighting's system of the design at base colour ``base`` (to ``order``, default the candidate's)."""
+        order = self.order if order is None else order
+        return ShSystem(_design(self.geo, self.layer, self.indirect(base), self.spec, base, order), self.obs, order,
+                        self.folds, self.kw)
+
+
 MIN_SOURCE_COS = float(np.cos(np.radians(10.0)))   # sources closer than 10 deg are one (extended) light
 BACKFIT_STEP = float(np.radians(2.0))   # relocation's first local grid half-width (2.5x finer x 4 rounds: 0.06 deg)
 
@@ -298,18 +326,18 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
         sources = Sources(prt.source_transfer(geo, material, source_directions),
                           np.zeros((len(source_directions), 3)) if known_sources is None else np.asarray(known_sources))
 
+    cand = _Candidate(geo, obs, material, layer, spec, order, folds, kw, max_bounces)
+
     def solve_at(b: np.ndarray, inner: int = 4):
-        return _lighting_given_base(geo, material, layer, spec, b, sources, obs, order, folds, kw, inner, known,
-                                    max_bounces)
+        return _lighting_given_base(cand, b, sources, inner, known)
 
     if max_sources > 0 and sources is None and known is None:
-        a = _design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, order)
-        sources = _add_sources(geo, material, base, layer, ShSystem(a, obs, order, folds, kw), max_sources, source_gain)
+        sources = _add_sources(geo, material, base, layer, cand.system(base), max_sources, source_gain)
     if not fix_base:
         if known is not None or spec is None:
             for _ in range(4):            # least squares in rho given the lighting (+ interreflection update)
                 coeffs = solve_at(base)[0]
-                new = _base_least_squares(geo, material, spec, base, sources, coeffs, obs, max_bounces)
+                new = _base_least_squares(cand, base, sources, coeffs)
                 if spec is None and known is None:   # Lambert, lighting unknown: only the chromaticity
                     new *= float(np.mean(base0)) / float(np.mean(new))
                 done = np.abs(new - base).max() < 1e-3
@@ -317,14 +345,12 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
                 if done:
                     break
         else:
-            a = _design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, order)
-            start = ShSystem(a, obs, order, folds, kw).solve(obs.radiance)
+            start = cand.system(base).solve(obs.radiance)
             # the ridge is (sigma / (band_prior |L_0|))^2 W / views (pipeline.core.solve): scaled with the
             # lighting's DC as rho changes, so that no rho is favoured by a relatively weaker prior
             ridge_dc2 = start.ridge * float(np.mean(start.coeffs[0] ** 2))
             for _ in range(2):            # the second pass with the interreflection of the first's rho
-                base = _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc2, max_bounces,
-                                    base_grid)
+                base = _base_search(cand, base, sources, ridge_dc2, base_grid)
     # the design and source columns at the final base colour (and the sources' intensities for it)
     _, _, system, src_cols = solve_at(base, 8)
     target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
@@ -336,8 +362,7 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
         return MaterialFit(material, base, known, diag, [], rmse, rmse, sources)
     top = order if orders is None else max(orders)
     if top != order:
-        system = ShSystem(_design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, top),
-                          obs, top, folds, kw)
+        system = cand.system(base, top)
     cands = solve.cross_validate_orders(system.equations(target), orders or [order], None, **kw)
     best = min(range(len(cands)), key=lambda i: cands[i]["validation_rmse"])
     fit = cands[best]["fit"]
@@ -438,8 +463,8 @@ def lambert_held_out(geo: prt.Geometry, obs: Observations, base: np.ndarray, fit
     sources = None
     if fit.sources is not None:
         sources = Sources(fit.sources.transfer, fit.sources.power * fit.base / base)
-    _, _, system, src_cols = _lighting_given_base(geo, None, layer, None, base, sources, obs, order, folds,
-                                                  lighting_kw, 4, None, max_bounces)
+    cand = _Candidate(geo, obs, None, layer, None, order, folds, lighting_kw, max_bounces)
+    _, _, system, src_cols = _lighting_given_base(cand, base, sources, 4, None)
     target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
     return np.asarray(solve.cross_validate_orders(system.equations(target), [order], None, **lighting_kw)[0]
                       ["validation_rmse_per_channel"])
@@ -494,13 +519,14 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
     if fit.detail is not None:
         obs = Observations(obs.radiance - fit.detail.radiance, obs.weight, obs.fold)
     layer = prt.diffuse_layer(fit.material, geo.mu_out)
-    a = _design(geo, layer, prt.indirect_transfer(geo, fit.material, fit.base, max_bounces), spec, fit.base, order)
-    system = ShSystem(a, obs, order, folds, lighting_kw)
+    cand = _Candidate(geo, obs, fit.material, layer, spec, order, folds, lighting_kw, max_bounces)
+    system = cand.system(fit.base)
+    a = system.a
     sources = None if fit.sources is None else Sources(fit.sources.transfer, fit.sources.power.copy())
     src_cols = None
     if sources is not None:
-        src_ind = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces, sources.transfer.vertex_direct)
-        src_cols = _source_columns(geo, layer, sources.transfer, src_ind, fit.base)
+        src_cols = _source_columns(geo, layer, sources.transfer, cand.indirect(fit.base, sources.transfer.vertex_direct),
+                                   fit.base)
     table: list[dict] = []
     best = None
     for update in range(2 if sources is not None else 1):
@@ -525,23 +551,24 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
                        float(lighting.residual_rms), sources, detail=fit.detail), table
 
 
-def _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc2, max_bounces, grid) -> np.ndarray:
+def _base_search(cand: _Candidate, base: np.ndarray, sources: Sources | None, ridge_dc2: np.ndarray,
+                 grid: int) -> np.ndarray:
     """rho (3,): per channel the value on a log grid of ``grid`` points in [0.02, 1] (refined by a
     parabola) whose training RSS is least with the lighting — SH and source intensities jointly,
     with the SH ridge ``ridge_dc2`` (K,) / L_0^2 (the DC of an unregularized solve at that rho) — refitted.
     The design rho_c Dc + Sc makes the normal equations quadratic in rho_c (blocks built once;
     the interreflection taken at ``base``); the channels are independent."""
-    k = num_coeffs(order)
+    obs, layer, spec = cand.obs, cand.layer, cand.spec
+    k = num_coeffs(cand.order)
     w = obs.weight
-    scaled = _per_unit_base(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, k)
+    scaled = _per_unit_base(cand.geo, layer, cand.indirect(base), spec, k)
     specular = [spec.fixed[:, :k, c] for c in range(3)]
     j = 0
     if sources is not None:
         st = sources.transfer
         j = st.directions.shape[0]
-        src_ind = prt.indirect_transfer(geo, material, base, max_bounces, st.vertex_direct)
-        src_scaled = _source_per_unit_base(layer, st, src_ind)
-        src_spec = st.specular if st.specular is not None else np.zeros_like(src_ind)
+        src_scaled = _source_per_unit_base(layer, st, cand.indirect(base, st.vertex_direct))
+        src_spec = st.specular if st.specular is not None else np.zeros_like(src_scaled)
         scaled = [np.concatenate([scaled[c], src_scaled[..., c]], axis=1) for c in range(3)]
         specular = [np.concatenate([specular[c], src_spec[..., c]], axis=1) for c in range(3)]
     reg = np.concatenate([np.asarray(ridge_dc2, float)[:k], np.zeros(j)])
@@ -566,18 +593,19 @@ def _base_search(geo, material, layer, spec, base, sources, obs, order, ridge_dc
     return out
 
 
-def _lighting_given_base(geo, material, layer, spec, base, sources, obs, order, folds, kw, inner, known,
-                         max_bounces) -> tuple[np.ndarray, np.ndarray, ShSystem, np.ndarray | None]:
-    """SH lighting (K, 3) for a fixed base colour, alternating with the sources' intensities
-    (updated in ``sources``) ``inner`` times; the weighted training RSS per channel (3,); the
-    SH system of the design (3, N, K) and the sources' columns (3, N, J) or None it used."""
+def _lighting_given_base(cand: _Candidate, base: np.ndarray, sources: Sources | None, inner: int,
+                         known: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, ShSystem, np.ndarray | None]:
+    """SH lighting (K, 3) for a fixed base colour (``known``: that lighting), alternating with the
+    sources' intensities (updated in ``sources``) ``inner`` times; the weighted training RSS per
+    channel (3,); the SH system of the design (3, N, K) and the sources' columns (3, N, J) or None
+    it used."""
+    obs = cand.obs
     w = obs.weight
-    system = ShSystem(_design(geo, layer, prt.indirect_transfer(geo, material, base, max_bounces), spec, base, order),
-                      obs, order, folds, kw)
+    system = cand.system(base)
     src_cols = None
     if sources is not None:
-        src_ind = prt.indirect_transfer(geo, material, base, max_bounces, sources.transfer.vertex_direct)
-        src_cols = _source_columns(geo, layer, sources.transfer, src_ind, base)
+        src_ind = cand.indirect(base, sources.transfer.vertex_direct)
+        src_cols = _source_columns(cand.geo, cand.layer, sources.transfer, src_ind, base)
 
     def sh_fit():
         if known is not None:
@@ -596,12 +624,12 @@ def _lighting_given_base(geo, material, layer, spec, base, sources, obs, order, 
     return coeffs, (w[:, None] * (obs.radiance - pred) ** 2).sum(axis=0), system, src_cols
 
 
-def _base_least_squares(geo, material, spec, base, sources, coeffs, obs, max_bounces) -> np.ndarray:
-    """rho (3,) in [1e-3, 1] by least squares for fixed lighting: radiance - specular = rho shade
-    (shading_parts, the interreflection taken at ``base``)."""
-    shade, specular = shading_parts(geo, MaterialFit(material, base, coeffs, None, [], 0.0, 0.0, sources), spec,
-                                    max_bounces)
-    return _base_from_parts(shade, specular, obs, np.ones(obs.weight.size, bool))
+def _base_least_squares(cand: _Candidate, base: np.ndarray, sources: Sources | None, coeffs: np.ndarray) -> np.ndarray:
+    """rho (3,) in [1e-3, 1] by least squares for fixed lighting ``coeffs``: radiance - specular =
+    rho shade (shading_parts, the interreflection taken at ``base``)."""
+    fit = MaterialFit(cand.material, base, coeffs, None, [], 0.0, 0.0, sources)
+    shade, specular = shading_parts(cand.geo, fit, cand.spec, cand.max_bounces)
+    return _base_from_parts(shade, specular, cand.obs, np.ones(cand.obs.weight.size, bool))
 
 
 def _source_intensities(cols: np.ndarray, residual: np.ndarray, weight: np.ndarray) -> np.ndarray:

@@ -307,7 +307,9 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
     metal = material is not None and material.metallic > 0
     scaled = np.zeros((n, j, 3)) if metal else None
     cut = None if material is None else lobe_support_cos(material.alpha)
-    for i in range(j):
+
+    # a direction's columns; the directions by one thread per core (Embree and NumPy release the GIL)
+    def one(i: int) -> None:
         cos = front_cos(geo.normals, geo.mu_out, d[i:i + 1])[:, 0]
         lit = np.flatnonzero(cos > 0)
         vis = np.zeros(n)
@@ -317,14 +319,19 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
             vcos = np.maximum(r._vertex_normals @ d[i], 0.0)
             vl = np.flatnonzero(vcos > 0)
             vdirect[vl, i] = vcos[vl] * ~r._shadow_rays.intersects_any(vpts[vl], np.broadcast_to(d[i], (vl.size, 3)))
-        if material is not None:
-            def lobe(base):
-                if geo.footprint is not None:
-                    return specular_over_footprint(material, *geo.footprint, d[i:i + 1], np.ones((1, 3)),
-                                                   vis[:, None], cut, base)
-                return specular_over_directions(material, geo.normals, geo.view_dirs, d[i:i + 1], np.ones((1, 3)),
-                                                vis[:, None], cut, base)
-            spec[:, i] = lobe(np.zeros((n, 3)) if metal else None)
-            if metal:
-                scaled[:, i] = lobe(np.ones((n, 3))) - spec[:, i]
+        if material is None:
+            return
+
+        def lobe(base):
+            if geo.footprint is not None:
+                return specular_over_footprint(material, *geo.footprint, d[i:i + 1], np.ones((1, 3)),
+                                               vis[:, None], cut, base)
+            return specular_over_directions(material, geo.normals, geo.view_dirs, d[i:i + 1], np.ones((1, 3)),
+                                            vis[:, None], cut, base)
+        spec[:, i] = lobe(np.zeros((n, 3)) if metal else None)
+        if metal:
+            scaled[:, i] = lobe(np.ones((n, 3))) - spec[:, i]
+
+    with ThreadPoolExecutor(min(j, os.cpu_count() or 1)) as pool:
+        list(pool.map(one, range(j)))
     return SourceTransfer(d, direct, vdirect, spec, scaled)
