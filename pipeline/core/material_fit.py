@@ -349,7 +349,7 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
             # the ridge is (sigma / (band_prior |L_0|))^2 W / views (pipeline.core.solve): scaled with the
             # lighting's DC as rho changes, so that no rho is favoured by a relatively weaker prior
             ridge_dc2 = start.ridge * float(np.mean(start.coeffs[0] ** 2))
-            for _ in range(2):            # the second pass with the interreflection of the first's rho
+            for _ in range(2 if geo.interreflects else 1):    # the second with the interreflection of the first's rho
                 base = _base_search(cand, base, sources, ridge_dc2, base_grid)
     # the design and source columns at the final base colour (and the sources' intensities for it)
     _, _, system, src_cols = solve_at(base, 8)

@@ -70,6 +70,12 @@ class Geometry:
         return None if material is None else (material.roughness, material.ior, material.metallic,
                                               tuple(material.specular_tint))
 
+    @property
+    def interreflects(self) -> bool:
+        """Whether any vertex's occlusion ray hits the object (a convex one: none, so no
+        interreflection whatever the base colour)."""
+        return bool(self.renderer.bounce_rays().on_mesh.any())
+
     def bounce_matrices(self, material: Principled | None) -> list:
         """The renderer's bounce matrices with this material's diffuse layer at the hits (cached)."""
         key = self._layer_key(material)
