@@ -332,7 +332,7 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
         return _lighting_given_base(cand, b, sources, inner, known)
 
     if max_sources > 0 and sources is None and known is None:
-        sources = _add_sources(geo, material, base, layer, cand.system(base), max_sources, source_gain)
+        sources = _add_sources(cand, base, max_sources, source_gain)
     if not fix_base:
         if known is not None or spec is None:
             for _ in range(4):            # least squares in rho given the lighting (+ interreflection update)
@@ -656,10 +656,13 @@ def sh_complement(a: np.ndarray, weight: np.ndarray, fit: solve.LightingFit) -> 
     return project
 
 
-def _add_sources(geo, material, base, layer, system: ShSystem, max_sources: int, gain: float) -> Sources | None:
-    """Greedy matching pursuit of directional sources on the SH fit's (``system``) residual: each
-    new source is kept only if the held-out views' RMSE (SH refitted around the sources) drops by
-    more than ``gain`` (relative); intensities are fitted on all views (3 numbers a source)."""
+def _add_sources(cand: _Candidate, base: np.ndarray, max_sources: int, gain: float) -> Sources | None:
+    """Greedy matching pursuit of directional sources on the residual of the candidate's SH fit
+    at base colour ``base``: each new source is kept only if the held-out views' RMSE (SH refitted
+    around the sources) drops by more than ``gain`` (relative); intensities are fitted on all views
+    (3 numbers a source)."""
+    geo, material, layer = cand.geo, cand.material, cand.layer
+    system = cand.system(base)
     radiance, w = system.obs.radiance, system.obs.weight
     best = system.held_out_rmse(radiance)
     residual = radiance - system.predict(system.solve(radiance).coeffs)
@@ -680,14 +683,14 @@ def _add_sources(geo, material, base, layer, system: ShSystem, max_sources: int,
         residual = target - system.predict(system.solve(target).coeffs)
     if kept is None:
         return None
-    moved, score = _relocate_sources(geo, material, base, layer, system, found, kept[1], kept[2])
+    moved, score = _relocate_sources(cand, base, system, found, kept[1], kept[2])
     return moved if score < best * (1.0 - gain) else Sources(kept[0], kept[2])   # as a new source must
 
 
-def _relocate_sources(geo, material, base, layer, system: ShSystem, found: list, cols: np.ndarray,
+def _relocate_sources(cand: _Candidate, base: np.ndarray, system: ShSystem, found: list, cols: np.ndarray,
                       power: np.ndarray) -> tuple[Sources, float]:
     """One more pass over the pursuit's sources (directions ``found``, columns (3, N, J),
-    intensities (J, 3)): each direction refined (BACKFIT_STEP, 4 rounds)
+    intensities (J, 3); ``system``: the SH at ``base``): each direction refined (BACKFIT_STEP, 4 rounds)
     against the SH refitted around the others and scored by its part the SH cannot carry
     (sh_complement), then all intensities refitted -> (the moved Sources, their held-out RMSE). The
     pursuit's first SH fit absorbed part of each source, which moved it by about a degree -- and
@@ -695,6 +698,7 @@ def _relocate_sources(geo, material, base, layer, system: ShSystem, found: list,
     The caller keeps the move only where it lowers the held-out views' RMSE by more than the
     gain a new source must bring: where SH and sources cannot carry the lighting (a sharp lobe
     under a detailed map) the complement is a poor guide and small gains are noise."""
+    geo, material, layer = cand.geo, cand.material, cand.layer
     radiance, w = system.obs.radiance, system.obs.weight
     target = radiance - np.einsum("cpj,jc->pc", cols, power)
     fit = system.solve(target)

@@ -79,9 +79,9 @@ def solve_spd(lhs: sp.csr_matrix, rhs: np.ndarray, x0: np.ndarray, rtol: float =
               maxiter: int = 1000) -> np.ndarray:
     """x of the symmetric positive definite system lhs x = rhs: conjugate gradients with a Jacobi
     preconditioner from ``x0`` to a relative residual ``rtol``; if that does not converge within
-    ``maxiter`` iterations, SuperLU
-    with a symmetric ordering.  On the 35k-vertex bunny CG takes 0.08 s where SuperLU takes 0.8 s
-    (1.8 s with its default column ordering), the albedos equal to 3e-8."""
+    ``maxiter`` iterations, SuperLU with a symmetric ordering.  On the 35k-vertex bunny CG takes
+    0.08 s where SuperLU takes 0.8 s (1.8 s with its default column ordering), the albedos equal
+    to 3e-8."""
     x, info = spla.cg(lhs, rhs, x0=x0, rtol=rtol, maxiter=maxiter,
                       M=sp.diags(1.0 / np.maximum(lhs.diagonal(), 1e-300)))
     if info == 0:
