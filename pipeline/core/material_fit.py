@@ -20,7 +20,7 @@ The material is found around that:
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -151,16 +151,22 @@ class _Candidate:
     folds: int
     kw: dict
     max_bounces: int
+    _last: dict = field(default_factory=dict, repr=False, compare=False)     # system()'s last answer
 
     def indirect(self, base: np.ndarray, vertex_direct: np.ndarray | None = None) -> np.ndarray:
         """prt.indirect_transfer at base colour ``base`` (of the SH lighting, or of ``vertex_direct``'s columns)."""
         return prt.indirect_transfer(self.geo, self.material, base, self.max_bounces, vertex_direct)
 
     def system(self, base: np.ndarray, order: int | None = None) -> ShSystem:
-        """The SH lighting's system of the design at base colour ``base`` (to ``order``, default the candidate's)."""
+        """The SH lighting's system of the design at base colour ``base`` (to ``order``, default the
+        candidate's); the last one is kept (the sources' pursuit and the base search's start share it)."""
         order = self.order if order is None else order
-        return ShSystem(_design(self.geo, self.layer, self.indirect(base), self.spec, base, order), self.obs, order,
-                        self.folds, self.kw)
+        key = (np.asarray(base, float).tobytes(), order)
+        if key not in self._last:
+            self._last.clear()
+            self._last[key] = ShSystem(_design(self.geo, self.layer, self.indirect(base), self.spec, base, order),
+                                       self.obs, order, self.folds, self.kw)
+        return self._last[key]
 
 
 MIN_SOURCE_COS = float(np.cos(np.radians(10.0)))   # sources closer than 10 deg are one (extended) light
