@@ -13,8 +13,8 @@ Two methods (``--method``), both pixel by pixel after a ray cast:
 
 ``angular`` (default): the reflection equation integrated in the angular domain by the reference
 renderer's machinery (pipeline.core.render.Renderer.shade): the lighting as an equirect map (an
-SH lighting is synthesized to a map, pipeline.core.sh.envmap_from_sh, its negative lobes rendered
-as a second, subtracted map), split into directions with exact solid angles, the full BRDF
+SH lighting is synthesized to a map, pipeline.core.sh.envmap_from_sh, its negative lobes kept as
+negative radiance), split into directions with exact solid angles, the full BRDF
 (pipeline.core.brdf: Torrance-Sparrow microfacet with Schlick Fresnel and V-cavity G, or R&H
 Phong), and per-vertex shadow rays (self-shadowing; under a given --env also the capture's board
 from capture.toml as an occluder, as in the photos).  Lobes sharper than the direction cells are
@@ -94,7 +94,7 @@ class Settings:
                    "reflection-space lobe)")
     env_height: int = setting(64, "angular method: height of the equirect map an SH lighting is synthesized to")
     clamp_sh: bool = setting(False, "angular method: clamp the map synthesized from an SH lighting at 0; off = keep "
-                                    "its negative lobes (rendered as a second, subtracted map), as the fit did")
+                                    "its negative lobes (a signed map; only the image is clamped at 0), as the fit did")
     cell_height: int = setting(32, "angular method: the map's remainder (outside bright pixels) is averaged into "
                                    "cell_height x 2 cell_height directions")
     shadows: bool = setting(True, "angular method: self-shadowing by shadow rays")
@@ -517,9 +517,9 @@ class AngularLighting:
     Give ``coeffs`` (SH lighting, synthesized to an ``env_height`` map) or ``env`` (an equirect map,
     used as is).  A fitted SH lighting has negative lobes (bands the data could not pin down: from a
     Lambertian object half of the map's power can be negative) that the fit's linear model relied
-    on; clamping them at 0 (``clamp_sh``) adds their energy back as light, so by default the map is
-    split as L = L+ - L- and the object is rendered under both (the reflection equation is linear in
-    L): B = B(L+) - B(L-).  The renderer splits the map
+    on; clamping them at 0 (``clamp_sh``) adds their energy back as light, so by default the map
+    keeps its sign (the reflection equation is linear in L: one signed light set renders B(L+) - B(L-),
+    render.light_set) and only the image is clamped at 0.  The renderer splits the map
     into bright full-resolution pixels and ``cell_height`` x 2 ``cell_height`` remainder cells with
     their exact solid angles, evaluates the full BRDF per direction and, with ``shadows``, casts
     shadow rays once per mesh vertex (``board``: a render.BoardPlane that occludes too).
@@ -545,17 +545,16 @@ class AngularLighting:
             self.lobe = Lighting({**brdf, "albedo": [0.0, 0.0, 0.0]}, coeffs=coeffs, env=env,
                                  lobe_sh_order=lobe_sh_order, prefilter_height=prefilter_height, source=source)
             brdf = {"model": "lambert", "albedo": brdf["albedo"]}
-        negative = None
         if coeffs is not None:
             env = envmap_from_sh(np.asarray(coeffs, float), env_height)
-            if not clamp_sh and env.min() < 0:
-                negative = np.maximum(-env, 0.0)
-            env = np.maximum(env, 0.0)
+            self.signed = not clamp_sh and env.min() < 0
+            if not self.signed:
+                env = np.maximum(env, 0.0)
             if sources is not None and len(sources[0]):  # the fit's directional sources (dual angular part)
                 env = add_sources(env, *sources)
             self.kind, self.order = "sh", order_of(np.asarray(coeffs).shape[0])
         else:
-            self.kind, self.order = "envmap", None
+            self.kind, self.order, self.signed = "envmap", None, False
         self.shadows = bool(shadows)
         self.board = board is not None and self.shadows
         options = dict(shadows=self.shadows, vertex_albedo=vertex_albedo, board=board if self.shadows else None,
@@ -563,7 +562,6 @@ class AngularLighting:
                        bounce_samples=bounce_samples, lobe_samples=lobe_samples)
         mesh = ray_mesh(mesh)
         self.renderer = Renderer(mesh, env, brdf, **options)
-        self.negative = None if negative is None else Renderer(mesh, negative, brdf, **options)
 
     @classmethod
     def from_file(cls, path: Path, brdf: dict, mesh, **kwargs) -> "AngularLighting":
@@ -581,9 +579,7 @@ class AngularLighting:
 
     def prepare(self) -> "AngularLighting":
         """Shared caches computed up front, so that shade_hits may run in threads (Renderer.prepare)."""
-        for renderer in (self.renderer, self.negative):
-            if renderer is not None:
-                renderer.prepare()
+        self.renderer.prepare()
         return self
 
     def describe(self) -> dict:
@@ -591,7 +587,7 @@ class AngularLighting:
                 "map_height": int(self.renderer.env.shape[0]), "directions": len(self.renderer.lights),
                 "shadows": self.shadows, "board_occludes": self.board, "lobe_bands": self.lobe_order,
                 "interreflection": self.renderer.interreflection and self.shadows,
-                "negative_lobes": "clamped" if self.negative is None else "subtracted",
+                "negative_lobes": "kept (signed map)" if self.signed else "clamped",
                 "lobe": self._lobe_method()}
 
     def _lobe_method(self) -> str:
@@ -605,8 +601,6 @@ class AngularLighting:
                    albedo: np.ndarray) -> np.ndarray:
         """Radiance (N, 3) at ray hits; the renderer interpolates normals and albedo itself."""
         out = self.renderer.shade(tri, bary, view_dir)
-        if self.negative is not None:
-            out = out - self.negative.shade(tri, bary, view_dir)
         if self.lobe is not None:
             out = out + self.lobe.radiance(normal, view_dir, np.zeros(3))
         return np.maximum(out, 0.0)  # as the frequency path: B(L+) - B(L-) < 0 is not an image value

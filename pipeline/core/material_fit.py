@@ -237,8 +237,9 @@ def source_scan(geo: prt.Geometry, material: Principled | None, base: np.ndarray
     columns = np.zeros((coarse.size, len(dirs), 3), np.float32)
     for s in range(0, coarse.size, chunk):
         sl = coarse[s:s + chunk]
-        vis = r._point_visibility(geo.faces[sl], geo.tri[sl], geo.bary[sl])
-        cos = front_cos(geo.normals[sl], geo.mu_out[sl], dirs) * vis
+        cos = front_cos(geo.normals[sl], geo.mu_out[sl], dirs)
+        vis = r._point_visibility(geo.faces[sl], geo.tri[sl], geo.bary[sl], cos > 0)
+        cos = cos * vis
         col = cos[..., None] * kd[sl, None, :]
         if material is not None:
             p, d = cos.shape

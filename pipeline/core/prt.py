@@ -109,7 +109,7 @@ def geometry(mesh, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, o
     for s in range(0, faces.size, per_chunk):
         sl = slice(s, s + per_chunk)
         cos = front_cos(normals[sl], mu_out[sl], dirs)
-        direct[sl] = (cos * r._point_visibility(faces[sl], tri[sl], bary[sl])) @ power
+        direct[sl] = (cos * r._point_visibility(faces[sl], tri[sl], bary[sl], cos > 0)) @ power
     rays = r.bounce_rays()
     blocked = sh_basis(rays.directions, order) * (np.pi / rays.per_vertex)
     vertex_direct = r._open_irradiance(power) - rays.per_owner(blocked, len(mesh.vertices))

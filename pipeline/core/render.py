@@ -82,7 +82,9 @@ def light_set(env: np.ndarray, cell_height: int = 16, max_bright: int = 1024,
               bright_ratio: float = 4.0) -> LightSet:
     """Split an (H, 2H, 3) equirect map into full-resolution bright pixels + a coarse remainder.
 
-    See the module docstring.  The powers sum exactly to the map's sum(L dω) per channel.
+    See the module docstring.  The powers sum exactly to the map's sum(L dω) per channel.  A signed
+    map (an SH lighting's negative lobes kept: the reflection equation is linear in L) is split by
+    the magnitude |L|; its directions carry signed power.
     """
     env = np.asarray(env, dtype=float)
     h = env.shape[0]
@@ -90,13 +92,13 @@ def light_set(env: np.ndarray, cell_height: int = 16, max_bright: int = 1024,
     omega = np.broadcast_to(equirect_solid_angles(h)[:, None], env.shape[:2]).reshape(-1)
     flat = env.reshape(-1, 3)
     if cell_height >= h:
-        keep = flat.max(axis=1) > 0
+        keep = np.abs(flat).max(axis=1) > 0
         return LightSet(dirs[keep], flat[keep] * omega[keep, None], np.flatnonzero(keep))
     factor = max(1, h // max(cell_height, 1))
     while h % factor:
         factor -= 1
-    lum = flat.mean(axis=1)
-    cell_mean = downsample(env, factor).mean(axis=2)
+    lum = np.abs(flat).mean(axis=1)
+    cell_mean = downsample(np.abs(env), factor).mean(axis=2)
     cell_mean_full = np.repeat(np.repeat(cell_mean, factor, axis=0), factor, axis=1).reshape(-1)
     mean_lum = float((lum * omega).sum() / omega.sum())
     bright = (lum > bright_ratio * mean_lum) | (lum > bright_ratio * cell_mean_full)
@@ -110,7 +112,7 @@ def light_set(env: np.ndarray, cell_height: int = 16, max_bright: int = 1024,
     ch = coarse.shape[0]
     c_dirs = equirect_directions(ch).reshape(-1, 3)
     c_power = (coarse * equirect_solid_angles(ch)[:, None, None]).reshape(-1, 3)
-    nonzero = c_power.max(axis=1) > 0
+    nonzero = np.abs(c_power).max(axis=1) > 0
     return LightSet(np.concatenate([c_dirs[nonzero], dirs[idx]]),
                     np.concatenate([c_power[nonzero], flat[idx] * omega[idx, None]]), idx)
 
@@ -298,13 +300,17 @@ class Renderer:
             self._visibility[todo[sl]] = vis
         self._vis_done[todo] = True
 
-    def _point_visibility(self, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    def _point_visibility(self, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray,
+                          needed: np.ndarray | None = None) -> np.ndarray:
         """Visibility (P, D) bool of the light set at points: the vertices' visibility where all three
         of the point's vertices agree, an exact shadow ray from the point where they do not
-        (shadow edges crossing the triangle), so shadows are sharp at any mesh resolution."""
+        (shadow edges crossing the triangle), so shadows are sharp at any mesh resolution.
+        ``needed`` (P, D) bool: the pairs the caller uses (those with n . w > 0); the others keep
+        the vertices' agreement without a ray."""
         v0, v1, v2 = (self._visibility[tri[:, k]] for k in range(3))
         lit = v0 & v1 & v2
-        pi, di = np.nonzero((v0 | v1 | v2) & ~lit)  # bool planes: 8x less memory traffic than weights
+        disagree = (v0 | v1 | v2) & ~lit  # bool planes: 8x less memory traffic than weights
+        pi, di = np.nonzero(disagree if needed is None else disagree & needed)
         if pi.size:
             lit[pi, di] = ~self._shadow_rays.intersects_any(self._points_above(faces[pi], bary[pi]),
                                                             self.lights.directions[di])
@@ -410,7 +416,9 @@ class Renderer:
         rays = self.bounce_rays()
         blocked = EnvPyramid.build(self.env).lookup(rays.directions, np.pi / (rays.per_vertex * rays.cos)) \
             * (np.pi / rays.per_vertex)
-        e_direct = np.maximum(e_open - rays.per_owner(blocked, len(e_open)), 0.0)
+        e_direct = e_open - rays.per_owner(blocked, len(e_open))
+        if self.env.min() >= 0:  # the occluded rays' estimate may overshoot; a signed map's E may be < 0
+            e_direct = np.maximum(e_direct, 0.0)
         e_ind = np.zeros_like(e_direct)
         if self.interreflection and rays.on_mesh.any():
             e_ind = bounce_series(self.bounce_matrices(), self._vertex_base(), e_direct, self.max_bounces)
@@ -491,7 +499,7 @@ class Renderer:
             sl = slice(s, s + per_chunk)
             n, wo = normals[sl], view_dirs[sl]
             cos = n @ dirs.T  # (P, D)
-            vis = self._point_visibility(faces[sl], tri[sl], bary[sl]) if self.shadows else None
+            vis = self._point_visibility(faces[sl], tri[sl], bary[sl], cos > 0) if self.shadows else None
             n_out = np.einsum("pc,pc->p", n, wo)[:, None]
             cos_in = np.where((cos > 0) & (n_out > 0), cos, 0.0)  # both sides above the surface
             weight = cos_in if vis is None else cos_in * vis
@@ -517,7 +525,7 @@ class Renderer:
             sl = slice(s, s + per_chunk)
             cos = front_cos(normals[sl], mu_out[sl], dirs)
             if self.shadows:
-                vis = self._point_visibility(faces[sl], tri[sl], bary[sl])
+                vis = self._point_visibility(faces[sl], tri[sl], bary[sl], cos > 0)
                 cos = cos * vis
                 bright_vis[sl] = vis[:, len(dirs) - nb:]
             irradiance[sl] = cos @ power
