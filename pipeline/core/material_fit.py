@@ -152,6 +152,7 @@ class _Candidate:
     kw: dict
     max_bounces: int
     _last: dict = field(default_factory=dict, repr=False, compare=False)     # system()'s last answer
+    _blocks: dict = field(default_factory=dict, repr=False, compare=False)   # base_blocks() per channel
 
     def indirect(self, base: np.ndarray, vertex_direct: np.ndarray | None = None) -> np.ndarray:
         """prt.indirect_transfer at base colour ``base`` (of the SH lighting, or of ``vertex_direct``'s columns)."""
@@ -167,6 +168,60 @@ class _Candidate:
             self._last[key] = ShSystem(_design(self.geo, self.layer, self.indirect(base), self.spec, base, order),
                                        self.obs, order, self.folds, self.kw)
         return self._last[key]
+
+
+    def base_blocks(self, c: int) -> "_BaseBlocks":
+        """Channel c's parts of the design that do not depend on the base colour (_BaseBlocks),
+        computed once per candidate; channels with the same parts (a dielectric's grey Fresnel and
+        diffuse layer) share one."""
+        if c not in self._blocks:
+            k = num_coeffs(self.order)
+            same = (d for d in self._blocks if self.spec.scaled is None
+                    and np.array_equal(self.layer[:, c], self.layer[:, d])
+                    and np.array_equal(self.spec.fixed[:, :k, c], self.spec.fixed[:, :k, d]))
+            d = next(same, None)
+            if d is not None:
+                self._blocks[c] = self._blocks[d]
+            else:
+                q = self.geo.direct[:, :k] * (self.layer[:, c] / np.pi)[:, None]
+                if self.spec.scaled is not None:
+                    q += self.spec.scaled[:, :k, c]
+                s = np.ascontiguousarray(self.spec.fixed[:, :k, c])
+                sw = np.sqrt(self.obs.weight)[:, None]
+                qw, sw_ = q * sw, s * sw
+                self._blocks[c] = _BaseBlocks(q, s, qw.T @ qw, qw.T @ sw_, sw_.T @ sw_)
+        return self._blocks[c]
+
+
+@dataclass(frozen=True)
+class _BaseBlocks:
+    """One channel's design of the base colour search without what depends on the base colour:
+    radiance = rho Q + S (+ rho kd / pi I and the sources' columns, base dependent) with Q (N, K)
+    = kd / pi D (+ a metal's specular per unit F0), S (N, K) the fixed specular, and their grams
+    Q^T W Q, Q^T W S, S^T W S (K, K) with the samples' weights W."""
+
+    q: np.ndarray
+    s: np.ndarray
+    qq: np.ndarray
+    qs: np.ndarray
+    ss: np.ndarray
+
+
+def _gram_with_columns(lr: np.ndarray, left: np.ndarray, right: np.ndarray, w: np.ndarray, n: int,
+                       x_left: np.ndarray, at_left: np.ndarray, x_right: np.ndarray, at_right: np.ndarray) -> np.ndarray:
+    """(L + X_l)^T W (R + X_r) (n, n) from ``lr`` = L^T W R (K, K) of L, R (N, K) (zero-padded to n
+    columns) and columns X_l (N, m) added at column indices ``at_left`` (m,), X_r likewise: the
+    full gram's cost is paid once, each update costs N K m."""
+    k = lr.shape[0]
+    g = np.zeros((n, n))
+    g[:k, :k] = lr
+    wr = x_right * w[:, None]
+    cross = left.T @ wr
+    g[:k, at_right] += cross
+    symmetric = left is right and x_left is x_right
+    g[at_left, :k] += cross.T if symmetric else (x_left * w[:, None]).T @ right
+    g[np.ix_(at_left, at_right)] += x_left.T @ wr
+    return g
 
 
 MIN_SOURCE_COS = float(np.cos(np.radians(10.0)))   # sources closer than 10 deg are one (extended) light
@@ -563,30 +618,42 @@ def _base_search(cand: _Candidate, base: np.ndarray, sources: Sources | None, ri
     """rho (3,): per channel the value on a log grid of ``grid`` points in [0.02, 1] (refined by a
     parabola) whose training RSS is least with the lighting — SH and source intensities jointly,
     with the SH ridge ``ridge_dc2`` (K,) / L_0^2 (the DC of an unregularized solve at that rho) — refitted.
-    The design rho_c Dc + Sc makes the normal equations quadratic in rho_c (blocks built once;
-    the interreflection taken at ``base``); the channels are independent."""
+    The design rho_c P_c + S_c makes the normal equations quadratic in rho_c; their blocks are the
+    candidate's base-independent grams (base_blocks) updated with the columns that depend on the
+    base (the interreflection's first bands, taken at ``base``, and the sources'); the channels are
+    independent."""
     obs, layer, spec = cand.obs, cand.layer, cand.spec
     k = num_coeffs(cand.order)
     w = obs.weight
-    scaled = _per_unit_base(cand.geo, layer, cand.indirect(base), spec, k)
-    specular = [spec.fixed[:, :k, c] for c in range(3)]
-    j = 0
+    indirect = cand.indirect(base)
+    ki = min(k, indirect.shape[1])          # the interreflection's bands (prt.INDIRECT_ORDER)
+    n_src = 0 if sources is None else sources.directions.shape[0]
+    n = k + n_src
     if sources is not None:
         st = sources.transfer
-        j = st.directions.shape[0]
         src_scaled = _source_per_unit_base(layer, st, cand.indirect(base, st.vertex_direct))
         src_spec = st.specular if st.specular is not None else np.zeros_like(src_scaled)
-        scaled = [np.concatenate([scaled[c], src_scaled[..., c]], axis=1) for c in range(3)]
-        specular = [np.concatenate([specular[c], src_spec[..., c]], axis=1) for c in range(3)]
-    reg = np.concatenate([np.asarray(ridge_dc2, float)[:k], np.zeros(j)])
-    sw = np.sqrt(w)[:, None]
+    at_p = np.concatenate([np.arange(ki), np.arange(k, n)])   # P's base-dependent columns
+    at_s = np.arange(k, n)                                    # S's (the sources' specular)
+    reg = np.concatenate([np.asarray(ridge_dc2, float)[:k], np.zeros(n_src)])
     betas = np.geomspace(0.02, 1.0, grid)
     out = np.zeros(3)
     for c in range(3):
-        d = scaled[c] * sw
-        s_ = specular[c] * sw
-        b = obs.radiance[:, c] * sw[:, 0]
-        dd, ds, ss, hd, hs, bb = d.T @ d, d.T @ s_, s_.T @ s_, d.T @ b, s_.T @ b, float(b @ b)
+        blocks = cand.base_blocks(c)
+        x_p = indirect[:, :ki, c] * (layer[:, c] / np.pi)[:, None]
+        x_s = np.zeros((len(w), 0))
+        if sources is not None:
+            x_p = np.concatenate([x_p, src_scaled[..., c]], axis=1)
+            x_s = src_spec[..., c]
+        b = obs.radiance[:, c]
+        dd = _gram_with_columns(blocks.qq, blocks.q, blocks.q, w, n, x_p, at_p, x_p, at_p)
+        ds = _gram_with_columns(blocks.qs, blocks.q, blocks.s, w, n, x_p, at_p, x_s, at_s)
+        ss = _gram_with_columns(blocks.ss, blocks.s, blocks.s, w, n, x_s, at_s, x_s, at_s)
+        wb = w * b
+        hd = np.concatenate([blocks.q.T @ wb, np.zeros(n_src)])
+        hd[at_p] += x_p.T @ wb
+        hs = np.concatenate([blocks.s.T @ wb, x_s.T @ wb])
+        bb = float(b @ wb)
 
         def rss(beta: float) -> float:
             g = beta * beta * dd + beta * (ds + ds.T) + ss
