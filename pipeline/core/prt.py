@@ -168,18 +168,21 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
                       chunk: int = 2048, order: int | None = None) -> SpecularTransfer:
     """The specular lobe's transfer at the samples (see the module docstring) for SH lighting up to
     ``order`` (default the geometry's); a metal's as its transfer at F0 = 0 and the difference to
-    F0 = 1 (the compensation for multiple scattering taken at each end)."""
+    F0 = 1 (the compensation for multiple scattering taken at each end; both from the same lobe
+    samples and shadow rays)."""
     order = geo.order if order is None else min(order, geo.order)
     if material.metallic > 0:
-        zero, one = (_specular_transfer(geo, replace(material, base_color=(v, v, v)), n_samples, seed, chunk, order)
-                     for v in (0.0, 1.0))
+        zero, one = _specular_transfer(geo, [replace(material, base_color=(v, v, v)) for v in (0.0, 1.0)],
+                                       n_samples, seed, chunk, order)
         return SpecularTransfer(zero, one - zero)
-    return SpecularTransfer(_specular_transfer(geo, material, n_samples, seed, chunk, order))
+    return SpecularTransfer(_specular_transfer(geo, [material], n_samples, seed, chunk, order)[0])
 
 
-def _lobe_chunks(geo: Geometry, material: Principled, n_samples: int, seed: int, chunk: int, one_chunk) -> None:
-    """Call ``one_chunk(idx, lobe)`` for chunks of the front-facing samples with their GGX VNDF lobe
-    samples (shading.specular_samples; weights of occluded lobe samples set to 0), drawn over each
+def _lobe_chunks(geo: Geometry, materials: list, n_samples: int, seed: int, chunk: int, one_chunk) -> None:
+    """Call ``one_chunk(idx, lobes)`` for chunks of the front-facing samples with their GGX VNDF lobe
+    samples (shading.specular_samples; weights of occluded lobe samples set to 0), one LobeSamples
+    per material of ``materials`` (the same lobe, other base colours: the same directions, so one
+    set of shadow rays), drawn over each
     sample's pixel footprint when the geometry has one (a pixel averages the lobe over the surface
     it sees; at the centres only, the night sphere's unknown-lighting fit relit at 10.65 %, not
     10.21 %).  The chunks run on one thread per core (Embree and NumPy's large operations release
@@ -188,57 +191,63 @@ def _lobe_chunks(geo: Geometry, material: Principled, n_samples: int, seed: int,
     r = geo.renderer
     front = np.flatnonzero(geo.mu_out > 0)
 
-    def run(s: int) -> None:
-        idx = front[s:s + chunk]
+    def draw(material: Principled, idx: np.ndarray, s: int) -> LobeSamples:
         rng = np.random.default_rng([seed, s])
         if geo.footprint is None:
-            lobe = specular_samples(material, geo.normals[idx], geo.view_dirs[idx], n_samples, rng)
-        else:   # n_samples / F at each of the F footprint points: the lobe averaged over the pixel
-            normals, view_dirs = (a[idx] for a in geo.footprint)
-            f = normals.shape[1]
-            lobe = specular_samples(material, normals.reshape(-1, 3), view_dirs.reshape(-1, 3),
-                                    max(1, n_samples // f), rng)
-            lobe = LobeSamples(lobe.directions.reshape(idx.size, -1, 3), lobe.weight.reshape(idx.size, -1, 3) / f,
-                               lobe.solid_angle.reshape(idx.size, -1) / f)
-        ns = lobe.directions.shape[1]
-        dirs = lobe.directions.reshape(-1, 3)
-        live = np.flatnonzero(lobe.weight.reshape(-1, 3).max(axis=1) > 0)
+            return specular_samples(material, geo.normals[idx], geo.view_dirs[idx], n_samples, rng)
+        # n_samples / F at each of the F footprint points: the lobe averaged over the pixel
+        normals, view_dirs = (a[idx] for a in geo.footprint)
+        f = normals.shape[1]
+        lobe = specular_samples(material, normals.reshape(-1, 3), view_dirs.reshape(-1, 3), max(1, n_samples // f), rng)
+        return LobeSamples(lobe.directions.reshape(idx.size, -1, 3), lobe.weight.reshape(idx.size, -1, 3) / f,
+                           lobe.solid_angle.reshape(idx.size, -1) / f)
+
+    def run(s: int) -> None:
+        idx = front[s:s + chunk]
+        lobes = [draw(m, idx, s) for m in materials]
+        ns = lobes[0].directions.shape[1]
+        dirs = lobes[0].directions.reshape(-1, 3)
+        live = np.flatnonzero(np.any([lobe.weight.reshape(-1, 3).max(axis=1) > 0 for lobe in lobes], axis=0))
         pts = r._points_above(geo.faces[idx], geo.bary[idx])
         hit = r._shadow_rays.intersects_any(np.repeat(pts, ns, axis=0)[live], dirs[live])
         blocked = np.zeros(dirs.shape[0], bool)
         blocked[live[hit]] = True
-        lobe.weight[blocked.reshape(-1, ns)] = 0.0
-        one_chunk(idx, lobe)
+        for lobe in lobes:
+            lobe.weight[blocked.reshape(-1, ns)] = 0.0
+        one_chunk(idx, lobes)
 
     with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
         list(pool.map(run, range(0, front.size, chunk)))
 
 
-def _specular_transfer(geo: Geometry, material: Principled, n_samples: int, seed: int, chunk: int,
-                       order: int) -> np.ndarray:
-    """S (N, K, 3) of one material with a uniform base colour (lobe samples by _lobe_chunks)."""
-    out = np.zeros((geo.faces.size, num_coeffs(order), 3))
+def _specular_transfer(geo: Geometry, materials: list, n_samples: int, seed: int, chunk: int,
+                       order: int) -> list:
+    """[S (N, K, 3)] per material of ``materials`` (one lobe, uniform base colours; lobe samples
+    by _lobe_chunks)."""
+    outs = [np.zeros((geo.faces.size, num_coeffs(order), 3)) for _ in materials]
     bands = np.arange(order + 1)
 
-    def one_chunk(idx: np.ndarray, lobe) -> None:
-        q, ns = lobe.directions.shape[:2]
+    def one_chunk(idx: np.ndarray, lobes: list) -> None:
+        first = lobes[0]
+        q, ns = first.directions.shape[:2]
         # each sample stands for its solid angle 1 / (S pdf): Y_k prefiltered over a cap of that size,
         # cap average ~ exp(-l(l+1) θ² / 8) with θ² = Ω / π (as the renderer prefilters its map);
         # the factor depends on the band only, so it goes into the weights, one band at a time
-        soft = np.exp(-np.outer(lobe.solid_angle.reshape(-1) / (8 * np.pi), bands * (bands + 1)))  # (q S, L+1)
-        basis = sh_basis(lobe.directions.reshape(-1, 3), order).reshape(q, ns, -1)          # (q, S, K)
+        soft = np.exp(-np.outer(first.solid_angle.reshape(-1) / (8 * np.pi), bands * (bands + 1)))  # (q S, L+1)
+        basis = sh_basis(first.directions.reshape(-1, 3), order).reshape(q, ns, -1)          # (q, S, K)
         soft = soft.reshape(q, ns, -1)
-        w3 = lobe.weight
-        grey = np.array_equal(w3[..., 0], w3[..., 2]) and np.array_equal(w3[..., 0], w3[..., 1])  # dielectric F
-        for b in bands:
-            block = slice(b * b, (b + 1) * (b + 1))
-            if grey:
-                out[idx, block] = np.einsum("qsk,qs->qk", basis[:, :, block], w3[..., 0] * soft[..., b])[..., None]
-            else:
-                out[idx, block] = np.einsum("qsk,qsc->qkc", basis[:, :, block], w3 * soft[..., b, None])
+        for out, lobe in zip(outs, lobes):
+            w3 = lobe.weight
+            grey = np.array_equal(w3[..., 0], w3[..., 2]) and np.array_equal(w3[..., 0], w3[..., 1])  # dielectric F
+            for b in bands:
+                block = slice(b * b, (b + 1) * (b + 1))
+                if grey:
+                    out[idx, block] = np.einsum("qsk,qs->qk", basis[:, :, block], w3[..., 0] * soft[..., b])[..., None]
+                else:
+                    out[idx, block] = np.einsum("qsk,qsc->qkc", basis[:, :, block], w3 * soft[..., b, None])
 
-    _lobe_chunks(geo, material, n_samples, seed, chunk, one_chunk)
-    return out
+    _lobe_chunks(geo, materials, n_samples, seed, chunk, one_chunk)
+    return outs
 
 
 def detail_height(material: Principled) -> int:
@@ -262,7 +271,8 @@ def detail_transfer(geo: Geometry, material: Principled, height: int, n_samples:
     width = 2 * height
     parts: list = []
 
-    def one_chunk(idx: np.ndarray, lobe) -> None:
+    def one_chunk(idx: np.ndarray, lobes: list) -> None:
+        lobe = lobes[0]
         d = lobe.directions.reshape(-1, 3)
         w = lobe.weight[..., 0].reshape(-1)
         # continuous pixel coordinates of each lobe sample; bilinear weights of the 4 nearest centres
@@ -276,7 +286,7 @@ def detail_transfer(geo: Geometry, material: Principled, height: int, n_samples:
             for dx, wx in ((0, 1.0 - fx), (1, fx)):
                 parts.append((rows, yy * width + np.mod(x0 + dx, width), w * wy * wx))
 
-    _lobe_chunks(geo, material, n_samples, seed, chunk, one_chunk)
+    _lobe_chunks(geo, [material], n_samples, seed, chunk, one_chunk)
     if not parts:
         return sp.csr_matrix((geo.faces.size, height * width))
     r, c, v = (np.concatenate(x) for x in zip(*parts))
