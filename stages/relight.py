@@ -559,7 +559,8 @@ class AngularLighting:
         self.board = board is not None and self.shadows
         options = dict(shadows=self.shadows, vertex_albedo=vertex_albedo, board=board if self.shadows else None,
                        cell_height=cell_height, interreflection=bounces > 0, max_bounces=max(bounces, 1),
-                       bounce_samples=bounce_samples, lobe_samples=lobe_samples)
+                       bounce_samples=bounce_samples, lobe_samples=lobe_samples,
+                       bright_block=bright_block(brdf, env.shape[0], cell_height))
         mesh = ray_mesh(mesh)
         self.renderer = Renderer(mesh, env, brdf, **options)
 
@@ -604,6 +605,17 @@ class AngularLighting:
         if self.lobe is not None:
             out = out + self.lobe.radiance(normal, view_dir, np.zeros(3))
         return np.maximum(out, 0.0)  # as the frequency path: B(L+) - B(L-) < 0 is not an image value
+
+
+def bright_block(brdf: dict, env_height: int, cell_height: int) -> int:
+    """Pixels per side of the blocks in which the renderer merges a map's broad bright pixels
+    (render.light_set's bright_block): a principled lobe's width 2 alpha over two of the map's
+    pixels (pi / H each), which the lobe cannot resolve, and no coarser than the remainder's
+    cells; 1 (none merged) for other models."""
+    if brdf["model"] != "principled":
+        return 1
+    alpha = float(brdf["roughness"]) ** 2
+    return int(np.clip(2.0 * alpha / (2.0 * np.pi / env_height), 1, max(1, env_height // max(cell_height, 1))))
 
 
 def board_occluder(capture: Path):

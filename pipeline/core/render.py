@@ -13,10 +13,11 @@ testing the frequency-space fit against its images is not circular:
 * Directions ("light set", ``light_set``): the map is split into *bright* pixels, kept at full
   resolution one by one (sun disks, area lights, lamps: every pixel brighter than
   ``bright_ratio`` times the map's mean luminance or than its coarse cell's mean, at most
-  ``max_bright`` of them by power), and the *remainder*, box-filtered (solid-angle weighted,
-  so energy is preserved exactly) into a coarse grid of ``cell_height`` x 2 ``cell_height`` cells
-  at their centre directions.  Each direction carries its power L dω.  ``cell_height >= H``
-  uses every pixel of the map (exact pixel quadrature, used by the tests).
+  ``max_bright`` of them by power; ``bright_block`` merges those bright only against the map's
+  mean per block, for a lobe that cannot resolve the block), and the *remainder*, box-filtered
+  (solid-angle weighted, so energy is preserved exactly) into a coarse grid of ``cell_height`` x
+  2 ``cell_height`` cells at their centre directions.  Each direction carries its power L dω.
+  ``cell_height >= H`` uses every pixel of the map (exact pixel quadrature, used by the tests).
 * f_r is pipeline.core.brdf (Lambert, R&H Phong, Torrance-Sparrow microfacet).  The diffuse
   part is a matrix product over all directions; the specular lobe is evaluated only for
   direction pairs inside its support: for Beckmann roughness σ the half vector is more than
@@ -64,27 +65,29 @@ class InsideMeshError(ValueError):
 
 @dataclass(frozen=True)
 class LightSet:
-    """Discrete directions (D, 3) of the environment with their power L dω (D, 3), RGB."""
+    """Discrete directions (D, 3) of the environment with their power L dω (D, 3), RGB; the last
+    ``n_bright`` rows are the bright pixels (or blocks of them), ``bright`` their flat map indices."""
 
     directions: np.ndarray
     power: np.ndarray
-    bright: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # flat map indices, last rows
+    bright: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    n_bright: int = 0
 
     def __len__(self) -> int:
         return self.directions.shape[0]
 
-    @property
-    def n_bright(self) -> int:
-        return int(self.bright.size)
-
 
 def light_set(env: np.ndarray, cell_height: int = 16, max_bright: int = 1024,
-              bright_ratio: float = 4.0) -> LightSet:
+              bright_ratio: float = 4.0, bright_block: int = 1) -> LightSet:
     """Split an (H, 2H, 3) equirect map into full-resolution bright pixels + a coarse remainder.
 
     See the module docstring.  The powers sum exactly to the map's sum(L dω) per channel.  A signed
     map (an SH lighting's negative lobes kept: the reflection equation is linear in L) is split by
-    the magnitude |L|; its directions carry signed power.
+    the magnitude |L|; its directions carry signed power.  ``bright_block`` b > 1: the bright pixels
+    that stand out only against the whole map's mean (the broad top of a sky or of a smooth SH
+    lighting, not a lamp against its neighbours) are merged per b x b block of the map into one
+    direction (the power-weighted mean) with their summed power: for a lobe wider than the block,
+    what it cannot resolve.
     """
     env = np.asarray(env, dtype=float)
     h = env.shape[0]
@@ -93,7 +96,7 @@ def light_set(env: np.ndarray, cell_height: int = 16, max_bright: int = 1024,
     flat = env.reshape(-1, 3)
     if cell_height >= h:
         keep = np.abs(flat).max(axis=1) > 0
-        return LightSet(dirs[keep], flat[keep] * omega[keep, None], np.flatnonzero(keep))
+        return LightSet(dirs[keep], flat[keep] * omega[keep, None], np.flatnonzero(keep), int(keep.sum()))
     factor = max(1, h // max(cell_height, 1))
     while h % factor:
         factor -= 1
@@ -101,11 +104,13 @@ def light_set(env: np.ndarray, cell_height: int = 16, max_bright: int = 1024,
     cell_mean = downsample(np.abs(env), factor).mean(axis=2)
     cell_mean_full = np.repeat(np.repeat(cell_mean, factor, axis=0), factor, axis=1).reshape(-1)
     mean_lum = float((lum * omega).sum() / omega.sum())
-    bright = (lum > bright_ratio * mean_lum) | (lum > bright_ratio * cell_mean_full)
+    local = lum > bright_ratio * cell_mean_full
+    bright = (lum > bright_ratio * mean_lum) | local
     bright &= lum > 0
     idx = np.flatnonzero(bright)
     if idx.size > max_bright:
         idx = idx[np.argsort(lum[idx] * omega[idx])[::-1][:max_bright]]
+    b_dirs, b_power = _bright_directions(dirs, flat * omega[:, None], idx, local[idx], 2 * h, bright_block)
     residual = flat.copy()
     residual[idx] = 0.0
     coarse = downsample(residual.reshape(env.shape), factor)
@@ -113,8 +118,28 @@ def light_set(env: np.ndarray, cell_height: int = 16, max_bright: int = 1024,
     c_dirs = equirect_directions(ch).reshape(-1, 3)
     c_power = (coarse * equirect_solid_angles(ch)[:, None, None]).reshape(-1, 3)
     nonzero = np.abs(c_power).max(axis=1) > 0
-    return LightSet(np.concatenate([c_dirs[nonzero], dirs[idx]]),
-                    np.concatenate([c_power[nonzero], flat[idx] * omega[idx, None]]), idx)
+    return LightSet(np.concatenate([c_dirs[nonzero], b_dirs]), np.concatenate([c_power[nonzero], b_power]), idx,
+                    len(b_dirs))
+
+
+def _bright_directions(dirs: np.ndarray, power: np.ndarray, idx: np.ndarray, alone: np.ndarray, width: int,
+                       block: int) -> tuple[np.ndarray, np.ndarray]:
+    """(directions, power) of the bright pixels ``idx`` (flat indices into a map ``width`` wide,
+    its pixels' directions and powers (H W, 3)): those with ``alone`` one by one, the others merged
+    per ``block`` x ``block`` block (power-weighted mean direction, summed power)."""
+    if block <= 1 or alone.all():
+        return dirs[idx], power[idx]
+    merged = idx[~alone]
+    row, col = np.divmod(merged, width)
+    blocks, owner = np.unique((row // block) * width + col // block, return_inverse=True)
+    weight = np.abs(power[merged]).mean(axis=1)
+    mean_dir = np.zeros((blocks.size, 3))
+    np.add.at(mean_dir, owner, dirs[merged] * weight[:, None])
+    mean_dir /= np.maximum(np.linalg.norm(mean_dir, axis=1, keepdims=True), 1e-300)
+    summed = np.zeros((blocks.size, 3))
+    np.add.at(summed, owner, power[merged])
+    single = idx[alone]
+    return np.concatenate([dirs[single], mean_dir]), np.concatenate([power[single], summed])
 
 
 @dataclass(frozen=True)
@@ -217,6 +242,7 @@ class Renderer:
     board: BoardPlane | None = None
     cell_height: int = 16
     max_bright: int = 1024
+    bright_block: int = 1          # light_set's: the broad bright pixels merged per b x b block
     board_supersample: int = 4
     chunk_pairs: int = 1 << 21
     interreflection: bool = True
@@ -232,7 +258,7 @@ class Renderer:
         if len(self.mesh.faces) == 0:
             raise ValueError("mesh has no faces")
         self.env = np.asarray(self.env, dtype=np.float32)
-        self.lights = light_set(self.env, self.cell_height, self.max_bright)
+        self.lights = light_set(self.env, self.cell_height, self.max_bright, bright_block=self.bright_block)
         if not hasattr(self.mesh, "rays"):
             raise TypeError("Renderer takes the mesh as pipeline.raycast.ray_mesh(mesh): its arrays and ray intersector")
         self._camera_rays = self.mesh.rays
