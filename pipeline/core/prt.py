@@ -181,11 +181,10 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
 def _lobe_chunks(geo: Geometry, materials: list, n_samples: int, seed: int, chunk: int, one_chunk) -> None:
     """Call ``one_chunk(idx, lobes)`` for chunks of the front-facing samples with their GGX VNDF lobe
     samples (shading.specular_samples; weights of occluded lobe samples set to 0), one LobeSamples
-    per material of ``materials`` (the same lobe, other base colours: the same directions, so one
-    set of shadow rays), drawn over each
-    sample's pixel footprint when the geometry has one (a pixel averages the lobe over the surface
-    it sees; at the centres only, the night sphere's unknown-lighting fit relit at 10.65 %, not
-    10.21 %).  The chunks run on one thread per core (Embree and NumPy's large operations release
+    per material of ``materials`` (one lobe, other base colours: the same directions, so one set of
+    shadow rays), drawn over each sample's pixel footprint when the geometry has one (a pixel
+    averages the lobe over the surface it sees; at the centres only, the night sphere's
+    unknown-lighting fit relit at 10.65 %, not 10.21 %).  The chunks run on one thread per core (Embree and NumPy's large operations release
     the GIL), each drawing from a generator seeded by (seed, chunk start), so the result does not
     depend on the threads."""
     r = geo.renderer
