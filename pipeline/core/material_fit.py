@@ -797,7 +797,11 @@ def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfe
     layer = prt.diffuse_layer(fit.material, geo.mu_out)
     indirect = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces)
     k = fit.coeffs.shape[0]
-    shade = np.einsum("cpk,kc->pc", _per_unit_base(geo, layer, indirect, spec, k), fit.coeffs)
+    ki = min(k, indirect.shape[1])
+    # _per_unit_base's transfer times the lighting, without building it (3, N, K)
+    shade = layer / np.pi * (geo.direct[:, :k] @ fit.coeffs + np.einsum("pkc,kc->pc", indirect[:, :ki], fit.coeffs[:ki]))
+    if spec is not None and spec.scaled is not None:
+        shade += np.einsum("pkc,kc->pc", spec.scaled[:, :k], fit.coeffs)
     specular = np.zeros_like(shade) if spec is None else np.einsum("pkc,kc->pc", spec.fixed[:, :k], fit.coeffs)
     if fit.sources is not None:
         st = fit.sources.transfer
