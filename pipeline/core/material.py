@@ -149,8 +149,13 @@ def unit_square_rule(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 # ------------------------------------------------------------------------------ directional albedo
 
+@functools.lru_cache(maxsize=1)
 def _mu_nodes() -> tuple[np.ndarray, np.ndarray]:
-    return gauss_legendre(_ALBEDO_NODES, (0.0, 1.0))
+    """The Gauss-Legendre nodes and weights on [0, 1] the albedo tables use (cached, read-only:
+    interpolate_mu is called per shading chunk)."""
+    nodes, weights = gauss_legendre(_ALBEDO_NODES, (0.0, 1.0))
+    nodes.flags.writeable = weights.flags.writeable = False
+    return nodes, weights
 
 
 @functools.lru_cache(maxsize=64)
