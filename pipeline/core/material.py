@@ -187,6 +187,8 @@ def interpolate_mu(values: np.ndarray, mu: np.ndarray) -> np.ndarray:
     x = np.clip(mu, 0.0, 1.0)
     if values.ndim == 1:
         return np.interp(x, nodes, values)
+    if (values == values[:, :1]).all():      # grey (a dielectric's untinted tables): one interpolation
+        return np.repeat(np.interp(x, nodes, values[:, 0])[:, None], values.shape[1], axis=1)
     return np.stack([np.interp(x, nodes, values[:, c]) for c in range(values.shape[1])], axis=-1)
 
 
