@@ -273,18 +273,21 @@ class Principled:
     def specular_fresnel(self, cos_oh: np.ndarray, mu_out: np.ndarray,
                          base_color: np.ndarray | None = None) -> np.ndarray:
         """F times the multiple-scattering factor and the metallic mix, per pair (N, 3):
-        the specular f = this * D G2 / (4 mu_in mu_out)."""
+        the specular f = this * D G2 / (4 mu_in mu_out).  ``cos_oh`` (N,) with ``mu_out`` (N,) and
+        ``base_color`` (N, 3) per pair, or (N, S) for S pairs per point with them per point (N,),
+        (N, 3) -> (N, S, 3): the per-point factors are computed once, not per pair."""
         cos_oh = np.asarray(cos_oh, float)
         n = cos_oh.shape[0]
+        per = (slice(None),) + (None,) * (cos_oh.ndim - 1)    # a point's factor over its pairs
         t = self._tables
         f_real = fresnel_dielectric(cos_oh, float(self.ior))
-        f_diel = t["offset"][None, :] + t["scale"][None, :] * f_real[:, None]
-        out = (1.0 - self.metallic) * f_diel * interpolate_mu(t["comp_diel"], mu_out)
+        f_diel = t["offset"] + t["scale"] * f_real[..., None]
+        out = (1.0 - self.metallic) * f_diel * interpolate_mu(t["comp_diel"], mu_out)[per]
         if self.metallic > 0:
             f0 = self.base(base_color, n)
             fss = f0 + (1.0 - f0) / 21.0  # 2 int (F0 + (1 - F0)(1 - mu)^5) mu dmu
             comp = self._compensation(mu_out, fss)
-            out = out + self.metallic * (f0 + (1.0 - f0) * schlick_weight(cos_oh)[:, None]) * comp
+            out = out + self.metallic * (f0[per] + (1.0 - f0[per]) * schlick_weight(cos_oh)[..., None]) * comp[per]
         return out
 
     def metal_albedo(self, mu_out: np.ndarray, base_color: np.ndarray | None = None) -> np.ndarray:

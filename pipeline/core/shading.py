@@ -134,9 +134,7 @@ def specular_samples(material: Principled, normal: np.ndarray, view_dir: np.ndar
     s = u.shape[1]
     g1 = smith_g1(mu_out, alpha)[:, None]
     ratio = np.where(mu_in > 0, smith_g2(mu_in, mu_out[:, None], alpha) / g1, 0.0) / s
-    mu_rep = np.repeat(mu_out, s)
-    base_rep = None if base_color is None else np.repeat(np.asarray(base_color, float), s, axis=0)
-    fres = material.specular_fresnel(np.clip(c, 0, 1).reshape(-1), mu_rep, base_rep).reshape(p, s, 3)
+    fres = material.specular_fresnel(np.clip(c, 0, 1), mu_out, None if base_color is None else np.asarray(base_color, float))
     pdf = g1 * ggx_distribution(h[..., 2], alpha) / (4.0 * mu_out[:, None])
     return LobeSamples(dirs, fres * ratio[..., None], 1.0 / (s * np.maximum(pdf, _EPS)))
 
