@@ -62,14 +62,22 @@ def _per_unit_base(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, s
     """The transfer (3, N, k) that the base colour multiplies, channel first (each channel's (N, k)
     contiguous, as BLAS takes it): the diffuse layer's kd / pi (D + I), plus a metal's specular
     per unit F0."""
-    ki = min(k, indirect.shape[1])          # the interreflection's bands (prt.INDIRECT_ORDER)
     out = np.empty((3, geo.direct.shape[0], k))
     for c in range(3):
-        kd = (layer[:, c] / np.pi)[:, None]
-        np.multiply(geo.direct[:, :k], kd, out=out[c])
-        out[c, :, :ki] += indirect[:, :ki, c] * kd
-        if spec is not None and spec.scaled is not None:
-            out[c] += spec.scaled[:, :k, c]
+        _per_unit_base_channel(geo, layer, indirect, spec, k, c, out=out[c])
+    return out
+
+
+def _per_unit_base_channel(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray | None,
+                           spec: prt.SpecularTransfer | None, k: int, c: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Channel c's (N, k) of _per_unit_base (``indirect`` None: without the interreflection)."""
+    kd = (layer[:, c] / np.pi)[:, None]
+    out = np.multiply(geo.direct[:, :k], kd, out=out)
+    if indirect is not None:
+        ki = min(k, indirect.shape[1])      # the interreflection's bands (prt.INDIRECT_ORDER)
+        out[:, :ki] += indirect[:, :ki, c] * kd
+    if spec is not None and spec.scaled is not None:
+        out += spec.scaled[:, :k, c]
     return out
 
 
@@ -183,9 +191,7 @@ class _Candidate:
             if d is not None:
                 self._blocks[c] = self._blocks[d]
             else:
-                q = self.geo.direct[:, :k] * (self.layer[:, c] / np.pi)[:, None]
-                if self.spec.scaled is not None:
-                    q += self.spec.scaled[:, :k, c]
+                q = _per_unit_base_channel(self.geo, self.layer, None, self.spec, k, c)
                 s = np.ascontiguousarray(self.spec.fixed[:, :k, c])
                 sw = np.sqrt(self.obs.weight)[:, None]
                 qw, sw_ = q * sw, s * sw
@@ -622,7 +628,7 @@ def _base_search(cand: _Candidate, base: np.ndarray, sources: Sources | None, ri
     candidate's base-independent grams (base_blocks) updated with the columns that depend on the
     base (the interreflection's first bands, taken at ``base``, and the sources'); the channels are
     independent."""
-    obs, layer, spec = cand.obs, cand.layer, cand.spec
+    obs, layer = cand.obs, cand.layer
     k = num_coeffs(cand.order)
     w = obs.weight
     indirect = cand.indirect(base)
