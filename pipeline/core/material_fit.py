@@ -619,11 +619,20 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
                        float(lighting.residual_rms), sources, detail=fit.detail), table
 
 
+# Bands the base colour search leaves unridged: the diffuse layer sees only these (R&H 2001: the
+# clamped cosine's bands above 2 carry < 1 %), so the diffuse fixes rho x L_0..2 and the specular
+# layer's Fresnel the scale; a ridge on them shrinks L_0..2 and the unpenalized rho grows in
+# proportion (synth sphere, roughness 0.1 under the city map: rho at its bound (0.59, 1, 1) for
+# (0.2, 0.5, 0.3), L_0 2.7x low; unridged there (0.207, 0.539, 0.312); docs/fit.md 2026-12-04).
+BASE_FREE_ORDER = 2
+
+
 def _base_search(cand: _Candidate, base: np.ndarray, sources: Sources | None, ridge_dc2: np.ndarray,
                  grid: int) -> np.ndarray:
     """rho (3,): per channel the value on a log grid of ``grid`` points in [0.02, 1] (refined by a
     parabola) whose training RSS is least with the lighting — SH and source intensities jointly,
-    with the SH ridge ``ridge_dc2`` (K,) / L_0^2 (the DC of an unregularized solve at that rho) — refitted.
+    with the SH ridge ``ridge_dc2`` (K,) / L_0^2 (the DC of an unregularized solve at that rho) above
+    band BASE_FREE_ORDER — refitted.
     The design rho_c P_c + S_c makes the normal equations quadratic in rho_c; their blocks are the
     candidate's base-independent grams (base_blocks) updated with the columns that depend on the
     base (the interreflection's first bands, taken at ``base``, and the sources'); the channels are
@@ -642,6 +651,7 @@ def _base_search(cand: _Candidate, base: np.ndarray, sources: Sources | None, ri
     at_p = np.concatenate([np.arange(ki), np.arange(k, n)])   # P's base-dependent columns
     at_s = np.arange(k, n)                                    # S's (the sources' specular)
     reg = np.concatenate([np.asarray(ridge_dc2, float)[:k], np.zeros(n_src)])
+    reg[:num_coeffs(BASE_FREE_ORDER)] = 0.0
     betas = np.geomspace(0.02, 1.0, grid)
     out = np.zeros(3)
     for c in range(3):
