@@ -50,11 +50,11 @@ def chromaticity_deg(a, b) -> float:
 @pytest.mark.slow
 def test_glossy_teapot_both_unknown(tmp_path):
     """Issue 11 targets: relight <= 7%, roughness within 25%, base colour chromaticity within 3 deg.
-    Measured: relight 4.66% (rim 5.70, interior 3.72; the convex fit: 77.2%), roughness 0.300
-    (truth 0.3), base (0.744, 0.467, 0.095) for (0.7, 0.45, 0.1): 0.9 deg; the city sun found as
+    Measured: relight 4.35% (rim 5.19, interior 3.61; the convex fit: 77.2%), roughness 0.300
+    (truth 0.3), base (0.740, 0.466, 0.100) for (0.7, 0.45, 0.1); the city sun found as
     one directional source; the renderer with the true material scores 3.11%.  The lighting's
     bands 0-2 (lighting_sh.json, sources included) after one scale per channel against the SH of
-    the map Cycles rendered with (the issue's 5 %): 0.43 / 0.34 / 0.84 %."""
+    the map Cycles rendered with (the issue's 5 %): 0.25 / 0.31 / 0.67 %."""
     from pipeline.core.sh import band_relative_errors, project_envmap
     from pipeline.io.images import read_envmap
     from pipeline.io.lighting import read_lighting_sh
@@ -137,15 +137,16 @@ def test_known_lighting_off_in_scale(tmp_path):
 def test_glossy_sphere_both_unknown(tmp_path):
     """Issue 11, both unknown on the sharpest lobe (roughness 0.15 under a night city's lamps): the
     lighting's detail part (material_fit.with_detail) carries what the lobe reflects of the city
-    beyond SH 8 and three sources.  Measured: roughness 0.154, base (0.074, 0.427, 0.125) for
-    (0.1, 0.45, 0.15), relight 9.19 % by the shared score_relight.py (without the detail part:
-    0.161, (0.091, 0.524, 0.140), 21.0 %; the true material: 7.5 %).  The issue's 6 % is not met:
-    the base colour is 11 % low in level and 3.2 deg off in chromaticity (without: 4.2 deg)."""
+    beyond SH 8 and three sources.  Measured: roughness 0.152, base (0.080, 0.446, 0.132) for
+    (0.1, 0.45, 0.15), relight 8.47 % (interior 5.05 %) by the shared score_relight.py (while the
+    base colour search ridged bands 0-2: 0.154, (0.074, 0.427, 0.125), 9.19 %; without the detail
+    part: 0.161, (0.091, 0.524, 0.140), 21.0 %).  The issue's 6 % is not met: the true material
+    scores 7.5 % under the downsampled relight map (docs/fit.md); the base colour is 2.9 deg off."""
     brdf, report, err = fit_and_relight("sphere_night_glossy", tmp_path / "work")
     assert brdf["model"] == "principled" and brdf["metallic"] == 0.0, (brdf, err, report["lighting_detail"])
     assert report["lighting_detail"]["used"]
     assert abs(brdf["roughness"] / 0.15 - 1) < 0.10
-    assert err.total < 0.13
+    assert err.total < 0.10
 
 
 @pytest.mark.slow
@@ -215,7 +216,13 @@ def test_synth_dielectric_both_unknown(tmp_path, roughness):
     views trade roughness 0.54-0.60 against the base's level: at 0.602 (0.199, 0.519, 0.305)).  At
     0.1 the base colour was at its bound (0.59, 1, 1) while the base colour search ridged the
     lighting's bands 0-2, which trade with it (material_fit.BASE_FREE_ORDER); before the search
-    refined below the grid's 0.1, a metal of 0.1."""
+    refined below the grid's 0.1, a metal of 0.1.  The lighting's bands 0-2 after one scale per
+    channel: 0.8 / 1.1 / 6.4 % at 0.1 (band 2 above the issue's 5 %; with the ridged search 12 / 11 /
+    21 %), 0.7 / 0.8 / 1.8 % at 0.6."""
+    from pipeline.core.sh import band_relative_errors, project_envmap
+    from pipeline.io.images import read_envmap
+    from pipeline.io.lighting import read_lighting_sh
+
     base = [0.2, 0.5, 0.3]
     capture = synth_capture(tmp_path / "sphere", "sphere",
                             f"principled:base_color={','.join(map(str, base))},roughness={roughness}")
@@ -223,6 +230,11 @@ def test_synth_dielectric_both_unknown(tmp_path, roughness):
     assert brdf["model"] == "principled" and brdf["metallic"] == 0.0, (brdf, report["candidates"])
     assert abs(brdf["roughness"] / roughness - 1) < 0.25, brdf
     assert chromaticity_deg(brdf["base_color"], base) < 3.0, brdf
+    fitted = read_lighting_sh(tmp_path / "work" / "fit" / "lighting_sh.json")[:9]
+    truth = project_envmap(np.asarray(read_envmap(capture / "gt" / "lighting.exr"))[..., :3], 2)
+    fitted = fitted * (fitted * truth).sum(axis=0) / (fitted * fitted).sum(axis=0)   # the scale convention's
+    errors = band_relative_errors(fitted, truth, 2)
+    assert max(errors[:2]) < 0.05 and errors[2] < 0.10, errors
 
 
 @pytest.mark.parametrize("minimum", [0.05, 0.14, 0.37, 0.8])
