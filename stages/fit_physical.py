@@ -409,32 +409,19 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     t0 = time.perf_counter()
     mode = ("check" if known is not None else "lighting") if known_brdf is not None else \
         ("brdf" if known is not None else "factorization")
-    candidate, (best, table, interval, _), scale = select_with_scale(candidate, known_brdf, models, hint)
-    level = None
-    if best.material is None and known is None and known_brdf is None and hint is None:
-        t1 = time.perf_counter()
-        best, level = search_albedo_level(candidate, best, geo, obs, settings, kw)
-        timings["albedo_level"] = time.perf_counter() - t1
-    refit = spec = None
-    if known is None and settings.explicit_order is None and not one_fold:
-        best, refit, spec = final_lighting(geo, best, obs, settings, kw, top)
-        timings["lighting_refit"] = refit["seconds"]
-    if known is not None and known.scene is not None:  # what lighting_sh.json records, and the bands' labels:
-        recorded = candidate.without_map()(best.material, best.base, True, None)       # the SH + sources form
-        best.coeffs, best.lighting, best.sources, best.orders = (recorded.coeffs, recorded.lighting,
-                                                                 recorded.sources, recorded.orders)
+    chosen = material_and_lighting(candidate, known_brdf, models, hint, top, timings)
+    report, vertex_rho = _report_and_texture(chosen, mode, capture, mesh, data, obs, noise, keys, known_brdf, hint)
+    if vertex_rho is not None and chosen.best.material is not None and known_brdf is None:
+        # the material was chosen with a uniform base colour, whose missing texture a rougher lobe
+        # partly absorbs: chosen again with the texture's pattern in the diffuse layer
+        first = {"roughness": report["brdf"].get("roughness"), "candidates": report["candidates"]}
+        pattern = texture_pattern(obs, mesh, data, vertex_rho)
+        chosen = material_and_lighting(replace(candidate, geo=replace(geo, pattern=pattern)), known_brdf, models,
+                                       hint, top, timings)
+        report, vertex_rho = _report_and_texture(chosen, mode, capture, mesh, data, obs, noise, keys, known_brdf, hint)
+        report["albedo"]["uniform_base_search"] = first
     timings["material"] = time.perf_counter() - t0
-
-    brdf = _brdf_json(best)
-    report = {"mode": mode, **_lighting_report(best, noise, settings), "brdf_model": brdf["model"], "brdf": brdf,
-              "candidates": table, "lighting_refit": refit, "samples": {"used": int(len(obs.weight))},
-              "roughness_interval": None if interval is None or one_fold else list(interval),
-              "model_selection": _selection_note(one_fold, known_brdf is not None, settings.folds, brdf),
-              "scale_convention": _scale_note(brdf, hint, level) if scale is None else
-              {"source": "the known lighting", "lighting_scale": scale}}
-    if known is not None and known.per_image is not None:
-        report["lighting_per_image"] = _per_image_note(capture, known.per_image)
-    vertex_rho = texture_and_residuals(mesh, data, geo, obs, best, brdf, report, settings, keys, spec)
+    best, brdf, interval = chosen.best, report["brdf"], chosen.interval
     print(_summary_line(brdf, None if one_fold else interval, len(report["sources"]), known_brdf is not None,
                         textured=vertex_rho is not None, detail_rows=report["lighting_detail"].get("rows")),
           file=sys.stderr)
@@ -442,6 +429,74 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     report["timings"] = timings
     return write_outputs(Path(work) / "fit", best, brdf, report, settings, (mesh, vertex_rho),
                          f"sigrend fit ({mode}, physical)")
+
+
+@dataclass
+class Chosen:
+    """What material_and_lighting chose: the fit (its lighting refitted), the candidates' table, the
+    roughness interval or None, a known lighting's scale check or None, the albedo level's note or
+    None, the final lighting's note or None and its specular transfer or None; ``candidate`` the
+    fitter as finally scaled."""
+
+    candidate: "CandidateFit"
+    best: material_fit.MaterialFit
+    table: list
+    interval: tuple | None
+    scale: dict | None
+    level: dict | None
+    refit: dict | None
+    spec: prt.SpecularTransfer | None
+
+
+def material_and_lighting(candidate: "CandidateFit", known_brdf: dict | None, models: list[str], hint, top: int,
+                          timings: dict) -> Chosen:
+    """The material chosen (select_with_scale; a Lambertian albedo's level where interreflection
+    fixes it) and its lighting refitted to SH orders 0-``top`` (final_lighting); with a known map,
+    the SH + sources form lighting_sh.json records.  ``timings``: seconds added in place."""
+    settings, geo, obs, known = candidate.settings, candidate.geo, candidate.obs, candidate.known
+    candidate, (best, table, interval, _), scale = select_with_scale(candidate, known_brdf, models, hint)
+    level = refit = spec = None
+    if best.material is None and known is None and known_brdf is None and hint is None:
+        t1 = time.perf_counter()
+        best, level = search_albedo_level(candidate, best, geo, obs, settings, candidate.kw)
+        timings["albedo_level"] = timings.get("albedo_level", 0.0) + time.perf_counter() - t1
+    if known is None and settings.explicit_order is None and len(np.unique(obs.fold)) > 1:
+        best, refit, spec = final_lighting(geo, best, obs, settings, candidate.kw, top)
+        timings["lighting_refit"] = timings.get("lighting_refit", 0.0) + refit["seconds"]
+    if known is not None and known.scene is not None:  # what lighting_sh.json records, and the bands' labels:
+        recorded = candidate.without_map()(best.material, best.base, True, None)       # the SH + sources form
+        best.coeffs, best.lighting, best.sources, best.orders = (recorded.coeffs, recorded.lighting,
+                                                                 recorded.sources, recorded.orders)
+    return Chosen(candidate, best, table, interval, scale, level, refit, spec)
+
+
+def _report_and_texture(chosen: Chosen, mode: str, capture: Path, mesh, data: dict, obs: material_fit.Observations,
+                        noise: dict, keys: list[str], known_brdf: dict | None, hint) -> tuple[dict, np.ndarray | None]:
+    """report.json's content for ``chosen`` (brdf.json's under "brdf") and the per-vertex albedo
+    choice on the photos ``obs`` themselves (texture_and_residuals) -> (report, per-vertex albedo or None)."""
+    candidate, best = chosen.candidate, chosen.best
+    settings, known = candidate.settings, candidate.known
+    one_fold = len(np.unique(obs.fold)) < 2
+    brdf = _brdf_json(best)
+    report = {"mode": mode, **_lighting_report(best, noise, settings), "brdf_model": brdf["model"], "brdf": brdf,
+              "candidates": chosen.table, "lighting_refit": chosen.refit, "samples": {"used": int(len(obs.weight))},
+              "roughness_interval": None if chosen.interval is None or one_fold else list(chosen.interval),
+              "model_selection": _selection_note(one_fold, known_brdf is not None, settings.folds, brdf),
+              "scale_convention": _scale_note(brdf, hint, chosen.level) if chosen.scale is None else
+              {"source": "the known lighting", "lighting_scale": chosen.scale}}
+    if known is not None and known.per_image is not None:
+        report["lighting_per_image"] = _per_image_note(capture, known.per_image)
+    plain = replace(candidate.geo, pattern=None)      # the shading per unit base colour: the texture is fitted anew
+    vertex_rho = texture_and_residuals(mesh, data, plain, obs, best, brdf, report, settings, keys, chosen.spec)
+    return report, vertex_rho
+
+
+def texture_pattern(obs: material_fit.Observations, mesh, data: dict, vertex_rho: np.ndarray) -> np.ndarray:
+    """The per-vertex albedo ``vertex_rho`` (V, 3) at the samples over its weighted mean (N, 3), the
+    pattern a uniform base colour times which models a texture (prt.Geometry.pattern)."""
+    rho = texture.interpolation_matrix(mesh.faces, data["face"], data["bary"].astype(float), len(mesh.vertices)) @ vertex_rho
+    mean = (obs.weight[:, None] * rho).sum(axis=0) / obs.weight.sum()
+    return np.clip(rho, 1e-3, None) / np.maximum(mean, 1e-6)
 
 
 @dataclass(frozen=True)

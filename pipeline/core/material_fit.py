@@ -292,7 +292,7 @@ def source_scan(geo: prt.Geometry, material: Principled | None, base: np.ndarray
     """SourceScan on every k-th sample (a source lights thousands of them), about ``scan_samples``."""
     r = geo.renderer
     dirs = r.lights.directions
-    layer = prt.diffuse_layer(material, geo.mu_out)
+    layer = geo.sample_layer(material)
     kd = layer * base / np.pi
     coarse = np.arange(0, geo.faces.size, max(1, geo.faces.size // scan_samples))
     columns = np.zeros((coarse.size, len(dirs), 3), np.float32)
@@ -339,7 +339,7 @@ def refine_direction(geo: prt.Geometry, material: Principled | None, base: np.nd
     ``project``: the candidates' columns (3, N, J) are scored by what of them it leaves (sh_complement)."""
     # located at the pixel centres (16x cheaper): a pixel footprint blurs a highlight, it does not move it
     centre = replace(geo, footprint=None)
-    layer = prt.diffuse_layer(material, geo.mu_out)
+    layer = geo.sample_layer(material)
     best, best_score = np.asarray(start, float), -np.inf
     for _ in range(rounds):
         t1 = np.cross(best, [0.0, 0.0, 1.0] if abs(best[2]) < 0.9 else [1.0, 0.0, 0.0])
@@ -380,7 +380,7 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
     views' RMSE by more than ``source_gain``.
     """
     kw = dict(lighting_kw or {})
-    layer = prt.diffuse_layer(material, geo.mu_out)
+    layer = geo.sample_layer(material)
     base = np.asarray(base0, float).copy()
     known = None
     if known_coeffs is not None:
@@ -526,7 +526,7 @@ def lambert_held_out(geo: prt.Geometry, obs: Observations, base: np.ndarray, fit
     intensities start from the fit's scaled by fit.base / base, which keeps the direct light),
     interreflection at ``base``.  A channel's error depends on its own albedo (and weakly, through
     the shared noise level of the band labels, on the others')."""
-    layer = prt.diffuse_layer(None, geo.mu_out)
+    layer = geo.sample_layer(None)
     order = order_of(fit.coeffs.shape[0])
     sources = None
     if fit.sources is not None:
@@ -586,7 +586,7 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
     part is kept as it is (the SH refitted to the radiance less it)."""
     if fit.detail is not None:
         obs = Observations(obs.radiance - fit.detail.radiance, obs.weight, obs.fold)
-    layer = prt.diffuse_layer(fit.material, geo.mu_out)
+    layer = geo.sample_layer(fit.material)
     cand = _Candidate(geo, obs, fit.material, layer, spec, order, folds, lighting_kw, max_bounces)
     system = cand.system(fit.base)
     a = system.a
@@ -810,7 +810,7 @@ def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfe
     candidate at the samples, its lighting (SH + sources) and interreflection included."""
     if fit.parts is not None:
         return fit.parts
-    layer = prt.diffuse_layer(fit.material, geo.mu_out)
+    layer = geo.sample_layer(fit.material)
     indirect = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces)
     k = fit.coeffs.shape[0]
     ki = min(k, indirect.shape[1])
@@ -905,7 +905,7 @@ def fit_to_map(geo: prt.Geometry, scene, material: Principled | None, obs: Obser
             base = _base_from_parts(diffuse, specular, obs, np.ones(obs.weight.size, bool))
     else:
         diffuse, specular, indirect = parts(base)
-        kd = prt.diffuse_layer(material, geo.mu_out) * (scale / np.pi)
+        kd = geo.sample_layer(material) * (scale / np.pi)
         for _ in range(4 if not fix_base else 0):
             new = _base_from_parts(diffuse, specular, obs, np.ones(obs.weight.size, bool))
             done = np.abs(new - base).max() < 1e-3

@@ -49,7 +49,9 @@ class Geometry:
     (N, 3), barycentrics (N, 3), faces (N,), unit normals and view directions (N, 3), mu_o (N,),
     the direct transfer D (N, K) and the vertices' direct transfer (V, K); ``footprint``: the
     normals and view directions (N, F, 3) of F points over each sample's pixel, or None (the
-    centre only) — the specular of directional sources is averaged over it."""
+    centre only) — the specular of directional sources is averaged over it; ``pattern``: the base
+    colour's texture pattern at the samples (N, 3), mean 1 (the base colour at sample p is
+    base x pattern[p]), or None for a uniform base colour."""
 
     renderer: Renderer
     order: int
@@ -62,6 +64,7 @@ class Geometry:
     direct: np.ndarray
     vertex_direct: np.ndarray
     footprint: tuple[np.ndarray, np.ndarray] | None = None
+    pattern: np.ndarray | None = None
     _bounces: dict = field(default_factory=dict, repr=False)
     _indirect: dict = field(default_factory=dict, repr=False)     # indirect_transfer's recent results
 
@@ -69,6 +72,13 @@ class Geometry:
     def _layer_key(material: Principled | None):
         return None if material is None else (material.roughness, material.ior, material.metallic,
                                               tuple(material.specular_tint))
+
+    def sample_layer(self, material: Principled | None) -> np.ndarray:
+        """The base colour's weight in each sample's diffuse reflectance (N, 3): kd(mu_o)
+        (diffuse_layer) times the texture pattern if there is one.  The interreflection's hit
+        points (bounce_matrices) keep the uniform base colour."""
+        layer = diffuse_layer(material, self.mu_out)
+        return layer if self.pattern is None else layer * self.pattern
 
     @property
     def interreflects(self) -> bool:
