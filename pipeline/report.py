@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.brdf import Brdf
 from pipeline.workdir import write_text
 
 MAX_PHOTOS = 12
@@ -194,15 +195,15 @@ def _coverage(work: Path) -> str:
     return _section("Sample coverage", body)
 
 
-def principled_sphere(coeffs: np.ndarray, brdf: dict, normal: np.ndarray, view: np.ndarray) -> np.ndarray:
+def principled_sphere(coeffs: np.ndarray, brdf: Brdf, normal: np.ndarray, view: np.ndarray) -> np.ndarray:
     """Radiance (P, 3) of a principled sphere under SH lighting (a sphere casts no shadows): the
     layered diffuse from the irradiance plus the lobe by GGX samples (pipeline.core.shading)."""
-    from pipeline.core.material import principled_from_dict
+    from pipeline.core.material import principled_from_brdf
     from pipeline.core.sh import sh_evaluate
     from pipeline.core.shading import specular_samples
     from pipeline.core.transfer import irradiance_from_sh
 
-    material = principled_from_dict(brdf)
+    material = principled_from_brdf(brdf)
     mu = np.einsum("pc,pc->p", normal, view)
     out = material.diffuse_weight(np.clip(mu, 0, 1)) / np.pi * irradiance_from_sh(coeffs, normal)
     lobe = specular_samples(material, normal, view, 64, np.random.default_rng(0))
@@ -210,7 +211,7 @@ def principled_sphere(coeffs: np.ndarray, brdf: dict, normal: np.ndarray, view: 
     return out + np.einsum("psc,psc->pc", lobe.weight, np.maximum(seen, 0.0))
 
 
-def sphere_renders(coeffs: np.ndarray, brdf: dict | None, size: int = 128) -> bytes:
+def sphere_renders(coeffs: np.ndarray, brdf: Brdf | None, size: int = 128) -> bytes:
     """PNG: orthographic spheres seen from +Y under SH lighting ``coeffs`` (one panel each):
     a mirror sphere (the lighting itself), a white Lambertian sphere, and the fitted BRDF."""
     from pipeline.core.sh import sh_evaluate
@@ -227,13 +228,13 @@ def sphere_renders(coeffs: np.ndarray, brdf: dict | None, size: int = 128) -> by
     r = 2 * np.sum(normal * view, axis=1, keepdims=True) * normal - view
     panels = {"mirror sphere (lighting)": sh_evaluate(coeffs, r),
               "white Lambertian sphere": irradiance_from_sh(coeffs, normal) / np.pi}
-    if brdf is not None and brdf["model"] == "principled":
+    if brdf is not None and brdf.model == "principled":
         panels["fitted material"] = principled_sphere(coeffs, brdf, normal, np.array(view))
     elif brdf is not None:
         from stages.relight import Lighting
 
         lighting = Lighting(brdf, coeffs=coeffs)  # the same forward model as relight
-        panels["fitted BRDF"] = lighting.radiance(normal, np.array(view), np.asarray(brdf["albedo"], float))
+        panels["fitted BRDF"] = lighting.radiance(normal, np.array(view), np.asarray(brdf.albedo, float))
     plt = _figure()
     fig, axes = plt.subplots(1, len(panels), figsize=(3 * len(panels), 3.1))
     for ax, (title, values) in zip(np.atleast_1d(axes), panels.items()):

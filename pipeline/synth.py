@@ -338,7 +338,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     from tqdm import tqdm
 
     from pipeline.core.render import InsideMeshError, Renderer
-    from pipeline.io.brdf import diffuse_color, parse_brdf_spec, write_brdf
+    from pipeline.io.brdf import parse_brdf_spec, write_brdf
     from pipeline.io.camera_files import Exposure, add_sensor_noise, sensor_value, write_camera_file
     from pipeline.io.capture_toml import write_capture_toml
     from pipeline.io.images import write_image
@@ -355,7 +355,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     board, board_table, board_size = board_plane(settings.mesh_size, charuco=settings.board, table=settings.table,
                                                 seed=settings.seed)
     camera, view_poses = make_views(mesh, settings, board_size)
-    vertex_albedo = texture_albedo(mesh, diffuse_color(brdf), settings.texture)
+    vertex_albedo = texture_albedo(mesh, brdf.diffuse_color, settings.texture)
     renderer = Renderer(ray_mesh(mesh), env, brdf, shadows=settings.shadows, board=board,
                         cell_height=settings.cell_height, vertex_albedo=vertex_albedo)
     noise = parse_noise(settings.noise, settings.format)

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.brdf import Brdf
 from pipeline.core.envmap import add_sources, blender_columns, equirect_solid_angles
 from pipeline.core.sh import envmap_from_sh
 from pipeline.errors import UserError
@@ -93,7 +94,7 @@ def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             + [companion(asset, "_export.json")])
 
 
-def preview(mesh, brdf: dict, colors: np.ndarray | None, env_spec: str) -> tuple[np.ndarray, np.ndarray]:
+def preview(mesh, brdf: Brdf, colors: np.ndarray | None, env_spec: str) -> tuple[np.ndarray, np.ndarray]:
     """Linear radiance (H, W, 3) and object mask of the asset under a bundled map, one view on a ring
     20 degrees above the object (pipeline.core.camera.orbit_poses), the map as background."""
     from pipeline.core.camera import orbit_poses
@@ -127,8 +128,8 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         if not (fit / name).exists():
             raise UserError(f"{fit / name}: no fitted {what}; run `sigrend fit` (or `sigrend run`) first")
     brdf = read_brdf(fit / "brdf.json")
-    if brdf["model"] not in EXPORTABLE:
-        raise UserError(f"{fit / 'brdf.json'}: a {brdf['model']} material has no glTF or USD equivalent; refit with "
+    if brdf.model not in EXPORTABLE:
+        raise UserError(f"{fit / 'brdf.json'}: a {brdf.model} material has no glTF or USD equivalent; refit with "
                         "--brdf principled (or lambert)")
     mesh = read_mesh(mesh_path(capture))
     colors = read_vertex_albedo(fit / "albedo.ply", len(mesh.vertices))
@@ -146,7 +147,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         "asset": asset.name, "lighting": written[1].name,
         "previews": {spec: p.name for spec, p in zip(PREVIEWS.values(), written[2:])},
         "files": [{"file": p.name, "bytes": written_size(p)} for p in written],
-        "material": brdf, "per_vertex_base_color": colors is not None,
+        "material": brdf.to_dict(), "per_vertex_base_color": colors is not None,
         "frame": ("glTF +Y up, metres: (x, y, z)_object -> (x, z, -y)_glTF (Blender's importer turns it back)"
                   if write is gltf.write_gltf else "USD stage upAxis Z, metersPerUnit 1: the object frame as it is"),
         "lighting_mapping": "equirect, Blender Environment Texture default mapping / three.js equirectangular: "

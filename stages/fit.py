@@ -24,18 +24,18 @@ spectrum.png, residuals.png (+ albedo.ply when textured).  Details: docs/fit.md.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
 from pipeline.core import forward, solve
-from pipeline.core.brdf import reflect
+from pipeline.core.brdf import BRDF_PARAMS, WIDTH_PARAM, Brdf, reflect
 from pipeline.core.sh import band_of_index, num_coeffs, order_of, project_envmap, sh_evaluate
 from pipeline.core.transfer import lambert_filter
 from pipeline.errors import UserError
-from pipeline.io.brdf import MODEL_PARAMS, parse_brdf_spec, write_brdf
+from pipeline.io.brdf import parse_brdf_spec, write_brdf
 from pipeline.io.capture_toml import read_capture_config, read_toml
 from pipeline.io.lighting import read_lighting_sh, write_lighting_sh
 from pipeline.io.report import write_report
@@ -231,20 +231,20 @@ def load_known_lighting(path: Path, env_order: int) -> np.ndarray:
 @dataclass(frozen=True)
 class BrdfChoice:
     """--brdf parsed: ``fit_model``, the model whose parameters are fitted (None: 'auto', chosen by
-    held-out views), or ``known``, a validated brdf.json dict (pipeline.io.brdf); never both."""
+    held-out views), or ``known``, a validated Brdf (pipeline.io.brdf); never both."""
 
     fit_model: str | None = None
-    known: dict | None = None
+    known: Brdf | None = None
 
 
 def parse_brdf_setting(spec: str) -> BrdfChoice:
     """--brdf -> BrdfChoice; a user error for a malformed spec or a material the fit cannot take."""
     if spec == "auto":
         return BrdfChoice()
-    if spec in MODEL_PARAMS:
+    if spec in BRDF_PARAMS:
         return BrdfChoice(fit_model=spec)
     known = parse_brdf_spec(spec)
-    if known["model"] == "principled" and (known["metallic"] > 0 or any(v != 1.0 for v in known["specular_tint"])):
+    if known.model == "principled" and (known.metallic > 0 or any(v != 1.0 for v in known.specular_tint)):
         raise UserError(f"--brdf {spec!r}: the physical fit takes a dielectric principled material (metallic 0, "
                         "white specular tint) so far")
     return BrdfChoice(known=known)
@@ -309,9 +309,9 @@ CELLS_PER_AXIS = 24   # 24 x 48 = 1152 equal-area cells (~0.011 sr each)
 # fitting
 
 
-def accumulate(path: Path, settings: Settings, brdf: dict, order: int) -> tuple[solve.NormalEquations, dict]:
+def accumulate(path: Path, settings: Settings, brdf: Brdf, order: int) -> tuple[solve.NormalEquations, dict]:
     """Stream the samples once into per-fold normal equations for a fixed BRDF; also coverage."""
-    with_lobe = brdf["model"] in forward.LOBE_MODELS
+    with_lobe = brdf.has_lobe
     eqs = solve.NormalEquations(order, settings.folds, shared=not with_lobe)
     ncell, rcell, views = set(), set(), set()
     for chunk in iter_valid_chunks(path, settings, settings.lobe_min_cos if with_lobe else 0.0):
@@ -326,8 +326,8 @@ def accumulate(path: Path, settings: Settings, brdf: dict, order: int) -> tuple[
                  "carried": carried_coefficients(ncell, rcell, with_lobe), "views": len(views)}
 
 
-def equations_from_arrays(data: dict, settings: Settings, brdf: dict, order: int) -> solve.NormalEquations:
-    with_lobe = brdf["model"] in forward.LOBE_MODELS
+def equations_from_arrays(data: dict, settings: Settings, brdf: Brdf, order: int) -> solve.NormalEquations:
+    with_lobe = brdf.has_lobe
     eqs = solve.NormalEquations(order, settings.folds, shared=not with_lobe)
     n = len(data["weight"])
     for s in range(0, n, settings.chunk):
@@ -338,11 +338,11 @@ def equations_from_arrays(data: dict, settings: Settings, brdf: dict, order: int
     return eqs
 
 
-def choose_order(eqs: solve.NormalEquations, brdf: dict, settings: Settings, max_carried: int,
+def choose_order(eqs: solve.NormalEquations, brdf: Brdf, settings: Settings, max_carried: int,
                  explicit: int | None, views: int) -> tuple[solve.LightingFit, list[dict], int]:
     """Fit every candidate order (or the given one) and, with --order auto, every prior scale of
     ``band_prior_choices``; choose by validation + parsimony (equal parameter counts: lower error)."""
-    scale = np.asarray(brdf["albedo"], float) if eqs.shared else None
+    scale = np.asarray(brdf.albedo, float) if eqs.shared else None
     kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior,
               independent_groups=views)
     if explicit is not None:
@@ -399,9 +399,9 @@ def fit_brdf_models(bd: solve.BrdfData, models: list[str], settings: Settings, o
     return out
 
 
-def lighting_step(data: dict, brdf: dict, order: int, settings: Settings, labels=None) -> solve.LightingFit:
+def lighting_step(data: dict, brdf: Brdf, order: int, settings: Settings, labels=None) -> solve.LightingFit:
     eqs = equations_from_arrays(data, settings, brdf, order)
-    scale = np.asarray(brdf["albedo"], float) if eqs.shared else None
+    scale = np.asarray(brdf.albedo, float) if eqs.shared else None
     g, h, btb, w = eqs.channel_system(slice(None), scale)
     return solve.solve_lighting(g, h, btb, w, int(eqs.count.sum()), order, noise_floor=settings.noise_floor,
                                 min_snr=settings.min_snr, band_prior=settings.band_prior, labels=labels,
@@ -448,17 +448,17 @@ def joint_initialization(data: dict, model: str, order: int, albedo0: np.ndarray
         if best is None or rss < best[0]:
             best = (rss, width, ratio, y)
     _, width, ratio, y = best
-    brdf = {"model": model, "albedo": ratio.tolist(), "specular": [1.0, 1.0, 1.0], forward.WIDTH_PARAM[model]: float(width)}
+    brdf = Brdf(model, albedo=ratio, specular=(1.0, 1.0, 1.0), **{WIDTH_PARAM[model]: width})
     return y, brdf
 
 
-def factorize(data: dict, model: str, order: int, albedo0: np.ndarray, settings: Settings) -> tuple[np.ndarray, dict]:
+def factorize(data: dict, model: str, order: int, albedo0: np.ndarray, settings: Settings) -> tuple[np.ndarray, Brdf]:
     """Lighting and BRDF together: the Lambertian solution (lambert), or the joint linear start
     (:func:`joint_initialization`) refined by alternating BRDF <- lighting (variable projection)
     and lighting <- BRDF (regularized normal equations)."""
     fn = lambda m, w, c: _filter_fn(m, w, order, c)  # noqa: E731
     if model == "lambert":
-        brdf = {"model": "lambert", "albedo": albedo0.tolist()}
+        brdf = Brdf("lambert", albedo=albedo0)
         return lighting_step(data, brdf, order, settings).coeffs, brdf
     coeffs, brdf = joint_initialization(data, model, order, albedo0, settings)
     for _ in range(settings.iterations):
@@ -468,14 +468,13 @@ def factorize(data: dict, model: str, order: int, albedo0: np.ndarray, settings:
     return coeffs, brdf
 
 
-def apply_scale_convention(coeffs: np.ndarray, brdf: dict, target: np.ndarray) -> tuple[np.ndarray, dict, np.ndarray]:
+def apply_scale_convention(coeffs: np.ndarray, brdf: Brdf, target: np.ndarray) -> tuple[np.ndarray, Brdf, np.ndarray]:
     """Rescale so that albedo = target per channel: L_c * s_c, (albedo, specular)_c / s_c."""
-    albedo = np.asarray(brdf["albedo"], float)
+    albedo = np.asarray(brdf.albedo, float)
     s = np.where(albedo > 0, albedo / target, 1.0)
-    out = dict(brdf)
-    out["albedo"] = (albedo / s).tolist()
-    if "specular" in brdf:
-        out["specular"] = (np.asarray(brdf["specular"], float) / s).tolist()
+    out = replace(brdf, albedo=albedo / s)
+    if brdf.specular is not None:
+        out = replace(out, specular=np.asarray(brdf.specular, float) / s)
     return coeffs * s[None, :], out, s
 
 
@@ -483,7 +482,7 @@ def apply_scale_convention(coeffs: np.ndarray, brdf: dict, target: np.ndarray) -
 # outputs
 
 
-def residuals_per_view(path: Path, settings: Settings, coeffs: np.ndarray, brdf: dict,
+def residuals_per_view(path: Path, settings: Settings, coeffs: np.ndarray, brdf: Brdf,
                        keys: list[str], texture: tuple | None = None) -> tuple[list[dict], dict]:
     """Weighted RMS and relative RMS residual per image over the samples the fit uses, and the
     model's limits: the relative RMS residual of the samples left out as self-shadowed
@@ -505,10 +504,10 @@ def residuals_per_view(path: Path, settings: Settings, coeffs: np.ndarray, brdf:
         pred = forward.render_samples(coeffs, brdf, chunk["normal"], chunk["view_dir"])
         if texture is not None:     # radiance is linear in the diffuse albedo: swap the uniform one for the texture's
             faces, rho = texture
-            white = forward.render_samples(coeffs, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, chunk["normal"],
+            white = forward.render_samples(coeffs, Brdf("lambert", albedo=(1.0, 1.0, 1.0)), chunk["normal"],
                                            chunk["view_dir"])
             at = np.einsum("pk,pkc->pc", chunk["bary"], rho[faces[chunk["face"]]])
-            pred = pred + (at - np.asarray(brdf["albedo"], float)) * white
+            pred = pred + (at - np.asarray(brdf.albedo, float)) * white
         r2 = ((chunk["radiance"] - pred) ** 2).sum(axis=1) * chunk["weight"]
         b2 = (chunk["radiance"] ** 2).sum(axis=1) * chunk["weight"]
         used = chunk["visibility"] >= settings.min_visibility
@@ -612,7 +611,7 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     fit_model, known_brdf = choice.fit_model, choice.known
     hint = known_albedo_hint(capture)
     if settings.forward == "physical" and _has_mesh(capture) and (fit_model in (None, "lambert", "principled")
-                                           and (known_brdf or {}).get("model", "lambert") in ("lambert", "principled")):
+                                           and (known_brdf is None or known_brdf.model in ("lambert", "principled"))):
         from stages import fit_physical
 
         models = [fit_model] if fit_model else ["lambert", "principled"]
@@ -630,7 +629,7 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     if known_brdf is not None and known_lighting is None:
         result = _lighting_mode(samples_path, settings, known_brdf, explicit_order, report, timings)
     else:
-        with_lobe = (fit_model or "auto") != "lambert" or (known_brdf or {}).get("model") in forward.LOBE_MODELS
+        with_lobe = (fit_model or "auto") != "lambert" or (known_brdf is not None and known_brdf.has_lobe)
         data = load_subset(samples_path, settings, valid, settings.lobe_min_cos if with_lobe else 0.0)
         if len(data.get("weight", [])) == 0:
             raise UserError(f"{samples_path}: no samples left after leaving out zero-weight, non-finite and "
@@ -651,8 +650,8 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             t0 = time.perf_counter()
             _final_lighting(result, data, settings, explicit_order, report)
             timings["order_selection"] = time.perf_counter() - t0
-    report.update(mode=result.mode, order=order_of(result.coeffs.shape[0]), brdf_model=result.brdf["model"],
-                  brdf=result.brdf, bands=result.bands, noise_sigma=result.noise, candidates=result.candidates,
+    report.update(mode=result.mode, order=order_of(result.coeffs.shape[0]), brdf_model=result.brdf.model,
+                  brdf=result.brdf.to_dict(), bands=result.bands, noise_sigma=result.noise, candidates=result.candidates,
                   labels={b["l"]: b["label"] for b in result.bands})
     written = _write_outputs(work / "fit", capture, samples_path, settings, result, keys, report, timings)
     timings["total"] = time.perf_counter() - t_start
@@ -663,19 +662,19 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
 
 @dataclass
 class ConvexFit:
-    """The convex path's result: its mode, the lighting's SH coefficients ((L+1)^2, 3), the brdf dict,
+    """The convex path's result: its mode, the lighting's SH coefficients ((L+1)^2, 3), the Brdf,
     the lighting's band diagnostics and noise sigma (a lighting fit's; none when the lighting is
     given) and the candidates table."""
 
     mode: str
     coeffs: np.ndarray
-    brdf: dict
+    brdf: Brdf
     bands: list = field(default_factory=list)
     noise: float | None = None
     candidates: list = field(default_factory=list)
 
 
-def _lighting_mode(samples_path: Path, settings: Settings, brdf: dict, explicit_order: int | None, report: dict,
+def _lighting_mode(samples_path: Path, settings: Settings, brdf: Brdf, explicit_order: int | None, report: dict,
                    timings: dict) -> ConvexFit:
     """Known BRDF, unknown lighting: streamed normal equations, the order chosen by held-out views."""
     max_order = explicit_order if explicit_order is not None else settings.max_order
@@ -734,10 +733,10 @@ def _factorization_mode(data: dict, models: list[str], settings: Settings, hint,
     coeffs, brdf = factorize(data, cands[pick]["name"], work_order, target, settings)
     cands[pick]["seconds"] += time.perf_counter() - tm
     coeffs, brdf, scale = apply_scale_convention(coeffs, brdf, target)
-    if brdf["model"] != "lambert":
+    if brdf.model != "lambert":
         # how well the data pin the lobe width given the factorized lighting (profile only)
         fn = lambda m, w, c: _filter_fn(m, w, order_of(coeffs.shape[0]), c)  # noqa: E731
-        profile = solve.fit_brdf(brdf_data(data, coeffs, settings.folds), brdf["model"], fn,
+        profile = solve.fit_brdf(brdf_data(data, coeffs, settings.folds), brdf.model, fn,
                                  noise_floor=settings.noise_floor)
         report["brdf_width"] = {k: v for k, v in profile.items() if k != "brdf"}
         report["brdf_width"]["recoverable_given_fitted_lighting"] = report["brdf_width"].pop("width_recoverable")
@@ -778,8 +777,8 @@ def _write_outputs(out: Path, capture: Path, samples_path: Path, settings: Setti
     coeffs, brdf = result.coeffs, result.brdf
     report["albedo"], vertex_rho, tex_mesh = choose_albedo(capture, samples_path, settings, coeffs, brdf)
     if vertex_rho is not None:
-        brdf = {**brdf, "albedo": [float(x) for x in vertex_rho.mean(axis=0)]}
-        report["brdf"] = brdf
+        brdf = replace(brdf, albedo=vertex_rho.mean(axis=0))
+        report["brdf"] = brdf.to_dict()
     timings["albedo"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     env = np.maximum(envmap_from_sh(coeffs, settings.env_height), 0.0)
@@ -807,7 +806,7 @@ def _write_outputs(out: Path, capture: Path, samples_path: Path, settings: Setti
 
 
 def choose_albedo(capture: Path, samples_path: Path, settings: Settings, coeffs: np.ndarray,
-                  brdf: dict) -> tuple[dict, np.ndarray | None, object]:
+                  brdf: Brdf) -> tuple[dict, np.ndarray | None, object]:
     """Fit a per-vertex diffuse albedo with the fitted lighting and specular part fixed, and choose
     textured vs uniform by the held-out views (folds = image_id mod folds): textured only when its
     validation RMSE is below uniform's by more than ``parsimony``.  Returns (report entry,
@@ -823,7 +822,7 @@ def choose_albedo(capture: Path, samples_path: Path, settings: Settings, coeffs:
         if settings.albedo == "textured":
             raise
         return {**entry, "choice": "uniform", "note": f"no per-vertex fit: {exc}"}, None, None
-    with_lobe = brdf["model"] in forward.LOBE_MODELS
+    with_lobe = brdf.has_lobe
     rng = np.random.default_rng(settings.seed)
     parts = []
     for chunk in iter_sample_chunks(samples_path, settings.chunk, FIELDS + ("face", "bary")):
@@ -842,8 +841,8 @@ def choose_albedo(capture: Path, samples_path: Path, settings: Settings, coeffs:
                             "--albedo textured needs them (run the samples stage)")
         return {**entry, "choice": "uniform", "note": "no per-vertex fit: the samples carry no face/barycentrics"}, None, None
     normal, view = data["normal"].astype(float), data["view_dir"].astype(float)
-    shade = forward.render_samples(coeffs, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, normal, view)
-    spec = (forward.render_samples(coeffs, {**brdf, "albedo": [0.0, 0.0, 0.0]}, normal, view) if with_lobe
+    shade = forward.render_samples(coeffs, Brdf("lambert", albedo=(1.0, 1.0, 1.0)), normal, view)
+    spec = (forward.render_samples(coeffs, replace(brdf, albedo=(0.0, 0.0, 0.0)), normal, view) if with_lobe
             else np.zeros_like(shade))
     return albedo_from_shading(mesh, data, shade, data["radiance"].astype(float) - spec, settings, entry)
 

@@ -32,12 +32,13 @@ from scipy.optimize import minimize_scalar
 
 from pipeline.core import material_fit, prt, solve, texture
 from pipeline.core.envmap import add_sources
-from pipeline.core.material import MIN_ROUGHNESS, Principled, material_dict, principled_from_dict
+from pipeline.core.brdf import Brdf
+from pipeline.core.material import MIN_ROUGHNESS, Principled, brdf_from_material, principled_from_brdf
 from pipeline.core.noise import inverse_variance_weights, noise_level_function, pixel_noise_sigma, weighted_noise_sigma
 from pipeline.core.render import Renderer, SceneGroups
 from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, sh_of_sources
 from pipeline.errors import UserError
-from pipeline.io.brdf import diffuse_color, write_brdf
+from pipeline.io.brdf import write_brdf
 from pipeline.io.capture_toml import read_capture_config
 from pipeline.io.images import write_image
 from pipeline.io.lighting import write_lighting_sh
@@ -376,7 +377,7 @@ def roughness_candidates(settings) -> list[float]:
     return values
 
 
-def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dict | None,
+def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: Brdf | None,
         models: list[str], hint: list[float] | None) -> list[Path]:
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
@@ -410,7 +411,8 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
     mode = ("check" if known is not None else "lighting") if known_brdf is not None else \
         ("brdf" if known is not None else "factorization")
     chosen = material_and_lighting(candidate, known_brdf, models, hint, top, timings)
-    report, vertex_rho = _report_and_texture(chosen, mode, capture, mesh, data, obs, noise, keys, known_brdf, hint)
+    report, brdf, vertex_rho = _report_and_texture(chosen, mode, capture, mesh, data, obs, noise, keys, known_brdf,
+                                                   hint)
     if vertex_rho is not None and chosen.best.material is not None and known_brdf is None:
         # the material was chosen with a uniform base colour, whose missing texture a rougher lobe
         # partly absorbs: chosen again with the texture's pattern in the diffuse layer
@@ -418,10 +420,11 @@ def run(*, capture: Path, work: Path, settings, keys: list[str], known_brdf: dic
         pattern = texture_pattern(obs, mesh, data, vertex_rho)
         chosen = material_and_lighting(replace(candidate, geo=replace(geo, pattern=pattern)), known_brdf, models,
                                        hint, top, timings)
-        report, vertex_rho = _report_and_texture(chosen, mode, capture, mesh, data, obs, noise, keys, known_brdf, hint)
+        report, brdf, vertex_rho = _report_and_texture(chosen, mode, capture, mesh, data, obs, noise, keys,
+                                                       known_brdf, hint)
         report["albedo"]["uniform_base_search"] = first
     timings["material"] = time.perf_counter() - t0
-    best, brdf, interval = chosen.best, report["brdf"], chosen.interval
+    best, interval = chosen.best, chosen.interval
     print(_summary_line(brdf, None if one_fold else interval, len(report["sources"]), known_brdf is not None,
                         textured=vertex_rho is not None, detail_rows=report["lighting_detail"].get("rows")),
           file=sys.stderr)
@@ -448,7 +451,7 @@ class Chosen:
     spec: prt.SpecularTransfer | None
 
 
-def material_and_lighting(candidate: "CandidateFit", known_brdf: dict | None, models: list[str], hint, top: int,
+def material_and_lighting(candidate: "CandidateFit", known_brdf: Brdf | None, models: list[str], hint, top: int,
                           timings: dict) -> Chosen:
     """The material chosen (select_with_scale; a Lambertian albedo's level where interreflection
     fixes it) and its lighting refitted to SH orders 0-``top`` (final_lighting); with a known map,
@@ -471,14 +474,16 @@ def material_and_lighting(candidate: "CandidateFit", known_brdf: dict | None, mo
 
 
 def _report_and_texture(chosen: Chosen, mode: str, capture: Path, mesh, data: dict, obs: material_fit.Observations,
-                        noise: dict, keys: list[str], known_brdf: dict | None, hint) -> tuple[dict, np.ndarray | None]:
+                        noise: dict, keys: list[str], known_brdf: Brdf | None,
+                        hint) -> tuple[dict, Brdf, np.ndarray | None]:
     """report.json's content for ``chosen`` (brdf.json's under "brdf") and the per-vertex albedo
-    choice on the photos ``obs`` themselves (texture_and_residuals) -> (report, per-vertex albedo or None)."""
+    choice on the photos ``obs`` themselves (texture_and_residuals) -> (report, the Brdf for
+    brdf.json (a texture's mean colour when one wins), per-vertex albedo or None)."""
     candidate, best = chosen.candidate, chosen.best
     settings, known = candidate.settings, candidate.known
     one_fold = len(np.unique(obs.fold)) < 2
-    brdf = _brdf_json(best)
-    report = {"mode": mode, **_lighting_report(best, noise, settings), "brdf_model": brdf["model"], "brdf": brdf,
+    brdf = brdf_from_material(best.material, best.base)
+    report = {"mode": mode, **_lighting_report(best, noise, settings), "brdf_model": brdf.model, "brdf": brdf.to_dict(),
               "candidates": chosen.table, "lighting_refit": chosen.refit, "samples": {"used": int(len(obs.weight))},
               "roughness_interval": None if chosen.interval is None or one_fold else list(chosen.interval),
               "model_selection": _selection_note(one_fold, known_brdf is not None, settings.folds, brdf),
@@ -487,8 +492,11 @@ def _report_and_texture(chosen: Chosen, mode: str, capture: Path, mesh, data: di
     if known is not None and known.per_image is not None:
         report["lighting_per_image"] = _per_image_note(capture, known.per_image)
     plain = replace(candidate.geo, pattern=None)      # the shading per unit base colour: the texture is fitted anew
-    vertex_rho = texture_and_residuals(mesh, data, plain, obs, best, brdf, report, settings, keys, chosen.spec)
-    return report, vertex_rho
+    vertex_rho = texture_and_residuals(mesh, data, plain, obs, best, report, settings, keys, chosen.spec)
+    if vertex_rho is not None:      # brdf.json's colour: the texture's mean
+        brdf = brdf.with_diffuse_color(np.clip(vertex_rho.mean(axis=0), 0.0, 1.0))
+        report["brdf"] = brdf.to_dict()
+    return report, brdf, vertex_rho
 
 
 def texture_pattern(obs: material_fit.Observations, mesh, data: dict, vertex_rho: np.ndarray) -> np.ndarray:
@@ -545,7 +553,7 @@ class CandidateFit:
         return replace(self, known=replace(self.known, scene=None))
 
 
-def select_with_scale(candidate: CandidateFit, known_brdf: dict | None, models: list[str], hint) -> tuple:
+def select_with_scale(candidate: CandidateFit, known_brdf: Brdf | None, models: list[str], hint) -> tuple:
     """(the candidate fitter as finally scaled, select_material's (best, table, interval, anchor),
     the lighting-scale check or None): the given material, or the selection; with a known
     lighting, the check of its scale against the photos (check_lighting_scale), and with
@@ -554,8 +562,8 @@ def select_with_scale(candidate: CandidateFit, known_brdf: dict | None, models: 
 
     def select() -> tuple:
         if known_brdf is not None:
-            material = principled_from_dict(known_brdf) if known_brdf["model"] == "principled" else None
-            best = candidate(material, np.asarray(diffuse_color(known_brdf), float), True, None)
+            material = principled_from_brdf(known_brdf) if known_brdf.model == "principled" else None
+            best = candidate(material, known_brdf.diffuse_color, True, None)
             return best, [_row(best)], None, best
         return select_material(candidate, settings, models, obs, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float),
                                candidate.detail is not None)
@@ -611,10 +619,10 @@ def _per_image_note(capture: Path, per_image: tuple) -> dict:
                        for k, light in per_image[2].items()}}
 
 
-def texture_and_residuals(mesh, data: dict, geo, obs, best: material_fit.MaterialFit, brdf: dict, report: dict,
+def texture_and_residuals(mesh, data: dict, geo, obs, best: material_fit.MaterialFit, report: dict,
                           settings, keys: list[str], spec: prt.SpecularTransfer | None = None) -> np.ndarray | None:
-    """The per-vertex albedo choice (stages.fit.albedo_from_shading on the physical shading; brdf's
-    colour becomes the texture's mean when it wins) and the residual per view of the chosen model,
+    """The per-vertex albedo choice (stages.fit.albedo_from_shading on the physical shading) and the
+    residual per view of the chosen model,
     a texture's colour at each sample, into ``report``; -> the per-vertex albedo (V, 3) or None.
     ``spec``: best's specular transfer to the geometry's order if already computed (final_lighting)."""
     if best.material is None or best.parts is not None:     # parts: fit_to_map's
@@ -628,9 +636,6 @@ def texture_and_residuals(mesh, data: dict, geo, obs, best: material_fit.Materia
         report["albedo"] = {**entry, "choice": "uniform", "note": "--albedo uniform: no per-vertex fit"}
     else:
         report["albedo"], vertex_rho, _ = albedo_from_shading(mesh, data, shade, obs.radiance - specular, settings, entry)
-        if vertex_rho is not None:
-            key = "albedo" if brdf["model"] == "lambert" else "base_color"
-            brdf[key] = [float(x) for x in np.clip(vertex_rho.mean(axis=0), 0.0, 1.0)]
     rho = best.base if vertex_rho is None else texture.interpolation_matrix(
         mesh.faces, data["face"], data["bary"].astype(float), len(mesh.vertices)) @ vertex_rho
     report["residuals_per_view"] = _per_view(obs, rho * shade + specular, data["image_id"], keys, settings.folds)
@@ -674,7 +679,7 @@ def known_lighting_setup(capture: Path, keys: list[str], image_id: np.ndarray, s
     scale = 1.0 if settings.lighting_scale == "fit" else float(settings.lighting_scale)
     scene = direct = None
     if maps is not None:     # the material under the map itself: the renderer's model of every sample
-        scenes = [Renderer(rays, m, material_dict(None, [DEFAULT_ALBEDO] * 3), cell_height=MAP_CELL_HEIGHT,
+        scenes = [Renderer(rays, m, Brdf("lambert", albedo=DEFAULT_ALBEDO), cell_height=MAP_CELL_HEIGHT,
                            lobe_samples=settings.lobe_samples, bounce_samples=settings.bounce_samples,
                            seed=settings.seed) for m in maps]
         scene = scenes[0] if len(scenes) == 1 else SceneGroups(scenes, group)
@@ -682,7 +687,7 @@ def known_lighting_setup(capture: Path, keys: list[str], image_id: np.ndarray, s
     return KnownLighting(coeffs * scale, dirs, power * scale, scene, direct, scale, per_image)
 
 
-def write_outputs(out: Path, best: material_fit.MaterialFit, brdf: dict, report: dict, settings,
+def write_outputs(out: Path, best: material_fit.MaterialFit, brdf: Brdf, report: dict, settings,
                   texture: tuple, source: str) -> list[Path]:
     """fit/: lighting_sh.json (the SH with the sources' projection, and the sources), lighting.exr
     (the SH map with the sources drawn in), brdf.json, report.json, the plots, and albedo.ply when
@@ -721,21 +726,17 @@ def _pixel_noise_note(noise: dict) -> dict:
                              "teapot worse, docs/fit.md)"}
 
 
-def _brdf_json(fit: material_fit.MaterialFit) -> dict:
-    return material_dict(fit.material, fit.base)
-
-
-def _scale_note(brdf: dict, hint, level: dict | None = None) -> dict:
+def _scale_note(brdf: Brdf, hint, level: dict | None = None) -> dict:
     """report.json's scale_convention with the lighting unknown: what fixed the base colour's level."""
-    if brdf["model"] == "principled" and brdf.get("metallic", 0.0) > 0:
-        at_bound = [c for c, v in zip("RGB", brdf["base_color"]) if v >= 0.999]
+    if brdf.model == "principled" and brdf.metallic > 0:
+        at_bound = [c for c, v in zip("RGB", brdf.base_color) if v >= 0.999]
         return {"source": "the metal's F0 (= base colour) as fitted: only Schlick's rise towards white at grazing "
                           "angles separates it from the lighting's colour and level, weakly",
                 "note": "a metal's reflection is F0 times the lighting; the lighting carries the inverse of any error "
                         "in F0, channel by channel" + (f"; F0 is at its bound 1 in {', '.join(at_bound)}: "
                                                        "the level there is not determined" if at_bound else "")}
-    if brdf["model"] == "principled":
-        return {"source": f"the dielectric specular layer (Fresnel from ior {brdf['ior']}) fixes the absolute "
+    if brdf.model == "principled":
+        return {"source": f"the dielectric specular layer (Fresnel from ior {brdf.ior}) fixes the absolute "
                           "scale of lighting vs base colour"}
     if level is not None and level["determined"]:
         return {"source": "interreflection", "albedo_level": level,
@@ -765,12 +766,12 @@ def search_albedo_level(candidate, fit: material_fit.MaterialFit, geo, obs, sett
     return candidate(None, fit.base * s, False, _directions(fit)), note
 
 
-def _selection_note(one_fold: bool, known: bool, folds: int, brdf: dict) -> dict:
+def _selection_note(one_fold: bool, known: bool, folds: int, brdf: Brdf) -> dict:
     """How the material was chosen, for report.json (and the report's BRDF section)."""
     if known:
         return {"by": "given (known material)"}
     if one_fold:
-        kept = brdf["model"] + (f", roughness {brdf['roughness']:.3f}" if brdf["model"] == "principled" else "")
+        kept = brdf.model + (f", roughness {brdf.roughness:.3f}" if brdf.model == "principled" else "")
         return {"by": "training residual", "kept": kept,
                 "why": f"every view falls in one fold (image_id mod --folds {folds}): nothing can be held out, so "
                        "the candidates were compared on the views they were fitted to, which favours the richest "
@@ -778,20 +779,20 @@ def _selection_note(one_fold: bool, known: bool, folds: int, brdf: dict) -> dict
     return {"by": f"held-out views ({folds} folds, image_id mod {folds})"}
 
 
-def _summary_line(brdf: dict, interval, n_sources: int, given: bool = False, textured: bool = False,
+def _summary_line(brdf: Brdf, interval, n_sources: int, given: bool = False, textured: bool = False,
                   detail_rows: int | None = None) -> str:
     """The fit's stderr line; ``interval`` None when no views were held out (nothing bounds the
     roughness) or the material was ``given``; ``textured``: the colour is a per-vertex texture
     (fit/albedo.ply), brdf.json's its mean; ``detail_rows``: the lighting's detail part's rows, if used."""
-    if brdf["model"] == "lambert":
+    if brdf.model == "lambert":
         colour = "albedo " + ("textured, mean " if textured else "")
-        return f"fit: lambert, {colour}{np.round(brdf['albedo'], 3).tolist()}, {n_sources} directional source(s)"
+        return f"fit: lambert, {colour}{np.round(brdf.albedo, 3).tolist()}, {n_sources} directional source(s)"
     bound = ("given" if given else "no held-out views: not validated" if interval is None
              else f"held-out views cannot tell apart {interval[0]:.3f}-{interval[1]:.3f}")
     colour = "base colour " + ("textured (fit/albedo.ply), mean " if textured else "")
     detail = "" if detail_rows is None else f" and a {detail_rows}-row detail map (report.json lighting_detail)"
-    return (f"fit: principled roughness {brdf['roughness']:.3f} ({bound}), {colour}"
-            f"{np.round(brdf['base_color'], 3).tolist()}, {n_sources} directional source(s){detail}")
+    return (f"fit: principled roughness {brdf.roughness:.3f} ({bound}), {colour}"
+            f"{np.round(brdf.base_color, 3).tolist()}, {n_sources} directional source(s){detail}")
 
 
 def _detail_note(fit: material_fit.MaterialFit, settings) -> dict:

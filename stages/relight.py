@@ -37,7 +37,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -46,12 +46,12 @@ from threadpoolctl import threadpool_limits
 
 from pipeline.core import camera as cam
 from pipeline.core import forward
-from pipeline.core.brdf import reflect
+from pipeline.core.brdf import Brdf, reflect
 from pipeline.core.envmap import add_sources, downsample, equirect_angles, equirect_solid_angles
 from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envmap
 from pipeline.core.transfer import irradiance_from_sh
 from pipeline.errors import UserError
-from pipeline.io.brdf import diffuse_color, read_brdf
+from pipeline.io.brdf import read_brdf
 from pipeline.io.images import preview_exposure, read_envmap, write_image, write_preview
 from pipeline.io.capture_toml import KnownLight, read_capture_config
 from pipeline.io.lighting import known_light_map, read_lighting_parts, read_lighting_sh
@@ -327,12 +327,11 @@ def resolve_views(*, capture: Path, work: Path, settings: Settings, mesh=None) -
 
 # --------------------------------------------------------------------------------------- lighting
 
-def brdf_lobe_filter(brdf: dict, order: int) -> np.ndarray:
-    """A_l for l = 0..order of the BRDF's specular lobe (pipeline.core.forward); zeros for lambert."""
-    if brdf["model"] not in forward.LOBE_MODELS:
+def brdf_lobe_filter(brdf: Brdf, order: int) -> np.ndarray:
+    """A_l for l = 0..order of the BRDF's specular lobe (pipeline.core.forward); zeros without one."""
+    if not brdf.has_lobe:
         return np.zeros(order + 1)
-    model = brdf["model"]
-    return np.asarray(forward.specular_lobe_filter(model, float(brdf[forward.WIDTH_PARAM[model]]), order), float)
+    return np.asarray(forward.specular_lobe_filter(brdf.model, brdf.lobe_width, order), float)
 
 
 def needed_order(filt: np.ndarray) -> int:
@@ -413,7 +412,7 @@ class Lighting:
     view-dependent lobes get one prefiltered map per grid entry, interpolated like the filters.
     """
 
-    def __init__(self, brdf: dict, *, coeffs: np.ndarray | None = None, env: np.ndarray | None = None,
+    def __init__(self, brdf: Brdf, *, coeffs: np.ndarray | None = None, env: np.ndarray | None = None,
                  lobe_sh_order: int = 24, prefilter_height: int = 128, source: str = ""):
         self.source = source
         self.brdf = brdf
@@ -438,8 +437,7 @@ class Lighting:
         self.lobe_order = lobe_order
 
     def _width(self) -> tuple[str, float]:
-        model = self.brdf["model"]
-        return model, float(self.brdf[forward.WIDTH_PARAM[model]])
+        return self.brdf.model, self.brdf.lobe_width
 
     def _grid_filters(self, order: int) -> np.ndarray:
         """The lobe's filters on forward.VIEW_COS_GRID (one row for a view-independent lobe)."""
@@ -449,7 +447,7 @@ class Lighting:
         return np.asarray(forward.sample_lobe_filters(model, width, order, forward.VIEW_COS_GRID), float)
 
     @classmethod
-    def from_file(cls, path: Path, brdf: dict, **kwargs) -> "Lighting":
+    def from_file(cls, path: Path, brdf: Brdf, **kwargs) -> "Lighting":
         """From a lighting_sh.json or an equirect EXR/HDR (DESIGN.md conventions)."""
         path = Path(path)
         if path.suffix.lower() == ".json":
@@ -530,7 +528,7 @@ class AngularLighting:
     are the easy case) without its shadows, and the renderer does the diffuse part with shadows.
     """
 
-    def __init__(self, brdf: dict, mesh, *, coeffs: np.ndarray | None = None, env: np.ndarray | None = None,
+    def __init__(self, brdf: Brdf, mesh, *, coeffs: np.ndarray | None = None, env: np.ndarray | None = None,
                  env_height: int = 64, cell_height: int = 32, shadows: bool = True, vertex_albedo=None,
                  board=None, source: str = "", lobe_sh_order: int = 24, prefilter_height: int = 128,
                  clamp_sh: bool = False, bounces: int = 8, bounce_samples: int = 64, lobe_samples: int = 64,
@@ -542,9 +540,9 @@ class AngularLighting:
         self.sharp_lobe = self.lobe_order > cell_height
         self.lobe: Lighting | None = None
         if self.sharp_lobe:
-            self.lobe = Lighting({**brdf, "albedo": [0.0, 0.0, 0.0]}, coeffs=coeffs, env=env,
+            self.lobe = Lighting(replace(brdf, albedo=(0.0, 0.0, 0.0)), coeffs=coeffs, env=env,
                                  lobe_sh_order=lobe_sh_order, prefilter_height=prefilter_height, source=source)
-            brdf = {"model": "lambert", "albedo": brdf["albedo"]}
+            brdf = Brdf("lambert", albedo=brdf.albedo)
         if coeffs is not None:
             env = envmap_from_sh(np.asarray(coeffs, float), env_height)
             self.signed = not clamp_sh and env.min() < 0
@@ -565,7 +563,7 @@ class AngularLighting:
         self.renderer = Renderer(mesh, env, brdf, **options)
 
     @classmethod
-    def from_file(cls, path: Path, brdf: dict, mesh, **kwargs) -> "AngularLighting":
+    def from_file(cls, path: Path, brdf: Brdf, mesh, **kwargs) -> "AngularLighting":
         path = Path(path)
         if path.suffix.lower() == ".json":
             coeffs, dirs, power = read_lighting_parts(path)   # the sources' SH projection taken out
@@ -573,7 +571,7 @@ class AngularLighting:
         return cls(brdf, mesh, env=read_envmap(path), source=str(path), **kwargs)
 
     @classmethod
-    def from_directional_light(cls, light: KnownLight, brdf: dict, mesh, **kwargs) -> "AngularLighting":
+    def from_directional_light(cls, light: KnownLight, brdf: Brdf, mesh, **kwargs) -> "AngularLighting":
         """A directional light of capture.toml [lighting], drawn into a map (io.lighting.known_light_map)."""
         return cls(brdf, mesh, env=known_light_map(light), source=f"directional light {light.direction} "
                    f"intensity {light.intensity}", **kwargs)
@@ -607,14 +605,14 @@ class AngularLighting:
         return np.maximum(out, 0.0)  # as the frequency path: B(L+) - B(L-) < 0 is not an image value
 
 
-def bright_block(brdf: dict, env_height: int, cell_height: int) -> int:
+def bright_block(brdf: Brdf, env_height: int, cell_height: int) -> int:
     """Pixels per side of the blocks in which the renderer merges a map's broad bright pixels
     (render.light_set's bright_block): a principled lobe's width 2 alpha over two of the map's
     pixels (pi / H each), which the lobe cannot resolve, and no coarser than the remainder's
     cells; 1 (none merged) for other models."""
-    if brdf["model"] != "principled":
+    if brdf.model != "principled":
         return 1
-    alpha = float(brdf["roughness"]) ** 2
+    alpha = brdf.roughness ** 2
     return int(np.clip(2.0 * alpha / (2.0 * np.pi / env_height), 1, max(1, env_height // max(cell_height, 1))))
 
 
@@ -641,11 +639,11 @@ def board_occludes(work: Path, settings: Settings) -> bool:
     return settings.board == "on" or not uses_fitted_lighting(work, settings)
 
 
-def prepare_lighting(path: Path | KnownLight, brdf: dict, mesh, settings: Settings, *, capture: Path | None = None,
+def prepare_lighting(path: Path | KnownLight, brdf: Brdf, mesh, settings: Settings, *, capture: Path | None = None,
                      vertex_colors=None, with_board: bool = False):
     """The lighting at ``path`` (or a capture.toml [lighting] entry) prepared for ``settings.method``
     (Lighting or AngularLighting)."""
-    if settings.method == "frequency" and brdf["model"] == "principled":
+    if settings.method == "frequency" and brdf.model == "principled":
         raise UserError("--method frequency renders the seed's convex lobes (lambert, phong, microfacet) only; "
                         "a principled material needs --method angular (the default)")
     if isinstance(path, KnownLight) and path.path is not None:
@@ -861,7 +859,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     lightings = {light: prepare_lighting(light, brdf, scene_mesh, settings, capture=source,
                                          vertex_colors=vertex_colors, with_board=board_occludes(work, settings))
                  for light in dict.fromkeys(lights.values() or [light_path])}
-    albedo = np.asarray(diffuse_color(brdf), float)
+    albedo = brdf.diffuse_color
     rays = scene_mesh.rays
     folder = out_folder(work, settings)
     make_folder(folder, "-o")
@@ -894,7 +892,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
                 masks[view.key] = _interior(rgba[..., 3]) & valid & np.all(np.isfinite(photo), axis=-1)
     described = [lighting.describe() for lighting in lightings.values()]
     summary = {"views": [v.key for v in views], "method": settings.method,
-               "lighting": described[0] if len(described) == 1 else described, "brdf": brdf,
+               "lighting": described[0] if len(described) == 1 else described, "brdf": brdf.to_dict(),
                "size": settings.size or "native", "out_dir": str(folder)}
     if settings.compare_with:
         summary["compare_with"] = {"capture": str(source), "work": str(source_work),

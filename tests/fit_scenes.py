@@ -11,7 +11,7 @@ import numpy as np
 import trimesh
 
 from pipeline.core import prt
-from pipeline.core.brdf import cosine_weighted_brdf
+from pipeline.core.brdf import Brdf, cosine_weighted_brdf
 from pipeline.core.envmap import equirect_directions, equirect_solid_angles
 from pipeline.io.samples import write_samples
 from pipeline.raycast import ray_mesh
@@ -49,7 +49,7 @@ def sphere_views(rng: np.random.Generator, views: int, per_view: int, min_cos: f
     return np.concatenate(normals), np.concatenate(dirs), np.concatenate(ids)
 
 
-def integrate_radiance(env: np.ndarray, brdf: dict, normal: np.ndarray, view_dir: np.ndarray,
+def integrate_radiance(env: np.ndarray, brdf: Brdf, normal: np.ndarray, view_dir: np.ndarray,
                        chunk: int = 256) -> np.ndarray:
     """B = sum over env pixels of L(w) f(w, v) max(0, n.w) Omega_pixel (midpoint rule), (N, 3)."""
     h = env.shape[0]

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from pipeline import cli
+from pipeline.core.brdf import Brdf
 from pipeline.io.images import read_image
 from pipeline.workdir import LOCK_NAME
 
@@ -405,7 +406,7 @@ def test_an_output_path_that_is_a_file_is_one_line(linearized, tmp_path, capsys,
     from pipeline.io.lighting import write_lighting_sh
 
     capture, work = linearized
-    write_brdf(work / "fit" / "brdf.json", {"model": "lambert", "albedo": [0.5, 0.5, 0.5]})   # what relight reads
+    write_brdf(work / "fit" / "brdf.json", Brdf("lambert", albedo=[0.5, 0.5, 0.5]))   # what relight reads
     write_lighting_sh(work / "fit" / "lighting_sh.json", np.ones((1, 3)))
     (tmp_path / "afile").write_text("not a folder")
     argv = [a.format(capture=capture, work=work, file=tmp_path / "afile") for a in args]
@@ -462,7 +463,7 @@ def test_a_wrong_type_in_a_json_file_is_one_line(linearized, tmp_path, capsys, c
     rel, edit, fragment = BAD_JSON_VALUES[case]
     capture, work = linearized
     capture = shutil.copytree(capture, tmp_path / "capture")
-    write_brdf(work / "fit" / "brdf.json", {"model": "lambert", "albedo": [0.5, 0.5, 0.5]})
+    write_brdf(work / "fit" / "brdf.json", Brdf("lambert", albedo=[0.5, 0.5, 0.5]))
     write_lighting_sh(work / "fit" / "lighting_sh.json", np.ones((1, 3)))
     path = (capture if rel == "poses.json" else work) / rel
     doc = json.loads(path.read_text())

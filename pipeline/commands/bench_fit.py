@@ -16,13 +16,14 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.commands.bench import BenchRow, best_time
+from pipeline.core.brdf import Brdf
 
 CHUNK = 262144
-LAMBERT = {"model": "lambert", "albedo": [0.6, 0.5, 0.4]}
-GLOSSY = {"model": "microfacet", "albedo": [0.3, 0.25, 0.2], "specular": [0.9, 0.9, 0.9], "roughness": 0.15}
+LAMBERT = Brdf("lambert", albedo=(0.6, 0.5, 0.4))
+GLOSSY = Brdf("microfacet", albedo=(0.3, 0.25, 0.2), specular=(0.9, 0.9, 0.9), roughness=0.15)
 
 
-def _chunk(rng: np.random.Generator, n: int, truth: np.ndarray, brdf: dict) -> dict:
+def _chunk(rng: np.random.Generator, n: int, truth: np.ndarray, brdf: Brdf) -> dict:
     from pipeline.core.forward import render_samples
 
     normal = rng.normal(size=(n, 3))
@@ -40,20 +41,20 @@ def _chunks(n: int, truth: np.ndarray):
         yield _chunk(rng, min(CHUNK, n - start), truth, LAMBERT)  # radiance content does not change the cost
 
 
-def _lighting_fit(chunks, order: int, brdf: dict) -> None:
+def _lighting_fit(chunks, order: int, brdf: Brdf) -> None:
     from pipeline.core import forward, solve
 
-    with_lobe = brdf["model"] in forward.LOBE_MODELS
+    with_lobe = brdf.has_lobe
     eqs = solve.NormalEquations(order, 4, shared=not with_lobe)
     for c in chunks:
         terms = forward.design_terms(c["normal"], c["view_dir"], order, with_lobe)
         designs = terms.diffuse[None] if not with_lobe else forward.channel_designs(terms, brdf, order)
         eqs.add(designs, c["radiance"], c["weight"], c["image_id"] % 4)
-    g, h, btb, w = eqs.channel_system(slice(None), np.asarray(brdf["albedo"]) if eqs.shared else None)
+    g, h, btb, w = eqs.channel_system(slice(None), np.asarray(brdf.albedo) if eqs.shared else None)
     solve.solve_lighting(g, h, btb, w, int(eqs.count.sum()), order, independent_groups=32)
 
 
-def _timed_fit(n: int, order: int, brdf: dict, truth: np.ndarray, repeat: int) -> tuple[float, float, str]:
+def _timed_fit(n: int, order: int, brdf: Brdf, truth: np.ndarray, repeat: int) -> tuple[float, float, str]:
     """(wall s, cpu s, note): samples pre-generated up to 10^6, streamed (generation included) beyond."""
     if n <= 10 ** 6:
         chunks = list(_chunks(n, truth))

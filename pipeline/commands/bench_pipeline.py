@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.brdf import Brdf
 from pipeline.core.sh import band_of_index, band_relative_errors, num_coeffs, order_of, project_envmap
 
 NOISE_LEVELS = (0.0, 0.001, 0.003, 0.01, 0.03, 0.1)
@@ -78,7 +79,7 @@ def _solve_lighting(normal, view, radiance, brdf, order) -> np.ndarray:
     """Plain least squares for the SH lighting, per channel (minimum-norm where rank deficient)."""
     from pipeline.core import forward
 
-    terms = forward.design_terms(normal, view, order, brdf["model"] in forward.LOBE_MODELS)
+    terms = forward.design_terms(normal, view, order, brdf.has_lobe)
     designs = forward.channel_designs(terms, brdf, order)
     return np.stack([np.linalg.lstsq(designs[c], radiance[:, c], rcond=1e-12)[0] for c in range(3)], axis=1)
 
@@ -88,9 +89,8 @@ def stability_lighting(rng: np.random.Generator, order: int = 8, trials: int = 3
     from pipeline.core import forward
 
     normal, view = sphere_light_field(1500, 24, rng)
-    scenes = {"lambertian": {"model": "lambert", "albedo": [0.8, 0.8, 0.8]},
-              "glossy (phong s=200)": {"model": "phong", "albedo": [0.3, 0.3, 0.3], "specular": [0.6, 0.6, 0.6],
-                                       "exponent": 200.0}}
+    scenes = {"lambertian": Brdf("lambert", albedo=(0.8, 0.8, 0.8)),
+              "glossy (phong s=200)": Brdf("phong", albedo=(0.3, 0.3, 0.3), specular=(0.6, 0.6, 0.6), exponent=200.0)}
     rows = []
     for scene, brdf in scenes.items():
         for noise in NOISE_LEVELS:
@@ -128,7 +128,7 @@ def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
     lightings = {"sharp (area lights)": project_envmap(make_envmap("area", 64), order),
                  "soft (smooth sky)": project_envmap(make_envmap("smooth", 64), 2)}
     exponent, specular = 200.0, 0.5
-    truth = {"model": "phong", "albedo": [0.4, 0.4, 0.4], "specular": [specular] * 3, "exponent": exponent}
+    truth = Brdf("phong", albedo=(0.4, 0.4, 0.4), specular=specular, exponent=exponent)
     rows = []
     for name, coeffs in lightings.items():
         clean = forward.render_samples(coeffs, truth, normal, view)
@@ -143,8 +143,8 @@ def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
             for _ in range(trials):
                 data.radiance = clean + noise * clean.mean() * rng.normal(size=clean.shape)
                 fit = fit_brdf(data, "phong", filter_fn, noise_floor=1e-6)["brdf"]
-                w_err.append(abs(fit["exponent"] / exponent - 1.0))
-                s_err.append(float(np.abs(np.asarray(fit["specular"]) - specular).mean() / specular))
+                w_err.append(abs(fit.exponent / exponent - 1.0))
+                s_err.append(float(np.abs(np.asarray(fit.specular) - specular).mean() / specular))
             rows.append({"problem": "BRDF estimation", "scene": name, "noise": noise,
                          "quantity": "lobe width (Phong exponent)", "relative_error": float(np.median(w_err))})
             rows.append({"problem": "BRDF estimation", "scene": name, "noise": noise,

@@ -22,6 +22,7 @@ def synth_suite(quick: bool, repeat: int) -> list:
     of the first view (shading only: visibility is cached per scene).  The mesh is the Stanford
     bunny (``BENCH_MESH``, else the 'sphere'); --quick renders 128 x 128.
     """
+    from pipeline.core.brdf import Brdf
     from pipeline.core.procedural_envmaps import make_envmap
     from pipeline.core.render import Renderer
     from pipeline.raycast import ray_mesh
@@ -32,9 +33,8 @@ def synth_suite(quick: bool, repeat: int) -> list:
     settings = replace(SynthSettings(), views=2, size=(size, size), layout="ring", elevation=(20.0, 40.0))
     camera, poses = make_views(mesh, settings, None)
     env = make_envmap("area", 64, n=3)
-    brdfs = {"lambert": {"model": "lambert", "albedo": [0.5, 0.5, 0.5]},
-             "microfacet": {"model": "microfacet", "albedo": [0.2, 0.3, 0.5], "specular": [0.04] * 3,
-                            "roughness": 0.2}}
+    brdfs = {"lambert": Brdf("lambert", albedo=(0.5, 0.5, 0.5)),
+             "microfacet": Brdf("microfacet", albedo=(0.2, 0.3, 0.5), specular=0.04, roughness=0.2)}
     rows = []
     for name, brdf in brdfs.items():
         for shadows in (False, True):

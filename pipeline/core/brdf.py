@@ -1,4 +1,6 @@
-"""BRDF models in the angular domain: the formulas every stage agrees on (DESIGN.md, brdf.json).
+"""BRDF models: the material type every stage passes (``Brdf``, one parameter table) and the seed
+theory's formulas in the angular domain (DESIGN.md, brdf.json; the principled model's are in
+pipeline.core.material).
 
 All directions are unit vectors (N, 3) in the same frame; ``w_in`` points from the surface
 towards the light, ``w_out`` towards the viewer.  Values are per RGB channel, (N, 3).
@@ -18,9 +20,101 @@ Both sides are zero when either direction is below the surface.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass, fields, replace
+from typing import Literal
+
 import numpy as np
 
 _EPS = 1e-12
+
+BrdfModel = Literal["lambert", "principled", "phong", "microfacet"]
+RGB = tuple[float, float, float]
+# The one parameter table: each model's parameters in brdf.json's order (pipeline.io.brdf says
+# their ranges).  principled is Blender's Principled BSDF / glTF 2.0 metallic-roughness
+# (pipeline.core.material); phong and microfacet are the seed theory's (this module).
+BRDF_PARAMS: dict[str, tuple[str, ...]] = {
+    "lambert": ("albedo",),
+    "principled": ("base_color", "roughness", "metallic", "ior", "specular_tint"),
+    "phong": ("albedo", "specular", "exponent"),
+    "microfacet": ("albedo", "specular", "roughness"),
+}
+PARAM_DEFAULTS = {"metallic": 0.0, "ior": 1.5, "specular_tint": (1.0, 1.0, 1.0)}   # principled's optional ones
+RGB_PARAMS = ("albedo", "specular", "base_color", "specular_tint")
+LOBE_MODELS = ("phong", "microfacet")   # the seed's models with R&H's reflection-space lobe
+WIDTH_PARAM = {"phong": "exponent", "microfacet": "roughness"}   # the lobe's width parameter
+
+
+@dataclass(frozen=True)
+class Brdf:
+    """One uniform material: ``model`` and its parameters (``BRDF_PARAMS[model]``; the others are
+    None).  RGB parameters are 3 linear floats, the rest floats; a principled material's optional
+    parameters get ``PARAM_DEFAULTS``.  Structure only: pipeline.io.brdf checks ranges for users.
+    """
+
+    model: BrdfModel
+    albedo: RGB | None = None
+    specular: RGB | None = None
+    exponent: float | None = None
+    base_color: RGB | None = None
+    roughness: float | None = None
+    metallic: float | None = None
+    ior: float | None = None
+    specular_tint: RGB | None = None
+
+    def __post_init__(self) -> None:
+        if self.model not in BRDF_PARAMS:
+            raise ValueError(f"unknown BRDF model {self.model!r}; one of {', '.join(BRDF_PARAMS)}")
+        params = BRDF_PARAMS[self.model]
+        for f in fields(self)[1:]:
+            value = getattr(self, f.name)
+            if f.name not in params:
+                if value is not None:
+                    raise ValueError(f"a {self.model} BRDF has no parameter {f.name!r}")
+                continue
+            if value is None:
+                value = PARAM_DEFAULTS.get(f.name)
+                if value is None:
+                    raise ValueError(f"a {self.model} BRDF needs {f.name!r}")
+            if f.name in RGB_PARAMS:
+                rgb = np.broadcast_to(np.asarray(value, float), (3,))
+                value = tuple(float(v) for v in rgb)
+            else:
+                value = float(value)
+            object.__setattr__(self, f.name, value)
+
+    @classmethod
+    def from_dict(cls, doc: Mapping) -> "Brdf":
+        """From a brdf.json-shaped mapping: ``model`` and its parameters; other keys are ignored."""
+        model = doc["model"]
+        return cls(model, **{k: doc[k] for k in BRDF_PARAMS.get(model, ()) if k in doc})
+
+    def to_dict(self) -> dict:
+        """The brdf.json form (JSON types: lists for RGB)."""
+        out: dict = {"model": self.model}
+        for key in BRDF_PARAMS[self.model]:
+            value = getattr(self, key)
+            out[key] = list(value) if key in RGB_PARAMS else value
+        return out
+
+    @property
+    def diffuse_color(self) -> np.ndarray:
+        """The Lambertian colour (3,): ``albedo``, or a principled material's ``base_color``."""
+        return np.array(self.base_color if self.model == "principled" else self.albedo, float)
+
+    def with_diffuse_color(self, color) -> "Brdf":
+        """The same material with another diffuse colour (3,) (albedo or base colour)."""
+        return replace(self, **{"base_color" if self.model == "principled" else "albedo": color})
+
+    @property
+    def has_lobe(self) -> bool:
+        """A seed model with R&H's reflection-space lobe (phong, microfacet)."""
+        return self.model in LOBE_MODELS
+
+    @property
+    def lobe_width(self) -> float:
+        """The lobe's width parameter (Phong exponent s or Beckmann sigma) of a ``has_lobe`` model."""
+        return float(getattr(self, WIDTH_PARAM[self.model]))
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -60,25 +154,25 @@ def phong_lobe(cos_alpha: np.ndarray, exponent: float) -> np.ndarray:
     return (exponent + 1.0) / (2.0 * np.pi) * np.maximum(cos_alpha, 0.0) ** exponent
 
 
-def cosine_weighted_brdf(brdf: dict, normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray) -> np.ndarray:
+def cosine_weighted_brdf(brdf: Brdf, normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray) -> np.ndarray:
     """The transfer f(w_in, w_out) max(0, n . w_in): what the reflection equation integrates. (N, 3)."""
     n, wi, wo = (np.atleast_2d(np.asarray(a, dtype=float)) for a in (normal, w_in, w_out))
     n_in, n_out = _dot(n, wi), _dot(n, wo)
     front = (n_in > 0) & (n_out > 0)
     cos_in = np.where(front, n_in, 0.0)
-    albedo = np.asarray(brdf["albedo"], dtype=float)
+    albedo = np.asarray(brdf.albedo, dtype=float)
     value = (cos_in / np.pi)[:, None] * albedo[None, :]
-    model = brdf["model"]
+    model = brdf.model
     if model == "phong":
-        lobe = phong_lobe(_dot(reflect(wo, n), wi), float(brdf["exponent"]))
-        value = value + np.where(front, lobe, 0.0)[:, None] * np.asarray(brdf["specular"], float)[None, :]
+        lobe = phong_lobe(_dot(reflect(wo, n), wi), brdf.exponent)
+        value = value + np.where(front, lobe, 0.0)[:, None] * np.asarray(brdf.specular, float)[None, :]
     elif model == "microfacet":
         h = wi + wo
         h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), _EPS)
         n_h, out_h = _dot(n, h), _dot(wo, h)
-        d = beckmann_distribution(n_h, float(brdf["roughness"]))
+        d = beckmann_distribution(n_h, brdf.roughness)
         g = vcavity_shadowing(n_h, np.maximum(n_in, 0), np.maximum(n_out, 0), out_h)
-        f = schlick_fresnel(_dot(wi, h), brdf["specular"])
+        f = schlick_fresnel(_dot(wi, h), brdf.specular)
         spec = np.where(front, d * g / (4.0 * np.maximum(n_out, _EPS)), 0.0)  # cos_in cancels
         value = value + spec[:, None] * f
     elif model != "lambert":
@@ -86,7 +180,7 @@ def cosine_weighted_brdf(brdf: dict, normal: np.ndarray, w_in: np.ndarray, w_out
     return value
 
 
-def brdf_value(brdf: dict, normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray) -> np.ndarray:
+def brdf_value(brdf: Brdf, normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray) -> np.ndarray:
     """f(w_in, w_out) in 1/sr, (N, 3); zero below either horizon (see the module docstring)."""
     n_in = _dot(np.atleast_2d(normal), np.atleast_2d(w_in))
     return cosine_weighted_brdf(brdf, normal, w_in, w_out) / np.maximum(n_in, _EPS)[:, None]

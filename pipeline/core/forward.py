@@ -29,10 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.core import transfer
+from pipeline.core.brdf import Brdf, cosine_weighted_brdf
 from pipeline.core.sh import band_of_index, sh_basis
-
-LOBE_MODELS = ("phong", "microfacet")
-WIDTH_PARAM = {"phong": "exponent", "microfacet": "roughness"}
 
 
 def specular_lobe_filter(model: str, width: float, order: int) -> np.ndarray:
@@ -78,10 +76,10 @@ def design_terms(normal: np.ndarray, view_dir: np.ndarray, order: int, with_lobe
     return DesignTerms(diffuse, reflected, grazing, cos_view)
 
 
-def lobe_factor(brdf: dict, grazing: np.ndarray) -> np.ndarray:
+def lobe_factor(brdf: Brdf, grazing: np.ndarray) -> np.ndarray:
     """k_c per sample and channel (N, 3) of the module docstring; zeros for a Lambertian BRDF."""
-    model = brdf["model"]
-    spec = np.asarray(brdf.get("specular", [0.0, 0.0, 0.0]), dtype=float)
+    model = brdf.model
+    spec = np.asarray(brdf.specular if brdf.has_lobe else (0.0, 0.0, 0.0), dtype=float)
     if model == "phong":
         return np.broadcast_to(spec[None, :], (grazing.shape[0], 3))
     if model == "microfacet":
@@ -89,20 +87,19 @@ def lobe_factor(brdf: dict, grazing: np.ndarray) -> np.ndarray:
     return np.zeros((grazing.shape[0], 3))
 
 
-def channel_designs(terms: DesignTerms, brdf: dict, order: int) -> np.ndarray:
+def channel_designs(terms: DesignTerms, brdf: Brdf, order: int) -> np.ndarray:
     """Per-channel design matrices (3, N, K): B_c = designs[c] @ L_c for a fixed BRDF."""
-    albedo = np.asarray(brdf["albedo"], dtype=float)
+    albedo = np.asarray(brdf.albedo, dtype=float)
     designs = albedo[:, None, None] * terms.diffuse[None]
-    if brdf["model"] in LOBE_MODELS:
-        model = brdf["model"]
-        filt = sample_lobe_filters(model, float(brdf[WIDTH_PARAM[model]]), order, terms.cos_view)
+    if brdf.has_lobe:
+        filt = sample_lobe_filters(brdf.model, brdf.lobe_width, order, terms.cos_view)
         k = lobe_factor(brdf, terms.grazing)                     # (N, 3)
         lobe = terms.reflected * filt[:, band_of_index(order)]
         designs = designs + k.T[:, :, None] * lobe[None]
     return designs
 
 
-def render_samples(coeffs: np.ndarray, brdf: dict, normal: np.ndarray, view_dir: np.ndarray,
+def render_samples(coeffs: np.ndarray, brdf: Brdf, normal: np.ndarray, view_dir: np.ndarray,
                    chunk: int = 65536) -> np.ndarray:
     """Forward model: radiance (N, 3) of samples lit by SH lighting ``coeffs`` ((L+1)^2, 3)."""
     coeffs = np.asarray(coeffs, dtype=float)
@@ -110,7 +107,7 @@ def render_samples(coeffs: np.ndarray, brdf: dict, normal: np.ndarray, view_dir:
     n = np.asarray(normal, dtype=float)
     v = np.asarray(view_dir, dtype=float)
     out = np.empty((n.shape[0], 3))
-    with_lobe = brdf["model"] in LOBE_MODELS
+    with_lobe = brdf.has_lobe
     for s in range(0, n.shape[0], chunk):
         terms = design_terms(n[s:s + chunk], v[s:s + chunk], order, with_lobe)
         designs = channel_designs(terms, brdf, order)
@@ -150,15 +147,13 @@ _AZIMUTHS = 24
 def _microfacet_profile_about_r(cos_view: float, roughness: float):
     """p(cos alpha): the microfacet transfer (F = 1) at angle alpha from r, averaged over the
     azimuth around r, for a view at cos(theta_o) = cos_view (normal = +Z)."""
-    from pipeline.core.brdf import cosine_weighted_brdf
-
     s = np.sqrt(max(0.0, 1.0 - cos_view ** 2))
     v = np.array([s, 0.0, cos_view])
     r = np.array([-s, 0.0, cos_view])
     e1 = np.array([cos_view, 0.0, s])           # orthonormal frame (e1, e2, r)
     e2 = np.array([0.0, 1.0, 0.0])
     beta = 2.0 * np.pi * (np.arange(_AZIMUTHS) + 0.5) / _AZIMUTHS
-    brdf = {"model": "microfacet", "albedo": [0.0, 0.0, 0.0], "specular": [1.0, 1.0, 1.0], "roughness": roughness}
+    brdf = Brdf("microfacet", albedo=(0.0, 0.0, 0.0), specular=(1.0, 1.0, 1.0), roughness=roughness)
 
     def profile(t: np.ndarray) -> np.ndarray:
         t = np.asarray(t, dtype=float).reshape(-1)

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.core.brdf import Brdf
 from pipeline.core.quadrature import gauss_legendre
 
 _EPS = 1e-12
@@ -319,18 +320,15 @@ class Principled:
         return np.where(front[:, None], value, 0.0)
 
 
-def material_dict(material: "Principled | None", base_color) -> dict:
-    """The brdf.json dict (pipeline.io.brdf) of a material (None: Lambert) with a uniform base colour (3,)."""
-    base = [float(x) for x in base_color]
+def brdf_from_material(material: "Principled | None", base_color) -> Brdf:
+    """The Brdf of a material (None: Lambert) with a uniform base colour (3,)."""
     if material is None:
-        return {"model": "lambert", "albedo": base}
-    return {"model": "principled", "base_color": base, "roughness": float(material.roughness),
-            "metallic": float(material.metallic), "ior": float(material.ior),
-            "specular_tint": [float(x) for x in material.specular_tint]}
+        return Brdf("lambert", albedo=base_color)
+    return Brdf("principled", base_color=base_color, roughness=material.roughness, metallic=material.metallic,
+                ior=material.ior, specular_tint=material.specular_tint)
 
 
-def principled_from_dict(brdf: dict) -> Principled:
-    """A Principled from a validated brdf.json dict (pipeline.io.brdf)."""
-    return Principled(base_color=tuple(float(v) for v in brdf["base_color"]), roughness=float(brdf["roughness"]),
-                      metallic=float(brdf.get("metallic", 0.0)), ior=float(brdf.get("ior", 1.5)),
-                      specular_tint=tuple(float(v) for v in brdf.get("specular_tint", (1.0, 1.0, 1.0))))
+def principled_from_brdf(brdf: Brdf) -> Principled:
+    """The Principled evaluator of a principled Brdf."""
+    return Principled(base_color=brdf.base_color, roughness=brdf.roughness, metallic=brdf.metallic,
+                      ior=brdf.ior, specular_tint=brdf.specular_tint)

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from pipeline.core import prt, solve
-from pipeline.core.material import Principled, ggx_lobe_cos, material_dict
+from pipeline.core.material import Principled, brdf_from_material, ggx_lobe_cos
 from pipeline.core.sh import band_of_index, envmap_from_sh, num_coeffs, order_of, project_envmap
 from pipeline.core.shading import front_cos
 
@@ -893,7 +893,7 @@ def fit_to_map(geo: prt.Geometry, scene, material: Principled | None, obs: Obser
 
     def parts(b) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(diffuse, specular, interreflected irradiance) at base colour b."""
-        r = scene.with_brdf(material_dict(material, b))
+        r = scene.with_brdf(brdf_from_material(material, b))
         d, sp = r.shade_parts(geo.faces, geo.bary, geo.view_dirs, direct, geo.footprint)
         return d * scale, sp * scale, r._indirect_at(geo.tri, geo.bary)
 
@@ -912,7 +912,7 @@ def fit_to_map(geo: prt.Geometry, scene, material: Principled | None, obs: Obser
             base = new
             if done:
                 break
-            again = scene.with_brdf(material_dict(material, base))._indirect_at(geo.tri, geo.bary)
+            again = scene.with_brdf(brdf_from_material(material, base))._indirect_at(geo.tri, geo.bary)
             diffuse, indirect = diffuse + kd * (again - indirect), again
     train = trimmed_rmse(obs.radiance - base * diffuse - specular, obs.weight)
     held = train

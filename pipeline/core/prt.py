@@ -35,6 +35,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from pipeline.core.brdf import Brdf
 from pipeline.core.material import Principled
 from pipeline.core.render import Renderer, bounce_series
 from pipeline.core.sh import num_coeffs, sh_basis
@@ -102,7 +103,7 @@ def geometry(mesh, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, o
     directions (N, 3)) and of its vertices, for SH lighting up to ``order``; ``footprint``: see
     Geometry."""
     env = np.ones((cell_height, 2 * cell_height, 3), np.float32)
-    r = Renderer(mesh, env, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, cell_height=cell_height,
+    r = Renderer(mesh, env, Brdf("lambert", albedo=(1.0, 1.0, 1.0)), cell_height=cell_height,
                  bounce_samples=bounce_samples, seed=seed)
     faces = np.asarray(faces, np.int64)
     bary = np.asarray(bary, float)

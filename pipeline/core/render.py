@@ -46,10 +46,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.core.brdf import beckmann_distribution, phong_lobe, vcavity_shadowing
+from pipeline.core.brdf import Brdf, beckmann_distribution, phong_lobe, vcavity_shadowing
 from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays, subpixel_offsets
 from pipeline.core.envmap import (downsample, equirect_directions, equirect_solid_angles, lookup)
-from pipeline.core.material import principled_from_dict
+from pipeline.core.material import principled_from_brdf
 from pipeline.core.surface import POINT_LIFT, VERTEX_LIFT, barycentric, interpolated_normals, lifted
 from pipeline.core.shading import (EnvPyramid, front_cos, lobe_support_cos, specular_over_directions,
                                    specular_over_footprint, specular_samples, stratified_unit_square, tangent_frames)
@@ -228,15 +228,15 @@ def bounce_series(bounce: list, base: np.ndarray, direct: np.ndarray, max_bounce
 @dataclass
 class Renderer:
     """A prepared scene: mesh (object frame, metres: a pipeline.raycast.RayMesh, its arrays and
-    its ray intersector), environment map, BRDF dict (pipeline.io.brdf).
+    its ray intersector), environment map, Brdf (pipeline.core.brdf).
 
-    ``vertex_albedo`` (V, 3) replaces brdf["albedo"] per vertex (linear).  Build once, call
+    ``vertex_albedo`` (V, 3) replaces the Brdf's diffuse colour per vertex (linear).  Build once, call
     ``render`` per view: the light set and the per-vertex visibility are shared by all views.
     """
 
     mesh: object           # pipeline.raycast.RayMesh (ray_mesh(trimesh mesh))
     env: np.ndarray
-    brdf: dict
+    brdf: Brdf
     shadows: bool = True
     vertex_albedo: np.ndarray | None = None
     board: BoardPlane | None = None
@@ -267,7 +267,7 @@ class Renderer:
         self._visibility = np.ones((nv, nd), dtype=bool)
         self._vis_done = np.zeros(nv, dtype=bool)
         self._scale = float(np.linalg.norm(self.mesh.extents))
-        self.material = principled_from_dict(self.brdf) if self.brdf["model"] == "principled" else None
+        self.material = principled_from_brdf(self.brdf) if self.brdf.model == "principled" else None
         self._rng = np.random.default_rng(self.seed)
         self._vertex_irradiance = None
         self._bounce_rays = None
@@ -344,11 +344,11 @@ class Renderer:
 
     # -- shading ----------------------------------------------------------------------------
     def _spec_cut(self) -> float | None:
-        model = self.brdf["model"]
+        model = self.brdf.model
         if model == "microfacet":
-            return float(np.cos(min(np.pi, 2.0 * np.arctan(_LOBE_CUT_SIGMAS * float(self.brdf["roughness"])))))
+            return float(np.cos(min(np.pi, 2.0 * np.arctan(_LOBE_CUT_SIGMAS * self.brdf.roughness))))
         if model == "phong":
-            return float(max(0.0, np.exp(np.log(_PHONG_CUT) / float(self.brdf["exponent"]))))
+            return float(max(0.0, np.exp(np.log(_PHONG_CUT) / self.brdf.exponent)))
         return None
 
     def _normals_at(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
@@ -368,8 +368,7 @@ class Renderer:
         """Per-vertex diffuse colour (V, 3): vertex_albedo, or the material's base colour / albedo."""
         if self.vertex_albedo is not None:
             return np.asarray(self.vertex_albedo, float)
-        key = "base_color" if self.material is not None else "albedo"
-        return np.broadcast_to(np.asarray(self.brdf[key], float), (len(self.mesh.vertices), 3))
+        return np.broadcast_to(self.brdf.diffuse_color, (len(self.mesh.vertices), 3))
 
     def _diffuse_albedo(self, mu_out: np.ndarray, base: np.ndarray) -> np.ndarray:
         """Lambertian reflectance seen from mu_out: the material's layered base or the plain albedo."""
@@ -510,7 +509,7 @@ class Renderer:
         ``view_dirs`` (P, 3) are unit vectors from the point towards the viewer.
         """
         tri = np.asarray(self.mesh.faces)[faces]
-        if self.material is not None or self.brdf["model"] == "lambert":
+        if self.material is not None or self.brdf.model == "lambert":
             diffuse, specular = self.shade_parts(faces, bary, view_dirs)
             return self._base(tri, bary) * diffuse + specular
         normals = self._normals_at(faces, bary)
@@ -594,14 +593,14 @@ class Renderer:
                                                       base[front])
         return diffuse, specular
 
-    def with_brdf(self, brdf: dict) -> "Renderer":
+    def with_brdf(self, brdf: Brdf) -> "Renderer":
         """This scene (map, light set, visibility, bounce rays: all shared) with another Lambert or
-        principled BRDF dict of uniform colour; the interreflection is recomputed for it."""
+        principled Brdf of uniform colour; the interreflection is recomputed for it."""
         other = copy.copy(self)
         other.brdf = brdf
         other.vertex_albedo = None
         other._vertex_irradiance = None
-        other.material = principled_from_dict(brdf) if brdf["model"] == "principled" else None
+        other.material = principled_from_brdf(brdf) if brdf.model == "principled" else None
         if other.material is not None:
             if self.material is None:
                 other._remainder = self._remainder_pyramid()
@@ -623,10 +622,10 @@ class Renderer:
         support = (cos_in > 0) & (r_w > spec_cut)
         if vis is not None:
             support &= vis > 0
-        specular = np.asarray(self.brdf["specular"], float)
-        if self.brdf["model"] == "phong":
+        specular = np.asarray(self.brdf.specular, float)
+        if self.brdf.model == "phong":
             # R&H reflection-space Phong: the transfer f cos(theta_in) is the lobe itself
-            transfer = np.where(support, phong_lobe(r_w, float(self.brdf["exponent"])), 0.0)
+            transfer = np.where(support, phong_lobe(r_w, self.brdf.exponent), 0.0)
             if vis is not None:
                 transfer = transfer * vis
             return specular[None, :] * (transfer @ power)
@@ -634,7 +633,7 @@ class Renderer:
         inv_len = 1.0 / np.sqrt(np.maximum(2.0 + 2.0 * wo_w, 1e-12))
         n_h = np.where(support, (cos_in + n_out) * inv_len, 1.0)
         out_h = np.where(support, (1.0 + wo_w) * inv_len, 1.0)
-        d = beckmann_distribution(n_h, float(self.brdf["roughness"]))
+        d = beckmann_distribution(n_h, self.brdf.roughness)
         g = vcavity_shadowing(n_h, cos_in, n_out, out_h)
         # f cos(theta_in) = F D G / (4 n . w_out) (Torrance-Sparrow; cos(theta_in) cancels)
         transfer = np.where(support, d * g, 0.0) / (4.0 * np.maximum(n_out, 1e-12))
@@ -772,7 +771,7 @@ class SceneGroups:
     def _rows(self) -> list[np.ndarray]:
         return [np.flatnonzero(self.group == g) for g in range(len(self.scenes))]
 
-    def with_brdf(self, brdf: dict) -> "SceneGroups":
+    def with_brdf(self, brdf: Brdf) -> "SceneGroups":
         return SceneGroups([s.with_brdf(brdf) for s in self.scenes], self.group)
 
     def direct_parts(self, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray) -> list:

@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.core.forward import WIDTH_PARAM
+from pipeline.core.brdf import WIDTH_PARAM, Brdf
 from pipeline.core.sh import band_of_index, num_coeffs
 
 LABELS = ("recoverable", "ill-conditioned", "ill-posed")
@@ -395,7 +395,7 @@ def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.00
     rms_signal = float(np.sqrt((data.radiance ** 2 * data.weight[:, None]).sum() / (3 * wsum)))
     if model == "lambert":
         albedo, spec, rss = linear_brdf(data, model, None)
-        return {"brdf": {"model": "lambert", "albedo": albedo.tolist()}, "mse": rss / (3 * wsum),
+        return {"brdf": Brdf("lambert", albedo=albedo), "mse": rss / (3 * wsum),
                 "width": None, "profile": [], "width_recoverable": None}
     lo, hi = WIDTH_BOUNDS[model]
     param = WIDTH_PARAM[model]
@@ -421,21 +421,21 @@ def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.00
     ang = sorted(angular_width(model, x) for x in accepted) if accepted.size else [angular_width(model, width)]
     spread = ang[-1] / max(ang[0], 1e-300)
     recoverable = bool(spread <= 3.0 and np.max(spec) > 0)
-    return {"brdf": {"model": model, "albedo": albedo.tolist(), "specular": spec.tolist(), param: width},
+    return {"brdf": Brdf(model, albedo=albedo, specular=spec, **{param: width}),
             "mse": mse, "width": width,
             "profile": [{param: float(np.exp(x)), "mse": float(m)} for x, m in zip(log_grid, profile)],
             "width_recoverable": recoverable,
             "width_interval": [float(accepted.min()), float(accepted.max())] if accepted.size else [width, width]}
 
 
-def brdf_mse(data: BrdfData, brdf: dict, filter_fn) -> float:
+def brdf_mse(data: BrdfData, brdf: Brdf, filter_fn) -> float:
     """Weighted mean square residual of a fixed BRDF on ``data`` (all channels)."""
-    model = brdf["model"]
-    pred = np.asarray(brdf["albedo"])[None, :] * data.diffuse
+    model = brdf.model
+    pred = np.asarray(brdf.albedo)[None, :] * data.diffuse
     if model != "lambert":
-        filt = filter_fn(model, float(brdf[WIDTH_PARAM[model]]), data.cos_view)
+        filt = filter_fn(model, brdf.lobe_width, data.cos_view)
         lobe = np.einsum("nlc,nl->nc", data.bands, filt)
-        spec = np.asarray(brdf["specular"])[None, :]
+        spec = np.asarray(brdf.specular)[None, :]
         k = spec if model == "phong" else spec * (1.0 - data.grazing[:, None]) + data.grazing[:, None]
         pred = pred + k * lobe
     r = data.radiance - pred

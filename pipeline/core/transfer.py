@@ -120,14 +120,13 @@ def microfacet_lobe_normal_view(cos_in: np.ndarray, roughness: float) -> np.ndar
     V-cavity G, Fresnel F = 1) seen from the normal (w_out = n), as a function of
     cos(theta_in) = cos alpha; at normal view the mirror direction is n, so this is the lobe
     about the reflected direction whose filter R&H approximate by exp(-(sigma l)^2)."""
-    from pipeline.core.brdf import cosine_weighted_brdf
+    from pipeline.core.brdf import Brdf, cosine_weighted_brdf
 
     t = np.asarray(cos_in, dtype=float).reshape(-1)
     sin_t = np.sqrt(np.maximum(0.0, 1.0 - t * t))
     w_in = np.stack([sin_t, np.zeros_like(t), t], axis=1)
     normal = np.broadcast_to([0.0, 0.0, 1.0], w_in.shape)
-    brdf = {"model": "microfacet", "albedo": [0.0, 0.0, 0.0], "specular": [1.0, 1.0, 1.0],
-            "roughness": float(roughness)}
+    brdf = Brdf("microfacet", albedo=(0.0, 0.0, 0.0), specular=(1.0, 1.0, 1.0), roughness=roughness)
     return cosine_weighted_brdf(brdf, normal, w_in, normal)[:, 0]
 
 

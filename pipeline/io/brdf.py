@@ -1,4 +1,5 @@
-"""brdf.json (DESIGN.md): ``{"model": ..., "albedo": [r, g, b], ...}`` and the inline CLI spec.
+"""brdf.json (DESIGN.md): ``{"model": ..., "albedo": [r, g, b], ...}`` and the inline CLI spec,
+read into and written from pipeline.core.brdf.Brdf (its BRDF_PARAMS is the one parameter table).
 
 Models and their parameters (formulas in pipeline.core.material, pipeline.core.brdf and docs/material.md):
   lambert     albedo [r,g,b] in [0, 1]
@@ -16,18 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.brdf import BRDF_PARAMS, PARAM_DEFAULTS, RGB_PARAMS, Brdf
 from pipeline.errors import UserError
 from pipeline.io.values import is_number, number_array
 from pipeline.workdir import read_json, write_json
 
-MODEL_PARAMS = {
-    "lambert": ("albedo",),
-    "principled": ("base_color", "roughness"),
-    "phong": ("albedo", "specular", "exponent"),
-    "microfacet": ("albedo", "specular", "roughness"),
-}
-OPTIONAL_PARAMS = {"principled": {"metallic": 0.0, "ior": 1.5, "specular_tint": [1.0, 1.0, 1.0]}}
-RGB_PARAMS = ("albedo", "specular", "base_color", "specular_tint")
 UNIT_PARAMS = ("albedo", "base_color", "specular_tint", "metallic")  # physically within [0, 1]
 LEGACY_MODELS = {"lambertian": "lambert", "principled_v2": "principled", "ggx": "principled"}
 # keys a brdf.json may carry besides its model's parameters (provenance, notes)
@@ -43,31 +37,28 @@ def _principled_ranges(name: str, doc: dict) -> None:
                         "most plastics and paints)")
 
 
-def validate_brdf(doc: dict, name: str = "brdf") -> dict:
-    """Normalize a BRDF dict (RGB params as 3 floats, scalars as float); UserError when malformed.
-
-    Principled: optional parameters get their defaults, every value is range-checked and an
-    unknown key is refused (one line naming the key and what is valid).
+def validate_brdf(doc: dict, name: str = "brdf") -> Brdf:
+    """A brdf.json-shaped dict -> Brdf (RGB params as 3 floats, scalars as float); UserError when
+    malformed.  Principled: optional parameters get their defaults, every value is range-checked
+    and an unknown key is refused (one line naming the key and what is valid).
     """
     model = doc.get("model")
     ours = LEGACY_MODELS.get(model.split(" ")[0]) if isinstance(model, str) else None
     if ours is not None:
         raise UserError(f"{name}: model {model!r} is not a sigrend model; write \"{ours}\" "
-                        f"with its parameters ({', '.join(MODEL_PARAMS[ours])})")
-    if not isinstance(model, str) or model not in MODEL_PARAMS:
-        raise UserError(f"{name}: unknown BRDF model {model!r}; use one of {', '.join(MODEL_PARAMS)}")
+                        f"with its parameters ({', '.join(_required(ours))})")
+    if not isinstance(model, str) or model not in BRDF_PARAMS:
+        raise UserError(f"{name}: unknown BRDF model {model!r}; use one of {', '.join(BRDF_PARAMS)}")
     out = dict(doc)
-    optional = OPTIONAL_PARAMS.get(model, {})
     if model == "principled":
-        allowed = set(MODEL_PARAMS[model]) | set(optional) | set(FREE_KEYS)
-        unknown = sorted(set(doc) - allowed)
+        unknown = sorted(set(doc) - set(BRDF_PARAMS[model]) - set(FREE_KEYS))
         if unknown:
             raise UserError(f"{name}: unknown key {unknown[0]!r} for model 'principled'; valid keys: base_color, "
                             "roughness (0, 1], metallic [0, 1], ior >= 1, specular_tint [0, 1]")
-        for key, default in optional.items():
-            out.setdefault(key, default)
-    for key in MODEL_PARAMS[model] + tuple(optional):
-        if key not in out:
+    for key in BRDF_PARAMS[model]:
+        default = PARAM_DEFAULTS.get(key)
+        out.setdefault(key, list(default) if isinstance(default, tuple) else default)
+        if out[key] is None:
             raise UserError(f"{name}: model {model!r} needs parameter {key!r}")
         value = out[key]
         if key in RGB_PARAMS:
@@ -91,16 +82,15 @@ def validate_brdf(doc: dict, name: str = "brdf") -> dict:
             out[key] = v
     if model == "principled":
         _principled_ranges(name, out)
-    return out
+    return Brdf.from_dict(out)
 
 
-def diffuse_color(brdf: dict) -> list[float]:
-    """The Lambertian colour of a BRDF dict: ``albedo``, or a principled material's ``base_color``."""
-    return list(brdf["albedo"] if "albedo" in brdf else brdf["base_color"])
+def _required(model: str) -> tuple[str, ...]:
+    return tuple(k for k in BRDF_PARAMS[model] if k not in PARAM_DEFAULTS)
 
 
-def parse_brdf_spec(spec: str) -> dict:
-    """A brdf.json path or an inline spec ``model:key=v[,v,v],key=v`` -> validated BRDF dict.
+def parse_brdf_spec(spec: str) -> Brdf:
+    """A brdf.json path or an inline spec ``model:key=v[,v,v],key=v`` -> validated Brdf.
 
     Example: ``microfacet:albedo=0.2,0.3,0.5,specular=0.04,roughness=0.2``.
     """
@@ -128,18 +118,19 @@ def parse_brdf_spec(spec: str) -> dict:
     return validate_brdf(doc, f"BRDF spec {spec!r}")
 
 
-def read_brdf(path: str | os.PathLike) -> dict:
+def read_brdf(path: str | os.PathLike) -> Brdf:
     doc = read_json(path)
     if not isinstance(doc, dict):
         raise UserError(f"{path}: a BRDF file is a JSON object with 'model' and 'albedo'")
     return validate_brdf(doc, str(path))
 
 
-def write_brdf(path: str | os.PathLike, brdf: dict) -> Path:
-    return write_json(path, validate_brdf(brdf))
+def write_brdf(path: str | os.PathLike, brdf: Brdf) -> Path:
+    """brdf.json of a Brdf, its ranges checked (pipeline.io.brdf's rules) before anything is written."""
+    return write_json(path, validate_brdf(brdf.to_dict()).to_dict())
 
 
-def material_from_blender(doc: dict) -> dict:
+def material_from_blender(doc: dict) -> Brdf:
     """A sigrend material from a Blender-side description (the shared Cycles captures' gt/brdf.json:
     a Diffuse BSDF's albedo, or a Principled BSDF's base_color / roughness / metallic / ior / tint)."""
     if "roughness" not in doc:

@@ -19,33 +19,33 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.io.brdf import diffuse_color
+from pipeline.core.brdf import Brdf
 from pipeline.workdir import atomic_path
 
 FORMATS = (".glb", ".gltf")
 Y_UP_FROM_Z_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # object -> glTF, rows
 
 
-def gltf_material(brdf: dict, vertex_colors: bool) -> dict:
-    """The glTF material dict of a validated brdf.json (lambert or principled; pipeline.io.brdf)."""
-    lambert = brdf["model"] == "lambert"
-    color = [1.0, 1.0, 1.0] if vertex_colors else [float(c) for c in diffuse_color(brdf)]
+def gltf_material(brdf: Brdf, vertex_colors: bool) -> dict:
+    """The glTF material dict of a Brdf (lambert or principled)."""
+    lambert = brdf.model == "lambert"
+    color = [1.0, 1.0, 1.0] if vertex_colors else brdf.diffuse_color.tolist()
     pbr = {"baseColorFactor": [*color, 1.0],
-           "metallicFactor": 0.0 if lambert else float(brdf["metallic"]),
-           "roughnessFactor": 1.0 if lambert else float(brdf["roughness"])}
+           "metallicFactor": 0.0 if lambert else brdf.metallic,
+           "roughnessFactor": 1.0 if lambert else brdf.roughness}
     extensions = {}
     if lambert:
         extensions["KHR_materials_specular"] = {"specularFactor": 0.0}
     else:
-        extensions["KHR_materials_ior"] = {"ior": float(brdf["ior"])}
-        tint = [float(c) for c in brdf["specular_tint"]]
+        extensions["KHR_materials_ior"] = {"ior": brdf.ior}
+        tint = list(brdf.specular_tint)
         if tint != [1.0, 1.0, 1.0]:
             extensions["KHR_materials_specular"] = {"specularColorFactor": tint}
-    return {"name": f"sigrend {brdf['model']}", "pbrMetallicRoughness": pbr, "extensions": extensions}
+    return {"name": f"sigrend {brdf.model}", "pbrMetallicRoughness": pbr, "extensions": extensions}
 
 
 def write_gltf(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
-               brdf: dict, vertex_colors: np.ndarray | None = None, generator: str = "sigrend") -> Path:
+               brdf: Brdf, vertex_colors: np.ndarray | None = None, generator: str = "sigrend") -> Path:
     """Write one mesh (object frame: vertices (V, 3) metres, faces (F, 3), unit vertex normals
     (V, 3)) with the material of ``brdf`` and optional per-vertex linear base colour (V, 3) as a
     .glb or a .gltf with its buffer embedded (by the suffix), atomically."""

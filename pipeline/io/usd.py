@@ -19,27 +19,27 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.io.brdf import diffuse_color
+from pipeline.core.brdf import Brdf
 from pipeline.workdir import atomic_path
 
 FORMATS = (".usda", ".usdc", ".usd")
 
 
-def preview_surface_inputs(brdf: dict) -> dict:
-    """UsdPreviewSurface input values of a validated brdf.json (lambert or principled)."""
-    color = [float(c) for c in diffuse_color(brdf)]
-    if brdf["model"] == "lambert":
+def preview_surface_inputs(brdf: Brdf) -> dict:
+    """UsdPreviewSurface input values of a Brdf (lambert or principled)."""
+    color = brdf.diffuse_color.tolist()
+    if brdf.model == "lambert":
         return {"diffuseColor": color, "useSpecularWorkflow": 1,
                 "specularColor": [0.0, 0.0, 0.0], "roughness": 1.0, "metallic": 0.0}
-    if [float(c) for c in brdf["specular_tint"]] != [1.0, 1.0, 1.0]:
+    if brdf.specular_tint != (1.0, 1.0, 1.0):
         raise UserError("brdf.json: UsdPreviewSurface has no specular tint; export this material as glTF "
                         "(KHR_materials_specular) instead")
     return {"diffuseColor": color, "useSpecularWorkflow": 0,
-            "roughness": float(brdf["roughness"]), "metallic": float(brdf["metallic"]), "ior": float(brdf["ior"])}
+            "roughness": brdf.roughness, "metallic": brdf.metallic, "ior": brdf.ior}
 
 
 def write_usd(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
-              brdf: dict, vertex_colors: np.ndarray | None = None, generator: str = "sigrend") -> Path:
+              brdf: Brdf, vertex_colors: np.ndarray | None = None, generator: str = "sigrend") -> Path:
     """Write one mesh (object frame, metres; faces (F, 3); unit vertex normals (V, 3)) with the
     material of ``brdf`` and optional per-vertex linear base colour (V, 3), atomically; the
     format (text .usda, binary .usdc/.usd) from the suffix."""

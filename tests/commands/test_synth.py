@@ -29,7 +29,7 @@ def test_capture_layout_and_ground_truth(tiny_capture):
     assert keys == ["0000.exr", "0001.exr", "0002.exr"]
     poses = read_poses(cap / "poses.json")
     assert sorted(poses.images) == keys
-    assert read_brdf(cap / "gt" / "brdf.json")["roughness"] == 0.3
+    assert read_brdf(cap / "gt" / "brdf.json").roughness == 0.3
     assert read_lighting_sh(cap / "gt" / "lighting_sh.json").shape == (21 * 21, 3)
     env = read_image(cap / "gt" / "lighting.exr")
     assert env.shape[1] == 2 * env.shape[0]

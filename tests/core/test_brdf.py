@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.core.brdf import beckmann_distribution, cosine_weighted_brdf, reflect
+from pipeline.core.brdf import Brdf, beckmann_distribution, cosine_weighted_brdf, reflect
 
 
 def _hemisphere_rule(n_theta=400, n_phi=800):
@@ -20,7 +20,7 @@ def test_lambert_directional_albedo_equals_albedo():
     dirs, w = _hemisphere_rule()
     n = np.tile([0.0, 0.0, 1.0], (len(dirs), 1))
     wo = np.tile([0.3, 0.0, np.sqrt(1 - 0.09)], (len(dirs), 1))
-    brdf = {"model": "lambert", "albedo": [0.2, 0.5, 1.0]}
+    brdf = Brdf("lambert", albedo=[0.2, 0.5, 1.0])
     got = (cosine_weighted_brdf(brdf, n, dirs, wo) * w[:, None]).sum(0)
     # midpoint rule on a linear integrand in cos(theta): error ~1e-6 from the grid
     np.testing.assert_allclose(got, [0.2, 0.5, 1.0], rtol=1e-5)
@@ -38,7 +38,7 @@ def test_phong_transfer_has_at_most_unit_energy(view_cos):
     dirs, w = _hemisphere_rule()
     n = np.tile([0.0, 0.0, 1.0], (len(dirs), 1))
     wo = np.tile([np.sqrt(1 - view_cos**2), 0.0, view_cos], (len(dirs), 1))
-    brdf = {"model": "phong", "albedo": [0, 0, 0], "specular": [1, 1, 1], "exponent": 50.0}
+    brdf = Brdf("phong", albedo=[0, 0, 0], specular=[1, 1, 1], exponent=50.0)
     total = (cosine_weighted_brdf(brdf, n, dirs, wo)[:, 0] * w).sum()
     # the lobe integrates to 1 over the sphere; the horizon clips it at grazing views only
     assert total <= 1.0 + 1e-3
@@ -52,7 +52,7 @@ def test_microfacet_never_returns_more_than_it_receives(roughness, view_cos):
     dirs, w = _hemisphere_rule(1000, 1000)
     n = np.tile([0.0, 0.0, 1.0], (len(dirs), 1))
     wo = np.tile([np.sqrt(1 - view_cos**2), 0.0, view_cos], (len(dirs), 1))
-    brdf = {"model": "microfacet", "albedo": [0, 0, 0], "specular": [1, 1, 1], "roughness": roughness}
+    brdf = Brdf("microfacet", albedo=[0, 0, 0], specular=[1, 1, 1], roughness=roughness)
     total = (cosine_weighted_brdf(brdf, n, dirs, wo)[:, 0] * w).sum()
     assert 0.5 < total <= 1.0 + 2e-3  # F = 1: the lobe keeps most energy, never creates any
 
@@ -71,3 +71,25 @@ def test_reflect_is_the_mirror_direction():
     tangent = np.cross(n, w)
     np.testing.assert_allclose(reflect(tangent, n), -tangent, atol=1e-12)
     np.testing.assert_allclose(reflect(r, n), w, atol=1e-12)
+
+
+def test_brdf_type_holds_each_model_to_its_parameters():
+    """The one parameter table: RGB parameters as 3 floats (a scalar is grey), principled's
+    optional ones defaulted, a parameter of another model or a missing one refused, and the
+    brdf.json form round-trips with JSON types."""
+    glossy = Brdf("microfacet", albedo=[0.2, 0.3, 0.5], specular=0.04, roughness=np.float32(0.2))
+    assert glossy.specular == (0.04, 0.04, 0.04) and type(glossy.roughness) is float
+    assert glossy.has_lobe and glossy.lobe_width == pytest.approx(0.2)
+    assert Brdf.from_dict({**glossy.to_dict(), "notes": "ignored"}) == glossy
+    assert glossy.to_dict()["albedo"] == [0.2, 0.3, 0.5]
+    plastic = Brdf("principled", base_color=(0.7, 0.45, 0.1), roughness=0.3)
+    assert (plastic.metallic, plastic.ior, plastic.specular_tint) == (0.0, 1.5, (1.0, 1.0, 1.0))
+    assert not plastic.has_lobe and plastic.albedo is None
+    assert plastic.with_diffuse_color([0.1, 0.2, 0.3]).diffuse_color.tolist() == [0.1, 0.2, 0.3]
+    assert Brdf("lambert", albedo=0.5).with_diffuse_color([0.1, 0.2, 0.3]).albedo == (0.1, 0.2, 0.3)
+    with pytest.raises(ValueError, match="no parameter 'roughness'"):
+        Brdf("lambert", albedo=0.5, roughness=0.3)
+    with pytest.raises(ValueError, match="needs 'exponent'"):
+        Brdf("phong", albedo=0.5, specular=0.1)
+    with pytest.raises(ValueError, match="unknown BRDF model"):
+        Brdf("velvet", albedo=0.5)

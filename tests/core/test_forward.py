@@ -6,6 +6,7 @@ lighting."""
 import numpy as np
 import pytest
 
+from pipeline.core.brdf import Brdf
 from pipeline.core.forward import render_samples
 from pipeline.core.sh import num_coeffs, sh_basis, sh_index
 
@@ -21,8 +22,8 @@ def directions(rng, n: int = 200) -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.mark.parametrize("brdf, reflected", [
-    ({"model": "lambert", "albedo": [0.6, 0.5, 0.4]}, [0.6, 0.5, 0.4]),
-    ({"model": "phong", "albedo": [0.3, 0.2, 0.1], "specular": [0.2, 0.2, 0.2], "exponent": 40.0}, [0.5, 0.4, 0.3]),
+    (Brdf("lambert", albedo=[0.6, 0.5, 0.4]), [0.6, 0.5, 0.4]),
+    (Brdf("phong", albedo=[0.3, 0.2, 0.1], specular=[0.2, 0.2, 0.2], exponent=40.0), [0.5, 0.4, 0.3]),
 ])
 def test_white_furnace(rng, brdf, reflected):
     """Uniform radiance L = 2 (its DC coefficient 2 sqrt(4π)): every sample reflects (rho + s) L."""
@@ -40,12 +41,12 @@ def test_one_band_through_the_clamped_cosine(rng):
     normal, view = directions(rng)
     rho = np.array([0.6, 0.5, 0.4])
     want = rho / np.pi * (2 * np.pi / 3) * sh_basis(normal, 2)[:, [sh_index(1, 0)]] * coeffs[sh_index(1, 0)]
-    np.testing.assert_allclose(render_samples(coeffs, {"model": "lambert", "albedo": rho.tolist()}, normal, view),
+    np.testing.assert_allclose(render_samples(coeffs, Brdf("lambert", albedo=rho.tolist()), normal, view),
                                want, atol=1e-12)
 
 
 def test_linear_in_the_lighting(rng):
-    brdf = {"model": "microfacet", "albedo": [0.4, 0.3, 0.2], "specular": [0.04] * 3, "roughness": 0.2}
+    brdf = Brdf("microfacet", albedo=[0.4, 0.3, 0.2], specular=[0.04] * 3, roughness=0.2)
     a, b = rng.normal(size=(num_coeffs(6), 3)), rng.normal(size=(num_coeffs(6), 3))
     normal, view = directions(rng)
     np.testing.assert_allclose(render_samples(2 * a + b, brdf, normal, view),

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.core.brdf import cosine_weighted_brdf
+from pipeline.core.brdf import Brdf, cosine_weighted_brdf
 from pipeline.core.camera import Camera, look_at, pixel_centers, pixel_rays
 from pipeline.core.envmap import equirect_directions, equirect_solid_angles
 from pipeline.core.procedural_envmaps import ENV_PARAMS, make_envmap, smooth_coefficients
@@ -49,7 +49,7 @@ def test_lambert_sphere_matches_closed_form_irradiance():
     direction); the issue asks for 1 %.
     """
     env = make_envmap("smooth", 64)
-    renderer = Renderer(ray_mesh(sphere()), env, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, shadows=False,
+    renderer = Renderer(ray_mesh(sphere()), env, Brdf("lambert", albedo=[1.0, 1.0, 1.0]), shadows=False,
                         cell_height=64)
     camera, R, t = view()
     result = renderer.render(camera, R, t)
@@ -72,7 +72,7 @@ def test_white_furnace_lambert_returns_the_radiance():
     """
     env = make_envmap("constant", 32, value=2.0)
     for shadows in (False, True):
-        renderer = Renderer(ray_mesh(sphere(4)), env, {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}, shadows=shadows,
+        renderer = Renderer(ray_mesh(sphere(4)), env, Brdf("lambert", albedo=[1.0, 1.0, 1.0]), shadows=shadows,
                             cell_height=32)
         result = renderer.render(*view())
         got = result.radiance[result.object_mask]
@@ -89,7 +89,7 @@ def test_white_furnace_lambert_returns_the_radiance():
 def test_microfacet_lobe_never_returns_more_than_it_receives(roughness):
     """F0 = 1 (F = 1), no diffuse, L = 1: B(w_o) is the lobe's directional albedo, <= 1 (+ quadrature)."""
     env = make_envmap("constant", 64)
-    brdf = {"model": "microfacet", "albedo": [0.0, 0.0, 0.0], "specular": [1.0, 1.0, 1.0], "roughness": roughness}
+    brdf = Brdf("microfacet", albedo=[0.0, 0.0, 0.0], specular=[1.0, 1.0, 1.0], roughness=roughness)
     renderer = Renderer(ray_mesh(sphere(4)), env, brdf, shadows=False, cell_height=64)
     result = renderer.render(*view())
     got = result.radiance[result.object_mask]
@@ -104,8 +104,8 @@ def test_specular_sum_matches_brute_force_over_the_light_set(rng):
     """The renderer's dense half-vector sums equal pipeline.core.brdf evaluated pair by pair."""
     mesh = sphere(2)
     env = make_envmap("area", 32)
-    for brdf in ({"model": "microfacet", "albedo": [0.2, 0.3, 0.5], "specular": [0.04, 0.5, 0.9], "roughness": 0.3},
-                 {"model": "phong", "albedo": [0.2, 0.3, 0.5], "specular": [0.3, 0.2, 0.1], "exponent": 20.0}):
+    for brdf in (Brdf("microfacet", albedo=[0.2, 0.3, 0.5], specular=[0.04, 0.5, 0.9], roughness=0.3),
+                 Brdf("phong", albedo=[0.2, 0.3, 0.5], specular=[0.3, 0.2, 0.1], exponent=20.0)):
         renderer = Renderer(ray_mesh(mesh), env, brdf, shadows=False, cell_height=8)
         faces = rng.integers(0, len(mesh.faces), 40)
         bary = rng.dirichlet([1, 1, 1], 40)
@@ -153,7 +153,7 @@ def test_concave_box_floor_gets_the_view_factor_of_its_opening():
     depth = 0.5
     mesh = open_box(depth)
     env = make_envmap("constant", 64)
-    brdf = {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}
+    brdf = Brdf("lambert", albedo=[1.0, 1.0, 1.0])
     centre_face = int(np.argmin(np.linalg.norm(mesh.triangles_center - [0.012, 0.012, 0], axis=1)))
     tri = mesh.faces[centre_face]
     centre_vertex = int(np.argmin(np.linalg.norm(mesh.vertices[tri], axis=1)))
@@ -217,8 +217,7 @@ def test_bright_blocks_the_lobe_cannot_resolve_leave_the_render_as_it_was():
     blocks (11 deg, the lobe: 2 alpha = 29 deg): every pixel within 0.5 % of the unmerged render
     (measured: mean 0.025 %, worst 0.12 %; 16 x 16 blocks, 45 deg: worst 0.69 %)."""
     camera, R, t = view(32)
-    brdf = {"model": "principled", "base_color": [0.6, 0.4, 0.2], "roughness": 0.5, "metallic": 0.0,
-            "ior": 1.5, "specular_tint": [1.0, 1.0, 1.0]}
+    brdf = Brdf("principled", base_color=[0.6, 0.4, 0.2], roughness=0.5)
     env = _glow_and_lamp()
     images = [Renderer(ray_mesh(sphere(4)), env, brdf, shadows=False, bright_block=b).render(camera, R, t)
               for b in (1, 4)]
@@ -237,7 +236,7 @@ def test_every_procedural_env_covers_the_sphere():
 
 
 def test_camera_inside_a_closed_mesh_is_refused():
-    renderer = Renderer(ray_mesh(sphere(3)), make_envmap("constant", 8), {"model": "lambert", "albedo": [0.5] * 3},
+    renderer = Renderer(ray_mesh(sphere(3)), make_envmap("constant", 8), Brdf("lambert", albedo=[0.5] * 3),
                         shadows=False)
     camera = Camera("PINHOLE", 16, 16, (16.0, 16.0, 8.0, 8.0))
     R, t = look_at(np.array([0.0, 0.0, 0.01]), np.array([1.0, 0.0, 0.0]))
@@ -252,8 +251,7 @@ def test_principled_white_furnace_through_the_renderer():
     mean 0.9997, worst pixel 3.1% off (one ray per pixel, the lobe's 64 samples near grazing)."""
     camera, R, t = view(48)
     for roughness in (0.15, 0.5):
-        brdf = {"model": "principled", "base_color": [1.0, 1.0, 1.0], "roughness": roughness, "metallic": 0.0,
-                "ior": 1.5, "specular_tint": [1.0, 1.0, 1.0]}
+        brdf = Brdf("principled", base_color=[1.0, 1.0, 1.0], roughness=roughness)
         result = Renderer(ray_mesh(sphere(4)), make_envmap("constant", 32), brdf, shadows=False).render(camera, R, t)
         values = result.radiance[result.object_mask]
         assert abs(values.mean() - 1.0) < 3e-3 and np.abs(values - 1.0).max() < 0.05, (roughness, values.min(),
@@ -270,7 +268,7 @@ def test_interreflection_closes_the_furnace_of_a_concave_object():
     keep = shell.triangles_center[:, 2] < 0.02
     bowl = trimesh.Trimesh(shell.vertices, shell.faces[keep][:, ::-1])  # the inside of a spherical cap
     bowl.remove_unreferenced_vertices()
-    brdf = {"model": "lambert", "albedo": [1.0, 1.0, 1.0]}
+    brdf = Brdf("lambert", albedo=[1.0, 1.0, 1.0])
     camera, R, t = view(48, eye=(0.05, 0.02, 0.5))
     env = make_envmap("constant", 32)
     lit = Renderer(ray_mesh(bowl), env, brdf, shadows=True, max_bounces=64).render(camera, R, t)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.core import forward, solve
-from pipeline.core.brdf import cosine_weighted_brdf
+from pipeline.core.brdf import Brdf, cosine_weighted_brdf
 from pipeline.core.envmap import equirect_directions, equirect_solid_angles
 from pipeline.core.sh import num_coeffs, project_envmap
 
@@ -42,7 +42,7 @@ def _integrate(env, brdf, normal, view):
 
 def test_chunked_normal_equations_equal_one_shot_least_squares(rng):
     normal, view, ids = _sphere(rng, 3000)
-    brdf = {"model": "phong", "albedo": [0.5, 0.4, 0.3], "specular": [0.3, 0.3, 0.3], "exponent": 50.0}
+    brdf = Brdf("phong", albedo=[0.5, 0.4, 0.3], specular=[0.3, 0.3, 0.3], exponent=50.0)
     b = rng.normal(size=(len(normal), 3))
     w = rng.uniform(0.5, 1.0, len(normal))
     eqs = solve.NormalEquations(4, 3, shared=False)
@@ -63,7 +63,7 @@ def test_chunked_normal_equations_equal_one_shot_least_squares(rng):
 
 def test_retargeted_normal_equations_equal_fresh_ones(rng):
     normal, view, ids = _sphere(rng, 2000)
-    brdf = {"model": "phong", "albedo": [0.5, 0.4, 0.3], "specular": [0.3, 0.3, 0.3], "exponent": 50.0}
+    brdf = Brdf("phong", albedo=[0.5, 0.4, 0.3], specular=[0.3, 0.3, 0.3], exponent=50.0)
     designs = forward.channel_designs(forward.design_terms(normal, view, 3, True), brdf, 3)
     w = rng.uniform(0.5, 1.0, len(normal))
     first, second = rng.normal(size=(2, len(normal), 3))
@@ -81,9 +81,9 @@ def test_forward_model_against_numerical_integration(rng):
     env = _env(32)
     normal, view, _ = _sphere(rng, 400)
     coeffs = project_envmap(env, 24)
-    lambert = {"model": "lambert", "albedo": ALBEDO.tolist()}
-    phong = {"model": "phong", "albedo": [0.3, 0.2, 0.1], "specular": [0.5, 0.5, 0.5], "exponent": 60.0}
-    micro = {"model": "microfacet", "albedo": [0.3, 0.2, 0.1], "specular": [0.9, 0.9, 0.9], "roughness": 0.15}
+    lambert = Brdf("lambert", albedo=ALBEDO.tolist())
+    phong = Brdf("phong", albedo=[0.3, 0.2, 0.1], specular=[0.5, 0.5, 0.5], exponent=60.0)
+    micro = Brdf("microfacet", albedo=[0.3, 0.2, 0.1], specular=[0.9, 0.9, 0.9], roughness=0.15)
     for brdf, tol in ((lambert, 0.005), (phong, 0.01), (micro, 0.05)):
         ref = _integrate(env, brdf, normal, view)
         model = forward.render_samples(coeffs, brdf, normal, view)
@@ -91,7 +91,7 @@ def test_forward_model_against_numerical_integration(rng):
         # Lambert and R&H Phong are exact up to the 32x64 midpoint rule and the order-24 cut
         # (< 1%); the microfacet lobe is R&H's reflection-space approximation with a
         # view-dependent radial filter: 3-4% measured at n.v >= 0.7, 5% allowed
-        assert rel < tol, (brdf["model"], rel)
+        assert rel < tol, (brdf.model, rel)
 
 
 def _lambert_system(rng, noise, n=6000, order=8):
@@ -100,7 +100,7 @@ def _lambert_system(rng, noise, n=6000, order=8):
     normal = rng.normal(size=(n, 3))
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     ids = rng.integers(0, 16, n)
-    brdf = {"model": "lambert", "albedo": ALBEDO.tolist()}
+    brdf = Brdf("lambert", albedo=ALBEDO.tolist())
     b = forward.render_samples(truth, brdf, normal, normal)
     b = b + noise * np.sqrt((b ** 2).mean()) * rng.normal(size=b.shape)
     eqs = solve.NormalEquations(order, 4, shared=True)

@@ -1,18 +1,22 @@
 """brdf.json for the principled material: defaults, ranges and unknown keys (one line naming the key)."""
 
+import json
+
 import pytest
 
 from pipeline.errors import UserError
-from pipeline.io.brdf import diffuse_color, material_from_blender, read_brdf, validate_brdf, write_brdf
+from pipeline.io.brdf import material_from_blender, read_brdf, validate_brdf, write_brdf
 
 GOOD = {"model": "principled", "base_color": [0.1, 0.45, 0.15], "roughness": 0.15}
 
 
 def test_defaults_and_round_trip(tmp_path):
-    doc = validate_brdf(GOOD)
-    assert doc["metallic"] == 0.0 and doc["ior"] == 1.5 and doc["specular_tint"] == [1.0, 1.0, 1.0]
-    assert read_brdf(write_brdf(tmp_path / "brdf.json", doc)) == doc
-    assert diffuse_color(doc) == [0.1, 0.45, 0.15]
+    brdf = validate_brdf(GOOD)
+    assert brdf.metallic == 0.0 and brdf.ior == 1.5 and brdf.specular_tint == (1.0, 1.0, 1.0)
+    path = write_brdf(tmp_path / "brdf.json", brdf)
+    assert read_brdf(path) == brdf
+    assert json.loads(path.read_text()) == {**GOOD, "metallic": 0.0, "ior": 1.5, "specular_tint": [1.0, 1.0, 1.0]}
+    assert brdf.diffuse_color.tolist() == [0.1, 0.45, 0.15]
 
 
 @pytest.mark.parametrize("change, words", [
@@ -39,5 +43,5 @@ def test_blender_side_names_are_pointed_to_the_sigrend_model():
 def test_material_from_blender_gt():
     gt = {"model": "principled_v2 (lambert + dielectric GGX)", "base_color": [0.7, 0.45, 0.1], "roughness": 0.3,
           "ior": 1.5, "metallic": 0.0, "specular_tint": [1, 1, 1], "blender": {}}
-    assert material_from_blender(gt)["model"] == "principled"
-    assert material_from_blender({"model": "lambertian", "albedo": [0.7, 0.62, 0.5]})["model"] == "lambert"
+    assert material_from_blender(gt).model == "principled"
+    assert material_from_blender({"model": "lambertian", "albedo": [0.7, 0.62, 0.5]}).model == "lambert"

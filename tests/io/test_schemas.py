@@ -5,6 +5,7 @@ import json
 import numpy as np
 import pytest
 
+from pipeline.core.brdf import Brdf
 from pipeline.core.camera import Camera
 from pipeline.errors import UserError
 from pipeline.io.brdf import parse_brdf_spec, read_brdf, write_brdf
@@ -78,7 +79,7 @@ def test_lighting_sh_round_trip_and_shape_check(tmp_path, rng):
 
 def test_brdf_spec_and_file(tmp_path):
     b = parse_brdf_spec("microfacet:albedo=0.2,0.3,0.5,specular=0.04,roughness=0.2")
-    assert b == {"model": "microfacet", "albedo": [0.2, 0.3, 0.5], "specular": [0.04] * 3, "roughness": 0.2}
+    assert b == Brdf("microfacet", albedo=[0.2, 0.3, 0.5], specular=[0.04] * 3, roughness=0.2)
     write_brdf(tmp_path / "b.json", b)
     assert read_brdf(tmp_path / "b.json") == b
     with pytest.raises(UserError, match="unknown BRDF model"):

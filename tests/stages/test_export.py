@@ -16,6 +16,7 @@ import pytest
 from helpers import assert_one_line_error
 
 from pipeline.cli import main as sigrend
+from pipeline.core.brdf import Brdf
 from pipeline.core.envmap import blender_columns, equirect_directions, equirect_solid_angles
 from pipeline.core.image_metrics import block_relative_rmse
 from pipeline.core.sh import project_envmap, sh_of_sources
@@ -31,7 +32,7 @@ TEAPOT = DATA / "cycles" / "teapot_city_glossy"
 BPY = "bpy==4.5.15"        # the Blender the shared Cycles captures were rendered with
 
 
-def make_fit(tmp_path: Path, brdf: dict, textured: bool, sun: bool = True) -> tuple[Path, Path]:
+def make_fit(tmp_path: Path, brdf: Brdf, textured: bool, sun: bool = True) -> tuple[Path, Path]:
     """A capture (the Cycles teapot's mesh and poses) and a work folder holding a fit: ``brdf``,
     the sunrise HDRI as a fit would hold it (the rest clipped at the 99.9th percentile as SH order
     8, with its sun as a directional source if ``sun``), optionally a per-vertex base colour."""
@@ -53,14 +54,13 @@ def make_fit(tmp_path: Path, brdf: dict, textured: bool, sun: bool = True) -> tu
     if textured:
         mesh = read_mesh(capture / "mesh.ply")
         z = mesh.vertices[:, 2]
-        rho = np.asarray(brdf.get("base_color", brdf.get("albedo")))[None, :] * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None]
+        rho = brdf.diffuse_color[None, :] * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None]
         write_vertex_albedo(work / "fit" / "albedo.ply", mesh, rho)
     return capture, work
 
 
 def test_glb_holds_the_mesh_material_and_lighting_in_gltf_conventions(tmp_path):
-    brdf = {"model": "principled", "base_color": [0.7, 0.45, 0.1], "roughness": 0.3, "ior": 1.45,
-            "specular_tint": [1.0, 0.9, 0.8]}
+    brdf = Brdf("principled", base_color=[0.7, 0.45, 0.1], roughness=0.3, ior=1.45, specular_tint=[1.0, 0.9, 0.8])
     capture, work = make_fit(tmp_path, brdf, textured=True)
     assert sigrend(["export", str(capture), "-w", str(work), "-o", str(tmp_path / "out" / "teapot.glb")]) == 0
     doc = pygltflib.GLTF2().load(str(tmp_path / "out" / "teapot.glb"))
@@ -82,7 +82,7 @@ def test_glb_holds_the_mesh_material_and_lighting_in_gltf_conventions(tmp_path):
     np.testing.assert_allclose(accessor("POSITION"), mesh.vertices[:, [0, 2, 1]] * [1, 1, -1], atol=1e-6)
     np.testing.assert_allclose(accessor("NORMAL"), mesh.vertex_normals @ Y_UP_FROM_Z_UP.T, atol=1e-6)
     z = mesh.vertices[:, 2]
-    expected = np.asarray(brdf["base_color"]) * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None]
+    expected = np.asarray(brdf.base_color) * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None]
     np.testing.assert_allclose(accessor("COLOR_0"), expected, atol=0.5 / 255 + 1e-6)   # albedo.ply is 8-bit
     # the lighting map, in Blender's column order, holds the SH (clamped) and the source's energy
     exported = read_image(tmp_path / "out" / "teapot_lighting.exr")[..., :3]
@@ -96,7 +96,7 @@ def test_glb_holds_the_mesh_material_and_lighting_in_gltf_conventions(tmp_path):
 def test_usd_holds_the_mesh_in_the_object_frame_and_a_preview_surface(tmp_path):
     from pxr import Usd, UsdGeom, UsdShade
 
-    brdf = {"model": "principled", "base_color": [0.7, 0.45, 0.1], "roughness": 0.3, "metallic": 0.25, "ior": 1.45}
+    brdf = Brdf("principled", base_color=[0.7, 0.45, 0.1], roughness=0.3, metallic=0.25, ior=1.45)
     capture, work = make_fit(tmp_path, brdf, textured=True)
     assert sigrend(["export", str(capture), "-w", str(work), "-o", str(tmp_path / "teapot.usdc")]) == 0
     stage = Usd.Stage.Open(str(tmp_path / "teapot.usdc"))
@@ -107,7 +107,7 @@ def test_usd_holds_the_mesh_in_the_object_frame_and_a_preview_surface(tmp_path):
     np.testing.assert_array_equal(np.array(mesh.GetFaceVertexIndicesAttr().Get()), ours.faces.reshape(-1))
     colors = np.array(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("displayColor").Get())
     z = ours.vertices[:, 2]
-    np.testing.assert_allclose(colors, np.asarray(brdf["base_color"]) * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None],
+    np.testing.assert_allclose(colors, np.asarray(brdf.base_color) * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None],
                                atol=0.5 / 255 + 1e-6)
     material, _ = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()
     shader = material.ComputeSurfaceSource()[0]
@@ -121,7 +121,7 @@ def test_usd_holds_the_mesh_in_the_object_frame_and_a_preview_surface(tmp_path):
 def test_lambert_is_a_gltf_material_without_specular_layer(tmp_path):
     """... and the export's files with their sizes and its previews under two bundled maps reach
     the report of the run (issue 13, point 4)."""
-    capture, work = make_fit(tmp_path, {"model": "lambert", "albedo": [0.6, 0.5, 0.4]}, textured=False)
+    capture, work = make_fit(tmp_path, Brdf("lambert", albedo=[0.6, 0.5, 0.4]), textured=False)
     (work / "report.html").write_text("a run's report")
     assert sigrend(["export", str(capture), "-w", str(work)]) == 0
     doc = pygltflib.GLTF2().load(str(work / "export" / "asset.glb"))
@@ -143,8 +143,7 @@ def test_lambert_is_a_gltf_material_without_specular_layer(tmp_path):
 
 
 def test_export_without_a_fit_or_with_a_seed_lobe_says_what_to_do(tmp_path, capsys):
-    capture, work = make_fit(tmp_path, {"model": "phong", "albedo": [0.5] * 3, "specular": [0.1] * 3,
-                                        "exponent": 50}, textured=False)
+    capture, work = make_fit(tmp_path, Brdf("phong", albedo=[0.5] * 3, specular=[0.1] * 3, exponent=50), textured=False)
     assert sigrend(["export", str(capture), "-w", str(work)]) == 2
     assert "refit with --brdf principled" in capsys.readouterr().err
     assert sigrend(["export", str(capture), "-w", str(tmp_path / "empty")]) == 2
@@ -175,7 +174,7 @@ def test_blender_renders_the_exported_asset_as_sigrend_relights_it(tmp_path, ble
     where the sun's light reflects off the glossy body onto the rest of the teapot (a caustic
     path sigrend's renderer leaves out: 1.3 % of the view's light; docs/relight.md) — a sun alone
     on the sphere agrees to 0.05 %."""
-    brdf = {"model": "principled", "base_color": [0.7, 0.45, 0.1], "roughness": 0.3}
+    brdf = Brdf("principled", base_color=[0.7, 0.45, 0.1], roughness=0.3)
     capture, work = make_fit(tmp_path, brdf, textured=True, sun=False)
     asset = work / "export"
     assert sigrend(["export", str(capture), "-w", str(work), "-o", str(asset / asset_name)]) == 0

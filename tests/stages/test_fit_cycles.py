@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.core.brdf import Brdf
 from pipeline.core.sh import band_energy, band_relative_errors
 from pipeline.io.brdf import write_brdf
 from pipeline.io.lighting import read_lighting_sh
@@ -28,7 +29,7 @@ def test_cycles_diffuse_sphere_known_albedo(tmp_path):
 
     capture, work = DATA / "capture", tmp_path / "work"
     run_stage("samples", capture=capture, work=work, settings=make_settings(samples.Settings, stride=2), force=True)
-    brdf = write_brdf(tmp_path / "brdf.json", {"model": "lambert", "albedo": [0.55, 0.45, 0.35]})
+    brdf = write_brdf(tmp_path / "brdf.json", Brdf("lambert", albedo=[0.55, 0.45, 0.35]))
     run_stage("fit", capture=capture, work=work, settings=make_settings(fit.Settings, brdf=str(brdf), order="8"),
               force=True)
     fitted = read_lighting_sh(work / "fit" / "lighting_sh.json")
@@ -53,7 +54,7 @@ def test_synth_capture_lambertian_unknown_lighting(tiny_capture, tmp_path):
     capture = tiny_capture(mesh="sphere", brdf="lambert:albedo=0.6", env="sun+sky", views=8, shadows=False)
     work = tmp_path / "work"
     run_stage("samples", capture=capture, work=work, settings=make_settings(samples.Settings), force=True)
-    brdf = write_brdf(tmp_path / "brdf.json", {"model": "lambert", "albedo": [0.6, 0.6, 0.6]})
+    brdf = write_brdf(tmp_path / "brdf.json", Brdf("lambert", albedo=[0.6, 0.6, 0.6]))
     run_stage("fit", capture=capture, work=work, settings=make_settings(fit.Settings, brdf=str(brdf), order="auto", max_order=12,
                                                                 factor_order=12),
               force=True)

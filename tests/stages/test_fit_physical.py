@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.core.brdf import Brdf
 from pipeline.core.image_metrics import block_relative_rmse
 from pipeline.io.images import read_image
 from pipeline.io.report import read_report
@@ -322,18 +323,18 @@ def test_scale_note_says_what_fixed_the_level():
     channel at its bound); for Lambert, the convention."""
     from stages.fit_physical import _scale_note
 
-    metal = _scale_note({"model": "principled", "metallic": 1.0, "base_color": [1.0, 0.6, 0.3], "ior": 1.5}, None)
+    metal = _scale_note(Brdf("principled", base_color=[1.0, 0.6, 0.3], roughness=0.3, metallic=1.0), None)
     assert "metal" in metal["source"] and "bound 1 in R:" in metal["note"]
-    free = _scale_note({"model": "principled", "metallic": 1.0, "base_color": [0.9, 0.6, 0.3], "ior": 1.5}, None)
+    free = _scale_note(Brdf("principled", base_color=[0.9, 0.6, 0.3], roughness=0.3, metallic=1.0), None)
     assert "bound" not in free["note"]
-    dielectric = _scale_note({"model": "principled", "metallic": 0.0, "base_color": [0.9, 0.6, 0.3], "ior": 1.5}, None)
+    dielectric = _scale_note(Brdf("principled", base_color=[0.9, 0.6, 0.3], roughness=0.3), None)
     assert "dielectric" in dielectric["source"]
-    assert "default grey" in _scale_note({"model": "lambert", "albedo": [0.5] * 3}, None)["source"]
+    assert "default grey" in _scale_note(Brdf("lambert", albedo=[0.5] * 3), None)["source"]
 
 
 def test_summary_line_names_the_detail_part():
     from stages.fit_physical import _summary_line
 
-    brdf = {"model": "principled", "roughness": 0.158, "base_color": [0.07, 0.41, 0.12]}
+    brdf = Brdf("principled", base_color=[0.07, 0.41, 0.12], roughness=0.158)
     assert "105-row detail map" in _summary_line(brdf, (0.15, 0.17), 3, detail_rows=105)
     assert "detail" not in _summary_line(brdf, (0.15, 0.17), 3)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from pipeline.core.brdf import phong_lobe
+from pipeline.core.brdf import Brdf, phong_lobe
 from pipeline.core.camera import Camera, look_at
 from pipeline.core.envmap import equirect_directions, equirect_solid_angles
 from pipeline.core.quadrature import sphere_product_rule
@@ -33,7 +33,7 @@ RADIUS = 0.1
 SIZE = (48, 40)
 
 
-def _scene(tmp: Path, brdf: dict, coeffs: np.ndarray, views: int = 3) -> tuple[Path, Path]:
+def _scene(tmp: Path, brdf: Brdf, coeffs: np.ndarray, views: int = 3) -> tuple[Path, Path]:
     capture, work = tmp / "cap", tmp / "work"
     (capture / "images").mkdir(parents=True)
     trimesh.creation.icosphere(5, radius=RADIUS).export(capture / "mesh.ply")
@@ -70,7 +70,7 @@ def _sphere_normals(view: relight.View) -> tuple[np.ndarray, np.ndarray]:
 def test_lambertian_sphere_matches_quadrature_of_the_reflection_equation(tmp_path, rng):
     coeffs = _lighting(rng)
     albedo = np.array([0.6, 0.5, 0.4])
-    capture, work = _scene(tmp_path, {"model": "lambert", "albedo": albedo.tolist()}, coeffs)
+    capture, work = _scene(tmp_path, Brdf("lambert", albedo=albedo.tolist()), coeffs)
     settings = make_settings(relight.Settings, supersample=1, method="frequency")
     run_stage("relight", capture=capture, work=work, settings=settings)
     view = relight.resolve_views(capture=capture, work=work, settings=settings)[0]
@@ -115,7 +115,7 @@ def test_sharp_lobe_via_prefiltered_map_agrees_with_sh_path(tmp_path, rng):
     h = 64
     env = np.full((h, 2 * h, 3), 0.2, dtype=np.float32)
     env[10:16, 30:40] = [20.0, 18.0, 15.0]   # an area light
-    brdf = {"model": "phong", "albedo": [0.3, 0.3, 0.3], "specular": [0.4, 0.4, 0.4], "exponent": 40.0}
+    brdf = Brdf("phong", albedo=[0.3, 0.3, 0.3], specular=[0.4, 0.4, 0.4], exponent=40.0)
     capture, work = _scene(tmp_path, brdf, _lighting(rng))
     write_image(tmp_path / "env.exr", env, dtype="float")
     common = dict(env=str(tmp_path / "env.exr"), supersample=1, prefilter_height=h, method="frequency")
@@ -136,7 +136,7 @@ def test_sharp_lobe_via_prefiltered_map_agrees_with_sh_path(tmp_path, rng):
 
 def test_outputs_compare_scale_and_freshness(tmp_path, rng):
     coeffs = _lighting(rng)
-    capture, work = _scene(tmp_path, {"model": "lambert", "albedo": [0.5, 0.5, 0.5]}, coeffs)
+    capture, work = _scene(tmp_path, Brdf("lambert", albedo=[0.5, 0.5, 0.5]), coeffs)
     first = run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings))
     assert not first.skipped
     for i in range(3):
@@ -164,7 +164,7 @@ def test_outputs_compare_scale_and_freshness(tmp_path, rng):
 
 
 def test_orbit_views_with_size(tmp_path, rng):
-    capture, work = _scene(tmp_path, {"model": "lambert", "albedo": [0.5, 0.5, 0.5]}, _lighting(rng))
+    capture, work = _scene(tmp_path, Brdf("lambert", albedo=[0.5, 0.5, 0.5]), _lighting(rng))
     # view geometry only: the fast method (the angular one shades the same hits)
     settings = make_settings(relight.Settings, views="orbit:5", size="40x30", out_dir=str(tmp_path / "orbit"),
                              method="frequency")
@@ -177,7 +177,7 @@ def test_orbit_views_with_size(tmp_path, rng):
 
 
 def test_size_scales_the_capture_cameras(tmp_path, rng):
-    capture, work = _scene(tmp_path, {"model": "lambert", "albedo": [0.5, 0.5, 0.5]}, _lighting(rng))
+    capture, work = _scene(tmp_path, Brdf("lambert", albedo=[0.5, 0.5, 0.5]), _lighting(rng))
     native = make_settings(relight.Settings, views="0001.exr", out_dir=str(tmp_path / "a"), method="frequency")
     double = make_settings(relight.Settings, views="0001.exr", size=f"{2 * SIZE[0]}x{2 * SIZE[1]}",
                            out_dir=str(tmp_path / "b"), method="frequency")
@@ -192,7 +192,7 @@ def test_size_scales_the_capture_cameras(tmp_path, rng):
 def test_images_do_not_depend_on_the_threads(tmp_path, rng):
     """--threads threads shade the chunks of rays; a principled lobe's samples are seeded by the
     points they shade, not by the order the chunks come in, so the images are the same to the bit."""
-    capture, work = _scene(tmp_path, {"model": "principled", "base_color": [0.6, 0.3, 0.2], "roughness": 0.3},
+    capture, work = _scene(tmp_path, Brdf("principled", base_color=[0.6, 0.3, 0.2], roughness=0.3),
                            _lighting(rng))
     for threads in (1, 2):
         run_stage("relight", capture=capture, work=work, record=f"relight-{threads}",
@@ -232,7 +232,7 @@ def test_bad_settings_are_user_errors(values, message):
 
 
 def test_missing_inputs_fail_with_one_line_and_keep_outputs(tmp_path, rng):
-    capture, work = _scene(tmp_path, {"model": "lambert", "albedo": [0.5, 0.5, 0.5]}, _lighting(rng))
+    capture, work = _scene(tmp_path, Brdf("lambert", albedo=[0.5, 0.5, 0.5]), _lighting(rng))
     run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings))
     before = (work / "relight" / "0000.exr").stat().st_mtime_ns
     with pytest.raises(UserError, match="not in"):
@@ -291,7 +291,7 @@ def test_angular_method_agrees_with_the_irradiance_formula_for_lambert(tmp_path,
     positive: the frequency path clamps negative radiance at 0)."""
     coeffs = _lighting(rng)
     coeffs[0] = dc
-    capture, work = _scene(tmp_path, {"model": "lambert", "albedo": [0.6, 0.5, 0.4]}, coeffs)
+    capture, work = _scene(tmp_path, Brdf("lambert", albedo=[0.6, 0.5, 0.4]), coeffs)
     if dc < 1:
         from pipeline.core.sh import envmap_from_sh
         assert envmap_from_sh(coeffs, 64).min() < 0   # the case is what it claims to be
@@ -314,7 +314,7 @@ def test_angular_method_keeps_the_energy_of_a_lobe_sharper_than_its_cells(tmp_pa
     radiance = 1.5
     coeffs = np.zeros((9, 3))
     coeffs[0] = radiance * np.sqrt(4 * np.pi)  # L = c_00 Y_00
-    brdf = {"model": "phong", "albedo": [0.3, 0.3, 0.3], "specular": [0.2, 0.2, 0.2], "exponent": 2000.0}
+    brdf = Brdf("phong", albedo=[0.3, 0.3, 0.3], specular=[0.2, 0.2, 0.2], exponent=2000.0)
     capture, work = _scene(tmp_path, brdf, coeffs)
     settings = make_settings(relight.Settings, method="angular", supersample=1)
     run_stage("relight", capture=capture, work=work, settings=settings)
@@ -354,7 +354,7 @@ def test_angular_shadows_in_a_well_match_the_view_factor_of_its_opening():
     a, h, radiance, albedo = 0.05, 0.05, 2.0, 0.5
     mesh = _well(a, h)
     env = np.full((128, 256, 3), radiance)
-    brdf = {"model": "lambert", "albedo": [albedo] * 3}
+    brdf = Brdf("lambert", albedo=[albedo] * 3)
     faces, bary, up = np.array([0]), np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 0.0, 1.0]])
     expected = albedo * radiance * a * a / (a * a + h * h)
     for cells, tolerance in ((64, 0.02), (128, 0.01)):
@@ -376,7 +376,7 @@ def test_angular_phong_lobe_agrees_with_the_frequency_path_away_from_the_horizon
     """R&H Phong (the lobe about r, f cos = lobe) is exact in the frequency path for SH lighting, so
     with no shadows the angular method may differ only by its discretization and by clipping the lobe
     below the surface (which the reflection-space model does not do): compared where n.v > 0.6."""
-    brdf = {"model": "phong", "albedo": [0.2, 0.2, 0.2], "specular": [0.5, 0.5, 0.5], "exponent": 8.0}
+    brdf = Brdf("phong", albedo=[0.2, 0.2, 0.2], specular=[0.5, 0.5, 0.5], exponent=8.0)
     capture, work = _scene(tmp_path, brdf, _lighting(rng, order=4))
     freq, ang = _relight_both(tmp_path, capture, work, supersample=1, shadows=False)
     view = relight.resolve_views(capture=capture, work=work, settings=make_settings(relight.Settings))[1]

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.core.brdf import Brdf
 from pipeline.core.envmap import blender_columns
 from pipeline.core.image_metrics import block_relative_rmse
 from pipeline.io.brdf import material_from_blender, write_brdf
@@ -20,7 +21,7 @@ from pipeline.settings import make_settings
 DATA = Path(__file__).parents[1] / "data"
 
 
-def relight_with_truth(capture: Path, work: Path, env: Path, views: str, brdf: dict) -> list[Path]:
+def relight_with_truth(capture: Path, work: Path, env: Path, views: str, brdf: Brdf) -> list[Path]:
     from stages import relight
 
     write_brdf(work / "fit" / "brdf.json", brdf)
@@ -90,7 +91,7 @@ def test_relight_matches_cycles_diffuse_sphere_capture_views(tmp_path):
     are the ones our render covers).  Target 1%; measured 0.32%."""
     folder = DATA / "cycles_sphere_forest_diffuse"
     rendered = relight_with_truth(folder / "capture", tmp_path / "work", folder / "gt" / "lighting.exr", "capture",
-                                  {"model": "lambert", "albedo": [0.55, 0.45, 0.35]})
+                                  Brdf("lambert", albedo=[0.55, 0.45, 0.35]))
     preds = [read_image(p) for p in rendered]
     refs = [read_image(folder / "capture" / "images" / p.name) for p in rendered]
     err = block_relative_rmse(preds, refs, masks=[p[..., 3] > 0.999 for p in preds])

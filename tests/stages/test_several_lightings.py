@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from helpers import assert_one_line_error
 
+from pipeline.core.brdf import Brdf
 from pipeline.core.envmap import equirect_solid_angles
 from pipeline.errors import UserError
 from pipeline.io.capture_toml import read_capture_config
@@ -145,7 +146,7 @@ def test_relight_draws_a_directional_light():
 
     light = KnownLight(direction=(0.0, 0.6, 0.8), intensity=(2.0, 1.5, 1.0))
     mesh = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
-    lambert = {"model": "lambert", "albedo": [0.5, 0.5, 0.5]}
+    lambert = Brdf("lambert", albedo=[0.5, 0.5, 0.5])
     lighting = relight.prepare_lighting(light, lambert, mesh, make_settings(relight.Settings))
     lights = lighting.renderer.lights
     np.testing.assert_allclose(lights.power.sum(axis=0), [2.0, 1.5, 1.0], rtol=1e-6)
