@@ -69,7 +69,7 @@ def run_stage(name: str, *, capture: Path, work: Path, settings, force: bool = F
             kwargs["force"] = True     # a stage that reuses its own per-item outputs (linearize) redoes them
         with transaction(invalidate=settings_path(work, record)):   # outputs and record committed together, last
             written = module.run(**kwargs)
-            record_settings(work, record, settings, provenance)
+            record_settings(work, record, settings, provenance, written)
     return StageResult(record, list(written), time.perf_counter() - start, False)
 
 

@@ -1,7 +1,8 @@
 """The work folder: where each stage writes, atomic writes, and the skip-if-fresh rule.
 
-A stage is fresh when all its outputs exist and its record (``WORK/<stage>.settings.json``) equals
-what is asked for now: the settings, sigrend's version and the content (sha256) of every input
+A stage is fresh when all its outputs exist — those its ``outputs()`` names and every file its last
+run wrote (an optional one, such as fit/albedo.ply, included) — and its record
+(``WORK/<stage>.settings.json``) equals what is asked for now: the settings, sigrend's version and the content (sha256) of every input
 file — not file times, which ``cp -p``, ``rsync -a`` or unzip set to the past; a removed input
 changes the set.  Hashes are cached in ``WORK/.fingerprints.json`` by (device, inode, size,
 mtime, ctime), so an unchanged file is not read again (ctime cannot be set back by copying tools).
@@ -265,11 +266,19 @@ def settings_path(work: str | os.PathLike, stage: str) -> Path:
     return Path(work) / f"{stage}.settings.json"
 
 
-def record_settings(work: str | os.PathLike, stage: str, settings: Any, provenance: dict | None = None) -> Path:
-    """Write the settings a stage ran with and its ``provenance`` (input fingerprints, version,
-    e.g. the capture path) beside its outputs."""
-    payload = {"stage": stage, "settings": settings_dict(settings), **(provenance or {})}
+def record_settings(work: str | os.PathLike, stage: str, settings: Any, provenance: dict | None = None,
+                    written: Iterable[Path] = ()) -> Path:
+    """Write the settings a stage ran with, its ``provenance`` (input fingerprints, version, e.g.
+    the capture path) and the files it ``written`` (paths inside WORK relative to it) beside its
+    outputs."""
+    payload = {"stage": stage, "settings": settings_dict(settings), **(provenance or {}),
+               "written": sorted({_work_relative(p, work) for p in written})}
     return write_json(settings_path(work, stage), payload)
+
+
+def _work_relative(path: Path, work: str | os.PathLike) -> str:
+    path, work = Path(path).absolute(), Path(work).absolute()
+    return str(path.relative_to(work)) if path.is_relative_to(work) else str(path)
 
 
 def changed_settings(work: str | os.PathLike, stage: str, settings: Any) -> dict[str, tuple]:
@@ -294,7 +303,10 @@ def is_fresh(work: str | os.PathLike, stage: str, settings: Any, outputs: Iterab
     rec = settings_path(work, stage)
     try:
         recorded = json.loads(rec.read_text())
-    except (OSError, ValueError):
+        written = recorded.pop("written", [])
+    except (OSError, ValueError, AttributeError):
+        return False
+    if not all((Path(work) / p).exists() for p in written):     # an absolute p stays itself
         return False
     wanted = {"stage": stage, "settings": settings_dict(settings), **(provenance or {})}
     return json.loads(json.dumps(wanted)) == recorded

@@ -106,6 +106,29 @@ def test_a_changed_input_reruns_the_stages_that_depend_on_it(capture, tmp_path):
     assert after["poses.json"] > before["poses.json"]
 
 
+def test_a_missing_file_the_last_run_wrote_makes_the_stage_stale(tmp_path):
+    """An output outside ``outputs()`` (fit/albedo.ply exists only when a texture won) is in the
+    record of what the run wrote: removing it makes the stage run again; a file written outside
+    the work folder is recorded by its absolute path."""
+    from pipeline.workdir import is_fresh, record_settings
+    from stages.fit import Settings
+
+    work, settings = tmp_path / "work", Settings()
+    named, optional, outside = work / "fit" / "brdf.json", work / "fit" / "albedo.ply", tmp_path / "out.glb"
+    for path in (named, optional, outside):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("x")
+    record_settings(work, "fit", settings, {"sigrend": "test"}, [named, optional, outside])
+    assert json.loads((work / "fit.settings.json").read_text())["written"] == sorted(
+        ["fit/albedo.ply", "fit/brdf.json", str(outside)])
+    assert is_fresh(work, "fit", settings, [named], {"sigrend": "test"})
+    outside.unlink()
+    assert not is_fresh(work, "fit", settings, [named], {"sigrend": "test"})
+    outside.write_text("x")
+    optional.unlink()
+    assert not is_fresh(work, "fit", settings, [named], {"sigrend": "test"})
+
+
 def test_run_says_when_it_replaces_a_stage_made_with_other_settings(capture, tmp_path):
     """A stage last run on its own with other settings is run again with run's: the run says so
     (issue 17: a custom `sigrend fit --order 4` was replaced without a word)."""
