@@ -39,6 +39,7 @@ BUILTIN_MESHES = ("sphere", "icosphere")
 BOARD_DICTIONARY = "DICT_5X5_100"
 BOARD_SQUARES = (8, 6)
 SH_ORDER = 20
+SYNTH_ISO = 100.0     # every photo's ISO (capture.toml [exposure]); the exposure time carries the level
 
 
 @dataclass(frozen=True)
@@ -338,14 +339,10 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     from tqdm import tqdm
 
     from pipeline.core.render import InsideMeshError, Renderer
-    from pipeline.io.brdf import parse_brdf_spec, write_brdf
-    from pipeline.io.camera_files import Exposure, add_sensor_noise, sensor_value, write_camera_file
-    from pipeline.io.capture_toml import write_capture_toml
+    from pipeline.io.brdf import parse_brdf_spec
     from pipeline.io.images import write_image
-    from pipeline.io.mesh import write_vertex_albedo
-    from pipeline.io.poses import ImagePose, Poses, write_poses
+    from pipeline.io.poses import ImagePose, Poses
     from pipeline.raycast import ray_mesh
-    from pipeline.workdir import atomic_path, write_json
 
     settings.validate()
     out = Path(out_dir)
@@ -361,7 +358,6 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     noise = parse_noise(settings.noise, settings.format)
     rng = np.random.default_rng(settings.seed)
     exposure_rng = np.random.default_rng([settings.seed, 1])  # independent of the noise stream
-    iso = 100.0
     written: list[Path] = []
     poses = Poses(cameras={"cam0": camera})
     brackets: dict[str, list[str]] = {}
@@ -376,46 +372,78 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
             raise UserError(f"view {i}: the camera is inside the mesh; increase --distance "
                             f"(now {settings.distance}) or check the mesh") from None
         if t_base is None:
-            t_base = _auto_exposure_time(result.radiance, result.object_mask | result.board_mask, settings.fnumber, iso)
+            t_base = _auto_exposure_time(result.radiance, result.object_mask | result.board_mask, settings.fnumber,
+                                         SYNTH_ISO)
         stem = f"{i:04d}"
-        keys = []
         view_stops = exposure_rng.uniform(-settings.vary_exposure, settings.vary_exposure)
-        for k in range(settings.brackets):
-            step = k - (settings.brackets - 1) / 2 + view_stops / 2  # 4**(stops/2) = 2**stops
-            exposure = Exposure(time=float(f"{t_base * 4.0 ** step:.3g}"), iso=iso, fnumber=settings.fnumber)
-            value = sensor_value(result.radiance, exposure)
-            if noise is not None:
-                value = add_sensor_noise(value, rng, **noise)
-            name = stem if settings.brackets == 1 else f"{stem}_b{k}"
-            path = write_camera_file(out / "images" / name, settings.format, value, exposure)
-            written.append(path)
-            keys.append(path.name)
-            poses.images[path.name] = ImagePose("cam0", R, t)
+        shots = _write_shots(out, stem, result.radiance, t_base, view_stops, settings, noise, rng)
+        written += shots
+        poses.images.update({path.name: ImagePose("cam0", R, t) for path in shots})
         if settings.brackets > 1:
-            brackets[f"view_{stem}"] = keys
+            brackets[f"view_{stem}"] = [path.name for path in shots]
         written.append(write_image(out / "gt" / "masks" / f"{stem}.png", result.object_mask.astype(np.float32),
                                    dtype="uint8"))
     seconds = time.perf_counter() - started
-    written.append(write_poses(out / "gt" / "poses.json", poses))
+    written += _write_capture_files(out, settings, mesh, poses, vertex_albedo, _capture_tables(board_table, brackets,
+                                                                                                 SYNTH_ISO))
+    written += _write_truth(out, env, brdf, {
+        "settings": _settings_json(settings), "exposure_time_base": t_base, "iso": SYNTH_ISO,
+        "fnumber": settings.fnumber, "radiance_from_value": "radiance = value * N^2 / (t * ISO/100)",
+        "render_seconds": round(seconds, 3), "light_directions": len(renderer.lights)})
+    return written
+
+
+def _write_shots(out: Path, stem: str, radiance: np.ndarray, t_base: float, view_stops: float,
+                 settings: SynthSettings, noise: dict | None, rng: np.random.Generator) -> list[Path]:
+    """One view's photos images/<stem>[_b<k>]: a bracket of ``settings.brackets`` exposures (times
+    t_base 4^step s, the view's own offset ``view_stops`` in stops), each the sensor value of the
+    rendered ``radiance`` with ``noise`` drawn from ``rng``."""
+    from pipeline.io.camera_files import Exposure, add_sensor_noise, sensor_value, write_camera_file
+
+    paths = []
+    for k in range(settings.brackets):
+        step = k - (settings.brackets - 1) / 2 + view_stops / 2  # 4**(stops/2) = 2**stops
+        exposure = Exposure(time=float(f"{t_base * 4.0 ** step:.3g}"), iso=SYNTH_ISO, fnumber=settings.fnumber)
+        value = sensor_value(radiance, exposure)
+        if noise is not None:
+            value = add_sensor_noise(value, rng, **noise)
+        name = stem if settings.brackets == 1 else f"{stem}_b{k}"
+        paths.append(write_camera_file(out / "images" / name, settings.format, value, exposure))
+    return paths
+
+
+def _write_capture_files(out: Path, settings: SynthSettings, mesh, poses, vertex_albedo: np.ndarray | None,
+                         tables: dict) -> list[Path]:
+    """What a user's capture holds besides the photos: mesh.ply, capture.toml (``tables``) and
+    poses.json when ``settings.poses``; gt/poses.json and gt/albedo.ply (a texture's per-vertex
+    linear albedo, DESIGN.md) beside the truth."""
+    from pipeline.io.capture_toml import write_capture_toml
+    from pipeline.io.mesh import write_vertex_albedo
+    from pipeline.io.poses import write_poses
+    from pipeline.workdir import atomic_path
+
+    written = [write_poses(out / "gt" / "poses.json", poses)]
     if settings.poses:
         written.append(write_poses(out / "poses.json", poses))
-    mesh_path = out / "mesh.ply"
-
-    with atomic_path(mesh_path) as tmp:
+    with atomic_path(out / "mesh.ply") as tmp:
         mesh.export(tmp, file_type="ply")
-    written.append(mesh_path)
-    if vertex_albedo is not None:  # DESIGN.md: per-vertex linear albedo as PLY vertex colours (x 255)
+    written.append(out / "mesh.ply")
+    if vertex_albedo is not None:
         written.append(write_vertex_albedo(out / "gt" / "albedo.ply", mesh, vertex_albedo))
-    written.append(write_capture_toml(out / "capture.toml", _capture_tables(board_table, brackets, iso),
-                                      "written by sigrend synth"))
-    written.append(write_image(out / "gt" / "lighting.exr", env, dtype="float"))
-    written.append(write_brdf(out / "gt" / "brdf.json", brdf))
-    written.append(_write_lighting_sh(out / "gt" / "lighting_sh.json", env))
-    written.append(write_json(out / "gt" / "synth.json", {
-        "settings": _settings_json(settings), "exposure_time_base": t_base, "iso": iso,
-        "fnumber": settings.fnumber, "radiance_from_value": "radiance = value * N^2 / (t * ISO/100)",
-        "render_seconds": round(seconds, 3), "light_directions": len(renderer.lights)}))
+    written.append(write_capture_toml(out / "capture.toml", tables, "written by sigrend synth"))
     return written
+
+
+def _write_truth(out: Path, env: np.ndarray, brdf, record: dict) -> list[Path]:
+    """gt/: the lighting (lighting.exr and its SH, lighting_sh.json), brdf.json and synth.json (``record``)."""
+    from pipeline.io.brdf import write_brdf
+    from pipeline.io.images import write_image
+    from pipeline.workdir import write_json
+
+    return [write_image(out / "gt" / "lighting.exr", env, dtype="float"),
+            write_brdf(out / "gt" / "brdf.json", brdf),
+            _write_lighting_sh(out / "gt" / "lighting_sh.json", env),
+            write_json(out / "gt" / "synth.json", record)]
 
 
 def _settings_json(settings: SynthSettings) -> dict:
