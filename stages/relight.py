@@ -37,7 +37,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
@@ -839,19 +839,15 @@ def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
 
 
 def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
-    from tqdm import tqdm
-
     capture, work = Path(capture), Path(work)
     source, source_work = photo_source(capture, work, settings)
-    brdf_path = work / "fit" / "brdf.json"
+    brdf_path, light_path = work / "fit" / "brdf.json", lighting_path(work, settings)
     if not brdf_path.exists():
         raise UserError(f"{brdf_path}: no fitted BRDF; run `sigrend fit` first")
-    light_path = lighting_path(work, settings)
     if not light_path.exists():
         raise UserError(f"{light_path}: lighting not found; give --env NEW.exr|lighting_sh.json or run `sigrend fit`")
     brdf = read_brdf(brdf_path)
     mesh = read_mesh(mesh_path(capture))
-    compare = compares(settings)
     views = resolve_views(capture=source, work=source_work, settings=settings, mesh=mesh)
     vertex_colors = vertex_albedo(work, mesh)
     lights = view_lights(source, views) if settings.compare_with and not settings.env else {}
@@ -859,37 +855,12 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     lightings = {light: prepare_lighting(light, brdf, scene_mesh, settings, capture=source,
                                          vertex_colors=vertex_colors, with_board=board_occludes(work, settings))
                  for light in dict.fromkeys(lights.values() or [light_path])}
-    albedo = brdf.diffuse_color
-    rays = scene_mesh.rays
     folder = out_folder(work, settings)
     make_folder(folder, "-o")
-    written: list[Path] = []
-    rendered, photos, masks, exposures = {}, {}, {}, {}
-    manifest = linear_manifest(source_work) if compare else None
-    threads = settings.threads or os.cpu_count() or 1
-    if threads > 1:
-        for lighting in lightings.values():
-            lighting.prepare()
-    with ExitStack() as stack:      # threads shade the chunks of each view; BLAS keeps to one per thread
-        pool = stack.enter_context(ThreadPoolExecutor(threads)) if threads > 1 else None
-        stack.enter_context(threadpool_limits(1))
-        for view in tqdm(views, desc="relight", unit="view", leave=False):
-            lighting = lightings[lights.get(view.key, light_path)]
-            rgba = render_view(view, mesh, rays, lighting, albedo, vertex_colors, settings.supersample,
-                               interior=settings.interior_supersample, pool=pool)
-            stem = view_stem(view.key)
-            written.append(write_image(folder / f"{stem}.exr", rgba, dtype="float"))
-            exposures[view.key] = preview_exposure(rgba[..., :3], rgba[..., 3] > 0.5)
-            written.append(write_preview(folder / f"{stem}.png", rgba[..., :3], exposures[view.key], rgba[..., 3]))
-            if compare and view.has_photo:
-                photo, weight, _ = load_linear_image(source, source_work, view.key, manifest)
-                photo = photo.astype(float)
-                if photo.shape[:2] != rgba.shape[:2]:
-                    raise UserError(f"{view.key}: the photo is {photo.shape[1]}x{photo.shape[0]} but the render is "
-                                    f"{rgba.shape[1]}x{rgba.shape[0]}; --compare needs the native size (drop --size)")
-                valid = weight > 0.999  # fully valid pixels only (linearize's masks, alpha)
-                rendered[view.key], photos[view.key] = rgba, photo
-                masks[view.key] = _interior(rgba[..., 3]) & valid & np.all(np.isfinite(photo), axis=-1)
+    photos = PhotoSource(source, source_work, linear_manifest(source_work)) if compares(settings) else None
+    written, shot = render_views(views, mesh, scene_mesh.rays, {v.key: lightings[lights.get(v.key, light_path)]
+                                                               for v in views}, brdf.diffuse_color, vertex_colors,
+                                 settings, folder, photos)
     described = [lighting.describe() for lighting in lightings.values()]
     summary = {"views": [v.key for v in views], "method": settings.method,
                "lighting": described[0] if len(described) == 1 else described, "brdf": brdf.to_dict(),
@@ -897,18 +868,83 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     if settings.compare_with:
         summary["compare_with"] = {"capture": str(source), "work": str(source_work),
                                    "lighting": "--env" if settings.env else f"{source / 'capture.toml'} [lighting]"}
-    if compare and rendered:
-        result = compare_views(rendered, photos, masks, uses_fitted_lighting(work, settings) and not settings.compare_with)
-        for key, img in rendered.items():
-            stem = view_stem(key)
-            exposure = exposures[key] / result["scale"] if result["scale"] > 0 else exposures[key]
-            written.append(write_preview(folder / f"{stem}_photo.png", photos[key], exposure))
-            m = masks[key]
-            mean_photo = float(photos[key][m].mean()) if m.any() else 1.0
-            rel = np.abs(result["scale"] * img[..., :3] - photos[key]).mean(axis=-1) / max(mean_photo, 1e-12)
-            written.append(write_image(folder / f"{stem}_error.png", error_map_image(rel, m), dtype="uint8"))
-            result["views"][key]["error_map"] = f"{stem}_error.png"
-        result["error_map_range"] = ERROR_MAP_RANGE
-        summary["compare"] = result
+    if shot.renders:
+        summary["compare"] = compare_views(shot.renders, shot.photos, shot.masks,
+                                           uses_fitted_lighting(work, settings) and not settings.compare_with)
+        written += write_error_maps(folder, shot, summary["compare"])
     written.append(write_json(folder / "relight.json", summary))
+    return written
+
+
+@dataclass(frozen=True)
+class PhotoSource:
+    """Where --compare finds the photos of the rendered views: the capture and work folder whose
+    linear images (pipeline.io.linear_manifest) they are."""
+
+    capture: Path
+    work: Path
+    manifest: object
+
+
+@dataclass
+class Shot:
+    """Per view key with a photo to compare: the RGBA render, the linear photo, the mask of the
+    pixels compared (interior, fully valid) and the render's preview exposure."""
+
+    renders: dict = field(default_factory=dict)
+    photos: dict = field(default_factory=dict)
+    masks: dict = field(default_factory=dict)
+    exposures: dict = field(default_factory=dict)
+
+
+def render_views(views: list[View], mesh, rays, lighting_of: dict, albedo: np.ndarray, vertex_colors,
+                 settings: Settings, folder: Path, photos: PhotoSource | None) -> tuple[list[Path], Shot]:
+    """Each view rendered under ``lighting_of[view.key]`` into folder/<stem>.exr and its sRGB
+    preview <stem>.png, on ``settings.threads`` threads; with ``photos``, each view's photo and
+    mask kept for the comparison -> (written paths, Shot)."""
+    from tqdm import tqdm
+
+    written: list[Path] = []
+    shot = Shot()
+    threads = settings.threads or os.cpu_count() or 1
+    if threads > 1:
+        for lighting in {id(x): x for x in lighting_of.values()}.values():
+            lighting.prepare()
+    with ExitStack() as stack:      # threads shade the chunks of each view; BLAS keeps to one per thread
+        pool = stack.enter_context(ThreadPoolExecutor(threads)) if threads > 1 else None
+        stack.enter_context(threadpool_limits(1))
+        for view in tqdm(views, desc="relight", unit="view", leave=False):
+            rgba = render_view(view, mesh, rays, lighting_of[view.key], albedo, vertex_colors, settings.supersample,
+                               interior=settings.interior_supersample, pool=pool)
+            stem = view_stem(view.key)
+            written.append(write_image(folder / f"{stem}.exr", rgba, dtype="float"))
+            exposure = preview_exposure(rgba[..., :3], rgba[..., 3] > 0.5)
+            written.append(write_preview(folder / f"{stem}.png", rgba[..., :3], exposure, rgba[..., 3]))
+            if photos is not None and view.has_photo:
+                photo, weight, _ = load_linear_image(photos.capture, photos.work, view.key, photos.manifest)
+                photo = photo.astype(float)
+                if photo.shape[:2] != rgba.shape[:2]:
+                    raise UserError(f"{view.key}: the photo is {photo.shape[1]}x{photo.shape[0]} but the render is "
+                                    f"{rgba.shape[1]}x{rgba.shape[0]}; --compare needs the native size (drop --size)")
+                valid = weight > 0.999  # fully valid pixels only (linearize's masks, alpha)
+                shot.renders[view.key], shot.photos[view.key], shot.exposures[view.key] = rgba, photo, exposure
+                shot.masks[view.key] = _interior(rgba[..., 3]) & valid & np.all(np.isfinite(photo), axis=-1)
+    return written, shot
+
+
+def write_error_maps(folder: Path, shot: Shot, result: dict) -> list[Path]:
+    """Per compared view: the photo's preview at the render's exposure over the fitted scale
+    (<stem>_photo.png) and the map of |s R - P| / mean P (<stem>_error.png); ``result``
+    (compare_views') gets each view's map name and the maps' range."""
+    written = []
+    for key, img in shot.renders.items():
+        stem = view_stem(key)
+        exposure = shot.exposures[key] / result["scale"] if result["scale"] > 0 else shot.exposures[key]
+        written.append(write_preview(folder / f"{stem}_photo.png", shot.photos[key], exposure))
+        m = shot.masks[key]
+        mean_photo = float(shot.photos[key][m].mean()) if m.any() else 1.0
+        rel = np.abs(result["scale"] * img[..., :3] - shot.photos[key]).mean(axis=-1) / max(mean_photo, 1e-12)
+        written.append(write_image(folder / f"{stem}_error.png", error_map_image(rel, m), dtype="uint8"))
+        result["views"][key]["error_map"] = f"{stem}_error.png"
+    result["error_map_range"] = ERROR_MAP_RANGE
     return written
