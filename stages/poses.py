@@ -294,19 +294,57 @@ def _camera_from_pycolmap(cam) -> Camera:
 
 def run_colmap(colmap_dir: Path, names: list[str], settings: Settings, fixed: Camera | None,
                timings: dict) -> object | None:
-    """Features, matching and incremental mapping; returns the largest pycolmap.Reconstruction or None."""
+    """Features, matching and incremental mapping (hloc's steps, each timed into ``timings``);
+    returns the largest pycolmap.Reconstruction or None."""
     import pycolmap
 
-    database = colmap_dir / "database.db"
-    sparse = colmap_dir / "sparse"
-    for stale in (database, Path(f"{database}-shm"), Path(f"{database}-wal")):
+    database, sparse, log = _fresh_colmap_folder(colmap_dir)
+    pycolmap.set_random_seed(settings.seed)
+    _status(f"extracting SIFT features from {len(names)} images")
+    start = time.perf_counter()
+    with colmap_output(log, settings.verbose):
+        _extract_features(database, colmap_dir / "images", names, settings, fixed)
+    timings["extraction"] = time.perf_counter() - start
+    exhaustive = settings.matcher == "exhaustive" or (settings.matcher == "auto"
+                                                       and len(names) <= settings.exhaustive_limit)
+    _status(f"matching ({'exhaustive' if exhaustive else 'sequential'})")
+    start = time.perf_counter()
+    with colmap_output(log, settings.verbose):
+        _match_features(database, exhaustive, settings.seed)
+    timings["matching"] = time.perf_counter() - start
+    with pycolmap.Database.open(str(database)) as db:
+        verified_pairs = db.num_verified_image_pairs()
+    if verified_pairs == 0:
+        timings["mapping"] = 0.0
+        return None
+    _status("incremental mapping")
+    start = time.perf_counter()
+    with colmap_output(log, settings.verbose):
+        models = pycolmap.incremental_mapping(database, colmap_dir / "images", sparse,
+                                              options=_mapping_options(settings, fixed))
+    timings["mapping"] = time.perf_counter() - start
+    if not models:
+        return None
+    best = max(models, key=lambda i: models[i].num_reg_images())
+    return models[best]
+
+
+def _fresh_colmap_folder(colmap_dir: Path) -> tuple[Path, Path, Path]:
+    """An earlier run's database, sparse models and log removed -> (database.db, sparse/, colmap.log)."""
+    database, sparse, log = colmap_dir / "database.db", colmap_dir / "sparse", colmap_dir / "colmap.log"
+    for stale in (database, Path(f"{database}-shm"), Path(f"{database}-wal"), log):   # this run's log only
         stale.unlink(missing_ok=True)
     if sparse.exists():
         shutil.rmtree(sparse)
     sparse.mkdir(parents=True)
-    log = colmap_dir / "colmap.log"
-    log.unlink(missing_ok=True)  # this run's log only
-    pycolmap.set_random_seed(settings.seed)
+    return database, sparse, log
+
+
+def _extract_features(database: Path, image_dir: Path, names: list[str], settings: Settings,
+                      fixed: Camera | None) -> None:
+    """SIFT features into ``database``: one camera with the ``fixed`` intrinsics, else one per
+    folder (EXIF group) of model ``settings.camera_model``."""
+    import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
     if fixed is not None:
@@ -320,36 +358,25 @@ def run_colmap(colmap_dir: Path, names: list[str], settings: Settings, fixed: Ca
     extraction.max_image_size = settings.max_image_size
     extraction.sift.max_num_features = settings.max_features
     extraction.num_threads = -1
+    pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=mode, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
 
-    _status(f"extracting SIFT features from {len(names)} images")
-    start = time.perf_counter()
-    with colmap_output(log, settings.verbose):
-        pycolmap.extract_features(database, colmap_dir / "images", image_names=names, camera_mode=mode,
-                                  reader_options=reader, extraction_options=extraction,
-                                  device=pycolmap.Device.cpu)
-    timings["extraction"] = time.perf_counter() - start
+
+def _match_features(database: Path, exhaustive: bool, seed: int) -> None:
+    """Matches with two-view verification (RANSAC seeded): every pair, or sequential neighbours."""
+    import pycolmap
 
     matching = pycolmap.FeatureMatchingOptions()
-    use_exhaustive = settings.matcher == "exhaustive" or (
-        settings.matcher == "auto" and len(names) <= settings.exhaustive_limit)
     verification = pycolmap.TwoViewGeometryOptions()
-    verification.ransac.random_seed = settings.seed
-    _status(f"matching ({'exhaustive' if use_exhaustive else 'sequential'})")
-    start = time.perf_counter()
-    with colmap_output(log, settings.verbose):
-        if use_exhaustive:
-            pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification,
-                                      device=pycolmap.Device.cpu)
-        else:
-            pycolmap.match_sequential(database, matching_options=matching, verification_options=verification,
-                                      device=pycolmap.Device.cpu)
-    timings["matching"] = time.perf_counter() - start
+    verification.ransac.random_seed = seed
+    match = pycolmap.match_exhaustive if exhaustive else pycolmap.match_sequential
+    match(database, matching_options=matching, verification_options=verification, device=pycolmap.Device.cpu)
 
-    with pycolmap.Database.open(str(database)) as db:
-        verified_pairs = db.num_verified_image_pairs()
-    if verified_pairs == 0:
-        timings["mapping"] = 0.0
-        return None
+
+def _mapping_options(settings: Settings, fixed: Camera | None):
+    """pycolmap.IncrementalPipelineOptions: seeded, several models kept (the largest is used), and
+    ``fixed`` intrinsics never refined."""
+    import pycolmap
 
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = settings.seed
@@ -364,15 +391,7 @@ def run_colmap(colmap_dir: Path, names: list[str], settings: Settings, fixed: Ca
         options.ba_refine_extra_params = False
         options.mapper.abs_pose_refine_focal_length = False
         options.mapper.abs_pose_refine_extra_params = False
-    _status("incremental mapping")
-    start = time.perf_counter()
-    with colmap_output(log, settings.verbose):
-        models = pycolmap.incremental_mapping(database, colmap_dir / "images", sparse, options=options)
-    timings["mapping"] = time.perf_counter() - start
-    if not models:
-        return None
-    best = max(models, key=lambda i: models[i].num_reg_images())
-    return models[best]
+    return options
 
 
 # --------------------------------------------------------------------------------------------
