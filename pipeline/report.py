@@ -198,12 +198,12 @@ def _coverage(work: Path) -> str:
 def principled_sphere(coeffs: np.ndarray, brdf: Brdf, normal: np.ndarray, view: np.ndarray) -> np.ndarray:
     """Radiance (P, 3) of a principled sphere under SH lighting (a sphere casts no shadows): the
     layered diffuse from the irradiance plus the lobe by GGX samples (pipeline.core.shading)."""
-    from pipeline.core.material import principled_from_brdf
+    from pipeline.core.material import material_from_brdf
     from pipeline.core.sh import sh_evaluate
     from pipeline.core.shading import specular_samples
     from pipeline.core.transfer import irradiance_from_sh
 
-    material = principled_from_brdf(brdf)
+    material = material_from_brdf(brdf)
     mu = np.einsum("pc,pc->p", normal, view)
     out = material.diffuse_weight(np.clip(mu, 0, 1)) / np.pi * irradiance_from_sh(coeffs, normal)
     lobe = specular_samples(material, normal, view, 64, np.random.default_rng(0))

@@ -33,7 +33,7 @@ from scipy.optimize import minimize_scalar
 from pipeline.core import material_fit, prt, solve, texture
 from pipeline.core.envmap import add_sources
 from pipeline.core.brdf import Brdf
-from pipeline.core.material import MIN_ROUGHNESS, Principled, brdf_from_material, principled_from_brdf
+from pipeline.core.material import MIN_ROUGHNESS, Principled, brdf_from_material, material_from_brdf
 from pipeline.core.noise import inverse_variance_weights, noise_level_function, pixel_noise_sigma, weighted_noise_sigma
 from pipeline.core.render import Renderer, SceneGroups
 from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, sh_of_sources
@@ -562,8 +562,7 @@ def select_with_scale(candidate: CandidateFit, known_brdf: Brdf | None, models: 
 
     def select() -> tuple:
         if known_brdf is not None:
-            material = principled_from_brdf(known_brdf) if known_brdf.model == "principled" else None
-            best = candidate(material, known_brdf.diffuse_color, True, None)
+            best = candidate(material_from_brdf(known_brdf), known_brdf.diffuse_color, True, None)
             return best, [_row(best)], None, best
         return select_material(candidate, settings, models, obs, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float),
                                candidate.detail is not None)

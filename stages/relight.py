@@ -908,7 +908,7 @@ def render_views(views: list[View], mesh, rays, lighting_of: dict, albedo: np.nd
     shot = Shot()
     threads = settings.threads or os.cpu_count() or 1
     if threads > 1:
-        for lighting in {id(x): x for x in lighting_of.values()}.values():
+        for lighting in dict.fromkeys(lighting_of.values()):
             lighting.prepare()
     with ExitStack() as stack:      # threads shade the chunks of each view; BLAS keeps to one per thread
         pool = stack.enter_context(ThreadPoolExecutor(threads)) if threads > 1 else None

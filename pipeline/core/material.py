@@ -328,7 +328,10 @@ def brdf_from_material(material: "Principled | None", base_color) -> Brdf:
                 ior=material.ior, specular_tint=material.specular_tint)
 
 
-def principled_from_brdf(brdf: Brdf) -> Principled:
-    """The Principled evaluator of a principled Brdf."""
+def material_from_brdf(brdf: Brdf) -> Principled | None:
+    """The Principled evaluator of a principled Brdf; None for any other model (Lambert and the
+    seed's lobes are evaluated by their callers): brdf_from_material's inverse."""
+    if brdf.model != "principled":
+        return None
     return Principled(base_color=brdf.base_color, roughness=brdf.roughness, metallic=brdf.metallic,
                       ior=brdf.ior, specular_tint=brdf.specular_tint)

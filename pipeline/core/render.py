@@ -49,7 +49,7 @@ import numpy as np
 from pipeline.core.brdf import Brdf, beckmann_distribution, phong_lobe, vcavity_shadowing
 from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays, subpixel_offsets
 from pipeline.core.envmap import (downsample, equirect_directions, equirect_solid_angles, lookup)
-from pipeline.core.material import principled_from_brdf
+from pipeline.core.material import material_from_brdf
 from pipeline.core.surface import POINT_LIFT, VERTEX_LIFT, barycentric, interpolated_normals, lifted
 from pipeline.core.shading import (EnvPyramid, front_cos, lobe_support_cos, specular_over_directions,
                                    specular_over_footprint, specular_samples, stratified_unit_square, tangent_frames)
@@ -267,7 +267,7 @@ class Renderer:
         self._visibility = np.ones((nv, nd), dtype=bool)
         self._vis_done = np.zeros(nv, dtype=bool)
         self._scale = float(np.linalg.norm(self.mesh.extents))
-        self.material = principled_from_brdf(self.brdf) if self.brdf.model == "principled" else None
+        self.material = material_from_brdf(self.brdf)
         self._rng = np.random.default_rng(self.seed)
         self._vertex_irradiance = None
         self._bounce_rays = None
@@ -600,7 +600,7 @@ class Renderer:
         other.brdf = brdf
         other.vertex_albedo = None
         other._vertex_irradiance = None
-        other.material = principled_from_brdf(brdf) if brdf.model == "principled" else None
+        other.material = material_from_brdf(brdf)
         if other.material is not None:
             if self.material is None:
                 other._remainder = self._remainder_pyramid()
