@@ -2,10 +2,11 @@
 
 A stage is fresh when all its outputs exist — those its ``outputs()`` names and every file its last
 run wrote (an optional one, such as fit/albedo.ply, included) — and its record
-(``WORK/<stage>.settings.json``) equals what is asked for now: the settings, sigrend's version and the content (sha256) of every input
-file — not file times, which ``cp -p``, ``rsync -a`` or unzip set to the past; a removed input
-changes the set.  Hashes are cached in ``WORK/.fingerprints.json`` by (device, inode, size,
-mtime, ctime), so an unchanged file is not read again (ctime cannot be set back by copying tools).
+(``WORK/<stage>.settings.json``) equals what is asked for now: the settings, sigrend's version and
+the content (sha256) of every input file — not file times, which ``cp -p``, ``rsync -a`` or unzip
+set to the past; a removed input changes the set.  Hashes are cached in ``WORK/.fingerprints.json``
+by (device, inode, size, mtime, ctime), so an unchanged file is not read again (ctime cannot be set
+back by copying tools).
 Every write goes to a temporary file in the same folder that is renamed into place, so an
 interrupted run never leaves a half-written file that a later stage would trust; inside a
 ``transaction`` (a stage run by pipeline.runner.run_stage) the renames wait for the end of the
