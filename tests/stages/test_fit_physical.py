@@ -1,7 +1,8 @@
 """The fit on the physical forward model against Blender Cycles (tests/data/cycles, see its README):
 photos -> `sigrend run --to fit` with lighting and material unknown (the defaults) or the lighting
 known -> `sigrend relight` under a second HDRI for novel views, scored with the shared
-score_relight.py's metric (pipeline.core.image_metrics) against Cycles' renders."""
+score_relight.py's metric (pipeline.core.image_metrics) against Cycles' renders (fit_and_relight
+says which map and which references)."""
 
 from __future__ import annotations
 
@@ -15,16 +16,22 @@ import pytest
 
 from pipeline.core.brdf import Brdf
 from pipeline.core.image_metrics import block_relative_rmse
-from pipeline.io.images import read_image
+from pipeline.io.images import read_image, write_image
 from pipeline.io.report import read_report
 from pipeline.runner import run_stage
 from pipeline.settings import make_settings
 
-DATA = Path(__file__).parents[1] / "data" / "cycles"
+from helpers import CYCLES as DATA, relight_references, relight_world
 
 
 def fit_and_relight(scene: str, work: Path, *fit_args: str) -> tuple[dict, dict, object]:
-    """(fitted brdf.json, the fit's report, relight error) for a scene of tests/data/cycles."""
+    """(fitted brdf.json, the fit's report, relight error) for a scene of tests/data/cycles, relit
+    under the map Cycles rendered with (Blender's 1024 x 512 HDRI; gt/relight/env.exr is its 2x2
+    box average, which blurs the sharp lobe's reflection of the city's sun: night sphere with the
+    true material 7.47 % against 6.26 %) and scored against Cycles' renders with the sun's highlight
+    converged (gt/relight/highlights: at the references' 512 samples its one block carries +-4 %
+    Monte Carlo noise and decides the night sphere's score, 6.26 % for the true material, 0.99 %
+    against the converged block)."""
     from stages import relight
 
     folder = DATA / scene
@@ -32,15 +39,28 @@ def fit_and_relight(scene: str, work: Path, *fit_args: str) -> tuple[dict, dict,
                    check=True, capture_output=True)
     subprocess.run([sys.executable, "-m", "pipeline.cli", "fit", str(folder), "-w", str(work), *fit_args],
                    check=True, capture_output=True)
+    write_image(work / "relight_world.exr", relight_world(scene), dtype="float")
     run_stage("relight", capture=folder, work=work, force=True,
-              settings=make_settings(relight.Settings, env=str(folder / "gt" / "relight" / "env.exr"),
+              settings=make_settings(relight.Settings, env=str(work / "relight_world.exr"),
                                      views=str(folder / "gt" / "relight" / "poses.json")))
     rendered = sorted((work / "relight").glob("*.exr"))
-    refs = [read_image(folder / "gt" / "relight" / "images" / p.name) for p in rendered]
     assert len(rendered) == 4
-    error = block_relative_rmse([read_image(p) for p in rendered], refs)
+    error = block_relative_rmse([read_image(p) for p in rendered], relight_references(folder, [p.name for p in rendered]))
     brdf = json.loads((work / "fit" / "brdf.json").read_text())
     return brdf, read_report(work / "fit" / "report.json"), error
+
+
+def band_errors(work: Path, truth_map: Path) -> np.ndarray:
+    """Relative errors of the fitted lighting's SH bands 0-2 (fit/lighting_sh.json, its sources
+    included) against the SH of the true map, after one scale per channel (the scale convention's)."""
+    from pipeline.core.sh import band_relative_errors, project_envmap
+    from pipeline.io.images import read_envmap
+    from pipeline.io.lighting import read_lighting_sh
+
+    fitted = read_lighting_sh(work / "fit" / "lighting_sh.json")[:9]
+    truth = project_envmap(np.asarray(read_envmap(truth_map))[..., :3], 2)
+    fitted = fitted * (fitted * truth).sum(axis=0) / (fitted * fitted).sum(axis=0)
+    return band_relative_errors(fitted, truth, 2)
 
 
 def chromaticity_deg(a, b) -> float:
@@ -51,15 +71,12 @@ def chromaticity_deg(a, b) -> float:
 @pytest.mark.slow
 def test_glossy_teapot_both_unknown(tmp_path):
     """Issue 11 targets: relight <= 7%, roughness within 25%, base colour chromaticity within 3 deg.
-    Measured: relight 4.35% (rim 5.19, interior 3.61; the convex fit: 77.2%), roughness 0.300
+    Measured: relight 4.24% (rim 5.00, interior 3.59; under the downsampled gt/relight/env.exr
+    4.35%; the convex fit: 77.2%), roughness 0.300
     (truth 0.3), base (0.740, 0.466, 0.100) for (0.7, 0.45, 0.1); the city sun found as
     one directional source; the renderer with the true material scores 3.11%.  The lighting's
     bands 0-2 (lighting_sh.json, sources included) after one scale per channel against the SH of
     the map Cycles rendered with (the issue's 5 %): 0.25 / 0.31 / 0.67 %."""
-    from pipeline.core.sh import band_relative_errors, project_envmap
-    from pipeline.io.images import read_envmap
-    from pipeline.io.lighting import read_lighting_sh
-
     brdf, report, err = fit_and_relight("teapot_city_glossy", tmp_path / "work")
     assert brdf["model"] == "principled" and report["mode"] == "factorization", (brdf, err)
     assert err.total < 0.07
@@ -68,17 +85,14 @@ def test_glossy_teapot_both_unknown(tmp_path):
     lo, hi = report["roughness_interval"]
     assert lo <= brdf["roughness"] <= hi
     assert len(report["sources"]) >= 1
-    fitted = read_lighting_sh(tmp_path / "work" / "fit" / "lighting_sh.json")[:9]
-    truth = project_envmap(np.asarray(read_envmap(DATA / "teapot_city_glossy" / "gt" / "lighting.exr"))[..., :3], 2)
-    fitted = fitted * (fitted * truth).sum(axis=0) / (fitted * fitted).sum(axis=0)   # the scale convention's
-    errors = band_relative_errors(fitted, truth, 2)
+    errors = band_errors(tmp_path / "work", DATA / "teapot_city_glossy" / "gt" / "lighting.exr")
     assert max(errors) < 0.05, errors
 
 
 @pytest.mark.slow
 def test_glossy_teapot_known_lighting(tmp_path):
     """Issue 11 targets with the lighting known: roughness within 10%, base colour within 3%.
-    Measured: roughness 0.300, base (0.705, 0.453, 0.101) (0.7-1.0% off), relight 3.10%."""
+    Measured: roughness 0.300, base (0.704, 0.452, 0.099) (0.5-0.9% off), relight 3.42%."""
     light = DATA / "teapot_city_glossy" / "gt" / "lighting.exr"
     brdf, report, err = fit_and_relight("teapot_city_glossy", tmp_path / "work", "--lighting", str(light))
     assert report["mode"] == "brdf", (brdf, err)
@@ -92,7 +106,7 @@ def test_concave_diffuse_bunny_both_unknown(tmp_path):
     """Issue 11 target: relight <= 2%, uniform albedo (the shadows and interreflection are in the
     transfer, not painted into a texture), and the albedo's level fixed by the interreflection
     (material_fit.albedo_level) instead of the scale convention's 0.5.  Measured: mean albedo 0.600
-    (truth 0.607), relight 1.62% (at the convention's 0.5: 2.15%; the convex fit: 25.5% with a
+    (truth 0.607), relight 1.63% (at the convention's 0.5: 2.15%; the convex fit: 25.5% with a
     textured albedo).  The choice of lambert over principled hangs on the sun's direction: located
     against the first SH fit alone it was 0.7 deg off and a rough principled lobe won the held-out
     views; relocated against the SH refitted around it (material_fit._relocate_sources), 0.2 deg."""
@@ -139,15 +153,17 @@ def test_glossy_sphere_both_unknown(tmp_path):
     """Issue 11, both unknown on the sharpest lobe (roughness 0.15 under a night city's lamps): the
     lighting's detail part (material_fit.with_detail) carries what the lobe reflects of the city
     beyond SH 8 and three sources.  Measured: roughness 0.152, base (0.080, 0.446, 0.132) for
-    (0.1, 0.45, 0.15), relight 8.47 % (interior 5.05 %) by the shared score_relight.py (while the
-    base colour search ridged bands 0-2: 0.154, (0.074, 0.427, 0.125), 9.19 %; without the detail
-    part: 0.161, (0.091, 0.524, 0.140), 21.0 %).  The issue's 6 % is not met: the true material
-    scores 7.5 % under the downsampled relight map (docs/fit.md); the base colour is 2.9 deg off."""
+    (0.1, 0.45, 0.15), 2.9 deg off, relight 5.23 % (rim 4.12, interior 5.72; the true material
+    0.99 %).  Under the downsampled relight map against the 512-sample references, as the shared
+    score_relight.py scores it, 8.47 % (the true material 7.47 %: the references' noise and the
+    map's blur, fit_and_relight).  While the base colour search ridged bands 0-2: 0.154, (0.074,
+    0.427, 0.125), 9.19 % by the shared script; without the detail part: 0.161, (0.091, 0.524,
+    0.140), 21.0 %."""
     brdf, report, err = fit_and_relight("sphere_night_glossy", tmp_path / "work")
     assert brdf["model"] == "principled" and brdf["metallic"] == 0.0, (brdf, err, report["lighting_detail"])
     assert report["lighting_detail"]["used"]
     assert abs(brdf["roughness"] / 0.15 - 1) < 0.10
-    assert err.total < 0.10
+    assert err.total < 0.06, err
 
 
 @pytest.mark.slow
@@ -155,14 +171,15 @@ def test_glossy_sphere_known_lighting(tmp_path):
     """Issue 11, lighting known, on the sharpest lobe (roughness 0.15 under a night city's lamps):
     the material is fitted under the map itself (the renderer's model of every sample, the bright
     pixels' highlights averaged over each sample's pixel footprint).  Measured on the shared
-    capture: roughness 0.149, base (0.100, 0.450, 0.150), relight 7.25% against the shared
-    references (the true material: 6.26%); at the pixel centres only the roughness was 0.181."""
+    capture: roughness 0.150, base (0.100, 0.450, 0.150), relight 0.86% (the true material: 0.99%;
+    by the shared score_relight.py 7.52%, fit_and_relight); at the pixel centres only the roughness
+    was 0.181."""
     light = DATA / "sphere_night_glossy" / "gt" / "lighting.exr"
     brdf, report, err = fit_and_relight("sphere_night_glossy", tmp_path / "work", "--lighting", str(light))
     assert report["mode"] == "brdf" and brdf["metallic"] == 0.0, (brdf, err)
     assert abs(brdf["roughness"] / 0.15 - 1) < 0.05
     assert np.max(np.abs(np.asarray(brdf["base_color"]) / [0.1, 0.45, 0.15] - 1)) < 0.03
-    assert err.total < 0.10
+    assert err.total < 0.03, err
 
 
 def synth_capture(folder: Path, mesh: str, brdf: str, views: int = 10, size: str = "96x96",
@@ -223,10 +240,6 @@ def test_synth_dielectric_both_unknown(tmp_path, roughness):
     refined below the grid's 0.1, a metal of 0.1.  The lighting's bands 0-2 after one scale per
     channel: 0.8 / 1.1 / 6.4 % at 0.1 (band 2 above the issue's 5 %; with the ridged search 12 / 11 /
     21 %), 0.7 / 0.8 / 1.8 % at 0.6."""
-    from pipeline.core.sh import band_relative_errors, project_envmap
-    from pipeline.io.images import read_envmap
-    from pipeline.io.lighting import read_lighting_sh
-
     base = [0.2, 0.5, 0.3]
     capture = synth_capture(tmp_path / "sphere", "sphere",
                             f"principled:base_color={','.join(map(str, base))},roughness={roughness}")
@@ -234,10 +247,29 @@ def test_synth_dielectric_both_unknown(tmp_path, roughness):
     assert brdf["model"] == "principled" and brdf["metallic"] == 0.0, (brdf, report["candidates"])
     assert abs(brdf["roughness"] / roughness - 1) < 0.25, brdf
     assert chromaticity_deg(brdf["base_color"], base) < 3.0, brdf
-    fitted = read_lighting_sh(tmp_path / "work" / "fit" / "lighting_sh.json")[:9]
-    truth = project_envmap(np.asarray(read_envmap(capture / "gt" / "lighting.exr"))[..., :3], 2)
-    fitted = fitted * (fitted * truth).sum(axis=0) / (fitted * fitted).sum(axis=0)   # the scale convention's
-    errors = band_relative_errors(fitted, truth, 2)
+    errors = band_errors(tmp_path / "work", capture / "gt" / "lighting.exr")
+    assert max(errors[:2]) < 0.05 and errors[2] < 0.10, errors
+
+
+@pytest.mark.slow
+def test_synth_sharp_lobe_known_material(tmp_path):
+    """Issue 11, the material known and the lighting unknown under a lobe sharper than the sources
+    can be located through (roughness 0.1, stages.fit_physical.known_material_fit): the city's sun
+    is found within a degree and the lighting's bands 0-2 come out as with the material unknown.
+    Measured: the sun 0.5 deg off, bands 1.7 / 1.4 / 5.9 %, held-out RMSE 0.152; located through
+    the sharp lobe itself (before): the sun 22 deg off, bands 7.8 / 7.6 / 38 %, held-out RMSE 0.44."""
+    from pipeline.io.images import read_envmap
+
+    spec = "principled:base_color=0.2,0.5,0.3,roughness=0.1"
+    capture = synth_capture(tmp_path / "sphere", "sphere", spec)
+    _, report = fit_synth(capture, tmp_path / "work", "--brdf", spec)
+    env = np.asarray(read_envmap(capture / "gt" / "lighting.exr"))[..., :3].mean(axis=-1)
+    i, j = np.unravel_index(np.argmax(env), env.shape)
+    theta, phi = np.pi * (i + 0.5) / env.shape[0], 2 * np.pi * (j + 0.5) / env.shape[1]
+    sun = np.array([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)])
+    brightest = max(report["sources"], key=lambda src: sum(src["intensity"]))
+    assert np.degrees(np.arccos(np.clip(np.dot(brightest["direction"], sun), -1, 1))) < 1.5, report["sources"]
+    errors = band_errors(tmp_path / "work", capture / "gt" / "lighting.exr")
     assert max(errors[:2]) < 0.05 and errors[2] < 0.10, errors
 
 
