@@ -100,11 +100,15 @@ class Brdf:
     @property
     def diffuse_color(self) -> np.ndarray:
         """The Lambertian colour (3,): ``albedo``, or a principled material's ``base_color``."""
-        return np.array(self.base_color if self.model == "principled" else self.albedo, float)
+        return np.array(getattr(self, self._diffuse_param), float)
 
     def with_diffuse_color(self, color) -> "Brdf":
         """The same material with another diffuse colour (3,) (albedo or base colour)."""
-        return replace(self, **{"base_color" if self.model == "principled" else "albedo": color})
+        return replace(self, **{self._diffuse_param: color})
+
+    @property
+    def _diffuse_param(self) -> str:
+        return BRDF_PARAMS[self.model][0]     # every model's first parameter is its diffuse colour
 
     @property
     def has_lobe(self) -> bool:

@@ -589,13 +589,46 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
     layer = geo.sample_layer(fit.material)
     cand = _Candidate(geo, obs, fit.material, layer, spec, order, folds, lighting_kw, max_bounces)
     system = cand.system(fit.base)
-    a = system.a
-    sources = None if fit.sources is None else Sources(fit.sources.transfer, fit.sources.power.copy())
     src_cols = None
-    if sources is not None:
-        src_cols = _source_columns(geo, layer, sources.transfer, cand.indirect(fit.base, sources.transfer.vertex_direct),
-                                   fit.base)
+    if fit.sources is not None:
+        src_cols = _source_columns(geo, layer, fit.sources.transfer,
+                                   cand.indirect(fit.base, fit.sources.transfer.vertex_direct), fit.base)
+    keep = list(range(0 if fit.sources is None else len(fit.sources.power)))
     table: list[dict] = []
+    best = _lighting_search(system, obs, fit.sources, src_cols, keep, list(range(order + 1)), priors, lighting_kw, table)
+    # backward elimination at the best order and prior: a source the richer SH makes redundant is
+    # dropped while that lowers the held-out error (the pursuit kept it against the cheaper lighting)
+    kept = keep
+    while len(keep) > 0:
+        drops = [_lighting_search(system, obs, fit.sources, src_cols, [k for k in keep if k != j],
+                                  [order_of(best[1].coeffs.shape[0])], [best[4]], lighting_kw, table) for j in keep]
+        i = min(range(len(drops)), key=lambda j: drops[j][0])
+        if not drops[i][0] < best[0]:
+            break
+        best, keep = drops[i], [k for k in keep if k != keep[i]]
+    if keep != kept:     # the order and prior chosen again for the sources left
+        best = _lighting_search(system, obs, fit.sources, src_cols, keep, list(range(order + 1)), priors,
+                                lighting_kw, table)
+    val, lighting, cands, sources, _ = best
+    if not val < fit.validation_rmse:
+        return fit, table
+    return MaterialFit(fit.material, fit.base, lighting.coeffs, lighting,
+                       [{k: v for k, v in c.items() if k != "fit"} for c in cands], float(val),
+                       float(lighting.residual_rms), sources, detail=fit.detail), table
+
+
+def _lighting_search(system: "ShSystem", obs: Observations, sources: Sources | None, src_cols: np.ndarray | None,
+                     keep: list[int], orders: list[int], priors: list[float], lighting_kw: dict, table: list) -> tuple:
+    """refine_lighting's search with the sources ``keep`` (indices) of ``sources`` (their columns
+    ``src_cols`` (3, N, J)): SH ``orders`` x ``priors`` by held-out views, the sources' intensities
+    refitted once around the best SH -> (held-out RMSE, solve.LightingFit, the order table, Sources
+    or None, the prior); a row per prior and source update added to ``table``."""
+    a = system.a
+    if not keep:
+        sources = src_cols = None
+    elif sources is not None:
+        sources = Sources(sources.transfer.subset(keep), sources.power[keep].copy())
+        src_cols = src_cols[..., keep]
     best = None
     for update in range(2 if sources is not None else 1):
         if update:        # the sources' intensities around the best SH, then the SH again
@@ -605,18 +638,14 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
         target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
         eqs = system.equations(target)
         for prior in priors:
-            cands = solve.cross_validate_orders(eqs, list(range(order + 1)), None, **{**lighting_kw, "band_prior": prior})
+            cands = solve.cross_validate_orders(eqs, orders, None, **{**lighting_kw, "band_prior": prior})
             i = min(range(len(cands)), key=lambda j: cands[j]["validation_rmse"])
             table.append({"band_prior": prior, "order": cands[i]["order"], "sources_refitted": bool(update),
-                          "validation_rmse": cands[i]["validation_rmse"], "train_rmse": cands[i]["train_rmse"]})
+                          "sources": len(keep), "validation_rmse": cands[i]["validation_rmse"],
+                          "train_rmse": cands[i]["train_rmse"]})
             if best is None or cands[i]["validation_rmse"] < best[0]:
-                best = (cands[i]["validation_rmse"], cands[i]["fit"], cands, sources)
-    val, lighting, cands, sources = best
-    if not val < fit.validation_rmse:
-        return fit, table
-    return MaterialFit(fit.material, fit.base, lighting.coeffs, lighting,
-                       [{k: v for k, v in c.items() if k != "fit"} for c in cands], float(val),
-                       float(lighting.residual_rms), sources, detail=fit.detail), table
+                best = (cands[i]["validation_rmse"], cands[i]["fit"], cands, sources, prior)
+    return best
 
 
 # Bands the base colour search leaves unridged: the diffuse layer sees only these (R&H 2001: the

@@ -315,6 +315,13 @@ class SourceTransfer:
     specular: np.ndarray | None
     specular_scaled: np.ndarray | None = None   # a metal's: per unit base colour (specular: at F0 = 0)
 
+    def subset(self, keep: list[int]) -> "SourceTransfer":
+        """The transfer of the sources ``keep`` (indices) only."""
+        def cols(x):
+            return None if x is None else x[:, keep]
+        return SourceTransfer(self.directions[keep], self.direct[:, keep], cols(self.vertex_direct),
+                              cols(self.specular), cols(self.specular_scaled))
+
 
 def source_transfer(geo: Geometry, material: Principled | None, directions: np.ndarray,
                     vertices: bool = True) -> SourceTransfer:

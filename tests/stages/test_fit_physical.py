@@ -238,8 +238,9 @@ def test_synth_dielectric_both_unknown(tmp_path, roughness):
     0.1 the base colour was at its bound (0.59, 1, 1) while the base colour search ridged the
     lighting's bands 0-2, which trade with it (material_fit.BASE_FREE_ORDER); before the search
     refined below the grid's 0.1, a metal of 0.1.  The lighting's bands 0-2 after one scale per
-    channel: 0.8 / 1.1 / 6.4 % at 0.1 (band 2 above the issue's 5 %; with the ridged search 12 / 11 /
-    21 %), 0.7 / 0.8 / 1.8 % at 0.6."""
+    channel: 0.8 / 0.5 / 1.9 % at 0.1 with the sun its one source (while the final lighting kept
+    the pursuit's three, a "source" at the zenith carrying the sky: 0.8 / 1.1 / 6.4 %; with the
+    ridged search 12 / 11 / 21 %), 0.7 / 0.8 / 1.8 % at 0.6."""
     base = [0.2, 0.5, 0.3]
     capture = synth_capture(tmp_path / "sphere", "sphere",
                             f"principled:base_color={','.join(map(str, base))},roughness={roughness}")
@@ -248,7 +249,7 @@ def test_synth_dielectric_both_unknown(tmp_path, roughness):
     assert abs(brdf["roughness"] / roughness - 1) < 0.25, brdf
     assert chromaticity_deg(brdf["base_color"], base) < 3.0, brdf
     errors = band_errors(tmp_path / "work", capture / "gt" / "lighting.exr")
-    assert max(errors[:2]) < 0.05 and errors[2] < 0.10, errors
+    assert max(errors) < 0.05, errors
 
 
 @pytest.mark.slow
@@ -256,8 +257,10 @@ def test_synth_sharp_lobe_known_material(tmp_path):
     """Issue 11, the material known and the lighting unknown under a lobe sharper than the sources
     can be located through (roughness 0.1, stages.fit_physical.known_material_fit): the city's sun
     is found within a degree and the lighting's bands 0-2 come out as with the material unknown.
-    Measured: the sun 0.5 deg off, bands 1.7 / 1.4 / 5.9 %, held-out RMSE 0.152; located through
-    the sharp lobe itself (before): the sun 22 deg off, bands 7.8 / 7.6 / 38 %, held-out RMSE 0.44."""
+    Measured: the sun 0.5 deg off, bands 1.7 / 1.3 / 3.7 %, held-out RMSE 0.145 (with the
+    pursuit's two further sources, which the final lighting's backward elimination drops: 1.7 / 1.4
+    / 5.9 %, 0.152); located through the sharp lobe itself (before): the sun 22 deg off, bands
+    7.8 / 7.6 / 38 %, held-out RMSE 0.44."""
     from pipeline.io.images import read_envmap
 
     spec = "principled:base_color=0.2,0.5,0.3,roughness=0.1"
@@ -270,7 +273,7 @@ def test_synth_sharp_lobe_known_material(tmp_path):
     brightest = max(report["sources"], key=lambda src: sum(src["intensity"]))
     assert np.degrees(np.arccos(np.clip(np.dot(brightest["direction"], sun), -1, 1))) < 1.5, report["sources"]
     errors = band_errors(tmp_path / "work", capture / "gt" / "lighting.exr")
-    assert max(errors[:2]) < 0.05 and errors[2] < 0.10, errors
+    assert max(errors) < 0.05, errors
 
 
 @pytest.mark.slow
