@@ -578,12 +578,14 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
     """The lighting of a chosen material refitted richer: SH orders 0..``order`` (``spec``: its
     specular transfer to that order) and the ill-conditioned bands' prior scale from ``priors``
     chosen together by held-out views, the sources kept where the fit put them (their intensities
-    refitted once around the new SH).  The material candidates are compared on a cheaper lighting
+    refitted once around the new SH) or dropped one by one while that lowers the held-out error
+    (the pursuit admitted them against the cheaper lighting; a spurious one carries low-band energy
+    the ridged SH cannot take back).  The material candidates are compared on a cheaper lighting
     (their fit's order and the default prior); the heavier ridge blurs what sharp lights put in the
     higher bands, which the final lighting has room for.  The normal equations are built once per
     source update and shared by every prior and order.  -> (the refitted fit, or ``fit`` when no
-    choice beats its held-out error; the table of (prior, order, held-out RMSE)).  A fit's detail
-    part is kept as it is (the SH refitted to the radiance less it)."""
+    choice beats its held-out error; the table of (prior, order, sources, held-out RMSE)).  A fit's
+    detail part is kept as it is (the SH refitted to the radiance less it)."""
     if fit.detail is not None:
         obs = Observations(obs.radiance - fit.detail.radiance, obs.weight, obs.fold)
     layer = geo.sample_layer(fit.material)
