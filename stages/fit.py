@@ -389,11 +389,11 @@ def fit_brdf_models(bd: solve.BrdfData, models: list[str], settings: Settings, o
                 continue
             fitted = solve.fit_brdf(bd.subset(train), model, fn, noise_floor=settings.noise_floor)
             wv = float(bd.weight[test].sum())
-            val_se += solve.brdf_mse(bd.subset(test), fitted["brdf"], fn) * wv
+            val_se += solve.brdf_mse(bd.subset(test), fitted.brdf, fn) * wv
             val_w += wv
         full = solve.fit_brdf(bd, model, fn, noise_floor=settings.noise_floor)
         out.append({"name": model, "params": 3 + (4 if model != "lambert" else 0),
-                    "train_rmse": float(np.sqrt(full["mse"])),
+                    "train_rmse": float(np.sqrt(full.mse)),
                     "validation_rmse": float(np.sqrt(val_se / val_w)) if val_w else float("nan"),
                     "seconds": time.perf_counter() - t0, "fit": full})
     return out
@@ -463,7 +463,7 @@ def factorize(data: dict, model: str, order: int, albedo0: np.ndarray, settings:
     coeffs, brdf = joint_initialization(data, model, order, albedo0, settings)
     for _ in range(settings.iterations):
         bd = brdf_data(data, coeffs, settings.folds)
-        brdf = solve.fit_brdf(bd, model, fn, noise_floor=settings.noise_floor)["brdf"]
+        brdf = solve.fit_brdf(bd, model, fn, noise_floor=settings.noise_floor).brdf
         coeffs = lighting_step(data, brdf, order, settings).coeffs
     return coeffs, brdf
 
@@ -695,8 +695,8 @@ def _brdf_mode(data: dict, coeffs: np.ndarray, models: list[str], settings: Sett
     bd = brdf_data(data, coeffs, settings.folds)
     cands = fit_brdf_models(bd, models, settings, order_of(coeffs.shape[0]))
     pick = solve.parsimonious_choice(cands, settings.parsimony, noise=settings.noise_floor * _rms(data))
-    report["brdf_width"] = {k: v for k, v in cands[pick]["fit"].items() if k not in ("brdf",)}
-    return ConvexFit("brdf", coeffs, cands[pick]["fit"]["brdf"],
+    report["brdf_width"] = cands[pick]["fit"].width_report()
+    return ConvexFit("brdf", coeffs, cands[pick]["fit"].brdf,
                      candidates=[{k: v for k, v in c.items() if k != "fit"} for c in cands])
 
 
@@ -738,7 +738,7 @@ def _factorization_mode(data: dict, models: list[str], settings: Settings, hint,
         fn = lambda m, w, c: _filter_fn(m, w, order_of(coeffs.shape[0]), c)  # noqa: E731
         profile = solve.fit_brdf(brdf_data(data, coeffs, settings.folds), brdf.model, fn,
                                  noise_floor=settings.noise_floor)
-        report["brdf_width"] = {k: v for k, v in profile.items() if k != "brdf"}
+        report["brdf_width"] = profile.width_report()
         report["brdf_width"]["recoverable_given_fitted_lighting"] = report["brdf_width"].pop("width_recoverable")
         report["brdf_width"]["width_recoverable"] = None
         report["brdf_width"]["note"] = ("factorization: a radially symmetric lobe trades its width against "

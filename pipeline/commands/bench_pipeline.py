@@ -142,7 +142,7 @@ def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
             w_err, s_err = [], []
             for _ in range(trials):
                 data.radiance = clean + noise * clean.mean() * rng.normal(size=clean.shape)
-                fit = fit_brdf(data, "phong", filter_fn, noise_floor=1e-6)["brdf"]
+                fit = fit_brdf(data, "phong", filter_fn, noise_floor=1e-6).brdf
                 w_err.append(abs(fit.exponent / exponent - 1.0))
                 s_err.append(float(np.abs(np.asarray(fit.specular) - specular).mean() / specular))
             rows.append({"problem": "BRDF estimation", "scene": name, "noise": noise,

@@ -378,8 +378,29 @@ def angular_width(model: str, width: float) -> float:
     return float(width) if model == "microfacet" else 1.0 / np.sqrt(float(width))
 
 
+@dataclass(frozen=True)
+class BrdfFit:
+    """fit_brdf's result: the BRDF and its weighted mean square residual (all channels); for a lobe
+    model its width, the residual profile over the log grid of widths ([{width param: w, "mse": m}]),
+    whether the width is recoverable and the widths within noise of the best [lo, hi]."""
+
+    brdf: Brdf
+    mse: float
+    width: float | None = None
+    profile: list = field(default_factory=list)
+    width_recoverable: bool | None = None
+    width_interval: list | None = None
+
+    def width_report(self) -> dict:
+        """report.json's brdf_width: everything but the BRDF."""
+        out = {"mse": self.mse, "width": self.width, "profile": self.profile, "width_recoverable": self.width_recoverable}
+        if self.width_interval is not None:
+            out["width_interval"] = self.width_interval
+        return out
+
+
 def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.005, grid: int = 13,
-             max_evals: int = 25) -> dict:
+             max_evals: int = 25) -> BrdfFit:
     """Variable projection: Brent's bounded search (in log width, between the best grid point's
     neighbours) over the lobe width; for each
     width :func:`linear_brdf` gives the linear parameters.  ``filter_fn(model, width)`` -> A_l.
@@ -395,8 +416,7 @@ def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.00
     rms_signal = float(np.sqrt((data.radiance ** 2 * data.weight[:, None]).sum() / (3 * wsum)))
     if model == "lambert":
         albedo, spec, rss = linear_brdf(data, model, None)
-        return {"brdf": Brdf("lambert", albedo=albedo), "mse": rss / (3 * wsum),
-                "width": None, "profile": [], "width_recoverable": None}
+        return BrdfFit(Brdf("lambert", albedo=albedo), rss / (3 * wsum))
     lo, hi = WIDTH_BOUNDS[model]
     param = WIDTH_PARAM[model]
 
@@ -421,11 +441,9 @@ def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.00
     ang = sorted(angular_width(model, x) for x in accepted) if accepted.size else [angular_width(model, width)]
     spread = ang[-1] / max(ang[0], 1e-300)
     recoverable = bool(spread <= 3.0 and np.max(spec) > 0)
-    return {"brdf": Brdf(model, albedo=albedo, specular=spec, **{param: width}),
-            "mse": mse, "width": width,
-            "profile": [{param: float(np.exp(x)), "mse": float(m)} for x, m in zip(log_grid, profile)],
-            "width_recoverable": recoverable,
-            "width_interval": [float(accepted.min()), float(accepted.max())] if accepted.size else [width, width]}
+    return BrdfFit(Brdf(model, albedo=albedo, specular=spec, **{param: width}), mse, width,
+                   [{param: float(np.exp(x)), "mse": float(m)} for x, m in zip(log_grid, profile)], recoverable,
+                   [float(accepted.min()), float(accepted.max())] if accepted.size else [width, width])
 
 
 def brdf_mse(data: BrdfData, brdf: Brdf, filter_fn) -> float:
