@@ -247,62 +247,69 @@ def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, rgb: np.nda
     chunk of rows, and a dict reason -> count of the dropped pixels of that chunk.
     """
     s = settings.stride
-    rows = np.arange(0, camera.height, s)
-    cols = np.arange(0, camera.width, s)
+    rows, cols = np.arange(0, camera.height, s), np.arange(0, camera.width, s)
     fx, fy, _, _ = camera.focal_principal()
     focal = float(np.sqrt(fx * fy)) / s  # focal length in units of the strided pixel grid
-    centre = camera_center(R, t)
-    faces = np.asarray(mesh.faces)
-    face_normals = np.asarray(mesh.face_normals, float)
-    halo = settings.edge_px + 1
+    halo = settings.edge_px + 1          # rows beyond the chunk that its silhouette test looks at
     per = max(1, settings.chunk_pixels // len(cols))
     for start in range(0, len(rows), per):
         stop = min(start + per, len(rows))
         lo, hi = max(start - halo, 0), min(stop + halo, len(rows))
-        grid_rows = rows[lo:hi]
-        # pixel centres (COLMAP convention: +0.5) of the strided rows lo..hi
-        uv = pixel_centers(len(cols), len(grid_rows))
-        uv[:, 0] = cols[(uv[:, 0] - 0.5).astype(int)] + 0.5
-        uv[:, 1] = grid_rows[(uv[:, 1] - 0.5).astype(int)] + 0.5
-        origins, dirs = pixel_rays(camera, R, t, uv)
-        h = first_hits(mesh, mesh.ray, origins, dirs)      # mesh.ray: trimesh's cached (Embree) intersector
-        shape = (len(grid_rows), len(cols))
-        hit = np.zeros(shape[0] * shape[1], bool)
-        hit[h.ray] = True
-        at = np.full(hit.shape, -1, np.int64)                # each pixel's row in h
-        at[h.ray] = np.arange(h.ray.size)
-        depth = np.zeros(hit.size)
-        depth[h.ray] = (h.point @ np.asarray(R, float).T + t)[:, 2]
-        hit, depth = hit.reshape(shape), depth.reshape(shape)
+        hits, hit, depth, at = _grid_hits(mesh, camera, R, t, rows[lo:hi], cols)
         edge = _edge_mask(hit, depth, depth / focal, settings)
-
-        inner = slice(start - lo, start - lo + (stop - start))
+        inner = slice(start - lo, stop - lo)
         hit_in, edge_in = hit[inner].ravel(), edge[inner].ravel()
-        flat = np.arange(hit.size).reshape(shape)[inner].ravel()
-        drops = {"background": int((~hit_in).sum()), "silhouette_edge": int(edge_in.sum())}
-        cand = flat[hit_in & ~edge_in]
-        row = at[cand]
-        f, p, bary, normal = h.face[row], h.point[row], h.bary[row], h.normal[row]
-        view = centre - p
-        view /= np.linalg.norm(view, axis=1, keepdims=True)
-        cos = np.sum(normal * view, axis=1)
-        hidden = (np.sum(face_normals[f] * view, axis=1) <= 0) | (cos <= 0)
-        grazing = ~hidden & (cos < settings.min_cos)
-        pix_r = grid_rows[cand // shape[1]]
-        pix_c = cols[cand % shape[1]]
-        w = weight[pix_r, pix_c]
-        masked = ~hidden & ~grazing & (w <= 0)
-        k = ~(hidden | grazing | masked)
-        drops.update(hidden=int(hidden.sum()), grazing=int(grazing.sum()), masked=int(masked.sum()))
-        vis = np.einsum("nk,nk->n", bary[k], visibility[faces[f[k]]])
-        arrays = {
-            "point": p[k], "normal": normal[k], "view_dir": view[k], "radiance": rgb[pix_r[k], pix_c[k]],
-            "image_id": np.full(int(k.sum()), image_id), "pixel": np.stack([pix_r[k], pix_c[k]], axis=1),
-            "face": f[k], "bary": bary[k], "weight": w[k], "visibility": vis,
-        }
+        cand = np.arange(hit.size).reshape(hit.shape)[inner].ravel()[hit_in & ~edge_in]
+        pixels = np.stack([rows[lo:hi][cand // len(cols)], cols[cand % len(cols)]], axis=1)
+        arrays, dropped = _pixel_samples(mesh, hits, at[cand], pixels, camera_center(R, t), rgb, weight, image_id,
+                                         settings, visibility)
         if progress is not None:
             progress.update(stop - start)
-        yield {name: np.asarray(arrays[name], dtype=SAMPLE_FIELDS[name][0]) for name in SAMPLE_FIELDS}, drops
+        yield arrays, {"background": int((~hit_in).sum()), "silhouette_edge": int(edge_in.sum()), **dropped}
+
+
+def _grid_hits(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, grid_rows: np.ndarray, cols: np.ndarray):
+    """The first hits of the rays through the pixel centres (COLMAP convention: +0.5) of rows
+    ``grid_rows`` x columns ``cols`` -> (the hits, hit mask (H, W), camera-space depth (H, W), each
+    pixel's row in the hits or -1 (H * W,))."""
+    uv = pixel_centers(len(cols), len(grid_rows))
+    uv[:, 0] = cols[(uv[:, 0] - 0.5).astype(int)] + 0.5
+    uv[:, 1] = grid_rows[(uv[:, 1] - 0.5).astype(int)] + 0.5
+    origins, dirs = pixel_rays(camera, R, t, uv)
+    h = first_hits(mesh, mesh.ray, origins, dirs)      # mesh.ray: trimesh's cached (Embree) intersector
+    shape = (len(grid_rows), len(cols))
+    hit = np.zeros(shape[0] * shape[1], bool)
+    hit[h.ray] = True
+    at = np.full(hit.shape, -1, np.int64)
+    at[h.ray] = np.arange(h.ray.size)
+    depth = np.zeros(hit.size)
+    depth[h.ray] = (h.point @ np.asarray(R, float).T + t)[:, 2]
+    return h, hit.reshape(shape), depth.reshape(shape), at
+
+
+def _pixel_samples(mesh, hits, row: np.ndarray, pixels: np.ndarray, centre: np.ndarray, rgb: np.ndarray,
+                   weight: np.ndarray, image_id: int, settings: Settings, visibility: np.ndarray) -> tuple[dict, dict]:
+    """The samples of the pixels (P, 2) (row, column) whose rays hit the mesh at ``hits``' rows
+    ``row`` (P,), left out where the surface faces away (hidden), is seen at n.v < min_cos (grazing)
+    or the pixel's weight is 0 (masked) -> (SAMPLE_FIELDS arrays of the kept ones, drop counts)."""
+    f, p, bary, normal = hits.face[row], hits.point[row], hits.bary[row], hits.normal[row]
+    view = centre - p
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    cos = np.sum(normal * view, axis=1)
+    hidden = (np.sum(np.asarray(mesh.face_normals, float)[f] * view, axis=1) <= 0) | (cos <= 0)
+    grazing = ~hidden & (cos < settings.min_cos)
+    pix_r, pix_c = pixels[:, 0], pixels[:, 1]
+    w = weight[pix_r, pix_c]
+    masked = ~hidden & ~grazing & (w <= 0)
+    k = ~(hidden | grazing | masked)
+    vis = np.einsum("nk,nk->n", bary[k], visibility[np.asarray(mesh.faces)[f[k]]])
+    arrays = {
+        "point": p[k], "normal": normal[k], "view_dir": view[k], "radiance": rgb[pix_r[k], pix_c[k]],
+        "image_id": np.full(int(k.sum()), image_id), "pixel": np.stack([pix_r[k], pix_c[k]], axis=1),
+        "face": f[k], "bary": bary[k], "weight": w[k], "visibility": vis,
+    }
+    return ({name: np.asarray(arrays[name], dtype=SAMPLE_FIELDS[name][0]) for name in SAMPLE_FIELDS},
+            {"hidden": int(hidden.sum()), "grazing": int(grazing.sum()), "masked": int(masked.sum())})
 
 
 # ---------------------------------------------------------------------------------------------
