@@ -230,45 +230,17 @@ def linearize_job(job: dict) -> dict:
     Returns the manifest entry.  Runs in a worker process: everything it needs is in ``job``.
     """
     inverse = inverse_table(job["response"], job["response_curve"])
-    gain = None
-    if job["vignetting"]:
-        gain = read_image(job["vignetting"])[:, :, :3]
-    rgb_gains = np.asarray(job["rgb_gains"], dtype=np.float32)
+    gain = read_image(job["vignetting"])[:, :, :3] if job["vignetting"] else None
     single = len(job["sources"]) == 1
     num = den = merged = None
     sources = []
     for src in job["sources"]:
-        path = Path(src["path"])
-        if src["kind"] == "raw":
-            rgb, valid, level, info, all_black = decode_raw(path, job["raw_wb"], job["saturation"], want_level=not single)
-        else:
-            rgb, valid, level, info, all_black = decode_other(path, src["kind"], inverse, job["saturation"])
-            if np.any(rgb_gains != 1):
-                rgb = rgb * rgb_gains
-        if all_black:
-            raise UserError(f"{path}: the image is entirely black; check the lens cap and exposure, or remove it")
-        if not np.count_nonzero(valid):
-            raise UserError(f"{path}: every pixel is saturated; shoot it darker (or bracket it) or remove it")
-        if gain is not None:
-            if gain.shape[:2] != rgb.shape[:2]:
-                raise UserError(f"{job['vignetting']}: vignetting map is {gain.shape[1]}x{gain.shape[0]} but {path.name} "
-                                f"is {rgb.shape[1]}x{rgb.shape[0]}; calibrate vignetting with this camera's images")
-            rgb = rgb / gain
-        sources.append({"file": path.name, "format": src["format"], "exposure_time_s": src["exposure_time_s"],
-                        "iso": src["iso"], "f_number": src["f_number"], "scale": src["scale"],
-                        "black_level": info.get("black_level"), "white_level": info.get("white_level"),
-                        "saturated_fraction": round(1.0 - np.count_nonzero(valid) / valid.size, 6)})
-        radiance = np.multiply(rgb, np.float32(src["scale"]), dtype=np.float32)
-        radiance[~valid] = 0.0
+        radiance, valid, level, entry = _linear_source(src, job, inverse, gain, want_level=not single)
+        sources.append(entry)
         if single:  # no merge: the scaled image with its mask
             merged = radiance
             break
-        # Weight: exposure (photon-noise SNR grows with it) x a roll-off below the clip level, > 0 where valid.
-        rolloff = np.ones(valid.shape, np.float32)
-        if level is not None:
-            sat_level = job["saturation"]
-            rolloff = np.clip((sat_level - level) / (ROLLOFF * sat_level), 1e-3, 1.0).astype(np.float32)
-        weight = np.where(valid, rolloff / np.float32(src["scale"]), 0.0).astype(np.float32)
+        weight = _bracket_weight(valid, level, job["saturation"], src["scale"])
         num = radiance * weight[:, :, None] if num is None else num + radiance * weight[:, :, None]
         den = weight if den is None else den + weight
     if not single:
@@ -284,6 +256,46 @@ def linearize_job(job: dict) -> dict:
     write_image(job["mask"], valid.astype(np.float32), dtype="uint8")
     write_image(job["exr"], merged, dtype="float", attributes={HEADER_KEY: header})
     return entry
+
+
+def _linear_source(src: dict, job: dict, inverse, gain: np.ndarray | None, want_level: bool) -> tuple:
+    """One source image of a job decoded to linear radiance (H, W, 3) float32 (its exposure scale
+    applied, vignetting ``gain`` divided out, saturated pixels 0) -> (radiance, valid mask, raw
+    level for the bracket weight or None, its manifest entry).  UserError for an all-black or
+    all-saturated image, or a vignetting map of another size."""
+    path = Path(src["path"])
+    if src["kind"] == "raw":
+        rgb, valid, level, info, all_black = decode_raw(path, job["raw_wb"], job["saturation"], want_level=want_level)
+    else:
+        rgb, valid, level, info, all_black = decode_other(path, src["kind"], inverse, job["saturation"])
+        rgb_gains = np.asarray(job["rgb_gains"], dtype=np.float32)
+        if np.any(rgb_gains != 1):
+            rgb = rgb * rgb_gains
+    if all_black:
+        raise UserError(f"{path}: the image is entirely black; check the lens cap and exposure, or remove it")
+    if not np.count_nonzero(valid):
+        raise UserError(f"{path}: every pixel is saturated; shoot it darker (or bracket it) or remove it")
+    if gain is not None:
+        if gain.shape[:2] != rgb.shape[:2]:
+            raise UserError(f"{job['vignetting']}: vignetting map is {gain.shape[1]}x{gain.shape[0]} but {path.name} "
+                            f"is {rgb.shape[1]}x{rgb.shape[0]}; calibrate vignetting with this camera's images")
+        rgb = rgb / gain
+    entry = {"file": path.name, "format": src["format"], "exposure_time_s": src["exposure_time_s"],
+             "iso": src["iso"], "f_number": src["f_number"], "scale": src["scale"],
+             "black_level": info.get("black_level"), "white_level": info.get("white_level"),
+             "saturated_fraction": round(1.0 - np.count_nonzero(valid) / valid.size, 6)}
+    radiance = np.multiply(rgb, np.float32(src["scale"]), dtype=np.float32)
+    radiance[~valid] = 0.0
+    return radiance, valid, level, entry
+
+
+def _bracket_weight(valid: np.ndarray, level: np.ndarray | None, saturation: float, scale: float) -> np.ndarray:
+    """A bracket's merge weight (H, W), > 0 where valid: its exposure (photon-noise SNR grows with
+    it, 1 / ``scale``) x a roll-off below the clip level ``saturation`` of the raw ``level``."""
+    rolloff = np.ones(valid.shape, np.float32)
+    if level is not None:
+        rolloff = np.clip((saturation - level) / (ROLLOFF * saturation), 1e-3, 1.0).astype(np.float32)
+    return np.where(valid, rolloff / np.float32(scale), 0.0).astype(np.float32)
 
 
 # ----------------------------------------------------------------------------------------------
