@@ -284,61 +284,17 @@ def pipeline_configs(quick: bool) -> list[dict]:
 
 def run_pipeline_bench(out_dir: Path, quick: bool = False) -> tuple[list[dict], list[Path]]:
     """Render the scenes, run samples -> fit -> relight per configuration; write bench.csv + bench.png."""
-    import os
     import shutil
-
-    from pipeline.io.lighting import read_lighting_sh
-    from pipeline.runner import run_stage, stage_settings
-    from pipeline.synth import make_test_capture
 
     out_dir = Path(out_dir)
     scratch = out_dir / "pipeline_scratch"
     shutil.rmtree(scratch, ignore_errors=True)
-    views, size = 12, (64, 64) if quick else (96, 96)
     rows, sample_runs = [], {}
     for config in pipeline_configs(quick):
-        scene = config["scene"]
-        capture = scratch / scene / "capture"
-        if not capture.exists():
-            make_test_capture(capture, brdf=SCENES[scene], env="area", views=views, size=size, fmt="exr",
-                              mesh="sphere", noise="none")
-        keys = sorted(f"{i:04d}.exr" for i in range(views))
-        validation = keys[3::4]
-        training = [k for k in keys if k not in validation]
-        train = training[::max(1, len(training) // config["train_views"])][:config["train_views"]]
-        data_key = (scene, config["train_views"], config["stride"])
-        if data_key not in sample_runs:
-            work = scratch / scene / f"samples_v{config['train_views']}_s{config['stride']}"
-            holdout = tuple(sorted(set(keys) - set(train)))
-            result = run_stage("samples", capture=capture, work=work,
-                               settings=stage_settings("samples", holdout=holdout, stride=config["stride"]))
-            sample_runs[data_key] = (work, result.seconds)
-        sample_work, samples_s = sample_runs[data_key]
-        name = (f"{scene}_{config['mode'].replace(' ', '-')}_L{config['order']}_v{config['train_views']}"
+        capture, validation, sample_work, samples_s = _bench_samples(scratch, config, quick, sample_runs)
+        name = (f"{config['scene']}_{config['mode'].replace(' ', '-')}_L{config['order']}_v{config['train_views']}"
                 f"_s{config['stride']}_n{config['fit_samples']}")
-        work = scratch / scene / name
-        work.mkdir(parents=True, exist_ok=True)
-        for f in ("samples.npz",):
-            if not (work / f).exists():
-                os.link(sample_work / f, work / f)
-        brdf = str(capture / "gt" / "brdf.json") if config["mode"] == "known BRDF" else "auto"
-        fit = run_stage("fit", capture=capture, work=work,
-                        settings=stage_settings("fit", brdf=brdf, order=config["order"], lighting="unknown",
-                                                physical_samples=config["fit_samples"]))
-        relit = run_stage("relight", capture=capture, work=work,
-                          settings=stage_settings("relight", views=",".join(validation), compare=True, supersample=1))
-        check = json.loads((work / "relight" / "relight.json").read_text())["compare"]
-        fitted = read_lighting_sh(work / "fit" / "lighting_sh.json")
-        brdf_fit = json.loads((work / "fit" / "brdf.json").read_text())
-        band_err, scale = _lighting_band_errors(fitted,
-                                                read_lighting_sh(capture / "gt" / "lighting_sh.json"),
-                                                config["mode"] != "known BRDF")
-        row = {**config, "samples_s": round(samples_s, 3), "fit_s": round(fit.seconds, 3),
-               "time_s": round(samples_s + fit.seconds, 3), "relight_s": round(relit.seconds, 3),
-               "relight_error": check["relative_error"], "lighting_scale": scale,
-               "fitted_order": order_of(fitted.shape[0]), "fitted_model": brdf_fit["model"],
-               "fitted_roughness": brdf_fit.get("roughness", ""),
-               **{f"band{l}_error": float(e) for l, e in enumerate(band_err)}}
+        row = _bench_fit_relight(config, capture, scratch / config["scene"] / name, sample_work, validation, samples_s)
         rows.append(row)
         print(f"{name}: time {row['time_s']:.2f} s, relight error {100 * row['relight_error']:.2f}%")
     mark_pareto(rows)
@@ -347,6 +303,65 @@ def run_pipeline_bench(out_dir: Path, quick: bool = False) -> tuple[list[dict], 
     if not quick:
         shutil.rmtree(scratch, ignore_errors=True)
     return rows, [csv_path, png]
+
+
+def _bench_samples(scratch: Path, config: dict, quick: bool, runs: dict) -> tuple[Path, list[str], Path, float]:
+    """A configuration's scene rendered (once) and its training views' samples (once per views and
+    stride; ``runs`` caches them) -> (capture, the validation views, the samples' work folder, the
+    samples stage's seconds).  Every fourth view is held out for validation."""
+    from pipeline.runner import run_stage, stage_settings
+    from pipeline.synth import make_test_capture
+
+    scene = config["scene"]
+    views, size = 12, (64, 64) if quick else (96, 96)
+    capture = scratch / scene / "capture"
+    if not capture.exists():
+        make_test_capture(capture, brdf=SCENES[scene], env="area", views=views, size=size, fmt="exr",
+                          mesh="sphere", noise="none")
+    keys = sorted(f"{i:04d}.exr" for i in range(views))
+    validation = keys[3::4]
+    training = [k for k in keys if k not in validation]
+    train = training[::max(1, len(training) // config["train_views"])][:config["train_views"]]
+    key = (scene, config["train_views"], config["stride"])
+    if key not in runs:
+        work = scratch / scene / f"samples_v{config['train_views']}_s{config['stride']}"
+        holdout = tuple(sorted(set(keys) - set(train)))
+        result = run_stage("samples", capture=capture, work=work,
+                           settings=stage_settings("samples", holdout=holdout, stride=config["stride"]))
+        runs[key] = (work, result.seconds)
+    return (capture, validation) + runs[key]
+
+
+def _bench_fit_relight(config: dict, capture: Path, work: Path, sample_work: Path, validation: list[str],
+                       samples_s: float) -> dict:
+    """The fit of one configuration on the shared samples (hard-linked into ``work``) and its relight
+    of the validation views -> bench.csv's row: times, relight error, lighting scale and band errors,
+    the fitted order, model and roughness."""
+    import os
+
+    from pipeline.io.lighting import read_lighting_sh
+    from pipeline.runner import run_stage, stage_settings
+
+    work.mkdir(parents=True, exist_ok=True)
+    if not (work / "samples.npz").exists():
+        os.link(sample_work / "samples.npz", work / "samples.npz")
+    brdf = str(capture / "gt" / "brdf.json") if config["mode"] == "known BRDF" else "auto"
+    fit = run_stage("fit", capture=capture, work=work,
+                    settings=stage_settings("fit", brdf=brdf, order=config["order"], lighting="unknown",
+                                            physical_samples=config["fit_samples"]))
+    relit = run_stage("relight", capture=capture, work=work,
+                      settings=stage_settings("relight", views=",".join(validation), compare=True, supersample=1))
+    check = json.loads((work / "relight" / "relight.json").read_text())["compare"]
+    fitted = read_lighting_sh(work / "fit" / "lighting_sh.json")
+    brdf_fit = json.loads((work / "fit" / "brdf.json").read_text())
+    band_err, scale = _lighting_band_errors(fitted, read_lighting_sh(capture / "gt" / "lighting_sh.json"),
+                                            config["mode"] != "known BRDF")
+    return {**config, "samples_s": round(samples_s, 3), "fit_s": round(fit.seconds, 3),
+            "time_s": round(samples_s + fit.seconds, 3), "relight_s": round(relit.seconds, 3),
+            "relight_error": check["relative_error"], "lighting_scale": scale,
+            "fitted_order": order_of(fitted.shape[0]), "fitted_model": brdf_fit["model"],
+            "fitted_roughness": brdf_fit.get("roughness", ""),
+            **{f"band{l}_error": float(e) for l, e in enumerate(band_err)}}
 
 
 def mark_pareto(rows: list[dict]) -> None:
