@@ -396,31 +396,12 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
 
     cand = _Candidate(geo, obs, material, layer, spec, order, folds, kw, max_bounces)
 
-    def solve_at(b: np.ndarray, inner: int = 4):
-        return _lighting_given_base(cand, b, sources, inner, known)
-
     if max_sources > 0 and sources is None and known is None:
         sources = _add_sources(cand, base, max_sources, source_gain)
     if not fix_base:
-        if known is not None or spec is None:
-            for _ in range(4):            # least squares in rho given the lighting (+ interreflection update)
-                coeffs = solve_at(base)[0]
-                new = _base_least_squares(cand, base, sources, coeffs)
-                if spec is None and known is None:   # Lambert, lighting unknown: only the chromaticity
-                    new *= float(np.mean(base0)) / float(np.mean(new))
-                done = np.abs(new - base).max() < 1e-3
-                base = new
-                if done:
-                    break
-        else:
-            start = cand.system(base).solve(obs.radiance)
-            # the ridge is (sigma / (band_prior |L_0|))^2 W / views (pipeline.core.solve): scaled with the
-            # lighting's DC as rho changes, so that no rho is favoured by a relatively weaker prior
-            ridge_dc2 = start.ridge * float(np.mean(start.coeffs[0] ** 2))
-            for _ in range(2 if geo.interreflects else 1):    # the second with the interreflection of the first's rho
-                base = _base_search(cand, base, sources, ridge_dc2, base_grid)
+        base = _fit_base_colour(cand, base, float(np.mean(base0)), sources, known, base_grid)
     # the design and source columns at the final base colour (and the sources' intensities for it)
-    _, _, system, src_cols = solve_at(base, 8)
+    _, _, system, src_cols = _lighting_given_base(cand, base, sources, 8, known)
     target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
     if known is not None:
         w = obs.weight
@@ -485,6 +466,32 @@ def fit_detail_map(transfer, residual: np.ndarray, weight: np.ndarray, order: in
         m = detail.reshape(height, 2 * height, -1)
         detail = (m - envmap_from_sh(project_envmap(m, order), height)).reshape(detail.shape)
     return detail
+
+
+def _fit_base_colour(cand: _Candidate, base: np.ndarray, level: float, sources: Sources | None,
+                     known: np.ndarray | None, grid: int) -> np.ndarray:
+    """fit_material's base colour (3,) from the start ``base``: with the lighting known or no
+    specular layer, least squares in rho given the lighting, alternated with the interreflection
+    (Lambert with the lighting unknown: the chromaticity only, its mean kept at ``level``, the
+    scale convention's); else the per-channel search with the lighting refitted (_base_search)."""
+    if known is not None or cand.spec is None:
+        for _ in range(4):
+            coeffs = _lighting_given_base(cand, base, sources, 4, known)[0]
+            new = _base_least_squares(cand, base, sources, coeffs)
+            if cand.spec is None and known is None:
+                new *= level / float(np.mean(new))
+            done = np.abs(new - base).max() < 1e-3
+            base = new
+            if done:
+                break
+        return base
+    start = cand.system(base).solve(cand.obs.radiance)
+    # the ridge is (sigma / (band_prior |L_0|))^2 W / views (pipeline.core.solve): scaled with the
+    # lighting's DC as rho changes, so that no rho is favoured by a relatively weaker prior
+    ridge_dc2 = start.ridge * float(np.mean(start.coeffs[0] ** 2))
+    for _ in range(2 if cand.geo.interreflects else 1):    # the second with the interreflection of the first's rho
+        base = _base_search(cand, base, sources, ridge_dc2, grid)
+    return base
 
 
 def held_out_detail(transfer, residual: np.ndarray, obs: Observations, order: int, height: int,
