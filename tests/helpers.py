@@ -1,4 +1,5 @@
-"""Assertions shared by the tests (importable as ``helpers``: pyproject's pytest ``pythonpath``)."""
+"""Assertions and the Cycles references' helpers shared by the tests (importable as ``helpers``: pyproject's
+pytest ``pythonpath``)."""
 
 from __future__ import annotations
 
