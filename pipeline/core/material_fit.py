@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -608,30 +609,43 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
     # backward elimination at the best order and prior: a source the richer SH makes redundant is
     # dropped while that lowers the held-out error (the pursuit kept it against the cheaper lighting)
     kept = keep
-    while len(keep) > 0:
-        drops = [_lighting_search(system, obs, fit.sources, src_cols, [k for k in keep if k != j],
-                                  [order_of(best[1].coeffs.shape[0])], [best[4]], lighting_kw, table) for j in keep]
-        i = min(range(len(drops)), key=lambda j: drops[j][0])
-        if not drops[i][0] < best[0]:
+    while keep:
+        drops = {j: _lighting_search(system, obs, fit.sources, src_cols, [k for k in keep if k != j], [best.order],
+                                     [best.prior], lighting_kw, table) for j in keep}
+        j = min(drops, key=lambda j: drops[j].validation_rmse)
+        if not drops[j].validation_rmse < best.validation_rmse:
             break
-        best, keep = drops[i], [k for k in keep if k != keep[i]]
+        best, keep = drops[j], [k for k in keep if k != j]
     if keep != kept:     # the order and prior chosen again for the sources left
         best = _lighting_search(system, obs, fit.sources, src_cols, keep, list(range(order + 1)), priors,
                                 lighting_kw, table)
-    val, lighting, cands, sources, _ = best
-    if not val < fit.validation_rmse:
+    if not best.validation_rmse < fit.validation_rmse:
         return fit, table
-    return MaterialFit(fit.material, fit.base, lighting.coeffs, lighting,
-                       [{k: v for k, v in c.items() if k != "fit"} for c in cands], float(val),
-                       float(lighting.residual_rms), sources, detail=fit.detail), table
+    return MaterialFit(fit.material, fit.base, best.fit.coeffs, best.fit,
+                       [{k: v for k, v in c.items() if k != "fit"} for c in best.orders], float(best.validation_rmse),
+                       float(best.fit.residual_rms), best.sources, detail=fit.detail), table
+
+
+class _LightingChoice(NamedTuple):
+    """_lighting_search's best: its held-out RMSE, SH fit, cross_validate_orders table, sources, prior."""
+
+    validation_rmse: float
+    fit: solve.LightingFit
+    orders: list
+    sources: Sources | None
+    prior: float
+
+    @property
+    def order(self) -> int:
+        return order_of(self.fit.coeffs.shape[0])
 
 
 def _lighting_search(system: "ShSystem", obs: Observations, sources: Sources | None, src_cols: np.ndarray | None,
-                     keep: list[int], orders: list[int], priors: list[float], lighting_kw: dict, table: list) -> tuple:
+                     keep: list[int], orders: list[int], priors: list[float], lighting_kw: dict,
+                     table: list) -> _LightingChoice:
     """refine_lighting's search with the sources ``keep`` (indices) of ``sources`` (their columns
     ``src_cols`` (3, N, J)): SH ``orders`` x ``priors`` by held-out views, the sources' intensities
-    refitted once around the best SH -> (held-out RMSE, solve.LightingFit, the order table, Sources
-    or None, the prior); a row per prior and source update added to ``table``."""
+    refitted once around the best SH; a row per prior and source update added to ``table``."""
     a = system.a
     if not keep:
         sources = src_cols = None
@@ -642,7 +656,7 @@ def _lighting_search(system: "ShSystem", obs: Observations, sources: Sources | N
     for update in range(2 if sources is not None else 1):
         if update:        # the sources' intensities around the best SH, then the SH again
             sources = Sources(sources.transfer, _source_intensities(
-                src_cols, obs.radiance - np.einsum("cpk,kc->pc", a[:, :, :best[1].coeffs.shape[0]], best[1].coeffs),
+                src_cols, obs.radiance - np.einsum("cpk,kc->pc", a[:, :, :best.fit.coeffs.shape[0]], best.fit.coeffs),
                 obs.weight))
         target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
         eqs = system.equations(target)
@@ -652,8 +666,8 @@ def _lighting_search(system: "ShSystem", obs: Observations, sources: Sources | N
             table.append({"band_prior": prior, "order": cands[i]["order"], "sources_refitted": bool(update),
                           "sources": len(keep), "validation_rmse": cands[i]["validation_rmse"],
                           "train_rmse": cands[i]["train_rmse"]})
-            if best is None or cands[i]["validation_rmse"] < best[0]:
-                best = (cands[i]["validation_rmse"], cands[i]["fit"], cands, sources, prior)
+            if best is None or cands[i]["validation_rmse"] < best.validation_rmse:
+                best = _LightingChoice(cands[i]["validation_rmse"], cands[i]["fit"], cands, sources, prior)
     return best
 
 
