@@ -251,6 +251,7 @@ def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, rgb: np.nda
     fx, fy, _, _ = camera.focal_principal()
     focal = float(np.sqrt(fx * fy)) / s  # focal length in units of the strided pixel grid
     halo = settings.edge_px + 1          # rows beyond the chunk that its silhouette test looks at
+    centre = camera_center(R, t)
     per = max(1, settings.chunk_pixels // len(cols))
     for start in range(0, len(rows), per):
         stop = min(start + per, len(rows))
@@ -261,8 +262,8 @@ def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, rgb: np.nda
         hit_in, edge_in = hit[inner].ravel(), edge[inner].ravel()
         cand = np.arange(hit.size).reshape(hit.shape)[inner].ravel()[hit_in & ~edge_in]
         pixels = np.stack([rows[lo:hi][cand // len(cols)], cols[cand % len(cols)]], axis=1)
-        arrays, dropped = _pixel_samples(mesh, hits, at[cand], pixels, camera_center(R, t), rgb, weight, image_id,
-                                         settings, visibility)
+        arrays, dropped = _pixel_samples(mesh, hits, at[cand], pixels, centre, rgb, weight, image_id, settings,
+                                         visibility)
         if progress is not None:
             progress.update(stop - start)
         yield arrays, {"background": int((~hit_in).sum()), "silhouette_edge": int(edge_in.sum()), **dropped}
