@@ -538,6 +538,7 @@ class CandidateFit:
         return material_fit.fit_material(self.geo, material, self.obs, order=self.order, folds=settings.folds,
                                          base0=base0, spec=spec, fix_base=fix_base, orders=self.orders,
                                          lighting_kw=self.kw, max_sources=settings.max_sources if directions is None else 0,
+                                         source_peaks=settings.source_peaks,
                                          source_directions=directions,
                                          known_coeffs=None if known is None else known.coeffs,
                                          known_sources=None if known is None else known.intensity,

@@ -14,7 +14,7 @@ The material is found around that:
 * roughness: each candidate is a full fit, compared on held-out views (pipeline.core.solve
   cross_validate_orders).  A Lambertian object has no such anchor: its scale follows the
   fit's convention (a known or default albedo);
-* directional sources (the lighting's dual angular part) by matching pursuit (find_source).
+* directional sources (the lighting's dual angular part) by matching pursuit (source_candidates).
 """
 
 from __future__ import annotations
@@ -26,6 +26,8 @@ from typing import NamedTuple
 import numpy as np
 
 from pipeline.core import prt, solve
+from pipeline.core.brdf import reflect
+from pipeline.core.envmap import direction_to_pixel, equirect_directions
 from pipeline.core.material import Principled, brdf_from_material, ggx_lobe_cos
 from pipeline.core.sh import band_of_index, envmap_from_sh, num_coeffs, order_of, project_envmap
 from pipeline.core.shading import front_cos
@@ -313,31 +315,80 @@ def source_scan(geo: prt.Geometry, material: Principled | None, base: np.ndarray
     return SourceScan(coarse, columns)
 
 
-def find_source(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
-                weight: np.ndarray, scan: SourceScan, rounds: int = 3,
-                exclude: list | None = None) -> tuple[np.ndarray, float]:
-    """The direction (3,) of the one directional source that best explains ``residual`` (N, 3),
-    and the weighted residual power it explains: matching pursuit over the renderer's direction
-    set on the coarse ``scan`` (source_scan), then ``rounds`` of
-    5 x 5 local grids, each 2.5x finer, on all samples with exact shadow rays (prt.source_transfer)."""
+MIRROR_HEIGHT = 90        # mirror_peaks' map: 90 x 180 cells of 2 deg
+
+
+def source_candidates(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
+                      weight: np.ndarray, scan: SourceScan, rounds: int = 3,
+                      exclude: list | None = None, peaks: int = 0) -> list[tuple[np.ndarray, float]]:
+    """Directions (3,) of directional sources that may explain ``residual`` (N, 3), each with the
+    weighted residual power it explains: matching pursuit's best over the renderer's direction set
+    on the coarse ``scan`` (source_scan) outside 10 deg of ``exclude``, then ``rounds`` of 5 x 5
+    local grids, each 2.5x finer, on all samples with exact shadow rays (prt.source_transfer) —
+    where that lands back within 10 deg of an excluded source the pursuit ends (_add_sources) —
+    and with a specular lobe the ``peaks`` brightest mirror_peaks, refined from BACKFIT_STEP
+    without coming within 10 deg of ``exclude``.  The scan sees a source through the lobe at the direction set's
+    cell centres (~11 deg apart), blind to a lamp between them once the lobe is sharper; a
+    highlight is where the residual is bright at the mirror direction (the Cycles night sphere:
+    the scan's pursuit kept 3 sources, one off any lamp, held-out RMSE 0.0082; with the mirror
+    peaks (3, and 6 sources) the 5 brightest lamps, 0.0055; docs/fit.md for what it does to the
+    roughness)."""
     dirs = geo.renderer.lights.directions
+    exclude = list(exclude or [])
     sl = scan.samples
     num = np.einsum("p,pdc,pc->dc", weight[sl], scan.columns, residual[sl])
     den = np.einsum("p,pdc->dc", weight[sl], scan.columns * scan.columns)
     score = _explained_power(num, den)
-    for f in exclude or []:
+    for f in exclude:
         score[dirs @ f > MIN_SOURCE_COS] = -np.inf
-    return refine_direction(geo, material, base, residual, weight, dirs[int(np.argmax(score))],
-                            np.pi / len(dirs) ** 0.5 * 1.5, rounds)     # the first step: about one cell
+    out = []
+    if np.isfinite(score.max()):
+        out.append(refine_direction(geo, material, base, residual, weight, dirs[int(np.argmax(score))],
+                                    np.pi / len(dirs) ** 0.5 * 1.5, rounds))   # the first step: about one cell
+    if material is not None and peaks > 0:
+        out += [refine_direction(geo, material, base, residual, weight, d, BACKFIT_STEP, rounds, exclude)
+                for d in mirror_peaks(geo, residual, weight, peaks, exclude)]
+    return [o for o in out if o[1] > 0]
+
+
+def mirror_peaks(geo: prt.Geometry, residual: np.ndarray, weight: np.ndarray, count: int,
+                 exclude: list) -> list[np.ndarray]:
+    """Up to ``count`` directions (3,), 10 deg apart and from ``exclude``, where the positive
+    residual (channel mean) averaged over the samples whose mirror direction falls there peaks:
+    an MIRROR_HEIGHT x 2 MIRROR_HEIGHT equirect map of weighted sums, both sums blurred by one
+    cell (a few samples per cell) and the mean shrunk where few samples look (+5 % of the largest
+    weight)."""
+    from scipy.ndimage import gaussian_filter
+
+    h = MIRROR_HEIGHT
+    row, col = direction_to_pixel(reflect(geo.view_dirs, geo.normals), h)
+    cell = row * 2 * h + col
+    value = np.maximum(residual.mean(axis=1), 0.0) * weight
+    sums = [gaussian_filter(np.bincount(cell, x, 2 * h * h).reshape(h, 2 * h), 1.0, mode=("nearest", "wrap"))
+            for x in (value, weight)]
+    score = (sums[0] / (sums[1] + 0.05 * sums[1].max())).ravel()
+    dirs = equirect_directions(h).reshape(-1, 3)
+    out = []
+    for f in exclude:
+        score[dirs @ f > MIN_SOURCE_COS] = -np.inf
+    while len(out) < count:
+        m = int(np.argmax(score))
+        if not score[m] > 0:
+            break
+        out.append(dirs[m])
+        score[dirs @ dirs[m] > MIN_SOURCE_COS] = -np.inf
+    return out
 
 
 def refine_direction(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
                      weight: np.ndarray, start: np.ndarray, step: float, rounds: int,
+                     exclude: list | None = None,
                      project: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, float]:
     """(direction (3,), explained power) of the source that best explains ``residual`` near
     ``start``: ``rounds`` of 5 x 5 local grids of half-width ``step`` (radians), each 2.5x finer,
     on all samples with exact shadow rays (prt.source_transfer), the centre included.
-    ``project``: the candidates' columns (3, N, J) are scored by what of them it leaves (sh_complement)."""
+    ``exclude``: directions it keeps 10 deg away from; ``project``: the candidates' columns (3, N, J)
+    are scored by what of them it leaves (sh_complement)."""
     # located at the pixel centres (16x cheaper): a pixel footprint blurs a highlight, it does not move it
     centre = replace(geo, footprint=None)
     layer = geo.sample_layer(material)
@@ -352,6 +403,8 @@ def refine_direction(geo: prt.Geometry, material: Principled | None, base: np.nd
         st = prt.source_transfer(centre, material, cand, vertices=False)
         cols = _source_columns(geo, layer, st, None, base)
         sc = _source_score(cols if project is None else project(cols), residual, weight)
+        for f in exclude or []:      # not onto a source already found (two within 10 deg are one light)
+            sc[cand @ f > MIN_SOURCE_COS] = -np.inf
         if sc.max() > best_score:
             best, best_score = cand[int(np.argmax(sc))], float(sc.max())
         step /= 2.5
@@ -361,7 +414,8 @@ def refine_direction(geo: prt.Geometry, material: Principled | None, base: np.nd
 def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observations, *, order: int,
                  folds: int, base0: np.ndarray, spec: prt.SpecularTransfer | None = None, fix_base: bool = False,
                  orders: list[int] | None = None, lighting_kw: dict | None = None, max_bounces: int = 8,
-                 max_sources: int = 0, source_gain: float = 0.02, source_directions: np.ndarray | None = None,
+                 max_sources: int = 0, source_gain: float = 0.02, source_peaks: int = 0,
+                 source_directions: np.ndarray | None = None,
                  known_coeffs: np.ndarray | None = None, known_sources: np.ndarray | None = None,
                  base_grid: int = 25, detail: "DetailSetup | None" = None) -> MaterialFit:
     """Lighting and base colour for one material candidate (roughness, ior, metallic fixed).
@@ -373,7 +427,8 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
     values in [0.02, 1], refined by a parabola); Lambert: the chromaticity by least squares, the mean kept
     at base0's (the scale convention); known lighting: least squares.
     Up to ``max_sources`` directional sources join the SH lighting, one at a time after the first
-    SH fit, each only if it lowers the held-out views' RMSE by more than ``source_gain`` (relative).
+    SH fit, each only if it lowers the held-out views' RMSE by more than ``source_gain`` (relative);
+    ``source_peaks``: candidates a step takes from the residual's mirror directions (source_candidates).
     ``source_directions`` (J, 3): sources at known directions instead (intensities fitted).
     ``known_coeffs`` (K', 3) and ``known_sources`` (J, 3) intensities at ``source_directions``: the
     lighting is known.  The returned lighting order is the held-out best of ``orders`` (default: ``order``).
@@ -398,7 +453,7 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
     cand = _Candidate(geo, obs, material, layer, spec, order, folds, kw, max_bounces)
 
     if max_sources > 0 and sources is None and known is None:
-        sources = _add_sources(cand, base, max_sources, source_gain)
+        sources = _add_sources(cand, base, max_sources, source_gain, source_peaks)
     if not fix_base:
         base = _fit_base_colour(cand, base, float(np.mean(base0)), sources, known, base_grid)
     # the design and source columns at the final base colour (and the sources' intensities for it)
@@ -798,12 +853,12 @@ def sh_complement(a: np.ndarray, weight: np.ndarray, fit: solve.LightingFit) -> 
     return project
 
 
-def _add_sources(cand: _Candidate, base: np.ndarray, max_sources: int, gain: float) -> Sources | None:
+def _add_sources(cand: _Candidate, base: np.ndarray, max_sources: int, gain: float, peaks: int = 0) -> Sources | None:
     """Greedy matching pursuit of directional sources on the residual of the candidate's SH fit
     at base colour ``base``: each new source is kept only if the held-out views' RMSE (SH refitted
     around the sources) drops by more than ``gain`` (relative); intensities are fitted on all views
     (3 numbers a source)."""
-    geo, material, layer = cand.geo, cand.material, cand.layer
+    geo, material = cand.geo, cand.material
     system = cand.system(base)
     radiance, w = system.obs.radiance, system.obs.weight
     best = system.held_out_rmse(radiance)
@@ -811,14 +866,13 @@ def _add_sources(cand: _Candidate, base: np.ndarray, max_sources: int, gain: flo
     found, kept = [], None
     scan = source_scan(geo, material, base) if max_sources > 0 else None
     for _ in range(max_sources):
-        d, explained = find_source(geo, material, base, residual, w, scan=scan, exclude=found)
-        if not explained > 0 or any(float(d @ f) > MIN_SOURCE_COS for f in found):
+        # each candidate scored as the step would leave it (the held-out views' RMSE): the best kept
+        trials = [_with_source(cand, base, system, found, kept, residual, d)
+                  for d, _ in source_candidates(geo, material, base, residual, w, scan=scan, exclude=found, peaks=peaks)
+                  if not any(float(d @ f) > MIN_SOURCE_COS for f in found)]
+        if not trials:
             break
-        st = prt.source_transfer(geo, material, np.array(found + [d]))
-        cols = _source_columns(geo, layer, st, None, base)
-        power = _source_intensities(cols, residual + (0.0 if kept is None else np.einsum("cpj,jc->pc", kept[1], kept[2])), w)
-        target = radiance - np.einsum("cpj,jc->pc", cols, power)
-        score = system.held_out_rmse(target)
+        score, d, st, cols, power, target = min(trials, key=lambda t: t[0])
         if score > best * (1.0 - gain):
             break
         best, found, kept = score, found + [d], (st, cols, power)
@@ -827,6 +881,19 @@ def _add_sources(cand: _Candidate, base: np.ndarray, max_sources: int, gain: flo
         return None
     moved, score = _relocate_sources(cand, base, system, found, kept[1], kept[2])
     return moved if score < best * (1.0 - gain) else Sources(kept[0], kept[2])   # as a new source must
+
+
+def _with_source(cand: _Candidate, base: np.ndarray, system: ShSystem, found: list, kept: tuple | None,
+                 residual: np.ndarray, d: np.ndarray) -> tuple:
+    """The pursuit's step with source ``d`` added to ``found`` (``kept``: their (transfer, columns,
+    intensities) or None; ``residual``: of the SH fit around them) -> (held-out RMSE, d, transfer,
+    columns, intensities, the radiance left to the SH)."""
+    st = prt.source_transfer(cand.geo, cand.material, np.array(found + [d]))
+    cols = _source_columns(cand.geo, cand.layer, st, None, base)
+    power = _source_intensities(cols, residual + (0.0 if kept is None else np.einsum("cpj,jc->pc", kept[1], kept[2])),
+                                system.obs.weight)
+    target = system.obs.radiance - np.einsum("cpj,jc->pc", cols, power)
+    return system.held_out_rmse(target), d, st, cols, power, target
 
 
 def _relocate_sources(cand: _Candidate, base: np.ndarray, system: ShSystem, found: list, cols: np.ndarray,
@@ -848,7 +915,7 @@ def _relocate_sources(cand: _Candidate, base: np.ndarray, system: ShSystem, foun
     project = sh_complement(system.a, w, fit)
     own = project(cols) * power.T[:, None, :]                 # (3, N, J): each source's part the SH cannot carry
     found = [refine_direction(geo, material, base, target - sh_part + own[:, :, j].T, w, d, BACKFIT_STEP, 4,
-                              project)[0] for j, d in enumerate(found)]
+                              project=project)[0] for j, d in enumerate(found)]
     st = prt.source_transfer(geo, material, np.array(found))
     cols = _source_columns(geo, layer, st, None, base)
     power = _source_intensities(cols, radiance - sh_part, w)
