@@ -44,6 +44,8 @@ def validate_brdf(doc: dict, name: str = "brdf") -> Brdf:
     """
     model = doc.get("model")
     ours = LEGACY_MODELS.get(model.split(" ")[0]) if isinstance(model, str) else None
+    if ours is not None and _blender_node(doc) is not None:
+        return blender_node_material(_blender_node(doc), name)      # a Blender node's inputs, as Blender means them
     if ours is not None:
         raise UserError(f"{name}: model {model!r} is not a sigrend model; write \"{ours}\" "
                         f"with its parameters ({', '.join(_required(ours))})")
@@ -132,9 +134,48 @@ def write_brdf(path: str | os.PathLike, brdf: Brdf) -> Path:
 
 def material_from_blender(doc: dict) -> Brdf:
     """A sigrend material from a Blender-side description (the shared Cycles captures' gt/brdf.json:
-    a Diffuse BSDF's albedo, or a Principled BSDF's base_color / roughness / metallic / ior / tint)."""
+    a Diffuse BSDF's albedo, or a Principled BSDF's base_color / roughness / metallic / ior / tint):
+    from its "blender" block of node inputs when it has one (blender_node_material), else from
+    those flattened keys."""
+    if _blender_node(doc) is not None:
+        return blender_node_material(_blender_node(doc))
     if "roughness" not in doc:
         return validate_brdf({"model": "lambert", "albedo": doc["albedo"]})
     return validate_brdf({"model": "principled", "base_color": doc["base_color"], "roughness": doc["roughness"],
                           "metallic": doc.get("metallic", 0.0), "ior": doc.get("ior", 1.5),
                           "specular_tint": doc.get("specular_tint", [1.0, 1.0, 1.0])})
+
+
+# Principled BSDF inputs sigrend's principled model does not have, at the values that switch them off
+# (Blender 4.x names); a node with any other value is refused rather than silently approximated
+_PRINCIPLED_OFF = {"Specular IOR Level": 0.5, "Alpha": 1.0, "Anisotropic": 0.0, "Transmission Weight": 0.0,
+                   "Coat Weight": 0.0, "Sheen Weight": 0.0, "Subsurface Weight": 0.0, "Emission Strength": 0.0,
+                   "Diffuse Roughness": 0.0}
+
+
+def _blender_node(doc: dict) -> dict | None:
+    """The "blender" block of node inputs of a Blender-side description, or None."""
+    node = doc.get("blender")
+    return node if isinstance(node, dict) and "blender_node" in node else None
+
+
+def blender_node_material(node: dict, name: str = "brdf") -> Brdf:
+    """A sigrend material from a Blender shader node's inputs ({"blender_node": type, input name:
+    value}, as the Cycles captures' gt/brdf.json "blender" block): a Diffuse BSDF of roughness 0
+    -> lambert (Color); a Principled BSDF -> principled (Base Color, Roughness, Metallic, IOR,
+    Specular Tint; RGBA colours taken as RGB).  UserError for another node or an input that sigrend
+    does not model set away from its neutral value (_PRINCIPLED_OFF)."""
+    kind = node.get("blender_node")
+    if kind == "ShaderNodeBsdfDiffuse" and float(node.get("Roughness", 0.0)) == 0.0:
+        return validate_brdf({"model": "lambert", "albedo": list(node["Color"])[:3]}, name)
+    if kind != "ShaderNodeBsdfPrincipled":
+        raise UserError(f"{name}: Blender node {kind!r} is not one sigrend models; give a Principled BSDF, a Diffuse "
+                        "BSDF of roughness 0, or write the material as \"principled\" with its parameters")
+    for key, off in _PRINCIPLED_OFF.items():
+        if key in node and not np.isclose(float(node[key]), off):
+            raise UserError(f"{name}: the Principled BSDF's {key!r} is {float(node[key]):g}; sigrend models it only at "
+                            f"{off:g} — set it there in Blender or write the material as \"principled\" yourself")
+    return validate_brdf({"model": "principled", "base_color": list(node["Base Color"])[:3],
+                          "roughness": node["Roughness"], "metallic": node.get("Metallic", 0.0),
+                          "ior": node.get("IOR", 1.5), "specular_tint": list(node.get("Specular Tint", [1, 1, 1, 1]))[:3]},
+                         name)

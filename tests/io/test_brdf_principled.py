@@ -40,6 +40,31 @@ def test_blender_side_names_are_pointed_to_the_sigrend_model():
         validate_brdf({"model": "lambertian", "albedo": [0.5] * 3})
 
 
+def test_blender_node_inputs_are_read_as_blender_means_them(tmp_path):
+    """A Cycles capture's gt/brdf.json (a Principled BSDF's node inputs, RGBA colours) is read as
+    --brdf takes it: the node's values, not the flattened keys beside them; a Diffuse BSDF of
+    roughness 0 is Lambert; an input sigrend does not model, set on, is refused in one line."""
+    node = {"blender_node": "ShaderNodeBsdfPrincipled", "Base Color": [0.2, 0.4, 0.6, 1.0], "Roughness": 0.35,
+            "Metallic": 0.0, "IOR": 1.45, "Specular Tint": [1.0, 0.9, 0.8, 1.0], "Specular IOR Level": 0.5,
+            "Coat Weight": 0.0, "Alpha": 1.0}
+    doc = {"model": "principled_v2 (lambert + dielectric GGX)", "base_color": [0.9, 0.9, 0.9], "roughness": 0.9,
+           "blender": node}
+    path = tmp_path / "brdf.json"
+    path.write_text(json.dumps(doc))
+    b = read_brdf(path).to_dict()
+    assert b["model"] == "principled" and b["base_color"] == [0.2, 0.4, 0.6] and b["roughness"] == 0.35
+    assert b["ior"] == 1.45 and b["specular_tint"] == [1.0, 0.9, 0.8]
+    assert material_from_blender(doc).to_dict() == b
+    diffuse = {"model": "lambertian", "blender": {"blender_node": "ShaderNodeBsdfDiffuse", "Color": [0.7, 0.6, 0.5, 1.0],
+                                                  "Roughness": 0.0}}
+    assert validate_brdf(diffuse).to_dict() == {"model": "lambert", "albedo": [0.7, 0.6, 0.5]}
+    for key, value in (("Coat Weight", 0.3), ("Specular IOR Level", 0.8), ("Transmission Weight", 1.0)):
+        with pytest.raises(UserError, match=key):
+            validate_brdf({**doc, "blender": {**node, key: value}})
+    with pytest.raises(UserError, match="ShaderNodeBsdfDiffuse"):
+        validate_brdf({"model": "lambertian", "blender": {**diffuse["blender"], "Roughness": 0.5}})
+
+
 def test_material_from_blender_gt():
     gt = {"model": "principled_v2 (lambert + dielectric GGX)", "base_color": [0.7, 0.45, 0.1], "roughness": 0.3,
           "ior": 1.5, "metallic": 0.0, "specular_tint": [1, 1, 1], "blender": {}}
