@@ -327,9 +327,9 @@ def source_candidates(geo: prt.Geometry, material: Principled | None, base: np.n
     local grids, each 2.5x finer, on all samples with exact shadow rays (prt.source_transfer) —
     where that lands back within 10 deg of an excluded source the pursuit ends (_add_sources) —
     and with a specular lobe the ``peaks`` brightest mirror_peaks, refined from BACKFIT_STEP
-    without coming within 10 deg of ``exclude``.  The scan sees a source through the lobe at the direction set's
-    cell centres (~11 deg apart), blind to a lamp between them once the lobe is sharper; a
-    highlight is where the residual is bright at the mirror direction (the Cycles night sphere:
+    without coming within 10 deg of ``exclude``.  The scan sees a source through the lobe at the
+    direction set's cell centres (~11 deg apart), blind to a lamp between them once the lobe is
+    sharper; a highlight is where the residual is bright at the mirror direction (the Cycles night sphere:
     the scan's pursuit kept 3 sources, one off any lamp, held-out RMSE 0.0082; with the mirror
     peaks (3, and 6 sources) the 5 brightest lamps, 0.0055; docs/fit.md for what it does to the
     roughness)."""
@@ -355,7 +355,7 @@ def mirror_peaks(geo: prt.Geometry, residual: np.ndarray, weight: np.ndarray, co
                  exclude: list) -> list[np.ndarray]:
     """Up to ``count`` directions (3,), 10 deg apart and from ``exclude``, where the positive
     residual (channel mean) averaged over the samples whose mirror direction falls there peaks:
-    an MIRROR_HEIGHT x 2 MIRROR_HEIGHT equirect map of weighted sums, both sums blurred by one
+    a MIRROR_HEIGHT x 2 MIRROR_HEIGHT equirect map of weighted sums, both sums blurred by one
     cell (a few samples per cell) and the mean shrunk where few samples look (+5 % of the largest
     weight)."""
     from scipy.ndimage import gaussian_filter
