@@ -164,15 +164,17 @@ def blender_node_material(node: dict, name: str = "brdf") -> Brdf:
     value}, as the Cycles captures' gt/brdf.json "blender" block): a Diffuse BSDF of roughness 0
     -> lambert (Color); a Principled BSDF -> principled (Base Color, Roughness, Metallic, IOR,
     Specular Tint; RGBA colours taken as RGB).  UserError for another node or an input that sigrend
-    does not model set away from its neutral value (_PRINCIPLED_OFF)."""
+    does not model set away from its neutral value (_PRINCIPLED_OFF; an Emission Strength with a
+    black Emission Color, Blender 3.x's default of 1, emits nothing)."""
     kind = node.get("blender_node")
     if kind == "ShaderNodeBsdfDiffuse" and float(node.get("Roughness", 0.0)) == 0.0:
         return validate_brdf({"model": "lambert", "albedo": list(node["Color"])[:3]}, name)
     if kind != "ShaderNodeBsdfPrincipled":
         raise UserError(f"{name}: Blender node {kind!r} is not one sigrend models; give a Principled BSDF, a Diffuse "
                         "BSDF of roughness 0, or write the material as \"principled\" with its parameters")
+    dark = not np.any(np.asarray(node.get("Emission Color", [1.0]), float)[:3] > 0)   # no emission at any strength
     for key, off in _PRINCIPLED_OFF.items():
-        if key in node and not np.isclose(float(node[key]), off):
+        if key in node and not np.isclose(float(node[key]), off) and not (key == "Emission Strength" and dark):
             raise UserError(f"{name}: the Principled BSDF's {key!r} is {float(node[key]):g}; sigrend models it only at "
                             f"{off:g} — set it there in Blender or write the material as \"principled\" yourself")
     return validate_brdf({"model": "principled", "base_color": list(node["Base Color"])[:3],

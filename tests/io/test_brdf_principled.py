@@ -61,6 +61,10 @@ def test_blender_node_inputs_are_read_as_blender_means_them(tmp_path):
     for key, value in (("Coat Weight", 0.3), ("Specular IOR Level", 0.8), ("Transmission Weight", 1.0)):
         with pytest.raises(UserError, match=key):
             validate_brdf({**doc, "blender": {**node, key: value}})
+    with pytest.raises(UserError, match="Emission Strength"):
+        validate_brdf({**doc, "blender": {**node, "Emission Strength": 1.0, "Emission Color": [1, 1, 1, 1]}})
+    dark = {**node, "Emission Strength": 1.0, "Emission Color": [0.0, 0.0, 0.0, 1.0]}     # Blender 3.x's default
+    assert validate_brdf({**doc, "blender": dark}).to_dict() == b
     with pytest.raises(UserError, match="ShaderNodeBsdfDiffuse"):
         validate_brdf({"model": "lambertian", "blender": {**diffuse["blender"], "Roughness": 0.5}})
 
