@@ -637,7 +637,8 @@ def albedo_level(score, chroma: np.ndarray) -> tuple[float, bool, list]:
 
 def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | None, obs: Observations, *,
                     order: int, folds: int, lighting_kw: dict, priors: list[float],
-                    max_bounces: int = 8) -> tuple[MaterialFit, list[dict]]:
+                    max_bounces: int = 8, refit_base: bool = False,
+                    base_grid: int = 25) -> tuple[MaterialFit, list[dict]]:
     """The lighting of a chosen material refitted richer: SH orders 0..``order`` (``spec``: its
     specular transfer to that order) and the ill-conditioned bands' prior scale from ``priors``
     chosen together by held-out views, the sources kept where the fit put them (their intensities
@@ -648,7 +649,9 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
     higher bands, which the final lighting has room for.  The normal equations are built once per
     source update and shared by every prior and order.  -> (the refitted fit, or ``fit`` when no
     choice beats its held-out error; the table of (prior, order, sources, held-out RMSE)).  A fit's
-    detail part is kept as it is (the SH refitted to the radiance less it)."""
+    detail part is kept as it is (the SH refitted to the radiance less it).  ``refit_base``: a
+    specular candidate's base colour chromaticity is then searched again under the chosen order and
+    prior (_refit_base) and kept where the held-out views prefer it."""
     if fit.detail is not None:
         obs = Observations(obs.radiance - fit.detail.radiance, obs.weight, obs.fold)
     layer = geo.sample_layer(fit.material)
@@ -674,11 +677,47 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
     if keep != kept:     # the order and prior chosen again for the sources left
         best = _lighting_search(system, obs, fit.sources, src_cols, keep, list(range(order + 1)), priors,
                                 lighting_kw, table)
+    base = fit.base
+    if refit_base and spec is not None:
+        base, best = _refit_base(cand, fit, best, keep, base_grid, table)
     if not best.validation_rmse < fit.validation_rmse:
         return fit, table
-    return MaterialFit(fit.material, fit.base, best.fit.coeffs, best.fit,
+    return MaterialFit(fit.material, base, best.fit.coeffs, best.fit,
                        [{k: v for k, v in c.items() if k != "fit"} for c in best.orders], float(best.validation_rmse),
                        float(best.fit.residual_rms), best.sources, detail=fit.detail), table
+
+
+def _refit_base(cand: _Candidate, fit: MaterialFit, best: "_LightingChoice", keep: list[int], grid: int,
+                table: list) -> tuple[np.ndarray, "_LightingChoice"]:
+    """refine_lighting's base colour chromaticity: the base colour search (_base_search) again at
+    the chosen lighting's order and prior with its sources ``keep`` (indices into fit.sources), the
+    level (sum_c s_c rho_c, s_c the channel's weighted radiance) kept at the fit's, the SH and the
+    sources' intensities refitted there -> (base colour, lighting choice), the fit's own where the
+    held-out views do not prefer the new one.  The candidates' base colour was searched under the
+    cheaper lighting (its order and the default prior), where a channel whose diffuse is weak
+    beside the specular layer trades its level with the lighting's bands 0-2 nearly freely (the
+    Cycles night sphere: red and blue x0.80 and x0.88, green right, band 2 of the lighting 9.8 %
+    off); under the chosen lighting the channels agree, but their common level drifts with what the
+    richer SH takes of the highlights (+12 % there), so only the chromaticity is taken (docs/fit.md)."""
+    at = replace(cand, order=best.order, kw={**cand.kw, "band_prior": best.prior}, _last={}, _blocks={})
+    sources = None if best.sources is None else Sources(best.sources.transfer, best.sources.power.copy())
+    ridge_dc2 = best.fit.ridge * float(np.mean(best.fit.coeffs[0] ** 2))
+    base = fit.base
+    for _ in range(2 if cand.geo.interreflects else 1):    # the second with the interreflection of the first's rho
+        base = _base_search(at, base, sources, ridge_dc2, grid)
+    share = (cand.obs.weight[:, None] * cand.obs.radiance).sum(axis=0)
+    base = base * float(share @ fit.base) / float(share @ base)
+    base = np.clip(base, 1e-3, 1.0)
+    src_cols = None
+    if fit.sources is not None:
+        src_cols = _source_columns(cand.geo, cand.layer, fit.sources.transfer,
+                                   cand.indirect(base, fit.sources.transfer.vertex_direct), base)
+    rows = len(table)
+    again = _lighting_search(cand.system(base), cand.obs, fit.sources, src_cols, keep, [best.order], [best.prior],
+                             cand.kw, table)
+    for row in table[rows:]:
+        row["base_color"] = [float(x) for x in base]
+    return (base, again) if again.validation_rmse < best.validation_rmse else (fit.base, best)
 
 
 class _LightingChoice(NamedTuple):
