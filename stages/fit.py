@@ -92,10 +92,11 @@ class Settings:
     ior: float = setting(1.5, "principled fit: index of refraction of the dielectric specular layer")
     max_sources: int = setting(3, "principled fit: directional sources (the lighting's dual angular part) tried "
                                   "on top of the SH lighting, each kept only if it lowers the held-out views' error by 2%")
-    source_peaks: int = setting(0, "principled fit: candidates each step of the sources' pursuit also takes from the "
-                                   "peaks of the residual at the samples' mirror directions (finds lamps the direction "
-                                   "set's scan falls between; docs/fit.md: on the Cycles night sphere it finds 5 lamps "
-                                   "with --max-sources 6 but the roughness rises); 0 = the scan's only")
+    source_peaks: int = setting(3, "principled fit, a sharp lobe (roughness below ~0.31): once the material is "
+                                   "chosen, its sources' pursuit is continued with this many candidates a step from "
+                                   "the peaks of the residual at the samples' mirror directions (lamps the direction "
+                                   "set's scan falls between), kept where the held-out views prefer it; 0 = off")
+    peak_sources: int = setting(6, "most directional sources of that continued pursuit")
     lighting_detail: Literal["auto", "off"] = setting(
         "auto", "principled fit, lighting unknown: 'auto' tries the lighting's detail part (a map of what the SH "
                 "bands cannot hold, seen through the specular lobe only) at the best dielectric when its lobe is sharp "
@@ -162,6 +163,8 @@ class Settings:
             raise UserError(f"--roughness-refinements must be >= 0, got {self.roughness_refinements}")
         if not 0 <= self.source_peaks <= 10:
             raise UserError(f"--source-peaks must be 0 to 10, got {self.source_peaks}")
+        if self.peak_sources < 0:
+            raise UserError(f"--peak-sources must be >= 0, got {self.peak_sources}")
         if self.max_sources < 0 or self.physical_samples < 100 or self.lobe_samples < 1 or self.bounce_samples < 1:
             raise UserError("--max-sources must be >= 0, --physical-samples >= 100, --lobe-samples and "
                             "--bounce-samples >= 1")

@@ -429,7 +429,8 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
     Up to ``max_sources`` directional sources join the SH lighting, one at a time after the first
     SH fit, each only if it lowers the held-out views' RMSE by more than ``source_gain`` (relative);
     ``source_peaks``: candidates a step takes from the residual's mirror directions (source_candidates).
-    ``source_directions`` (J, 3): sources at known directions instead (intensities fitted).
+    ``source_directions`` (J, 3): sources at these directions instead (intensities fitted), or
+    with ``max_sources`` > 0 where the pursuit starts from.
     ``known_coeffs`` (K', 3) and ``known_sources`` (J, 3) intensities at ``source_directions``: the
     lighting is known.  The returned lighting order is the held-out best of ``orders`` (default: ``order``).
     ``detail``: also try the lighting's detail part (with_detail); kept if it lowers the held-out
@@ -452,8 +453,8 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
 
     cand = _Candidate(geo, obs, material, layer, spec, order, folds, kw, max_bounces)
 
-    if max_sources > 0 and sources is None and known is None:
-        sources = _add_sources(cand, base, max_sources, source_gain, source_peaks)
+    if max_sources > 0 and known is None:      # (with source_directions: the pursuit continued from them)
+        sources = _add_sources(cand, base, max_sources, source_gain, source_peaks, sources)
     if not fix_base:
         base = _fit_base_colour(cand, base, float(np.mean(base0)), sources, known, base_grid)
     # the design and source columns at the final base colour (and the sources' intensities for it)
@@ -892,19 +893,26 @@ def sh_complement(a: np.ndarray, weight: np.ndarray, fit: solve.LightingFit) -> 
     return project
 
 
-def _add_sources(cand: _Candidate, base: np.ndarray, max_sources: int, gain: float, peaks: int = 0) -> Sources | None:
+def _add_sources(cand: _Candidate, base: np.ndarray, max_sources: int, gain: float, peaks: int = 0,
+                 seed: Sources | None = None) -> Sources | None:
     """Greedy matching pursuit of directional sources on the residual of the candidate's SH fit
     at base colour ``base``: each new source is kept only if the held-out views' RMSE (SH refitted
     around the sources) drops by more than ``gain`` (relative); intensities are fitted on all views
-    (3 numbers a source)."""
+    (3 numbers a source).  ``seed``: sources found before, which the pursuit continues from."""
     geo, material = cand.geo, cand.material
     system = cand.system(base)
     radiance, w = system.obs.radiance, system.obs.weight
-    best = system.held_out_rmse(radiance)
-    residual = radiance - system.predict(system.solve(radiance).coeffs)
+    target = radiance
     found, kept = [], None
-    scan = source_scan(geo, material, base) if max_sources > 0 else None
-    for _ in range(max_sources):
+    if seed is not None:
+        cols = _source_columns(geo, cand.layer, seed.transfer, None, base)
+        power = _source_intensities(cols, radiance - system.predict(system.solve(radiance).coeffs), w)
+        target = radiance - np.einsum("cpj,jc->pc", cols, power)
+        found, kept = list(seed.directions), (seed.transfer, cols, power)
+    best = system.held_out_rmse(target)
+    residual = target - system.predict(system.solve(target).coeffs)
+    scan = source_scan(geo, material, base) if max_sources > len(found) else None
+    for _ in range(max_sources - len(found)):
         # each candidate scored as the step would leave it (the held-out views' RMSE): the best kept
         trials = [_with_source(cand, base, system, found, kept, residual, d)
                   for d, _ in source_candidates(geo, material, base, residual, w, scan=scan, exclude=found, peaks=peaks)
@@ -916,9 +924,10 @@ def _add_sources(cand: _Candidate, base: np.ndarray, max_sources: int, gain: flo
             break
         best, found, kept = score, found + [d], (st, cols, power)
         residual = target - system.predict(system.solve(target).coeffs)
-    if kept is None:
-        return None
-    moved, score = _relocate_sources(cand, base, system, found, kept[1], kept[2])
+    seeded = 0 if seed is None else len(seed.directions)
+    if kept is None or len(found) == seeded:
+        return seed
+    moved, score = _relocate_sources(cand, base, system, found, kept[1], kept[2], seeded)
     return moved if score < best * (1.0 - gain) else Sources(kept[0], kept[2])   # as a new source must
 
 
@@ -927,7 +936,8 @@ def _with_source(cand: _Candidate, base: np.ndarray, system: ShSystem, found: li
     """The pursuit's step with source ``d`` added to ``found`` (``kept``: their (transfer, columns,
     intensities) or None; ``residual``: of the SH fit around them) -> (held-out RMSE, d, transfer,
     columns, intensities, the radiance left to the SH)."""
-    st = prt.source_transfer(cand.geo, cand.material, np.array(found + [d]))
+    st = prt.source_transfer(cand.geo, cand.material, np.asarray(d)[None])
+    st = st if kept is None else kept[0].joined(st)
     cols = _source_columns(cand.geo, cand.layer, st, None, base)
     power = _source_intensities(cols, residual + (0.0 if kept is None else np.einsum("cpj,jc->pc", kept[1], kept[2])),
                                 system.obs.weight)
@@ -936,7 +946,7 @@ def _with_source(cand: _Candidate, base: np.ndarray, system: ShSystem, found: li
 
 
 def _relocate_sources(cand: _Candidate, base: np.ndarray, system: ShSystem, found: list, cols: np.ndarray,
-                      power: np.ndarray) -> tuple[Sources, float]:
+                      power: np.ndarray, start: int = 0) -> tuple[Sources, float]:
     """One more pass over the pursuit's sources (directions ``found``, columns (3, N, J),
     intensities (J, 3); ``system``: the SH at ``base``): each direction refined (BACKFIT_STEP, 4 rounds)
     against the SH refitted around the others and scored by its part the SH cannot carry
@@ -945,7 +955,8 @@ def _relocate_sources(cand: _Candidate, base: np.ndarray, system: ShSystem, foun
     held-out RMSE, hence model selection, is dominated by such sub-degree errors of a sharp source.
     The caller keeps the move only where it lowers the held-out views' RMSE by more than the
     gain a new source must bring: where SH and sources cannot carry the lighting (a sharp lobe
-    under a detailed map) the complement is a poor guide and small gains are noise."""
+    under a detailed map) the complement is a poor guide and small gains are noise.  The first
+    ``start`` directions (a continued pursuit's seed, relocated before) are kept."""
     geo, material, layer = cand.geo, cand.material, cand.layer
     radiance, w = system.obs.radiance, system.obs.weight
     target = radiance - np.einsum("cpj,jc->pc", cols, power)
@@ -953,8 +964,8 @@ def _relocate_sources(cand: _Candidate, base: np.ndarray, system: ShSystem, foun
     sh_part = system.predict(fit.coeffs)
     project = sh_complement(system.a, w, fit)
     own = project(cols) * power.T[:, None, :]                 # (3, N, J): each source's part the SH cannot carry
-    found = [refine_direction(geo, material, base, target - sh_part + own[:, :, j].T, w, d, BACKFIT_STEP, 4,
-                              project=project)[0] for j, d in enumerate(found)]
+    found = [d if j < start else refine_direction(geo, material, base, target - sh_part + own[:, :, j].T, w, d,
+                                                  BACKFIT_STEP, 4, project=project)[0] for j, d in enumerate(found)]
     st = prt.source_transfer(geo, material, np.array(found))
     cols = _source_columns(geo, layer, st, None, base)
     power = _source_intensities(cols, radiance - sh_part, w)

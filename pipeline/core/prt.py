@@ -315,6 +315,15 @@ class SourceTransfer:
     specular: np.ndarray | None
     specular_scaled: np.ndarray | None = None   # a metal's: per unit base colour (specular: at F0 = 0)
 
+    def joined(self, other: "SourceTransfer") -> "SourceTransfer":
+        """The transfer of these sources followed by ``other``'s (the directions are independent:
+        the same columns as one call for all of them)."""
+        def cat(a, b):
+            return None if a is None or b is None else np.concatenate([a, b], axis=1)
+        return SourceTransfer(np.concatenate([self.directions, other.directions]), cat(self.direct, other.direct),
+                              cat(self.vertex_direct, other.vertex_direct), cat(self.specular, other.specular),
+                              cat(self.specular_scaled, other.specular_scaled))
+
     def subset(self, keep: list[int]) -> "SourceTransfer":
         """The transfer of the sources ``keep`` (indices) only."""
         def cols(x):
