@@ -522,7 +522,8 @@ def texture_pattern(obs: material_fit.Observations, mesh, data: dict, vertex_rho
 class CandidateFit:
     """Fits one material candidate (material or None for Lambert, base colour start, whether the
     base colour is fixed, source directions or None to find them, whether to try the lighting's
-    detail part) on the fit's shared samples: under a known map on the renderer's own model of each
+    detail part, whether the sources' pursuit goes on from the given directions with --source-peaks
+    mirror-peak candidates a step: more_sources) on the fit's shared samples: under a known map on the renderer's own model of each
     sample (material_fit.fit_to_map), else on the transfer (material_fit.fit_material) with the
     lighting unknown or given as SH + sources."""
 
