@@ -68,6 +68,7 @@ class Geometry:
     pattern: np.ndarray | None = None
     _bounces: dict = field(default_factory=dict, repr=False)
     _indirect: dict = field(default_factory=dict, repr=False)     # indirect_transfer's recent results
+    _specular: list = field(default_factory=list, repr=False)     # specular_transfer's recent results
 
     @staticmethod
     def _layer_key(material: Principled | None):
@@ -86,6 +87,13 @@ class Geometry:
         """Whether any vertex's occlusion ray hits the object (a convex one: none, so no
         interreflection whatever the base colour)."""
         return bool(self.renderer.bounce_rays().on_mesh.any())
+
+    def subset(self, idx: np.ndarray) -> "Geometry":
+        """The samples ``idx`` only, at their pixel centres (no footprint), with caches of their own
+        (the mesh's bounce matrices shared)."""
+        pick = (self.faces, self.tri, self.bary, self.normals, self.view_dirs, self.mu_out, self.direct)
+        return Geometry(self.renderer, self.order, *(a[idx] for a in pick), self.vertex_direct, None,
+                        None if self.pattern is None else self.pattern[idx], self._bounces)
 
     def bounce_matrices(self, material: Principled | None) -> list:
         """The renderer's bounce matrices with this material's diffuse layer at the hits (cached)."""
@@ -137,6 +145,7 @@ def diffuse_layer(material: Principled | None, mu_out: np.ndarray) -> np.ndarray
 QUADRATURE_FLOOR = 1e-2  # the direct transfer's relative accuracy on 16-row cells (odd bands of a sphere: 0.5-0.8%)
 INDIRECT_ORDER = 4   # SH bands above this carry < 1% of the interreflected light (Â_l, l > 4: < 2% of Â_0)
 INDIRECT_CACHE = 8   # indirect_transfer results kept per geometry ((N, 25, 3) floats each: ~18 MB at 30k samples)
+SPECULAR_CACHE = 4   # specular_transfer results kept per geometry ((N, 81, 3) floats at order 8: ~58 MB at 30k samples)
 
 
 def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarray,
@@ -182,11 +191,26 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
     F0 = 1 (the compensation for multiple scattering taken at each end; both from the same lobe
     samples and shadow rays)."""
     order = geo.order if order is None else min(order, geo.order)
+    # the fit asks again for the same lobe (a roughness searched twice, the chosen one refitted): the
+    # last SPECULAR_CACHE answers are kept per pixel footprint, read-only; one to a higher order
+    # serves a lower one (each band is computed on its own from the same lobe samples)
+    key = (repr(material), n_samples, seed, chunk)
+    k = num_coeffs(order)
+    for footprint, got, got_order, kept in geo._specular:
+        if footprint is geo.footprint and got == key and got_order >= order:
+            return SpecularTransfer(kept.fixed[:, :k], None if kept.scaled is None else kept.scaled[:, :k])
     if material.metallic > 0:
         zero, one = _specular_transfer(geo, [replace(material, base_color=(v, v, v)) for v in (0.0, 1.0)],
                                        n_samples, seed, chunk, order)
-        return SpecularTransfer(zero, one - zero)
-    return SpecularTransfer(_specular_transfer(geo, [material], n_samples, seed, chunk, order)[0])
+        out = SpecularTransfer(zero, one - zero)
+    else:
+        out = SpecularTransfer(_specular_transfer(geo, [material], n_samples, seed, chunk, order)[0])
+    for a in (out.fixed, out.scaled):
+        if a is not None:
+            a.flags.writeable = False
+    del geo._specular[:max(0, len(geo._specular) - SPECULAR_CACHE + 1)]
+    geo._specular.append((geo.footprint, key, order, out))
+    return out
 
 
 def _lobe_chunks(geo: Geometry, materials: list, n_samples: int, seed: int, chunk: int, one_chunk) -> None:

@@ -126,8 +126,8 @@ class NormalEquations:
         """Summed (over ``folds``) per-channel (G (3,K',K'), h (3,K'), btb (3,), W) truncated to
         ``order``; ``scale`` (3,) multiplies a shared design per channel (rho_c)."""
         k = num_coeffs(self.order if order is None else order)
-        g = self.gram[folds].sum(axis=0)[:, :k, :k]
-        h = self.rhs[folds].sum(axis=0)[:, :k]
+        g = self.gram[folds, :, :k, :k].sum(axis=0)       # truncated before the sum: an order's blocks only
+        h = self.rhs[folds, :, :k].sum(axis=0)
         if self.shared:
             s = np.ones(3) if scale is None else np.asarray(scale, dtype=float)
             g = (s ** 2)[:, None, None] * g[0][None]
@@ -167,12 +167,12 @@ def _solve_ridge(g: np.ndarray, h: np.ndarray, ridge: np.ndarray, keep: np.ndarr
     idx = np.nonzero(keep)[0]
     if idx.size == 0:
         return x
-    for c in range(3):
-        a = g[c][np.ix_(idx, idx)] + np.diag(ridge[idx])
-        try:
-            x[idx, c] = np.linalg.solve(a, h[c, idx])
-        except np.linalg.LinAlgError:
-            x[idx, c] = np.linalg.lstsq(a, h[c, idx], rcond=None)[0]
+    a = (g if idx.size == k else g[:, idx[:, None], idx[None, :]]) + np.diag(ridge[idx])
+    try:       # the three channels in one batched LAPACK call
+        x[idx] = np.linalg.solve(a, h[:, idx, None])[..., 0].T
+    except np.linalg.LinAlgError:
+        for c in range(3):
+            x[idx, c] = np.linalg.lstsq(a[c], h[c, idx], rcond=None)[0]
     return x
 
 
