@@ -68,7 +68,7 @@ class Geometry:
     pattern: np.ndarray | None = None
     _bounces: dict = field(default_factory=dict, repr=False)
     _indirect: dict = field(default_factory=dict, repr=False)     # indirect_transfer's recent results
-    _specular: list = field(default_factory=list, repr=False)     # specular_transfer's recent results
+    _lobes: list = field(default_factory=list, repr=False)        # the lobe transfers' recent results (_recall)
 
     @staticmethod
     def _layer_key(material: Principled | None):
@@ -145,7 +145,7 @@ def diffuse_layer(material: Principled | None, mu_out: np.ndarray) -> np.ndarray
 QUADRATURE_FLOOR = 1e-2  # the direct transfer's relative accuracy on 16-row cells (odd bands of a sphere: 0.5-0.8%)
 INDIRECT_ORDER = 4   # SH bands above this carry < 1% of the interreflected light (Â_l, l > 4: < 2% of Â_0)
 INDIRECT_CACHE = 8   # indirect_transfer results kept per geometry ((N, 25, 3) floats each: ~18 MB at 30k samples)
-SPECULAR_CACHE = 4   # specular_transfer results kept per geometry ((N, 81, 3) floats at order 8: ~58 MB at 30k samples)
+LOBE_CACHE = 6       # lobe transfers kept per geometry (specular: (N, 81, 3) floats at order 8, ~58 MB at 30k samples)
 
 
 def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarray,
@@ -191,26 +191,33 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
     F0 = 1 (the compensation for multiple scattering taken at each end; both from the same lobe
     samples and shadow rays)."""
     order = geo.order if order is None else min(order, geo.order)
-    # the fit asks again for the same lobe (a roughness searched twice, the chosen one refitted): the
-    # last SPECULAR_CACHE answers are kept per pixel footprint, read-only; one to a higher order
-    # serves a lower one (each band is computed on its own from the same lobe samples)
-    key = (repr(material), n_samples, seed, chunk)
-    k = num_coeffs(order)
-    for footprint, got, got_order, kept in geo._specular:
-        if footprint is geo.footprint and got == key and got_order >= order:
-            return SpecularTransfer(kept.fixed[:, :k], None if kept.scaled is None else kept.scaled[:, :k])
-    if material.metallic > 0:
-        zero, one = _specular_transfer(geo, [replace(material, base_color=(v, v, v)) for v in (0.0, 1.0)],
-                                       n_samples, seed, chunk, order)
-        out = SpecularTransfer(zero, one - zero)
-    else:
-        out = SpecularTransfer(_specular_transfer(geo, [material], n_samples, seed, chunk, order)[0])
-    for a in (out.fixed, out.scaled):
-        if a is not None:
-            a.flags.writeable = False
-    del geo._specular[:max(0, len(geo._specular) - SPECULAR_CACHE + 1)]
-    geo._specular.append((geo.footprint, key, order, out))
-    return out
+
+    def make() -> SpecularTransfer:
+        if material.metallic > 0:
+            zero, one = _specular_transfer(geo, [replace(material, base_color=(v, v, v)) for v in (0.0, 1.0)],
+                                           n_samples, seed, chunk, order)
+            out = SpecularTransfer(zero, one - zero)
+        else:
+            out = SpecularTransfer(_specular_transfer(geo, [material], n_samples, seed, chunk, order)[0])
+        for a in (out.fixed, out.scaled):
+            if a is not None:
+                a.flags.writeable = False      # shared by every caller (_recall)
+        return out
+
+    return _recall(geo, ("specular", repr(material), n_samples, seed, chunk, order), make)
+
+
+def _recall(geo: Geometry, key: tuple, make):
+    """``make()``'s answer for ``key`` on this geometry's samples and pixel footprints, kept among
+    its last LOBE_CACHE answers: the fit asks again for the same lobe (a roughness searched twice,
+    the chosen candidate refitted by more_sources).  The answer is shared: callers do not modify it."""
+    for footprint, got, value in geo._lobes:
+        if footprint is geo.footprint and got == key:
+            return value
+    value = make()
+    del geo._lobes[:max(0, len(geo._lobes) - LOBE_CACHE + 1)]
+    geo._lobes.append((geo.footprint, key, value))
+    return value
 
 
 def _lobe_chunks(geo: Geometry, materials: list, n_samples: int, seed: int, chunk: int, one_chunk) -> None:
@@ -298,10 +305,16 @@ def detail_transfer(geo: Geometry, material: Principled, height: int, n_samples:
     row p is sum_s w_s bilinear(w_s) over sample p's lobe samples (the same ones as
     specular_transfer's with the same seed, occluded ones 0).  Lighting finer than SH bands carry
     (what a sharp lobe reflects of an environment's detail) is seen through it."""
-    import scipy.sparse as sp
-
     if material.metallic > 0:
         raise ValueError("detail_transfer: a dielectric's lobe only (a metal's F depends on its base colour)")
+    return _recall(geo, ("detail", repr(material), height, n_samples, seed, chunk),
+                   lambda: _detail_transfer(geo, material, height, n_samples, seed, chunk))
+
+
+def _detail_transfer(geo: Geometry, material: Principled, height: int, n_samples: int, seed: int, chunk: int):
+    """detail_transfer, computed."""
+    import scipy.sparse as sp
+
     width = 2 * height
     parts: list = []
 
