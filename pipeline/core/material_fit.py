@@ -234,7 +234,6 @@ def _gram_with_columns(lr: np.ndarray, left: np.ndarray, right: np.ndarray, w: n
 
 
 MIN_SOURCE_COS = float(np.cos(np.radians(10.0)))   # sources closer than 10 deg are one (extended) light
-COARSE_STRIDE = 4      # refine_direction's first rounds score every 4th sample (a lamp's highlight keeps dozens)
 BACKFIT_STEP = float(np.radians(2.0))   # relocation's first local grid half-width (2.5x finer x 4 rounds: 0.06 deg)
 
 
@@ -389,30 +388,21 @@ def refine_direction(geo: prt.Geometry, material: Principled | None, base: np.nd
     ``start``: ``rounds`` of 5 x 5 local grids of half-width ``step`` (radians), each 2.5x finer,
     on all samples with exact shadow rays (prt.source_transfer), the centre included.
     ``exclude``: directions it keeps 10 deg away from; ``project``: the candidates' columns (3, N, J)
-    are scored by what of them it leaves (sh_complement), else the rounds before the last score on
-    every COARSE_STRIDE-th sample only (4x cheaper; the last, on all, has the final say in its grid).
-    Cycles night sphere: held-out RMSE 0.00504 -> 0.00490, fit CPU time -10 %; the relocation's
-    rounds (``project``) on such a subset, with A'W cols estimated from it, moved the teapot's
-    sources (relight 3.95 -> 4.20 %)."""
+    are scored by what of them it leaves (sh_complement)."""
     # located at the pixel centres (16x cheaper): a pixel footprint blurs a highlight, it does not move it
     centre = replace(geo, footprint=None)
-    coarse = np.arange(0, geo.faces.size, COARSE_STRIDE)
-    few = None if project is not None else (geo.subset(coarse), residual[coarse], weight[coarse])
+    layer = geo.sample_layer(material)
     best, best_score = np.asarray(start, float), -np.inf
-    for i in range(rounds):
-        g, res, w = (centre, residual, weight) if few is None or i == rounds - 1 else few
-        if few is not None and i == rounds - 1:
-            best_score = -np.inf         # the last round scores on all samples, its centre again
-        layer = g.sample_layer(material)
+    for _ in range(rounds):
         t1 = np.cross(best, [0.0, 0.0, 1.0] if abs(best[2]) < 0.9 else [1.0, 0.0, 0.0])
         t1 /= np.linalg.norm(t1)
         t2 = np.cross(best, t1)
         off = np.linspace(-step, step, 5)
         cand = best[None] + off[:, None, None] * t1 + off[None, :, None] * t2
         cand = cand.reshape(-1, 3) / np.linalg.norm(cand.reshape(-1, 3), axis=1, keepdims=True)
-        st = prt.source_transfer(g, material, cand, vertices=False)
-        cols = _source_columns(g, layer, st, None, base)
-        sc = _source_score(cols if project is None else project(cols), res, w)
+        st = prt.source_transfer(centre, material, cand, vertices=False)
+        cols = _source_columns(geo, layer, st, None, base)
+        sc = _source_score(cols if project is None else project(cols), residual, weight)
         for f in exclude or []:      # not onto a source already found (two within 10 deg are one light)
             sc[cand @ f > MIN_SOURCE_COS] = -np.inf
         if sc.max() > best_score:
