@@ -88,13 +88,6 @@ class Geometry:
         interreflection whatever the base colour)."""
         return bool(self.renderer.bounce_rays().on_mesh.any())
 
-    def subset(self, idx: np.ndarray) -> "Geometry":
-        """The samples ``idx`` only, at their pixel centres (no footprint), with caches of their own
-        (the mesh's bounce matrices shared)."""
-        pick = (self.faces, self.tri, self.bary, self.normals, self.view_dirs, self.mu_out, self.direct)
-        return Geometry(self.renderer, self.order, *(a[idx] for a in pick), self.vertex_direct, None,
-                        None if self.pattern is None else self.pattern[idx], self._bounces)
-
     def bounce_matrices(self, material: Principled | None) -> list:
         """The renderer's bounce matrices with this material's diffuse layer at the hits (cached)."""
         key = self._layer_key(material)
