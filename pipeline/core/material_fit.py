@@ -1006,11 +1006,22 @@ def predict(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | No
 
 
 def roughness_interval(roughness: np.ndarray, errors: np.ndarray, tolerance: float) -> tuple[float, float]:
-    """The range of candidate roughness whose held-out error is within ``tolerance`` (relative)
-    of the best: what the data cannot tell apart."""
-    roughness, errors = np.asarray(roughness, float), np.asarray(errors, float)
-    ok = errors <= errors.min() * (1.0 + tolerance)
-    return float(roughness[ok].min()), float(roughness[ok].max())
+    """The range of roughness whose held-out error is within ``tolerance`` (relative) of the best:
+    what the data cannot tell apart.  From the candidates (roughness, errors) in any order: the
+    outermost ones within it, extended to where the error, linear in log roughness between them
+    and their next candidate out, crosses the limit (so that the range does not shrink to the
+    points a search happened to fit; the error being convex there, still a little narrow)."""
+    order = np.argsort(roughness)
+    r, e = np.log(np.asarray(roughness, float)[order]), np.asarray(errors, float)[order]
+    limit = e.min() * (1.0 + tolerance)
+    ok = np.flatnonzero(e <= limit)
+    ends = []
+    for i, j in ((ok[0], ok[0] - 1), (ok[-1], ok[-1] + 1)):
+        if not 0 <= j < len(r):
+            ends.append(r[i])
+            continue
+        ends.append(r[i] + (r[j] - r[i]) * (limit - e[i]) / (e[j] - e[i]))
+    return float(np.exp(ends[0])), float(np.exp(ends[1]))
 
 
 def refine_minimum(x: np.ndarray, y: np.ndarray) -> float:
