@@ -322,11 +322,12 @@ def search_with_detail(candidate, settings, grey, fits: dict, directions) -> dic
     """The dielectric candidates ``fits`` ({roughness: fit}, the grid's: search_roughness without
     its refinement) refined with the lighting's detail part (material_fit.with_detail) where it
     lowers the held-out error, else without it (refine_roughness).  The detail part is tried once,
-    at the vertex of the parabola through the best grid point and its neighbours (the refinement's
-    likely end), and only where that lobe is sharp enough to show detail the SH cannot
-    (sharp_lobe); kept, Brent's search between the vertex's neighbours is made with it.  One Brent
-    search, not one without and one with the detail part (night sphere: 16 dielectric candidates
-    -> 12; on the Cycles teapot, roughness 0.3, the detail part never wins)."""
+    at the best grid point (its transfers at hand), where the vertex of the parabola through it and
+    its neighbours (the refinement's likely end) is a lobe sharp enough to show detail the SH
+    cannot (sharp_lobe: sample_data's 0.326 is not, its best grid point 0.3 would be); kept,
+    Brent's search between the grid neighbours is made with it.  One Brent search, not one
+    without and one with the detail part (night sphere: 16 dielectric candidates -> 12; on the
+    Cycles teapot, roughness 0.3, the detail part never wins)."""
     def plain(r: float):
         return candidate(Principled(roughness=float(r), ior=settings.ior), grey, False, directions)
 
@@ -334,12 +335,13 @@ def search_with_detail(candidate, settings, grey, fits: dict, directions) -> dic
         return candidate(Principled(roughness=float(r), ior=settings.ior), grey, False, directions, True)
 
     rs = np.array(sorted(fits))
-    start = material_fit.refine_minimum(rs, np.array([_score(fits[r]) for r in rs]))
-    again = fit_at(start) if sharp_lobe(start, settings) else None
+    errors = np.array([_score(fits[r]) for r in rs])
+    best = float(rs[np.argmin(errors)])
+    again = fit_at(best) if sharp_lobe(material_fit.refine_minimum(rs, errors), settings) else None
     if again is None or again.detail is None:
         refine_roughness(fits, plain, settings)
         return fits
-    searched = {**fits, start: again}
+    searched = {**fits, best: again}
     refine_roughness(searched, fit_at, settings)
     return searched
 
