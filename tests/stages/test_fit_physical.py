@@ -178,10 +178,10 @@ def test_glossy_sphere_both_unknown(tmp_path):
     beyond SH 8 and the sources; once the roughness is chosen the sources' pursuit goes on from the
     residual's mirror peaks (fit_physical.more_sources: the direction set's scan falls between the
     horizon lamps), and the base colour's chromaticity is searched again under the final lighting
-    (material_fit._refit_base).  Measured: roughness 0.152, base (0.100, 0.444, 0.145) for (0.1,
+    (material_fit._refit_base).  Measured: roughness 0.152, base (0.101, 0.445, 0.145) for (0.1,
     0.45, 0.15), 6 sources with the 5 brightest lamps within 0.61 deg, the lighting's bands 0-2
-    1.4 / 2.0 / 3.5 %, relight 1.29 % (the true material 0.99 %); by the shared score_relight.py
-    (the downsampled map, the 512-sample references) 7.77 % (the true material 7.47 %: the
+    1.4 / 2.0 / 3.5 %, relight 1.21 % (the true material 0.99 %); by the shared score_relight.py
+    (the downsampled map, the 512-sample references) 7.70 % (the true material 7.47 %: the
     references' noise and the map's blur, fit_and_relight).  Before the peaks and the chromaticity
     search: base (0.080, 0.446, 0.132), 3 sources (the third 31 deg from any lamp), bands 3.6 / 4.0
     / 9.8 %, relight 5.23 % (8.47 %); without the detail part: 0.161, (0.091, 0.524, 0.140), 21.0 %
