@@ -182,7 +182,7 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
     """The specular lobe's transfer at the samples (see the module docstring) for SH lighting up to
     ``order`` (default the geometry's); a metal's as its transfer at F0 = 0 and the difference to
     F0 = 1 (the compensation for multiple scattering taken at each end; both from the same lobe
-    samples and shadow rays)."""
+    samples and shadow rays).  Kept per geometry (_recall): the arrays are read-only."""
     order = geo.order if order is None else min(order, geo.order)
 
     def make() -> SpecularTransfer:
@@ -297,7 +297,8 @@ def detail_transfer(geo: Geometry, material: Principled, height: int, n_samples:
     H x 2H equirect grid (DESIGN.md convention) interpolated bilinearly between cell centres:
     row p is sum_s w_s bilinear(w_s) over sample p's lobe samples (the same ones as
     specular_transfer's with the same seed, occluded ones 0).  Lighting finer than SH bands carry
-    (what a sharp lobe reflects of an environment's detail) is seen through it."""
+    (what a sharp lobe reflects of an environment's detail) is seen through it.  Kept per geometry
+    (_recall): callers do not modify it."""
     if material.metallic > 0:
         raise ValueError("detail_transfer: a dielectric's lobe only (a metal's F depends on its base colour)")
     return _recall(geo, ("detail", repr(material), height, n_samples, seed, chunk),
