@@ -553,8 +553,11 @@ class CandidateFit:
                                            scale=known.scale, direct=known.direct)
         if known is not None:
             directions = known.directions
-        spec = None if material is None else prt.specular_transfer(self.geo, material, settings.lobe_samples,
-                                                                   settings.seed, order=self.order)
+        detail = self.detail if with_detail else None
+        together = detail is not None and material is not None and material.metallic == 0 and not fix_base
+        spec = None if material is None else prt.specular_transfer(   # with the detail part's transfer in one pass
+            self.geo, material, settings.lobe_samples, settings.seed, order=self.order,
+            detail_height=prt.detail_height(material) if together else None)
         return material_fit.fit_material(self.geo, material, self.obs, order=self.order, folds=settings.folds,
                                          base0=base0, spec=spec, fix_base=fix_base, orders=self.orders,
                                          lighting_kw=self.kw,
@@ -563,7 +566,7 @@ class CandidateFit:
                                          source_directions=directions,
                                          known_coeffs=None if known is None else known.coeffs,
                                          known_sources=None if known is None else known.intensity,
-                                         detail=self.detail if with_detail else None)
+                                         detail=detail)
 
     def rescaled(self, factor: float) -> "CandidateFit":
         """The same with the known lighting scaled by ``factor``."""

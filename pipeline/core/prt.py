@@ -32,6 +32,7 @@ import hashlib
 import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from typing import Callable
 
 import numpy as np
 
@@ -178,11 +179,13 @@ class SpecularTransfer:
 
 
 def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, seed: int = 0,
-                      chunk: int = 2048, order: int | None = None) -> SpecularTransfer:
+                      chunk: int = 2048, order: int | None = None, detail_height: int | None = None) -> SpecularTransfer:
     """The specular lobe's transfer at the samples (see the module docstring) for SH lighting up to
     ``order`` (default the geometry's); a metal's as its transfer at F0 = 0 and the difference to
     F0 = 1 (the compensation for multiple scattering taken at each end; both from the same lobe
-    samples and shadow rays).  Kept per geometry (_recall): the arrays are read-only."""
+    samples and shadow rays).  Kept per geometry (_recall): the arrays are read-only.
+    ``detail_height``: a dielectric's detail_transfer of that height is made in the same pass over
+    the lobe samples (they are the same samples and shadow rays) and kept for its call."""
     order = geo.order if order is None else min(order, geo.order)
 
     def make() -> SpecularTransfer:
@@ -190,14 +193,27 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
             zero, one = _specular_transfer(geo, [replace(material, base_color=(v, v, v)) for v in (0.0, 1.0)],
                                            n_samples, seed, chunk, order)
             out = SpecularTransfer(zero, one - zero)
-        else:
+        elif detail_height is None or _recalled(geo, _detail_key(material, detail_height, n_samples, seed, chunk)):
             out = SpecularTransfer(_specular_transfer(geo, [material], n_samples, seed, chunk, order)[0])
+        else:
+            outs, specular_chunk = _specular_parts(geo, [material], order)
+            matrix, detail_chunk = _detail_parts(geo, detail_height)
+            _lobe_chunks(geo, [material], n_samples, seed, chunk,
+                         lambda idx, lobes: (specular_chunk(idx, lobes), detail_chunk(idx, lobes)))
+            detail = matrix()
+            _recall(geo, _detail_key(material, detail_height, n_samples, seed, chunk), lambda: detail)
+            out = SpecularTransfer(outs[0])
         for a in (out.fixed, out.scaled):
             if a is not None:
                 a.flags.writeable = False      # shared by every caller (_recall)
         return out
 
     return _recall(geo, ("specular", repr(material), n_samples, seed, chunk, order), make)
+
+
+def _recalled(geo: Geometry, key: tuple) -> bool:
+    """Whether _recall has ``key``'s answer for this geometry's samples and pixel footprints."""
+    return any(footprint is geo.footprint and got == key for footprint, got, _ in geo._lobes)
 
 
 def _recall(geo: Geometry, key: tuple, make):
@@ -258,6 +274,13 @@ def _specular_transfer(geo: Geometry, materials: list, n_samples: int, seed: int
                        order: int) -> list:
     """[S (N, K, 3)] per material of ``materials`` (one lobe, uniform base colours; lobe samples
     by _lobe_chunks)."""
+    outs, one_chunk = _specular_parts(geo, materials, order)
+    _lobe_chunks(geo, materials, n_samples, seed, chunk, one_chunk)
+    return outs
+
+
+def _specular_parts(geo: Geometry, materials: list, order: int) -> tuple[list, Callable]:
+    """(the arrays [S (N, K, 3)] per material, the _lobe_chunks consumer that fills them)."""
     outs = [np.zeros((geo.faces.size, num_coeffs(order), 3)) for _ in materials]
     bands = np.arange(order + 1)
 
@@ -286,8 +309,7 @@ def _specular_transfer(geo: Geometry, materials: list, n_samples: int, seed: int
                 else:
                     out[idx, block] = np.einsum("qsk,qsc->qkc", basis[:, :, block], w3 * soft[..., b, None])
 
-    _lobe_chunks(geo, materials, n_samples, seed, chunk, one_chunk)
-    return outs
+    return outs, one_chunk
 
 
 BASIS_BLOCK = 256     # samples whose lobe samples' SH basis is built at once (~5 MB at order 8)
@@ -310,12 +332,23 @@ def detail_transfer(geo: Geometry, material: Principled, height: int, n_samples:
     (_recall): callers do not modify it."""
     if material.metallic > 0:
         raise ValueError("detail_transfer: a dielectric's lobe only (a metal's F depends on its base colour)")
-    return _recall(geo, ("detail", repr(material), height, n_samples, seed, chunk),
+    return _recall(geo, _detail_key(material, height, n_samples, seed, chunk),
                    lambda: _detail_transfer(geo, material, height, n_samples, seed, chunk))
+
+
+def _detail_key(material: Principled, height: int, n_samples: int, seed: int, chunk: int) -> tuple:
+    return ("detail", repr(material), height, n_samples, seed, chunk)
 
 
 def _detail_transfer(geo: Geometry, material: Principled, height: int, n_samples: int, seed: int, chunk: int):
     """detail_transfer, computed."""
+    matrix, one_chunk = _detail_parts(geo, height)
+    _lobe_chunks(geo, [material], n_samples, seed, chunk, one_chunk)
+    return matrix()
+
+
+def _detail_parts(geo: Geometry, height: int) -> tuple[Callable, Callable]:
+    """(the detail transfer's CSR matrix once the chunks are in, the _lobe_chunks consumer)."""
     import scipy.sparse as sp
 
     width = 2 * height
@@ -336,11 +369,13 @@ def _detail_transfer(geo: Geometry, material: Principled, height: int, n_samples
             for dx, wx in ((0, 1.0 - fx), (1, fx)):
                 parts.append((rows, yy * width + np.mod(x0 + dx, width), w * wy * wx))
 
-    _lobe_chunks(geo, [material], n_samples, seed, chunk, one_chunk)
-    if not parts:
-        return sp.csr_matrix((geo.faces.size, height * width))
-    r, c, v = (np.concatenate(x) for x in zip(*parts))
-    return sp.csr_matrix((v, (r, c)), shape=(geo.faces.size, height * width))
+    def matrix():
+        if not parts:
+            return sp.csr_matrix((geo.faces.size, height * width))
+        r, c, v = (np.concatenate(x) for x in zip(*parts))
+        return sp.csr_matrix((v, (r, c)), shape=(geo.faces.size, height * width))
+
+    return matrix, one_chunk
 
 
 @dataclass
