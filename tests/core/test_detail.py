@@ -3,6 +3,8 @@ the same lobe samples, and material_fit's detail map against a map it must recov
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from pipeline.core import prt
 from pipeline.core.envmap import equirect_directions
@@ -29,6 +31,23 @@ def test_detail_transfer_is_the_sh_transfer_of_the_same_lobe(rng):
     assert np.sqrt(np.mean(through_sh ** 2)) > 0.05        # the lobe sees the lighting at all
     rel = np.sqrt(np.mean((through_grid - through_sh) ** 2) / np.mean(through_sh ** 2))
     assert rel < 0.01, rel
+
+
+def test_one_pass_gives_the_specular_and_detail_transfers_of_their_own_passes(rng):
+    """specular_transfer(detail_height=) fills both transfers from one pass over the lobe samples;
+    each equals (to the bit) the one its own pass makes, and the detail one is then recalled."""
+    geo = sphere_geometry(rng)
+    material = Principled(roughness=0.2)
+    height = prt.detail_height(material)
+    alone = replace(geo, _lobes=[])
+    spec, detail = prt.specular_transfer(alone, material), prt.detail_transfer(alone, material, height)
+    together = replace(geo, _lobes=[])
+    spec2 = prt.specular_transfer(together, material, detail_height=height)
+    assert len(together._lobes) == 2
+    detail2 = prt.detail_transfer(together, material, height)
+    assert len(together._lobes) == 2          # recalled, not made again
+    assert np.array_equal(spec.fixed, spec2.fixed)
+    assert detail.nnz > 0 and (detail != detail2).nnz == 0
 
 
 def test_detail_height_resolves_the_lobe():
