@@ -412,7 +412,10 @@ def refine_direction(geo: prt.Geometry, material: Principled | None, base: np.nd
         off = np.linspace(-step, step, 5)
         cand = best[None] + off[:, None, None] * t1 + off[None, :, None] * t2
         cand = cand.reshape(-1, 3) / np.linalg.norm(cand.reshape(-1, 3), axis=1, keepdims=True)
-        st = prt.source_transfer(centre, material, cand, vertices=False)
+        # a grid within BACKFIT_STEP: its visibility traced at the corners, at every direction only
+        # across an occluder's edge (an occluder narrower than the grid can hide between them)
+        vis = prt.pattern_visibility(centre, cand, [0, 4, 20, 24]) if step <= BACKFIT_STEP * 1.001 else None
+        st = prt.source_transfer(centre, material, cand, vertices=False, visibility=vis)
         cols = _source_columns(geo, layer, st, None, base)
         sc = _source_score(cols if project is None else project(cols), residual, weight)
         for f in exclude or []:      # not onto a source already found (two within 10 deg are one light)

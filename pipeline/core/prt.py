@@ -378,6 +378,33 @@ def _detail_parts(geo: Geometry, height: int) -> tuple[Callable, Callable]:
     return matrix, one_chunk
 
 
+def pattern_visibility(geo: Geometry, directions: np.ndarray, corners: list[int]) -> np.ndarray:
+    """The samples' visibility (N, J) bool towards ``directions`` (J, 3), a small pattern inside the
+    spherical polygon of its ``corners`` (indices): shadow rays towards the corners, and towards
+    every direction only from the samples whose corners disagree — an occluder's edge crosses the
+    pattern (a straight edge always parts the corners) — as the renderer trusts a triangle's
+    vertices where they agree (Renderer._point_visibility).  Exact but for an occluder smaller
+    than the pattern seen from the sample (refine_direction's grids: 4 deg and finer); samples no
+    direction lights (front_cos) get no ray."""
+    r = geo.renderer
+    d = np.atleast_2d(np.asarray(directions, float))
+    lit = np.flatnonzero((front_cos(geo.normals, geo.mu_out, d) > 0).any(axis=1))
+    pts = r._points_above(geo.faces[lit], geo.bary[lit])
+    vis = np.zeros((geo.faces.size, d.shape[0]), bool)
+
+    def seen(rows: np.ndarray, i: int) -> np.ndarray:
+        return ~r._shadow_rays.intersects_any(pts[rows], np.broadcast_to(d[i], (rows.size, 3)))
+
+    every = np.arange(lit.size)
+    with ThreadPoolExecutor(os.cpu_count() or 1) as pool:    # Embree releases the GIL
+        at_corners = np.stack(list(pool.map(lambda i: seen(every, i), corners)), axis=1)
+        vis[lit] = at_corners[:, :1]
+        split = np.flatnonzero(at_corners.any(axis=1) & ~at_corners.all(axis=1))
+        if split.size:
+            vis[lit[split]] = np.stack(list(pool.map(lambda i: seen(split, i), range(d.shape[0]))), axis=1)
+    return vis
+
+
 @dataclass
 class SourceTransfer:
     """Transfer of J directional sources of unit radiant intensity per channel (the dual angular
@@ -408,11 +435,13 @@ class SourceTransfer:
 
 
 def source_transfer(geo: Geometry, material: Principled | None, directions: np.ndarray,
-                    vertices: bool = True) -> SourceTransfer:
+                    vertices: bool = True, visibility: np.ndarray | None = None) -> SourceTransfer:
     """SourceTransfer of unit directions (J, 3) with exact shadow rays from the samples and vertices
     (``vertices`` False: not from the vertices, vertex_direct None: for scoring directions, which
-    needs no interreflection); the specular averaged over the samples' pixel footprints when the
-    geometry has them, on the lobe's support (shading.lobe_support_cos, as the renderer's)."""
+    needs no interreflection; ``visibility`` (N, J) bool: the samples' visibility, e.g.
+    pattern_visibility's, instead of their rays); the specular averaged over the samples' pixel
+    footprints when the geometry has them, on the lobe's support (shading.lobe_support_cos, as the
+    renderer's)."""
     r = geo.renderer
     d = np.atleast_2d(np.asarray(directions, float))
     n, j = geo.faces.size, d.shape[0]
@@ -430,7 +459,8 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
         cos = front_cos(geo.normals, geo.mu_out, d[i:i + 1])[:, 0]
         lit = np.flatnonzero(cos > 0)
         vis = np.zeros(n)
-        vis[lit] = ~r._shadow_rays.intersects_any(pts[lit], np.broadcast_to(d[i], (lit.size, 3)))
+        vis[lit] = visibility[lit, i] if visibility is not None else \
+            ~r._shadow_rays.intersects_any(pts[lit], np.broadcast_to(d[i], (lit.size, 3)))
         direct[:, i] = cos * vis
         if vertices:
             vcos = np.maximum(r._vertex_normals @ d[i], 0.0)
