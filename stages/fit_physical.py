@@ -554,7 +554,7 @@ class CandidateFit:
         if known is not None:
             directions = known.directions
         detail = self.detail if with_detail else None
-        together = detail is not None and material is not None and material.metallic == 0 and not fix_base
+        together = material_fit.tries_detail(detail, material, fix_base, self.obs)
         spec = None if material is None else prt.specular_transfer(   # with the detail part's transfer in one pass
             self.geo, material, settings.lobe_samples, settings.seed, order=self.order,
             detail_height=prt.detail_height(material) if together else None)

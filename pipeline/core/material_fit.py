@@ -489,11 +489,18 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
     fit = cands[best]["fit"]
     out = MaterialFit(material, base, fit.coeffs, fit, [{k: v for k, v in c.items() if k != "fit"} for c in cands],
                       float(cands[best]["validation_rmse"]), float(cands[best]["train_rmse"]), sources)
-    if detail is None or fix_base or material is None or material.metallic > 0 or len(np.unique(obs.fold)) < 2:
+    if not tries_detail(detail, material, fix_base, obs):
         return out
     refit = with_detail(geo, out, spec, obs, detail, order=order, folds=folds, orders=orders, lighting_kw=kw,
                         max_bounces=max_bounces, base_grid=base_grid)
     return refit if refit.validation_rmse < out.validation_rmse * (1.0 - source_gain) else out
+
+
+def tries_detail(detail: "DetailSetup | None", material: Principled | None, fix_base: bool, obs: Observations) -> bool:
+    """Whether fit_material tries the lighting's detail part (with_detail): asked for, a
+    dielectric's lobe, the base colour free and views to hold out."""
+    return detail is not None and not fix_base and material is not None and material.metallic == 0 \
+        and len(np.unique(obs.fold)) > 1
 
 
 @dataclass(frozen=True)

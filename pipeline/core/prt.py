@@ -187,13 +187,14 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
     ``detail_height``: a dielectric's detail_transfer of that height is made in the same pass over
     the lobe samples (they are the same samples and shadow rays) and kept for its call."""
     order = geo.order if order is None else min(order, geo.order)
+    detail_key = None if detail_height is None else _detail_key(material, detail_height, n_samples, seed, chunk)
 
     def make() -> SpecularTransfer:
         if material.metallic > 0:
             zero, one = _specular_transfer(geo, [replace(material, base_color=(v, v, v)) for v in (0.0, 1.0)],
                                            n_samples, seed, chunk, order)
             out = SpecularTransfer(zero, one - zero)
-        elif detail_height is None or _recalled(geo, _detail_key(material, detail_height, n_samples, seed, chunk)):
+        elif detail_key is None or _recalled(geo, detail_key) is not None:
             out = SpecularTransfer(_specular_transfer(geo, [material], n_samples, seed, chunk, order)[0])
         else:
             outs, specular_chunk = _specular_parts(geo, [material], order)
@@ -201,7 +202,7 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
             _lobe_chunks(geo, [material], n_samples, seed, chunk,
                          lambda idx, lobes: (specular_chunk(idx, lobes), detail_chunk(idx, lobes)))
             detail = matrix()
-            _recall(geo, _detail_key(material, detail_height, n_samples, seed, chunk), lambda: detail)
+            _recall(geo, detail_key, lambda: detail)
             out = SpecularTransfer(outs[0])
         for a in (out.fixed, out.scaled):
             if a is not None:
@@ -211,18 +212,18 @@ def specular_transfer(geo: Geometry, material: Principled, n_samples: int = 32, 
     return _recall(geo, ("specular", repr(material), n_samples, seed, chunk, order), make)
 
 
-def _recalled(geo: Geometry, key: tuple) -> bool:
-    """Whether _recall has ``key``'s answer for this geometry's samples and pixel footprints."""
-    return any(footprint is geo.footprint and got == key for footprint, got, _ in geo._lobes)
+def _recalled(geo: Geometry, key: tuple):
+    """_recall's kept answer for ``key`` on this geometry's samples and pixel footprints, or None."""
+    return next((value for footprint, got, value in geo._lobes if footprint is geo.footprint and got == key), None)
 
 
 def _recall(geo: Geometry, key: tuple, make):
     """``make()``'s answer for ``key`` on this geometry's samples and pixel footprints, kept among
     its last LOBE_CACHE answers: the fit asks again for the same lobe (a roughness searched twice,
     the chosen candidate refitted by more_sources).  The answer is shared: callers do not modify it."""
-    for footprint, got, value in geo._lobes:
-        if footprint is geo.footprint and got == key:
-            return value
+    value = _recalled(geo, key)
+    if value is not None:
+        return value
     value = make()
     del geo._lobes[:max(0, len(geo._lobes) - LOBE_CACHE + 1)]
     geo._lobes.append((geo.footprint, key, value))
@@ -445,7 +446,7 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
     r = geo.renderer
     d = np.atleast_2d(np.asarray(directions, float))
     n, j = geo.faces.size, d.shape[0]
-    pts = r._points_above(geo.faces, geo.bary)
+    pts = r._points_above(geo.faces, geo.bary) if visibility is None else None    # the rays' origins
     vpts = r.vertices_above() if vertices else None
     direct = np.zeros((n, j))
     vdirect = np.zeros((len(vpts), j)) if vertices else None
