@@ -38,7 +38,7 @@ import numpy as np
 
 from pipeline.core.brdf import Brdf
 from pipeline.core.material import Principled
-from pipeline.core.render import Renderer, bounce_series
+from pipeline.core.render import Renderer, bounce_powers, bounce_series, bounce_terms_needed
 from pipeline.core.sh import num_coeffs, sh_basis
 from pipeline.core.shading import (LobeSamples, front_cos, lobe_support_cos, specular_over_directions,
                                    specular_over_footprint, specular_samples)
@@ -69,6 +69,7 @@ class Geometry:
     pattern: np.ndarray | None = None
     _bounces: dict = field(default_factory=dict, repr=False)
     _indirect: dict = field(default_factory=dict, repr=False)     # indirect_transfer's recent results
+    _bounce_terms: dict = field(default_factory=dict, repr=False)  # _bounce_terms' recent results
     _lobes: list = field(default_factory=list, repr=False)        # the lobe transfers' recent results (_recall)
 
     @staticmethod
@@ -119,10 +120,14 @@ def geometry(mesh, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, o
     k = num_coeffs(order)
     direct = np.zeros((faces.size, k))
     per_chunk = max(1, r.chunk_pairs // len(dirs))
-    for s in range(0, faces.size, per_chunk):
+
+    def chunk(s: int) -> None:
         sl = slice(s, s + per_chunk)
         cos = front_cos(normals[sl], mu_out[sl], dirs)
         direct[sl] = (cos * r._point_visibility(faces[sl], tri[sl], bary[sl], cos > 0)) @ power
+
+    with ThreadPoolExecutor(os.cpu_count() or 1) as pool:    # Embree and BLAS release the GIL
+        list(pool.map(chunk, range(0, faces.size, per_chunk)))
     rays = r.bounce_rays()
     blocked = sh_basis(rays.directions, order) * (np.pi / rays.per_vertex)
     vertex_direct = r._open_irradiance(power) - rays.per_owner(blocked, len(mesh.vertices))
@@ -139,6 +144,7 @@ def diffuse_layer(material: Principled | None, mu_out: np.ndarray) -> np.ndarray
 QUADRATURE_FLOOR = 1e-2  # the direct transfer's relative accuracy on 16-row cells (odd bands of a sphere: 0.5-0.8%)
 INDIRECT_ORDER = 4   # SH bands above this carry < 1% of the interreflected light (Â_l, l > 4: < 2% of Â_0)
 INDIRECT_CACHE = 8   # indirect_transfer results kept per geometry ((N, 25, 3) floats each: ~18 MB at 30k samples)
+BOUNCE_CACHE = 4      # grey bounce series kept per geometry ((8, N, 25) floats each: ~48 MB at 30k samples)
 LOBE_CACHE = 6       # lobe transfers kept per geometry (specular: (N, 81, 3) floats at order 8, ~58 MB at 30k samples)
 
 
@@ -156,16 +162,48 @@ def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarr
            None if vertex_direct is None else hashlib.blake2b(np.ascontiguousarray(vertex_direct)).digest())
     if key in geo._indirect:
         return geo._indirect[key]
-    nv = len(geo.renderer.mesh.vertices)
-    base_v = np.broadcast_to(base, (nv, 3))
     direct = geo.vertex_direct[:, :num_coeffs(min(geo.order, INDIRECT_ORDER))] if vertex_direct is None else vertex_direct
-    e_ind = bounce_series(geo.bounce_matrices(material), base_v, np.repeat(direct[..., None], 3, axis=2), max_bounces)
-    out = np.einsum("pj,pjkc->pkc", geo.bary, e_ind[geo.tri])
+    terms = None if base.ndim > 1 else _bounce_terms(geo, material, direct, key[-1], max_bounces)
+    if terms is not None:      # a grey bounce: the series' terms at the samples, kept, weighted by rho_c^i
+        at_samples, peaks, scale = terms
+        n = bounce_terms_needed(peaks, scale, float(np.abs(base).max()))
+        out = np.tensordot(at_samples[:n], base[None, :] ** np.arange(1, n + 1)[:, None], axes=(0, 0))
+    else:
+        base_v = np.broadcast_to(base, (len(geo.renderer.mesh.vertices), 3))
+        e_ind = bounce_series(geo.bounce_matrices(material), base_v, np.repeat(direct[..., None], 3, axis=2),
+                              max_bounces)
+        out = np.einsum("pj,pjkc->pkc", geo.bary, e_ind[geo.tri])
     out.flags.writeable = False
     while len(geo._indirect) >= INDIRECT_CACHE:
         geo._indirect.pop(next(iter(geo._indirect)))
     geo._indirect[key] = out
     return out
+
+
+def _bounce_terms(geo: Geometry, material: Principled | None, direct: np.ndarray, digest: bytes | None,
+                  max_bounces: int) -> tuple | None:
+    """(M^i E_d interpolated at the samples (max_bounces, N, C), i = 1.., the largest |M^i E_d| at
+    the vertices (max_bounces,), max |E_d|) of the material's bounce matrices (the same for every
+    channel: a grey diffuse layer, else None) and the vertices' direct transfer ``direct`` (V, C)
+    (``digest``: its hash, None for the SH lighting's): render.bounce_powers, kept per geometry
+    (the last BOUNCE_CACHE), so a new base colour costs a weighted sum of the terms."""
+    key = (Geometry._layer_key(material), max_bounces, digest)
+    if key not in geo._bounce_terms:
+        m = geo.bounce_matrices(material)
+        grey = all(np.array_equal(b.indptr, m[0].indptr) and np.array_equal(b.indices, m[0].indices)
+                   and np.array_equal(b.data, m[0].data) for b in m[1:])
+        value = None
+        if grey:
+            powers = bounce_powers(m[0], direct, max_bounces)
+            at_samples = np.zeros((max_bounces, geo.faces.size, direct.shape[1]))
+            for i, x in enumerate(powers):
+                at_samples[i] = np.einsum("pj,pjk->pk", geo.bary, x[geo.tri])
+            value = (at_samples, np.array([np.abs(x).max(initial=0.0) for x in powers]),
+                     float(np.abs(direct).max(initial=0.0)))
+        while len(geo._bounce_terms) >= BOUNCE_CACHE:
+            geo._bounce_terms.pop(next(iter(geo._bounce_terms)))
+        geo._bounce_terms[key] = value
+    return geo._bounce_terms[key]
 
 
 @dataclass

@@ -41,6 +41,8 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 from dataclasses import dataclass, field
 
@@ -225,6 +227,28 @@ def bounce_series(bounce: list, base: np.ndarray, direct: np.ndarray, max_bounce
     return e_ind if direct.ndim == 3 else e_ind[:, 0, :]
 
 
+def bounce_powers(bounce, direct: np.ndarray, count: int) -> list[np.ndarray]:
+    """[M E_d, M^2 E_d, ..., M^count E_d] (each (V, C)) of one sparse (V, V) bounce matrix M and
+    direct irradiance columns E_d (V, C): bounce_series' terms where the base colour is one number
+    per channel and M the same for every channel (a grey diffuse layer): E_ind,c = sum_i rho_c^i
+    M^i E_d, so one series serves every base colour (bounce_terms_needed says how many terms)."""
+    out, x = [], direct
+    for _ in range(count):
+        x = bounce @ x
+        out.append(x)
+    return out
+
+
+def bounce_terms_needed(peaks: np.ndarray, scale: float, rho_max: float, tolerance: float = 5e-3) -> int:
+    """How many of bounce_powers' terms bounce_series would sum: it stops after the first bounce
+    adding < ``tolerance`` of ``scale`` (max |E_d|); term i adds rho^i M^i E_d, whose largest
+    entry is ``rho_max``^i ``peaks``[i-1] (peaks: max |M^i E_d| per term)."""
+    for i, peak in enumerate(peaks, 1):
+        if rho_max ** i * peak / max(scale, 1e-12) < tolerance:
+            return i
+    return len(peaks)
+
+
 @dataclass
 class Renderer:
     """A prepared scene: mesh (object frame, metres: a pipeline.raycast.RayMesh, its arrays and
@@ -315,7 +339,8 @@ class Renderer:
         nrm = self._vertex_normals[todo]
         origins = self.vertices_above()[todo]
         per_chunk = max(1, self.chunk_pairs // len(dirs))
-        for s in range(0, todo.size, per_chunk):
+
+        def chunk(s: int) -> None:
             sl = slice(s, s + per_chunk)
             facing = nrm[sl] @ dirs.T > _VIS_HORIZON
             vi, di = np.nonzero(facing)
@@ -324,6 +349,9 @@ class Renderer:
                 hit = self._shadow_rays.intersects_any(origins[sl][vi], dirs[di])
                 vis[vi, di] = ~hit
             self._visibility[todo[sl]] = vis
+
+        with ThreadPoolExecutor(os.cpu_count() or 1) as pool:     # Embree releases the GIL
+            list(pool.map(chunk, range(0, todo.size, per_chunk)))
         self._vis_done[todo] = True
 
     def _point_visibility(self, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray,
@@ -395,9 +423,16 @@ class Renderer:
         local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1 - r * r, 0))], -1)  # cosine pdf
         t, b = tangent_frames(normals)
         w = local[..., 0:1] * t[:, None] + local[..., 1:2] * b[:, None] + local[..., 2:3] * normals[:, None]
-        origins = np.repeat(self.vertices_above(), n_s, axis=0)
-        hit_face, ray_id, loc = self._shadow_rays.intersects_id(origins, w.reshape(-1, 3), multiple_hits=False,
-                                                                return_locations=True)
+        origins, directions = np.repeat(self.vertices_above(), n_s, axis=0), w.reshape(-1, 3)
+
+        def cast(part: np.ndarray) -> tuple:
+            face, ray, loc = self._shadow_rays.intersects_id(origins[part], directions[part], multiple_hits=False,
+                                                             return_locations=True)
+            return np.asarray(face), part[np.asarray(ray, np.int64)], np.asarray(loc, float).reshape(-1, 3)
+
+        with ThreadPoolExecutor(os.cpu_count() or 1) as pool:     # in ray order, a part per core
+            parts = list(pool.map(cast, np.array_split(np.arange(len(origins)), os.cpu_count() or 1)))
+        hit_face, ray_id, loc = (np.concatenate(x) for x in zip(*parts))
         on_mesh = hit_face < len(self.mesh.faces)  # the board (when present) is not a bounce source
         hf = hit_face[on_mesh]
         tri = np.asarray(self.mesh.faces)[hf]

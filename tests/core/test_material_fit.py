@@ -136,6 +136,37 @@ def test_pattern_visibility_is_every_directions_own_shadow_rays(rng):
     assert crossed > 100, crossed
 
 
+def test_grey_bounce_terms_are_the_bounce_series(rng):
+    """indirect_transfer's kept terms sum_i rho_c^i M^i E_d (one series for every base colour, the
+    three channels' bounce matrices equal) equal render.bounce_series' iteration E = M rho (E_d + E)
+    with its stopping rule, to rounding, on the Cycles teapot (spout, handle and lid bounce light
+    onto the body): for Lambert and a dielectric, a dark and a bright base colour (few and many
+    terms), the SH lighting's and a source's columns."""
+    from pathlib import Path
+
+    from pipeline.core.render import bounce_series
+    from pipeline.io.mesh import read_mesh
+    from pipeline.raycast import ray_mesh
+
+    mesh = read_mesh(Path(__file__).parents[1] / "data" / "cycles" / "teapot_city_glossy" / "mesh.ply")
+    n = 4000
+    faces = rng.integers(0, len(mesh.faces), n)
+    geo = prt.geometry(ray_mesh(mesh), faces, rng.dirichlet([1.0, 1.0, 1.0], n), np.asarray(mesh.face_normals)[faces], 4)
+    assert geo.interreflects
+    columns = [None, rng.random((len(mesh.vertices), 2))]
+    for material in (None, Principled(roughness=0.3)):
+        for base in ([0.05, 0.1, 0.02], [0.95, 0.7, 0.99]):
+            for vertex_direct in columns:
+                base = np.asarray(base)
+                direct = geo.vertex_direct if vertex_direct is None else vertex_direct
+                series = bounce_series(geo.bounce_matrices(material), np.broadcast_to(base, (len(mesh.vertices), 3)),
+                                       np.repeat(direct[..., None], 3, axis=2), 8)
+                expected = np.einsum("pj,pjkc->pkc", geo.bary, series[geo.tri])
+                got = prt.indirect_transfer(geo, material, base, vertex_direct=vertex_direct)
+                assert np.abs(expected).max() > 1e-3
+                np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
 def test_mirror_peaks_point_at_the_lamps_a_glossy_sphere_reflects():
     """Samples of a sphere seen from 12 directions, their residual a narrow highlight around the
     mirror direction of two lamps (one 4x the other): mirror_peaks returns both within one cell
