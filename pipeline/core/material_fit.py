@@ -31,6 +31,7 @@ from pipeline.core.envmap import direction_to_pixel, equirect_directions
 from pipeline.core.material import Principled, brdf_from_material, ggx_lobe_cos
 from pipeline.core.sh import band_of_index, envmap_from_sh, num_coeffs, order_of, project_envmap
 from pipeline.core.shading import front_cos
+from pipeline.core.threads import thread_map
 
 
 @dataclass
@@ -60,20 +61,11 @@ class MaterialFit:
     detail: "Detail | None" = None
 
 
-def _per_unit_base(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, spec: prt.SpecularTransfer | None,
-                   k: int) -> np.ndarray:
-    """The transfer (3, N, k) that the base colour multiplies, channel first (each channel's (N, k)
-    contiguous, as BLAS takes it): the diffuse layer's kd / pi (D + I), plus a metal's specular
-    per unit F0."""
-    out = np.empty((3, geo.direct.shape[0], k))
-    for c in range(3):
-        _per_unit_base_channel(geo, layer, indirect, spec, k, c, out=out[c])
-    return out
-
-
 def _per_unit_base_channel(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray | None,
                            spec: prt.SpecularTransfer | None, k: int, c: int, out: np.ndarray | None = None) -> np.ndarray:
-    """Channel c's (N, k) of _per_unit_base (``indirect`` None: without the interreflection)."""
+    """Channel c's (N, k) of the transfer that the base colour multiplies: the diffuse layer's
+    kd / pi (D + I), plus a metal's specular per unit F0 (``indirect`` None: without the
+    interreflection I)."""
     kd = (layer[:, c] / np.pi)[:, None]
     out = np.multiply(geo.direct[:, :k], kd, out=out)
     if indirect is not None:
@@ -86,13 +78,18 @@ def _per_unit_base_channel(geo: prt.Geometry, layer: np.ndarray, indirect: np.nd
 
 def _design(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, spec: prt.SpecularTransfer | None,
             base: np.ndarray, order: int) -> np.ndarray:
-    """A_c (3, N, K') truncated to ``order``: base_c (per-unit-base part) + the fixed specular."""
+    """A_c (3, N, K') truncated to ``order``: base_c (per-unit-base part) + the fixed specular,
+    channel first (each channel's (N, K') contiguous, as BLAS takes it); a channel per thread."""
     k = num_coeffs(order)
-    a = _per_unit_base(geo, layer, indirect, spec, k)
-    for c in range(3):
+    a = np.empty((3, geo.direct.shape[0], k))
+
+    def channel(c: int) -> None:
+        _per_unit_base_channel(geo, layer, indirect, spec, k, c, out=a[c])
         a[c] *= base[c]
         if spec is not None:
             a[c] += spec.fixed[:, :k, c]
+
+    thread_map(channel, range(3))
     return a
 
 
@@ -136,14 +133,15 @@ def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: prt.SpecularTransfer
     part determines); interreflection is left to the alternation."""
     k, low = num_coeffs(order), num_coeffs(min(order, 2))
     sw = np.sqrt(obs.weight)[:, None]
-    base = np.zeros(3)
-    for c in range(3):
+
+    def channel(c: int) -> float:
         a = np.concatenate([geo.direct[:, :low] * (layer[:, c:c + 1] / np.pi), spec.fixed[:, :k, c]], axis=1) * sw
         g = a.T @ a
         z = np.linalg.solve(g + 1e-9 * np.trace(g) / len(g) * np.eye(len(g)), a.T @ (obs.radiance[:, c] * sw[:, 0]))
         x, y = z[:low], z[low:low + low]
-        base[c] = float(x @ y) / max(float(y @ y), 1e-300)
-    return np.clip(base, 1e-3, 1.0)
+        return float(x @ y) / max(float(y @ y), 1e-300)
+
+    return np.clip(np.array(thread_map(channel, range(3))), 1e-3, 1.0)     # a channel per thread
 
 
 @dataclass(frozen=True)
@@ -284,22 +282,27 @@ class SourceScan:
     """The coarse scan of matching pursuit: every direction of the renderer's set (D, 3) as a
     column of radiance at unit intensity (P, D, 3) on a subset ``samples`` (P,) of the samples
     (point visibility, exact BRDF); the columns do not depend on the residual, so one scan serves
-    every source the pursuit adds."""
+    every source the pursuit adds; ``energy`` (D, 3): each column's weighted energy <w col, col>
+    under the ``weight`` (N,) it was made for."""
 
     samples: np.ndarray
     columns: np.ndarray
+    weight: np.ndarray
+    energy: np.ndarray
 
 
-def source_scan(geo: prt.Geometry, material: Principled | None, base: np.ndarray, scan_samples: int = 8000,
-                chunk: int = 1024) -> SourceScan:
-    """SourceScan on every k-th sample (a source lights thousands of them), about ``scan_samples``."""
+def source_scan(geo: prt.Geometry, material: Principled | None, base: np.ndarray, weight: np.ndarray,
+                scan_samples: int = 8000, chunk: int = 1024) -> SourceScan:
+    """SourceScan on every k-th sample (a source lights thousands of them), about ``scan_samples``,
+    for the samples' weights ``weight`` (N,); the chunks by one thread per core."""
     r = geo.renderer
     dirs = r.lights.directions
     layer = geo.sample_layer(material)
     kd = layer * base / np.pi
     coarse = np.arange(0, geo.faces.size, max(1, geo.faces.size // scan_samples))
     columns = np.zeros((coarse.size, len(dirs), 3), np.float32)
-    for s in range(0, coarse.size, chunk):
+
+    def one(s: int) -> None:
         sl = coarse[s:s + chunk]
         cos = front_cos(geo.normals[sl], geo.mu_out[sl], dirs)
         vis = r._point_visibility(geo.faces[sl], geo.tri[sl], geo.bary[sl], cos > 0)
@@ -312,7 +315,9 @@ def source_scan(geo: prt.Geometry, material: Principled | None, base: np.ndarray
             fres = material.specular_fresnel(cos_oh, np.repeat(np.clip(geo.mu_out[sl], 1e-4, 1), d))
             col += (fres * (lobe * vis.reshape(-1))[:, None]).reshape(p, d, 3)
         columns[s:s + sl.size] = col
-    return SourceScan(coarse, columns)
+
+    thread_map(one, range(0, coarse.size, chunk))
+    return SourceScan(coarse, columns, weight, np.einsum("p,pdc->dc", weight[coarse], columns * columns))
 
 
 MIRROR_HEIGHT = 90        # mirror_peaks' map: 90 x 180 cells of 2 deg
@@ -342,8 +347,8 @@ def source_candidates(geo: prt.Geometry, material: Principled | None, base: np.n
     exclude = list(exclude or [])
     sl = scan.samples
     num = np.einsum("p,pdc,pc->dc", weight[sl], scan.columns, residual[sl])
-    den = np.einsum("p,pdc->dc", weight[sl], scan.columns * scan.columns)
-    score = _explained_power(num, den)
+    score = _explained_power(num, scan.energy if weight is scan.weight else
+                             np.einsum("p,pdc->dc", weight[sl], scan.columns * scan.columns))
     for f in exclude:
         score[dirs @ f > MIN_SOURCE_COS] = -np.inf
     starts = []     # (direction, the first grid's half-width, what it keeps away from)
@@ -933,7 +938,7 @@ def _add_sources(cand: _Candidate, base: np.ndarray, max_sources: int, gain: flo
         found, kept = list(seed.directions), (seed.transfer, cols, power)
     best = system.held_out_rmse(target)
     residual = target - system.predict(system.solve(target).coeffs)
-    scan = source_scan(geo, material, base) if max_sources > len(found) else None
+    scan = source_scan(geo, material, base, w) if max_sources > len(found) else None
     for _ in range(max_sources - len(found)):
         # each candidate scored as the step would leave it (the held-out views' RMSE): the best kept
         trials = [_with_source(cand, base, system, found, kept, residual, d)

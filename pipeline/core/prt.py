@@ -29,8 +29,6 @@ per roughness (S); the fit is then linear least squares in L for fixed material.
 from __future__ import annotations
 
 import hashlib
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -40,6 +38,7 @@ from pipeline.core.brdf import Brdf
 from pipeline.core.material import Principled
 from pipeline.core.render import Renderer, bounce_powers, bounce_series, bounce_terms_needed
 from pipeline.core.sh import num_coeffs, sh_basis
+from pipeline.core.threads import thread_map
 from pipeline.core.shading import (LobeSamples, front_cos, lobe_support_cos, specular_over_directions,
                                    specular_over_footprint, specular_samples)
 
@@ -126,8 +125,7 @@ def geometry(mesh, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, o
         cos = front_cos(normals[sl], mu_out[sl], dirs)
         direct[sl] = (cos * r._point_visibility(faces[sl], tri[sl], bary[sl], cos > 0)) @ power
 
-    with ThreadPoolExecutor(os.cpu_count() or 1) as pool:    # Embree and BLAS release the GIL
-        list(pool.map(chunk, range(0, faces.size, per_chunk)))
+    thread_map(chunk, range(0, faces.size, per_chunk))
     rays = r.bounce_rays()
     blocked = sh_basis(rays.directions, order) * (np.pi / rays.per_vertex)
     vertex_direct = r._open_irradiance(power) - rays.per_owner(blocked, len(mesh.vertices))
@@ -166,7 +164,7 @@ def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarr
     terms = None if base.ndim > 1 else _bounce_terms(geo, material, direct, key[-1], max_bounces)
     if terms is not None:      # a grey bounce: the series' terms at the samples, kept, weighted by rho_c^i
         at_samples, peaks, scale = terms
-        n = bounce_terms_needed(peaks, scale, float(np.abs(base).max()))
+        n = min(bounce_terms_needed(peaks, scale, float(np.abs(base).max())), len(at_samples))
         out = np.tensordot(at_samples[:n], base[None, :] ** np.arange(1, n + 1)[:, None], axes=(0, 0))
     else:
         base_v = np.broadcast_to(base, (len(geo.renderer.mesh.vertices), 3))
@@ -182,8 +180,8 @@ def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarr
 
 def _bounce_terms(geo: Geometry, material: Principled | None, direct: np.ndarray, digest: bytes | None,
                   max_bounces: int) -> tuple | None:
-    """(M^i E_d interpolated at the samples (max_bounces, N, C), i = 1.., the largest |M^i E_d| at
-    the vertices (max_bounces,), max |E_d|) of the material's bounce matrices (the same for every
+    """(M^i E_d interpolated at the samples (n, N, C), i = 1.. up to the first that is zero, the
+    largest |M^i E_d| at the vertices (max_bounces,), max |E_d|) of the material's bounce matrices (the same for every
     channel: a grey diffuse layer, else None) and the vertices' direct transfer ``direct`` (V, C)
     (``digest``: its hash, None for the SH lighting's): render.bounce_powers, kept per geometry
     (the last BOUNCE_CACHE), so a new base colour costs a weighted sum of the terms."""
@@ -195,11 +193,12 @@ def _bounce_terms(geo: Geometry, material: Principled | None, direct: np.ndarray
         value = None
         if grey:
             powers = bounce_powers(m[0], direct, max_bounces)
-            at_samples = np.zeros((max_bounces, geo.faces.size, direct.shape[1]))
-            for i, x in enumerate(powers):
-                at_samples[i] = np.einsum("pj,pjk->pk", geo.bary, x[geo.tri])
-            value = (at_samples, np.array([np.abs(x).max(initial=0.0) for x in powers]),
-                     float(np.abs(direct).max(initial=0.0)))
+            peaks = np.array([np.abs(x).max(initial=0.0) for x in powers])
+            live = int(np.cumprod(peaks > 0).sum())      # after a zero term (nothing bounces) all are zero
+            at_samples = np.zeros((live, geo.faces.size, direct.shape[1]))
+            for i in range(live):
+                at_samples[i] = np.einsum("pj,pjk->pk", geo.bary, powers[i][geo.tri])
+            value = (at_samples, peaks, float(np.abs(direct).max(initial=0.0)))
         while len(geo._bounce_terms) >= BOUNCE_CACHE:
             geo._bounce_terms.pop(next(iter(geo._bounce_terms)))
         geo._bounce_terms[key] = value
@@ -305,8 +304,7 @@ def _lobe_chunks(geo: Geometry, materials: list, n_samples: int, seed: int, chun
             lobe.weight[blocked.reshape(-1, ns)] = 0.0
         one_chunk(idx, lobes)
 
-    with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-        list(pool.map(run, range(0, front.size, chunk)))
+    thread_map(run, range(0, front.size, chunk))
 
 
 def _specular_transfer(geo: Geometry, materials: list, n_samples: int, seed: int, chunk: int,
@@ -435,12 +433,11 @@ def pattern_visibility(geo: Geometry, directions: np.ndarray, corners: list[int]
         return ~r._shadow_rays.intersects_any(pts[rows], np.broadcast_to(d[i], (rows.size, 3)))
 
     every = np.arange(lit.size)
-    with ThreadPoolExecutor(os.cpu_count() or 1) as pool:    # Embree releases the GIL
-        at_corners = np.stack(list(pool.map(lambda i: seen(every, i), corners)), axis=1)
-        vis[lit] = at_corners[:, :1]
-        split = np.flatnonzero(at_corners.any(axis=1) & ~at_corners.all(axis=1))
-        if split.size:
-            vis[lit[split]] = np.stack(list(pool.map(lambda i: seen(split, i), range(d.shape[0]))), axis=1)
+    at_corners = np.stack(thread_map(lambda i: seen(every, i), corners), axis=1)
+    vis[lit] = at_corners[:, :1]
+    split = np.flatnonzero(at_corners.any(axis=1) & ~at_corners.all(axis=1))
+    if split.size:
+        vis[lit[split]] = np.stack(thread_map(lambda i: seen(split, i), range(d.shape[0])), axis=1)
     return vis
 
 
@@ -518,6 +515,5 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
         if metal:
             scaled[:, i] = lobe(np.ones((n, 3))) - spec[:, i]
 
-    with ThreadPoolExecutor(min(j, os.cpu_count() or 1)) as pool:
-        list(pool.map(one, range(j)))
+    thread_map(one, range(j))
     return SourceTransfer(d, direct, vdirect, spec, scaled)

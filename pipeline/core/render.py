@@ -42,7 +42,6 @@ from __future__ import annotations
 import copy
 import hashlib
 import os
-from concurrent.futures import ThreadPoolExecutor
 
 from dataclasses import dataclass, field
 
@@ -52,6 +51,7 @@ from pipeline.core.brdf import Brdf, beckmann_distribution, phong_lobe, vcavity_
 from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays, subpixel_offsets
 from pipeline.core.envmap import (downsample, equirect_directions, equirect_solid_angles, lookup)
 from pipeline.core.material import material_from_brdf
+from pipeline.core.threads import thread_map
 from pipeline.core.surface import POINT_LIFT, VERTEX_LIFT, barycentric, interpolated_normals, lifted
 from pipeline.core.shading import (EnvPyramid, front_cos, lobe_support_cos, specular_over_directions,
                                    specular_over_footprint, specular_samples, stratified_unit_square, tangent_frames)
@@ -350,8 +350,7 @@ class Renderer:
                 vis[vi, di] = ~hit
             self._visibility[todo[sl]] = vis
 
-        with ThreadPoolExecutor(os.cpu_count() or 1) as pool:     # Embree releases the GIL
-            list(pool.map(chunk, range(0, todo.size, per_chunk)))
+        thread_map(chunk, range(0, todo.size, per_chunk))
         self._vis_done[todo] = True
 
     def _point_visibility(self, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray,
@@ -430,8 +429,7 @@ class Renderer:
                                                              return_locations=True)
             return np.asarray(face), part[np.asarray(ray, np.int64)], np.asarray(loc, float).reshape(-1, 3)
 
-        with ThreadPoolExecutor(os.cpu_count() or 1) as pool:     # in ray order, a part per core
-            parts = list(pool.map(cast, np.array_split(np.arange(len(origins)), os.cpu_count() or 1)))
+        parts = thread_map(cast, np.array_split(np.arange(len(origins)), os.cpu_count() or 1))   # in ray order
         hit_face, ray_id, loc = (np.concatenate(x) for x in zip(*parts))
         on_mesh = hit_face < len(self.mesh.faces)  # the board (when present) is not a bounce source
         hf = hit_face[on_mesh]

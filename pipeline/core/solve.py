@@ -26,15 +26,14 @@ over the noise.  Labels:
 
 from __future__ import annotations
 
-import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from pipeline.core.brdf import WIDTH_PARAM, Brdf
 from pipeline.core.sh import band_of_index, num_coeffs
+from pipeline.core.threads import thread_map
 
 LABELS = ("recoverable", "ill-conditioned", "ill-posed")
 
@@ -109,8 +108,7 @@ class NormalEquations:
         if not gram and self.shared:
             raise ValueError("NormalEquations.add(gram=False): per-channel designs only")
         # the (fold, channel) blocks by one thread per core: BLAS products release the GIL
-        with ThreadPoolExecutor(os.cpu_count() or 1) as pool:
-            list(pool.map(lambda fc: accumulate(*fc), [(f, c) for f in runs for c in range(designs.shape[0])]))
+        thread_map(lambda fc: accumulate(*fc), [(f, c) for f in runs for c in range(designs.shape[0])])
 
     def retargeted(self, designs: np.ndarray, radiance: np.ndarray, weight: np.ndarray,
                    fold: np.ndarray) -> "NormalEquations":
