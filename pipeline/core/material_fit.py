@@ -196,7 +196,8 @@ class _Candidate:
                 s = np.ascontiguousarray(self.spec.fixed[:, :k, c])
                 sw = np.sqrt(self.obs.weight)[:, None]
                 qw, sw_ = q * sw, s * sw
-                self._blocks[c] = _BaseBlocks(q, s, qw.T @ qw, qw.T @ sw_, sw_.T @ sw_)
+                grams = thread_map(lambda pair: pair[0].T @ pair[1], [(qw, qw), (qw, sw_), (sw_, sw_)])
+                self._blocks[c] = _BaseBlocks(q, s, *grams)
         return self._blocks[c]
 
 
@@ -827,8 +828,9 @@ def _base_search(cand: _Candidate, base: np.ndarray, sources: Sources | None, ri
     reg = np.concatenate([np.asarray(ridge_dc2, float)[:k], np.zeros(n_src)])
     reg[:num_coeffs(BASE_FREE_ORDER)] = 0.0
     betas = np.geomspace(0.02, 1.0, grid)
-    out = np.zeros(3)
-    for c in range(3):
+    cand.base_blocks(0)      # first: the channels that share its blocks find them
+
+    def channel(c: int) -> float:
         blocks = cand.base_blocks(c)
         x_p = indirect[:, :ki, c] * (layer[:, c] / np.pi)[:, None]
         x_s = np.zeros((len(w), 0))
@@ -853,8 +855,9 @@ def _base_search(cand: _Candidate, base: np.ndarray, sources: Sources | None, ri
             x = np.linalg.solve(g + np.diag(reg / max(dc2, 1e-300) + eps), h)
             return bb - 2.0 * float(x @ h) + float(x @ g @ x)
 
-        out[c] = refine_minimum(betas, np.array([rss(bt) for bt in betas]))
-    return out
+        return refine_minimum(betas, np.array([rss(bt) for bt in betas]))
+
+    return np.array(thread_map(channel, range(3)))      # a channel per thread
 
 
 def _lighting_given_base(cand: _Candidate, base: np.ndarray, sources: Sources | None, inner: int,
@@ -911,11 +914,11 @@ def sh_complement(a: np.ndarray, weight: np.ndarray, fit: solve.LightingFit) -> 
     representation: the angular part holds what the SH cannot)."""
     keep = np.flatnonzero(np.array([lab != "ill-posed" for lab in fit.labels])[band_of_index(order_of(a.shape[2]))])
     ak = a[:, :, keep]
-    akw_t = (ak * weight[None, :, None]).transpose(0, 2, 1)      # batched matmul: BLAS, not einsum
-    gram = akw_t @ ak + np.diag(fit.ridge[keep])[None]
+    akw_t = (ak * weight[None, :, None]).transpose(0, 2, 1)      # matmul: BLAS, not einsum
+    gram = np.stack(thread_map(lambda c: akw_t[c] @ ak[c], range(3))) + np.diag(fit.ridge[keep])[None]
 
     def project(cols: np.ndarray) -> np.ndarray:
-        return cols - ak @ np.linalg.solve(gram, akw_t @ cols)
+        return np.stack(thread_map(lambda c: cols[c] - ak[c] @ np.linalg.solve(gram[c], akw_t[c] @ cols[c]), range(3)))
 
     return project
 

@@ -39,7 +39,7 @@ from pipeline.core.material import Principled
 from pipeline.core.render import Renderer, bounce_powers, bounce_series, bounce_terms_needed
 from pipeline.core.sh import num_coeffs, sh_basis
 from pipeline.core.threads import thread_map
-from pipeline.core.shading import (LobeSamples, front_cos, lobe_support_cos, specular_over_directions,
+from pipeline.core.shading import (LobeSamples, front_cos, lobe_support_cos, specular_columns,
                                    specular_over_footprint, specular_samples)
 
 
@@ -498,22 +498,25 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
         vis[lit] = visibility[lit, i] if visibility is not None else \
             ~r._shadow_rays.intersects_any(pts[lit], np.broadcast_to(d[i], (lit.size, 3)))
         direct[:, i] = cos * vis
+        seen[:, i] = vis
         if vertices:
             vcos = np.maximum(r._vertex_normals @ d[i], 0.0)
             vl = np.flatnonzero(vcos > 0)
             vdirect[vl, i] = vcos[vl] * ~r._shadow_rays.intersects_any(vpts[vl], np.broadcast_to(d[i], (vl.size, 3)))
-        if material is None:
+        if material is None or geo.footprint is None:
             return
 
         def lobe(base):
-            if geo.footprint is not None:
-                return specular_over_footprint(material, *geo.footprint, d[i:i + 1], np.ones((1, 3)),
-                                               vis[:, None], cut, base)
-            return specular_over_directions(material, geo.normals, geo.view_dirs, d[i:i + 1], np.ones((1, 3)),
-                                            vis[:, None], cut, base)
+            return specular_over_footprint(material, *geo.footprint, d[i:i + 1], np.ones((1, 3)), vis[:, None], cut,
+                                           base)
         spec[:, i] = lobe(np.zeros((n, 3)) if metal else None)
         if metal:
             scaled[:, i] = lobe(np.ones((n, 3))) - spec[:, i]
 
+    seen = np.zeros((n, j))
     thread_map(one, range(j))
+    if material is not None and geo.footprint is None:      # at the pixel centres: every direction's lobe in one pass
+        spec[:] = specular_columns(material, geo.normals, geo.view_dirs, d, seen, cut, np.zeros((n, 3)) if metal else None)
+        if metal:
+            scaled[:] = specular_columns(material, geo.normals, geo.view_dirs, d, seen, cut, np.ones((n, 3))) - spec
     return SourceTransfer(d, direct, vdirect, spec, scaled)

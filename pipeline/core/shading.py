@@ -16,12 +16,14 @@ as  diffuse  (over the light set's directions, exact solid angles)  +  specular:
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
 
 from pipeline.core.envmap import downsample
 from pipeline.core.material import Principled, ggx_distribution, ggx_lobe_cos, sample_ggx_vndf, smith_g1, smith_g2
+from pipeline.core.threads import thread_map
 
 _EPS = 1e-12
 
@@ -197,10 +199,20 @@ def specular_over_footprint(material: Principled, normals: np.ndarray, view_dirs
 
 def _lobe_pairs(n: np.ndarray, v: np.ndarray, dirs: np.ndarray, visibility: np.ndarray | None, cut_cos: float):
     """(point ids, direction ids, their visibility or None) of the pairs within the lobe's support."""
+    mu_out, r = _mirror(n, v)
+    return _visible_pairs(*_support_pairs(n, mu_out, r, dirs, cut_cos), visibility)
+
+
+def _mirror(n: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n . v (P,), the mirror directions 2 (n . v) n - v (P, 3)) of unit normals and view directions."""
     mu_out = np.einsum("pk,pk->p", n, v)
-    r = 2.0 * mu_out[:, None] * n - v
-    pi, di = np.nonzero((r @ dirs.T > cut_cos) & (n @ dirs.T > 0) & (mu_out[:, None] > 0))
-    return _visible_pairs(pi, di, visibility)
+    return mu_out, 2.0 * mu_out[:, None] * n - v
+
+
+def _support_pairs(n: np.ndarray, mu_out: np.ndarray, r: np.ndarray, dirs: np.ndarray,
+                   cut_cos: float) -> tuple[np.ndarray, np.ndarray]:
+    """(point ids, direction ids) of the pairs within the lobe's support (_mirror's mu_out and r)."""
+    return np.nonzero((r @ dirs.T > cut_cos) & (n @ dirs.T > 0) & (mu_out[:, None] > 0))
 
 
 def _visible_pairs(pi: np.ndarray, di: np.ndarray, visibility: np.ndarray | None):
@@ -220,14 +232,47 @@ def _lobe_sum(material: Principled, n: np.ndarray, v: np.ndarray, dirs: np.ndarr
     out = np.zeros((n.shape[0], 3))
     if pi.size == 0:
         return out
+    contrib = _pair_radiance(material, n, v, dirs, power, pi, di, vis, base_color)
+    for c in range(3):
+        out[:, c] = np.bincount(pi, weights=contrib[:, c], minlength=n.shape[0])
+    return out
+
+
+def _pair_radiance(material: Principled, n: np.ndarray, v: np.ndarray, dirs: np.ndarray, power: np.ndarray,
+                   pi: np.ndarray, di: np.ndarray, vis: np.ndarray | None, base_color: np.ndarray | None) -> np.ndarray:
+    """power V f_spec max(0, n.w) of each pair (pi, di) (pairs, 3) (_lobe_sum's terms)."""
     mu_out = np.clip(np.einsum("pk,pk->p", n[pi], v[pi]), 0.0, 1.0)
     lobe, cos_oh = ggx_lobe_cos(n[pi], dirs[di], v[pi], material.alpha)
     if vis is not None and vis.dtype != bool:
         lobe = lobe * vis
     fres = material.specular_fresnel(cos_oh, mu_out, None if base_color is None else np.asarray(base_color, float)[pi])
-    contrib = fres * (lobe[:, None] * power[di])
-    for c in range(3):
-        out[:, c] = np.bincount(pi, weights=contrib[:, c], minlength=n.shape[0])
+    return fres * (lobe[:, None] * power[di])
+
+
+def specular_columns(material: Principled, normal: np.ndarray, view_dir: np.ndarray, dirs: np.ndarray,
+                     visibility: np.ndarray | None, cut_cos: float, base_color: np.ndarray | None = None) -> np.ndarray:
+    """specular_over_directions of each direction (D, 3) alone at unit power (P, D, 3), with
+    ``visibility`` (P, D): each direction's pairs found as that function finds them (so the
+    columns are its answers to the bit), all pairs evaluated in one pass."""
+    n = np.asarray(normal, float)
+    v = np.asarray(view_dir, float)
+    mu_out, r = _mirror(n, v)
+    found = []
+    for j in range(dirs.shape[0]):
+        pi, _ = _support_pairs(n, mu_out, r, dirs[j:j + 1], cut_cos)
+        pi, _, vis = _visible_pairs(pi, np.zeros_like(pi), None if visibility is None else visibility[:, j:j + 1])
+        found.append((pi, np.full(pi.size, j), vis))
+    pi, di = (np.concatenate([f[k] for f in found]) for k in (0, 1))
+    vis = None if visibility is None else np.concatenate([f[2] for f in found])
+    out = np.zeros((n.shape[0], dirs.shape[0], 3))
+    power = np.ones((dirs.shape[0], 3))
+
+    def part(s: slice) -> None:
+        out[pi[s], di[s]] = _pair_radiance(material, n, v, dirs, power, pi[s], di[s], None if vis is None else vis[s],
+                                           base_color)
+
+    step = max(1 << 16, -(-pi.size // (os.cpu_count() or 1)))     # the pairs in a part per core
+    thread_map(part, [slice(a, a + step) for a in range(0, pi.size, step)])
     return out
 
 

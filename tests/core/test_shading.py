@@ -1,11 +1,12 @@
 """specular_over_footprint: the specular of discrete sources averaged over a pixel's footprint,
-with its pairs found once around the footprint's mean mirror direction."""
+with its pairs found once around the footprint's mean mirror direction; specular_columns: each
+direction's own specular_over_directions, to the bit."""
 
 import numpy as np
 import pytest
 
 from pipeline.core.material import Principled
-from pipeline.core.shading import lobe_support_cos, specular_over_directions, specular_over_footprint
+from pipeline.core.shading import lobe_support_cos, specular_columns, specular_over_directions, specular_over_footprint
 
 
 def _unit(x):
@@ -36,3 +37,29 @@ def test_footprint_average_is_the_mean_of_its_points(roughness, jitter, toleranc
                                    vis, cut)
     np.testing.assert_allclose(same, specular_over_directions(material, n, v, dirs, power, vis, cut), rtol=1e-9,
                                atol=1e-12)
+
+
+@pytest.mark.parametrize("metallic", [0.0, 1.0])
+def test_specular_columns_are_each_directions_own_sum(metallic):
+    """specular_columns' column j is specular_over_directions of direction j alone at unit power
+    with visibility column j (weights in [0, 1], zeros among them) — equal to the bit (the pairs
+    are found direction by direction; only their evaluation is batched, and split over threads
+    when there are many) — for a dielectric and for a metal with a per-point base colour; a
+    direction below every point's horizon or outside every lobe gives a zero column."""
+    rng = np.random.default_rng(3)
+    p, d = 60000, 25
+    n = _unit(rng.normal(size=(p, 3)))
+    v = _unit(n + 0.7 * rng.normal(size=(p, 3)))
+    dirs = _unit(np.vstack([rng.normal(size=(d - 1, 3)), [[0.0, 0.0, 1.0]]]))
+    vis = rng.random((p, d)) * (rng.random((p, d)) > 0.3)
+    material = Principled(roughness=0.4, metallic=metallic)
+    base = rng.random((p, 3)) if metallic else None
+    cut = lobe_support_cos(material.alpha)
+    cols = specular_columns(material, n, v, dirs, vis, cut, base)
+    assert cols.shape == (p, d, 3) and np.count_nonzero(cols) > 0.2 * cols.size
+    for j in range(d):
+        own = specular_over_directions(material, n, v, dirs[j:j + 1], np.ones((1, 3)), vis[:, j:j + 1], cut, base)
+        assert np.array_equal(cols[:, j], own), j
+    below = specular_columns(material, n[n[:, 2] < -0.5], v[n[:, 2] < -0.5], np.array([[0.0, 0.0, 1.0]]), None, cut,
+                             None if base is None else base[n[:, 2] < -0.5])
+    assert not below.any()
