@@ -918,7 +918,9 @@ def sh_complement(a: np.ndarray, weight: np.ndarray, fit: solve.LightingFit) -> 
     gram = np.stack(thread_map(lambda c: akw_t[c] @ ak[c], range(3))) + np.diag(fit.ridge[keep])[None]
 
     def project(cols: np.ndarray) -> np.ndarray:
-        return np.stack(thread_map(lambda c: cols[c] - ak[c] @ np.linalg.solve(gram[c], akw_t[c] @ cols[c]), range(3)))
+        def channel(c: int) -> np.ndarray:
+            return cols[c] - ak[c] @ np.linalg.solve(gram[c], akw_t[c] @ cols[c])
+        return np.stack(thread_map(channel, range(3)))
 
     return project
 

@@ -38,9 +38,9 @@ from pipeline.core.brdf import Brdf
 from pipeline.core.material import Principled
 from pipeline.core.render import Renderer, bounce_powers, bounce_series, bounce_terms_needed
 from pipeline.core.sh import num_coeffs, sh_basis
-from pipeline.core.threads import thread_map
 from pipeline.core.shading import (LobeSamples, front_cos, lobe_support_cos, specular_columns,
                                    specular_over_footprint, specular_samples)
+from pipeline.core.threads import thread_map
 
 
 @dataclass
@@ -181,10 +181,10 @@ def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarr
 def _bounce_terms(geo: Geometry, material: Principled | None, direct: np.ndarray, digest: bytes | None,
                   max_bounces: int) -> tuple | None:
     """(M^i E_d interpolated at the samples (n, N, C), i = 1.. up to the first that is zero, the
-    largest |M^i E_d| at the vertices (max_bounces,), max |E_d|) of the material's bounce matrices (the same for every
-    channel: a grey diffuse layer, else None) and the vertices' direct transfer ``direct`` (V, C)
-    (``digest``: its hash, None for the SH lighting's): render.bounce_powers, kept per geometry
-    (the last BOUNCE_CACHE), so a new base colour costs a weighted sum of the terms."""
+    largest |M^i E_d| at the vertices (max_bounces,), max |E_d|) of the material's bounce matrices
+    (the same for every channel: a grey diffuse layer, else None) and the vertices' direct transfer
+    ``direct`` (V, C) (``digest``: its hash, None for the SH lighting's): render.bounce_powers, kept
+    per geometry (the last BOUNCE_CACHE), so a new base colour costs a weighted sum of the terms."""
     key = (Geometry._layer_key(material), max_bounces, digest)
     if key not in geo._bounce_terms:
         m = geo.bounce_matrices(material)
@@ -485,6 +485,7 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
     vpts = r.vertices_above() if vertices else None
     direct = np.zeros((n, j))
     vdirect = np.zeros((len(vpts), j)) if vertices else None
+    seen = np.zeros((n, j))       # the samples' visibility per direction
     spec = None if material is None else np.zeros((n, j, 3))
     metal = material is not None and material.metallic > 0
     scaled = np.zeros((n, j, 3)) if metal else None
@@ -513,10 +514,11 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
         if metal:
             scaled[:, i] = lobe(np.ones((n, 3))) - spec[:, i]
 
-    seen = np.zeros((n, j))
     thread_map(one, range(j))
     if material is not None and geo.footprint is None:      # at the pixel centres: every direction's lobe in one pass
-        spec[:] = specular_columns(material, geo.normals, geo.view_dirs, d, seen, cut, np.zeros((n, 3)) if metal else None)
+        def columns(base):
+            return specular_columns(material, geo.normals, geo.view_dirs, d, seen, cut, base)
+        spec[:] = columns(np.zeros((n, 3)) if metal else None)
         if metal:
-            scaled[:] = specular_columns(material, geo.normals, geo.view_dirs, d, seen, cut, np.ones((n, 3))) - spec
+            scaled[:] = columns(np.ones((n, 3))) - spec
     return SourceTransfer(d, direct, vdirect, spec, scaled)

@@ -51,10 +51,10 @@ from pipeline.core.brdf import Brdf, beckmann_distribution, phong_lobe, vcavity_
 from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays, subpixel_offsets
 from pipeline.core.envmap import (downsample, equirect_directions, equirect_solid_angles, lookup)
 from pipeline.core.material import material_from_brdf
-from pipeline.core.threads import thread_map
 from pipeline.core.surface import POINT_LIFT, VERTEX_LIFT, barycentric, interpolated_normals, lifted
 from pipeline.core.shading import (EnvPyramid, front_cos, lobe_support_cos, specular_over_directions,
                                    specular_over_footprint, specular_samples, stratified_unit_square, tangent_frames)
+from pipeline.core.threads import thread_map
 
 _VIS_HORIZON = -0.3  # shadow rays only for directions with n_vertex . w > this (others: occluded)
 _LOBE_CUT_SIGMAS = 4.0  # microfacet support: tan(theta_h) < 4 sigma, D > exp(-16) of its peak
