@@ -828,7 +828,8 @@ def _base_search(cand: _Candidate, base: np.ndarray, sources: Sources | None, ri
     reg = np.concatenate([np.asarray(ridge_dc2, float)[:k], np.zeros(n_src)])
     reg[:num_coeffs(BASE_FREE_ORDER)] = 0.0
     betas = np.geomspace(0.02, 1.0, grid)
-    cand.base_blocks(0)      # first: the channels that share its blocks find them
+    for c in range(3):       # before the threads: base_blocks fills a cache the channels share
+        cand.base_blocks(c)
 
     def channel(c: int) -> float:
         blocks = cand.base_blocks(c)
