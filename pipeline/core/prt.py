@@ -389,7 +389,8 @@ def _detail_parts(geo: Geometry, height: int) -> tuple[Callable, Callable]:
     import scipy.sparse as sp
 
     width = 2 * height
-    parts: list = []
+    shape = (geo.faces.size, height * width)
+    parts: list = []      # (the chunk's first sample, its rows as a CSR matrix)
 
     def one_chunk(idx: np.ndarray, lobes: list) -> None:
         lobe = lobes[0]
@@ -401,16 +402,21 @@ def _detail_parts(geo: Geometry, height: int) -> tuple[Callable, Callable]:
         y0, x0 = np.floor(y).astype(np.int64), np.floor(x).astype(np.int64)
         fy, fx = y - y0, x - x0
         rows = np.repeat(idx, lobe.directions.shape[1])
-        for dy, wy in ((0, 1.0 - fy), (1, fy)):
-            yy = np.clip(y0 + dy, 0, height - 1)
-            for dx, wx in ((0, 1.0 - fx), (1, fx)):
-                parts.append((rows, yy * width + np.mod(x0 + dx, width), w * wy * wx))
+        corners = [(rows, np.clip(y0 + dy, 0, height - 1) * width + np.mod(x0 + dx, width), w * wy * wx)
+                   for dy, wy in ((0, 1.0 - fy), (1, fy)) for dx, wx in ((0, 1.0 - fx), (1, fx))]
+        r, c, v = (np.concatenate(x) for x in zip(*corners))
+        parts.append((int(idx[0]), sp.csr_matrix((v, (r, c)), shape=shape)))    # in the chunk's thread
 
     def matrix():
         if not parts:
-            return sp.csr_matrix((geo.faces.size, height * width))
-        r, c, v = (np.concatenate(x) for x in zip(*parts))
-        return sp.csr_matrix((v, (r, c)), shape=(geo.faces.size, height * width))
+            return sp.csr_matrix(shape)
+        # the chunks' rows are disjoint and ascending with their first sample: their canonical rows
+        # (duplicates summed, columns sorted) laid end to end are the whole matrix's
+        chunks = [m for _, m in sorted(parts, key=lambda p: p[0])]
+        counts = sum(np.diff(m.indptr) for m in chunks)
+        indptr = np.concatenate([[0], np.cumsum(counts)]).astype(chunks[0].indptr.dtype)
+        return sp.csr_matrix((np.concatenate([m.data for m in chunks]), np.concatenate([m.indices for m in chunks]),
+                              indptr), shape=shape)
 
     return matrix, one_chunk
 
