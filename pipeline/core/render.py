@@ -207,8 +207,11 @@ class BounceRays:
         return np.asarray(m @ values)
 
 
+BOUNCE_TOLERANCE = 5e-3   # the bounce series stops after a bounce adding less than this of max |E_d|
+
+
 def bounce_series(bounce: list, base: np.ndarray, direct: np.ndarray, max_bounces: int,
-                  tolerance: float = 5e-3) -> np.ndarray:
+                  tolerance: float = BOUNCE_TOLERANCE) -> np.ndarray:
     """Interreflected irradiance of E = E_d + M_c (rho_c E), by iterating bounces until one adds
     < ``tolerance`` of max |E_d| (at most ``max_bounces``).
 
@@ -239,7 +242,7 @@ def bounce_powers(bounce, direct: np.ndarray, count: int) -> list[np.ndarray]:
     return out
 
 
-def bounce_terms_needed(peaks: np.ndarray, scale: float, rho_max: float, tolerance: float = 5e-3) -> int:
+def bounce_terms_needed(peaks: np.ndarray, scale: float, rho_max: float, tolerance: float = BOUNCE_TOLERANCE) -> int:
     """How many of bounce_powers' terms bounce_series would sum: it stops after the first bounce
     adding < ``tolerance`` of ``scale`` (max |E_d|); term i adds rho^i M^i E_d, whose largest
     entry is ``rho_max``^i ``peaks``[i-1] (peaks: max |M^i E_d| per term)."""

@@ -102,22 +102,27 @@ def test_source_located_against_the_sh_fitted_around_it(rng):
     assert np.degrees(np.arccos(min(found @ sun, 1.0))) < 0.2
 
 
-def test_pattern_visibility_is_every_directions_own_shadow_rays(rng):
-    """The relocation's 5 x 5 grids of 4 deg on the Cycles teapot (spout, handle and lid cast
-    shadows on its body): visibility traced at the grid's corners, and at every direction only
-    where they disagree, equals each direction's own shadow rays but on 1 pair in 10^4 (measured:
-    5 of 459 000 lit pairs, an occluder's corner or a grazing ray), while the grids cross the
-    shadow edges of hundreds of samples."""
+def teapot_geometry(rng, n: int, order: int):
+    """(prt.Geometry of n random points on the Cycles teapot's faces, seen along their face
+    normals, to SH ``order``; the mesh)."""
     from pathlib import Path
 
     from pipeline.io.mesh import read_mesh
     from pipeline.raycast import ray_mesh
 
     mesh = read_mesh(Path(__file__).parents[1] / "data" / "cycles" / "teapot_city_glossy" / "mesh.ply")
-    n = 6000
     faces = rng.integers(0, len(mesh.faces), n)
-    normals = np.asarray(mesh.face_normals)[faces]
-    geo = prt.geometry(ray_mesh(mesh), faces, rng.dirichlet([1.0, 1.0, 1.0], n), normals, 1)
+    return prt.geometry(ray_mesh(mesh), faces, rng.dirichlet([1.0, 1.0, 1.0], n), np.asarray(mesh.face_normals)[faces],
+                        order), mesh
+
+
+def test_pattern_visibility_is_every_directions_own_shadow_rays(rng):
+    """The relocation's 5 x 5 grids of 4 deg on the Cycles teapot (spout, handle and lid cast
+    shadows on its body): visibility traced at the grid's corners, and at every direction only
+    where they disagree, equals each direction's own shadow rays but on 1 pair in 10^4 (measured:
+    5 of 459 000 lit pairs, an occluder's corner or a grazing ray), while the grids cross the
+    shadow edges of hundreds of samples."""
+    geo, _ = teapot_geometry(rng, 6000, 1)
     crossed = wrong = pairs = 0
     for centre in rng.normal(size=(6, 3)):
         centre /= np.linalg.norm(centre)
@@ -142,16 +147,9 @@ def test_grey_bounce_terms_are_the_bounce_series(rng):
     with its stopping rule, to rounding, on the Cycles teapot (spout, handle and lid bounce light
     onto the body): for Lambert and a dielectric, a dark and a bright base colour (few and many
     terms), the SH lighting's and a source's columns."""
-    from pathlib import Path
-
     from pipeline.core.render import bounce_series
-    from pipeline.io.mesh import read_mesh
-    from pipeline.raycast import ray_mesh
 
-    mesh = read_mesh(Path(__file__).parents[1] / "data" / "cycles" / "teapot_city_glossy" / "mesh.ply")
-    n = 4000
-    faces = rng.integers(0, len(mesh.faces), n)
-    geo = prt.geometry(ray_mesh(mesh), faces, rng.dirichlet([1.0, 1.0, 1.0], n), np.asarray(mesh.face_normals)[faces], 4)
+    geo, mesh = teapot_geometry(rng, 4000, 4)
     assert geo.interreflects
     columns = [None, rng.random((len(mesh.vertices), 2))]
     for material in (None, Principled(roughness=0.3)):
