@@ -481,6 +481,10 @@ def refine_with_board(reconstruction, similarity: Similarity, detections: dict, 
     poses, SfM points and (unless calibrated) intrinsics.  The board's metric structure thus
     constrains every camera directly, which matters most when the scene's other texture is poor
     (a plane seen by cameras with unknown focal length is a near-degenerate SfM problem).
+    Only corners seen in two or more of the posed photos become points: COLMAP's bundle adjuster
+    refuses any point observed once, constant ones included (``Check failed: point3D.track.Length() > 1``;
+    a JPEG of sample_data detected 3 corners in one photo only), and such a corner's photo keeps its
+    other corners and SfM points.
     ``detections``: COLMAP image name -> (ids, COLMAP pixels).  Returns the new Reconstruction.
     """
     import pycolmap
@@ -506,17 +510,20 @@ def refine_with_board(reconstruction, similarity: Similarity, detections: dict, 
         for el in point.track.elements:
             new.add_observation(pid, pycolmap.TrackElement(el.image_id, el.point2D_idx))
     corners = board_corners_object(spec)
-    board_points: dict[int, int] = {}
+    seen: dict[int, list] = {}  # corner id -> its observations (image id, keypoint index)
     for image_id, start in first_board_index.items():
         ids = detections.get(old.images[image_id].name, (np.zeros(0, int), None))[0]
         for k, cid in enumerate(ids):
-            if int(cid) not in board_points:
-                board_points[int(cid)] = new.add_point3D(corners[cid], pycolmap.Track())
-            new.add_observation(board_points[int(cid)], pycolmap.TrackElement(image_id, start + k))
+            seen.setdefault(int(cid), []).append(pycolmap.TrackElement(image_id, start + k))
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in first_board_index:
         config.add_image(image_id)
-    for pid in board_points.values():
+    for cid, elements in sorted(seen.items()):
+        if len(elements) < 2:  # seen once: a one-observation track, which the adjuster refuses
+            continue
+        pid = new.add_point3D(corners[cid], pycolmap.Track())
+        for element in elements:
+            new.add_observation(pid, element)
         config.add_constant_point(pid)
     if fixed_intrinsics:
         for camera_id in new.cameras:

@@ -123,7 +123,7 @@ def refine_on_mesh(reconstruction, surface: Surface, fixed_intrinsics: bool) -> 
     """
     import pycolmap
 
-    ids = list(reconstruction.points3D)
+    ids = [i for i, p in reconstruction.points3D.items() if p.track.length() >= 2]  # bundle_adjust drops the rest
     xyz = np.array([reconstruction.points3D[i].xyz for i in ids], float).reshape(-1, 3)
     projected, on_mesh = project_to_surface(xyz, surface.points, surface.normals)
     config = pycolmap.BundleAdjustmentConfig()
@@ -141,8 +141,19 @@ def refine_on_mesh(reconstruction, surface: Surface, fixed_intrinsics: bool) -> 
 
 
 def bundle_adjust(reconstruction, config) -> None:
-    """pycolmap's bundle adjuster on ``config`` (in place): Cauchy loss at 1 px, stop at 1e-6 relative change."""
+    """pycolmap's bundle adjuster on ``config`` (in place): Cauchy loss at 1 px, stop at 1e-6 relative change.
+
+    Points observed in fewer than two images are deleted first: COLMAP's adjuster refuses them, constant
+    ones included (``Check failed: point3D.track.Length() > 1``), and an imported model may hold some.
+    """
     import pycolmap
+
+    for pid in [i for i, p in reconstruction.points3D.items() if p.track.length() < 2]:
+        if config.has_constant_point(pid):
+            config.remove_constant_point(pid)
+        if config.has_variable_point(pid):
+            config.remove_variable_point(pid)
+        reconstruction.delete_point3D(pid)
 
     options = pycolmap.BundleAdjustmentOptions()
     options.print_summary = False

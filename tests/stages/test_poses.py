@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections import Counter
 from pathlib import Path
 
 import cv2
@@ -19,6 +20,7 @@ from pipeline.cli import main as cli_main
 from pipeline.commands.bench_poses import (BOARD, BOARD_TO_OBJECT, make_textured_capture, noise_texture,
                                            pose_errors, render, scene_quads)
 from pipeline.core.camera import Camera, camera_center, look_at, project
+from pipeline.io.capture_toml import read_capture_config
 from pipeline.io.poses import Poses, read_poses, write_poses
 from pipeline.settings import make_settings
 from stages import poses as stage
@@ -326,3 +328,68 @@ def test_synth_capture_poses(synth_run):
     cam = next(iter(est.cameras.values()))
     assert len(est.cameras) == 1
     assert cam.focal_principal()[0] == pytest.approx(gt.cameras[next(iter(gt.cameras))].params[0], rel=0.01)
+
+
+# ------------------------------------------------------------------------------------------
+# sample_data as camera JPEGs, its [board] kept, poses.json removed (issue 49 item 3)
+
+SAMPLE = Path(__file__).resolve().parents[2] / "sample_data" / "capture"
+
+
+def _sample_data_as_jpeg(folder: Path, dng_work: Path) -> Path:
+    """sample_data/capture's 12 DNGs as 8-bit sRGB JPEGs (IMG_0000.JPG ..., quality 90, EXIF exposure), made
+    at test time: linearize's EXRs divided back to sensor values (radiance / the manifest's scale), saturated
+    pixels white.  capture.toml ([board], [exposure]) and mesh.ply copied, poses.json left out."""
+    from pipeline.io.camera_files import Exposure, write_jpeg_srgb
+    from pipeline.io.linear_manifest import read_linear_image, read_manifest
+    from pipeline.runner import run_stage
+    from stages import linearize
+
+    run_stage("linearize", capture=SAMPLE, work=dng_work, settings=make_settings(linearize.Settings))
+    (folder / "images").mkdir(parents=True)
+    for name in ("capture.toml", "mesh.ply"):
+        shutil.copyfile(SAMPLE / name, folder / name)
+    for key, entry in read_manifest(dng_work)["images"].items():
+        source = entry["sources"][0]
+        rgb, valid = read_linear_image(dng_work, key)
+        value = rgb / source["scale"]
+        value[~valid] = 1.0
+        write_jpeg_srgb(folder / "images" / f"IMG_{Path(source['file']).stem}.JPG", value,
+                        Exposure(source["exposure_time_s"], source["iso"], source["f_number"]), quality=90)
+    return folder
+
+
+@pytest.mark.slow
+def test_board_jpeg_capture_runs_and_poses_match_truth(tmp_path):
+    """Issue 49 item 3: sample_data as JPEGs with its [board] and no poses.json goes through `sigrend run
+    --to samples`, and its COLMAP + board poses are close to the true ones (sample_data/capture/poses.json).
+
+    Three board corners of this capture are detected in one photo only.  The board bundle adjustment
+    made each of them a constant point with one observation, and COLMAP's adjuster refuses any such
+    track: the run died with a traceback (`Check failed: point3D.track.Length() > 1`).  Only corners seen
+    in two photos or more enter it now.  Measured: 12 of 12 registered, rotation error median 0.050°,
+    max 0.112°, camera centre max 0.19 % of its distance, focal +0.03 % (two other JPEG encodings of the
+    capture: max 0.115° and 0.169°; without the board bundle adjustment: median 0.058°, max 0.168°)."""
+    capture = _sample_data_as_jpeg(tmp_path / "jpeg", tmp_path / "dng_work")
+    work = tmp_path / "work"
+    assert cli_main(["run", str(capture), "-w", str(work), "--to", "samples"]) == 0
+    assert (work / "samples.npz").exists()
+    # the case is exercised: a corner seen in one photo only (the stage detects on these copies)
+    spec = read_capture_config(capture).board
+    seen: Counter = Counter()
+    for png in sorted((work / "colmap" / "images").rglob("*.png")):
+        ids, _ = stage.detect_board(cv2.cvtColor(cv2.imread(str(png)), cv2.COLOR_BGR2RGB), spec)
+        if len(ids) >= stage.MIN_BOARD_CORNERS:
+            seen.update(ids.tolist())
+    assert 1 in seen.values(), seen
+    summary = json.loads((work / "poses_summary.json").read_text())
+    assert summary["method"] == "colmap + board registration + board bundle adjustment"
+    gt = read_poses(SAMPLE / "poses.json")
+    est = read_poses(work / "poses.json")
+    est = Poses(est.cameras, {f"{key[len('IMG_'):-len('.JPG')]}.dng": p for key, p in est.images.items()})
+    assert set(est.images) == set(gt.images)
+    rot, cen = pose_errors(gt, est)
+    assert np.median(rot) < 0.15, rot
+    assert rot.max() < 0.4, rot
+    assert cen.max() < 0.005, cen
+    assert next(iter(est.cameras.values())).params[0] == pytest.approx(gt.cameras["cam0"].params[0], rel=0.005)

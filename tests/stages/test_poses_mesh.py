@@ -281,3 +281,44 @@ def test_poses_from_names_a_missing_source(bunny_capture, tmp_path, capsys):
     capture = _copy_capture(bunny_capture, tmp_path / "capture")
     assert cli_main(["poses", str(capture), "-w", str(tmp_path / "work"), "--poses-from", "colmap/sparse/7"]) == 2
     assert "neither a COLMAP model folder" in capsys.readouterr().err
+
+
+def test_mesh_bundle_adjustment_drops_points_seen_once():
+    """An imported COLMAP model may hold points observed in one image; COLMAP's bundle adjuster refuses
+    them (`Check failed: point3D.track.Length() > 1`, a traceback), constant or not.  The mesh bundle
+    adjustment leaves them out (deleted) and refines the rest: exact data stays exact."""
+    import pycolmap
+
+    from pipeline.core.camera import Camera, look_at, project
+    from stages import poses_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    rng = np.random.default_rng(7)
+    points = rng.normal(size=(60, 3))
+    points = 0.5 * points / np.linalg.norm(points, axis=1, keepdims=True)
+    camera = Camera("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
+    reconstruction = pycolmap.Reconstruction()
+    reconstruction.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=640, height=480,
+                                                               params=list(camera.params), camera_id=1))
+    poses = [look_at(np.array(c), np.zeros(3)) for c in ([2.5, 0, 1], [0, 2.5, 1.2], [-1.8, 1.8, 0.8])]
+    for image_id, (R, t) in enumerate(poses, start=1):
+        uv, _ = project(camera, R, t, points)
+        reconstruction.add_image_with_trivial_frame(
+            pycolmap.Image(name=f"{image_id}.jpg", keypoints=uv, camera_id=1, image_id=image_id),
+            pycolmap.Rigid3d(pycolmap.Rotation3d(R), t))
+    for k, xyz in enumerate(points[:-1]):  # every point seen by all three images ...
+        track = pycolmap.Track()
+        for image_id in (1, 2, 3):
+            track.add_element(image_id, k)
+        reconstruction.add_point3D(xyz, track)
+    once = pycolmap.Track()  # ... but the last, seen by image 1 only
+    once.add_element(1, len(points) - 1)
+    once_id = reconstruction.add_point3D(points[-1], once)
+    surface = poses_mesh.mesh_surface(sphere, seed=0)
+    held = poses_mesh.refine_on_mesh(reconstruction, surface, fixed_intrinsics=True)
+    assert 0 < held <= len(points) - 1
+    assert once_id not in reconstruction.points3D
+    assert reconstruction.num_points3D() == len(points) - 1
+    for image_id, (R, t) in enumerate(poses, start=1):
+        pose = reconstruction.images[image_id].cam_from_world()
+        assert np.degrees(np.linalg.norm(Rotation.from_matrix(pose.rotation.matrix() @ R.T).as_rotvec())) < 0.05
