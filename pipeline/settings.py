@@ -10,14 +10,28 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
 from pipeline.errors import UserError
-from pipeline.io.values import number
 
 S = TypeVar("S")
+
+
+def number(text: str) -> float:
+    """A number typed by a person: '0.004', '4e-3' or a fraction as cameras print exposure times,
+    '1/250'; ValueError otherwise (argparse reports it as "invalid number value")."""
+    top, slash, bottom = str(text).strip().partition("/")
+    value = float(top)
+    if slash:
+        divisor = float(bottom)
+        value = value / divisor if divisor else float("inf")
+    if not math.isfinite(value):
+        raise ValueError(f"not a finite number: {text!r}")
+    return value
+
 
 
 def setting(default: Any, help: str, **kwargs: Any) -> Any:

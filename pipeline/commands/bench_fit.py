@@ -74,8 +74,7 @@ def _cpu_seconds(func) -> float:
 
 
 def fit_suite(quick: bool, repeat: int) -> list[BenchRow]:
-    from pipeline.settings import make_settings
-    from stages import fit
+    from pipeline.core.factorization import ConvexOptions, brdf_data, factorize, fit_brdf_models
 
     rng = np.random.default_rng(1)
     truth8 = rng.normal(size=(81, 3)) * 0.1
@@ -96,13 +95,13 @@ def fit_suite(quick: bool, repeat: int) -> list[BenchRow]:
         truth[0] = 3.0
         wall, _, note = _timed_fit(n, order, LAMBERT, truth, repeat)
         rows.append(BenchRow("lighting lambert", order, f"{n} samples", wall, "s", f"vs order; {note}"))
-    settings = make_settings(fit.Settings, iterations=3)
+    opts = ConvexOptions(iterations=3)
     for n in ((2000,) if quick else (10 ** 4, 10 ** 5)):
         data = _chunk(np.random.default_rng(2), n, truth8, GLOSSY)
-        seconds = best_time(lambda: fit.fit_brdf_models(fit.brdf_data(data, truth8, 4), ["microfacet"], settings, 8), 1)
+        seconds = best_time(lambda: fit_brdf_models(brdf_data(data, truth8, 4), ["microfacet"], opts, 8), 1)
         rows.append(BenchRow("brdf microfacet", 8, f"{n} samples", seconds, "s",
                              "variable projection, 4-fold validation + full fit"))
-        seconds = best_time(lambda: fit.factorize(data, "microfacet", 8, np.full(3, 0.5), settings), 1)
+        seconds = best_time(lambda: factorize(data, "microfacet", 8, np.full(3, 0.5), opts), 1)
         rows.append(BenchRow("factorization microfacet", 8, f"{n} samples", seconds, "s",
                              "joint linear start (9 widths) + 3 alternations"))
     return rows

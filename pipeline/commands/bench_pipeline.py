@@ -109,8 +109,8 @@ def stability_lighting(rng: np.random.Generator, order: int = 8, trials: int = 3
 
 def samples_brdf_data(normal, view, radiance, coeffs):
     """pipeline.core.solve.BrdfData of samples under known SH lighting ``coeffs`` (one fold), built
-    by the fit stage's own helper."""
-    from stages.fit import brdf_data
+    by the fit's own helper."""
+    from pipeline.core.factorization import brdf_data
 
     n = len(normal)
     return brdf_data({"normal": normal, "view_dir": view, "radiance": radiance, "weight": np.ones(n),

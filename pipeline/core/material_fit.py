@@ -30,6 +30,7 @@ from pipeline.core.brdf import reflect
 from pipeline.core.envmap import direction_to_pixel, equirect_directions
 from pipeline.core.material import Principled, brdf_from_material, ggx_lobe_cos
 from pipeline.core.sh import band_of_index, envmap_from_sh, num_coeffs, order_of, project_envmap
+from pipeline.core.selection import parabola_minimum
 from pipeline.core.shading import front_cos
 from pipeline.core.threads import thread_map
 
@@ -856,7 +857,7 @@ def _base_search(cand: _Candidate, base: np.ndarray, sources: Sources | None, ri
             x = np.linalg.solve(g + np.diag(reg / max(dc2, 1e-300) + eps), h)
             return bb - 2.0 * float(x @ h) + float(x @ g @ x)
 
-        return refine_minimum(betas, np.array([rss(bt) for bt in betas]))
+        return parabola_minimum(betas, np.array([rss(bt) for bt in betas]))
 
     return np.array(thread_map(channel, range(3)))      # a channel per thread
 
@@ -1036,38 +1037,6 @@ def predict(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | No
     """Radiance (N, 3) of a fitted candidate at the samples (its lighting: SH + sources)."""
     shade, specular = shading_parts(geo, fit, spec)
     return fit.base * shade + specular
-
-
-def roughness_interval(roughness: np.ndarray, errors: np.ndarray, tolerance: float) -> tuple[float, float]:
-    """The range of roughness whose held-out error is within ``tolerance`` (relative) of the best:
-    what the data cannot tell apart.  From the candidates (roughness, errors) in any order: the
-    outermost ones within it, extended to where the error, linear in log roughness between them
-    and their next candidate out, crosses the limit (so that the range does not shrink to the
-    points a search happened to fit; the error being convex there, still a little narrow)."""
-    order = np.argsort(roughness)
-    r, e = np.log(np.asarray(roughness, float)[order]), np.asarray(errors, float)[order]
-    limit = e.min() * (1.0 + tolerance)
-    ok = np.flatnonzero(e <= limit)
-    ends = []
-    for i, j in ((ok[0], ok[0] - 1), (ok[-1], ok[-1] + 1)):
-        if not 0 <= j < len(r):
-            ends.append(r[i])
-            continue
-        ends.append(r[i] + (r[j] - r[i]) * (limit - e[i]) / (e[j] - e[i]))
-    return float(np.exp(ends[0])), float(np.exp(ends[1]))
-
-
-def refine_minimum(x: np.ndarray, y: np.ndarray) -> float:
-    """Vertex of the parabola through the best grid point and its neighbours, in log x (the
-    grid point itself at the ends)."""
-    i = int(np.argmin(y))
-    if i == 0 or i == len(x) - 1:
-        return float(x[i])
-    lx = np.log(x[i - 1:i + 2])
-    c = np.polyfit(lx, y[i - 1:i + 2], 2)
-    if c[0] <= 0:
-        return float(x[i])
-    return float(np.exp(np.clip(-c[1] / (2 * c[0]), lx[0], lx[2])))
 
 
 def known_lighting_scale(shade: np.ndarray, specular: np.ndarray, obs: Observations) -> tuple[float, bool]:

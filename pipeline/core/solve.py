@@ -281,20 +281,6 @@ def cross_validate_orders(eqs: NormalEquations, orders: list[int], scale: np.nda
     return out
 
 
-def parsimonious_choice(candidates: list[dict], tolerance: float, key: str = "validation_rmse",
-                        noise: float = 0.0) -> int:
-    """Index of the candidate with the fewest parameters whose ``key`` is within noise of the
-    best: error <= best (1 + tolerance) + noise (the "model no more than the scene needs" rule;
-    ``noise``: the error level below which differences mean nothing, e.g. the noise floor)."""
-    errors = np.array([c[key] for c in candidates], dtype=float)
-    finite = np.isfinite(errors)
-    if not finite.any():
-        return int(np.argmin([c["params"] for c in candidates]))
-    best = errors[finite].min()
-    ok = [i for i, c in enumerate(candidates) if finite[i] and errors[i] <= best * (1.0 + tolerance) + noise + 1e-300]
-    return min(ok, key=lambda i: (candidates[i]["params"], errors[i]))
-
-
 # ---------------------------------------------------------------------------------------------
 # BRDF from known lighting: variable projection over the lobe width
 # ---------------------------------------------------------------------------------------------

@@ -22,6 +22,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from pipeline.core.selection import parsimonious_choice
+
 EPS = 1e-6
 
 
@@ -101,3 +103,43 @@ def predict(interp: sp.csr_matrix, shade: np.ndarray, albedo: np.ndarray) -> np.
 def weighted_rmse(pred: np.ndarray, target: np.ndarray, weight: np.ndarray) -> float:
     w = np.asarray(weight, float)
     return float(np.sqrt(((pred - target) ** 2 * w[:, None]).sum() / (3 * max(w.sum(), 1e-300))))
+
+
+def choose_vertex_albedo(faces: np.ndarray, n_vertices: int, face: np.ndarray, bary: np.ndarray,
+                         fold: np.ndarray, weight: np.ndarray, shade: np.ndarray, target: np.ndarray, *,
+                         smoothness: float, parsimony: float, noise: float) -> tuple[list[dict], str, np.ndarray, int]:
+    """Textured vs uniform albedo by held-out views: each fold's views held out of a uniform and a
+    per-vertex fit (:func:`fit_vertex_albedo`, Laplacian weight ``smoothness``) of the samples'
+    radiance less the specular part ``target`` (N, 3) from their shading per unit albedo ``shade``
+    (N, 3), and scored on them; textured is chosen when uniform's held-out RMSE exceeds textured's
+    by more than the parsimony rule (selection.parsimonious_choice with ``parsimony``, ``noise``).
+    ``face`` (N,), ``bary`` (N, 3): the samples on the mesh ``faces`` (F, 3) of ``n_vertices``.
+    -> (the two candidates {name, params, validation_rmse, train_rmse, albedo | albedo_mean}, the
+    rule's choice, the per-vertex albedo (V, 3) fitted on all samples, the vertices with samples)."""
+    w = np.asarray(weight, float)
+    interp = interpolation_matrix(faces, face, bary, n_vertices)
+    lap = graph_laplacian(faces, n_vertices)
+    sse = {"uniform": [0.0, 0.0], "textured": [0.0, 0.0]}       # validation, training (weighted SSE)
+    wsum = [0.0, 0.0]
+    for f in np.unique(fold):
+        tr, va = fold != f, fold == f
+        if not tr.any():
+            continue
+        rho_u = uniform_albedo(shade[tr], target[tr], w[tr])
+        rho_t = fit_vertex_albedo(interp[tr], shade[tr], target[tr], w[tr], lap, smoothness)
+        for name, rho in (("uniform", rho_u), ("textured", rho_t)):
+            for k, m in ((0, va), (1, tr)):
+                pred = predict(interp[m], shade[m], rho)
+                sse[name][k] += float(((pred - target[m]) ** 2 * w[m, None]).sum())
+        wsum[0] += float(w[va].sum())
+        wsum[1] += float(w[tr].sum())
+    rmse = {name: [float(np.sqrt(v[k] / (3 * max(wsum[k], 1e-300)))) for k in (0, 1)] for name, v in sse.items()}
+    cands = [{"name": "uniform", "params": 3, "validation_rmse": rmse["uniform"][0], "train_rmse": rmse["uniform"][1]},
+             {"name": "textured", "params": 3 * n_vertices, "validation_rmse": rmse["textured"][0],
+              "train_rmse": rmse["textured"][1]}]
+    auto = cands[parsimonious_choice(cands, parsimony, noise=noise)]["name"]
+    rho = fit_vertex_albedo(interp, shade, target, w, lap, smoothness)
+    cands[0]["albedo"] = uniform_albedo(shade, target, w).tolist()
+    cands[1]["albedo_mean"] = rho.mean(axis=0).tolist()
+    observed = int((np.asarray(interp.sum(axis=0)).ravel() > 0).sum())
+    return cands, auto, rho, observed

@@ -53,7 +53,8 @@ from typing import Any, Literal
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.io.values import is_number, number
+from pipeline.io.values import is_number
+from pipeline.settings import number
 
 try:
     import tomllib

@@ -38,19 +38,6 @@ def whole_number(value: Any, where: str, what: str) -> int:
     return int(value)
 
 
-def number(text: str) -> float:
-    """A number typed by a person: '0.004', '4e-3' or a fraction as cameras print exposure times,
-    '1/250'; ValueError otherwise (argparse reports it as "invalid number value")."""
-    top, slash, bottom = str(text).strip().partition("/")
-    value = float(top)
-    if slash:
-        divisor = float(bottom)
-        value = value / divisor if divisor else float("inf")
-    if not np.isfinite(value):
-        raise ValueError(f"not a finite number: {text!r}")
-    return value
-
-
 def json_ready(obj: Any) -> Any:
     """``obj`` with what JSON cannot hold made plain: arrays -> lists, NumPy scalars -> Python
     numbers, NaN/inf -> None (JSON has no NaN), paths -> strings, keys -> strings."""

@@ -1,6 +1,6 @@
 """pipeline.core.material_fit: the albedo level that interreflection fixes (albedo_level), on a
 model whose answer is known in closed form; a directional source located against the SH fitted
-around it (sh_complement); the roughness interval between sparse candidates."""
+around it (sh_complement)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from fit_scenes import sphere_geometry
 from pipeline.core import prt
 from pipeline.core.material import Principled
 from pipeline.core.material_fit import (LEVEL_XTOL, Observations, _source_columns, albedo_level, fit_material,
-                                        roughness_interval, sh_complement)
+                                        sh_complement)
 from pipeline.core.sh import num_coeffs
 from pipeline.core.solve import LightingFit
 
@@ -193,20 +193,3 @@ def test_mirror_peaks_point_at_the_lamps_a_glossy_sphere_reflects():
     assert np.all(off < 2.0), off
     again = mirror_peaks(geo, residual, np.ones(len(normals)), 1, [lamps[0]])
     assert np.degrees(np.arccos(np.clip(again[0] @ lamps[1], -1, 1))) < 2.0
-
-
-def test_roughness_interval_between_the_candidates_and_the_true_range():
-    """A convex held-out error e(r) = 1 + 4 (ln r - ln 0.2)^2, within 5 % of its minimum for
-    |ln(r / 0.2)| < sqrt(0.05 / 4): the interval from sparse candidates holds every candidate
-    within the limit, lies inside the true range (the chord of a convex curve crosses early), and
-    comes closer to it than the candidates alone."""
-    half = np.sqrt(0.05 / 4)
-    true_lo, true_hi = 0.2 * np.exp(-half), 0.2 * np.exp(half)
-    r = np.array([0.45, 0.1, 0.2, 0.3, 0.21, 0.16])          # any order, unevenly sampled
-    e = 1 + 4 * np.log(r / 0.2) ** 2
-    lo, hi = roughness_interval(r, e, 0.05)
-    inside = r[e <= 1.05]
-    assert true_lo <= lo <= inside.min() and inside.max() <= hi <= true_hi
-    assert lo < inside.min() and hi > inside.max()
-    assert roughness_interval(np.array([0.3]), np.array([1.0]), 0.05) == (0.3, 0.3)
-    assert roughness_interval(np.array([1.0, 0.65]), np.array([1.0, 2.0]), 0.05)[1] == 1.0   # the range's end

@@ -128,14 +128,6 @@ def test_lambertian_bands_labelled_and_noise_sweep(rng):
     assert recoverable == [3, 3, 2, 0]
 
 
-def test_parsimonious_choice_prefers_the_smaller_model_within_noise():
-    cands = [{"params": 3, "validation_rmse": 0.50}, {"params": 27, "validation_rmse": 0.101},
-             {"params": 75, "validation_rmse": 0.100}, {"params": 243, "validation_rmse": 0.099}]
-    assert solve.parsimonious_choice(cands, 0.05) == 1
-    assert solve.parsimonious_choice(cands, 0.0) == 3
-    assert solve.parsimonious_choice(cands, 0.0, noise=0.01) == 1
-
-
 def test_data_labels_rank_bands_against_the_photos_noise_not_the_residual():
     """A residual 4x the photos' noise (model error) labels band 1 ill-conditioned; against the
     photos' noise its snr is 4x and it is recoverable, still marked regularized (its ridge came

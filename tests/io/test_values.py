@@ -7,7 +7,7 @@ import pytest
 from calib import response
 from pipeline.errors import UserError
 from pipeline.io.capture_toml import read_capture_config
-from pipeline.io.values import number
+from pipeline.settings import number
 from pipeline.settings import add_settings_arguments, settings_from_args
 
 

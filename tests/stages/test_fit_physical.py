@@ -73,7 +73,7 @@ def test_glossy_teapot_both_unknown(tmp_path):
     """Issue 11 targets: relight <= 7%, roughness within 25%, base colour chromaticity within 3 deg.
     Measured: relight 3.86% (under the downsampled gt/relight/env.exr 3.96%; the convex fit:
     77.2%), roughness 0.300 (truth 0.3), base (0.730, 0.462, 0.101) for (0.7, 0.45, 0.1); the
-    city sun and two more directional sources (fit_physical.more_sources; before it, the sun
+    city sun and two more directional sources (material_search.more_sources; before it, the sun
     alone: 4.24% / 4.35%); the renderer with the true material scores 3.44%.  The lighting's
     bands 0-2 (lighting_sh.json, sources included) after one scale per channel against the SH of
     the map Cycles rendered with (the issue's 5 %): 0.3 / 0.3 / 0.8 %."""
@@ -176,7 +176,7 @@ def test_glossy_sphere_both_unknown(tmp_path):
     """Issue 11, both unknown on the sharpest lobe (roughness 0.15 under a night city's lamps): the
     lighting's detail part (material_fit.with_detail) carries what the lobe reflects of the city
     beyond SH 8 and the sources; once the roughness is chosen the sources' pursuit goes on from the
-    residual's mirror peaks (fit_physical.more_sources: the direction set's scan falls between the
+    residual's mirror peaks (material_search.more_sources: the direction set's scan falls between the
     horizon lamps), and the base colour's chromaticity is searched again under the final lighting
     (material_fit._refit_base).  Measured: roughness 0.152, base (0.101, 0.445, 0.145) for (0.1,
     0.45, 0.15), 6 sources with the 5 brightest lamps within 0.61 deg, held-out RMSE 0.0050, the lighting's bands 0-2
@@ -294,7 +294,7 @@ def test_synth_dielectric_both_unknown(tmp_path, roughness):
 @pytest.mark.slow
 def test_synth_sharp_lobe_known_material(tmp_path):
     """Issue 11, the material known and the lighting unknown under a lobe sharper than the sources
-    can be located through (roughness 0.1, stages.fit_physical.known_material_fit): the city's sun
+    can be located through (roughness 0.1, pipeline.core.material_search.known_material_fit): the city's sun
     is found within a degree and the lighting's bands 0-2 come out as with the material unknown.
     Measured: the sun 0.5 deg off, bands 1.7 / 1.3 / 3.7 %, held-out RMSE 0.145 (with the
     pursuit's two further sources, which the final lighting's backward elimination drops: 1.7 / 1.4
@@ -319,7 +319,7 @@ def test_synth_sharp_lobe_known_material(tmp_path):
 def test_synth_textured_glossy_both_unknown(tmp_path):
     """Issue 11, a textured object with both unknown: a glossy sphere (roughness 0.3) whose base
     colour carries stripes (synth --texture stripes, contrast 0.6): the texture wins, and the
-    material is chosen again with its pattern in the diffuse layer (stages.fit_physical:
+    material is chosen again with its pattern in the diffuse layer (stages.fit.physical:
     texture_pattern, prt.Geometry.pattern).  Measured: roughness 0.351, the per-vertex base colour's
     median relative error 10 % (90th percentile 29 %, the stripes' edges), its mean (0.139, 0.400,
     0.230) for (0.139, 0.352, 0.210): 2.2 deg.  Chosen with a uniform base colour only (before):
@@ -344,71 +344,25 @@ def test_synth_textured_glossy_both_unknown(tmp_path):
     assert chromaticity_deg(got[seen].mean(axis=0), truth[seen].mean(axis=0)) < 3.0
 
 
-@pytest.mark.parametrize("minimum", [0.05, 0.14, 0.37, 0.8])
-def test_roughness_search_finds_minima_between_and_beyond_the_grid(minimum):
-    """Grid descent then Brent's search: a minimum between grid points, or below the grid's lowest
-    point 0.1 (a near-mirror: the search used to stop at 0.1 there, the grid's end), is found
-    within the search's tolerance, each roughness fitted once."""
-    from types import SimpleNamespace
-
-    from stages.fit_physical import ROUGHNESS_XTOL, search_roughness
-
-    settings = SimpleNamespace(roughness_candidates="0.1,0.2,0.3,0.45,0.65,1.0", roughness_refinements=6,
-                               max_sources=0, ior=1.5)
-    fitted = []
-
-    def candidate(material, grey, textured, directions):
-        fitted.append(material.roughness)
-        return SimpleNamespace(validation_rmse=abs(np.log(material.roughness / minimum)), train_rmse=0.0, sources=None)
-
-    fits, _ = search_roughness(candidate, settings, np.ones(3), 0.0)
-    best = min(fits, key=lambda r: fits[r].validation_rmse)
-    assert abs(np.log(best / minimum)) < 3 * ROUGHNESS_XTOL
-    assert len(fitted) == len(set(fitted)) <= 11
-    fitted.clear()      # one roughness given: that one only
-    one = SimpleNamespace(**{**vars(settings), "roughness_candidates": "0.3"})
-    fits, _ = search_roughness(candidate, one, np.ones(3), 0.0)
-    assert list(fits) == [0.3] and fitted == [0.3]
-
-
-@pytest.mark.parametrize("minimum, scored", [(0.5, [0.3, 0.2, 0.45, 0.65]), (0.12, [0.3, 0.2, 0.45, 0.1]),
-                                             (0.9, [0.3, 0.2, 0.45, 0.65, 1.0]), (0.3, [0.3, 0.2, 0.45])])
-def test_descend_grid_scores_the_bracket_of_a_minimum_not_the_whole_grid(minimum, scored):
-    """From 0.3, outward until the best scored point has both neighbours scored (or is at an end):
-    the bracket of a unimodal held-out error, in the order the candidates are fitted."""
-    from stages.fit_physical import descend_grid
-
-    grid = [0.1, 0.2, 0.3, 0.45, 0.65, 1.0]
-    seen = []
-
-    def score_at(r):
-        seen.append(r)
-        return abs(np.log(r / minimum))
-
-    descend_grid(grid, score_at, grid.index(0.3))
-    assert seen == scored
-    i = grid.index(min(seen, key=lambda r: abs(np.log(r / minimum))))
-    assert all(grid[j] in seen for j in (i - 1, i + 1) if 0 <= j < len(grid))
-
-
 def test_scale_note_says_what_fixed_the_level():
     """report.json's scale_convention names what set the base colour's level with the lighting
     unknown: a dielectric's Fresnel layer; for a metal, its own F0 (weakly, and not at all in a
     channel at its bound); for Lambert, the convention."""
-    from stages.fit_physical import _scale_note
+    from stages.fit.outputs import scale_note
 
-    metal = _scale_note(Brdf("principled", base_color=[1.0, 0.6, 0.3], roughness=0.3, metallic=1.0), None)
+    metal = scale_note(Brdf("principled", base_color=[1.0, 0.6, 0.3], roughness=0.3, metallic=1.0), None)
     assert "metal" in metal["source"] and "bound 1 in R:" in metal["note"]
-    free = _scale_note(Brdf("principled", base_color=[0.9, 0.6, 0.3], roughness=0.3, metallic=1.0), None)
+    free = scale_note(Brdf("principled", base_color=[0.9, 0.6, 0.3], roughness=0.3, metallic=1.0), None)
     assert "bound" not in free["note"]
-    dielectric = _scale_note(Brdf("principled", base_color=[0.9, 0.6, 0.3], roughness=0.3), None)
+    dielectric = scale_note(Brdf("principled", base_color=[0.9, 0.6, 0.3], roughness=0.3), None)
     assert "dielectric" in dielectric["source"]
-    assert "default grey" in _scale_note(Brdf("lambert", albedo=[0.5] * 3), None)["source"]
+    assert "default grey" in scale_note(Brdf("lambert", albedo=[0.5] * 3), None)["source"]
 
 
 def test_summary_line_names_the_detail_part():
-    from stages.fit_physical import _summary_line
+    """The fit's stderr line names the lighting's detail part and its rows when the fit kept one."""
+    from stages.fit.outputs import summary_line
 
     brdf = Brdf("principled", base_color=[0.07, 0.41, 0.12], roughness=0.158)
-    assert "105-row detail map" in _summary_line(brdf, (0.15, 0.17), 3, detail_rows=105)
-    assert "detail" not in _summary_line(brdf, (0.15, 0.17), 3)
+    assert "105-row detail map" in summary_line(brdf, (0.15, 0.17), 3, detail_rows=105)
+    assert "detail" not in summary_line(brdf, (0.15, 0.17), 3)

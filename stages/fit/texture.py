@@ -1,0 +1,84 @@
+"""The fit's textured vs uniform diffuse albedo (--albedo): a per-vertex albedo with the fitted
+lighting and specular part fixed (pipeline.core.texture), kept only when the held-out views prefer
+it, for either forward model."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core import forward, texture
+from pipeline.core.brdf import Brdf
+from pipeline.core.factorization import rms_radiance
+from pipeline.core.selection import fold_of
+from pipeline.errors import UserError
+from pipeline.io.mesh import mesh_path, read_mesh
+from pipeline.io.samples import iter_sample_chunks
+from stages.fit.data import FIELDS, filter_rows
+from stages.fit.settings import Settings
+
+
+def choose_albedo(capture: Path, samples_path: Path, settings: Settings, coeffs: np.ndarray,
+                  brdf: Brdf) -> tuple[dict, np.ndarray | None, object]:
+    """Fit a per-vertex diffuse albedo with the fitted lighting and specular part fixed, and choose
+    textured vs uniform by the held-out views (folds = image_id mod folds): textured only when its
+    validation RMSE is below uniform's by more than ``parsimony``.  Returns (report entry,
+    per-vertex albedo (V, 3) or None, mesh)."""
+    entry: dict = {"setting": settings.albedo, "smoothness": settings.albedo_smoothness}
+    if settings.albedo == "uniform":
+        return {**entry, "choice": "uniform", "note": "--albedo uniform: no per-vertex fit"}, None, None
+    try:
+        mesh = read_mesh(mesh_path(capture))
+    except UserError as exc:
+        if settings.albedo == "textured":
+            raise
+        return {**entry, "choice": "uniform", "note": f"no per-vertex fit: {exc}"}, None, None
+    with_lobe = brdf.has_lobe
+    rng = np.random.default_rng(settings.seed)
+    parts = []
+    for chunk in iter_sample_chunks(samples_path, settings.chunk, FIELDS + ("face", "bary")):
+        ok = filter_rows(chunk, settings, settings.lobe_min_cos if with_lobe else 0.0)
+        ok &= (chunk["face"] >= 0) & (chunk["face"] < len(mesh.faces))
+        parts.append({k: v[ok] for k, v in chunk.items()})
+    data = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]} if parts else {}
+    n = len(data.get("weight", []))
+    if n > settings.max_samples:
+        sel = rng.choice(n, settings.max_samples, replace=False)
+        data = {k: v[sel] for k, v in data.items()}
+        n = settings.max_samples
+    if n == 0 or np.abs(data["bary"].sum(axis=1) - 1).max() > 1e-3:
+        if settings.albedo == "textured":
+            raise UserError(f"{samples_path}: the samples carry no face/barycentrics on the mesh; "
+                            "--albedo textured needs them (run the samples stage)")
+        return {**entry, "choice": "uniform", "note": "no per-vertex fit: the samples carry no face/barycentrics"}, None, None
+    normal, view = data["normal"].astype(float), data["view_dir"].astype(float)
+    shade = forward.render_samples(coeffs, Brdf("lambert", albedo=(1.0, 1.0, 1.0)), normal, view)
+    spec = (forward.render_samples(coeffs, replace(brdf, albedo=(0.0, 0.0, 0.0)), normal, view) if with_lobe
+            else np.zeros_like(shade))
+    return albedo_from_shading(mesh, data, shade, data["radiance"].astype(float) - spec, settings, entry)
+
+
+def albedo_from_shading(mesh, data: dict, shade: np.ndarray, target: np.ndarray, settings: Settings,
+                        entry: dict) -> tuple[dict, np.ndarray | None, object]:
+    """Textured vs uniform albedo from the samples' shading per unit albedo ``shade`` (N, 3) and
+    their radiance less the specular part ``target`` (N, 3) (``data``: face, bary, weight,
+    image_id of the same samples): the choice of :func:`choose_albedo`, for either forward model
+    (pipeline.core.texture.choose_vertex_albedo).  -> (report entry, per-vertex albedo (V, 3) or
+    None for uniform, mesh)."""
+    nv = len(mesh.vertices)
+    noise = settings.noise_floor * rms_radiance(data)
+    cands, auto, rho, observed = texture.choose_vertex_albedo(
+        mesh.faces, nv, data["face"], data["bary"].astype(float), fold_of(data["image_id"], settings.folds),
+        data["weight"].astype(float), shade, target, smoothness=settings.albedo_smoothness,
+        parsimony=settings.parsimony, noise=noise)
+    choice = "textured" if settings.albedo == "textured" else auto
+    entry.update(choice=choice, candidates=cands, vertices=nv, vertices_with_samples=observed, samples=int(len(shade)),
+                 auto_choice=auto, noise=noise,
+                 rule=f"the fit's parsimony rule: textured only if uniform's validation RMSE > textured's x "
+                      f"(1 + parsimony {settings.parsimony}) + noise floor x RMS radiance ({noise:.3g})",
+                 folds=settings.folds)
+    if choice != "textured":
+        return entry, None, mesh
+    return entry, np.clip(rho, 0.0, None), mesh
