@@ -14,34 +14,36 @@ The material is found around that:
 * roughness: each candidate is a full fit, compared on held-out views (pipeline.core.solve
   cross_validate_orders).  A Lambertian object has no such anchor: its scale follows the
   fit's convention (a known or default albedo);
-* directional sources (the lighting's dual angular part) by matching pursuit (source_candidates).
+* directional sources (the lighting's dual angular part) by matching pursuit
+  (pipeline.core.sources), on the candidate's linear system (pipeline.core.candidate).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
 
 from pipeline.core import prt, solve
-from pipeline.core.brdf import reflect
-from pipeline.core.envmap import direction_to_pixel, equirect_directions
-from pipeline.core.material import Principled, brdf_from_material, ggx_lobe_cos
-from pipeline.core.sh import band_of_index, envmap_from_sh, num_coeffs, order_of, project_envmap
+from pipeline.core.candidate import (
+    Candidate,
+    Observations,
+    ShSystem,
+    gram_with_columns,
+    joint_start,
+)
+from pipeline.core.material import Principled, brdf_from_material
 from pipeline.core.selection import parabola_minimum
-from pipeline.core.shading import front_cos
+from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envmap
+from pipeline.core.sources import (
+    Sources,
+    add_sources,
+    source_columns,
+    source_intensities,
+    source_per_unit_base,
+)
 from pipeline.core.threads import thread_map
-
-
-@dataclass
-class Observations:
-    """Samples as the fit uses them: radiance (N, 3), weight (N,), fold (N,) ints."""
-
-    radiance: np.ndarray
-    weight: np.ndarray
-    fold: np.ndarray
 
 
 @dataclass
@@ -60,377 +62,6 @@ class MaterialFit:
     parts: tuple[np.ndarray, np.ndarray] | None = None   # (diffuse per unit base, specular) (N, 3) each, when
                                                           # the fit ran on a renderer's own shading (fit_to_map)
     detail: "Detail | None" = None
-
-
-def _per_unit_base_channel(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray | None,
-                           spec: prt.SpecularTransfer | None, k: int, c: int, out: np.ndarray | None = None) -> np.ndarray:
-    """Channel c's (N, k) of the transfer that the base colour multiplies: the diffuse layer's
-    kd / pi (D + I), plus a metal's specular per unit F0 (``indirect`` None: without the
-    interreflection I)."""
-    kd = (layer[:, c] / np.pi)[:, None]
-    out = np.multiply(geo.direct[:, :k], kd, out=out)
-    if indirect is not None:
-        ki = min(k, indirect.shape[1])      # the interreflection's bands (prt.INDIRECT_ORDER)
-        out[:, :ki] += indirect[:, :ki, c] * kd
-    if spec is not None and spec.scaled is not None:
-        out += spec.scaled[:, :k, c]
-    return out
-
-
-def _design(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, spec: prt.SpecularTransfer | None,
-            base: np.ndarray, order: int) -> np.ndarray:
-    """A_c (3, N, K') truncated to ``order``: base_c (per-unit-base part) + the fixed specular,
-    channel first (each channel's (N, K') contiguous, as BLAS takes it); a channel per thread."""
-    k = num_coeffs(order)
-    a = np.empty((3, geo.direct.shape[0], k))
-
-    def channel(c: int) -> None:
-        _per_unit_base_channel(geo, layer, indirect, spec, k, c, out=a[c])
-        a[c] *= base[c]
-        if spec is not None:
-            a[c] += spec.fixed[:, :k, c]
-
-    thread_map(channel, range(3))
-    return a
-
-
-class ShSystem:
-    """The SH lighting to ``order`` of one design ``a`` (3, N, K) on ``obs``' weights and folds
-    (pipeline.core.solve's regularized normal equations, ``kw`` its settings) for any target
-    radiance (N, 3): the gram is built for the first target and kept, so each further target
-    (a source's intensities changed, another candidate source) costs its right-hand side only."""
-
-    def __init__(self, a: np.ndarray, obs: Observations, order: int, folds: int, kw: dict):
-        self.a, self.obs, self.order, self.folds, self.kw = a, obs, order, folds, kw
-        self._eqs: solve.NormalEquations | None = None
-
-    def equations(self, target: np.ndarray) -> solve.NormalEquations:
-        w, fold = self.obs.weight, self.obs.fold
-        if self._eqs is None:
-            self._eqs = solve.NormalEquations(self.order, self.folds, shared=False)
-            self._eqs.add(self.a, target, w, fold)
-            return self._eqs
-        return self._eqs.retargeted(self.a, target, w, fold)
-
-    def solve(self, target: np.ndarray) -> solve.LightingFit:
-        """The regularized SH lighting (pipeline.core.solve.solve_lighting) for ``target``."""
-        g, h, btb, wt = self.equations(target).channel_system(slice(None))
-        return solve.solve_lighting(g, h, btb, wt, len(self.obs.weight), self.order, **self.kw)
-
-    def held_out_rmse(self, target: np.ndarray) -> float:
-        """Leave-one-fold-out RMSE of the SH lighting fitted to ``target``."""
-        return float(solve.cross_validate_orders(self.equations(target), [self.order], None, **self.kw)[0]
-                     ["validation_rmse"])
-
-    def predict(self, coeffs: np.ndarray) -> np.ndarray:
-        """Radiance (N, 3) of SH lighting ``coeffs`` (K, 3)."""
-        return np.einsum("cpk,kc->pc", self.a, coeffs)
-
-
-def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: prt.SpecularTransfer, obs: Observations,
-                order: int) -> np.ndarray:
-    """Base colour (3,) from one linear solve for (X_c = rho_c L_c, L_c): radiance =
-    kd / pi D X_c + S_c L_c, rho_c = <X_c, L_c> / <L_c, L_c> over bands 0-2 (what the diffuse
-    part determines); interreflection is left to the alternation."""
-    k, low = num_coeffs(order), num_coeffs(min(order, 2))
-    sw = np.sqrt(obs.weight)[:, None]
-
-    def channel(c: int) -> float:
-        a = np.concatenate([geo.direct[:, :low] * (layer[:, c:c + 1] / np.pi), spec.fixed[:, :k, c]], axis=1) * sw
-        g = a.T @ a
-        z = np.linalg.solve(g + 1e-9 * np.trace(g) / len(g) * np.eye(len(g)), a.T @ (obs.radiance[:, c] * sw[:, 0]))
-        x, y = z[:low], z[low:low + low]
-        return float(x @ y) / max(float(y @ y), 1e-300)
-
-    return np.clip(np.array(thread_map(channel, range(3))), 1e-3, 1.0)     # a channel per thread
-
-
-@dataclass(frozen=True)
-class _Candidate:
-    """What one material candidate's solvers share: the samples' geometry and observations, the
-    material (None: Lambert) with its diffuse layer kd (N, 3) and specular transfer (None:
-    Lambert), the SH order, folds and solver settings (pipeline.core.solve), the interreflection's
-    bounce limit."""
-
-    geo: prt.Geometry
-    obs: Observations
-    material: Principled | None
-    layer: np.ndarray
-    spec: prt.SpecularTransfer | None
-    order: int
-    folds: int
-    kw: dict
-    max_bounces: int
-    _last: dict = field(default_factory=dict, repr=False, compare=False)     # system()'s last answer
-    _blocks: dict = field(default_factory=dict, repr=False, compare=False)   # base_blocks() per channel
-
-    def indirect(self, base: np.ndarray, vertex_direct: np.ndarray | None = None) -> np.ndarray:
-        """prt.indirect_transfer at base colour ``base`` (of the SH lighting, or of ``vertex_direct``'s columns)."""
-        return prt.indirect_transfer(self.geo, self.material, base, self.max_bounces, vertex_direct)
-
-    def system(self, base: np.ndarray, order: int | None = None) -> ShSystem:
-        """The SH lighting's system of the design at base colour ``base`` (to ``order``, default the
-        candidate's); the last one is kept (the sources' pursuit and the base search's start share it)."""
-        order = self.order if order is None else order
-        key = (np.asarray(base, float).tobytes(), order)
-        if key not in self._last:
-            self._last.clear()
-            self._last[key] = ShSystem(_design(self.geo, self.layer, self.indirect(base), self.spec, base, order),
-                                       self.obs, order, self.folds, self.kw)
-        return self._last[key]
-
-
-    def base_blocks(self, c: int) -> "_BaseBlocks":
-        """Channel c's parts of the design that do not depend on the base colour (_BaseBlocks),
-        computed once per candidate; channels with the same parts (a dielectric's grey Fresnel and
-        diffuse layer) share one."""
-        if c not in self._blocks:
-            k = num_coeffs(self.order)
-            same = (d for d in self._blocks if self.spec.scaled is None
-                    and np.array_equal(self.layer[:, c], self.layer[:, d])
-                    and np.array_equal(self.spec.fixed[:, :k, c], self.spec.fixed[:, :k, d]))
-            d = next(same, None)
-            if d is not None:
-                self._blocks[c] = self._blocks[d]
-            else:
-                q = _per_unit_base_channel(self.geo, self.layer, None, self.spec, k, c)
-                s = np.ascontiguousarray(self.spec.fixed[:, :k, c])
-                sw = np.sqrt(self.obs.weight)[:, None]
-                qw, sw_ = q * sw, s * sw
-                grams = thread_map(lambda pair: pair[0].T @ pair[1], [(qw, qw), (qw, sw_), (sw_, sw_)])
-                self._blocks[c] = _BaseBlocks(q, s, *grams)
-        return self._blocks[c]
-
-
-@dataclass(frozen=True)
-class _BaseBlocks:
-    """One channel's design of the base colour search without what depends on the base colour:
-    radiance = rho Q + S (+ rho kd / pi I and the sources' columns, base dependent) with Q (N, K)
-    = kd / pi D (+ a metal's specular per unit F0), S (N, K) the fixed specular, and their grams
-    Q^T W Q, Q^T W S, S^T W S (K, K) with the samples' weights W."""
-
-    q: np.ndarray
-    s: np.ndarray
-    qq: np.ndarray
-    qs: np.ndarray
-    ss: np.ndarray
-
-
-def _gram_with_columns(lr: np.ndarray, left: np.ndarray, right: np.ndarray, w: np.ndarray, n: int,
-                       x_left: np.ndarray, at_left: np.ndarray, x_right: np.ndarray, at_right: np.ndarray) -> np.ndarray:
-    """(L + X_l)^T W (R + X_r) (n, n) from ``lr`` = L^T W R (K, K) of L, R (N, K) (zero-padded to n
-    columns) and columns X_l (N, m) added at column indices ``at_left`` (m,), X_r likewise: the
-    full gram's cost is paid once, each update costs N K m."""
-    k = lr.shape[0]
-    g = np.zeros((n, n))
-    g[:k, :k] = lr
-    wr = x_right * w[:, None]
-    cross = left.T @ wr
-    g[:k, at_right] += cross
-    symmetric = left is right and x_left is x_right
-    g[at_left, :k] += cross.T if symmetric else (x_left * w[:, None]).T @ right
-    g[np.ix_(at_left, at_right)] += x_left.T @ wr
-    return g
-
-
-MIN_SOURCE_COS = float(np.cos(np.radians(10.0)))   # sources closer than 10 deg are one (extended) light
-BACKFIT_STEP = float(np.radians(2.0))   # relocation's first local grid half-width (2.5x finer x 4 rounds: 0.06 deg)
-
-
-@dataclass
-class Sources:
-    """The dual angular part of the lighting: directional sources (prt.SourceTransfer) and their
-    radiant intensity per channel (J, 3) (W/sr-like: irradiance at normal incidence)."""
-
-    transfer: prt.SourceTransfer
-    power: np.ndarray
-
-    @property
-    def directions(self) -> np.ndarray:
-        return self.transfer.directions
-
-
-def _source_columns(geo: prt.Geometry, layer: np.ndarray, st: prt.SourceTransfer, indirect: np.ndarray | None,
-                    base: np.ndarray) -> np.ndarray:
-    """Radiance (3, N, J) of each source at unit intensity."""
-    cols = _source_per_unit_base(layer, st, indirect) * base
-    if st.specular is not None:
-        cols = cols + st.specular
-    return np.moveaxis(cols, 2, 0)
-
-
-def _source_per_unit_base(layer: np.ndarray, st: prt.SourceTransfer, indirect: np.ndarray | None) -> np.ndarray:
-    """The sources' radiance (N, J, 3) that the base colour multiplies (as _per_unit_base):
-    kd / pi (direct + ``indirect`` (N, J, 3) or None), plus a metal's specular per unit F0."""
-    out = (st.direct[..., None] + (0.0 if indirect is None else indirect)) * (layer / np.pi)[:, None, :]
-    if st.specular_scaled is not None:
-        out = out + st.specular_scaled
-    return out
-
-
-def _explained_power(num: np.ndarray, den: np.ndarray) -> np.ndarray:
-    """Residual power (J,) that each column explains with a non-negative intensity, from its
-    per-channel correlations num = <w col, residual> and energies den = <w col, col> (J, 3)."""
-    return (np.maximum(num, 0.0) ** 2 / np.maximum(den, 1e-300)).sum(axis=1)
-
-
-def _source_score(cols: np.ndarray, residual: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """Weighted residual power each column (3, N, J) explains with a non-negative intensity (J,)."""
-    return _explained_power(np.einsum("p,cpj,pc->jc", weight, cols, residual), np.einsum("p,cpj->jc", weight, cols * cols))
-
-
-@dataclass
-class SourceScan:
-    """The coarse scan of matching pursuit: every direction of the renderer's set (D, 3) as a
-    column of radiance at unit intensity (P, D, 3) on a subset ``samples`` (P,) of the samples
-    (point visibility, exact BRDF); the columns do not depend on the residual, so one scan serves
-    every source the pursuit adds; ``energy`` (D, 3): each column's weighted energy <w col, col>
-    under the ``weight`` (N,) it was made for."""
-
-    samples: np.ndarray
-    columns: np.ndarray
-    weight: np.ndarray
-    energy: np.ndarray
-
-
-def source_scan(geo: prt.Geometry, material: Principled | None, base: np.ndarray, weight: np.ndarray,
-                scan_samples: int = 8000, chunk: int = 1024) -> SourceScan:
-    """SourceScan on every k-th sample (a source lights thousands of them), about ``scan_samples``,
-    for the samples' weights ``weight`` (N,); the chunks by one thread per core."""
-    r = geo.renderer
-    dirs = r.lights.directions
-    layer = geo.sample_layer(material)
-    kd = layer * base / np.pi
-    coarse = np.arange(0, geo.faces.size, max(1, geo.faces.size // scan_samples))
-    columns = np.zeros((coarse.size, len(dirs), 3), np.float32)
-
-    def one(s: int) -> None:
-        sl = coarse[s:s + chunk]
-        cos = front_cos(geo.normals[sl], geo.mu_out[sl], dirs)
-        vis = r._point_visibility(geo.faces[sl], geo.tri[sl], geo.bary[sl], cos > 0)
-        cos = cos * vis
-        col = cos[..., None] * kd[sl, None, :]
-        if material is not None:
-            p, d = cos.shape
-            lobe, cos_oh = ggx_lobe_cos(np.repeat(geo.normals[sl], d, 0), np.tile(dirs, (p, 1)),
-                                        np.repeat(geo.view_dirs[sl], d, 0), material.alpha)
-            fres = material.specular_fresnel(cos_oh, np.repeat(np.clip(geo.mu_out[sl], 1e-4, 1), d))
-            col += (fres * (lobe * vis.reshape(-1))[:, None]).reshape(p, d, 3)
-        columns[s:s + sl.size] = col
-
-    thread_map(one, range(0, coarse.size, chunk))
-    return SourceScan(coarse, columns, weight, np.einsum("p,pdc->dc", weight[coarse], columns * columns))
-
-
-MIRROR_HEIGHT = 90        # mirror_peaks' map: 90 x 180 cells of 2 deg
-
-
-def source_candidates(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
-                      weight: np.ndarray, scan: SourceScan, rounds: int = 3,
-                      exclude: list | None = None, peaks: int = 0, finalists: int = 2) -> list[tuple[np.ndarray, float]]:
-    """Directions (3,) of directional sources that may explain ``residual`` (N, 3), each with the
-    weighted residual power it explains: matching pursuit's best over the renderer's direction set
-    on the coarse ``scan`` (source_scan) outside 10 deg of ``exclude``, then ``rounds`` of 5 x 5
-    local grids, each 2.5x finer, on all samples with exact shadow rays (prt.source_transfer) —
-    where that lands back within 10 deg of an excluded source the pursuit ends (_add_sources) —
-    and with a specular lobe the ``peaks`` brightest mirror_peaks, refined from BACKFIT_STEP
-    without coming within 10 deg of ``exclude``.  With peaks, every start gets the first round and
-    only the ``finalists`` that explain most after it (none within 10 deg of ``exclude``) the
-    others (the Cycles teapot's continued pursuit: 4 candidates a step -> 2, its fit, the night
-    sphere's and the bench's glossy known-BRDF fit unchanged to the byte; 1 finalist lost the
-    bench's source, 2.58 -> 3.16 %: docs/fit.md).
-    The scan sees a source through the lobe at the
-    direction set's cell centres (~11 deg apart), blind to a lamp between them once the lobe is
-    sharper; a highlight is where the residual is bright at the mirror direction (the Cycles night sphere:
-    the scan's pursuit kept 3 sources, one off any lamp, held-out RMSE 0.0082; with the mirror
-    peaks (3, and 6 sources) the 5 brightest lamps, 0.0055; docs/fit.md for what it does to the
-    roughness)."""
-    dirs = geo.renderer.lights.directions
-    exclude = list(exclude or [])
-    sl = scan.samples
-    num = np.einsum("p,pdc,pc->dc", weight[sl], scan.columns, residual[sl])
-    score = _explained_power(num, scan.energy if weight is scan.weight else
-                             np.einsum("p,pdc->dc", weight[sl], scan.columns * scan.columns))
-    for f in exclude:
-        score[dirs @ f > MIN_SOURCE_COS] = -np.inf
-    starts = []     # (direction, the first grid's half-width, what it keeps away from)
-    if np.isfinite(score.max()):
-        starts.append((dirs[int(np.argmax(score))], np.pi / len(dirs) ** 0.5 * 1.5, None))   # about one cell
-    if material is not None and peaks > 0:
-        starts += [(d, BACKFIT_STEP, exclude) for d in mirror_peaks(geo, residual, weight, peaks, exclude)]
-    if len(starts) <= finalists:
-        out = [refine_direction(geo, material, base, residual, weight, d, step, rounds, far) for d, step, far in starts]
-        return [o for o in out if o[1] > 0]
-    first = [(*refine_direction(geo, material, base, residual, weight, d, step, 1, far), step, far)
-             for d, step, far in starts]
-    first = [f for f in first if f[1] > 0 and not any(float(f[0] @ e) > MIN_SOURCE_COS for e in exclude)]
-    first = sorted(first, key=lambda f: -f[1])[:finalists]
-    out = [refine_direction(geo, material, base, residual, weight, d, step / 2.5, rounds - 1, far)
-           for d, _, step, far in first]
-    return [o for o in out if o[1] > 0]
-
-
-def mirror_peaks(geo: prt.Geometry, residual: np.ndarray, weight: np.ndarray, count: int,
-                 exclude: list) -> list[np.ndarray]:
-    """Up to ``count`` directions (3,), 10 deg apart and from ``exclude``, where the positive
-    residual (channel mean) averaged over the samples whose mirror direction falls there peaks:
-    a MIRROR_HEIGHT x 2 MIRROR_HEIGHT equirect map of weighted sums, both sums blurred by one
-    cell (a few samples per cell) and the mean shrunk where few samples look (+5 % of the largest
-    weight)."""
-    from scipy.ndimage import gaussian_filter
-
-    h = MIRROR_HEIGHT
-    row, col = direction_to_pixel(reflect(geo.view_dirs, geo.normals), h)
-    cell = row * 2 * h + col
-    value = np.maximum(residual.mean(axis=1), 0.0) * weight
-    sums = [gaussian_filter(np.bincount(cell, x, 2 * h * h).reshape(h, 2 * h), 1.0, mode=("nearest", "wrap"))
-            for x in (value, weight)]
-    score = (sums[0] / (sums[1] + 0.05 * sums[1].max())).ravel()
-    dirs = equirect_directions(h).reshape(-1, 3)
-    out = []
-    for f in exclude:
-        score[dirs @ f > MIN_SOURCE_COS] = -np.inf
-    while len(out) < count:
-        m = int(np.argmax(score))
-        if not score[m] > 0:
-            break
-        out.append(dirs[m])
-        score[dirs @ dirs[m] > MIN_SOURCE_COS] = -np.inf
-    return out
-
-
-def refine_direction(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
-                     weight: np.ndarray, start: np.ndarray, step: float, rounds: int,
-                     exclude: list | None = None,
-                     project: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, float]:
-    """(direction (3,), explained power) of the source that best explains ``residual`` near
-    ``start``: ``rounds`` of 5 x 5 local grids of half-width ``step`` (radians), each 2.5x finer,
-    on all samples with exact shadow rays (prt.source_transfer), the centre included.
-    ``exclude``: directions it keeps 10 deg away from; ``project``: the candidates' columns (3, N, J)
-    are scored by what of them it leaves (sh_complement)."""
-    # located at the pixel centres (16x cheaper): a pixel footprint blurs a highlight, it does not move it
-    centre = replace(geo, footprint=None)
-    layer = geo.sample_layer(material)
-    best, best_score = np.asarray(start, float), -np.inf
-    for _ in range(rounds):
-        t1 = np.cross(best, [0.0, 0.0, 1.0] if abs(best[2]) < 0.9 else [1.0, 0.0, 0.0])
-        t1 /= np.linalg.norm(t1)
-        t2 = np.cross(best, t1)
-        off = np.linspace(-step, step, 5)
-        cand = best[None] + off[:, None, None] * t1 + off[None, :, None] * t2
-        cand = cand.reshape(-1, 3) / np.linalg.norm(cand.reshape(-1, 3), axis=1, keepdims=True)
-        # a grid within BACKFIT_STEP: its visibility traced at the corners, at every direction only
-        # across an occluder's edge (an occluder narrower than the grid can hide between them)
-        vis = prt.pattern_visibility(centre, cand, [0, 4, 20, 24]) if step <= BACKFIT_STEP * 1.001 else None
-        st = prt.source_transfer(centre, material, cand, vertices=False, visibility=vis)
-        cols = _source_columns(geo, layer, st, None, base)
-        sc = _source_score(cols if project is None else project(cols), residual, weight)
-        for f in exclude or []:      # not onto a source already found (two within 10 deg are one light)
-            sc[cand @ f > MIN_SOURCE_COS] = -np.inf
-        if sc.max() > best_score:
-            best, best_score = cand[int(np.argmax(sc))], float(sc.max())
-        step /= 2.5
-    return best, best_score
 
 
 def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observations, *, order: int,
@@ -473,10 +104,10 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
         sources = Sources(prt.source_transfer(geo, material, source_directions),
                           np.zeros((len(source_directions), 3)) if known_sources is None else np.asarray(known_sources))
 
-    cand = _Candidate(geo, obs, material, layer, spec, order, folds, kw, max_bounces)
+    cand = Candidate(geo, obs, material, layer, spec, order, folds, kw, max_bounces)
 
     if max_sources > 0 and known is None:      # (with source_directions: the pursuit continued from them)
-        sources = _add_sources(cand, base, max_sources, source_gain, source_peaks, sources)
+        sources = add_sources(cand, base, max_sources, source_gain, source_peaks, sources)
     if not fix_base:
         base = _fit_base_colour(cand, base, float(np.mean(base0)), sources, known, base_grid)
     # the design and source columns at the final base colour (and the sources' intensities for it)
@@ -554,7 +185,7 @@ def fit_detail_map(transfer, residual: np.ndarray, weight: np.ndarray, order: in
     return detail
 
 
-def _fit_base_colour(cand: _Candidate, base: np.ndarray, level: float, sources: Sources | None,
+def _fit_base_colour(cand: Candidate, base: np.ndarray, level: float, sources: Sources | None,
                      known: np.ndarray | None, grid: int) -> np.ndarray:
     """fit_material's base colour (3,) from the start ``base``: with the lighting known or no
     specular layer, least squares in rho given the lighting, alternated with the interreflection
@@ -624,7 +255,7 @@ def lambert_held_out(geo: prt.Geometry, obs: Observations, base: np.ndarray, fit
     sources = None
     if fit.sources is not None:
         sources = Sources(fit.sources.transfer, fit.sources.power * fit.base / base)
-    cand = _Candidate(geo, obs, None, layer, None, order, folds, lighting_kw, max_bounces)
+    cand = Candidate(geo, obs, None, layer, None, order, folds, lighting_kw, max_bounces)
     _, _, system, src_cols = _lighting_given_base(cand, base, sources, 4, None)
     target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
     return np.asarray(solve.cross_validate_orders(system.equations(target), [order], None, **lighting_kw)[0]
@@ -632,8 +263,12 @@ def lambert_held_out(geo: prt.Geometry, obs: Observations, base: np.ndarray, fit
 
 
 LEVEL_RANGE = (0.03, 1.0)   # albedo levels searched (the brightest channel at most 1)
+
+
 LEVEL_EVIDENCE = 0.02       # the level counts as determined when both ends of the range fit the held-out views
                             # worse than the best by more than this (relative); a convex object's curve is flat
+
+
 LEVEL_XTOL = 0.01           # the search stops within 1% of the level
 
 
@@ -685,11 +320,11 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
     if fit.detail is not None:
         obs = Observations(obs.radiance - fit.detail.radiance, obs.weight, obs.fold)
     layer = geo.sample_layer(fit.material)
-    cand = _Candidate(geo, obs, fit.material, layer, spec, order, folds, lighting_kw, max_bounces)
+    cand = Candidate(geo, obs, fit.material, layer, spec, order, folds, lighting_kw, max_bounces)
     system = cand.system(fit.base)
     src_cols = None
     if fit.sources is not None:
-        src_cols = _source_columns(geo, layer, fit.sources.transfer,
+        src_cols = source_columns(geo, layer, fit.sources.transfer,
                                    cand.indirect(fit.base, fit.sources.transfer.vertex_direct), fit.base)
     keep = list(range(0 if fit.sources is None else len(fit.sources.power)))
     table: list[dict] = []
@@ -717,7 +352,7 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
                        float(best.fit.residual_rms), best.sources, detail=fit.detail), table
 
 
-def _refit_base(cand: _Candidate, fit: MaterialFit, best: "_LightingChoice", keep: list[int], grid: int,
+def _refit_base(cand: Candidate, fit: MaterialFit, best: "_LightingChoice", keep: list[int], grid: int,
                 table: list) -> tuple[np.ndarray, "_LightingChoice"]:
     """refine_lighting's base colour chromaticity: the base colour search (_base_search) again at
     the chosen lighting's order and prior with its sources ``keep`` (indices into fit.sources), the
@@ -740,7 +375,7 @@ def _refit_base(cand: _Candidate, fit: MaterialFit, best: "_LightingChoice", kee
     base = np.clip(base, 1e-3, 1.0)
     src_cols = None
     if fit.sources is not None:
-        src_cols = _source_columns(cand.geo, cand.layer, fit.sources.transfer,
+        src_cols = source_columns(cand.geo, cand.layer, fit.sources.transfer,
                                    cand.indirect(base, fit.sources.transfer.vertex_direct), base)
     rows = len(table)
     again = _lighting_search(cand.system(base), cand.obs, fit.sources, src_cols, keep, [best.order], [best.prior],
@@ -779,7 +414,7 @@ def _lighting_search(system: "ShSystem", obs: Observations, sources: Sources | N
     best = None
     for update in range(2 if sources is not None else 1):
         if update:        # the sources' intensities around the best SH, then the SH again
-            sources = Sources(sources.transfer, _source_intensities(
+            sources = Sources(sources.transfer, source_intensities(
                 src_cols, obs.radiance - np.einsum("cpk,kc->pc", a[:, :, :best.fit.coeffs.shape[0]], best.fit.coeffs),
                 obs.weight))
         target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
@@ -795,15 +430,10 @@ def _lighting_search(system: "ShSystem", obs: Observations, sources: Sources | N
     return best
 
 
-# Bands the base colour search leaves unridged: the diffuse layer sees only these (R&H 2001: the
-# clamped cosine's bands above 2 carry < 1 %), so the diffuse fixes rho x L_0..2 and the specular
-# layer's Fresnel the scale; a ridge on them shrinks L_0..2 and the unpenalized rho grows in
-# proportion (synth sphere, roughness 0.1 under the city map: rho at its bound (0.59, 1, 1) for
-# (0.2, 0.5, 0.3), L_0 2.7x low; unridged there (0.207, 0.539, 0.312); docs/fit.md 2026-12-04).
 BASE_FREE_ORDER = 2
 
 
-def _base_search(cand: _Candidate, base: np.ndarray, sources: Sources | None, ridge_dc2: np.ndarray,
+def _base_search(cand: Candidate, base: np.ndarray, sources: Sources | None, ridge_dc2: np.ndarray,
                  grid: int) -> np.ndarray:
     """rho (3,): per channel the value on a log grid of ``grid`` points in [0.02, 1] (refined by a
     parabola) whose training RSS is least with the lighting — SH and source intensities jointly,
@@ -822,7 +452,7 @@ def _base_search(cand: _Candidate, base: np.ndarray, sources: Sources | None, ri
     n = k + n_src
     if sources is not None:
         st = sources.transfer
-        src_scaled = _source_per_unit_base(layer, st, cand.indirect(base, st.vertex_direct))
+        src_scaled = source_per_unit_base(layer, st, cand.indirect(base, st.vertex_direct))
         src_spec = st.specular if st.specular is not None else np.zeros_like(src_scaled)
     at_p = np.concatenate([np.arange(ki), np.arange(k, n)])   # P's base-dependent columns
     at_s = np.arange(k, n)                                    # S's (the sources' specular)
@@ -840,9 +470,9 @@ def _base_search(cand: _Candidate, base: np.ndarray, sources: Sources | None, ri
             x_p = np.concatenate([x_p, src_scaled[..., c]], axis=1)
             x_s = src_spec[..., c]
         b = obs.radiance[:, c]
-        dd = _gram_with_columns(blocks.qq, blocks.q, blocks.q, w, n, x_p, at_p, x_p, at_p)
-        ds = _gram_with_columns(blocks.qs, blocks.q, blocks.s, w, n, x_p, at_p, x_s, at_s)
-        ss = _gram_with_columns(blocks.ss, blocks.s, blocks.s, w, n, x_s, at_s, x_s, at_s)
+        dd = gram_with_columns(blocks.qq, blocks.q, blocks.q, w, n, x_p, at_p, x_p, at_p)
+        ds = gram_with_columns(blocks.qs, blocks.q, blocks.s, w, n, x_p, at_p, x_s, at_s)
+        ss = gram_with_columns(blocks.ss, blocks.s, blocks.s, w, n, x_s, at_s, x_s, at_s)
         wb = w * b
         hd = np.concatenate([blocks.q.T @ wb, np.zeros(n_src)])
         hd[at_p] += x_p.T @ wb
@@ -862,7 +492,7 @@ def _base_search(cand: _Candidate, base: np.ndarray, sources: Sources | None, ri
     return np.array(thread_map(channel, range(3)))      # a channel per thread
 
 
-def _lighting_given_base(cand: _Candidate, base: np.ndarray, sources: Sources | None, inner: int,
+def _lighting_given_base(cand: Candidate, base: np.ndarray, sources: Sources | None, inner: int,
                          known: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, ShSystem, np.ndarray | None]:
     """SH lighting (K, 3) for a fixed base colour (``known``: that lighting), alternating with the
     sources' intensities (updated in ``sources``) ``inner`` times; the weighted training RSS per
@@ -874,7 +504,7 @@ def _lighting_given_base(cand: _Candidate, base: np.ndarray, sources: Sources | 
     src_cols = None
     if sources is not None:
         src_ind = cand.indirect(base, sources.transfer.vertex_direct)
-        src_cols = _source_columns(cand.geo, cand.layer, sources.transfer, src_ind, base)
+        src_cols = source_columns(cand.geo, cand.layer, sources.transfer, src_ind, base)
 
     def sh_fit():
         if known is not None:
@@ -885,7 +515,7 @@ def _lighting_given_base(cand: _Candidate, base: np.ndarray, sources: Sources | 
     coeffs = sh_fit()
     if sources is not None and known is None:
         for _ in range(inner):
-            sources.power = _source_intensities(src_cols, obs.radiance - system.predict(coeffs), w)
+            sources.power = source_intensities(src_cols, obs.radiance - system.predict(coeffs), w)
             coeffs = sh_fit()
     pred = system.predict(coeffs)
     if sources is not None:
@@ -893,118 +523,12 @@ def _lighting_given_base(cand: _Candidate, base: np.ndarray, sources: Sources | 
     return coeffs, (w[:, None] * (obs.radiance - pred) ** 2).sum(axis=0), system, src_cols
 
 
-def _base_least_squares(cand: _Candidate, base: np.ndarray, sources: Sources | None, coeffs: np.ndarray) -> np.ndarray:
+def _base_least_squares(cand: Candidate, base: np.ndarray, sources: Sources | None, coeffs: np.ndarray) -> np.ndarray:
     """rho (3,) in [1e-3, 1] by least squares for fixed lighting ``coeffs``: radiance - specular =
     rho shade (shading_parts, the interreflection taken at ``base``)."""
     fit = MaterialFit(cand.material, base, coeffs, None, [], 0.0, 0.0, sources)
     shade, specular = shading_parts(cand.geo, fit, cand.spec, cand.max_bounces)
     return _base_from_parts(shade, specular, cand.obs, np.ones(cand.obs.weight.size, bool))
-
-
-def _source_intensities(cols: np.ndarray, residual: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """Non-negative least-squares intensities (J, 3) of source columns (3, N, J) for ``residual``."""
-    from scipy.optimize import nnls
-
-    sw = np.sqrt(weight)[:, None]
-    return np.stack([nnls(cols[c] * sw, residual[:, c] * sw[:, 0])[0] for c in range(3)], axis=1)
-
-
-def sh_complement(a: np.ndarray, weight: np.ndarray, fit: solve.LightingFit) -> Callable[[np.ndarray], np.ndarray]:
-    """cols (3, N, J) -> what of them the regularized SH fit of design ``a`` (3, N, K) does not
-    take up, per channel cols - A (A'WA + diag(ridge))^-1 A'W cols on ``fit``'s kept bands: a
-    source moved against the SH refitted around it is scored by this part only (R&H 2001's dual
-    representation: the angular part holds what the SH cannot)."""
-    keep = np.flatnonzero(np.array([lab != "ill-posed" for lab in fit.labels])[band_of_index(order_of(a.shape[2]))])
-    ak = a[:, :, keep]
-    akw_t = (ak * weight[None, :, None]).transpose(0, 2, 1)      # matmul: BLAS, not einsum
-    gram = np.stack(thread_map(lambda c: akw_t[c] @ ak[c], range(3))) + np.diag(fit.ridge[keep])[None]
-
-    def project(cols: np.ndarray) -> np.ndarray:
-        def channel(c: int) -> np.ndarray:
-            return cols[c] - ak[c] @ np.linalg.solve(gram[c], akw_t[c] @ cols[c])
-        return np.stack(thread_map(channel, range(3)))
-
-    return project
-
-
-def _add_sources(cand: _Candidate, base: np.ndarray, max_sources: int, gain: float, peaks: int = 0,
-                 seed: Sources | None = None) -> Sources | None:
-    """Greedy matching pursuit of directional sources on the residual of the candidate's SH fit
-    at base colour ``base``: each new source is kept only if the held-out views' RMSE (SH refitted
-    around the sources) drops by more than ``gain`` (relative); intensities are fitted on all views
-    (3 numbers a source).  ``seed``: sources found before, which the pursuit continues from."""
-    geo, material = cand.geo, cand.material
-    system = cand.system(base)
-    radiance, w = system.obs.radiance, system.obs.weight
-    target = radiance
-    found, kept = [], None
-    if seed is not None:
-        cols = _source_columns(geo, cand.layer, seed.transfer, None, base)
-        power = _source_intensities(cols, radiance - system.predict(system.solve(radiance).coeffs), w)
-        target = radiance - np.einsum("cpj,jc->pc", cols, power)
-        found, kept = list(seed.directions), (seed.transfer, cols, power)
-    best = system.held_out_rmse(target)
-    residual = target - system.predict(system.solve(target).coeffs)
-    scan = source_scan(geo, material, base, w) if max_sources > len(found) else None
-    for _ in range(max_sources - len(found)):
-        # each candidate scored as the step would leave it (the held-out views' RMSE): the best kept
-        trials = [_with_source(cand, base, system, found, kept, residual, d)
-                  for d, _ in source_candidates(geo, material, base, residual, w, scan=scan, exclude=found, peaks=peaks)
-                  if not any(float(d @ f) > MIN_SOURCE_COS for f in found)]
-        if not trials:
-            break
-        score, d, st, cols, power, target = min(trials, key=lambda t: t[0])
-        if score > best * (1.0 - gain):
-            break
-        best, found, kept = score, found + [d], (st, cols, power)
-        residual = target - system.predict(system.solve(target).coeffs)
-    seeded = 0 if seed is None else len(seed.directions)
-    if kept is None or len(found) == seeded:
-        return seed
-    moved, score = _relocate_sources(cand, base, system, found, kept[1], kept[2], seeded)
-    return moved if score < best * (1.0 - gain) else Sources(kept[0], kept[2])   # as a new source must
-
-
-def _with_source(cand: _Candidate, base: np.ndarray, system: ShSystem, found: list, kept: tuple | None,
-                 residual: np.ndarray, d: np.ndarray) -> tuple:
-    """The pursuit's step with source ``d`` added to ``found`` (``kept``: their (transfer, columns,
-    intensities) or None; ``residual``: of the SH fit around them) -> (held-out RMSE, d, transfer,
-    columns, intensities, the radiance left to the SH)."""
-    st = prt.source_transfer(cand.geo, cand.material, np.asarray(d)[None])
-    st = st if kept is None else kept[0].joined(st)
-    cols = _source_columns(cand.geo, cand.layer, st, None, base)
-    power = _source_intensities(cols, residual + (0.0 if kept is None else np.einsum("cpj,jc->pc", kept[1], kept[2])),
-                                system.obs.weight)
-    target = system.obs.radiance - np.einsum("cpj,jc->pc", cols, power)
-    return system.held_out_rmse(target), d, st, cols, power, target
-
-
-def _relocate_sources(cand: _Candidate, base: np.ndarray, system: ShSystem, found: list, cols: np.ndarray,
-                      power: np.ndarray, start: int = 0) -> tuple[Sources, float]:
-    """One more pass over the pursuit's sources (directions ``found``, columns (3, N, J),
-    intensities (J, 3); ``system``: the SH at ``base``): each direction refined (BACKFIT_STEP, 4 rounds)
-    against the SH refitted around the others and scored by its part the SH cannot carry
-    (sh_complement), then all intensities refitted -> (the moved Sources, their held-out RMSE). The
-    pursuit's first SH fit absorbed part of each source, which moved it by about a degree -- and
-    held-out RMSE, hence model selection, is dominated by such sub-degree errors of a sharp source.
-    The caller keeps the move only where it lowers the held-out views' RMSE by more than the
-    gain a new source must bring: where SH and sources cannot carry the lighting (a sharp lobe
-    under a detailed map) the complement is a poor guide and small gains are noise.  The first
-    ``start`` directions (a continued pursuit's seed, relocated before) are kept."""
-    geo, material, layer = cand.geo, cand.material, cand.layer
-    radiance, w = system.obs.radiance, system.obs.weight
-    target = radiance - np.einsum("cpj,jc->pc", cols, power)
-    fit = system.solve(target)
-    sh_part = system.predict(fit.coeffs)
-    project = sh_complement(system.a, w, fit)
-    own = project(cols) * power.T[:, None, :]                 # (3, N, J): each source's part the SH cannot carry
-    found = [d if j < start else refine_direction(geo, material, base, target - sh_part + own[:, :, j].T, w, d,
-                                                  BACKFIT_STEP, 4, project=project)[0] for j, d in enumerate(found)]
-    st = prt.source_transfer(geo, material, np.array(found))
-    cols = _source_columns(geo, layer, st, None, base)
-    power = _source_intensities(cols, radiance - sh_part, w)
-    target = radiance - np.einsum("cpj,jc->pc", cols, power)
-    return Sources(st, power), system.held_out_rmse(target)
 
 
 def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | None,
@@ -1017,7 +541,7 @@ def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfe
     indirect = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces)
     k = fit.coeffs.shape[0]
     ki = min(k, indirect.shape[1])
-    # _per_unit_base's transfer times the lighting, without building it (3, N, K)
+    # per_unit_base_channel's transfer times the lighting, without building it (3, N, K)
     shade = layer / np.pi * (geo.direct[:, :k] @ fit.coeffs + np.einsum("pkc,kc->pc", indirect[:, :ki], fit.coeffs[:ki]))
     if spec is not None and spec.scaled is not None:
         shade += np.einsum("pkc,kc->pc", spec.scaled[:, :k], fit.coeffs)
@@ -1025,7 +549,7 @@ def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfe
     if fit.sources is not None:
         st = fit.sources.transfer
         src_ind = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces, st.vertex_direct)
-        shade += np.einsum("pjc,jc->pc", _source_per_unit_base(layer, st, src_ind), fit.sources.power)
+        shade += np.einsum("pjc,jc->pc", source_per_unit_base(layer, st, src_ind), fit.sources.power)
         if st.specular is not None:
             specular += np.einsum("pjc,jc->pc", st.specular, fit.sources.power)
     if fit.detail is not None:

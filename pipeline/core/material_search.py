@@ -18,6 +18,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from pipeline.core import material_fit, prt
+from pipeline.core.candidate import Observations
 from pipeline.core.material import MIN_ROUGHNESS, Principled
 from pipeline.core.selection import descend_grid, interval_within, parabola_minimum, parsimonious_choice, refine_bracket
 
@@ -204,7 +205,7 @@ class CandidateFit:
     lighting unknown or given as SH + sources."""
 
     geo: prt.Geometry
-    obs: material_fit.Observations
+    obs: Observations
     opts: SearchOptions
     kw: dict
     order: int
@@ -248,7 +249,7 @@ class CandidateFit:
 
 def more_sources(candidate: CandidateFit, best: material_fit.MaterialFit, fix_base: bool) -> material_fit.MaterialFit:
     """The chosen material's fit with its sources' pursuit continued (up to --peak-sources) with
-    --source-peaks candidates per step from the residual's mirror peaks (material_fit.mirror_peaks),
+    --source-peaks candidates per step from the residual's mirror peaks (sources.mirror_peaks),
     its base colour (unless ``fix_base``) and detail part fitted again, where that lowers the held-out views' error —
     for a sharp lobe (sharp_lobe) only: the scan over the renderer's direction set falls between
     lamps that such a lobe sees one by one.  The roughness candidates use the scan only: with the

@@ -20,9 +20,19 @@ import numpy as np
 
 from pipeline.core import forward, solve
 from pipeline.core.brdf import Brdf, reflect
-from pipeline.core.factorization import (ConvexOptions, add_designs, apply_scale_convention, brdf_data, choose_order,
-                                         equations_from_arrays, factorize, fit_brdf_models, lobe_filters,
-                                         occupied_cells, rms_radiance)
+from pipeline.core.factorization import (
+    ConvexOptions,
+    add_designs,
+    apply_scale_convention,
+    brdf_data,
+    choose_order,
+    equations_from_arrays,
+    factorize,
+    fit_brdf_models,
+    lobe_filters,
+    occupied_cells,
+    rms_radiance,
+)
 from pipeline.core.selection import parsimonious_choice
 from pipeline.core.sh import num_coeffs, order_of
 from pipeline.errors import UserError

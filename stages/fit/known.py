@@ -11,9 +11,11 @@ import numpy as np
 
 from pipeline.core import material_fit, prt
 from pipeline.core.brdf import BRDF_PARAMS, Brdf
+from pipeline.core.candidate import Observations
 from pipeline.core.material_search import KnownLighting
 from pipeline.core.render import Renderer, SceneGroups, light_set
 from pipeline.core.sh import num_coeffs, project_envmap
+from pipeline.core.sources import Sources
 from pipeline.errors import UserError
 from pipeline.io.brdf import parse_brdf_spec
 from pipeline.io.capture_toml import read_capture_config, read_toml
@@ -21,6 +23,7 @@ from pipeline.io.images import read_envmap
 from pipeline.io.lighting import known_light_map, read_lighting_parts, read_lighting_sh
 from pipeline.io.values import number_array
 from stages.fit.settings import DEFAULT_ALBEDO, Settings
+
 
 def known_albedo_hint(capture: Path) -> list[float] | None:
     """capture.toml ``[fit] known_albedo = [r, g, b]`` (or one number), else None."""
@@ -145,7 +148,7 @@ SCALE_TOLERANCE = 1.5    # a known map within this factor of the photos is taken
                          # the shared Cycles captures measure 0.95 (teapot) and 1.24 (night sphere))
 
 
-def check_lighting_scale(geo: prt.Geometry, obs: material_fit.Observations, settings: Settings,
+def check_lighting_scale(geo: prt.Geometry, obs: Observations, settings: Settings,
                          best: material_fit.MaterialFit, coeffs, directions, intensity) -> dict:
     """How the photos compare with a known lighting, measured with the fitted material
     (material_fit.known_lighting_scale); with ``--lighting-scale fit`` the factor to apply, else
@@ -156,7 +159,7 @@ def check_lighting_scale(geo: prt.Geometry, obs: material_fit.Observations, sett
                                                                          settings.seed)
         sources = None
         if directions is not None and len(directions):
-            sources = material_fit.Sources(prt.source_transfer(geo, best.material, directions), intensity)
+            sources = Sources(prt.source_transfer(geo, best.material, directions), intensity)
         best = material_fit.MaterialFit(best.material, best.base, coeffs, None, [], 0.0, 0.0, sources)
     given = 1.0 if settings.lighting_scale == "fit" else float(settings.lighting_scale)
     k, exact = material_fit.known_lighting_scale(*material_fit.shading_parts(geo, best, spec), obs)

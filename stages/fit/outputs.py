@@ -11,8 +11,10 @@ import numpy as np
 
 from pipeline.core import material_fit, solve
 from pipeline.core.brdf import Brdf
+from pipeline.core.candidate import Observations
 from pipeline.core.envmap import add_sources
 from pipeline.core.sh import envmap_from_sh, order_of, sh_of_sources
+from pipeline.core.sources import Sources
 from pipeline.io.brdf import write_brdf
 from pipeline.io.images import write_image
 from pipeline.io.lighting import write_lighting_sh
@@ -27,7 +29,7 @@ OUTPUT_NAMES = ("lighting_sh.json", "lighting.exr", "brdf.json", "report.json", 
 
 
 def write_fit(out: Path, coeffs: np.ndarray, brdf: Brdf, report: dict, *, env_height: int, source: str,
-              sources: material_fit.Sources | None = None, angular: bool = False,
+              sources: Sources | None = None, angular: bool = False,
               texture: tuple | None = None) -> list[Path]:
     """fit/: lighting_sh.json (``coeffs`` ((L+1)^2, 3), with ``angular`` the directional
     ``sources``' projection added and the sources listed), lighting.exr (the SH map with the sources
@@ -68,7 +70,7 @@ SOURCES_NOTE = ("'coeffs' is the whole lighting to this order, the directional '
 
 
 def write_plots(out: Path, env: np.ndarray, bands: list[dict], views: list[dict]) -> list[Path]:
-    import matplotlib      # imported when plots are drawn: matplotlib's start-up is ~0.5 s
+    import matplotlib  # imported when plots are drawn: matplotlib's start-up is ~0.5 s
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -130,7 +132,7 @@ def chosen_prior(cands: list[dict], fit: solve.LightingFit) -> float:
     return next(float(c["band_prior"]) for c in cands if c["fit"] is fit)
 
 
-def residuals_per_view(obs: material_fit.Observations, pred: np.ndarray, image_id: np.ndarray, keys: list[str],
+def residuals_per_view(obs: Observations, pred: np.ndarray, image_id: np.ndarray, keys: list[str],
                        folds: int) -> list[dict]:
     """per_view_table of the predictions ``pred`` (N, 3) of the samples ``obs`` of views ``image_id``."""
     m = len(keys)

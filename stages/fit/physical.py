@@ -29,18 +29,34 @@ import numpy as np
 
 from pipeline.core import material_fit, prt, texture
 from pipeline.core.brdf import Brdf
+from pipeline.core.candidate import Observations
 from pipeline.core.material import brdf_from_material, material_from_brdf
-from pipeline.core.material_search import (CandidateFit, SearchOptions, candidate_row, final_lighting,
-                                           known_material_fit, more_sources, search_albedo_level, select_material)
+from pipeline.core.material_search import (
+    CandidateFit,
+    SearchOptions,
+    candidate_row,
+    final_lighting,
+    known_material_fit,
+    more_sources,
+    search_albedo_level,
+    select_material,
+)
 from pipeline.core.selection import fold_of
+from pipeline.errors import UserError
 from pipeline.io.mesh import mesh_path, read_mesh
 from pipeline.io.poses import poses_path, read_poses
 from pipeline.raycast import RayMesh, pixel_footprints, ray_mesh
-from pipeline.errors import UserError
 from stages.fit.data import load_physical
 from stages.fit.known import check_lighting_scale, known_lighting_setup
-from stages.fit.outputs import (lighting_report, per_image_note, residuals_per_view, scale_note, selection_note,
-                                summary_line, write_fit)
+from stages.fit.outputs import (
+    lighting_report,
+    per_image_note,
+    residuals_per_view,
+    scale_note,
+    selection_note,
+    summary_line,
+    write_fit,
+)
 from stages.fit.settings import DEFAULT_ALBEDO, Settings
 from stages.fit.texture import albedo_from_shading
 
@@ -73,7 +89,7 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
                        bounce_samples=settings.bounce_samples, seed=settings.seed,
                        footprint=sample_footprints(capture, work, rays, data, keys, settings.footprint))
     timings["transfer"] = time.perf_counter() - t0
-    obs = material_fit.Observations(data["radiance"].astype(float), data["weight"].astype(float),
+    obs = Observations(data["radiance"].astype(float), data["weight"].astype(float),
                                     fold_of(data["image_id"], settings.folds))
     kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior,
               independent_groups=len(np.unique(data["image_id"])), posed_ratio=prt.QUADRATURE_FLOOR)
@@ -181,7 +197,7 @@ def material_and_lighting(candidate: CandidateFit, settings: Settings, known_brd
 
 
 def _report_and_texture(chosen: Chosen, settings: Settings, mode: str, capture: Path, mesh, data: dict,
-                        obs: material_fit.Observations,
+                        obs: Observations,
                         noise: dict, keys: list[str], known_brdf: Brdf | None,
                         hint) -> tuple[dict, Brdf, np.ndarray | None]:
     """report.json's content for ``chosen`` (brdf.json's under "brdf") and the per-vertex albedo
@@ -207,7 +223,7 @@ def _report_and_texture(chosen: Chosen, settings: Settings, mode: str, capture: 
     return report, brdf, vertex_rho
 
 
-def texture_pattern(obs: material_fit.Observations, mesh, data: dict, vertex_rho: np.ndarray) -> np.ndarray:
+def texture_pattern(obs: Observations, mesh, data: dict, vertex_rho: np.ndarray) -> np.ndarray:
     """The per-vertex albedo ``vertex_rho`` (V, 3) at the samples over its weighted mean (N, 3), the
     pattern a uniform base colour times which models a texture (prt.Geometry.pattern)."""
     rho = texture.interpolation_matrix(mesh.faces, data["face"], data["bary"].astype(float), len(mesh.vertices)) @ vertex_rho
@@ -247,7 +263,7 @@ def select_with_scale(candidate: CandidateFit, settings: Settings, known_brdf: B
     return candidate, chosen, scale
 
 
-def texture_and_residuals(mesh, data: dict, geo: prt.Geometry, obs: material_fit.Observations,
+def texture_and_residuals(mesh, data: dict, geo: prt.Geometry, obs: Observations,
                           best: material_fit.MaterialFit, report: dict, settings: Settings, keys: list[str], spec: prt.SpecularTransfer | None = None) -> np.ndarray | None:
     """The per-vertex albedo choice (texture.albedo_from_shading on the physical shading) and the
     residual per view of the chosen model,

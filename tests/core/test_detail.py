@@ -6,12 +6,14 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+from fit_scenes import sphere_geometry
+
 from pipeline.core import prt
+from pipeline.core.candidate import Observations
 from pipeline.core.envmap import equirect_directions
 from pipeline.core.material import Principled
-from pipeline.core.material_fit import Observations, fit_detail_map, held_out_detail
+from pipeline.core.material_fit import fit_detail_map, held_out_detail
 from pipeline.core.sh import envmap_from_sh, num_coeffs, project_envmap
-from fit_scenes import sphere_geometry
 
 
 def test_detail_transfer_is_the_sh_transfer_of_the_same_lobe(rng):

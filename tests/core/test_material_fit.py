@@ -9,11 +9,12 @@ import pytest
 from fit_scenes import sphere_geometry
 
 from pipeline.core import prt
+from pipeline.core.candidate import Observations
 from pipeline.core.material import Principled
-from pipeline.core.material_fit import (LEVEL_XTOL, Observations, _source_columns, albedo_level, fit_material,
-                                        sh_complement)
+from pipeline.core.material_fit import LEVEL_XTOL, albedo_level, fit_material
 from pipeline.core.sh import num_coeffs
 from pipeline.core.solve import LightingFit
+from pipeline.core.sources import sh_complement, source_columns
 
 
 def bounced_scene(rng, bounce: float, truth: np.ndarray, n: int = 400, folds: int = 4):
@@ -93,7 +94,7 @@ def test_source_located_against_the_sh_fitted_around_it(rng):
     layer = prt.diffuse_layer(material, geo.mu_out)
     diffuse = geo.direct[:, :, None] * (layer * base / np.pi)[:, None, :] + spec.fixed
     st = prt.source_transfer(geo, material, sun[None])
-    sun_radiance = np.einsum("cpj,jc->pc", _source_columns(geo, layer, st, None, base), np.array([[30.0, 28.0, 25.0]]))
+    sun_radiance = np.einsum("cpj,jc->pc", source_columns(geo, layer, st, None, base), np.array([[30.0, 28.0, 25.0]]))
     radiance = np.einsum("pkc,kc->pc", diffuse, coeffs) + sun_radiance
     obs = Observations(radiance, np.ones(len(radiance)), np.arange(len(radiance)) % 4)
     fit = fit_material(geo, material, obs, order=3, folds=4, base0=base, spec=spec, fix_base=True, max_sources=1,
@@ -171,7 +172,7 @@ def test_mirror_peaks_point_at_the_lamps_a_glossy_sphere_reflects():
     (2 deg) of the truth, the brighter first, and none within 10 deg of an excluded one."""
     from types import SimpleNamespace
 
-    from pipeline.core.material_fit import mirror_peaks
+    from pipeline.core.sources import mirror_peaks
 
     rng = np.random.default_rng(0)
     normals = rng.normal(size=(240000, 3))

@@ -109,7 +109,7 @@ def test_concave_diffuse_bunny_both_unknown(tmp_path):
     (truth 0.607), relight 1.63% (at the convention's 0.5: 2.15%; the convex fit: 25.5% with a
     textured albedo).  The choice of lambert over principled hangs on the sun's direction: located
     against the first SH fit alone it was 0.7 deg off and a rough principled lobe won the held-out
-    views; relocated against the SH refitted around it (material_fit._relocate_sources), 0.2 deg."""
+    views; relocated against the SH refitted around it (sources._relocate_sources), 0.2 deg."""
     brdf, report, err = fit_and_relight("bunny_sunrise_diffuse", tmp_path / "work")
     assert brdf["model"] == "lambert", (brdf, err, report["scale_convention"])
     assert report["albedo"]["choice"] == "uniform"
@@ -151,7 +151,7 @@ def test_known_lighting_off_in_scale(tmp_path):
 def brightest_lamps(env: np.ndarray, count: int) -> list[np.ndarray]:
     """Directions (3,) of the ``count`` brightest lamps of an equirect map (H, 2H, 3): groups of
     texels 3x the brightest sky, power-weighted, the brightest of each group within 10 deg (one
-    source, material_fit.MIN_SOURCE_COS)."""
+    source, sources.MIN_SOURCE_COS)."""
     from scipy import ndimage
 
     from pipeline.core.envmap import equirect_directions, equirect_solid_angles
