@@ -1,0 +1,228 @@
+"""Real photos with a known answer: the Robovision 12-camera ring (tests/data/real/ring_sweet; source,
+licence and conversion in tests/data/real/README.md).
+
+The data's own references are the HALCON calibration and the PMVS reference cloud (4 000 of its points,
+with their colours, in reference_points.ply).  The checks: the calibrated cameras put the reference
+points on the pixels whose brightness PMVS recorded for them; the mesh made from the cloud lies on the
+cloud and under every view's pixels of it; a trivial *neighbour-reprojection* baseline (tests/real/
+baseline.py) on the views `sigrend run` holds out; and `sigrend run` end to end on the real photos,
+its held-out relight error finite and compared with that baseline on the same pixels.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.util
+import io
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+# The source photos carry no EXIF; linearize warns once per factor that it takes one exposure for all
+# (true of both sources: one locked exposure).  That warning is the product's, not a fault of the test.
+pytestmark = pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image's EXIF:UserWarning")
+CAPTURE = Path(__file__).parents[1] / "data" / "real" / "ring_sweet"
+# `sigrend run` holds out every 4th of the sorted image keys (pipeline.runner.heldout_keys, --holdout 4)
+HELD_OUT = ["cam04.png", "cam08.png", "cam12.png"]
+
+_spec = importlib.util.spec_from_file_location("real_baseline", Path(__file__).with_name("baseline.py"))
+baseline = importlib.util.module_from_spec(_spec)
+sys.modules[_spec.name] = baseline      # its dataclass looks its module up there
+_spec.loader.exec_module(baseline)
+
+
+def _reference_points():
+    """reference_points.ply (make_ring.py's binary layout): points, normals (object frame), grey colour."""
+    header, body = (CAPTURE / "reference_points.ply").read_bytes().split(b"end_header\n", 1)
+    rec = np.frombuffer(body, dtype=[("p", "<f4", 3), ("n", "<f4", 3), ("c", "u1", 3)])
+    return rec["p"].astype(float), rec["n"].astype(float), rec["c"][:, 0].astype(float)
+
+
+def _scene():
+    from pipeline.io.mesh import read_mesh
+    from pipeline.io.poses import read_poses
+    from pipeline.raycast import intersector
+
+    mesh = read_mesh(CAPTURE / "mesh.ply")
+    return read_poses(CAPTURE / "poses.json"), mesh, intersector(mesh)
+
+
+def _visible(rays, poses, key, points, normals):
+    """Reference points facing view ``key`` and not hidden from it by the mesh."""
+    from pipeline.core.camera import camera_center
+    from pipeline.raycast import occluded
+
+    pose = poses.images[key]
+    to_cam = camera_center(pose.R, pose.t) - points
+    to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
+    facing = np.einsum("ij,ij->i", normals, to_cam) > 0
+    # start 1 mm out along the normal: the points lie up to ~0.5 mm off the mesh (95th percentile 0.44 mm)
+    return facing & ~occluded(rays, points + 1e-3 * normals, to_cam)
+
+
+def test_capture_is_a_sigrend_capture_in_metres():
+    """The converted folder reads as a capture: 12 posed PINHOLE views of 320x256 on a ring of 0.2 m
+    radius (the HALCON calibration is in metres), the mesh watertight, outward and ~4 cm across, within
+    the DESIGN.md limits the brief set (<= 20k faces)."""
+    from pipeline.core.camera import camera_center
+
+    poses, mesh, _ = _scene()
+    assert sorted(poses.images) == [f"cam{i:02d}.png" for i in range(1, 13)]
+    assert all(c.model == "PINHOLE" and (c.width, c.height) == (320, 256) for c in poses.cameras.values())
+    centres = np.array([camera_center(p.R, p.t) for p in poses.images.values()])
+    radius = np.linalg.norm(centres[:, :2], axis=1)
+    # the ring is horizontal in the object frame (+Z up) and centred on the object to a few mm
+    assert np.allclose(radius, 0.2, atol=0.005), radius
+    assert np.ptp(centres[:, 2]) < 0.005 and 0.0 < centres[:, 2].mean() < 0.05
+    assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
+    assert len(mesh.faces) <= 20000
+    assert np.all((mesh.extents > 0.02) & (mesh.extents < 0.05)), mesh.extents
+    assert all((CAPTURE / "images" / key).stat().st_size < 200_000 for key in poses.images)
+
+
+def test_calibration_puts_reference_points_on_their_pixels():
+    """The calibrated cameras (HALCON -> poses.json) project each visible PMVS reference point onto
+    pixels whose brightness correlates with the colour PMVS gave it: normalized cross-correlation
+    >= 0.40 in every view and >= 0.50 on average (measured 0.44-0.68, mean 0.57; PMVS colours are
+    averages over views and 4x4 blocks of grainy sugar, so 1.0 is out of reach), and shifting the
+    projections by 3 px drops the mean by >= 0.2 (measured to 0.26): the pose lands on the object, not
+    merely near it.  A wrong pixel-centre or world/camera convention fails this by far."""
+    from pipeline.core.camera import project
+
+    poses, mesh, rays = _scene()
+    points, normals, colour = _reference_points()
+    scores, shifted = [], []
+    for key in sorted(poses.images):
+        cam, pose = poses.camera_of(key), poses.images[key]
+        sel = _visible(rays, poses, key, points, normals)
+        uv, _ = project(cam, pose.R, pose.t, points[sel])
+        photo, valid = baseline.read_grey(CAPTURE / "images" / key)
+        for shift, out in ((0.0, scores), (3.0, shifted)):
+            value, ok = baseline._sample(photo, np.ones_like(valid), uv + [shift, 0.0])
+            a, b = value[ok] - value[ok].mean(), colour[sel][ok] - colour[sel][ok].mean()
+            out.append(float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum())))
+        assert sel.sum() > 1000, (key, int(sel.sum()))
+    assert min(scores) >= 0.40, scores
+    assert np.mean(scores) >= 0.50, scores
+    assert np.mean(scores) - np.mean(shifted) >= 0.2, (scores, shifted)
+
+
+def test_mesh_lies_on_the_reference_cloud_in_every_view():
+    """Each view's ray through the projection of a visible reference point seen within 60 degrees of its
+    normal hits the mesh within 1 mm of the point (one downscaled pixel is ~0.24 mm on the object) for
+    >= 90 % of the points in every view (measured 93-99 %), median <= 0.4 mm (measured 0.20-0.28 mm; along
+    the normals the cloud is 0.16 mm off the mesh, a grazing ray stretches that): the calibration and the
+    mesh agree, so the samples stage puts every photo's pixels on the right surface.  (Points seen more
+    obliquely often hit the mesh in front of them along a grazing ray: 81-93 % within 1 mm.)"""
+    from pipeline.core.camera import camera_center, pixel_rays, project
+    from pipeline.raycast import first_hits
+
+    poses, mesh, rays = _scene()
+    points, normals, _ = _reference_points()
+    for key in sorted(poses.images):
+        cam, pose = poses.camera_of(key), poses.images[key]
+        view = camera_center(pose.R, pose.t) - points
+        view /= np.linalg.norm(view, axis=1, keepdims=True)
+        sel = _visible(rays, poses, key, points, normals) & (np.einsum("ij,ij->i", normals, view) > 0.5)
+        uv, _ = project(cam, pose.R, pose.t, points[sel])
+        origins, dirs = pixel_rays(cam, pose.R, pose.t, uv)
+        hits = first_hits(mesh, rays, origins, dirs)
+        gap = np.full(int(sel.sum()), np.inf)
+        gap[hits.ray] = np.linalg.norm(hits.point - points[sel][hits.ray], axis=1)
+        assert sel.sum() > 800, (key, int(sel.sum()))
+        assert np.mean(gap < 1e-3) >= 0.90, (key, float(np.mean(gap < 1e-3)))
+        assert np.median(gap) <= 4e-4, (key, float(np.median(gap)))
+
+
+# the baseline's numbers on this capture (measured 2026-12-07; deterministic given the data)
+BASELINE = {"relative": 0.389, "blurred": 0.218}
+
+
+def _baseline_predictions():
+    keys = sorted(json.loads((CAPTURE / "poses.json").read_text())["images"])
+    return [baseline.predict(CAPTURE, key, baseline.ring_neighbours(keys, key)) for key in HELD_OUT]
+
+
+def test_neighbour_reprojection_baseline_on_the_held_out_views():
+    """The trivial baseline (tests/real/baseline.py: the two ring neighbours' pixels moved onto each
+    held-out pixel through the mesh) predicts the three views `sigrend run` holds out with a relative
+    RMS error of 38.9 % pooled (30.5 / 39.2 / 46.1 % per view) and 21.8 % after a 4 px blur: the rest is
+    the sugar's sparkle and view-dependent shading between views 30 degrees apart.  Pinned within 0.02
+    (deterministic, but through Embree and OpenCV's bilinear sampling).  It must cover >= 99 % of each
+    view's interior object pixels (measured 100 %) and keep the exposure: the mean of the prediction is
+    within 10 % of the photo's (measured 0.98-1.09; same shot, same exposure in every camera)."""
+    preds = _baseline_predictions()
+    pairs = [(p.predicted, p.photo, p.mask) for p in preds]
+    for p in preds:
+        assert p.coverage >= 0.99, (p.key, p.coverage)
+        assert p.mask.sum() > 10000, (p.key, int(p.mask.sum()))
+        assert 0.9 <= p.predicted[p.mask].mean() / p.photo[p.mask].mean() <= 1.1
+    assert baseline.relative_rmse(pairs) == pytest.approx(BASELINE["relative"], abs=0.02)
+    assert baseline.relative_rmse(pairs, blurred=True) == pytest.approx(BASELINE["blurred"], abs=0.02)
+
+
+@pytest.fixture(scope="module")
+def ring_run(tmp_path_factory):
+    """`sigrend run ring_sweet` once (all defaults: poses from the capture's poses.json, lighting and
+    material unknown, every 4th view held out); returns the work folder and the printed summary."""
+    from pipeline import cli
+
+    work = tmp_path_factory.mktemp("ring-work")
+    with contextlib.redirect_stdout(io.StringIO()) as out:
+        code = cli.main(["run", str(CAPTURE), "-w", str(work)])
+    assert code == 0, out.getvalue()
+    return work, out.getvalue()
+
+
+def _sigrend_on_baseline_pixels(work: Path) -> tuple[float, float]:
+    """sigrend's held-out renders (WORK/relight/check, times the check's fitted scale) against the linear
+    photos on the baseline's pixels: (relative RMS, after the 4 px blur)."""
+    from pipeline.io.images import read_image
+
+    check = json.loads((work / "relight" / "check" / "relight.json").read_text())["compare"]
+    pairs = []
+    for p in _baseline_predictions():
+        stem = Path(p.key).stem
+        render = read_image(work / "relight" / "check" / f"{stem}.exr")[:, :, 0].astype(float)
+        photo = read_image(work / "linear" / f"{stem}.exr")[:, :, 0].astype(float)
+        pairs.append((render, photo, p.mask))
+    return (baseline.relative_rmse(pairs, scale=check["scale"]),
+            baseline.relative_rmse(pairs, scale=check["scale"], blurred=True))
+
+
+@pytest.mark.slow
+def test_sigrend_run_on_the_real_ring(ring_run):
+    """`sigrend run` goes through on real photos with real calibration (about 90 s here): poses copied
+    from poses.json, the three held-out views relit under the fitted lighting with an error that is
+    finite and <= 60 % (measured 44.9 %, 42.7 / 46.9 / 45.5 % per view, after one global scale 1.54;
+    the fit chose SH order 1 and a uniform principled material, roughness 0.55; the bound leaves room
+    for the fit's refactoring, and 100 % is what predicting black would score).  On the baseline's pixels
+    sigrend scores 45.1 % (27.4 % after the 4 px blur) against the baseline's 38.9 % (21.8 %)."""
+    from pipeline.io.run_summary import relight_check
+
+    work, out = ring_run
+    check = relight_check(work)
+    assert check is not None and check["heldout"], out
+    assert sorted(check["views"]) == HELD_OUT
+    assert math.isfinite(check["relative_error"]) and check["relative_error"] <= 0.60, check
+    assert check["scale_fitted"] and check["scale"] > 0
+    assert f"{100 * check['relative_error']:.2f}%" in out
+    ours, ours_blurred = _sigrend_on_baseline_pixels(work)
+    assert math.isfinite(ours) and math.isfinite(ours_blurred)
+    assert ours == pytest.approx(check["relative_error"], abs=0.03)   # the same metric on ~the same pixels
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="sigrend's fit predicts the held-out ring views worse than the neighbour-"
+                   "reprojection baseline: 45.1 % vs 38.9 % (27.4 % vs 21.8 % after a 4 px blur), measured "
+                   "2026-12-07; a gap found by this test, no issue filed yet")
+def test_sigrend_beats_the_neighbour_baseline(ring_run):
+    """A relightable model fitted to nine views should predict a held-out view of the same shot at
+    least as well as two neighbouring photos moved through the mesh; both blurred and unblurred."""
+    work, _ = ring_run
+    ours, ours_blurred = _sigrend_on_baseline_pixels(work)
+    assert ours <= BASELINE["relative"] and ours_blurred <= BASELINE["blurred"], (ours, ours_blurred)
