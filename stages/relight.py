@@ -51,12 +51,12 @@ from pipeline.core.envmap import add_sources, downsample, equirect_angles, equir
 from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envmap
 from pipeline.core.transfer import irradiance_from_sh
 from pipeline.errors import UserError
-from pipeline.io.brdf import read_brdf
+from pipeline.io.brdf import read_brdf, read_materials
 from pipeline.io.images import preview_exposure, read_envmap, write_image, write_preview
 from pipeline.io.capture_toml import KnownLight, read_capture_config
 from pipeline.io.lighting import known_light_map, read_lighting_parts, read_lighting_sh
 from pipeline.io.linear_manifest import image_source, linear_manifest, load_linear_image
-from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
+from pipeline.io.mesh import mesh_path, read_material_ply, read_mesh, read_vertex_albedo
 from pipeline.io.poses import Poses, poses_path, read_poses
 from pipeline.raycast import first_hits, ray_mesh
 from pipeline.settings import setting
@@ -605,6 +605,58 @@ class AngularLighting:
         return np.maximum(out, 0.0)  # as the frequency path: B(L+) - B(L-) < 0 is not an image value
 
 
+class MaterialLightings:
+    """A surface of several materials (fit/material.ply): one lighting per material, each ray hit
+    shaded by the lighting of its face's material.  Each material's renderer bounces light with its
+    own BRDF everywhere (interreflection between two materials is approximated by the receiving
+    one's)."""
+
+    def __init__(self, lightings: list, face_material: np.ndarray):
+        self.lightings, self.face_material = lightings, np.asarray(face_material, np.int64)
+
+    def prepare(self) -> "MaterialLightings":
+        for lighting in self.lightings:
+            lighting.prepare()
+        return self
+
+    def describe(self) -> dict:
+        return {**self.lightings[0].describe(), "materials": len(self.lightings)}
+
+    def shade_hits(self, tri: np.ndarray, bary: np.ndarray, normal: np.ndarray, view_dir: np.ndarray,
+                   albedo: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(tri), 3))
+        material = self.face_material[tri]
+        for k, lighting in enumerate(self.lightings):
+            rows = material == k
+            if rows.any():
+                rho = albedo[rows] if np.ndim(albedo) == 2 else albedo
+                out[rows] = lighting.shade_hits(tri[rows], bary[rows], normal[rows], view_dir[rows], rho)
+        return out
+
+
+def face_materials(faces: np.ndarray, vertex_material: np.ndarray) -> np.ndarray:
+    """(F,) each face's material: the one two or three of its vertices have (else its first vertex's)."""
+    lab = np.asarray(vertex_material, np.int64)[np.asarray(faces)]
+    return np.where(lab[:, 1] == lab[:, 2], lab[:, 1], lab[:, 0])
+
+
+def material_map(work: Path, mesh) -> tuple[list[Brdf], np.ndarray, np.ndarray] | None:
+    """(the materials, per-vertex base colour (V, 3), each face's material (F,)) of a fit whose
+    brdf.json lists several materials (fit/material.ply), else None."""
+    listed = read_materials(Path(work) / "fit" / "brdf.json")
+    if listed is None:
+        return None
+    materials, name = listed
+    values = read_material_ply(Path(work) / "fit" / name, len(mesh.vertices))
+    if values is None:
+        raise UserError(f"{Path(work) / 'fit' / name}: missing or made for another mesh; run `sigrend fit --force`")
+    base = np.stack([values["base_r"], values["base_g"], values["base_b"]], axis=1)
+    ids = np.round(values["material_id"]).astype(np.int64)
+    if ids.min() < 0 or ids.max() >= len(materials):
+        raise UserError(f"{Path(work) / 'fit' / name}: material_id outside the {len(materials)} materials of brdf.json")
+    return materials, base, face_materials(np.asarray(mesh.faces), ids)
+
+
 def bright_block(brdf: Brdf, env_height: int, cell_height: int) -> int:
     """Pixels per side of the blocks in which the renderer merges a map's broad bright pixels
     (render.light_set's bright_block): a principled lobe's width 2 alpha over two of the map's
@@ -849,12 +901,20 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     brdf = read_brdf(brdf_path)
     mesh = read_mesh(mesh_path(capture))
     views = resolve_views(capture=source, work=source_work, settings=settings, mesh=mesh)
-    vertex_colors = vertex_albedo(work, mesh)
+    materials = material_map(work, mesh)
+    vertex_colors = vertex_albedo(work, mesh) if materials is None else materials[1]
     lights = view_lights(source, views) if settings.compare_with and not settings.env else {}
     scene_mesh = ray_mesh(mesh)     # one intersector for the camera rays and every lighting's renderer
-    lightings = {light: prepare_lighting(light, brdf, scene_mesh, settings, capture=source,
-                                         vertex_colors=vertex_colors, with_board=board_occludes(work, settings))
-                 for light in dict.fromkeys(lights.values() or [light_path])}
+
+    def lighting_for(light):
+        def prepared(material: Brdf):
+            return prepare_lighting(light, material, scene_mesh, settings, capture=source, vertex_colors=vertex_colors,
+                                    with_board=board_occludes(work, settings))
+        if materials is None:
+            return prepared(brdf)
+        return MaterialLightings([prepared(m) for m in materials[0]], materials[2])
+
+    lightings = {light: lighting_for(light) for light in dict.fromkeys(lights.values() or [light_path])}
     folder = out_folder(work, settings)
     make_folder(folder, "-o")
     photos = PhotoSource(source, source_work, linear_manifest(source_work)) if compares(settings) else None

@@ -25,7 +25,7 @@ from pipeline.workdir import read_json, write_json
 UNIT_PARAMS = ("albedo", "base_color", "specular_tint", "metallic")  # physically within [0, 1]
 LEGACY_MODELS = {"lambertian": "lambert", "principled_v2": "principled", "ggx": "principled"}
 # keys a brdf.json may carry besides its model's parameters (provenance, notes)
-FREE_KEYS = ("model", "notes", "source", "blender", "note", "evidence")
+FREE_KEYS = ("model", "notes", "source", "blender", "note", "evidence", "materials", "material_map")
 
 
 def _principled_ranges(name: str, doc: dict) -> None:
@@ -130,6 +130,26 @@ def read_brdf(path: str | os.PathLike) -> Brdf:
 def write_brdf(path: str | os.PathLike, brdf: Brdf) -> Path:
     """brdf.json of a Brdf, its ranges checked (pipeline.io.brdf's rules) before anything is written."""
     return write_json(path, validate_brdf(brdf.to_dict()).to_dict())
+
+
+def write_materials_brdf(path: str | os.PathLike, materials: list[Brdf], material_map: str) -> Path:
+    """brdf.json of a surface of several materials: the first (the one most of the surface has) at
+    the top level, as one-material readers take it, and every one under "materials" (index =
+    material.ply's material_id), with the map's file name."""
+    docs = [validate_brdf(m.to_dict()).to_dict() for m in materials]
+    return write_json(path, {**docs[0], "materials": docs, "material_map": material_map})
+
+
+def read_materials(path: str | os.PathLike) -> tuple[list[Brdf], str] | None:
+    """(the materials of a brdf.json's "materials" list, its material map's file name), or None for
+    a one-material file."""
+    doc = read_json(path)
+    if not isinstance(doc, dict) or "materials" not in doc:
+        return None
+    items, name = doc["materials"], doc.get("material_map")
+    if not isinstance(items, list) or not items or not isinstance(name, str):
+        raise UserError(f"{path}: 'materials' must be a non-empty list of materials with a 'material_map' file name")
+    return [validate_brdf(m, f"{path}: materials[{i}]") for i, m in enumerate(items)], name
 
 
 def material_from_blender(doc: dict) -> Brdf:

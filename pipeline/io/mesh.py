@@ -76,6 +76,52 @@ def write_vertex_albedo(path: str | os.PathLike, mesh, albedo: np.ndarray) -> Pa
     return path
 
 
+MATERIAL_PROPERTIES = ("base_r", "base_g", "base_b", "roughness", "metallic", "material_id")
+
+
+def write_material_ply(path: str | os.PathLike, mesh, values: dict[str, np.ndarray]) -> Path:
+    """fit/material.ply (DESIGN.md, "Materials that vary over the surface"): the mesh with float
+    vertex properties MATERIAL_PROPERTIES and their standard deviations (``<name>_std``; inf where
+    the photos do not determine a value), each (V,) in ``values``; read back by read_material_ply."""
+    from trimesh.exchange.ply import export_ply
+
+    from pipeline.workdir import atomic_path
+
+    missing = [n for n in MATERIAL_PROPERTIES if n not in values]
+    if missing:
+        raise ValueError(f"material.ply needs {missing}")
+    out = mesh.copy()
+    out.visual = type(out.visual)()       # the properties are the material; no colours beside them
+    for name, column in values.items():
+        out.vertex_attributes[name] = np.asarray(column, np.float32)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(export_ply(out, include_attributes=True))
+    return path
+
+
+def read_material_ply(path: str | os.PathLike, n_vertices: int) -> dict[str, np.ndarray] | None:
+    """The per-vertex material properties of a material.ply ({name: (V,) float}); None when the file
+    is missing or belongs to another mesh (vertex count not ``n_vertices``)."""
+    import trimesh
+
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        ply = trimesh.load(path, force="mesh", process=False)
+        data = ply.metadata["_ply_raw"]["vertex"]["data"]
+    except Exception as exc:
+        raise UserError(f"{path}: cannot read the material map ({exc}); run `sigrend fit --force` again") from None
+    if len(ply.vertices) != n_vertices:
+        return None
+    names = [n for n in data.dtype.names if n not in ("x", "y", "z")]
+    if any(n not in names for n in MATERIAL_PROPERTIES):
+        raise UserError(f"{path}: a material map needs the vertex properties {', '.join(MATERIAL_PROPERTIES)}")
+    return {n: np.asarray(data[n], float).ravel() for n in names}
+
+
 def mesh_quality(mesh) -> dict:
     """Counts of what makes a scan a poor model of a surface (trimesh's edge and face structure):
     boundary edges (holes: edges with one face), non-manifold edges (more than two faces),

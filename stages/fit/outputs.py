@@ -15,10 +15,11 @@ from pipeline.core.candidate import Observations
 from pipeline.core.envmap import add_sources
 from pipeline.core.sh import envmap_from_sh, order_of, sh_of_sources
 from pipeline.core.sources import Sources
-from pipeline.io.brdf import write_brdf
+from pipeline.core.svbrdf import MaterialMap
+from pipeline.io.brdf import write_brdf, write_materials_brdf
 from pipeline.io.images import write_image
 from pipeline.io.lighting import write_lighting_sh
-from pipeline.io.mesh import write_vertex_albedo
+from pipeline.io.mesh import write_material_ply, write_vertex_albedo
 from pipeline.io.report import write_report
 from pipeline.io.run_summary import model_limits_line
 from pipeline.workdir import atomic_path
@@ -30,12 +31,14 @@ OUTPUT_NAMES = ("lighting_sh.json", "lighting.exr", "brdf.json", "report.json", 
 
 def write_fit(out: Path, coeffs: np.ndarray, brdf: Brdf, report: dict, *, env_height: int, source: str,
               sources: Sources | None = None, angular: bool = False,
-              texture: tuple | None = None) -> list[Path]:
+              texture: tuple | None = None, materials: tuple | None = None) -> list[Path]:
     """fit/: lighting_sh.json (``coeffs`` ((L+1)^2, 3), with ``angular`` the directional
     ``sources``' projection added and the sources listed), lighting.exr (the SH map with the sources
     drawn in), brdf.json, report.json, the plots, and albedo.ply when ``texture`` = (mesh, per-vertex
-    albedo (V, 3)) has one (a stale one is removed: relight reads it).  ``source``: the provenance
-    line.  -> the paths written, in OUTPUT_NAMES' order (albedo.ply last)."""
+    albedo (V, 3)) has one (a stale one is removed: relight reads it); with ``materials`` = (mesh,
+    svbrdf.MaterialMap, [Brdf per material]) brdf.json lists them and material.ply holds the map
+    (instead of albedo.ply).  ``source``: the provenance line.  -> the paths written, in
+    OUTPUT_NAMES' order (albedo.ply or material.ply last)."""
     env = np.maximum(envmap_from_sh(coeffs, env_height), 0.0)
     total, extra = coeffs, {}
     if sources is not None:
@@ -45,14 +48,30 @@ def write_fit(out: Path, coeffs: np.ndarray, brdf: Brdf, report: dict, *, env_he
         extra = {"sources": report["sources"], "sources_note": SOURCES_NOTE}
     written = [write_lighting_sh(out / "lighting_sh.json", total, source=source, **extra),
                write_image(out / "lighting.exr", env.astype(np.float32), dtype="float"),
-               write_brdf(out / "brdf.json", brdf), write_report(out / "report.json", report)]
+               write_brdf(out / "brdf.json", brdf) if materials is None else
+               write_materials_brdf(out / "brdf.json", materials[2], "material.ply"),
+               write_report(out / "report.json", report)]
     written += write_plots(out, env, report["bands"], report["residuals_per_view"])
-    mesh, vertex_rho = texture if texture is not None else (None, None)
+    mesh, vertex_rho = texture if texture is not None and materials is None else (None, None)
     if vertex_rho is not None:
         written.append(write_vertex_albedo(out / "albedo.ply", mesh, vertex_rho))
-    elif (out / "albedo.ply").exists():
-        (out / "albedo.ply").unlink()     # a stale texture from an earlier run would be read by relight
+    if materials is not None:
+        written.append(write_material_ply(out / "material.ply", materials[0], material_values(materials[1])))
+    for name, kept in (("albedo.ply", vertex_rho is not None), ("material.ply", materials is not None)):
+        if not kept and (out / name).exists():
+            (out / name).unlink()     # a stale map from an earlier run would be read by relight
     return written
+
+
+def material_values(found: MaterialMap) -> dict[str, np.ndarray]:
+    """material.ply's vertex properties of a material map: base colour, roughness, metallic,
+    material_id and standard deviations (the base colour's from the normal equations; roughness
+    and metallic are the material's, not measured per vertex: std inf)."""
+    values = {"base_r": found.base[:, 0], "base_g": found.base[:, 1], "base_b": found.base[:, 2],
+              "roughness": found.roughness, "metallic": found.metallic, "material_id": found.labels.astype(float)}
+    unknown = np.full(len(found.labels), np.inf)
+    return {**values, **{f"base_{c}_std": found.base_std[:, i] for i, c in enumerate("rgb")},
+            "roughness_std": unknown, "metallic_std": unknown}
 
 
 def per_view_table(sq_error: np.ndarray, sq_radiance: np.ndarray, weight: np.ndarray, count: np.ndarray,

@@ -58,6 +58,7 @@ from stages.fit.outputs import (
     write_fit,
 )
 from stages.fit.settings import DEFAULT_ALBEDO, Settings
+from stages.fit.materials import fit_materials, material_brdfs
 from stages.fit.texture import albedo_from_shading
 
 
@@ -121,6 +122,11 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
         report["albedo"]["uniform_base_search"] = first
     timings["material"] = time.perf_counter() - t0
     best, interval = chosen.best, chosen.interval
+    found = None
+    if settings.materials == "auto" and known_brdf is None and candidate.known is None:
+        report["materials"], found = fit_materials(mesh, data, replace(geo, pattern=None), obs, best, settings,
+                                                   candidate.opts)
+    materials = None if found is None else (mesh, found, material_brdfs(found))
     print(summary_line(brdf, None if one_fold else interval, len(report["sources"]), known_brdf is not None,
                         textured=vertex_rho is not None, detail_rows=report["lighting_detail"].get("rows")),
           file=sys.stderr)
@@ -128,7 +134,7 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
     report["timings"] = timings
     return write_fit(Path(work) / "fit", best.coeffs, brdf, report, env_height=settings.env_height,
                      source=f"sigrend fit ({mode}, physical)", sources=best.sources, angular=True,
-                     texture=(mesh, vertex_rho))
+                     texture=(mesh, vertex_rho), materials=materials)
 
 
 def sample_footprints(capture: Path, work: Path, mesh: RayMesh, data: dict, keys: list[str], n: int) -> tuple | None:

@@ -48,6 +48,11 @@ class Settings:
                                   "(textured only if it beats uniform on the held-out views by more than --parsimony)")
     albedo_smoothness: float = setting(0.001, "weight of the mesh-Laplacian smoothness term of the per-vertex albedo "
                                              "(relative to the mean data weight per vertex)")
+    materials: Literal["one", "auto"] = setting("one", "physical fit, material unknown: 'one' material over the surface, or "
+                                                "'auto' (experimental, slow on large meshes): candidate materials shaded under "
+                                                "the fitted lighting, each vertex taking the one that explains its samples "
+                                                "(fit/material.ply, brdf.json 'materials'), kept where the held-out views "
+                                                "prefer them to one material")
     forward: Literal["physical", "convex"] = setting("physical", "forward model of the fit: 'physical' (the renderer's: shadows, "
                                        "interreflection, principled GGX, directional sources; lambert and principled) "
                                        "or 'convex' (R&H closed forms; the only one for phong and microfacet)")

@@ -130,3 +130,33 @@ def test_linear_manifest_round_trip(tmp_path):
     (tmp_path / "linear" / "manifest.json").write_text('{"something": 1}')
     with pytest.raises(UserError, match="not a linearize manifest"):
         read_manifest(tmp_path)
+
+
+def test_material_map_round_trip(tmp_path):
+    """fit/material.ply's float vertex properties and brdf.json's "materials" come back as written
+    (float32 in the PLY); a map of another mesh reads as None; a brdf.json without materials is one
+    material."""
+    import trimesh
+
+    from pipeline.core.brdf import Brdf
+    from pipeline.io.brdf import read_brdf, read_materials, write_brdf, write_materials_brdf
+    from pipeline.io.mesh import read_material_ply, write_material_ply
+
+    mesh = trimesh.creation.icosphere(2)
+    n = len(mesh.vertices)
+    values = {name: np.linspace(0, 1, n) for name in ("base_r", "base_g", "base_b", "roughness", "metallic")}
+    values["material_id"] = (np.arange(n) % 2).astype(float)
+    values["base_r_std"] = np.full(n, np.inf)
+    write_material_ply(tmp_path / "material.ply", mesh, values)
+    back = read_material_ply(tmp_path / "material.ply", n)
+    for name, column in values.items():
+        assert np.array_equal(back[name], column.astype(np.float32))
+    assert read_material_ply(tmp_path / "material.ply", n + 1) is None
+    metal = Brdf("principled", base_color=[0.9, 0.6, 0.5], roughness=0.2, metallic=1.0)
+    glaze = Brdf("principled", base_color=[0.6, 0.3, 0.2], roughness=0.5)
+    write_materials_brdf(tmp_path / "brdf.json", [metal, glaze], "material.ply")
+    materials, name = read_materials(tmp_path / "brdf.json")
+    assert name == "material.ply" and materials == [metal, glaze]
+    assert read_brdf(tmp_path / "brdf.json") == metal          # one-material readers take the first
+    write_brdf(tmp_path / "one.json", glaze)
+    assert read_materials(tmp_path / "one.json") is None

@@ -389,3 +389,59 @@ def test_angular_phong_lobe_agrees_with_the_frequency_path_away_from_the_horizon
     # at the horizon for n.v > 0.6 (r at most 74 deg from n): measured 0.6 %
     assert m.sum() > 200
     assert rel < 0.01, rel
+
+
+def test_two_materials_each_pixel_is_its_faces_material(tmp_path, rng):
+    """A fit of two materials (brdf.json "materials" + fit/material.ply: a copper metal on the upper
+    half of the sphere, a dielectric below, a per-vertex base colour): the pixels whose hit face
+    belongs to a material agree with the render of that material alone over the whole sphere (same
+    base colours, same lighting) — 2 pixels away from the boundary, where the composite's contrast
+    sends pixels to the renderer's adaptive refinement.  The renderer seeds a lobe's samples by the
+    set of points it shades at once, so a material's pixels shaded apart from the other's carry
+    other Monte Carlo samples: their mean agrees within 1 % and each pixel within 5 % RMS (measured:
+    metal 0.25 % and 3.1 %, glaze 0.03 % and 0.9 %), while the other material's render (same base
+    colours) differs by more than 8 % (measured 11.6 % and 17.1 %)."""
+    from scipy import ndimage
+
+    from pipeline.core.camera import pixel_centers, pixel_rays
+    from pipeline.io.brdf import write_materials_brdf
+    from pipeline.io.mesh import read_mesh, write_material_ply, write_vertex_albedo
+    from pipeline.raycast import first_hits, ray_mesh
+
+    metal = Brdf("principled", base_color=[0.95, 0.64, 0.54], roughness=0.25, metallic=1.0)
+    glaze = Brdf("principled", base_color=[0.6, 0.3, 0.2], roughness=0.5)
+    capture, work = _scene(tmp_path, glaze, _lighting(rng))
+    mesh = read_mesh(capture / "mesh.ply")
+    label = (np.asarray(mesh.vertices)[:, 2] <= 0).astype(int)        # 0: metal above, 1: glaze below
+    base = np.where(label[:, None] == 0, [0.95, 0.64, 0.54], 0.4 + 0.2 * np.asarray(mesh.vertices) / RADIUS)
+    base = np.round(base * 255) / 255       # as albedo.ply stores it (8 bits), for the one-material renders
+    write_material_ply(work / "fit" / "material.ply", mesh, {
+        "base_r": base[:, 0], "base_g": base[:, 1], "base_b": base[:, 2], "roughness": np.where(label, 0.5, 0.25),
+        "metallic": 1.0 - label, "material_id": label.astype(float)})
+    write_materials_brdf(work / "fit" / "brdf.json", [metal, glaze], "material.ply")
+
+    def render(name: str) -> np.ndarray:
+        run_stage("relight", capture=capture, work=work, record=f"relight-{name}",
+                  settings=make_settings(relight.Settings, views="0001.exr", out_dir=str(tmp_path / name)))
+        return read_image(tmp_path / name / "0001.exr").reshape(-1, 4)
+
+    both = render("two")
+    write_vertex_albedo(work / "fit" / "albedo.ply", mesh, base)
+    alone = []
+    for k, material in enumerate((metal, glaze)):
+        write_brdf(work / "fit" / "brdf.json", material)       # one material, its base colours from albedo.ply
+        alone.append(render(str(k)))
+    view = relight.resolve_views(capture=capture, work=work, settings=make_settings(relight.Settings, views="0001.exr"),
+                                 mesh=mesh)[0]
+    origins, dirs = pixel_rays(view.camera, view.R, view.t, pixel_centers(view.camera.width, view.camera.height))
+    hits = first_hits(mesh, ray_mesh(mesh).rays, origins, dirs)
+    pixel_material = np.full(len(both), -1)
+    pixel_material[hits.ray] = relight.face_materials(np.asarray(mesh.faces), label)[hits.face]
+    for k in (0, 1):
+        own = (pixel_material == k).reshape(view.camera.height, view.camera.width)
+        rows = (both[:, 3] == 1.0) & ndimage.binary_erosion(own, iterations=2).ravel()
+        got, same, other = both[rows, :3], alone[k][rows, :3], alone[1 - k][rows, :3]
+        assert rows.sum() > 50
+        assert abs(got.mean() / same.mean() - 1) < 0.01
+        assert np.sqrt(np.mean((got - same) ** 2)) / np.sqrt(np.mean(same ** 2)) < 0.05
+        assert np.sqrt(np.mean((got - other) ** 2)) / np.sqrt(np.mean(same ** 2)) > 0.08

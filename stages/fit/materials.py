@@ -1,0 +1,83 @@
+"""The fit's materials that vary over the surface (--materials auto): after the uniform material
+and its lighting are chosen, candidate materials (the chosen one, a rougher and a sharper
+dielectric, two metals, Lambert) are shaded under that lighting, each vertex takes the one that
+explains its samples best (pipeline.core.svbrdf) and the map is kept where the held-out views
+prefer it to one material with a per-vertex base colour (the parsimony rule)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from pipeline.core import material_fit, prt, svbrdf, texture
+from pipeline.core.candidate import Observations
+from pipeline.core.brdf import Brdf
+from pipeline.core.material import Principled, brdf_from_material
+from pipeline.core.material_search import SearchOptions
+from pipeline.core.selection import parsimonious_choice
+from pipeline.core.sources import Sources
+from stages.fit.settings import Settings
+
+DIELECTRIC_ROUGHNESS = (0.25, 0.5)   # the other dielectrics tried beside the chosen material
+METAL_ROUGHNESS = (0.15, 0.35)       # the metals tried (F0 = base colour)
+
+
+def candidate_materials(chosen: Principled | None, ior: float) -> list[Principled | None]:
+    """The chosen material first, then the other candidates (module docstring), without repeats."""
+    cands = [chosen, None] + [Principled(roughness=r, ior=ior) for r in DIELECTRIC_ROUGHNESS] + \
+        [Principled(roughness=r, metallic=1.0, ior=ior) for r in METAL_ROUGHNESS]
+    return list(dict.fromkeys(cands))
+
+
+def candidate_shading(geo: prt.Geometry, best: material_fit.MaterialFit, material: Principled | None,
+                      opts: SearchOptions) -> svbrdf.CandidateShading:
+    """``material``'s shading at the samples under ``best``'s lighting (SH to its order and its
+    sources; the lighting's detail part belongs to the chosen lobe and is left out)."""
+    order = int(np.sqrt(best.coeffs.shape[0])) - 1
+    spec = None if material is None else prt.specular_transfer(geo, material, opts.lobe_samples, opts.seed, order=order)
+    sources = None if best.sources is None else Sources(prt.source_transfer(geo, material, best.sources.directions),
+                                                        best.sources.power)
+    fit = material_fit.MaterialFit(material, best.base, best.coeffs, None, [], 0.0, 0.0, sources)
+    shade, specular = material_fit.shading_parts(geo, fit, spec)
+    return svbrdf.CandidateShading(material, shade, specular)
+
+
+def fit_materials(mesh, data: dict, geo: prt.Geometry, obs: Observations, best: material_fit.MaterialFit,
+                  settings: Settings, opts: SearchOptions) -> tuple[dict, svbrdf.MaterialMap | None]:
+    """(report.json's "materials" entry, the material map or None when one material is kept)."""
+    t0 = time.perf_counter()
+    nv = len(mesh.vertices)
+    interp = texture.interpolation_matrix(mesh.faces, data["face"], data["bary"].astype(float), nv)
+    lap = texture.graph_laplacian(mesh.faces, nv)
+    shadings = [candidate_shading(geo, best, m, opts) for m in candidate_materials(best.material, settings.ior)]
+    smooth = settings.albedo_smoothness
+    one = svbrdf.held_out_rmse(interp, lap, shadings[:1], obs.radiance, obs.weight, obs.fold, smooth)
+    many = svbrdf.held_out_rmse(interp, lap, shadings, obs.radiance, obs.weight, obs.fold, smooth)
+    found = svbrdf.material_map(interp, lap, shadings, obs.radiance, obs.weight, smooth)
+    k = len(found.materials)
+    rms = float(np.sqrt((obs.weight[:, None] * obs.radiance ** 2).sum() / (3 * obs.weight.sum())))
+    table = [{"name": "one material, base colour per vertex", "params": 3 * nv + 1, "validation_rmse": one},
+             {"name": f"{k} materials, base colour per vertex", "params": 3 * nv + 2 * k + 1, "validation_rmse": many}]
+    pick = parsimonious_choice(table, settings.parsimony, noise=settings.noise_floor * rms) if k > 1 else 0
+    entry = {"setting": settings.materials, "candidates": table, "choice": table[pick]["name"],
+             "tried": [_describe(s.material) for s in shadings],
+             "found": [{**_describe(m), "vertex_share": float(np.mean(found.labels == i))}
+                       for i, m in enumerate(found.materials)],
+             "seconds": time.perf_counter() - t0}
+    return entry, (found if pick == 1 else None)
+
+
+def material_brdfs(found: svbrdf.MaterialMap) -> list[Brdf]:
+    """brdf.json's materials of a map, each with the mean base colour of its vertices."""
+    out = []
+    for i, material in enumerate(found.materials):
+        mean = np.clip(found.base[found.labels == i].mean(axis=0), 0.0, 1.0)
+        out.append(Brdf("lambert", albedo=mean) if material is None else brdf_from_material(material, mean))
+    return out
+
+
+def _describe(material: Principled | None) -> dict:
+    if material is None:
+        return {"model": "lambert"}
+    return {"model": "principled", "roughness": material.roughness, "metallic": material.metallic, "ior": material.ior}

@@ -1,0 +1,70 @@
+"""pipeline.core.svbrdf: materials that vary over the surface, on samples made by the model itself
+(two candidate shadings, each true on one half of a sphere, a smooth base colour), where the answer
+is known exactly: the halves, the base colour, and the held-out choice of two materials over one."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from pipeline.core import svbrdf, texture
+from pipeline.core.material import Principled
+
+
+def two_material_scene(rng, n: int = 6000, noise: float = 0.0):
+    """An icosphere (642 vertices), samples at random points of random faces; candidate 0 (a
+    dielectric: shading Q0 and a white specular S0) is true where z > 0, candidate 1 (a metal:
+    shading Q1, no separate specular) where z <= 0; the base colour varies smoothly with x."""
+    mesh = trimesh.creation.icosphere(3)
+    faces = np.asarray(mesh.faces)
+    face = rng.integers(0, len(faces), n)
+    bary = rng.dirichlet(np.ones(3), n)
+    interp = texture.interpolation_matrix(faces, face, bary, len(mesh.vertices))
+    vz = np.asarray(mesh.vertices)[:, 2]
+    truth = (vz <= 0).astype(np.int64)
+    base = np.clip(0.5 + 0.3 * np.asarray(mesh.vertices)[:, :1] * np.array([[1.0, -0.5, 0.2]]), 0.05, 0.95)
+    shades = [rng.uniform(0.5, 1.5, (n, 3)), rng.uniform(0.2, 3.0, (n, 3)) ** 2]
+    speculars = [np.repeat(rng.uniform(0.0, 0.4, (n, 1)) ** 3, 3, axis=1), np.zeros((n, 3))]
+    cands = [svbrdf.CandidateShading(Principled(roughness=0.5), shades[0], speculars[0]),
+             svbrdf.CandidateShading(Principled(roughness=0.2, metallic=1.0), shades[1], speculars[1])]
+    per_sample = svbrdf.sample_labels(interp, truth)
+    rho = interp @ base
+    radiance = np.where(per_sample[:, None] == 0, rho * shades[0] + speculars[0], rho * shades[1] + speculars[1])
+    radiance = radiance + noise * rng.standard_normal(radiance.shape)
+    return mesh, interp, cands, radiance, truth, base
+
+
+def test_two_materials_found_with_their_regions_and_base_colour(rng):
+    """Noiseless samples of two materials: every vertex more than an edge (~0.19) from the boundary
+    gets its true material, the metal's IoU is >= 0.9 (the issue's target; vertices whose faces
+    straddle the boundary may go either way: measured 0.94), and the base colour of observed
+    vertices is within 0.02 (median; the Laplacian smoothing's bias on a smooth colour)."""
+    mesh, interp, cands, radiance, truth, base = two_material_scene(rng)
+    lap = texture.graph_laplacian(mesh.faces, len(mesh.vertices))
+    found = svbrdf.material_map(interp, lap, cands, radiance, np.ones(len(radiance)), smoothness=1e-3)
+    assert len(found.materials) == 2 and found.materials[1].metallic == 1.0
+    got = found.chosen[found.labels]
+    metal, true_metal = got == 1, truth == 1
+    assert (metal & true_metal).sum() / (metal | true_metal).sum() >= 0.9
+    away = np.abs(np.asarray(mesh.vertices)[:, 2]) > 0.25
+    assert np.array_equal(got[away], truth[away])
+    seen = found.observed
+    assert np.median(np.abs(found.base[seen] - base[seen])) < 0.02
+    assert np.all(np.isfinite(found.base_std[seen])) and np.all(np.isinf(found.base_std[~seen]))
+
+
+def test_held_out_views_prefer_two_materials_only_when_there_are_two(rng):
+    """With two materials in the data, the held-out error of the two-candidate map is far below the
+    one-candidate map's; with one material (candidate 0 true everywhere) it is no better than one
+    candidate alone (within 5 %: extra candidates cannot win what they do not explain)."""
+    mesh, interp, cands, radiance, truth, base = two_material_scene(rng, noise=0.01)
+    lap = texture.graph_laplacian(mesh.faces, len(mesh.vertices))
+    w = np.ones(len(radiance))
+    fold = np.arange(len(radiance)) % 4
+    one = svbrdf.held_out_rmse(interp, lap, cands[:1], radiance, w, fold, 1e-3)
+    two = svbrdf.held_out_rmse(interp, lap, cands, radiance, w, fold, 1e-3)
+    assert two < 0.5 * one
+    uniform = (interp @ base) * cands[0].shade + cands[0].specular + 0.01 * rng.standard_normal(radiance.shape)
+    one_u = svbrdf.held_out_rmse(interp, lap, cands[:1], uniform, w, fold, 1e-3)
+    two_u = svbrdf.held_out_rmse(interp, lap, cands, uniform, w, fold, 1e-3)
+    assert two_u < 1.05 * one_u
