@@ -30,6 +30,7 @@ from pipeline.io.camera_json import write_camera_json
 from pipeline.io.capture_toml import read_board
 from pipeline.io.images import read_image
 from pipeline.io.photos import photo_files
+from pipeline.logs import progress
 from pipeline.settings import setting
 
 HELP = "Camera intrinsics from >= 10 photos of a ChArUco board or a chessboard (writes a COLMAP-style camera.json)."
@@ -142,13 +143,11 @@ def outputs(*, images: Path | list[Path], output: Path, settings: Settings) -> l
 def run(*, images: Path | list[Path], output: Path, settings: Settings) -> list[Path]:
     """Detect the board in every photo (a folder or files), calibrate, write camera.json with the RMS,
     per-image errors, 1σ of the parameters and any warnings about how well the photos determine it."""
-    from tqdm import tqdm
-
     spec = read_board(settings.board)
     find_corners = corner_detector(spec)
     obj_points, img_points, names, skipped, seen = [], [], [], {}, {}
     size = None
-    for path in tqdm(photo_files(images, RAW_EXTENSIONS | DECODED_EXTENSIONS), desc="board", unit="img", disable=None):
+    for path in progress(photo_files(images, RAW_EXTENSIONS | DECODED_EXTENSIONS), desc="board", unit="img"):
         gray = read_gray(path)
         if size is None:
             size = (gray.shape[1], gray.shape[0])

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from pipeline.errors import UserError
 from pipeline import STAGES
+from pipeline.logs import progress
 from pipeline.workdir import make_folder, write_text
 
 HELP = "Run many captures (sigrend run each) as tasks on Dask distributed: a local cluster or an existing scheduler."
@@ -143,8 +144,6 @@ def write_tables(rows: list[dict], out: Path) -> tuple[Path, Path]:
 
 
 def main(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     if args.workers < 1 or args.threads_per_worker < 1 or args.retries < 0 or args.holdout < 0:
         raise UserError("--workers and --threads-per-worker must be >= 1, --retries and --holdout >= 0")
     for env in args.relight:
@@ -172,8 +171,8 @@ def main(args: argparse.Namespace) -> int:
             rows: list[dict | None] = [None] * len(futures)
             from dask.distributed import as_completed
 
-            for future in tqdm(as_completed(futures), total=len(futures), desc="sigrend batch", unit="capture",
-                               file=sys.stderr):
+            for future in progress(as_completed(futures), total=len(futures), desc="sigrend batch",
+                                   unit="capture"):
                 i = index[future.key]
                 try:
                     rows[i] = future.result()

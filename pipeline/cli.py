@@ -21,6 +21,7 @@ import warnings
 from pipeline import STAGES
 from pipeline.errors import UserError
 from pipeline.logs import configure as configure_logging
+from pipeline.settings import HelpFormatter
 
 STAGE_COMMANDS = (*STAGES, "export")  # `sigrend NAME CAPTURE -w WORK`: the run's stages, then export
 
@@ -46,7 +47,12 @@ def _command_module(name: str):
 
 class OneLineParser(argparse.ArgumentParser):
     """argparse, with a bad command line as the house's one line (exit 2): the error and where the
-    options are listed, without the usage block above it."""
+    options are listed, without the usage block above it.  Every parser of the command line is one
+    (subcommands' parsers take their parent's class), and every ``--help`` is written by
+    pipeline.settings.HelpFormatter: each default said once, flags worded as flags."""
+
+    def __init__(self, *args, formatter_class=HelpFormatter, **kwargs):
+        super().__init__(*args, formatter_class=formatter_class, **kwargs)
 
     def error(self, message: str):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
@@ -60,7 +66,9 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     from pipeline import __version__
 
     parser.add_argument("--version", action="version", version=f"sigrend {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true", help="say what is being done (each stage's settings)")
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="say what is being done (each stage's settings at its start); `sigrend -v poses` "
+                             "also shows COLMAP's own log on the terminal instead of WORK/colmap/colmap.log")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in (*STAGE_COMMANDS, *COMMANDS):
         if selected is not None and name != selected:
@@ -72,8 +80,7 @@ def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
             if exc.name and exc.name.startswith(("pipeline", "stages", "calib")):
                 continue  # not built yet
             raise
-        p = sub.add_parser(name, help=mod.HELP, description=mod.HELP,
-                           formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
         mod.add_arguments(p)
         p.set_defaults(_module=mod)
     return parser
@@ -111,11 +118,12 @@ def main(argv: list[str] | None = None) -> int:
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _raise_terminated) if in_main_thread else None
     try:
-        args = build_parser(selected).parse_args(argv)
-        configure_logging(args.verbose)
-        # warnings are held back until the command succeeds: an error stays the one line of stderr
-        # (in the main thread only: catch_warnings swaps process-wide state)
+        # warnings (a deprecated option's among them) are held back until the command succeeds: an
+        # error stays the one line of stderr (in the main thread only: catch_warnings swaps
+        # process-wide state)
         with warnings.catch_warnings(record=True) if in_main_thread else contextlib.nullcontext([]) as deferred:
+            args = build_parser(selected).parse_args(argv)
+            configure_logging(args.verbose)
             code = args._module.main(args)
         for w in deferred:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)

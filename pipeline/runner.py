@@ -19,7 +19,6 @@ import dataclasses
 import importlib
 import inspect
 import json
-import sys
 import time
 import warnings
 from dataclasses import dataclass
@@ -29,7 +28,7 @@ from types import SimpleNamespace
 from pipeline import STAGES, __version__
 from pipeline.errors import UserError
 from pipeline.io.run_summary import HOLDOUT_FIELD, StageResult, samples_holdout, stage_table, summary_lines
-from pipeline.logs import LOGGER
+from pipeline.logs import LOGGER, progress as progress_bar
 from pipeline.settings import add_settings_arguments, make_settings, settings_dict, settings_from_args
 from pipeline.workdir import (changed_settings, default_work, fingerprints, is_fresh, record_settings,
                               remove_stale_temporaries, settings_path, transaction, work_lock, write_json)
@@ -161,14 +160,12 @@ def run_pipeline(plan: RunPlan, progress: bool = True) -> list[StageResult]:
     relight renders the held-out views under the fitted lighting with --compare, then once per
     ``--relight`` environment from the capture's views.
     """
-    from tqdm import tqdm
-
     names = _stage_range(plan.first, plan.last)
     results: list[StageResult] = []
     common = dict(capture=plan.capture, work=plan.work)
-    # disable=None: no bar when stderr is not a terminal (a log file); on an error the bar is erased
-    # so the error stays the one line of stderr
-    bar = tqdm(names, desc="sigrend run", unit="stage", file=sys.stderr, disable=None if progress else True)
+    # no bar when stderr is not a terminal (a log file: pipeline.logs.progress); on an error the bar
+    # is erased so the error stays the one line of stderr
+    bar = progress_bar(names, desc="sigrend run", unit="stage", enabled=progress)
     try:
         for name in bar:
             bar.set_postfix_str(name)

@@ -23,7 +23,6 @@ angular-domain renderer (pipeline.core.render).
 
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -32,9 +31,9 @@ from typing import Literal
 import numpy as np
 
 from pipeline.errors import UserError
+from pipeline.logs import progress as progress_bar
 from pipeline.settings import setting
 
-FORMATS = ("exr", "tiff", "jpeg", "dng")
 BUILTIN_MESHES = ("sphere", "icosphere")
 BOARD_DICTIONARY = "DICT_5X5_100"
 BOARD_SQUARES = (8, 6)
@@ -336,8 +335,6 @@ def _auto_exposure_time(radiance: np.ndarray, mask: np.ndarray, fnumber: float, 
 
 def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool = True) -> list[Path]:
     """Render and write a capture (module docstring); returns the written paths."""
-    from tqdm import tqdm
-
     from pipeline.core.render import InsideMeshError, Renderer
     from pipeline.io.brdf import parse_brdf_spec
     from pipeline.io.images import write_image
@@ -363,8 +360,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     brackets: dict[str, list[str]] = {}
     t_base = None
     started = time.perf_counter()
-    bar = tqdm(list(enumerate(view_poses)), desc="synth views", unit="view", file=sys.stderr,
-               disable=None if progress else True)  # None: no bar when stderr is not a terminal
+    bar = progress_bar(list(enumerate(view_poses)), desc="synth views", unit="view", enabled=progress)
     for i, (R, t) in bar:
         try:
             result = renderer.render(camera, R, t, highlight_supersample=settings.supersample)

@@ -47,7 +47,8 @@ WRITERS = {**{suffix: gltf.write_gltf for suffix in gltf.FORMATS}, **{suffix: us
 
 @dataclass(frozen=True)
 class Settings:
-    out: str = setting("", "the asset file, .glb or .gltf; empty = WORK/export/asset.glb")
+    out: str = setting("", "the asset file: .glb or .gltf (glTF 2.0), .usda, .usdc or .usd (USD); "
+                           "empty = WORK/export/asset.glb")
     env_height: int = setting(512, "height of the exported lighting map (width = 2 x height)")
 
     def validate(self) -> None:

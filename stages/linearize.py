@@ -46,6 +46,7 @@ from pipeline.io.images import read_image, write_image
 from pipeline.io.linear_manifest import linear_dir, manifest_path, write_manifest
 from pipeline.io.photos import capture_photos
 from pipeline.io.response_json import inverse_table
+from pipeline.logs import progress
 from pipeline.settings import setting, settings_dict
 from pipeline.workdir import collected_writes, commit_writes, fingerprints
 
@@ -427,8 +428,6 @@ def exit_with(stage_pid: int, every_s: float = 0.5) -> None:
 def run_jobs(jobs: list[dict], workers: int, force: bool = False) -> dict[str, dict]:
     """Run ``linearize_job`` for every job not already fresh (every job with ``force``); serial or
     in a process pool, with a progress bar."""
-    from tqdm import tqdm
-
     entries: dict[str, dict] = {}
     todo = []
     for job in jobs:
@@ -440,7 +439,7 @@ def run_jobs(jobs: list[dict], workers: int, force: bool = False) -> dict[str, d
     workers = workers or os.cpu_count() or 1
     if multiprocessing.current_process().daemon:
         workers = 1   # a daemonic process (a Dask worker of `sigrend batch`) may not start children
-    bar = tqdm(total=len(todo), desc="linearize", unit="img", disable=None)
+    bar = progress(total=len(todo), desc="linearize", unit="img")
     try:
         if workers == 1 or len(todo) <= 1:
             for job in todo:

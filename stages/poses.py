@@ -46,6 +46,7 @@ from pipeline.io.photos import capture_photos
 from pipeline.io.mesh import MESH_NAMES, mesh_path, read_mesh
 from pipeline.io.pose_imports import is_colmap_model, read_colmap_model, read_transforms_json, transforms_files
 from pipeline.io.poses import ImagePose, Poses, read_poses, write_poses
+from pipeline.logs import progress
 from pipeline.settings import setting
 from pipeline.workdir import atomic_path, write_json
 from stages import poses_mesh
@@ -95,7 +96,8 @@ class Settings:
     mapper_threads: int = setting(1, "threads of COLMAP's incremental mapping: 1 makes runs reproducible (with more, "
                                      "the second initial pair and so the registered set can change from run to run); "
                                      "0 = all cores, faster on large captures")
-    verbose: bool = setting(False, "show COLMAP's log on the terminal instead of WORK/colmap/colmap.log")
+    verbose: bool = setting(False, "show COLMAP's log on the terminal instead of WORK/colmap/colmap.log",
+                            deprecated="give the global -v instead, `sigrend -v poses CAPTURE`, which sets it")
 
     def validate(self) -> None:
         if self.max_image_size < 64 and self.max_image_size != -1:
@@ -726,7 +728,6 @@ def _colmap_copies(capture: Path, work: Path, keys: list[str], fixed: Camera | N
     same pixels when ``spec`` is given.  Returns (colmap folder, key -> camera group, COLMAP name -> key,
     key -> detection, key -> (width, height))."""
     import cv2
-    from tqdm import tqdm
 
     colmap_dir = work / "colmap"
     images_dir = colmap_dir / "images"
@@ -740,7 +741,7 @@ def _colmap_copies(capture: Path, work: Path, keys: list[str], fixed: Camera | N
     groups = {k: group_names[g] for k, g in group_of_key.items()}
     name_to_key, detections, sizes = {}, {}, {}
     desc = "poses: 8-bit copies" + (" + board" if spec is not None else "")
-    for key in tqdm(keys, desc=desc, unit="img", file=sys.stderr, leave=False):
+    for key in progress(keys, desc=desc, unit="img", leave=False):
         rgb = load_8bit_for_colmap(capture, work, key)
         sizes[key] = (rgb.shape[1], rgb.shape[0])
         if fixed is not None and sizes[key] != (fixed.width, fixed.height):

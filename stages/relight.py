@@ -962,7 +962,7 @@ def render_views(views: list[View], mesh, rays, lighting_of: dict, albedo: np.nd
     """Each view rendered under ``lighting_of[view.key]`` into folder/<stem>.exr and its sRGB
     preview <stem>.png, on ``settings.threads`` threads; with ``photos``, each view's photo and
     mask kept for the comparison -> (written paths, Shot)."""
-    from tqdm import tqdm
+    from pipeline.logs import progress
 
     written: list[Path] = []
     shot = Shot()
@@ -973,7 +973,7 @@ def render_views(views: list[View], mesh, rays, lighting_of: dict, albedo: np.nd
     with ExitStack() as stack:      # threads shade the chunks of each view; BLAS keeps to one per thread
         pool = stack.enter_context(ThreadPoolExecutor(threads)) if threads > 1 else None
         stack.enter_context(threadpool_limits(1))
-        for view in tqdm(views, desc="relight", unit="view", leave=False):
+        for view in progress(views, desc="relight", unit="view", leave=False):
             rgba = render_view(view, mesh, rays, lighting_of[view.key], albedo, vertex_colors, settings.supersample,
                                interior=settings.interior_supersample, pool=pool)
             stem = view_stem(view.key)

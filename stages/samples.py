@@ -46,6 +46,7 @@ from pipeline.io.linear_manifest import LINEAR_SUFFIXES, image_source, linear_ma
 from pipeline.io.mesh import check_mesh_quality, mesh_path, read_mesh
 from pipeline.io.poses import Poses, poses_path, read_poses
 from pipeline.io.samples import SAMPLE_FIELDS, SamplesWriter
+from pipeline.logs import progress
 from pipeline.raycast import first_hits, occluded
 from pipeline.settings import setting, settings_dict
 from pipeline.workdir import atomic_path, write_json
@@ -152,8 +153,6 @@ def vertex_visibility(mesh, rays: int, chunk: int = 262144) -> np.ndarray:
     """(V,) cosine-weighted unblocked fraction of each vertex's hemisphere (1.0 for convex meshes)."""
     if mesh.is_watertight and mesh.is_convex:
         return np.ones(len(mesh.vertices), np.float32)
-    from tqdm import tqdm
-
     local = cosine_hemisphere_directions(rays)
     normals = np.asarray(mesh.vertex_normals, float)
     # tangent frames: t1 ⟂ n from the axis least aligned with n
@@ -166,7 +165,7 @@ def vertex_visibility(mesh, rays: int, chunk: int = 262144) -> np.ndarray:
     origins = lifted(mesh.vertices, normals, float(np.linalg.norm(mesh.extents)), POINT_LIFT)
     visible = np.zeros(len(normals))
     per = max(1, chunk // rays)
-    for start in tqdm(range(0, len(normals), per), desc="visibility", unit="chunk", leave=False, disable=None):
+    for start in progress(range(0, len(normals), per), desc="visibility", unit="chunk", leave=False):
         sl = slice(start, start + per)
         dirs = (local[None, :, 0:1] * t1[sl, None] + local[None, :, 1:2] * t2[sl, None]
                 + local[None, :, 2:3] * normals[sl, None]).reshape(-1, 3)
@@ -454,13 +453,11 @@ def sample_view(writer: SamplesWriter, tally: Tally, mesh, poses: Poses, key: st
                 weight: np.ndarray, visibility: np.ndarray, settings: Settings, reservoir: "_Reservoir | None") -> dict:
     """One view's samples (sample_image) written and counted (through ``reservoir`` when
     --max-samples caps them); -> its samples_summary.json entry (pixels, kept, drops)."""
-    from tqdm import tqdm
-
     pose, camera = poses.images[key], poses.camera_of(key)
     drops = dict.fromkeys(DROP_REASONS, 0)
     kept = 0
-    with tqdm(total=len(range(0, camera.height, settings.stride)), desc=f"samples {key}", unit="row", leave=False,
-              disable=None) as bar:
+    with progress(total=len(range(0, camera.height, settings.stride)), desc=f"samples {key}", unit="row",
+                  leave=False) as bar:
         for arrays, chunk_drops in sample_image(mesh, camera, pose.R, pose.t, rgb, weight, image_id, settings,
                                                 visibility, progress=bar):
             for reason, count in chunk_drops.items():

@@ -11,7 +11,6 @@ which imports it from this module.  Full run: 24 photos of 1225x817 and 3000x200
 from __future__ import annotations
 
 import json
-import sys
 import tempfile
 from pathlib import Path
 
@@ -24,6 +23,7 @@ from pipeline.commands.bench import BenchRow
 from pipeline.core.camera import Camera, camera_center, look_at, pixel_centers, pixel_rays
 from pipeline.io.capture_toml import write_capture_toml
 from pipeline.io.poses import ImagePose, Poses, write_poses
+from pipeline.logs import progress as progress_bar
 
 BOARD = dict(dictionary="DICT_5X5_100", squares=(7, 5), square_length=0.03, marker_length=0.022)
 # board lying on the floor, its printed side up (+Z object), centred on the origin:
@@ -99,8 +99,6 @@ def make_textured_capture(folder: Path, *, n_views: int = 14, size=(400, 300), f
     Cameras on a ring at 0.55 m (elevations 38°/50° alternating) looking at the scene centre;
     ``textured=False`` leaves only the board.  Returns the ground-truth poses.
     """
-    from tqdm import tqdm
-
     rng = np.random.default_rng(seed)
     quads = scene_quads(rng, textured, texture_scale)
     w, h = size
@@ -112,7 +110,7 @@ def make_textured_capture(folder: Path, *, n_views: int = 14, size=(400, 300), f
         el = np.deg2rad(np.where(np.arange(n_views) % 2, 50.0, 38.0))
         views = [(np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)]) * 0.55,
                   np.array([0.02, 0.02, 0.03])) for a, e in zip(az, el)]
-    for i, (center, target) in enumerate(tqdm(views, desc="render", disable=not progress, file=sys.stderr)):
+    for i, (center, target) in enumerate(progress_bar(views, desc="render", enabled=progress)):
         R, t = look_at(center, target)
         img = render(camera, R, t, quads, supersample)
         img = np.clip(img + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)

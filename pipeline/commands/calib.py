@@ -21,8 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="calib_command", metavar="WHAT", required=True)
     for name, module_name in SUBCOMMANDS.items():
         module = importlib.import_module(module_name)
-        p = sub.add_parser(name, help=module.HELP, description=module.HELP,
-                           formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        p = sub.add_parser(name, help=module.HELP, description=module.HELP)
         p.add_argument("images", type=Path, nargs="+", help=module.IMAGES_HELP)
         p.add_argument("-o", "--output", type=Path, default=Path(module.DEFAULT_OUTPUT), help="output file")
         add_settings_arguments(p, module.Settings)

@@ -24,24 +24,21 @@ MAX_HEIGHT = 16384
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="env_command", metavar="ACTION", required=True)
-    fmt = argparse.ArgumentDefaultsHelpFormatter
 
-    p = sub.add_parser("project", formatter_class=fmt,
-                       help="project an equirect environment map (EXR/HDR, width = 2*height) into SH")
+    p = sub.add_parser("project", help="project an equirect environment map (EXR/HDR, width = 2*height) into SH")
     p.add_argument("envmap", type=Path, help="equirectangular map, linear RGB, row 0 = zenith (+Z)")
     p.add_argument("--order", default="8", help=f"SH order L (0..{MAX_ORDER}, at most height/2)")
     p.add_argument("-o", "--output", type=Path, default=Path("lighting_sh.json"),
                    help="lighting_sh.json to write ((L+1)^2 rows of RGB)")
 
-    r = sub.add_parser("render", formatter_class=fmt, help="render SH lighting as an equirect EXR map")
+    r = sub.add_parser("render", help="render SH lighting as an equirect EXR map")
     r.add_argument("lighting", type=Path, help="lighting_sh.json")
     r.add_argument("--height", default="256", help="height H of the output map (width 2H)")
     r.add_argument("--keep-negative", action="store_true",
                    help="keep the negative radiance of truncated SH (ringing) instead of clamping it to 0")
     r.add_argument("-o", "--output", type=Path, default=Path("lighting.exr"), help="EXR file to write")
 
-    i = sub.add_parser("irradiance", formatter_class=fmt,
-                       help="irradiance environment map: each pixel = E(n) for a normal pointing that way")
+    i = sub.add_parser("irradiance", help="irradiance environment map: each pixel = E(n) for a normal pointing that way")
     i.add_argument("envmap", type=Path, help="equirectangular map, linear RGB, row 0 = zenith (+Z)")
     i.add_argument("--order", default="2",
                    help="SH order of the lighting; 2 = R&H's 9-term formula (99%% of the clamped-cosine energy)")

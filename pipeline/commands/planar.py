@@ -24,8 +24,7 @@ LABEL_COLORS = {pl.WELL: "tab:green", pl.ILL_CONDITIONED: "tab:orange", pl.ILL_P
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="planar_command", metavar="ACTION", required=True)
-    fig = sub.add_parser("figures", help="write the seed paper's plots as PNG files",
-                         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    fig = sub.add_parser("figures", help="write the seed paper's plots as PNG files")
     fig.add_argument("-o", "--output", required=True, type=Path, help="folder for the PNG files")
     fig.add_argument("--noise", type=float, default=1e-3,
                      help="noise std on each light-field coefficient, relative to the largest one")

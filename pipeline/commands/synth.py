@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import UserError
+from pipeline.settings import choices_of
 
 HELP = "Render a synthetic capture (images, mesh, poses, capture.toml) with its ground truth in gt/."
 
@@ -39,7 +40,7 @@ def _pair(text: str) -> tuple[float, float]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from pipeline.synth import FORMATS, SynthSettings
+    from pipeline.synth import SynthSettings
 
     d = SynthSettings()
     parser.add_argument("-o", "--output", type=Path, required=True, help="capture folder to write")
@@ -48,7 +49,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--brdf", default=d.brdf, help=_help("brdf"))
     parser.add_argument("--views", type=int, default=d.views, help=_help("views"))
     parser.add_argument("--size", type=_size, default=d.size, metavar="WxH", help=_help("size"))
-    parser.add_argument("--format", choices=FORMATS, default=d.format, help=_help("format"))
+    parser.add_argument("--format", choices=choices_of(SynthSettings, "format"), default=d.format,
+                        help=_help("format"))
     parser.add_argument("--board", action="store_true", help=_help("board"))
     parser.add_argument("--table", action="store_true", help=_help("table"))
     parser.add_argument("--brackets", type=int, default=d.brackets, help=_help("brackets"))
@@ -58,11 +60,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-poses", dest="poses", action="store_false", help="leave poses.json out of the "
                         "capture (it is still written to gt/poses.json)")
     parser.add_argument("--mesh-size", type=float, default=d.mesh_size, help=_help("mesh_size"))
-    parser.add_argument("--mesh-up", choices=("y", "z"), default=d.mesh_up, help=_help("mesh_up"))
-    parser.add_argument("--layout", choices=("sphere", "ring"), default=d.layout, help=_help("layout"))
+    parser.add_argument("--mesh-up", choices=choices_of(SynthSettings, "mesh_up"), default=d.mesh_up,
+                        help=_help("mesh_up"))
+    parser.add_argument("--layout", choices=choices_of(SynthSettings, "layout"), default=d.layout,
+                        help=_help("layout"))
     parser.add_argument("--elevation", type=_pair, default=d.elevation, metavar="MIN,MAX", help=_help("elevation"))
     parser.add_argument("--distance", type=float, default=d.distance, help=_help("distance"))
-    parser.add_argument("--no-shadows", dest="shadows", action="store_false", help="no shadow rays")
+    parser.add_argument("--no-shadows", dest="shadows", action="store_false",
+                        help="render without shadow rays (no self-shadowing; the board does not occlude "
+                             "the lower hemisphere)")
     parser.add_argument("--texture", default=d.texture, help=_help("texture"))
     parser.add_argument("--cell-height", type=int, default=d.cell_height, help=_help("cell_height"))
     parser.add_argument("--supersample", type=int, default=d.supersample, help=_help("supersample"))

@@ -19,8 +19,11 @@ DEFAULT_ALBEDO = 0.5        # the scale convention of a Lambertian fit under unk
 @dataclass(frozen=True)
 class Settings:
     lighting: str = setting("unknown", "'unknown', or the known lighting: an equirect EXR/HDR (DESIGN.md) or a lighting_sh.json")
-    brdf: str = setting("auto", "'auto' (choose among lambert/phong/microfacet), a model name (parameters fitted), "
-                                "or a known BRDF: brdf.json path or inline spec 'model:key=v,...'")
+    brdf: str = setting("auto", "'auto': the material chosen by the held-out views, with a mesh (--forward physical) "
+                                "among lambert and principled (a dielectric, or a metal where it does better), "
+                                "without one (or --forward convex) among lambert, phong and microfacet; a model "
+                                "name (lambert, principled, phong, microfacet), its parameters fitted; or a known "
+                                "BRDF: brdf.json path or inline spec 'model:key=v,...'")
     order: str = setting("auto", "SH order of the fitted lighting: 'auto' (leave-views-out validation) or an integer")
     max_order: int = setting(16, "largest SH order tried by --order auto for the final lighting, with the prior "
                                  "scales of --band-prior-choices (sharp lights seen through a glossy lobe carry "
