@@ -134,7 +134,8 @@ def material_map(interp: sp.csr_matrix, laplacian: sp.csr_matrix, shadings: list
     """The materials and per-vertex base colour (module docstring) from the candidates' shadings."""
     errors, vertex_weight, bases = candidate_fits(interp, laplacian, shadings, radiance, weight, smoothness)
     labels = assign(errors, vertex_weight, laplacian)
-    used = np.unique(labels)
+    used, count = np.unique(labels, return_counts=True)
+    used = used[np.argsort(-count, kind="stable")]        # the material most vertices have first
     remap = np.full(len(shadings), -1)
     remap[used] = np.arange(len(used))
     base = np.stack([bases[m] for m in range(len(shadings))], axis=0)[labels, np.arange(len(labels))]
