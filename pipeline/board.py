@@ -1,6 +1,7 @@
 """Calibration boards (OpenCV ChArUco, or a plain chessboard for intrinsics): the one place that
 builds a board from its capture.toml / board.toml spec and detects it in a photo, for `sigrend calib
-intrinsics` and the poses stage's board method.  Library-bound (cv2), so beside pipeline/raycast,
+intrinsics` and the poses stage's board method (``detect_board``: ChArUco ids and COLMAP pixels;
+``board_corners_object``: the corners in the object frame).  Library-bound (cv2), so beside pipeline/raycast,
 above core."""
 
 from __future__ import annotations
@@ -42,6 +43,30 @@ def detect(board, gray: np.ndarray):
         return np.zeros((0, 3), np.float32), np.zeros((0, 2), np.float32)
     obj, img = board.matchImagePoints(corners, ids)
     return obj.reshape(-1, 3).astype(np.float32), img.reshape(-1, 2).astype(np.float32)
+
+
+def detect_board(image_rgb8: np.ndarray, spec: BoardSpec) -> tuple[np.ndarray, np.ndarray]:
+    """ChArUco corners in one 8-bit photo: ids (K,) and pixel positions (K, 2) in COLMAP's convention.
+
+    Detection is ``detect`` (OpenCV pixel coordinates, pixel centres at integers); +0.5
+    converts to COLMAP's (top-left corner of the image at (0, 0)).  A corner's id is its index in
+    the board's chessboard corners, recovered from its board coordinates.
+    """
+    import cv2  # lazily: keeps `sigrend --help` fast
+
+    board = make_board(spec)
+    obj, img = detect(board, cv2.cvtColor(image_rgb8, cv2.COLOR_RGB2GRAY))
+    if len(obj) == 0:
+        return np.zeros(0, int), np.zeros((0, 2))
+    grid = np.asarray(board.getChessboardCorners(), float).reshape(-1, 3)
+    ids = np.argmin(np.linalg.norm(obj[:, None, :] - grid[None], axis=2), axis=1)
+    return ids, img.astype(float) + 0.5
+
+
+def board_corners_object(spec: BoardSpec) -> np.ndarray:
+    """(K, 3) object-frame coordinates (metres) of the board's inner corners, indexed by ChArUco id."""
+    pts = np.asarray(make_board(spec).getChessboardCorners(), float).reshape(-1, 3)
+    return pts @ spec.board_to_object[:3, :3].T + spec.board_to_object[:3, 3]
 
 
 def corner_detector(spec: BoardSpec):

@@ -175,7 +175,7 @@ def _cameras(capture: Path, work: Path) -> str:
         bounds = None
     summary = _json(Path(work) / "poses_summary.json") or {}
     text = f"<p>{len(poses.images)} views from <code>{html.escape(str(path))}</code>.</p>"
-    if "registration_residual_fraction_of_size" in summary:  # registered to the mesh (stages/poses_mesh.py)
+    if "registration_residual_fraction_of_size" in summary:  # registered to the mesh (stages/poses/mesh.py)
         text += (f"<p>Registered to the mesh: RMS {summary['registration_residual_mm']:.3g} mm "
                  f"({100 * summary['registration_residual_fraction_of_size']:.2g}% of its size), "
                  f"{100 * summary['registration_points_used_fraction']:.0f}% of {summary['registration_points']} "

@@ -1,6 +1,6 @@
 """poses stage: COLMAP + ChArUco registration, PnP fallback, poses.json pass-through, bad input.
 
-Captures are ray-traced by pipeline.commands.bench_poses (a textured floor with a ChArUco board and a textured box, pinhole
+Captures are ray-traced by pipeline.commands.bench.poses (a textured floor with a ChArUco board and a textured box, pinhole
 cameras on a ring) so the ground truth is exact; they are small (400x300 px, 14 views) to keep
 the COLMAP runs to seconds.
 """
@@ -17,13 +17,17 @@ import numpy as np
 import pytest
 
 from pipeline.cli import main as cli_main
-from pipeline.commands.bench_poses import (BOARD, BOARD_TO_OBJECT, make_textured_capture, noise_texture,
+from pipeline.board import board_corners_object, detect_board
+from pipeline.commands.bench.poses import (BOARD, BOARD_TO_OBJECT, make_textured_capture, noise_texture,
                                            pose_errors, render, scene_quads)
 from pipeline.core.camera import Camera, camera_center, look_at, project
-from pipeline.io.capture_toml import read_capture_config
+from pipeline.io.capture_toml import BoardSpec, read_capture_config
 from pipeline.io.poses import Poses, read_poses, write_poses
 from pipeline.settings import make_settings
 from stages import poses as stage
+from stages.poses.colmap import tone_map
+from stages.poses.photos import pose_keys
+from stages.poses.settings import MIN_BOARD_CORNERS
 
 @pytest.fixture(scope="session")
 def capture_dir(tmp_path_factory) -> Path:
@@ -181,15 +185,15 @@ def test_board_detection_uses_colmap_pixel_convention():
     rng = np.random.default_rng(3)
     quads = scene_quads(rng)
     camera = Camera("PINHOLE", 400, 300, (440.0, 440.0, 200.0, 150.0))
-    spec = stage.BoardSpec(BOARD["dictionary"], BOARD["squares"], BOARD["square_length"], BOARD["marker_length"],
-                           BOARD_TO_OBJECT)
+    spec = BoardSpec(BOARD["dictionary"], BOARD["squares"], BOARD["square_length"], BOARD["marker_length"],
+                     BOARD_TO_OBJECT)
     offsets = []
     for center in ([0.0, -0.35, 0.45], [0.3, 0.2, 0.4]):
         R, t = look_at(np.array(center), np.zeros(3))
         img = np.round(render(camera, R, t, quads, supersample=4)).astype(np.uint8)
-        ids, uv = stage.detect_board(np.repeat(img[:, :, None], 3, axis=2), spec)
+        ids, uv = detect_board(np.repeat(img[:, :, None], 3, axis=2), spec)
         assert len(ids) >= 12  # the box hides part of the board in some views
-        truth, _ = project(camera, R, t, stage.board_corners_object(spec)[ids])
+        truth, _ = project(camera, R, t, board_corners_object(spec)[ids])
         offsets.append(uv - truth)
     offsets = np.concatenate(offsets)
     # sub-pixel corner refinement on a 4x supersampled render: ~0.1 px per corner, unbiased
@@ -205,7 +209,7 @@ def test_tone_map_keeps_saturated_pixels_white():
     valid = np.ones((10, 10), bool)
     valid[0, :3] = False
     linear[0, :3] = 0.0  # what an undefined clipped value may hold
-    out = stage.tone_map(linear, valid)
+    out = tone_map(linear, valid)
     assert (out[0, :3] == 255).all()
     assert (out[9] == 255).all()  # 0.2 is the 99th percentile of the valid pixels
     # 0.05 / 0.2 = 0.25 linear -> sRGB 0.537 (IEC 61966-2-1) -> 137
@@ -268,12 +272,12 @@ def test_one_pose_per_bracket(tmp_path):
         (capture / "images" / name).write_bytes(b"")
     (capture / "capture.toml").write_text('[brackets]\nview_a = ["a1.jpg", "a2.jpg", "a3.jpg"]\n')
     work = tmp_path / "work"
-    assert stage.pose_keys(capture, work) == ["a1.jpg", "b.jpg", "c1.jpg", "c2.jpg"]
+    assert pose_keys(capture, work) == ["a1.jpg", "b.jpg", "c1.jpg", "c2.jpg"]
     # linearize merged differently (e.g. --bracket-size): its manifest wins
     write_manifest(work, {"a": {"sources": [{"file": "a1.jpg"}, {"file": "a2.jpg"}]},
                           "a3": {"sources": [{"file": "a3.jpg"}]}, "b": {"sources": [{"file": "b.jpg"}]},
                           "c": {"sources": [{"file": "c1.jpg"}, {"file": "c2.jpg"}]}})
-    assert stage.pose_keys(capture, work) == ["a1.jpg", "a3.jpg", "b.jpg", "c1.jpg"]
+    assert pose_keys(capture, work) == ["a1.jpg", "a3.jpg", "b.jpg", "c1.jpg"]
 
 
 # ------------------------------------------------------------------------------------------
@@ -378,8 +382,8 @@ def test_board_jpeg_capture_runs_and_poses_match_truth(tmp_path):
     spec = read_capture_config(capture).board
     seen: Counter = Counter()
     for png in sorted((work / "colmap" / "images").rglob("*.png")):
-        ids, _ = stage.detect_board(cv2.cvtColor(cv2.imread(str(png)), cv2.COLOR_BGR2RGB), spec)
-        if len(ids) >= stage.MIN_BOARD_CORNERS:
+        ids, _ = detect_board(cv2.cvtColor(cv2.imread(str(png)), cv2.COLOR_BGR2RGB), spec)
+        if len(ids) >= MIN_BOARD_CORNERS:
             seen.update(ids.tolist())
     assert 1 in seen.values(), seen
     summary = json.loads((work / "poses_summary.json").read_text())

@@ -18,12 +18,13 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from pipeline.cli import main as cli_main
-from pipeline.commands.bench_poses import pose_errors
+from pipeline.commands.bench.poses import pose_errors
 from pipeline.core.camera import camera_center
 from pipeline.core.similarity import Similarity, transform_pose
 from pipeline.io.poses import ImagePose, Poses, read_poses
 from pipeline.settings import make_settings
 from stages import poses as stage
+from stages.poses.mesh import mesh_surface, refine_on_mesh
 
 BUNNY = Path(__file__).resolve().parents[2] / "sample_data" / "meshes" / "stanford-bunny.obj"
 # an arbitrary frame: rotated, x 0.001 (the mesh or the model in other units), shifted
@@ -290,7 +291,6 @@ def test_mesh_bundle_adjustment_drops_points_seen_once():
     import pycolmap
 
     from pipeline.core.camera import Camera, look_at, project
-    from stages import poses_mesh
 
     sphere = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
     rng = np.random.default_rng(7)
@@ -314,8 +314,8 @@ def test_mesh_bundle_adjustment_drops_points_seen_once():
     once = pycolmap.Track()  # ... but the last, seen by image 1 only
     once.add_element(1, len(points) - 1)
     once_id = reconstruction.add_point3D(points[-1], once)
-    surface = poses_mesh.mesh_surface(sphere, seed=0)
-    held = poses_mesh.refine_on_mesh(reconstruction, surface, fixed_intrinsics=True)
+    surface = mesh_surface(sphere, seed=0)
+    held = refine_on_mesh(reconstruction, surface, fixed_intrinsics=True)
     assert 0 < held <= len(points) - 1
     assert once_id not in reconstruction.points3D
     assert reconstruction.num_points3D() == len(points) - 1

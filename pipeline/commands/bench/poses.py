@@ -19,11 +19,14 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 from scipy.spatial.transform import Rotation
 
+from pipeline.board import make_board
 from pipeline.commands.bench import BenchRow
 from pipeline.core.camera import Camera, camera_center, look_at, pixel_centers, pixel_rays
-from pipeline.io.capture_toml import write_capture_toml
-from pipeline.io.poses import ImagePose, Poses, write_poses
+from pipeline.io.capture_toml import BoardSpec, write_capture_toml
+from pipeline.io.poses import ImagePose, Poses, read_poses, write_poses
 from pipeline.logs import progress as progress_bar
+from pipeline.settings import make_settings
+from stages import poses as poses_stage
 
 BOARD = dict(dictionary="DICT_5X5_100", squares=(7, 5), square_length=0.03, marker_length=0.022)
 # board lying on the floor, its printed side up (+Z object), centred on the origin:
@@ -43,9 +46,6 @@ def noise_texture(rng, size: int) -> np.ndarray:
 
 def scene_quads(rng, textured: bool = True, texture_scale: int = 1) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """Scene as textured rectangles: (origin, edge a, edge b, 8-bit texture); point = o + u·a + v·b."""
-    from pipeline.board import make_board
-    from pipeline.io.capture_toml import BoardSpec
-
     board = make_board(BoardSpec(BOARD["dictionary"], tuple(BOARD["squares"]), BOARD["square_length"],
                                  BOARD["marker_length"]))
     sx, sy = BOARD["squares"]
@@ -142,10 +142,6 @@ STEPS = ("extraction", "matching", "mapping", "registration")
 
 def poses_suite(quick: bool, repeat: int) -> list[BenchRow]:
     """Per size: best-of-``repeat`` seconds of each step and of the stage, and the accuracy reached."""
-    from pipeline.io.poses import read_poses
-    from pipeline.settings import make_settings
-    from stages import poses as stage
-
     cases = [(8, 0.12)] if quick else [(24, 1.0), (24, 6.0)]
     rows = []
     with tempfile.TemporaryDirectory(prefix="sigrend-bench-poses-") as tmp:
@@ -158,7 +154,7 @@ def poses_suite(quick: bool, repeat: int) -> list[BenchRow]:
             best: dict[str, float] = {}
             for run in range(max(1, repeat)):
                 work = Path(tmp) / f"work_{megapixels:g}mp_{run}"
-                stage.run(capture=capture, work=work, settings=make_settings(stage.Settings))
+                poses_stage.run(capture=capture, work=work, settings=make_settings(poses_stage.Settings))
                 seconds = json.loads((work / "poses_summary.json").read_text())["seconds"]
                 seconds["total"] = sum(seconds.values())
                 for key, value in seconds.items():

@@ -1,7 +1,9 @@
 """`sigrend bench SUITE [-o DIR]`: timing benchmarks (not tests), written as DIR/bench_<suite>.csv.
 
 A suite is a function ``suite(quick: bool, repeat: int) -> list[BenchRow]`` registered in
-``SUITES`` (name -> (help, "module:function")); add a suite by adding one entry.  Every timing is
+``SUITES`` (name -> (help, "module:function")); add a suite by adding one entry.  ``sh`` is here; the
+others are this package's modules (batch, fit, linearize, pipeline, poses, render, synth), imported
+only when their suite runs; they import ``BenchRow`` and ``best_time`` from here, never the reverse.  Every timing is
 the best of ``--repeat`` runs (the least disturbed by other processes), measured with
 ``time.perf_counter``.  ``--quick`` shrinks the problem sizes (for smoke tests), so its numbers
 are not comparable with a full run.
@@ -20,7 +22,11 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import numpy as np
+
+from pipeline.core.sh import envmap_from_sh, num_coeffs, project_envmap, sh_basis, sh_evaluate, sh_rotation_matrices
 from pipeline.errors import UserError
+from pipeline.workdir import write_text
 
 HELP = "Benchmarks (timings, not tests): write DIR/bench_<suite>.csv and print a table."
 
@@ -29,21 +35,21 @@ SUITES: dict[str, tuple[str, str]] = {
     "sh": ("spherical harmonics: evaluation throughput at L = 8, 20, 50; env projection 2048x1024 at L = 20",
            "pipeline.commands.bench:sh_suite"),
     "linearize": ("linearize throughput (MP/s), DNG and JPEG, serial vs process pool, beside rawpy's bare decode",
-                  "pipeline.commands.bench_linearize:linearize_suite"),
+                  "pipeline.commands.bench.linearize:linearize_suite"),
     "poses": ("poses stage seconds for 24 photos at 1 and 6 MP: extraction, matching, mapping, registration; "
-              "accuracy vs ground truth", "pipeline.commands.bench_poses:poses_suite"),
+              "accuracy vs ground truth", "pipeline.commands.bench.poses:poses_suite"),
     "stability": ("error vs noise: inverse lighting (Lambertian vs glossy), BRDF estimation (sharp vs soft "
-                  "lighting); charts + stability.csv in DIR", "pipeline.commands.bench_pipeline:stability_suite"),
+                  "lighting); charts + stability.csv in DIR", "pipeline.commands.bench.pipeline:stability_suite"),
     "synth": ("reference renderer: seconds per 512x512 bunny view under a 128x64 env, Lambert/microfacet, "
-              "with/without shadows", "pipeline.commands.bench_synth:synth_suite"),
+              "with/without shadows", "pipeline.commands.bench.synth:synth_suite"),
     "fit": ("fit time vs samples (10^4-10^7) and vs SH order, per mode (known BRDF, known lighting, factorization)",
-            "pipeline.commands.bench_fit:fit_suite"),
+            "pipeline.commands.bench.fit:fit_suite"),
     "render": ("renderer error vs Blender Cycles (tests/data/cycles) vs seconds over lobe samples, interreflection "
-               "rays and bounces; render.png in DIR; seconds per 384x384 view", "pipeline.commands.bench_render:render_suite"),
+               "rays and bounces; render.png in DIR; seconds per 384x384 view", "pipeline.commands.bench.render:render_suite"),
     "batch": ("8 copies of sample_data: sequential `sigrend run` vs `sigrend batch` on 2 workers, and the "
-              "per-task cost when every stage is fresh", "pipeline.commands.bench_batch:batch_suite"),
+              "per-task cost when every stage is fresh", "pipeline.commands.bench.batch:batch_suite"),
     "pipeline": ("speed vs accuracy of samples -> fit -> relight on synthetic scenes (SH order, data, fit mode); "
-                 "bench.csv + bench.png (Pareto front) in DIR", "pipeline.commands.bench_pipeline:pipeline_suite"),
+                 "bench.csv + bench.png (Pareto front) in DIR", "pipeline.commands.bench.pipeline:pipeline_suite"),
 }
 
 
@@ -72,10 +78,6 @@ def best_time(func, repeat: int) -> float:
 
 def sh_suite(quick: bool, repeat: int) -> list[BenchRow]:
     """SH evaluation throughput (directions/s) at L = 8, 20, 50 and env-map projection/synthesis times."""
-    import numpy as np
-
-    from pipeline.core.sh import envmap_from_sh, num_coeffs, project_envmap, sh_basis, sh_evaluate, sh_rotation_matrices
-
     rng = np.random.default_rng(0)
     rows = []
     for order, n_dirs in ((8, 200_000), (20, 100_000), (50, 20_000)):
@@ -122,8 +124,6 @@ def _table(rows: list[BenchRow]) -> str:
 
 
 def main(args: argparse.Namespace) -> int:
-    from pipeline.workdir import write_text
-
     if not 1 <= args.repeat <= 100:
         raise UserError(f"--repeat {args.repeat} is outside 1..100")
     module_name, func_name = SUITES[args.suite][1].split(":")

@@ -13,10 +13,15 @@ OpenBLAS threads fight other processes for the 2 cores: OPENBLAS_NUM_THREADS=1 i
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from pipeline.commands.bench import BenchRow, best_time
+from pipeline.core import forward, solve
 from pipeline.core.brdf import Brdf
+from pipeline.core.factorization import ConvexOptions, brdf_data, factorize, fit_brdf_models
+from pipeline.core.forward import render_samples
 
 CHUNK = 262144
 LAMBERT = Brdf("lambert", albedo=(0.6, 0.5, 0.4))
@@ -24,8 +29,6 @@ GLOSSY = Brdf("microfacet", albedo=(0.3, 0.25, 0.2), specular=(0.9, 0.9, 0.9), r
 
 
 def _chunk(rng: np.random.Generator, n: int, truth: np.ndarray, brdf: Brdf) -> dict:
-    from pipeline.core.forward import render_samples
-
     normal = rng.normal(size=(n, 3))
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     view = normal + 0.5 * rng.normal(size=(n, 3))
@@ -42,8 +45,6 @@ def _chunks(n: int, truth: np.ndarray):
 
 
 def _lighting_fit(chunks, order: int, brdf: Brdf) -> None:
-    from pipeline.core import forward, solve
-
     with_lobe = brdf.has_lobe
     eqs = solve.NormalEquations(order, 4, shared=not with_lobe)
     for c in chunks:
@@ -66,16 +67,12 @@ def _timed_fit(n: int, order: int, brdf: Brdf, truth: np.ndarray, repeat: int) -
 
 
 def _cpu_seconds(func) -> float:
-    import time
-
     start = time.process_time()
     func()
     return time.process_time() - start
 
 
 def fit_suite(quick: bool, repeat: int) -> list[BenchRow]:
-    from pipeline.core.factorization import ConvexOptions, brdf_data, factorize, fit_brdf_models
-
     rng = np.random.default_rng(1)
     truth8 = rng.normal(size=(81, 3)) * 0.1
     truth8[0] = 3.0

@@ -24,18 +24,29 @@ from __future__ import annotations
 
 import csv
 import json
+import os
+import shutil
 from pathlib import Path
 
 import numpy as np
 
+from pipeline.commands.bench import BenchRow
+from pipeline.core import forward
 from pipeline.core.brdf import Brdf
+from pipeline.core.factorization import brdf_data
+from pipeline.core.procedural_envmaps import make_envmap
 from pipeline.core.sh import band_of_index, band_relative_errors, num_coeffs, order_of, project_envmap
+from pipeline.core.solve import fit_brdf
+from pipeline.io.lighting import read_lighting_sh
+from pipeline.runner import run_stage, stage_settings
+from pipeline.synth import make_test_capture
+from pipeline.workdir import atomic_path
 
 NOISE_LEVELS = (0.0, 0.001, 0.003, 0.01, 0.03, 0.1)
 
 
 def _plt():
-    import matplotlib
+    import matplotlib  # when charts are drawn: the Agg backend chosen before pyplot loads
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -77,8 +88,6 @@ def test_lighting(order: int, rng: np.random.Generator) -> np.ndarray:
 
 def _solve_lighting(normal, view, radiance, brdf, order) -> np.ndarray:
     """Plain least squares for the SH lighting, per channel (minimum-norm where rank deficient)."""
-    from pipeline.core import forward
-
     terms = forward.design_terms(normal, view, order, brdf.has_lobe)
     designs = forward.channel_designs(terms, brdf, order)
     return np.stack([np.linalg.lstsq(designs[c], radiance[:, c], rcond=1e-12)[0] for c in range(3)], axis=1)
@@ -86,8 +95,6 @@ def _solve_lighting(normal, view, radiance, brdf, order) -> np.ndarray:
 
 def stability_lighting(rng: np.random.Generator, order: int = 8, trials: int = 3) -> list[dict]:
     """Inverse lighting error per band vs noise, Lambertian vs glossy (rows for the CSV)."""
-    from pipeline.core import forward
-
     normal, view = sphere_light_field(1500, 24, rng)
     scenes = {"lambertian": Brdf("lambert", albedo=(0.8, 0.8, 0.8)),
               "glossy (phong s=200)": Brdf("phong", albedo=(0.3, 0.3, 0.3), specular=(0.6, 0.6, 0.6), exponent=200.0)}
@@ -110,8 +117,6 @@ def stability_lighting(rng: np.random.Generator, order: int = 8, trials: int = 3
 def samples_brdf_data(normal, view, radiance, coeffs):
     """pipeline.core.solve.BrdfData of samples under known SH lighting ``coeffs`` (one fold), built
     by the fit's own helper."""
-    from pipeline.core.factorization import brdf_data
-
     n = len(normal)
     return brdf_data({"normal": normal, "view_dir": view, "radiance": radiance, "weight": np.ones(n),
                       "image_id": np.zeros(n, int)}, coeffs, 1)
@@ -119,10 +124,6 @@ def samples_brdf_data(normal, view, radiance, coeffs):
 
 def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
     """BRDF estimation error (lobe width, specular weight) vs noise under sharp and soft lighting."""
-    from pipeline.core import forward
-    from pipeline.core.procedural_envmaps import make_envmap
-    from pipeline.core.solve import fit_brdf
-
     normal, view = sphere_light_field(600, 16, rng)
     order = 24
     lightings = {"sharp (area lights)": project_envmap(make_envmap("area", 64), order),
@@ -203,8 +204,6 @@ def plot_stability(rows: list[dict], out_dir: Path) -> list[Path]:
 
 
 def _write_csv(path: Path, rows: list[dict]) -> Path:
-    from pipeline.workdir import atomic_path
-
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
         writer.writeheader()
@@ -219,8 +218,6 @@ def stability_suite(quick: bool, repeat: int, output: Path = Path("bench")) -> l
 
     ``repeat`` is unused (errors, not timings); ``quick`` runs one trial per noise level.
     """
-    from pipeline.commands.bench import BenchRow
-
     out_dir = Path(output)
     out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(0)
@@ -284,8 +281,6 @@ def pipeline_configs(quick: bool) -> list[dict]:
 
 def run_pipeline_bench(out_dir: Path, quick: bool = False) -> tuple[list[dict], list[Path]]:
     """Render the scenes, run samples -> fit -> relight per configuration; write bench.csv + bench.png."""
-    import shutil
-
     out_dir = Path(out_dir)
     scratch = out_dir / "pipeline_scratch"
     shutil.rmtree(scratch, ignore_errors=True)
@@ -309,9 +304,6 @@ def _bench_samples(scratch: Path, config: dict, quick: bool, runs: dict) -> tupl
     """A configuration's scene rendered (once) and its training views' samples (once per views and
     stride; ``runs`` caches them) -> (capture, the validation views, the samples' work folder, the
     samples stage's seconds).  Every fourth view is held out for validation."""
-    from pipeline.runner import run_stage, stage_settings
-    from pipeline.synth import make_test_capture
-
     scene = config["scene"]
     views, size = 12, (64, 64) if quick else (96, 96)
     capture = scratch / scene / "capture"
@@ -337,11 +329,6 @@ def _bench_fit_relight(config: dict, capture: Path, work: Path, sample_work: Pat
     """The fit of one configuration on the shared samples (hard-linked into ``work``) and its relight
     of the validation views -> bench.csv's row: times, relight error, lighting scale and band errors,
     the fitted order, model and roughness."""
-    import os
-
-    from pipeline.io.lighting import read_lighting_sh
-    from pipeline.runner import run_stage, stage_settings
-
     work.mkdir(parents=True, exist_ok=True)
     if not (work / "samples.npz").exists():
         os.link(sample_work / "samples.npz", work / "samples.npz")
@@ -414,8 +401,6 @@ def pipeline_suite(quick: bool, repeat: int, output: Path = Path("bench")) -> li
     """`sigrend bench pipeline`: bench.csv + bench.png in ``output``; rows = each configuration's numbers.
 
     ``repeat`` is unused (each configuration runs once: its time is part of the result)."""
-    from pipeline.commands.bench import BenchRow
-
     Path(output).mkdir(parents=True, exist_ok=True)
     rows, written = run_pipeline_bench(Path(output), quick=quick)
     out = []

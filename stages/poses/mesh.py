@@ -1,23 +1,36 @@
 """poses without a board: a reconstruction's frame registered to the capture's known mesh.
 
-Used by the poses stage when there is no ChArUco board: its own COLMAP run, or an imported COLMAP
-model or transforms.json in an arbitrary frame.  The maths is ``pipeline.core.registration``; this
-module feeds it (the mesh's surface samples, the cameras' centres and axes, the SfM points), checks
-that the answer is unique and tight, and refines the cameras with the mesh held fixed (pycolmap's
-bundle adjuster).  docs/poses.md describes the method and its numbers.
+Used by the poses stage when there is no ChArUco board: its own COLMAP run (``sfm_on_mesh``), or an
+imported COLMAP model or transforms.json in an arbitrary frame (stages.poses.imports).  The maths is
+``pipeline.core.registration``; this module feeds it (the mesh's surface samples, the cameras'
+centres and axes, the SfM points), checks that the answer is unique and tight, and refines the
+cameras with the mesh held fixed (pycolmap's bundle adjuster, stages.poses.colmap.bundle_adjust).
+docs/poses.md describes the method and its numbers.
+
+trimesh and pycolmap are imported inside the functions that use them (lazily: keeps `sigrend --help` fast).
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from pipeline.core.camera import camera_center
 from pipeline.core.registration import project_to_surface, register_to_surface, scale_guess, viewing_center
-from pipeline.core.similarity import Similarity
+from pipeline.core.similarity import Similarity, transform_pose
 from pipeline.errors import UserError
+from pipeline.io.capture_toml import CaptureConfig
+from pipeline.io.mesh import MESH_NAMES, mesh_path, read_mesh
 from pipeline.io.pose_imports import reconstruction_points
+from pipeline.io.poses import ImagePose, Poses
+from stages.poses.colmap import (IDENTITY, bundle_adjust, colmap_copies, colmap_name, poses_from_reconstruction,
+                                 run_colmap)
+from stages.poses.photos import calibrated_camera
+from stages.poses.settings import Settings
+from stages.poses.summary import enough, finish, named, status
 
 SURFACE_SAMPLES = 60000  # area-uniform samples of the mesh for nearest-surface queries
 NEAR_FRACTION = 0.6  # points farther than this x the median camera distance from the view centre: background
@@ -34,7 +47,7 @@ class Surface:
 
 def mesh_surface(mesh, count: int = SURFACE_SAMPLES, seed: int = 0) -> Surface:
     """Area-uniform samples of a trimesh with their faces' normals."""
-    import trimesh
+    import trimesh  # lazily: keeps `sigrend --help` fast
 
     points, faces = trimesh.sample.sample_surface(mesh, count, seed=seed)
     return Surface(np.asarray(points, float), np.asarray(mesh.face_normals[faces], float),
@@ -103,7 +116,7 @@ def register_reconstruction(reconstruction, surface: Surface, *, max_residual: f
                             fixed_intrinsics: bool, what: str) -> dict:
     """Carry a pycolmap.Reconstruction into the mesh's frame in place; with ``refine``, bundle-adjust it
     with its points on the mesh held fixed.  Returns summary entries."""
-    import pycolmap
+    import pycolmap  # lazily: keeps `sigrend --help` fast
 
     points, centers, axes = reconstruction_geometry(reconstruction)
     similarity, summary = register_points(points, centers, axes, surface, max_residual=max_residual, seed=seed,
@@ -121,7 +134,7 @@ def refine_on_mesh(reconstruction, surface: Surface, fixed_intrinsics: bool) -> 
     corners do in ``refine_with_board``; points off the mesh stay free.  Returns how many were held.
     On the 16-view synth bunny it cut the largest rotation error from 0.18° to 0.15° (docs/poses.md).
     """
-    import pycolmap
+    import pycolmap  # lazily: keeps `sigrend --help` fast
 
     ids = [i for i, p in reconstruction.points3D.items() if p.track.length() >= 2]  # bundle_adjust drops the rest
     xyz = np.array([reconstruction.points3D[i].xyz for i in ids], float).reshape(-1, 3)
@@ -140,37 +153,8 @@ def refine_on_mesh(reconstruction, surface: Surface, fixed_intrinsics: bool) -> 
     return int(on_mesh.sum())
 
 
-def bundle_adjust(reconstruction, config) -> None:
-    """pycolmap's bundle adjuster on ``config`` (in place): Cauchy loss at 1 px, stop at 1e-6 relative change.
-
-    Points observed in fewer than two images are deleted first: COLMAP's adjuster refuses them, constant
-    ones included (``Check failed: point3D.track.Length() > 1``), and an imported model may hold some.
-    """
-    import pycolmap
-
-    for pid in [i for i, p in reconstruction.points3D.items() if p.track.length() < 2]:
-        if config.has_constant_point(pid):
-            config.remove_constant_point(pid)
-        if config.has_variable_point(pid):
-            config.remove_variable_point(pid)
-        reconstruction.delete_point3D(pid)
-
-    options = pycolmap.BundleAdjustmentOptions()
-    options.print_summary = False
-    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    options.ceres.loss_function_scale = 1.0  # pixels
-    # stop when the cost changes by < 1e-6 relative (COLMAP's default 0 runs to the iteration limit)
-    options.ceres.solver_options.function_tolerance = 1e-6
-    options.ceres.solver_options.max_num_iterations = 50
-    pycolmap.create_default_bundle_adjuster(options, config, reconstruction).solve()
-    reconstruction.update_point_3d_errors()
-
-
 def register_poses(poses, points: np.ndarray, surface: Surface, *, max_residual: float, seed: int, what: str):
     """Poses (DESIGN.md Poses, any frame) and their frame's points -> the same poses in the mesh's frame."""
-    from pipeline.core.similarity import transform_pose
-    from pipeline.io.poses import ImagePose, Poses
-
     centers = np.array([camera_center(p.R, p.t) for p in poses.images.values()])
     axes = np.array([p.R[2] for p in poses.images.values()])
     similarity, summary = register_points(points, centers, axes, surface, max_residual=max_residual, seed=seed,
@@ -192,3 +176,46 @@ def units_note(surface: Surface) -> str | None:
                 "scale it to metres (x 0.001 or x 0.01)")
     return None
 
+
+def sfm_on_mesh(capture: Path, work: Path, keys: list[str], config: CaptureConfig, settings: Settings) -> list[Path]:
+    """No board: COLMAP here, its frame registered to the capture's mesh (register_reconstruction above)."""
+    if not any((capture / name).exists() for name in MESH_NAMES):  # before COLMAP: fail at once
+        raise UserError(f"{capture}: no poses (poses.json, transforms.json, a COLMAP model), no [board] in capture.toml "
+                        "and no mesh to register COLMAP's reconstruction to; put the object's mesh in the capture "
+                        f"({' or '.join(MESH_NAMES)}) or add the ChArUco board's [board] section")
+    mesh_file = mesh_path(capture)
+    fixed = calibrated_camera(config)
+    work.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+    colmap_dir, groups, name_to_key, _, _ = colmap_copies(capture, work, keys, fixed, None, timings)
+    reconstruction = run_colmap(colmap_dir, [colmap_name(groups[k], k) for k in keys], settings, fixed, timings)
+    registered = set() if reconstruction is None else {
+        name_to_key[im.name] for im in reconstruction.images.values() if im.has_pose}
+    unregistered = [k for k in keys if k not in registered]
+    if not enough(len(registered), keys, settings):
+        why = ("its photos do not overlap (no image pair shares enough features)" if reconstruction is None
+               else f"it registered only {len(registered)} of {len(keys)} photos (unregistered: {named(unregistered)})")
+        raise UserError(f"COLMAP could not build the capture: {why}; without a board every pose comes from SfM: take "
+                        "overlapping photos of a textured object, or add a board ([board]) or poses.json; see "
+                        f"{colmap_dir / 'colmap.log'}")
+    start = time.perf_counter()
+    surface = mesh_surface(read_mesh(mesh_file), seed=settings.seed)
+    if (note := units_note(surface)) is not None:
+        status(note)
+    status(f"registering {reconstruction.num_points3D()} SfM points to the mesh")
+    registration = register_reconstruction(
+        reconstruction, surface, max_residual=settings.max_registration_residual, seed=settings.seed,
+        refine=settings.mesh_bundle_adjustment, fixed_intrinsics=fixed is not None, what="the COLMAP reconstruction")
+    camera_names = {im.camera_id: groups[name_to_key[im.name]] for im in reconstruction.images.values()}
+    poses = poses_from_reconstruction(reconstruction, IDENTITY, name_to_key, camera_names)
+    timings["registration"] = time.perf_counter() - start
+    reconstruction.write(colmap_dir / "sparse")  # the model that was used, in the object frame
+    summary = {
+        "method": "colmap + registration to the mesh" + (" + mesh bundle adjustment"
+                                                         if settings.mesh_bundle_adjustment else ""),
+        "images": len(keys), "registered": len(registered), "unregistered": unregistered,
+        "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
+        "points3D": int(reconstruction.num_points3D()), **registration,
+    }
+    return finish(work, poses, summary, timings, "calibrated (fixed)" if fixed is not None else "estimated",
+                  [colmap_dir])

@@ -14,8 +14,13 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import rawpy
 
 from pipeline.commands.bench import BenchRow, best_time
+from pipeline.io.camera_files import Exposure, srgb_encode, write_dng
+from pipeline.io.images import write_image
+from pipeline.settings import make_settings
+from stages import linearize
 
 
 def _scene(h: int, w: int, i: int) -> np.ndarray:
@@ -24,13 +29,6 @@ def _scene(h: int, w: int, i: int) -> np.ndarray:
 
 
 def linearize_suite(quick: bool, repeat: int) -> list[BenchRow]:
-    import rawpy
-
-    from pipeline.io.camera_files import Exposure, srgb_encode, write_dng
-    from pipeline.io.images import write_image
-    from pipeline.settings import make_settings
-    from stages import linearize
-
     n, (h, w) = (4, (400, 600)) if quick else (8, (2000, 3000))
     megapixels = n * h * w / 1e6
     rows = []

@@ -11,18 +11,23 @@ import tempfile
 import time
 from pathlib import Path
 
-DATA = Path(__file__).resolve().parents[2] / "tests" / "data" / "cycles"
+from matplotlib import pyplot as plt
+
+from pipeline.commands.bench import BenchRow
+from pipeline.core.image_metrics import block_relative_rmse
+from pipeline.io.brdf import material_from_blender, write_brdf
+from pipeline.io.images import read_image
+from pipeline.runner import run_stage
+from pipeline.settings import make_settings
+from stages import relight
+
+DATA = Path(__file__).resolve().parents[3] / "tests" / "data" / "cycles"
 # (lobe_samples, bounce_samples, bounces): coarse -> fine; the middle one is the default
 CONFIGS = [(4, 16, 1), (16, 16, 2), (64, 64, 8), (256, 256, 8)]
 DEFAULT = (64, 64, 8)
 
 
 def _relight(folder: Path, work: Path, lobe: int, rays: int, bounces: int, size: str = "", views: str = ""):
-    from pipeline.io.brdf import material_from_blender, write_brdf
-    from pipeline.runner import run_stage
-    from pipeline.settings import make_settings
-    from stages import relight
-
     write_brdf(work / "fit" / "brdf.json", material_from_blender(json.loads((folder / "gt" / "brdf.json").read_text())))
     settings = make_settings(relight.Settings, env=str(folder / "gt" / "relight" / "env.exr"), size=size,
                              views=views or str(folder / "gt" / "relight" / "poses.json"), lobe_samples=lobe,
@@ -33,12 +38,6 @@ def _relight(folder: Path, work: Path, lobe: int, rays: int, bounces: int, size:
 
 
 def render_suite(quick: bool, repeat: int, output: Path):
-    from matplotlib import pyplot as plt
-
-    from pipeline.commands.bench import BenchRow
-    from pipeline.core.image_metrics import block_relative_rmse
-    from pipeline.io.images import read_image
-
     rows = []
     scenes = sorted(p for p in DATA.iterdir() if p.is_dir())
     configs = CONFIGS[1:3] if quick else CONFIGS

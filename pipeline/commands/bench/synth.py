@@ -8,10 +8,14 @@ from dataclasses import replace
 from pathlib import Path
 
 from pipeline.commands.bench import BenchRow
+from pipeline.core.brdf import Brdf
+from pipeline.core.procedural_envmaps import make_envmap
+from pipeline.core.render import Renderer
+from pipeline.raycast import ray_mesh
 from pipeline.synth import SynthSettings, load_mesh, make_views
 
 
-BENCH_MESH = Path(__file__).resolve().parents[2] / "sample_data" / "meshes" / "stanford-bunny.obj"  # see its SOURCES.md
+BENCH_MESH = Path(__file__).resolve().parents[3] / "sample_data" / "meshes" / "stanford-bunny.obj"  # see its SOURCES.md
 
 
 def synth_suite(quick: bool, repeat: int) -> list:
@@ -22,11 +26,6 @@ def synth_suite(quick: bool, repeat: int) -> list:
     of the first view (shading only: visibility is cached per scene).  The mesh is the Stanford
     bunny (``BENCH_MESH``, else the 'sphere'); --quick renders 128 x 128.
     """
-    from pipeline.core.brdf import Brdf
-    from pipeline.core.procedural_envmaps import make_envmap
-    from pipeline.core.render import Renderer
-    from pipeline.raycast import ray_mesh
-
     mesh_spec = str(BENCH_MESH) if BENCH_MESH.is_file() else "sphere"
     mesh = load_mesh(mesh_spec, 0.2, "y")
     size = 128 if quick else 512

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from pipeline.commands.bench import BenchRow
 
-SAMPLE = Path(__file__).resolve().parents[2] / "sample_data" / "capture"
+SAMPLE = Path(__file__).resolve().parents[3] / "sample_data" / "capture"
 
 
 def _seconds(cmd: list[str]) -> float:
