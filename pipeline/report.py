@@ -160,7 +160,7 @@ def camera_plot(poses, bounds: np.ndarray | None, heldout: list[str]) -> bytes:
 def _cameras(capture: Path, work: Path) -> str:
     from pipeline.io.poses import read_poses
     from pipeline.io.run_summary import samples_holdout
-    from stages.relight import capture_poses_path
+    from pipeline.io.poses import capture_poses_path
 
     path = capture_poses_path(capture, work)
     if not path.exists():
@@ -231,7 +231,7 @@ def sphere_renders(coeffs: np.ndarray, brdf: Brdf | None, size: int = 128) -> by
     if brdf is not None and brdf.model == "principled":
         panels["fitted material"] = principled_sphere(coeffs, brdf, normal, np.array(view))
     elif brdf is not None:
-        from stages.relight import Lighting
+        from pipeline.core.prefilter import Lighting
 
         lighting = Lighting(brdf, coeffs=coeffs)  # the same forward model as relight
         panels["fitted BRDF"] = lighting.radiance(normal, np.array(view), np.asarray(brdf.albedo, float))

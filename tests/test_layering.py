@@ -24,10 +24,7 @@ ROOT = Path(__file__).parents[1]
 PACKAGES = ("pipeline", "stages", "calib")
 CORE_LIBRARIES = {"numpy", "scipy"}
 
-KNOWN_BREAKS: set[tuple[str, str]] = {
-    # the report's sphere preview and relit views go through the relight stage's renderer (issue 45: one forward model)
-    ("pipeline.report", "stages.relight"),
-}
+KNOWN_BREAKS: set[tuple[str, str]] = set()   # none left: the report's previews use core.prefilter, not the relight stage
 
 
 def layer(module: str) -> float | None:

@@ -95,3 +95,22 @@ def add_sources(env: np.ndarray, directions: np.ndarray, intensity: np.ndarray) 
             row, col = np.minimum(y0 + dy, h - 1), np.mod(x0 + dx, w)
             np.add.at(out, (row, col), power * (wy * wx / omega[row])[:, None])
     return out
+
+
+def bilinear_lookup(env: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of an (H, 2H, C) equirect map at unit directions (N, 3) (wraps in azimuth)."""
+    h, w = env.shape[:2]
+    d = np.asarray(dirs, float)
+    theta = np.arccos(np.clip(d[:, 2], -1, 1))
+    phi = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi)
+    y = np.clip(theta / np.pi * h - 0.5, 0, h - 1)      # pixel centres at (i + 0.5)
+    x = phi / (2 * np.pi) * w - 0.5
+    y0 = np.minimum(np.floor(y).astype(int), h - 2) if h > 1 else np.zeros(len(y), int)
+    fy = (y - y0)[:, None]
+    x0 = np.floor(x).astype(int)
+    fx = (x - x0)[:, None]
+    x0 %= w
+    x1 = (x0 + 1) % w
+    y1 = np.minimum(y0 + 1, h - 1)
+    return ((1 - fy) * ((1 - fx) * env[y0, x0] + fx * env[y0, x1])
+            + fy * ((1 - fx) * env[y1, x0] + fx * env[y1, x1]))

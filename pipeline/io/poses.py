@@ -39,6 +39,14 @@ def poses_path(capture: Path, work: Path) -> Path:
                     "run `sigrend poses` first or add poses.json to the capture")
 
 
+def capture_poses_path(capture: Path, work: Path) -> Path:
+    """The capture's camera poses: WORK/poses.json (poses stage), else CAPTURE/poses.json."""
+    try:
+        return poses_path(capture, work)
+    except UserError:
+        return Path(work) / "poses.json"
+
+
 def read_poses(path: str | os.PathLike) -> Poses:
     """Read and validate poses.json; any problem -> UserError naming the file and the entry."""
     path = Path(path)

@@ -17,6 +17,7 @@ import trimesh
 from pipeline.core.brdf import Brdf, phong_lobe
 from pipeline.core.camera import Camera, look_at
 from pipeline.core.envmap import equirect_directions, equirect_solid_angles
+from pipeline.core.prefilter import prefilter_envmap
 from pipeline.core.quadrature import sphere_product_rule
 from pipeline.core.sh import sh_evaluate
 from pipeline.core.transfer import phong_filter
@@ -98,7 +99,7 @@ def test_prefiltered_map_matches_direct_convolution():
     env[9:12, 20:24] = [40.0, 30.0, 20.0]
     exponent = 30.0
     filt = phong_filter(exponent, 200)
-    pre = relight.prefilter_envmap(env, filt, h)
+    pre = prefilter_envmap(env, filt, h)
     dirs = equirect_directions(h).reshape(-1, 3)
     omega = np.repeat(equirect_solid_angles(h), 2 * h)
     probe = dirs[::37]
