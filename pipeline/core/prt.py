@@ -83,6 +83,16 @@ class Geometry:
         layer = diffuse_layer(material, self.mu_out)
         return layer if self.pattern is None else layer * self.pattern
 
+    def rows(self, keep: np.ndarray) -> "Geometry":
+        """This geometry for the samples ``keep`` (indices): the vertices' part, the renderer and the
+        vertex-level bounce matrices shared, the samples' caches fresh."""
+        keep = np.asarray(keep, np.int64)
+        footprint = None if self.footprint is None else (self.footprint[0][keep], self.footprint[1][keep])
+        return Geometry(self.renderer, self.order, self.faces[keep], self.tri[keep], self.bary[keep],
+                        self.normals[keep], self.view_dirs[keep], self.mu_out[keep], self.direct[keep],
+                        self.vertex_direct, footprint, None if self.pattern is None else self.pattern[keep],
+                        self._bounces)
+
     @property
     def interreflects(self) -> bool:
         """Whether any vertex's occlusion ray hits the object (a convex one: none, so no

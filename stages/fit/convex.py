@@ -39,7 +39,7 @@ from pipeline.errors import UserError
 from pipeline.io.samples import iter_sample_chunks
 from pipeline.settings import settings_dict
 from stages.fit.data import FIELDS, iter_valid_chunks, load_subset
-from stages.fit.known import known_albedo_hint, load_known_lighting
+from stages.fit.known import albedo_refusal, convex_lighting_scale, known_albedo_hint, load_known_lighting
 from stages.fit.outputs import chosen_prior, lighting_candidates_json, per_view_table, say_limits, write_fit
 from stages.fit.settings import DEFAULT_ALBEDO, Settings
 from stages.fit.texture import choose_albedo
@@ -54,9 +54,15 @@ def fit_convex(*, capture: Path, work: Path, settings: Settings, keys: list[str]
     samples_path = work / "samples.npz"
     explicit_order, opts, hint = settings.explicit_order, settings.convex_options(), known_albedo_hint(capture)
     lighting_file = settings.known_lighting_file
-    known_lighting = None if lighting_file is None else load_known_lighting(lighting_file, settings.env_order)
+    known_lighting = None if lighting_file is None else \
+        load_known_lighting(lighting_file, settings.env_order) * convex_lighting_scale(settings)
     valid = sum(len(c["weight"]) for c in iter_sample_chunks(samples_path, settings.chunk, ("weight",))) if not total else total
     report: dict = {"settings": settings_dict(settings), "samples": {"total": valid}}
+    if known_lighting is not None:
+        report["scale_convention"] = {"source": "the known lighting", "lighting_scale": {
+            "applied": float(settings.lighting_scale), "given": float(settings.lighting_scale),
+            "note": "the convex path applies --lighting-scale as given; its lobes' free specular leaves the factor "
+                    "unchecked but for an albedo above 1"}}
     if known_brdf is not None and known_lighting is None:
         result = _lighting_mode(samples_path, settings, known_brdf, explicit_order, report, timings)
     else:
@@ -73,6 +79,8 @@ def fit_convex(*, capture: Path, work: Path, settings: Settings, keys: list[str]
         elif known_lighting is not None:
             t0 = time.perf_counter()
             result = _brdf_mode(data, known_lighting, models, opts, report)
+            if np.any(np.asarray(result.brdf.albedo, float) > 1.0):
+                raise UserError(albedo_refusal(settings, result.brdf.albedo))
             timings["brdf_fit"] = time.perf_counter() - t0
         else:
             t0 = time.perf_counter()

@@ -226,6 +226,26 @@ def selection_note(one_fold: bool, known: bool, folds: int, brdf: Brdf) -> dict:
     return {"by": f"held-out views ({folds} folds, image_id mod {folds})"}
 
 
+def one_view_line(table: list[dict], brdf: Brdf, parsimony: float, views: int, folds: int) -> str:
+    """The stderr line of a fit whose views all fall in one fold: which model it kept and why — the
+    candidates' training errors (``table``: report.json's candidates) under the parsimony rule —
+    and that nothing held out validated it."""
+    kept = "lambert" if brdf.model == "lambert" else \
+        f"principled {'metal' if brdf.metallic else 'dielectric'} roughness {brdf.roughness:.3f}"
+    lambert = [r["train_rmse"] for r in table if r["name"] == "lambert"]
+    lobes = [r["train_rmse"] for r in table if r["name"] != "lambert"]
+    why = "the only candidate"
+    if lambert and lobes:
+        plain, glossy = lambert[0], min(lobes)
+        gain = 1.0 - glossy / plain if plain > 0 else 0.0
+        why = (f"its training error {glossy:.3g} is {gain:.0%} below Lambert's {plain:.3g}, more than the "
+               f"{parsimony:.0%} the parsimony rule asks of a lobe" if brdf.model != "lambert" else
+               f"the best lobe's training error {glossy:.3g} is within {parsimony:.0%} of Lambert's {plain:.3g} "
+               "(the parsimony rule keeps the simpler)")
+    return (f"fit: {views} view(s), all in one fold (image_id mod --folds {folds}): kept {kept}: {why}; nothing "
+            "held out validates the choice (more views would; or give --brdf)")
+
+
 def summary_line(brdf: Brdf, interval, n_sources: int, given: bool = False, textured: bool = False,
                   detail_rows: int | None = None) -> str:
     """The fit's stderr line; ``interval`` None when no views were held out (nothing bounds the

@@ -47,9 +47,10 @@ from pipeline.io.mesh import mesh_path, read_mesh
 from pipeline.io.poses import poses_path, read_poses
 from pipeline.raycast import RayMesh, pixel_footprints, ray_mesh
 from stages.fit.data import load_physical
-from stages.fit.known import check_lighting_scale, known_lighting_setup
+from stages.fit.known import check_lighting_scale, fitted_material_scale, known_lighting_setup
 from stages.fit.outputs import (
     lighting_report,
+    one_view_line,
     per_image_note,
     residuals_per_view,
     scale_note,
@@ -100,10 +101,6 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
         if settings.lighting_detail == "auto" and known is None else None     # a known lighting has its own detail
     candidate = CandidateFit(geo, obs, search_options(settings), kw, order, orders, known, detail)
     one_fold = len(np.unique(obs.fold)) < 2
-    if one_fold and known_brdf is None:
-        print(f"fit: model selection needs held-out views, but the {len(np.unique(data['image_id']))} view(s) fall in one fold "
-              f"(image_id mod --folds {settings.folds}): candidates are compared by their training residual, "
-              "which favours the richest; the choice is in the report", file=sys.stderr)
     t0 = time.perf_counter()
     mode = ("check" if known is not None else "lighting") if known_brdf is not None else \
         ("brdf" if known is not None else "factorization")
@@ -122,6 +119,9 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
         report["albedo"]["uniform_base_search"] = first
     timings["material"] = time.perf_counter() - t0
     best, interval = chosen.best, chosen.interval
+    if one_fold and known_brdf is None and len(models) > 1:     # --brdf auto: say what it kept and why
+        print(one_view_line(report["candidates"], brdf, settings.parsimony, len(np.unique(data["image_id"])),
+                            settings.folds), file=sys.stderr)
     found = None
     if settings.materials == "auto" and known_brdf is None and candidate.known is None:
         report["materials"], found = fit_materials(mesh, data, replace(geo, pattern=None), obs, best, settings,
@@ -240,32 +240,23 @@ def texture_pattern(obs: Observations, mesh, data: dict, vertex_rho: np.ndarray)
 def select_with_scale(candidate: CandidateFit, settings: Settings, known_brdf: Brdf | None, models: list[str],
                       hint) -> tuple:
     """(the candidate fitter as finally scaled, select_material's (best, table, interval, anchor),
-    the lighting-scale check or None): the given material, or the selection; with a known
-    lighting, the check of its scale against the photos (check_lighting_scale), and with
-    --lighting-scale fit the selection again under the scaled lighting until the factor settles."""
-    obs = candidate.obs
-
-    def select() -> tuple:
-        if known_brdf is not None:
-            best = known_material_fit(candidate, material_from_brdf(known_brdf), known_brdf.diffuse_color)
-            return best, [candidate_row(best)], None, best
-        return select_material(candidate, models, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float),
-                               candidate.detail is not None)
-
-    chosen = select()
-    if candidate.known is None:
-        return candidate, chosen, None
-    applied = 1.0
-    for _ in range(4):   # --lighting-scale fit: until the factor settles
-        k = candidate.known
-        scale = check_lighting_scale(candidate.geo, obs, settings, chosen[3] or chosen[0], k.coeffs, k.directions,
-                                     k.intensity)
-        if abs(scale["applied"] - 1.0) < 0.02:
-            break
-        applied *= scale["applied"]
-        candidate = candidate.rescaled(scale["applied"])
-        chosen = select()
-    scale["applied"] = applied
+    the lighting-scale record or None): the given material, or the selection.  With a known
+    lighting its scale is checked against the photos first (check_lighting_scale: seconds, and a
+    refusal before any search), with --lighting-scale fit the factor applied, and the chosen
+    material's own reading of the factor added to the record."""
+    scale = None
+    if candidate.known is not None:
+        scale = check_lighting_scale(candidate, settings)
+        if scale["applied"] != 1.0:
+            candidate = candidate.rescaled(scale["applied"])
+    if known_brdf is not None:
+        best = known_material_fit(candidate, material_from_brdf(known_brdf), known_brdf.diffuse_color)
+        chosen = best, [candidate_row(best)], None, best
+    else:
+        chosen = select_material(candidate, models, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float),
+                                 candidate.detail is not None)
+    if scale is not None:
+        scale.update(fitted_material_scale(candidate, chosen[0], settings))
     return candidate, chosen, scale
 
 
