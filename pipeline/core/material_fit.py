@@ -563,27 +563,6 @@ def predict(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | No
     return fit.base * shade + specular
 
 
-def known_lighting_scale(shade: np.ndarray, specular: np.ndarray, obs: Observations) -> tuple[float, bool]:
-    """(k, exact): how many times brighter the photos are than a known lighting predicts, from a
-    candidate's shading under it (shading_parts: diffuse per unit base colour Q, specular R).
-
-    With a specular layer the layer's Fresnel-fixed magnitude pins it: per channel radiance =
-    x_c Q_c + k_c R_c (x_c = k_c rho_c) by least squares, k the R-weighted mean of k_c (exact =
-    True).  Without one only a lower bound: the factor that keeps the least-squares base colour at
-    or below 1 (exact = False).
-    """
-    w = obs.weight[:, None]
-    if not np.any(specular):
-        rho = (w * shade * obs.radiance).sum(0) / np.maximum((w * shade * shade).sum(0), 1e-300)
-        return float(max(1.0, rho.max())), False
-    k = np.zeros(3)
-    energy = (w * specular ** 2).sum(0)
-    for c in range(3):
-        a = np.stack([shade[:, c], specular[:, c]], axis=1) * np.sqrt(w)
-        k[c] = np.linalg.lstsq(a, obs.radiance[:, c] * np.sqrt(w[:, 0]), rcond=None)[0][1]
-    return float((k * energy).sum() / max(energy.sum(), 1e-300)), True
-
-
 def fit_to_map(geo: prt.Geometry, scene, material: Principled | None, obs: Observations, *, base0: np.ndarray,
                fix_base: bool = False, scale: float = 1.0, direct: tuple | None = None) -> MaterialFit:
     """Base colour of one material candidate (None: Lambert) under a known equirect map, on the

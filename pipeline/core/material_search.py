@@ -345,7 +345,6 @@ def search_albedo_level(candidate: "CandidateFit", fit: material_fit.MaterialFit
     return candidate(None, fit.base * s, False, source_directions(fit)), note
 
 
-
 def candidate_row(fit: material_fit.MaterialFit) -> dict:
     if fit.material is None:
         return {"name": "lambert", "roughness": 0.0, "base_color": [float(x) for x in fit.base],

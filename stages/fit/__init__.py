@@ -1,7 +1,7 @@
 """fit: lighting (SH) and BRDF from the light-field samples, in frequency space, with diagnostics.
 
 Usage: ``sigrend fit CAPTURE -w WORK [--lighting unknown|ENV.exr|lighting_sh.json]
-[--brdf auto|lambert|phong|microfacet|brdf.json|inline spec] [--order auto|N]``.
+[--brdf auto|lambert|principled|phong|microfacet|brdf.json|inline spec] [--order auto|N]``.
 
 Modes (the inverse-rendering table, DESIGN.md "The inverse problems"):
   lighting       BRDF known (a file or inline spec), lighting unknown: regularized linear least

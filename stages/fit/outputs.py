@@ -204,13 +204,20 @@ def scale_note(brdf: Brdf, hint, level: dict | None = None) -> dict:
                           "scale of lighting vs base colour"}
     if level is not None and level["determined"]:
         return {"source": "interreflection", "albedo_level": level,
+                "chromaticity": f"the convention (grey, default albedo {DEFAULT_ALBEDO}): not determined",
                 "note": "light bounced between parts of the object goes as the albedo squared, direct light as the "
                         "albedo: the held-out views fix the albedo's level (material_fit.albedo_level), and the "
-                        "lighting carries the inverse scale; the chromaticity is the least-squares one"}
-    return {"source": "capture.toml [fit] known_albedo" if hint is not None else f"default grey albedo {DEFAULT_ALBEDO}",
-            "note": "a Lambertian object determines its albedo's chromaticity, not its level (no interreflection "
-                    "strong enough to fix it): the mean albedo is set by the convention and the lighting carries "
-                    "the inverse scale", **({} if level is None else {"albedo_level": level})}
+                        "lighting carries the inverse scale; the colour stays the convention's (each channel's own "
+                        "level, searched on the Cycles bunny, moved red/blue from 1.0 to 1.11 for the truth's 1.4 "
+                        "and the mean 17 % high: too weak to take, docs/fit.md)"}
+    given = hint is not None
+    return {"source": "capture.toml [fit] known_albedo" if given else f"default grey albedo {DEFAULT_ALBEDO}",
+            "chromaticity": "capture.toml [fit] known_albedo" if given else "the convention (grey): not determined",
+            "note": "a Lambertian object under unknown lighting determines neither its albedo's level nor its colour "
+                    "(each channel's scale trades with the lighting's, and no interreflection is strong enough to "
+                    "fix it): the albedo is set by the convention and the lighting carries the inverse scale, "
+                    "colour included; a known albedo in capture.toml [fit] known_albedo fixes it",
+            **({} if level is None else {"albedo_level": level})}
 
 
 def selection_note(one_fold: bool, known: bool, folds: int, brdf: Brdf) -> dict:
@@ -247,13 +254,20 @@ def one_view_line(table: list[dict], brdf: Brdf, parsimony: float, views: int, f
 
 
 def summary_line(brdf: Brdf, interval, n_sources: int, given: bool = False, textured: bool = False,
-                  detail_rows: int | None = None) -> str:
+                  detail_rows: int | None = None, colour_by: dict | None = None) -> str:
     """The fit's stderr line; ``interval`` None when no views were held out (nothing bounds the
     roughness) or the material was ``given``; ``textured``: the colour is a per-vertex texture
-    (fit/albedo.ply), brdf.json's its mean; ``detail_rows``: the lighting's detail part's rows, if used."""
+    (fit/albedo.ply), brdf.json's its mean; ``detail_rows``: the lighting's detail part's rows, if used;
+    ``colour_by``: report.json's scale_convention; a Lambertian albedo whose colour (and level) are
+    the convention's says so."""
     if brdf.model == "lambert":
         colour = "albedo " + ("textured, mean " if textured else "")
-        return f"fit: lambert, {colour}{np.round(brdf.albedo, 3).tolist()}, {n_sources} directional source(s)"
+        said = ""
+        if colour_by is not None and str(colour_by.get("chromaticity", "")).startswith("the convention"):
+            what = "colour is" if colour_by.get("source") == "interreflection" else "colour and level are"
+            said = (f" (its {what} the convention's: the photos do not fix {'it' if what == 'colour is' else 'them'}; "
+                    "give capture.toml [fit] known_albedo)")
+        return f"fit: lambert, {colour}{np.round(brdf.albedo, 3).tolist()}, {n_sources} directional source(s){said}"
     bound = ("given" if given else "no held-out views: not validated" if interval is None
              else f"held-out views cannot tell apart {interval[0]:.3f}-{interval[1]:.3f}")
     colour = "base colour " + ("textured (fit/albedo.ply), mean " if textured else "")

@@ -128,7 +128,8 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
                                                    candidate.opts)
     materials = None if found is None else (mesh, found, material_brdfs(found))
     print(summary_line(brdf, None if one_fold else interval, len(report["sources"]), known_brdf is not None,
-                        textured=vertex_rho is not None, detail_rows=report["lighting_detail"].get("rows")),
+                        textured=vertex_rho is not None, detail_rows=report["lighting_detail"].get("rows"),
+                        colour_by=report["scale_convention"]),
           file=sys.stderr)
     timings["total"] = time.perf_counter() - t_start
     report["timings"] = timings

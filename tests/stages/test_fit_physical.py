@@ -366,3 +366,17 @@ def test_summary_line_names_the_detail_part():
     brdf = Brdf("principled", base_color=[0.07, 0.41, 0.12], roughness=0.158)
     assert "105-row detail map" in summary_line(brdf, (0.15, 0.17), 3, detail_rows=105)
     assert "detail" not in summary_line(brdf, (0.15, 0.17), 3)
+
+
+def test_summary_line_says_when_a_lambert_colour_is_a_convention():
+    """Issue 49 item 5: a Lambertian albedo under unknown lighting whose colour (and level) the photos
+    do not fix says so on the fit's stderr line, naming the fix; interreflection that fixed the level
+    leaves only the colour to the convention; a known albedo says nothing."""
+    from stages.fit.outputs import scale_note, summary_line
+
+    brdf = Brdf("lambert", albedo=[0.5] * 3)
+    convex = summary_line(brdf, None, 0, colour_by=scale_note(brdf, None))
+    assert "its colour and level are the convention's" in convex and "known_albedo" in convex
+    bounced = scale_note(brdf, None, {"determined": True, "mean_albedo": 0.6})
+    assert "its colour is the convention's" in summary_line(brdf, None, 0, colour_by=bounced)
+    assert "convention" not in summary_line(brdf, None, 0, colour_by=scale_note(brdf, [0.7, 0.6, 0.5]))
