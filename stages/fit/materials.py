@@ -11,11 +11,12 @@ import time
 import numpy as np
 
 from pipeline.core import material_fit, prt, svbrdf, texture
-from pipeline.core.candidate import Observations
 from pipeline.core.brdf import Brdf
+from pipeline.core.candidate import Observations
 from pipeline.core.material import Principled, brdf_from_material
 from pipeline.core.material_search import SearchOptions
 from pipeline.core.selection import parsimonious_choice
+from pipeline.core.sh import order_of
 from pipeline.core.sources import Sources
 from stages.fit.settings import Settings
 
@@ -34,7 +35,7 @@ def candidate_shading(geo: prt.Geometry, best: material_fit.MaterialFit, materia
                       opts: SearchOptions) -> svbrdf.CandidateShading:
     """``material``'s shading at the samples under ``best``'s lighting (SH to its order and its
     sources; the lighting's detail part belongs to the chosen lobe and is left out)."""
-    order = int(np.sqrt(best.coeffs.shape[0])) - 1
+    order = order_of(best.coeffs.shape[0])
     spec = None if material is None else prt.specular_transfer(geo, material, opts.lobe_samples, opts.seed, order=order)
     sources = None if best.sources is None else Sources(prt.source_transfer(geo, material, best.sources.directions),
                                                         best.sources.power)
