@@ -160,17 +160,20 @@ def held_out_rmse(interp: sp.csr_matrix, laplacian: sp.csr_matrix, shadings: lis
     return float(np.sqrt(se / (3 * wsum))) if wsum else float("nan")
 
 
+def sample_shading(interp: sp.csr_matrix, shadings: list[CandidateShading],
+                   labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(shade, specular) (N, 3) each: every sample through its material's shading (sample_labels)."""
+    per_sample, rows = sample_labels(interp, labels), np.arange(interp.shape[0])
+    return (np.stack([c.shade for c in shadings])[per_sample, rows],
+            np.stack([c.specular for c in shadings])[per_sample, rows])
+
+
 def predict(interp: sp.csr_matrix, shadings: list[CandidateShading], labels: np.ndarray,
             base: np.ndarray) -> np.ndarray:
     """Radiance (N, 3) of the samples under a material map: each sample through its material's
-    shading (sample_labels), with the base colour interpolated from the vertices."""
-    per_sample = sample_labels(interp, labels)
-    rho = interp @ base
-    out = np.empty_like(rho)
-    for m, cand in enumerate(shadings):
-        rows = per_sample == m
-        out[rows] = rho[rows] * cand.shade[rows] + cand.specular[rows]
-    return out
+    shading (sample_shading), with the base colour interpolated from the vertices."""
+    shade, specular = sample_shading(interp, shadings, labels)
+    return (interp @ base) * shade + specular
 
 
 def base_std(interp: sp.csr_matrix, shadings: list[CandidateShading], labels: np.ndarray, base: np.ndarray,
@@ -179,9 +182,8 @@ def base_std(interp: sp.csr_matrix, shadings: list[CandidateShading], labels: np
     sigma_c^2 / sum_p w_p (P_pv Q_pc)^2, sigma_c^2 the weighted residual variance of the map's fit
     (the photos' noise and model error); inf where no sample sees the vertex (its value comes from
     its neighbours through the smoothness term)."""
-    pred = predict(interp, shadings, labels, base)
-    per_sample = sample_labels(interp, labels)
-    shade = np.stack([c.shade for c in shadings])[per_sample, np.arange(len(per_sample))]
+    shade, specular = sample_shading(interp, shadings, labels)
+    pred = (interp @ base) * shade + specular
     sigma2 = (weight[:, None] * (radiance - pred) ** 2).sum(axis=0) / max(float(weight.sum()), 1e-300)
     info = (interp.multiply(interp)).T @ (weight[:, None] * shade ** 2)        # (V, 3)
     with np.errstate(divide="ignore"):
