@@ -374,7 +374,8 @@ def _export(work: Path) -> str:
     """The exported asset (WORK/export, `sigrend export`'s default place): its files with their sizes
     and its previews under two bundled maps; nothing when it has not been exported there."""
     folder = Path(work) / "export"
-    manifest = _json(folder / "asset_export.json")
+    manifests = sorted(folder.glob("*.export.json"), key=lambda p: p.stat().st_mtime)   # asset.glb.export.json, ...
+    manifest = _json(manifests[-1]) if manifests else None
     if not manifest:
         return ""
     rows = "".join(f"<tr><td>{html.escape(f['file'])}</td><td>{_size(int(f['bytes']))}</td></tr>"

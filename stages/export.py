@@ -3,23 +3,27 @@
 Usage: ``sigrend export CAPTURE -w WORK [-o asset.glb|.gltf|.usda|.usdc|.usd] [--env-height 512]``.
 Inputs: the mesh (CAPTURE/mesh.*), WORK/fit/brdf.json (lambert or principled), the optional
 per-vertex base colour WORK/fit/albedo.ply and the fitted lighting WORK/fit/lighting_sh.json.
-Outputs (default WORK/export/asset.glb), beside each other:
+Outputs (default WORK/export/asset.glb), beside each other, the extras named after the asset's own
+file name (``asset.glb`` -> ``asset.glb.lighting.exr``), so a .glb and a .usda exported to one stem
+keep their own:
 
 * ``asset.glb`` (or .gltf, buffer embedded): the mesh with its smooth normals, rotated to glTF's
   +Y up, and the material as glTF 2.0 metallic-roughness (pipeline.io.gltf); or ``asset.usda``
-  (.usdc, .usd): the mesh in the object frame (Z up) with a UsdPreviewSurface (pipeline.io.usd).
-* ``asset_lighting.exr``: the fitted lighting as an equirect float map (SH evaluated and clamped
+  (.usdc, .usd): the mesh in the object frame (Z up) with a UsdPreviewSurface and a UsdLux
+  DomeLight ``/lighting`` of the lighting map below (pipeline.io.usd, its orientation
+  pipeline.core.envmap.USD_DOME_TO_OBJECT).
+* ``asset.glb.lighting.exr``: the fitted lighting as an equirect float map (SH evaluated and clamped
   at 0, directional sources splatted into their texels) in the column order Blender's
   Environment Texture node (default mapping) and three.js's equirectangular loader read:
   pipeline.core.envmap.blender_columns.
-* ``asset_preview_sunsky.png``, ``asset_preview_room.png``: the asset rendered by sigrend's renderer
+* ``asset.glb.preview_sunsky.png``, ``asset.glb.preview_room.png``: the asset rendered by sigrend's renderer
   (pipeline.core.render: shadows, interreflection, the material as exported) under two of the
   bundled procedural maps (pipeline.core.procedural_envmaps ``sun+sky`` and ``room``), one view 20 degrees
   above the object; the report shows them.
-* ``asset_export.json``: the files with their sizes, the material, the conventions, the energy
+* ``asset.glb.export.json``: the files with their sizes, the material, the conventions, the energy
   lost by clamping the lighting's negative lobes.
 
-docs/export.md says how to load them in Blender and three.js.
+docs/export.md says how to load them in Blender (a short script sets the map as the World) and three.js.
 """
 
 from __future__ import annotations
@@ -33,8 +37,8 @@ from pipeline.core.brdf import Brdf
 from pipeline.core.envmap import add_sources, blender_columns, equirect_solid_angles
 from pipeline.core.sh import envmap_from_sh
 from pipeline.errors import UserError
-from pipeline.io.brdf import read_brdf
 from pipeline.io import gltf, usd
+from pipeline.io.brdf import read_brdf
 from pipeline.io.images import preview_exposure, write_image, write_preview
 from pipeline.io.lighting import read_lighting_parts
 from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
@@ -70,9 +74,10 @@ def asset_path(work: Path, settings: Settings) -> Path:
     return Path(settings.out) if settings.out else Path(work) / "export" / "asset.glb"
 
 
-def companion(asset: Path, suffix: str) -> Path:
-    """A file written beside the asset: asset.glb -> asset<suffix>."""
-    return asset.with_name(asset.stem + suffix)
+def companion(asset: Path, extra: str) -> Path:
+    """An extra written beside the asset under the asset's own file name: (asset.glb, "lighting.exr")
+    -> asset.glb.lighting.exr (a .usda exported to the same stem keeps its own extras)."""
+    return asset.with_name(f"{asset.name}.{extra}")
 
 
 def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
@@ -91,8 +96,8 @@ PREVIEW_PX = 256
 
 def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     asset = asset_path(work, settings)
-    return ([asset, companion(asset, "_lighting.exr")] + [companion(asset, f"_preview_{tag}.png") for tag in PREVIEWS]
-            + [companion(asset, "_export.json")])
+    return ([asset, companion(asset, "lighting.exr")] + [companion(asset, f"preview_{tag}.png") for tag in PREVIEWS]
+            + [companion(asset, "export.json")])
 
 
 def preview(mesh, brdf: Brdf, colors: np.ndarray | None, env_spec: str) -> tuple[np.ndarray, np.ndarray]:
@@ -138,12 +143,13 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     asset = asset_path(work, settings)
     make_folder(asset.parent, "-o")
     write = WRITERS[asset.suffix.lower()]
+    lighting = write_image(companion(asset, "lighting.exr"), blender_columns(env).astype(np.float32), dtype="float")
+    extra = {"dome_light": lighting.name} if write is usd.write_usd else {}   # the USD's DomeLight reads the map
     written = [write(asset, mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, colors,
-                     generator=f"sigrend {__version__}"),
-               write_image(companion(asset, "_lighting.exr"), blender_columns(env).astype(np.float32), dtype="float")]
+                     generator=f"sigrend {__version__}", **extra), lighting]
     for tag, spec in PREVIEWS.items():
         rgb, mask = preview(mesh, brdf, colors, spec)
-        written.append(write_preview(companion(asset, f"_preview_{tag}.png"), rgb, preview_exposure(rgb, mask)))
+        written.append(write_preview(companion(asset, f"preview_{tag}.png"), rgb, preview_exposure(rgb, mask)))
     manifest = {
         "asset": asset.name, "lighting": written[1].name,
         "previews": {spec: p.name for spec, p in zip(PREVIEWS.values(), written[2:])},
@@ -154,7 +160,11 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         "lighting_mapping": "equirect, Blender Environment Texture default mapping / three.js equirectangular: "
                             "u = 0.5 - atan2(y, x) / 2pi in the object frame, v = acos(z) / pi from the top",
         "lighting_clamped_fraction": clamped,
+        "lighting_in_asset": ("UsdLux.DomeLight /lighting, texture:format latlong, rotated so that the map's pole is "
+                              "the object's +Z (docs/export.md)" if write is usd.write_usd else
+                              "none (glTF has no environment light): the map is the sidecar above; docs/export.md's "
+                              "script sets it as Blender's World"),
         "source": {"brdf": str(fit / "brdf.json"), "lighting": str(fit / "lighting_sh.json")},
     }
-    written.append(write_json(companion(asset, "_export.json"), manifest))
+    written.append(write_json(companion(asset, "export.json"), manifest))
     return written

@@ -72,6 +72,20 @@ def blender_columns(env: np.ndarray, rotation_texels: int = 0) -> np.ndarray:
     return env[:, (width // 2 - 1 - np.arange(width) - int(rotation_texels)) % width]
 
 
+# A map in Blender's column order (blender_columns) as the latlong texture of a USD DomeLight.
+# UsdLux.DomeLight reads its texture as OpenEXR's latitude-longitude map in the light's own frame,
+# pole +Y: column x at longitude lon = pi - 2 pi (x + 0.5) / W (+pi at the left edge), row y at
+# latitude pi/2 - pi (y + 0.5) / H, direction (cos lat sin lon, sin lat, cos lat cos lon); lon 0 is
+# +Z, lon pi/2 is +X.  Blender's column x holds our azimuth phi = pi - 2 pi (x + 0.5) / W, so lon =
+# phi and lat = pi/2 - theta: the light's (x, y, z) is our (sin th sin phi, cos th, sin th cos phi),
+# i.e. d_object = (d_light_z, d_light_x, d_light_y).  That is a rotation (det +1, 120 degrees about
+# (1, 1, 1)): the light's +Y (its pole) to the object's +Z, +Z to +X, +X to +Y; as USD's xformOp
+# rotateXYZ (X first, then Y, then Z: Rz(90) Rx(90)), the angles below.  A stage whose upAxis is Z
+# changes nothing: UsdLux.DomeLight's pole is its own +Y whatever the stage's up axis.
+USD_DOME_TO_OBJECT = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])   # d_object = M @ d_light
+USD_DOME_ROTATE_XYZ_DEG = (90.0, 0.0, 90.0)
+
+
 def add_sources(env: np.ndarray, directions: np.ndarray, intensity: np.ndarray) -> np.ndarray:
     """A copy of an (H, 2H, 3) map with directional sources added: each source's intensity
     (J, 3) (irradiance it gives at normal incidence, sum L dω) spread bilinearly over the four

@@ -8,7 +8,11 @@ diffuseColor = base_color (or a UsdPrimvarReader_float3 of displayColor), roughn
 roughness^2, as brdf.json), metallic = metallic, ior = ior (the metalness workflow derives the
 dielectric F0 = ((ior - 1) / (ior + 1))^2 from it).  A ``lambert`` material is the specular
 workflow with specularColor 0 (no specular layer).  UsdPreviewSurface has no specular tint: a
-tinted principled material is refused.
+tinted principled material is refused.  With ``dome_light`` (a map file beside the asset, in
+Blender's column order: pipeline.core.envmap.blender_columns) also a UsdLux.DomeLight ``/lighting``
+(beside ``/object``, so a reference to the asset brings the object alone), texture format latlong,
+rotated by pipeline.core.envmap.USD_DOME_ROTATE_XYZ_DEG so that the map's directions are the object
+frame's.
 """
 
 from __future__ import annotations
@@ -18,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import UserError
 from pipeline.core.brdf import Brdf
+from pipeline.errors import UserError
 from pipeline.workdir import atomic_path
 
 FORMATS = (".usda", ".usdc", ".usd")
@@ -39,10 +43,12 @@ def preview_surface_inputs(brdf: Brdf) -> dict:
 
 
 def write_usd(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
-              brdf: Brdf, vertex_colors: np.ndarray | None = None, generator: str = "sigrend") -> Path:
+              brdf: Brdf, vertex_colors: np.ndarray | None = None, generator: str = "sigrend",
+              dome_light: str | None = None) -> Path:
     """Write one mesh (object frame, metres; faces (F, 3); unit vertex normals (V, 3)) with the
     material of ``brdf`` and optional per-vertex linear base colour (V, 3), atomically; the
-    format (text .usda, binary .usdc/.usd) from the suffix."""
+    format (text .usda, binary .usdc/.usd) from the suffix.  ``dome_light``: the lighting map's
+    path relative to the asset (module docstring)."""
     from pxr import Gf, Sdf, Usd, UsdGeom, UsdShade, Vt
 
     path = Path(path)
@@ -87,5 +93,23 @@ def write_usd(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, 
             reader.CreateOutput("result", Sdf.ValueTypeNames.Float3)
         material.CreateSurfaceOutput().ConnectToSource(shader.ConnectableAPI(), "surface")
         UsdShade.MaterialBindingAPI.Apply(mesh.GetPrim()).Bind(material)
+        if dome_light is not None:
+            add_dome_light(stage, dome_light)
         layer.Save()
     return path
+
+
+def add_dome_light(stage, texture: str, path: str = "/lighting"):
+    """A UsdLux.DomeLight at ``path`` lit by the latlong map ``texture`` (Blender's column order),
+    oriented into the object frame (pipeline.core.envmap.USD_DOME_ROTATE_XYZ_DEG), intensity 1:
+    the map's values are the radiance, in the photos' linear units."""
+    from pxr import Gf, Sdf, UsdGeom, UsdLux
+
+    from pipeline.core.envmap import USD_DOME_ROTATE_XYZ_DEG
+
+    light = UsdLux.DomeLight.Define(stage, path)
+    light.CreateTextureFileAttr(Sdf.AssetPath(f"./{texture}"))
+    light.CreateTextureFormatAttr(UsdLux.Tokens.latlong)
+    light.CreateIntensityAttr(1.0)
+    UsdGeom.Xformable(light).AddRotateXYZOp().Set(Gf.Vec3f(*USD_DOME_ROTATE_XYZ_DEG))
+    return light

@@ -85,11 +85,11 @@ def test_glb_holds_the_mesh_material_and_lighting_in_gltf_conventions(tmp_path):
     expected = np.asarray(brdf.base_color) * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None]
     np.testing.assert_allclose(accessor("COLOR_0"), expected, atol=0.5 / 255 + 1e-6)   # albedo.ply is 8-bit
     # the lighting map, in Blender's column order, holds the SH (clamped) and the source's energy
-    exported = read_image(tmp_path / "out" / "teapot_lighting.exr")[..., :3]
+    exported = read_image(tmp_path / "out" / "teapot.glb.lighting.exr")[..., :3]
     ours, clamped = lighting_map(work / "fit" / "lighting_sh.json", 512)
     np.testing.assert_allclose(blender_columns(exported), ours, rtol=1e-6, atol=1e-6)
     assert 0.0 <= clamped < 0.03   # the SH part's negative lobes: 2.6 % of the energy
-    manifest = json.loads((tmp_path / "out" / "teapot_export.json").read_text())
+    manifest = json.loads((tmp_path / "out" / "teapot.glb.export.json").read_text())
     assert manifest["per_vertex_base_color"] and manifest["material"]["ior"] == pytest.approx(1.45)
 
 
@@ -131,9 +131,9 @@ def test_lambert_is_a_gltf_material_without_specular_layer(tmp_path):
     assert doc.meshes[0].primitives[0].attributes.COLOR_0 is None
 
     folder = work / "export"
-    manifest = json.loads((folder / "asset_export.json").read_text())
+    manifest = json.loads((folder / "asset.glb.export.json").read_text())
     sizes = {f["file"]: f["bytes"] for f in manifest["files"]}
-    assert sizes == {p.name: p.stat().st_size for p in folder.iterdir() if p.name != "asset_export.json"}
+    assert sizes == {p.name: p.stat().st_size for p in folder.iterdir() if p.name != "asset.glb.export.json"}
     sky, room = (read_image(folder / manifest["previews"][spec])[..., :3].astype(float) for spec in ("sun+sky", "room"))
     centre = (slice(96, 160), slice(96, 160))          # the teapot fills the middle of the 256^2 view
     assert sky[centre].mean() > 0.1 and room[centre].mean() > 0.1
@@ -183,12 +183,12 @@ def test_blender_renders_the_exported_asset_as_sigrend_relights_it(tmp_path, ble
     poses["images"] = {key: poses["images"][key]}
     (tmp_path / "view.json").write_text(json.dumps(poses))
     script = Path(__file__).parents[1] / "blender" / "render_asset.py"
-    subprocess.run([blender_python, str(script), str(asset / asset_name), str(asset / "asset_lighting.exr"),
+    subprocess.run([blender_python, str(script), str(asset / asset_name), str(asset / f"{asset_name}.lighting.exr"),
                     str(tmp_path / "view.json"), key, str(tmp_path / "blender.exr"), "128", "128", "256"],
                    check=True, capture_output=True)
     from pipeline.io.images import write_image
 
-    write_image(tmp_path / "ours_env.exr", blender_columns(read_image(asset / "asset_lighting.exr")[..., :3]),
+    write_image(tmp_path / "ours_env.exr", blender_columns(read_image(asset / f"{asset_name}.lighting.exr")[..., :3]),
                 dtype="float")
     assert sigrend(["relight", str(capture), "-w", str(work), "--env", str(tmp_path / "ours_env.exr"),
                     "--views", str(tmp_path / "view.json"), "--size", "128x128", "--interior-supersample", "2",
@@ -196,3 +196,64 @@ def test_blender_renders_the_exported_asset_as_sigrend_relights_it(tmp_path, ble
     ours = read_image(tmp_path / "relight" / f"{Path(key).stem}.exr")
     error = block_relative_rmse([ours], [read_image(tmp_path / "blender.exr")], fit_scale=False)
     assert error.total < 0.03, f"Blender vs sigrend relight of the exported asset: {error}"
+
+
+def test_glb_then_usda_to_one_stem_keep_their_own_extras(tmp_path):
+    """Exporting teapot.glb and then teapot.usda into one folder leaves both assets' extras (lighting
+    map, previews, manifest) side by side, each manifest naming its own asset and listing exactly its
+    own files with their sizes (issue 48: the .usda's export overwrote the .glb's)."""
+    capture, work = make_fit(tmp_path, Brdf("lambert", albedo=[0.6, 0.5, 0.4]), textured=False, sun=False)
+    out = tmp_path / "out"
+    for name in ("teapot.glb", "teapot.usda"):
+        assert sigrend(["export", str(capture), "-w", str(work), "-o", str(out / name), "--env-height", "32"]) == 0
+    for name, frame in (("teapot.glb", "glTF +Y up"), ("teapot.usda", "USD stage upAxis Z")):
+        manifest = json.loads((out / f"{name}.export.json").read_text())
+        assert manifest["asset"] == name and manifest["frame"].startswith(frame)
+        listed = {f["file"]: f["bytes"] for f in manifest["files"]}
+        assert set(listed) == {name, f"{name}.lighting.exr", f"{name}.preview_sunsky.png", f"{name}.preview_room.png"}
+        assert listed == {f: (out / f).stat().st_size for f in listed}
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        f"{name}{extra}" for name in ("teapot.glb", "teapot.usda")
+        for extra in ("", ".lighting.exr", ".preview_sunsky.png", ".preview_room.png", ".export.json"))
+
+
+def test_usd_dome_light_shows_the_fitted_source_in_its_direction(tmp_path):
+    """The .usda's UsdLux.DomeLight reads the exported lighting map and its transform turns the map
+    into the object frame: a fit whose lighting is one directional source (elevation 35, azimuth 70
+    degrees, not on any symmetry of the mapping) over a dim constant, exported with a 64-row map; the
+    brightest texel of the DomeLight's texture, read as USD's documented latlong (OpenEXR: longitude
+    +pi at the left edge, latitude +pi/2 at the top, lon 0 = +Z, lon pi/2 = +X, pole +Y) and carried
+    through the prim's local-to-world transform read back with pxr, points within 1.5 texels
+    (4.2 degrees) of the source.  Control: the light's own frame (no transform) is 35 degrees off."""
+    from pxr import Gf, Usd, UsdLux
+
+    capture, work = make_fit(tmp_path, Brdf("lambert", albedo=[0.6, 0.5, 0.4]), textured=False, sun=False)
+    e, a = np.radians(35.0), np.radians(70.0)
+    source = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
+    coeffs = np.zeros((9, 3))
+    coeffs[0] = 0.05 / 0.28209479177387814            # a constant 0.05 everywhere
+    coeffs += sh_of_sources(source[None], np.array([[5.0, 5.0, 5.0]]), 2)
+    write_lighting_sh(work / "fit" / "lighting_sh.json", coeffs,
+                      sources=[{"direction": source.tolist(), "intensity": [5.0, 5.0, 5.0]}])
+    asset = tmp_path / "out" / "teapot.usda"
+    assert sigrend(["export", str(capture), "-w", str(work), "-o", str(asset), "--env-height", "64"]) == 0
+
+    stage = Usd.Stage.Open(str(asset))
+    prim = stage.GetPrimAtPath("/lighting")
+    assert prim.IsA(UsdLux.DomeLight)
+    light = UsdLux.DomeLight(prim)
+    texture = Path(light.GetTextureFileAttr().Get().resolvedPath)
+    assert texture == (asset.parent / "teapot.usda.lighting.exr").resolve() and texture.is_file()
+    assert light.GetTextureFormatAttr().Get() == "latlong" and light.GetIntensityAttr().Get() == 1.0
+    assert stage.GetDefaultPrim().GetPath() == "/object"      # a reference to the asset brings no light
+    env = read_image(texture)[..., :3].sum(axis=-1)
+    height, width = env.shape
+    y, x = np.unravel_index(env.argmax(), env.shape)
+    lon, lat = np.pi - 2 * np.pi * (x + 0.5) / width, np.pi / 2 - np.pi * (y + 0.5) / height
+    in_light = np.array([np.cos(lat) * np.sin(lon), np.sin(lat), np.cos(lat) * np.cos(lon)])
+    to_world = light.ComputeLocalToWorldTransform(Usd.TimeCode.Default())
+    in_world = np.array(to_world.TransformDir(Gf.Vec3d(*in_light)))
+    angle = np.degrees(np.arccos(np.clip(in_world @ source / np.linalg.norm(in_world), -1, 1)))
+    print(f"DomeLight bright texel {angle:.2f} deg from the source")
+    assert angle < 1.5 * 180.0 / height, f"the DomeLight's bright texel is {angle:.1f} degrees from the source"
+    assert np.degrees(np.arccos(in_light @ source)) > 30.0
