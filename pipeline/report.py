@@ -332,7 +332,7 @@ def _brdf(work: Path) -> str:
 
 
 def _relight(work: Path) -> str:
-    from pipeline.io.run_summary import method_description, relight_check
+    from pipeline.io.run_summary import method_description, noise_phrase, relight_check
 
     folder = Path(work) / "relight" / "check"
     check = relight_check(work)
@@ -340,6 +340,7 @@ def _relight(work: Path) -> str:
         return _section("Relit vs photo", _missing("no relight comparison yet (the relight stage has not run)"))
     which = "held-out views (not used by the fit)" if check["heldout"] else "training views (no view was held out)"
     head = (f"<p>{len(check['views'])} {which}: relative RMS error <b>{100 * check['relative_error']:.2f}%</b>"
+            + html.escape(noise_phrase(check))
             + (f" after one global scale {check['scale']:.4g}" if check.get("scale_fitted") else "")
             + f". Relit images made by the <b>{html.escape(method_description(check))}</b>"
             + f"; error maps show |relit − photo| / mean photo from 0 (black) to "
@@ -350,7 +351,7 @@ def _relight(work: Path) -> str:
         imgs = "".join(_file_tag(folder / f"{stem}{suffix}.png", f"{stem}{suffix}", THUMB_PX)
                        for suffix in ("_photo", "", "_error"))
         cells.append(f"<figure>{imgs}<figcaption>{html.escape(key)}: photo | relit | error — "
-                     f"{100 * entry['relative_error']:.2f}%</figcaption></figure>")
+                     f"{100 * entry['relative_error']:.2f}%{html.escape(noise_phrase(entry))}</figcaption></figure>")
     extra = []
     for sub in sorted(p for p in (Path(work) / "relight").iterdir() if p.is_dir() and p.name != "check"):
         pngs = sorted(p for p in sub.glob("*.png") if not p.name.startswith("."))[:MAX_PHOTOS]

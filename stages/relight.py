@@ -638,29 +638,32 @@ def _interior(alpha: np.ndarray) -> np.ndarray:
 
 def compare_views(rendered: dict[str, np.ndarray], photos: dict[str, np.ndarray], masks: dict[str, np.ndarray],
                   fit_scale: bool) -> dict:
-    """Relative RMS errors ||s R - P|| / ||P|| per view and over all, on interior object pixels.
+    """Relative RMS errors ||s R - P|| / ||P|| per view and over all, on interior object pixels, and
+    beside them what the photos' own noise makes of it (pipeline.core.image_metrics.ErrorSums):
+    the noise floor (the error an exact model would show, from the noise level measured on these
+    photos, pipeline.core.noise) and the same error on 4 x 4 block means, the noise mostly averaged out.
 
     ``s`` is one least-squares scale over all views (s = sum R.P / sum R.R) when ``fit_scale``
     (lighting and BRDF are recovered up to one global scale), else 1.
     """
+    from pipeline.core.image_metrics import BLOCK, error_sums, total_figures
+    from pipeline.core.noise import image_noise_level
+
     num = den = 0.0
     for key, img in rendered.items():
         m = masks[key]
         num += float((img[..., :3][m] * photos[key][m]).sum())
         den += float((img[..., :3][m] ** 2).sum())
     scale = num / den if fit_scale and den > 0 else 1.0
-    per_view, total_err, total_ref = {}, 0.0, 0.0
-    for key, img in rendered.items():
-        m = masks[key]
-        diff = scale * img[..., :3][m] - photos[key][m]
-        err, ref = float((diff ** 2).sum()), float((photos[key][m] ** 2).sum())
-        per_view[key] = {"relative_error": float(np.sqrt(err / ref)) if ref > 0 else float("nan"),
-                         "pixels": int(m.sum())}
-        total_err += err
-        total_ref += ref
-    overall = float(np.sqrt(total_err / total_ref)) if total_ref > 0 else float("nan")
-    return {"scale": scale, "scale_fitted": bool(fit_scale), "relative_error": overall, "views": per_view,
-            "metric": "relative RMS error sqrt(sum |s R - P|^2 / sum |P|^2) over interior object pixels"}
+    a, b = image_noise_level([photos[k] for k in rendered], [masks[k] for k in rendered])
+    sums = {key: error_sums(scale * img[..., :3], photos[key], masks[key], a, b) for key, img in rendered.items()}
+    return {"scale": scale, "scale_fitted": bool(fit_scale), **total_figures(list(sums.values())),
+            "views": {key: s.figures() for key, s in sums.items()}, "block": BLOCK,
+            "photo_noise": {"a": a, "b": b, "model": "sigma^2 = a + b B per channel, B the pixel's channel-mean value, "
+                                                    "measured on the compared pixels (pipeline.core.noise)"},
+            "metric": "relative RMS error sqrt(sum |s R - P|^2 / sum |P|^2) over interior object pixels; noise_floor: "
+                      "sqrt(sum sigma^2 / sum |P|^2), what the photos' noise alone gives; block_*: the same on "
+                      f"{BLOCK} x {BLOCK} block means of the blocks fully inside (noise variance / {BLOCK * BLOCK})"}
 
 
 # --------------------------------------------------------------------------------------- stage API

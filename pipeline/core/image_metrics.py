@@ -12,7 +12,7 @@ views) and the rest.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -58,3 +58,61 @@ def block_relative_rmse(predictions: list[np.ndarray], references: list[np.ndarr
         return float(np.sqrt(np.mean((p[sel] - g[sel]) ** 2)) / np.mean(g[sel])) if sel.any() else float("nan")
 
     return RelightError(err(np.ones(len(p), bool)), err(r), err(~r), tuple(float(s) for s in scale), int(len(p)))
+
+
+# -------------------------------------------------------------- the relight check's figures (relight --compare)
+
+def full_blocks(mask: np.ndarray, block: int = BLOCK) -> np.ndarray:
+    """(H // b, W // b) bool: the blocks of ``mask`` (H, W) whose every pixel is in it."""
+    return block_means(np.asarray(mask, float)[..., None], block)[..., 0] > 1.0 - 1e-9
+
+
+@dataclass(frozen=True)
+class ErrorSums:
+    """One view's sums behind the relight check's relative RMS figures (add views by adding sums):
+    per pixel ``err`` = sum |s R - P|^2, ``ref`` = sum |P|^2 and ``noise`` = sum sigma^2 over the
+    compared pixels and channels; the same over the means of the blocks fully inside the mask
+    (``block_*``; a block mean's noise variance is its pixels' mean variance / block^2).  The
+    sums of several views add (total_figures)."""
+
+    err: float
+    ref: float
+    noise: float
+    block_err: float
+    block_ref: float
+    block_noise: float
+    pixels: int
+    blocks: int
+
+    def figures(self) -> dict:
+        """Relative RMS figures: ``relative_error`` sqrt(err / ref) per pixel, ``noise_floor``
+        sqrt(noise / ref) (what the photos' noise alone gives with an exact model), and their block-mean
+        counterparts ``block_relative_error``, ``block_noise_floor`` (NaN where there is nothing)."""
+        def ratio(a: float, b: float) -> float:
+            return float(np.sqrt(a / b)) if b > 0 and np.isfinite(a) else float("nan")
+
+        return {"relative_error": ratio(self.err, self.ref), "noise_floor": ratio(self.noise, self.ref),
+                "block_relative_error": ratio(self.block_err, self.block_ref),
+                "block_noise_floor": ratio(self.block_noise, self.block_ref), "pixels": self.pixels,
+                "blocks": self.blocks}
+
+
+def error_sums(prediction: np.ndarray, photo: np.ndarray, mask: np.ndarray, noise_a: float, noise_b: float,
+               block: int = BLOCK) -> ErrorSums:
+    """ErrorSums of ``prediction`` (H, W, >=3; already scaled) against ``photo`` (H, W, 3) on ``mask``
+    (H, W) bool, with the photo's noise variance per channel a + b B (B the pixel's channel-mean
+    photo value, clipped at 0; pipeline.core.noise.noise_level_function's model; NaN a: unknown)."""
+    m = np.asarray(mask, bool)
+    p, g = np.asarray(prediction, float)[..., :3], np.asarray(photo, float)[..., :3]
+    var = noise_a + noise_b * np.maximum(g.mean(axis=-1), 0.0)               # (H, W), per channel
+    full = full_blocks(m, block)
+    pb, gb = block_means(np.where(m[..., None], p, 0.0), block)[full], block_means(np.where(m[..., None], g, 0.0), block)[full]
+    vb = block_means(np.where(m, var, 0.0)[..., None], block)[..., 0][full] / block ** 2
+    return ErrorSums(err=float(((p[m] - g[m]) ** 2).sum()), ref=float((g[m] ** 2).sum()), noise=3.0 * float(var[m].sum()),
+                     block_err=float(((pb - gb) ** 2).sum()), block_ref=float((gb ** 2).sum()),
+                     block_noise=3.0 * float(vb.sum()), pixels=int(m.sum()), blocks=int(full.sum()))
+
+
+def total_figures(sums: list[ErrorSums]) -> dict:
+    """ErrorSums.figures of several views together (their sums added)."""
+    return ErrorSums(*(sum(column) for column in zip(*(astuple(s) for s in sums)))).figures() if sums else {}

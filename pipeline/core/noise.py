@@ -16,13 +16,14 @@ import numpy as np
 MAD_TO_SIGMA = 1.4826          # sigma / MAD of a normal distribution
 
 
-def _second_differences(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _second_differences(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray,
+                        lag: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Second differences (M, 3) of the samples whose left and right (or upper and lower)
-    neighbours are samples too, and the radiance level (M,) (channel mean) of their centres."""
+    neighbours ``lag`` pixels away are samples too, and the radiance level (M,) (channel mean) of their centres."""
     radiance = np.asarray(radiance, float)
     x = np.asarray(pixel[:, 0], np.int64)
     y = np.asarray(pixel[:, 1], np.int64)
-    span = int(max(x.max(initial=0), y.max(initial=0))) + 2
+    span = int(max(x.max(initial=0), y.max(initial=0))) + 2 * lag
     key = (np.asarray(image_id, np.int64) * span + y) * span + x
     order = np.argsort(key)
     keys = key[order]
@@ -32,7 +33,7 @@ def _second_differences(radiance: np.ndarray, image_id: np.ndarray, pixel: np.nd
         return order[i], keys[i] == k
 
     second, level = [], []
-    for step in (1, span):                       # along rows, along columns
+    for step in (lag, lag * span):               # along rows, along columns
         left, has_left = at(key - step)
         right, has_right = at(key + step)
         both = has_left & has_right
@@ -47,12 +48,12 @@ def _mad_variance(d2: np.ndarray) -> np.ndarray:
     return (MAD_TO_SIGMA * mad) ** 2 / 6.0
 
 
-def pixel_noise_sigma(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray) -> float:
+def pixel_noise_sigma(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray, lag: int = 1) -> float:
     """Per-sample noise sigma (radiance units, RMS over channels) of samples (N, 3) at integer
     ``pixel`` (N, 2) of image ``image_id`` (N,), from the second differences of the samples whose
     left and right (or upper and lower) neighbours are samples too; NaN when there are none (e.g.
-    samples thinned before this was called)."""
-    d2, _ = _second_differences(radiance, image_id, pixel)
+    samples thinned before this was called); ``lag`` as in noise_level_function."""
+    d2, _ = _second_differences(radiance, image_id, pixel, lag)
     if len(d2) == 0:
         return float("nan")
     return float(np.sqrt(np.mean(_mad_variance(d2))))
@@ -62,16 +63,18 @@ NLF_BINS = 10            # radiance-level bins (equal counts) of the noise level
 NLF_TOP_QUANTILE = 0.99  # levels above this are left out: there a highlight's curvature is signal, not noise
 
 
-def noise_level_function(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray) -> tuple[float, float]:
+def noise_level_function(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray,
+                         lag: int = 1) -> tuple[float, float]:
     """(a, b) of the Poisson-Gaussian noise model sigma^2(B) = a + b B (Foi et al. 2008, "Practical
     Poissonian-Gaussian noise modeling"; B the channel-mean radiance, a, b >= 0): the MAD variance
     of second differences in NLF_BINS bins of equal counts below the NLF_TOP_QUANTILE level,
     fitted by non-negative least squares in relative terms (each bin's row divided by its
     variance).  A path tracer's noise grows with B as a camera's shot noise does.  (NaN, NaN)
-    when fewer than 3 bins can be measured."""
+    when fewer than 3 bins can be measured.  ``lag``: the second differences' pixel step (see
+    image_noise_level)."""
     from scipy.optimize import nnls
 
-    d2, level = _second_differences(radiance, image_id, pixel)
+    d2, level = _second_differences(radiance, image_id, pixel, lag)
     if len(d2) < 20 * NLF_BINS:
         return float("nan"), float("nan")
     keep = level <= np.quantile(level, NLF_TOP_QUANTILE)
@@ -105,3 +108,31 @@ def weighted_noise_sigma(weight: np.ndarray, radiance: np.ndarray, a: float, b: 
     level = np.maximum(np.asarray(radiance, float).mean(axis=1), 0.0)
     w = np.asarray(weight, float)
     return float(np.sqrt(np.sum(w * (a + b * level)) / max(np.sum(w), 1e-300)))
+
+
+IMAGE_NOISE_LAG = 2   # image_noise_level's pixel step: demosaicing correlates a pixel's noise with its neighbours'
+
+
+def image_noise_level(images: list[np.ndarray], masks: list[np.ndarray], lag: int = IMAGE_NOISE_LAG) -> tuple[float, float]:
+    """(a, b) of the noise level sigma^2 = a + b B of photos ((H, W, 3) each, one camera) measured
+    on the pixels of ``masks`` ((H, W) bool): noise_level_function's, else (sigma^2, 0) from
+    pixel_noise_sigma when the level cannot be fitted in bins, else (NaN, NaN).  Second differences
+    ``lag`` = 2 pixels apart: a demosaiced raw photo interpolates each pixel's missing colours from
+    its neighbours, so their noise is correlated and adjacent-pixel differences miss part of it.
+    Measured on a synthetic sphere (96 x 96, linearized, against the same render without noise):
+    sigma 0.47 x the true one at lag 1, 0.71 at lag 2, 0.81 at lag 3 on Bayer DNG; 0.92, 0.95, 0.97
+    on EXR with uncorrelated shot + read noise.  On demosaiced photos it is a lower bound."""
+    radiance, image_id, pixel = [], [], []
+    for i, (img, mask) in enumerate(zip(images, masks)):
+        y, x = np.nonzero(np.asarray(mask, bool))
+        radiance.append(np.asarray(img, float)[y, x, :3])
+        image_id.append(np.full(len(y), i))
+        pixel.append(np.stack([x, y], axis=1))
+    if sum(len(r) for r in radiance) == 0:
+        return float("nan"), float("nan")
+    radiance, image_id, pixel = np.concatenate(radiance), np.concatenate(image_id), np.concatenate(pixel)
+    a, b = noise_level_function(radiance, image_id, pixel, lag)
+    if np.isfinite(a) and np.isfinite(b):
+        return a, b
+    sigma = pixel_noise_sigma(radiance, image_id, pixel, lag)
+    return (sigma ** 2, 0.0) if np.isfinite(sigma) else (float("nan"), float("nan"))

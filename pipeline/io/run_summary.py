@@ -6,6 +6,7 @@ runner writes these records."""
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -97,6 +98,23 @@ def summary_lines(work: Path) -> list[str]:
     if check is not None:
         which = "held-out views" if check["heldout"] else "training views (nothing held out)"
         scale = f" after one global scale {check['scale']:.3g}" if check.get("scale_fitted") else ""
-        lines.append(f"relight error on {len(check['views'])} {which}: "
-                     f"{100 * check['relative_error']:.2f}% (relative RMS{scale}; {method_description(check)})")
+        lines.append(f"relight error on {len(check['views'])} {which}: {100 * check['relative_error']:.2f}%"
+                     f"{noise_phrase(check)} (relative RMS{scale}; {method_description(check)})")
     return lines
+
+
+def noise_phrase(check: dict) -> str:
+    """What the photos' own noise makes of the relight check's per-pixel error (relight.json's
+    compare: noise_floor, block_relative_error): ' per pixel (the photos' noise alone: F%), B% on
+    4x4 block means'; '' for a check written before these figures (or without them)."""
+    def percent(key: str) -> str | None:
+        value = check.get(key)
+        return f"{100 * value:.2f}%" if isinstance(value, (int, float)) and math.isfinite(value) else None
+
+    floor, blocks = percent("noise_floor"), percent("block_relative_error")
+    if floor is None and blocks is None:
+        return ""
+    parts = [" per pixel" + (f" (the photos' noise alone: {floor})" if floor else "")]
+    if blocks:
+        parts.append(f" {blocks} on {check.get('block', 4)}x{check.get('block', 4)} block means")
+    return ",".join(parts)
