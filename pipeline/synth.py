@@ -31,6 +31,7 @@ from typing import Literal
 import numpy as np
 
 from pipeline.errors import UserError
+from pipeline.io.lighting import lighting_help
 from pipeline.logs import progress as progress_bar
 from pipeline.settings import setting
 
@@ -46,8 +47,7 @@ class SynthSettings:
     """What to render; every field is a `sigrend synth` option."""
 
     mesh: str = setting("sphere", "mesh file (OBJ/PLY/GLB, any units) or 'sphere'/'icosphere'")
-    env: str = setting("area", "environment: an equirect EXR/HDR path or a procedural spec "
-                       "(constant, smooth, sun+sky, overcast, area, point, room; e.g. 'sun+sky:elev=40'; docs/synth.md)")
+    env: str = setting("area", f"environment: {lighting_help(sh=False)}")
     brdf: str = setting("lambert:albedo=0.6", "brdf.json path or inline spec, e.g. "
                         "'principled:base_color=0.2,0.3,0.5,roughness=0.3' (metallic=, ior=, specular_tint= optional)")
     views: int = setting(8, "number of camera views")
@@ -203,17 +203,10 @@ def load_mesh(spec: str, mesh_size: float, up: str = "y"):
 
 
 def load_env(spec: str) -> np.ndarray:
-    """Equirect map from a file path (validated) or a procedural spec (pipeline.core.procedural_envmaps)."""
-    from pipeline.core.procedural_envmaps import envmap_from_spec
-    from pipeline.io.images import read_envmap
+    """Equirect map from a file path (validated) or a procedural spec (pipeline.io.lighting.lighting_argument)."""
+    from pipeline.io.lighting import lighting_argument
 
-    path = Path(spec)
-    if path.suffix.lower() in (".exr", ".hdr", ".tif", ".tiff", ".png") or path.is_file():
-        return read_envmap(path)
-    try:
-        return envmap_from_spec(spec)
-    except ValueError as exc:
-        raise UserError(f"--env {spec!r}: {exc}") from None
+    return lighting_argument(spec, sh=False).envmap()
 
 
 # -- board ----------------------------------------------------------------------------------------

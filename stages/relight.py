@@ -1,9 +1,10 @@
 """relight: render the fitted object under new lighting, from the capture's views or new ones.
 
-Usage: ``sigrend relight CAPTURE -w WORK [--env NEW.exr|lighting_sh.json] [--views ...] [-o DIR]``.
+Usage: ``sigrend relight CAPTURE -w WORK [--env NEW.exr|lighting_sh.json|SPEC] [--views ...] [-o DIR]``.
 Inputs: the mesh (CAPTURE/mesh.*), the fitted BRDF (WORK/fit/brdf.json, optional per-vertex albedo
-WORK/fit/albedo.ply), the lighting (``--env``: an equirect EXR/HDR in DESIGN.md's convention or a
-lighting_sh.json; default the fitted WORK/fit/lighting_sh.json) and the views (``--views``).
+WORK/fit/albedo.ply), the lighting (``--env``: an equirect EXR/HDR in DESIGN.md's convention, a
+lighting_sh.json or a procedural map such as ``sun+sky``, pipeline.io.lighting.lighting_argument;
+default the fitted WORK/fit/lighting_sh.json) and the views (``--views``).
 Outputs, in ``--out-dir`` (default WORK/relight): one linear RGBA EXR per view named after the
 view's image key stem (alpha = fraction of the pixel covered by the object), an sRGB PNG preview
 of each, and ``relight.json`` (views, lighting, scale and errors).  With ``--compare`` also
@@ -16,8 +17,8 @@ renderer's machinery (pipeline.core.render.Renderer.shade): the lighting as an e
 SH lighting is synthesized to a map, pipeline.core.sh.envmap_from_sh, its negative lobes kept as
 negative radiance), split into directions with exact solid angles, the full BRDF
 (pipeline.core.brdf: Torrance-Sparrow microfacet with Schlick Fresnel and V-cavity G, or R&H
-Phong), and per-vertex shadow rays (self-shadowing; under a given --env also the capture's board
-from capture.toml as an occluder, as in the photos).  Lobes sharper than the direction cells are
+Phong), and per-vertex shadow rays (self-shadowing; under a given --env, from the capture's own views, also the capture's
+board from capture.toml as an occluder, as in the photos; new views leave it out unless --board on).  Lobes sharper than the direction cells are
 taken from the frequency path (AngularLighting):
   B(x, w_o) = sum_j L_j dω_j V(x, w_j) f_r(w_j, w_o) max(0, n . w_j)
 
@@ -52,11 +53,18 @@ from pipeline.core.sh import envmap_from_sh, order_of
 from pipeline.errors import UserError
 from pipeline.io.brdf import read_brdf, read_materials
 from pipeline.io.capture_toml import KnownLight, read_capture_config
-from pipeline.io.images import preview_exposure, read_envmap, write_image, write_preview
-from pipeline.io.lighting import known_light_map, read_lighting_parts, read_lighting_sh
+from pipeline.io.images import preview_exposure, write_image, write_preview
+from pipeline.io.lighting import (
+    LightingArgument,
+    known_light_map,
+    lighting_argument,
+    lighting_help,
+    read_lighting_parts,
+    read_lighting_sh,
+)
 from pipeline.io.linear_manifest import image_source, linear_manifest, load_linear_image
 from pipeline.io.mesh import mesh_path, read_material_ply, read_mesh, read_vertex_albedo
-from pipeline.io.poses import Poses, capture_poses_path, read_poses
+from pipeline.io.poses import capture_poses_path, read_poses
 from pipeline.raycast import first_hits, ray_mesh
 from pipeline.settings import setting
 from pipeline.workdir import default_work, make_folder, write_json
@@ -66,10 +74,10 @@ ERROR_MAP_RANGE = 0.2      # error maps: relative error 0 .. 20% spans the colou
 
 @dataclass(frozen=True)
 class Settings:
-    env: str = setting("", "new lighting: an equirect EXR/HDR (DESIGN.md convention) or a lighting_sh.json; "
-                           "empty = the fitted lighting WORK/fit/lighting_sh.json")
+    env: str = setting("", f"new lighting: {lighting_help()}; empty = the fitted lighting WORK/fit/lighting_sh.json")
     views: str = setting("capture", "'capture' (every posed view), 'heldout' (the views left out of the samples), "
-                                    "a poses.json path, 'orbit:N' (N views on a ring) or image keys 'K1,K2,...'")
+                                    "a poses.json path, 'orbit:N' (N views on a ring 20 degrees above the object, "
+                                    "framing it) or image keys 'K1,K2,...'")
     size: str = setting("", "output size WxH (the intrinsics are scaled); empty = each camera's native size")
     out_dir: str = setting("", "output folder; empty = WORK/relight")
     compare: bool = setting(False, "compare with the linear photos of the same views: error maps and relative errors "
@@ -100,9 +108,9 @@ class Settings:
     lobe_samples: int = setting(64, "angular method, principled material: importance samples of the specular lobe per ray")
     board: Literal["auto", "on", "off"] = setting(
         "auto", "angular method with shadows: the capture's board (capture.toml [board]) occludes the object: 'on', "
-                "'off', or 'auto' = on under a given --env (a whole environment, the board was in the scene), off "
-                "under the fitted lighting (the fit saw the board's shadow as darkness from below: it is already in "
-                "the lighting)")
+                "'off', or 'auto' = on under a given --env from the capture's own views (the board was in the scene "
+                "of those photos), off from new views (orbit:N, a poses.json: the asset alone) and under the fitted "
+                "lighting (the fit saw the board's shadow as darkness from below: it is already in the lighting)")
     lobe_sh_order: int = setting(24, "a lobe that needs more SH bands than this is read from a prefiltered "
                                      "angular-space map instead (sharp lobes)")
     prefilter_height: int = setting(128, "height of the prefiltered equirect map used for sharp lobes")
@@ -117,6 +125,8 @@ class Settings:
         if self.size:
             parse_size(self.size)
         parse_views(self.views)
+        if self.env:
+            lighting_argument(self.env)
         if not 1 <= self.supersample <= 8:
             raise UserError(f"--supersample {self.supersample}: use 1 to 8 rays per pixel and axis")
         if not 1 <= self.interior_supersample <= 8:
@@ -198,13 +208,19 @@ def fitted_lighting_path(work: Path) -> Path:
     return Path(work) / "fit" / "lighting_sh.json"
 
 
-def lighting_path(work: Path, settings: Settings) -> Path:
-    return Path(settings.env) if settings.env else fitted_lighting_path(work)
+def lighting_of(work: Path, settings: Settings) -> LightingArgument:
+    """The lighting to render under: --env (pipeline.io.lighting.lighting_argument: a file or a
+    procedural map), else the fitted WORK/fit/lighting_sh.json."""
+    if settings.env:
+        return lighting_argument(settings.env)
+    fitted = fitted_lighting_path(work)
+    return LightingArgument(str(fitted), "sh", fitted)
 
 
 def uses_fitted_lighting(work: Path, settings: Settings) -> bool:
     """True when the lighting is the one fitted from these photos (then one global scale is free)."""
-    return lighting_path(work, settings).resolve() == fitted_lighting_path(work).resolve()
+    path = lighting_of(work, settings).path
+    return path is not None and path.resolve() == fitted_lighting_path(work).resolve()
 
 
 def photo_source(capture: Path, work: Path, settings: Settings) -> tuple[Path, Path]:
@@ -274,16 +290,21 @@ def _scaled(camera: cam.Camera, size: tuple[int, int] | None) -> cam.Camera:
     return camera.resized(*size)
 
 
-def orbit_views(n: int, mesh, size: tuple[int, int] | None, reference: Poses | None) -> list[View]:
-    """N views on a ring 20 degrees above the mesh's centre, framing its bounding sphere (40 deg field of view)."""
+ORBIT_MARGIN = 1.05   # orbit views: the mesh's extent fills the frame but 5 % of each half side
+
+
+def orbit_views(n: int, mesh, size: tuple[int, int] | None) -> list[View]:
+    """N views on a ring 20 degrees above the centre of the mesh's bounding sphere, at the distance
+    where that sphere fills a 40-degree field of view (pipeline.core.camera.framing_distance), with
+    one focal length for all of them at which the mesh's vertices fill the frame in every view but a
+    5 % margin (camera.framing_focal): the asset fills the frame, whatever the distance the photos
+    were taken from (a capture's cameras also frame the board around it)."""
     width, height = size or (256, 256)
     centre = np.asarray(mesh.bounding_sphere.primitive.center, float)
     radius = float(mesh.bounding_sphere.primitive.radius)
-    distance = cam.framing_distance(radius)
-    if reference is not None and reference.images:
-        centres = [cam.camera_center(p.R, p.t) for p in reference.images.values()]
-        distance = max(distance * 0.5, float(np.median([np.linalg.norm(c - centre) for c in centres])))
-    camera, poses = cam.orbit_poses(centre, radius, n, width, height, distance)
+    _, poses = cam.orbit_poses(centre, radius, n, width, height)
+    f = cam.framing_focal(np.asarray(mesh.vertices), poses, width, height, ORBIT_MARGIN)
+    camera = cam.Camera("PINHOLE", width, height, (f, f, width / 2, height / 2))
     return [View(f"orbit_{i:03d}", camera, R, t, False) for i, (R, t) in enumerate(poses)]
 
 
@@ -293,10 +314,9 @@ def resolve_views(*, capture: Path, work: Path, settings: Settings, mesh=None) -
     choice = settings.view_choice
     capture_poses = capture_poses_path(capture, work)
     if choice.kind == "orbit":
-        reference = read_poses(capture_poses) if capture_poses.exists() else None
         if mesh is None:
             mesh = read_mesh(mesh_path(capture))
-        return orbit_views(choice.orbit_count, mesh, size, reference)
+        return orbit_views(choice.orbit_count, mesh, size)
     if choice.kind == "poses":
         poses, keys, own = read_poses(choice.poses_file), None, False
     else:
@@ -329,13 +349,12 @@ def resolve_views(*, capture: Path, work: Path, settings: Settings, mesh=None) -
 
 
 
-def frequency_lighting(path: Path, brdf: Brdf, **kwargs) -> Lighting:
-    """The frequency method's lighting (pipeline.core.prefilter.Lighting) from a lighting_sh.json or
-    an equirect EXR/HDR (DESIGN.md conventions)."""
-    path = Path(path)
-    if path.suffix.lower() == ".json":
-        return Lighting(brdf, coeffs=read_lighting_sh(path), source=str(path), **kwargs)
-    return Lighting(brdf, env=read_envmap(path), source=str(path), **kwargs)
+def frequency_lighting(light: LightingArgument, brdf: Brdf, **kwargs) -> Lighting:
+    """The frequency method's lighting (pipeline.core.prefilter.Lighting) from a lighting_sh.json, an
+    equirect EXR/HDR (DESIGN.md conventions) or a procedural map."""
+    if light.kind == "sh":
+        return Lighting(brdf, coeffs=read_lighting_sh(light.path), source=light.text, **kwargs)
+    return Lighting(brdf, env=light.envmap(), source=light.text, **kwargs)
 
 
 class AngularLighting:
@@ -392,12 +411,12 @@ class AngularLighting:
         self.renderer = Renderer(mesh, env, brdf, **options)
 
     @classmethod
-    def from_file(cls, path: Path, brdf: Brdf, mesh, **kwargs) -> "AngularLighting":
-        path = Path(path)
-        if path.suffix.lower() == ".json":
-            coeffs, dirs, power = read_lighting_parts(path)   # the sources' SH projection taken out
-            return cls(brdf, mesh, coeffs=coeffs, sources=(dirs, power), source=str(path), **kwargs)
-        return cls(brdf, mesh, env=read_envmap(path), source=str(path), **kwargs)
+    def from_argument(cls, light: LightingArgument, brdf: Brdf, mesh, **kwargs) -> "AngularLighting":
+        """A lighting_sh.json, an equirect map file or a procedural map (pipeline.io.lighting)."""
+        if light.kind == "sh":
+            coeffs, dirs, power = read_lighting_parts(light.path)   # the sources' SH projection taken out
+            return cls(brdf, mesh, coeffs=coeffs, sources=(dirs, power), source=light.text, **kwargs)
+        return cls(brdf, mesh, env=light.envmap(), source=light.text, **kwargs)
 
     @classmethod
     def from_directional_light(cls, light: KnownLight, brdf: Brdf, mesh, **kwargs) -> "AngularLighting":
@@ -514,28 +533,32 @@ def board_occluder(capture: Path):
 
 
 def board_occludes(work: Path, settings: Settings) -> bool:
-    """Whether the capture's board is an occluder (Settings.board; 'auto': not under the fitted lighting)."""
+    """Whether the capture's board is an occluder (Settings.board; 'auto': only under a given --env from
+    the capture's own views: not from new views, where the asset is shown alone, nor under the fitted
+    lighting)."""
     if settings.method != "angular" or not settings.shadows or settings.board == "off":
         return False
-    return settings.board == "on" or not uses_fitted_lighting(work, settings)
+    if settings.board == "on":
+        return True
+    return settings.view_choice.kind not in ("orbit", "poses") and not uses_fitted_lighting(work, settings)
 
 
-def prepare_lighting(path: Path | KnownLight, brdf: Brdf, mesh, settings: Settings, *, capture: Path | None = None,
-                     vertex_colors=None, with_board: bool = False):
-    """The lighting at ``path`` (or a capture.toml [lighting] entry) prepared for ``settings.method``
-    (Lighting or AngularLighting)."""
+def prepare_lighting(path: LightingArgument | KnownLight, brdf: Brdf, mesh, settings: Settings, *,
+                     capture: Path | None = None, vertex_colors=None, with_board: bool = False):
+    """The lighting ``path`` (a lighting argument, or a capture.toml [lighting] entry) prepared for
+    ``settings.method`` (Lighting or AngularLighting)."""
     if settings.method == "frequency" and brdf.model == "principled":
         raise UserError("--method frequency renders the seed's convex lobes (lambert, phong, microfacet) only; "
                         "a principled material needs --method angular (the default)")
     if isinstance(path, KnownLight) and path.path is not None:
-        path = path.path              # a map file: as any --env
+        path = lighting_argument(str(path.path))     # a map file: as any --env
     if isinstance(path, KnownLight) and settings.method == "frequency":
         raise UserError("a directional light of capture.toml [lighting] needs --method angular (the default)")
     if settings.method == "frequency":
         return frequency_lighting(path, brdf, lobe_sh_order=settings.lobe_sh_order,
                                   prefilter_height=settings.prefilter_height)
     board = board_occluder(capture) if capture is not None and with_board else None
-    make = AngularLighting.from_directional_light if isinstance(path, KnownLight) else AngularLighting.from_file
+    make = AngularLighting.from_directional_light if isinstance(path, KnownLight) else AngularLighting.from_argument
     return make(path, brdf, mesh, env_height=settings.env_height, cell_height=settings.cell_height,
                 shadows=settings.shadows, vertex_albedo=vertex_colors, board=board,
                 lobe_sh_order=settings.lobe_sh_order, prefilter_height=settings.prefilter_height,
@@ -677,7 +700,8 @@ def _view_outputs(folder: Path, key: str, compare: bool) -> list[Path]:
 
 
 def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
-    paths = [lighting_path(work, settings), Path(work) / "fit" / "brdf.json", Path(work) / "fit" / "albedo.ply"]
+    light = lighting_of(work, settings).path        # None: a procedural map (its spec is in the settings)
+    paths = [*([light] if light else []), Path(work) / "fit" / "brdf.json", Path(work) / "fit" / "albedo.ply"]
     if board_occludes(work, settings):
         paths.append(Path(capture) / "capture.toml")  # the board occluder
     try:
@@ -725,11 +749,12 @@ def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
 def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     capture, work = Path(capture), Path(work)
     source, source_work = photo_source(capture, work, settings)
-    brdf_path, light_path = work / "fit" / "brdf.json", lighting_path(work, settings)
+    brdf_path, light_path = work / "fit" / "brdf.json", lighting_of(work, settings)
     if not brdf_path.exists():
         raise UserError(f"{brdf_path}: no fitted BRDF; run `sigrend fit` first")
-    if not light_path.exists():
-        raise UserError(f"{light_path}: lighting not found; give --env NEW.exr|lighting_sh.json or run `sigrend fit`")
+    if light_path.path is not None and not light_path.path.exists():
+        raise UserError(f"{light_path.path}: lighting not found; give --env NEW.exr|lighting_sh.json|sun+sky (a "
+                        "procedural map: `sigrend env make --help`) or run `sigrend fit`")
     brdf = read_brdf(brdf_path)
     mesh = read_mesh(mesh_path(capture))
     views = resolve_views(capture=source, work=source_work, settings=settings, mesh=mesh)

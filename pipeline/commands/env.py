@@ -1,22 +1,42 @@
-"""`sigrend env project|render|irradiance`: environment maps <-> spherical harmonics.
+"""`sigrend env project|render|irradiance|make`: environment maps <-> spherical harmonics, and the
+procedural maps.
 
   sigrend env project IN.exr --order L -o lighting_sh.json   SH coefficients (exact pixel solid angles)
   sigrend env render lighting_sh.json --height H -o OUT.exr   the SH lighting as an equirect map
   sigrend env irradiance IN.exr -o OUT.exr [--order N]        irradiance map E(n) (9-term formula by default)
+  sigrend env make SPEC -o OUT.exr                            a procedural map (sun+sky, room, ...) as an EXR
 
-Thin wrappers over pipeline.core.sh / pipeline.core.transfer; conventions in DESIGN.md and docs/sh.md.
+Thin wrappers over pipeline.core.sh / pipeline.core.transfer / pipeline.core.procedural_envmaps;
+conventions in DESIGN.md and docs/sh.md.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.procedural_envmaps import spec_help
 from pipeline.errors import UserError
+from pipeline.settings import setting
 
-HELP = "Environment maps and spherical harmonics: project, render, irradiance."
+HELP = "Environment maps and spherical harmonics: project, render, irradiance; make a procedural map."
+
+
+@dataclass(frozen=True)
+class MakeSettings:
+    """`sigrend env make`: the options' one source of --help (pipeline.settings.setting)."""
+
+    spec: str = setting("", f"the map: {spec_help()}")
+    output: Path = setting(Path("envmap.exr"), "EXR file to write: linear float RGB, DESIGN.md's equirect "
+                                               "(width 2 x height, row 0 = +Z); what relight --env, synth --env read")
+
+
+def _make_help(name: str) -> str:
+    return {f.name: f.metadata["help"] for f in dataclasses.fields(MakeSettings)}[name].replace("%", "%%")
 
 MAX_ORDER = 200     # beyond this the projection is pointless for any real map (and slow)
 MAX_HEIGHT = 16384
@@ -45,6 +65,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     i.add_argument("--height", default=None, help="height of the output map (default: the input's)")
     i.add_argument("-o", "--output", type=Path, default=Path("irradiance.exr"), help="EXR file to write")
 
+    m = sub.add_parser("make", help="write a procedural environment map (the ones relight --env and synth --env "
+                                    "accept by name) as an EXR")
+    m.add_argument("spec", help=_make_help("spec"))
+    m.add_argument("-o", "--output", type=Path, default=MakeSettings.output, help=_make_help("output"))
+
 
 def _positive_int(text: str, option: str, low: int, high: int, hint: str) -> int:
     try:
@@ -71,7 +96,7 @@ def _output_name(path: Path, suffixes: tuple[str, ...]) -> Path:
 
 
 def main(args: argparse.Namespace) -> int:
-    return {"project": _project, "render": _render, "irradiance": _irradiance}[args.env_command](args)
+    return {"project": _project, "render": _render, "irradiance": _irradiance, "make": _make}[args.env_command](args)
 
 
 def _project(args: argparse.Namespace) -> int:
@@ -126,4 +151,22 @@ def _irradiance(args: argparse.Namespace) -> int:
     write_image(output, irradiance, dtype="float")
     method = "9-term formula" if order == 2 else f"SH order {order}"
     print(f"env irradiance: {args.envmap} -> {output} ({2 * height}x{height}, {method})")
+    return 0
+
+
+def _make(args: argparse.Namespace) -> int:
+    from pipeline.core.envmap import equirect_directions
+    from pipeline.core.procedural_envmaps import envmap_from_spec
+    from pipeline.io.images import write_image
+
+    output = _output_name(args.output, (".exr",))
+    try:
+        env = envmap_from_spec(args.spec)
+    except ValueError as exc:
+        raise UserError(f"env make {args.spec!r}: {exc}") from None
+    write_image(output, env, dtype="float")
+    row, col = np.unravel_index(np.argmax(env.sum(axis=-1)), env.shape[:2])
+    d = equirect_directions(env.shape[0])[row, col]
+    print(f"env make: {args.spec} -> {output} ({env.shape[1]}x{env.shape[0]}; brightest texel at elevation "
+          f"{np.degrees(np.arcsin(d[2])):.1f}, azimuth {np.degrees(np.arctan2(d[1], d[0])) % 360:.1f} degrees)")
     return 0

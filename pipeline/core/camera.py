@@ -139,6 +139,25 @@ def framing_distance(radius: float, fov_deg: float = 40.0) -> float:
     return 1.15 * radius / np.sin(np.radians(fov_deg) / 2)
 
 
+def framing_focal(points: np.ndarray, poses: list[tuple[np.ndarray, np.ndarray]], width: int, height: int,
+                  margin: float = 1.05) -> float:
+    """The focal length (pixels) of a PINHOLE camera with its principal point at the image centre at
+    which every one of ``points`` (N, 3), seen from every world-to-camera pose (R, t) of ``poses``,
+    lands inside the width x height image with ``margin`` to spare (1.05: 5 % of each half side): the
+    largest such, so that the points' extent fills the frame.  The points must be in front of the
+    cameras (z > 0)."""
+    pts = np.asarray(points, float)
+    worst_x = worst_y = 0.0
+    for R, t in poses:
+        cam_pts = pts @ np.asarray(R, float).T + np.asarray(t, float)
+        if np.any(cam_pts[:, 2] <= 0):
+            raise ValueError("framing_focal: a point is behind a camera")
+        worst_x = max(worst_x, float(np.max(np.abs(cam_pts[:, 0] / cam_pts[:, 2]))))
+        worst_y = max(worst_y, float(np.max(np.abs(cam_pts[:, 1] / cam_pts[:, 2]))))
+    limits = [0.5 * size / (margin * worst) for size, worst in ((width, worst_x), (height, worst_y)) if worst > 0]
+    return min(limits) if limits else 0.5 * min(width, height)
+
+
 def orbit_poses(centre: np.ndarray, radius: float, n: int, width: int, height: int, distance: float | None = None,
                 elevation_deg: float = 20.0, fov_deg: float = 40.0) -> tuple[Camera, list[tuple[np.ndarray, np.ndarray]]]:
     """A PINHOLE camera of ``fov_deg`` (across the shorter side) and ``n`` world-to-camera poses (R, t)

@@ -209,6 +209,13 @@ def parse_env_spec(spec: str) -> tuple[str, int, dict[str, float]]:
     return name, height, params
 
 
+def spec_help() -> str:
+    """The procedural maps in one phrase, for every option that takes one (relight --env, synth --env,
+    env make): the names from ENV_PARAMS, the one list."""
+    return (f"a procedural map NAME[:key=value,...], NAME one of {', '.join(ENV_PARAMS)} (e.g. 'sun+sky:elev=40,az=30'; "
+            f"height=H rows, default {DEFAULT_HEIGHT}; every key in docs/synth.md)")
+
+
 def envmap_from_spec(spec: str) -> np.ndarray:
     """Procedural map from a spec string (module docstring)."""
     name, height, params = parse_env_spec(spec)

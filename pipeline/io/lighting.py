@@ -1,9 +1,13 @@
-"""lighting_sh.json (DESIGN.md): real orthonormal SH coefficients of the lighting, (L+1)^2 rows of RGB."""
+"""lighting_sh.json (DESIGN.md): real orthonormal SH coefficients of the lighting, (L+1)^2 rows of RGB;
+and a lighting named on the command line (``lighting_argument``: relight --env, synth --env, env make),
+one rule for every command: a lighting_sh.json, an equirect map file, or a procedural map's spec."""
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -80,3 +84,65 @@ def known_light_map(light, height: int = KNOWN_LIGHT_HEIGHT) -> np.ndarray:
     if light.path is not None:
         return np.asarray(read_envmap(light.path), float)
     return add_sources(np.zeros((height, 2 * height, 3)), np.asarray([light.direction]), np.asarray([light.intensity]))
+
+
+SH_SUFFIXES = (".json",)
+MAP_SUFFIXES = (".exr", ".hdr", ".tif", ".tiff", ".png")
+
+
+@dataclass(frozen=True)
+class LightingArgument:
+    """A lighting named on the command line: ``kind`` 'sh' (a lighting_sh.json at ``path``), 'map' (an
+    equirect map file at ``path``, DESIGN.md's convention) or 'procedural' (``text`` is a spec of
+    pipeline.core.procedural_envmaps; no file)."""
+
+    text: str
+    kind: Literal["sh", "map", "procedural"]
+    path: Path | None = None
+
+    def envmap(self) -> np.ndarray:
+        """The map (H, 2H, 3) float32: the file read and checked, or the procedural map made."""
+        if self.kind == "procedural":
+            from pipeline.core.procedural_envmaps import envmap_from_spec
+
+            return envmap_from_spec(self.text)
+        if self.kind == "sh":
+            raise UserError(f"{self.text}: an SH lighting, not a map; give an equirect map or a procedural spec")
+        from pipeline.io.images import read_envmap
+
+        if not self.path.is_file():
+            raise UserError(f"{self.path}: lighting not found; give an existing file or a procedural map "
+                            "(`sigrend env make --help` lists them)")
+        return read_envmap(self.path)
+
+
+def lighting_help(sh: bool = True) -> str:
+    """What a lighting argument may be, for --help (``sh``: a lighting_sh.json too)."""
+    from pipeline.core.procedural_envmaps import spec_help
+
+    files = "a lighting_sh.json, an equirect EXR/HDR (DESIGN.md convention)" if sh else \
+        "an equirect EXR/HDR (DESIGN.md convention)"
+    return f"{files} or {spec_help()}"
+
+
+def lighting_argument(text: str, option: str = "--env", sh: bool = True) -> LightingArgument:
+    """``text`` as a lighting (LightingArgument): a name ending in .json is a lighting_sh.json (refused
+    unless ``sh``), one ending in an image suffix or naming an existing file is an equirect map, else
+    it must be a procedural spec (UserError, one line, naming ``option``, otherwise).  Files are not
+    read here (a stage's inputs may not exist yet); LightingArgument.envmap reads them."""
+    from pipeline.core.procedural_envmaps import parse_env_spec
+
+    path = Path(text)
+    suffix = path.suffix.lower()
+    if suffix in SH_SUFFIXES:
+        if not sh:
+            raise UserError(f"{option} {text}: an SH lighting_sh.json is not a map here; give "
+                            f"{lighting_help(sh=False)}")
+        return LightingArgument(text, "sh", path)
+    if suffix in MAP_SUFFIXES or path.is_file():
+        return LightingArgument(text, "map", path)
+    try:
+        parse_env_spec(text)
+    except ValueError as exc:
+        raise UserError(f"{option} {text!r}: no such file, and not a procedural map: {exc}") from None
+    return LightingArgument(text, "procedural")

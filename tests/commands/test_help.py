@@ -25,7 +25,8 @@ import pytest
 from pipeline import STAGES, cli
 
 EXPECTED = {"", *STAGES, "export", "run", "batch", "calib", "calib intrinsics", "calib response", "calib vignetting",
-            "synth", "env", "env project", "env render", "env irradiance", "planar", "planar figures", "bench"}
+            "synth", "env", "env project", "env render", "env irradiance",
+            "env make", "planar", "planar figures", "bench"}
 
 
 def parsers(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):
@@ -51,6 +52,8 @@ def settings_class(path: tuple[str, ...]):
         return importlib.import_module(f"calib.{path[1]}").Settings
     if path == ("synth",):
         return importlib.import_module("pipeline.synth").SynthSettings
+    if path == ("env", "make"):
+        return importlib.import_module("pipeline.commands.env").MakeSettings
     return None
 
 
@@ -198,14 +201,14 @@ def _listed(line: str, pattern: str) -> set[str]:
 
 def test_prose_lists_are_the_codes(helps):
     """The values a help names in prose are the code's: fit --brdf's models and what 'auto' chooses
-    among on each path, export --out's formats, synth --env's procedural maps."""
+    among on each path, export --out's formats, the procedural maps of synth --env, relight --env and env make."""
     from pipeline.core.brdf import BRDF_PARAMS, LOBE_MODELS
     from pipeline.core.procedural_envmaps import ENV_PARAMS
     from stages.export import WRITERS
 
     def line_of(command: str, dest: str) -> str:
         _, parser, text = helps[command]
-        return option_help(parser, text, next(a for a in shown_actions(parser) if a.dest == dest))
+        return option_help(parser, text, next(a for a in parser._actions if a.dest == dest and a.help != argparse.SUPPRESS))
 
     brdf = line_of("fit", "brdf")
     assert _listed(brdf, r"a model name \(([^)]*)\)") == set(BRDF_PARAMS)
@@ -214,5 +217,6 @@ def test_prose_lists_are_the_codes(helps):
     assert _listed(brdf, r"--forward convex\) among ([\w ,]+?);") == {"lambert", *LOBE_MODELS}
     out = line_of("export", "out")
     assert set(re.findall(r"(?<!\S)(\.\w+)", out.split("empty")[0])) == set(WRITERS)
-    env = line_of("synth", "env")
-    assert _listed(env, r"procedural spec \(([^;]*);") == set(ENV_PARAMS)
+    for command, dest in (("synth", "env"), ("relight", "env"), ("env make", "spec")):   # one list: spec_help
+        env = line_of(command, dest)
+        assert _listed(env, r"NAME one of ([^(]*) \(") == set(ENV_PARAMS), command
