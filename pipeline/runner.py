@@ -8,7 +8,8 @@ list[Path]`` and ``run(*, capture, work, settings) -> list[Path]``.
 settings, skipping fresh stages.  Every ``holdout``-th view (sorted image keys) is left out of the
 samples, and the fitted object is relit from those held-out views under the fitted lighting and
 compared with their photos (after the one global scale lighting and BRDF share): the honest
-accuracy number of the run.  ``--relight ENV`` adds renders under new lighting.  The run's stage
+accuracy number of the run.  ``--relight ENV`` adds renders under new lighting; ``--export ASSET``
+ends the run with the export stage (the asset and its extras, stages/export.py).  The run's stage
 table is written to WORK/run.json and the report to WORK/report.html.
 """
 
@@ -144,6 +145,7 @@ class RunPlan:
     force: bool
     holdout: int
     relight_envs: list[str]
+    export: str = ""          # the asset file `sigrend run --export` ends with ("": none)
 
 
 def _stage_range(first: str, last: str) -> list[str]:
@@ -179,6 +181,10 @@ def run_pipeline(plan: RunPlan, progress: bool = True) -> list[StageResult]:
                 settings = stage_settings(name)
                 _say_if_replacing(plan.work, name, settings)
                 results.append(run_stage(name, settings=settings, force=plan.force, **common))
+        if plan.export:       # the run ends with the asset: one more row of the stage table
+            bar.set_postfix_str("export")
+            results.append(run_stage("export", settings=stage_settings("export", out=plan.export), force=plan.force,
+                                     **common))
     except BaseException:
         bar.leave = False
         raise
@@ -224,6 +230,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--holdout", type=int, default=4, metavar="N",
                         help="leave every N-th view out of the fit and report the relight error on them (0: none)")
     parser.add_argument("--no-report", dest="report", action="store_false", help="do not write WORK/report.html")
+    formats = ", ".join(importlib.import_module("stages.export").WRITERS)
+    parser.add_argument("--export", metavar="ASSET", default="",
+                        help=f"end with `sigrend export` of the fitted object to ASSET ({formats}), its lighting map, "
+                             "previews and manifest beside it (docs/export.md)")
 
 
 def run_capture(plan: RunPlan, report: bool = True, progress: bool = True) -> dict:
@@ -258,7 +268,13 @@ def main(args: argparse.Namespace) -> int:
     for env in args.relight:
         if not Path(env).is_file():
             raise UserError(f"--relight {env}: file not found; give an equirect EXR or a lighting_sh.json")
-    plan = RunPlan(capture, work, args.first, args.last, args.force, args.holdout, list(args.relight))
+    export = ""
+    if args.export:
+        if STAGES.index(args.last) < STAGES.index("fit"):
+            raise UserError(f"--export needs the fit: drop --to {args.last} (or use --to fit)")
+        export = str(Path(args.export).resolve())
+        stage_settings("export", out=export)     # a bad suffix is a one-line error before any stage runs
+    plan = RunPlan(capture, work, args.first, args.last, args.force, args.holdout, list(args.relight), export)
     record = run_capture(plan, report=args.report)
     print(record["table"])
     for line in summary_lines(work):
