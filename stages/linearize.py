@@ -37,11 +37,13 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.chart import measure_chart
 from pipeline.errors import UserError
+from pipeline.io.camera_decode import Probe, decode_other, decode_raw, probe
 from pipeline.io.camera_files import Exposure
 from pipeline.io.camera_json import read_camera_json
-from pipeline.io.camera_decode import Probe, decode_other, decode_raw, probe
 from pipeline.io.capture_toml import CAPTURE_TOML, CaptureConfig, did_you_mean, read_capture_config
+from pipeline.io.chart_json import chart_path, write_chart
 from pipeline.io.images import read_image, write_image
 from pipeline.io.linear_manifest import linear_dir, manifest_path, write_manifest
 from pipeline.io.photos import capture_photos
@@ -143,7 +145,7 @@ def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     keys = plan_groups(capture_photos(capture), config, settings.bracket_size)
     folder = linear_dir(work)
     return ([folder / f"{k}.exr" for k in keys] + [folder / "masks" / f"{k}.png" for k in keys]
-            + [manifest_path(work)])
+            + [manifest_path(work)] + ([chart_path(work)] if config.chart is not None else []))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -230,6 +232,22 @@ def linearize_job(job: dict) -> dict:
 
     Returns the manifest entry.  Runs in a worker process: everything it needs is in ``job``.
     """
+    merged, valid, sources = job_radiance(job)
+    key = job["key"]
+    valid_fraction = np.count_nonzero(valid) / valid.size
+    entry = {"exr": f"{key}.exr", "mask": f"masks/{key}.png", "width": int(merged.shape[1]),
+             "height": int(merged.shape[0]), "sources": sources, "white_balance": job["white_balance"],
+             "saturated_fraction": round(1.0 - valid_fraction, 6), "valid_fraction": round(valid_fraction, 6),
+             "vignetting": job["vignetting"], "response": job["response"] or job["response_curve"]}
+    header = json.dumps({"recipe": _digest(job), "entry": entry})
+    write_image(job["mask"], valid.astype(np.float32), dtype="uint8")
+    write_image(job["exr"], merged, dtype="float", attributes={HEADER_KEY: header})
+    return entry
+
+
+def job_radiance(job: dict) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """One output's linear radiance (H, W, 3) float32, its valid mask (H, W) and its sources'
+    manifest entries: the sources decoded, scaled and (brackets) merged."""
     inverse = inverse_table(job["response"], job["response_curve"])
     gain = read_image(job["vignetting"])[:, :, :3] if job["vignetting"] else None
     single = len(job["sources"]) == 1
@@ -247,16 +265,7 @@ def linearize_job(job: dict) -> dict:
     if not single:
         valid = den > 0
         merged = np.where(valid[:, :, None], num / np.where(valid, den, 1.0)[:, :, None], 0.0).astype(np.float32)
-    key = job["key"]
-    valid_fraction = np.count_nonzero(valid) / valid.size
-    entry = {"exr": f"{key}.exr", "mask": f"masks/{key}.png", "width": int(merged.shape[1]),
-             "height": int(merged.shape[0]), "sources": sources, "white_balance": job["white_balance"],
-             "saturated_fraction": round(1.0 - valid_fraction, 6), "valid_fraction": round(valid_fraction, 6),
-             "vignetting": job["vignetting"], "response": job["response"] or job["response_curve"]}
-    header = json.dumps({"recipe": _digest(job), "entry": entry})
-    write_image(job["mask"], valid.astype(np.float32), dtype="uint8")
-    write_image(job["exr"], merged, dtype="float", attributes={HEADER_KEY: header})
-    return entry
+    return merged, valid, sources
 
 
 def _linear_source(src: dict, job: dict, inverse, gain: np.ndarray | None, want_level: bool) -> tuple:
@@ -480,6 +489,8 @@ def run(*, capture: Path, work: Path, settings: Settings, force: bool = False) -
     """Linearize every image of the capture (``force``: even those whose EXR records the same
     recipe); returns the written EXRs, masks and manifest.json."""
     jobs = build_jobs(Path(capture), Path(work), settings)
+    config = read_capture_config(capture)
+    chart = None if config.chart is None else measure_capture_chart(config, jobs, work)   # before the long part
     entries = run_jobs(jobs, settings.workers, force)
     manifest = write_manifest(work, entries)
     if (note := response_note(jobs)) is not None:
@@ -489,4 +500,25 @@ def run(*, capture: Path, work: Path, settings: Settings, force: bool = False) -
     previous = [p for p in [*folder.glob("*.exr"), *(folder / "masks").glob("*.png")] if not p.name.startswith(".")]
     for stale in set(previous) - set(written):
         stale.unlink()        # a photo removed from the capture leaves no linear image behind
-    return written + [manifest]
+    if chart is None:
+        chart_path(work).unlink(missing_ok=True)     # a [chart] removed from capture.toml leaves none behind
+        return written + [manifest]
+    return written + [manifest, chart]
+
+
+def measure_capture_chart(config: CaptureConfig, jobs: list[dict], work: Path) -> Path:
+    """capture.toml [chart] measured in its photo's linear radiance (pipeline.chart.measure_chart)
+    -> WORK/linear/chart.json; one line naming [chart] when its photo is not in the capture, or the
+    chart is not found or cannot be measured."""
+    spec = config.chart
+    where = f"{config.source} [chart] {spec.kind} {spec.image!r}"
+    job = next((j for j in jobs if any(Path(src["path"]).name == spec.image for src in j["sources"])), None)
+    if job is None:
+        names = [Path(src["path"]).name for j in jobs for src in j["sources"]]
+        raise UserError(f"{where}: no such photo in images/{did_you_mean(spec.image, names)}")
+    rgb, valid, _ = job_radiance(job)
+    record = measure_chart(spec, rgb, valid, where)
+    summary = ", ".join(f"{v:.4g}" for v in record["irradiance"])
+    print(f"linearize: {spec.kind} in {spec.image}: irradiance on its plane ({summary}) in the photos' units",
+          file=sys.stderr)
+    return write_chart(work, {**record, "image": spec.image, "key": job["key"]})

@@ -38,6 +38,13 @@ Every section is optional; paths are relative to the capture folder.
     marker_length = 0.03            # metres
     board_to_object = [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]   # 4x4, board frame -> object frame
 
+    [chart]                         # a colour reference in one photo: fixes the base colour's colour and level
+    colorchecker = "IMG_0003.jpg"   # an X-Rite ColorChecker Classic (24 patches) in this photo, found by cv2.mcc; or
+    grey_card = {image = "IMG_0003.jpg", box = [x0, y0, x1, y1], reflectance = 0.18}  # a grey card's region
+                                    # (pixels, x right, y down, end exclusive; reflectance one number or [r, g, b])
+    normal = "camera"               # which way the chart faces: "camera" (its photo's camera, default) or
+                                    # [x, y, z] in the object frame (e.g. [0, 0, 1]: lying on the table)
+
 A board file for ``sigrend calib intrinsics --board`` holds the same ``[board]`` table (or its keys
 at the top level); OpenCV's 9 x 6-corner chessboard is ``pattern = "chessboard"``, ``squares = [10, 7]``
 (squares, as for ChArUco) and its ``square_length``.  Malformed content raises ``UserError`` naming the file and the key.
@@ -97,6 +104,19 @@ class KnownLight:
 
 
 @dataclass(frozen=True)
+class ChartSpec:
+    """capture.toml [chart]: the photo holding a ColorChecker Classic (``kind`` "colorchecker") or a
+    grey card (``kind`` "grey_card", its ``box`` and ``reflectance`` (3,)); ``normal`` None = the
+    chart faces its photo's camera, else a unit vector in the object frame."""
+
+    kind: Literal["colorchecker", "grey_card"]
+    image: str
+    box: tuple[int, int, int, int] | None = None
+    reflectance: tuple[float, float, float] | None = None
+    normal: tuple[float, float, float] | None = None
+
+
+@dataclass(frozen=True)
 class CaptureConfig:
     """Parsed capture.toml (absent file -> all defaults). Paths are absolute."""
 
@@ -110,6 +130,7 @@ class CaptureConfig:
     brackets: dict[str, tuple[str, ...]] = field(default_factory=dict)
     board: BoardSpec | None = None
     lighting: dict[str, KnownLight] = field(default_factory=dict)
+    chart: ChartSpec | None = None
     source: Path | None = None
 
     def exposure_for(self, name: str) -> ExposureOverride:
@@ -156,6 +177,7 @@ SECTIONS: dict[str, set[str] | None] = {
     "white_balance": {"multipliers", "gray_patch"}, "exposure": None, "brackets": None, "lighting": None,
     "board": {"pattern", "dictionary", "squares", "square_length", "marker_length", "board_to_object"},
     "fit": {"known_albedo"},
+    "chart": {"colorchecker", "grey_card", "normal"},
 }
 
 
@@ -290,6 +312,42 @@ def parse_lighting(path: Path, table: dict) -> dict[str, KnownLight]:
     return out
 
 
+def parse_chart(path: Path, table: dict) -> ChartSpec:
+    """[chart] -> ChartSpec (UserError naming ``path`` and the key)."""
+    where = f"{path}: [chart]"
+    if ("colorchecker" in table) == ("grey_card" in table):
+        raise UserError(f'{where} needs one of colorchecker = "photo file name" or grey_card = {{image = "...", '
+                        "box = [x0, y0, x1, y1], reflectance = 0.18}")
+    normal = table.get("normal", "camera")
+    unit = None
+    if normal != "camera":
+        vec = np.asarray(normal if isinstance(normal, list) and all(is_number(v) for v in normal) else [], float)
+        norm = float(np.linalg.norm(vec)) if vec.shape == (3,) else 0.0
+        if not np.isfinite(norm) or norm == 0:
+            raise UserError(f'{where} normal must be "camera" or a non-zero [x, y, z] (object frame), got {normal!r}')
+        unit = tuple(float(v) / norm for v in vec)
+    if "colorchecker" in table:
+        if not isinstance(table["colorchecker"], str) or not table["colorchecker"]:
+            raise UserError(f'{where} colorchecker must be a photo file name ("IMG_0003.jpg")')
+        return ChartSpec("colorchecker", table["colorchecker"], normal=unit)
+    card = table["grey_card"]
+    if not isinstance(card, dict) or set(card) - {"image", "box", "reflectance"} or not isinstance(card.get("image"), str):
+        raise UserError(f'{where} grey_card must be {{image = "photo file name", box = [x0, y0, x1, y1], '
+                        "reflectance = 0.18}")
+    box = card.get("box")
+    if (not isinstance(box, list) or len(box) != 4 or not all(isinstance(v, int) for v in box)
+            or min(box) < 0 or box[2] <= box[0] or box[3] <= box[1]):
+        raise UserError(f"{where} grey_card box must be [x0, y0, x1, y1] integer pixels with x1 > x0 >= 0, "
+                        f"y1 > y0 >= 0, got {box!r}")
+    rho = card.get("reflectance", 0.18)
+    rho = [rho] * 3 if is_number(rho) else rho
+    if (not isinstance(rho, list) or len(rho) != 3 or not all(is_number(v) and np.isfinite(v) and 0 < v <= 1
+                                                                for v in rho)):
+        raise UserError(f"{where} grey_card reflectance must be one or three numbers in (0, 1], got "
+                        f"{card.get('reflectance')!r}")
+    return ChartSpec("grey_card", card["image"], tuple(box), tuple(float(v) for v in rho), unit)
+
+
 def write_capture_toml(path: str | os.PathLike, doc: dict, comment: str = "") -> Path:
     """A capture.toml from its tables (plain Python values) through tomli_w (strings escaped), with
     ``comment`` as a first line: what synth and the poses bench write, read back by read_capture_config."""
@@ -342,4 +400,5 @@ def read_capture_config(capture: str | os.PathLike) -> CaptureConfig:
     return CaptureConfig(camera=_path_entry(path, doc, "camera"), response=response, response_curve=curve,
                          vignetting=_path_entry(path, doc, "vignetting"), wb_multipliers=mult, wb_gray_patch=gray,
                          exposure=exposure, brackets=brackets, board=board,
-                         lighting=parse_lighting(path, doc.get("lighting", {})), source=path)
+                         lighting=parse_lighting(path, doc.get("lighting", {})),
+                         chart=parse_chart(path, doc["chart"]) if "chart" in doc else None, source=path)

@@ -34,6 +34,7 @@ from threadpoolctl import threadpool_limits
 
 from pipeline.errors import UserError
 from pipeline.io.capture_toml import read_capture_config
+from pipeline.io.chart_json import chart_path
 from pipeline.io.mesh import MESH_NAMES
 from pipeline.io.samples import read_samples_meta
 from stages.fit.convex import fit_convex
@@ -59,6 +60,7 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     # the mesh (the physical forward model, textured albedo) and the poses (the samples' pixel footprints)
     paths += [Path(capture) / n for n in MESH_NAMES if (Path(capture) / n).exists()][:1]
     paths += [p for p in (Path(work) / "poses.json", Path(capture) / "poses.json") if p.exists()][:1]
+    paths += [p for p in [chart_path(work)] if p.exists()]       # a colour chart (linearize, capture.toml [chart])
     return paths
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core import chart as core_chart
 from pipeline.core import lighting_scale, prt
 from pipeline.core.brdf import BRDF_PARAMS, Brdf
 from pipeline.core.candidate import Observations
@@ -266,3 +267,72 @@ def fitted_material_scale(candidate, best, settings: Settings) -> dict:
                          "accepted": [None if low is None else known.scale * low,
                                       None if high is None else known.scale * high],
                          "rmse_at_applied": profile.at_one, "limit": profile.limit}}
+
+
+CHART_AGREEMENT = 0.1    # a chart within 10 % (per channel) of a physically fixed scale agrees with it
+
+
+@dataclass(frozen=True)
+class ChartReference:
+    """linear/chart.json as the fit uses it: the irradiance (3,) it measured on its plane, the
+    plane's unit normal (3,) in the object frame, and how to name it."""
+
+    irradiance: np.ndarray
+    normal: np.ndarray
+    facing: str
+    name: str
+
+
+def chart_reference(capture: Path, work: Path) -> ChartReference | None:
+    """The capture's colour chart (linear/chart.json, written by linearize from capture.toml [chart]),
+    its normal "camera" resolved through the poses (minus the viewing ray through the chart's
+    centre), or None.  A user error when capture.toml also gives [fit] known_albedo, or the chart's
+    photo has no pose."""
+    from pipeline.core.camera import pixel_rays
+    from pipeline.io.chart_json import read_chart
+    from pipeline.io.poses import poses_path, read_poses
+
+    record = read_chart(work)
+    if record is None:
+        return None
+    if known_albedo_hint(capture) is not None:
+        raise UserError(f"{Path(capture) / 'capture.toml'}: [fit] known_albedo and [chart] both fix the base colour; "
+                        "keep one")
+    name = f"the {'ColorChecker' if record['kind'] == 'colorchecker' else 'grey card'} in {record['image']}"
+    if record.get("normal") is not None:
+        normal = np.asarray(record["normal"], float)
+        return ChartReference(np.asarray(record["irradiance"], float), normal / np.linalg.norm(normal),
+                              "capture.toml [chart] normal", name)
+    path = poses_path(capture, work)
+    poses = read_poses(path)
+    key = next((k for k in (record["image"], record.get("key"), f"{record.get('key')}.exr") if k in poses.images), None)
+    if key is None:
+        raise UserError(f"{path} has no pose for {record['image']}, the photo of capture.toml [chart]; give [chart] "
+                        "normal = [x, y, z] (object frame) or keep the photo among the posed ones")
+    pose = poses.images[key]
+    _, ray = pixel_rays(poses.camera_of(key), pose.R, pose.t, np.asarray(record["centre"], float)[None])
+    return ChartReference(np.asarray(record["irradiance"], float), -ray[0], "its photo's camera", name)
+
+
+def chart_factor(chart: ChartReference, fit) -> dict:
+    """What ``chart`` says of a fitted lighting (a MaterialFit: SH coefficients and sources): the
+    lighting's irradiance on the chart's plane and the factor per channel, E_fit / E_chart, by which
+    its base colour is multiplied (its lighting divided) to agree (pipeline.core.chart)."""
+    fitted = core_chart.lighting_irradiance(fit.coeffs, chart.normal,
+                                            None if fit.sources is None else fit.sources.directions,
+                                            None if fit.sources is None else fit.sources.power)
+    return {"chart": chart.name, "normal": chart.normal.tolist(), "facing": chart.facing,
+            "chart_irradiance": chart.irradiance.tolist(), "fitted_irradiance": fitted.tolist(),
+            "factor": core_chart.albedo_factor(fitted, chart.irradiance).tolist()}
+
+
+def chart_check(chart: ChartReference, fit, what: str) -> dict:
+    """The chart against a scale the physics (or a known lighting) fixed (``what``): chart_factor's
+    record, and whether it agrees within CHART_AGREEMENT per channel."""
+    record = chart_factor(chart, fit)
+    off = float(np.max(np.abs(np.asarray(record["factor"]) - 1.0)))
+    return {**record, "used": "check", "fixed_by": what, "agrees": off <= CHART_AGREEMENT,
+            "tolerance": CHART_AGREEMENT,
+            "note": "the chart's irradiance on its plane vs the fitted lighting's there: a factor other than 1 means "
+                    "the chart and the fit disagree on the base colour's level or colour (or the chart sees other "
+                    "light than the object: a shadow, a nearby wall, another direction)"}

@@ -260,20 +260,38 @@ def summary_line(brdf: Brdf, interval, n_sources: int, given: bool = False, text
     (fit/albedo.ply), brdf.json's its mean; ``detail_rows``: the lighting's detail part's rows, if used;
     ``colour_by``: report.json's scale_convention; a Lambertian albedo whose colour (and level) are
     the convention's says so."""
+    chart = chart_clause(colour_by)
     if brdf.model == "lambert":
         colour = "albedo " + ("textured, mean " if textured else "")
         said = ""
         if colour_by is not None and str(colour_by.get("chromaticity", "")).startswith("the convention"):
             what = "colour is" if colour_by.get("source") == "interreflection" else "colour and level are"
             said = (f" (its {what} the convention's: the photos do not fix {'it' if what == 'colour is' else 'them'}; "
-                    "give capture.toml [fit] known_albedo)")
-        return f"fit: lambert, {colour}{np.round(brdf.albedo, 3).tolist()}, {n_sources} directional source(s){said}"
+                    "give capture.toml [fit] known_albedo or a [chart])")
+        return f"fit: lambert, {colour}{np.round(brdf.albedo, 3).tolist()}, {n_sources} directional source(s){said}{chart}"
     bound = ("given" if given else "no held-out views: not validated" if interval is None
              else f"held-out views cannot tell apart {interval[0]:.3f}-{interval[1]:.3f}")
     colour = "base colour " + ("textured (fit/albedo.ply), mean " if textured else "")
     detail = "" if detail_rows is None else f" and a {detail_rows}-row detail map (report.json lighting_detail)"
     return (f"fit: principled roughness {brdf.roughness:.3f} ({bound}), {colour}"
-            f"{np.round(brdf.base_color, 3).tolist()}, {n_sources} directional source(s){detail}")
+            f"{np.round(brdf.base_color, 3).tolist()}, {n_sources} directional source(s){detail}{chart}")
+
+
+def chart_clause(colour_by: dict | None) -> str:
+    """The summary line's words on a colour chart (report.json scale_convention's "chart"): the colour
+    and level it fixed, or whether it agrees with the scale the physics or a known lighting fixed."""
+    chart = None if colour_by is None else colour_by.get("chart")
+    if not chart:
+        return ""
+    factor = ", ".join(f"x{v:.3g}" for v in chart["factor"])
+    if chart["used"] == "applied":
+        return f" (colour and level fixed by {chart['chart']}: the convention's albedo times {factor})"
+    if chart["used"] == "not taken":
+        return f" ({chart['chart']} not taken: it would give an albedo above 1 ({factor}); it sees other light)"
+    if chart["agrees"]:
+        return f" ({chart['chart']} agrees within {chart['tolerance']:.0%}: {factor})"
+    return (f" ({chart['chart']} disagrees with {chart['fixed_by']}: it asks the base colour times {factor}; "
+            "report.json scale_convention.chart)")
 
 
 def detail_note(fit: material_fit.MaterialFit, settings: Settings) -> dict:

@@ -47,7 +47,15 @@ from pipeline.io.mesh import mesh_path, read_mesh
 from pipeline.io.poses import poses_path, read_poses
 from pipeline.raycast import RayMesh, pixel_footprints, ray_mesh
 from stages.fit.data import load_physical
-from stages.fit.known import check_lighting_scale, fitted_material_scale, known_lighting_setup
+from stages.fit.known import (
+    chart_check,
+    chart_factor,
+    chart_reference,
+    check_lighting_scale,
+    fitted_material_scale,
+    known_lighting_setup,
+)
+from stages.fit.materials import fit_materials, material_brdfs
 from stages.fit.outputs import (
     lighting_report,
     one_view_line,
@@ -59,7 +67,6 @@ from stages.fit.outputs import (
     write_fit,
 )
 from stages.fit.settings import DEFAULT_ALBEDO, Settings
-from stages.fit.materials import fit_materials, material_brdfs
 from stages.fit.texture import albedo_from_shading
 
 
@@ -96,6 +103,7 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
     kw = dict(noise_floor=settings.noise_floor, min_snr=settings.min_snr, band_prior=settings.band_prior,
               independent_groups=len(np.unique(data["image_id"])), posed_ratio=prt.QUADRATURE_FLOOR)
 
+    chart = chart_reference(capture, work)       # a colour chart's irradiance (linear/chart.json), before the search
     known = known_lighting_setup(capture, keys, data["image_id"], settings, order, rays, geo)
     detail = material_fit.DetailSetup(settings.lobe_samples, settings.seed) \
         if settings.lighting_detail == "auto" and known is None else None     # a known lighting has its own detail
@@ -105,6 +113,9 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
     mode = ("check" if known is not None else "lighting") if known_brdf is not None else \
         ("brdf" if known is not None else "factorization")
     chosen = material_and_lighting(candidate, settings, known_brdf, models, hint, top, timings)
+    applied = None
+    if chart is not None and chosen.best.material is None and known is None and known_brdf is None:
+        chosen, applied = chart_colour(chart, chosen, candidate, settings, models, hint, top, timings)
     report, brdf, vertex_rho = _report_and_texture(chosen, settings, mode, capture, mesh, data, obs, noise, keys,
                                                    known_brdf, hint)
     if vertex_rho is not None and chosen.best.material is not None and known_brdf is None:
@@ -118,6 +129,8 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
                                                        known_brdf, hint)
         report["albedo"]["uniform_base_search"] = first
     timings["material"] = time.perf_counter() - t0
+    if chart is not None:
+        report["scale_convention"] = chart_convention(report["scale_convention"], chart, chosen, applied)
     best, interval = chosen.best, chosen.interval
     if one_fold and known_brdf is None and len(models) > 1:     # --brdf auto: say what it kept and why
         print(one_view_line(report["candidates"], brdf, settings.parsimony, len(np.unique(data["image_id"])),
@@ -136,6 +149,46 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
     return write_fit(Path(work) / "fit", best.coeffs, brdf, report, env_height=settings.env_height,
                      source=f"sigrend fit ({mode}, physical)", sources=best.sources, angular=True,
                      texture=(mesh, vertex_rho), materials=materials)
+
+
+def chart_colour(chart, chosen: "Chosen", candidate: CandidateFit, settings: Settings, models: list[str], hint,
+                 top: int, timings: dict) -> tuple["Chosen", dict]:
+    """A Lambertian fit whose colour and level are a convention, fixed by the colour chart: the
+    albedo times the chart's factor (known.chart_factor: the fitted lighting's irradiance on the
+    chart's plane over the chart's) and the lighting fitted again for that albedo, as for a known
+    material (interreflection goes as the albedo squared, so the lighting is refitted rather than
+    divided).  An albedo above 1 is not taken (the chart then sees other light than the object).
+    -> (the refitted choice, the record)."""
+    record = chart_factor(chart, chosen.best)
+    albedo = np.asarray(chosen.best.base, float) * np.asarray(record["factor"])
+    if albedo.max() > 1.0:
+        return chosen, {**record, "used": "not taken", "albedo": albedo.tolist(),
+                        "why": "the chart's factor gives an albedo above 1: the chart sees other (brighter) light "
+                               "than the object, or its photo's exposure differs"}
+    again = material_and_lighting(candidate, settings, Brdf("lambert", albedo=albedo), models, hint, top, timings)
+    again = replace(again, table=chosen.table, interval=chosen.interval, level=chosen.level)
+    return again, {**record, "used": "applied", "albedo": albedo.tolist(),
+                   "convention_albedo": np.asarray(chosen.best.base, float).tolist()}
+
+
+def chart_convention(convention: dict, chart, chosen: "Chosen", applied: dict | None) -> dict:
+    """report.json's scale_convention with a colour chart: the chart's record (applied: what fixed the
+    colour and level; otherwise a check of the scale the physics or a known lighting fixed)."""
+    if applied is not None and applied["used"] == "applied":
+        after = chart_factor(chart, chosen.best)["factor"]
+        return {"source": f"colour chart ({chart.name}, linear/chart.json)", "chromaticity": f"colour chart ({chart.name})",
+                "chart": {**applied, "factor_after_refit": after},
+                "before_chart": convention,
+                "note": "the chart's patches of known reflectance give the irradiance on its plane; the fitted "
+                        "lighting's irradiance there over it is the factor the convention's albedo was off by, per "
+                        "channel (pipeline/core/chart.py, docs/fit.md)"}
+    if applied is not None:
+        return {**convention, "chart": applied}
+    source = str(convention.get("source", "the fit"))
+    what = next((short for start, short in (("the dielectric", "the dielectric specular layer's Fresnel"),
+                                            ("the metal", "the metal's F0"), ("the known lighting", "the known lighting"))
+                 if source.startswith(start)), source)
+    return {**convention, "chart": chart_check(chart, chosen.best, what)}
 
 
 def sample_footprints(capture: Path, work: Path, mesh: RayMesh, data: dict, keys: list[str], n: int) -> tuple | None:
