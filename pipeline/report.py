@@ -81,6 +81,41 @@ def _missing(what: str) -> str:
     return f'<p class="missing">{html.escape(what)}</p>'
 
 
+def _fmt(value) -> str:
+    """A value as the page shows it: numbers to 3 significant digits, lists joined, None as '—'."""
+    if isinstance(value, bool) or value is None:
+        return "—" if value is None else ("yes" if value else "no")
+    if isinstance(value, (int, np.integer)):
+        return str(int(value))
+    if isinstance(value, (float, np.floating)):
+        return f"{float(value):.3g}"
+    if isinstance(value, (list, tuple)):
+        return ", ".join(_fmt(v) for v in value)
+    if isinstance(value, dict):
+        return "; ".join(f"{k}: {_fmt(v)}" for k, v in value.items())
+    return str(value)
+
+
+def _table(rows: list, header: list[str] | None = None) -> str:
+    """An HTML table of ``rows`` (each a list of cells, formatted by _fmt and escaped)."""
+    head = "<tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>" if header else ""
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(_fmt(c))}</td>" for c in row) + "</tr>" for row in rows)
+    return f"<table>{head}{body}</table>"
+
+
+def _flat(doc: dict, prefix: str = "") -> list[list]:
+    """Rows [key path, value] of a nested dict (lists of scalars stay one value)."""
+    rows = []
+    for k, v in doc.items():
+        if isinstance(v, dict):
+            rows += _flat(v, f"{prefix}{k}.")
+        elif isinstance(v, list) and v and isinstance(v[0], dict):
+            rows.append([f"{prefix}{k}", f"{len(v)} entries"])
+        else:
+            rows.append([f"{prefix}{k}", v])
+    return rows
+
+
 def _json(path: Path) -> dict | None:
     try:
         return json.loads(Path(path).read_text())
@@ -105,6 +140,17 @@ def _summary(capture: Path, work: Path) -> str:
     return _section("Summary", "\n".join(parts))
 
 
+def _warnings(work: Path) -> str:
+    """The run's warnings (WORK/run.json "warnings", recorded by the runner), each once."""
+    run = _json(Path(work) / "run.json")
+    if not run or "warnings" not in run:
+        return ""
+    found = run["warnings"]
+    body = ("<ul class=\"warnings\">" + "".join(f"<li>{html.escape(str(w))}</li>" for w in found) + "</ul>"
+            if found else "<p>The run raised no warnings.</p>")
+    return _section(f"Warnings ({len(found)})", body)
+
+
 def _photos(capture: Path, work: Path) -> str:
     from pipeline.io.images import read_image
 
@@ -115,15 +161,28 @@ def _photos(capture: Path, work: Path) -> str:
     cells = []
     for exr in exrs:
         img = _thumb(read_image(exr))
-        tag = _img_tag(_array_png(_tonemap(img)), exr.name)
+        shown = _tonemap(img)
         mask_file = linear / "masks" / f"{exr.stem}.png"
-        mask_tag = ""
+        caption = exr.stem
         if mask_file.exists():
-            mask = _thumb(read_image(mask_file))[..., 0]
-            mask_tag = _img_tag(_array_png(np.repeat(mask[..., None], 3, axis=2)), f"mask {exr.name}")
-        cells.append(f'<figure>{tag}{mask_tag}<figcaption>{html.escape(exr.stem)}</figcaption></figure>')
-    note = "<p>Linear photos (tone-mapped for display) and their validity masks (white = used).</p>"
+            valid = _thumb(read_image(mask_file))[..., 0] > 0.5
+            shown = masked_overlay(shown, valid)
+            caption += f" — {100 * (1 - valid.mean()):.3g}% masked"
+        tag = _img_tag(_array_png(shown), exr.name)
+        cells.append(f'<figure class="photo">{tag}<figcaption>{html.escape(caption)}</figcaption></figure>')
+    note = ("<p>Linear photos (tone-mapped for display); pixels their validity mask leaves out (saturated, "
+            "outside the image's valid area) are tinted <span class=\"swatch\"></span> red and not used.</p>")
     return _section("Photos and masks", note + '<div class="grid">' + "".join(cells) + "</div>")
+
+
+MASK_TINT = np.array([1.0, 0.1, 0.1])
+
+
+def masked_overlay(rgb: np.ndarray, valid: np.ndarray, strength: float = 0.6) -> np.ndarray:
+    """The display image ``rgb`` (H, W, 3) with the pixels not ``valid`` (H, W) blended towards MASK_TINT."""
+    out = np.array(rgb, float)
+    out[~valid] = (1 - strength) * out[~valid] + strength * MASK_TINT
+    return out
 
 
 def camera_plot(poses, bounds: np.ndarray | None, heldout: list[str]) -> bytes:
@@ -158,9 +217,8 @@ def camera_plot(poses, bounds: np.ndarray | None, heldout: list[str]) -> bytes:
 
 
 def _cameras(capture: Path, work: Path) -> str:
-    from pipeline.io.poses import read_poses
+    from pipeline.io.poses import capture_poses_path, read_poses
     from pipeline.io.run_summary import samples_holdout
-    from pipeline.io.poses import capture_poses_path
 
     path = capture_poses_path(capture, work)
     if not path.exists():
@@ -181,7 +239,7 @@ def _cameras(capture: Path, work: Path) -> str:
                  f"{100 * summary['registration_points_used_fraction']:.0f}% of {summary['registration_points']} "
                  "SfM points on it.</p>")
     if summary:
-        text += "<pre>" + html.escape(json.dumps(summary, indent=1)[:2000]) + "</pre>"
+        text += "<details><summary>poses_summary.json</summary>" + _table(_flat(summary), ["entry", "value"]) + "</details>"
     return _section("Cameras", text + _img_tag(camera_plot(poses, bounds, samples_holdout(work)), "cameras"))
 
 
@@ -190,8 +248,15 @@ def _coverage(work: Path) -> str:
     summary = _json(Path(work) / "samples_summary.json")
     body = _file_tag(png, "sample coverage") or _missing("no samples yet (the samples stage has not run)")
     if summary:
-        keep = {k: summary[k] for k in ("count", "drops", "coverage", "holdout") if k in summary}
-        body += "<pre>" + html.escape(json.dumps(keep, indent=1)[:3000]) + "</pre>"
+        rows = [["samples kept", summary.get("count")], ["pixels considered", summary.get("pixels")]]
+        rows += [[f"dropped: {k.replace('_', ' ')}", v] for k, v in (summary.get("drops") or {}).items()]
+        for name in ("normals", "reflections"):
+            cov = (summary.get("coverage") or {}).get(name)
+            if cov:
+                rows.append([f"{name}: sphere covered", f"{100 * cov['fraction']:.3g}% ({cov['cells_hit']}/{cov['cells']} cells)"])
+        if summary.get("holdout"):
+            rows.append(["held out of the fit", summary["holdout"]])
+        body += _table(rows, ["", "value"])
     return _section("Sample coverage", body)
 
 
@@ -294,21 +359,79 @@ def _lighting(work: Path) -> str:
     coeffs = read_lighting_sh(sh_file)
     brdf = read_brdf(fit / "brdf.json") if (fit / "brdf.json").exists() else None
     parts.append("<h3>Spheres under the fitted lighting</h3>" + _img_tag(sphere_renders(coeffs, brdf), "spheres"))
-    plots = sorted(p for p in fit.glob("*.png") if not p.name.startswith("."))
-    if plots:
-        parts.append("<h3>Fit diagnostics (per-band spectrum, recoverability, residuals)</h3>"
-                     + "".join(f"<figure>{_file_tag(p, p.stem)}<figcaption>{html.escape(p.name)}</figcaption></figure>"
-                               for p in plots))
+    report = _json(fit / "report.json") or {}
+    if report.get("bands"):
+        parts.append("<h3>What the data determine, band by band</h3>" + _img_tag(spectrum_plot(report["bands"]), "spectrum")
+                     + _table([[b.get("l"), b.get("label"), b.get("snr"), b.get("snr_data"), b.get("energy")]
+                               for b in report["bands"]], ["band l", "label", "snr (vs residual)", "snr (vs photo noise)",
+                                                           "energy"]))
+    if report.get("residuals_per_view"):
+        parts.append("<h3>Fit residual per view</h3>" + _img_tag(residual_plot(report["residuals_per_view"]), "residuals"))
     return _section("Fitted lighting", "\n".join(parts))
 
 
-def _brdf(work: Path) -> str:
+LABEL_COLOURS = {"recoverable": "tab:green", "ill-conditioned": "tab:orange", "ill-posed": "tab:red"}
+
+
+def spectrum_plot(bands: list[dict]) -> bytes:
+    """PNG: the fitted lighting's energy per SH band (log scale), coloured by what the data determine;
+    integer band ticks, the legend beside the axes."""
+    from matplotlib.patches import Patch
+    from matplotlib.ticker import MaxNLocator
+
+    plt = _figure()
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    energy = [float(b.get("energy") or 0.0) for b in bands]
+    positive = [e for e in energy if e > 0]
+    floor = min(positive) / 100 if positive else 1e-6
+    # ill-posed bands are zero: drawn as a short stub at the bottom of the log axis
+    ax.bar([b["l"] for b in bands], [max(e, floor * 3) for e in energy], bottom=floor,
+           color=[LABEL_COLOURS.get(b.get("label"), "tab:gray") for b in bands])
+    ax.set_yscale("log")
+    ax.set_ylim(bottom=floor)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel("SH band l")
+    ax.set_ylabel("energy Σ_m L_lm² (RGB sum)")
+    ax.legend(handles=[Patch(color=c, label=k + (" (zeroed)" if k == "ill-posed" else "")) for k, c in LABEL_COLOURS.items()],
+              loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    ax.set_title("fitted lighting spectrum", fontsize=10)
+    return _fig_png(fig)
+
+
+def residual_plot(views: list[dict]) -> bytes:
+    """PNG: the fit's relative RMS residual per fitted view, one bar per image (named), coloured by
+    the cross-validation fold it was held out in when the fit chose its models, with a legend."""
+    plt = _figure()
+    names = [str(v.get("image", i)) for i, v in enumerate(views)]
+    fig, ax = plt.subplots(figsize=(max(5.0, 0.45 * len(views) + 2.0), 3.6))
+    folds = sorted({v.get("fold") for v in views}, key=lambda f: (f is None, f))
+    cmap = plt.get_cmap("tab10")
+    for k, fold in enumerate(folds):
+        idx = [i for i, v in enumerate(views) if v.get("fold") == fold]
+        ax.bar(idx, [100 * (views[i].get("relative_rmse") or 0.0) for i in idx], color=cmap(k % 10),
+               label="no fold" if fold is None else f"fold {fold}")
+    ax.set_xticks(range(len(views)))
+    ax.set_xticklabels(names, rotation=45 if len(views) > 4 else 0, ha="right" if len(views) > 4 else "center",
+                       fontsize=8)
+    ax.set_xlabel("fitted view (image)")
+    ax.set_ylabel("relative RMS residual (%)")
+    ax.legend(title="held out in", loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    ax.set_title("fit residual per view (views held out of the whole fit are not here)", fontsize=10)
+    return _fig_png(fig)
+
+
+def _brdf(capture: Path, work: Path) -> str:
     fit = Path(work) / "fit"
     brdf = _json(fit / "brdf.json")
     if brdf is None:
         return _section("BRDF", _missing("no fitted BRDF yet (the fit stage has not run)"))
-    rows = "".join(f"<tr><td>{html.escape(str(k))}</td><td>{html.escape(json.dumps(v))}</td></tr>" for k, v in brdf.items())
-    body = f"<table>{rows}</table>"
+    truth = _json(Path(capture) / "gt" / "brdf.json")
+    report = _json(fit / "report.json")
+    body = brdf_table(brdf, truth)
+    scale = (report or {}).get("scale_convention")
+    if truth is not None and isinstance(scale, dict) and scale.get("source"):
+        body += (f"<p>The base colour's level (and the lighting's) is fixed by: {html.escape(str(scale['source']))}; "
+                 "where that is a convention, a common factor in the base colour's error is that convention's.</p>")
     if (fit / "albedo.ply").exists():
         import trimesh
 
@@ -320,15 +443,65 @@ def _brdf(work: Path) -> str:
             word = "albedo" if brdf.get("model") == "lambert" else "base colour"
             body += (f"<h3>Textured {word} (fit/albedo.ply; the table holds its mean)</h3>"
                      + _img_tag(texture_views(np.asarray(tex.vertices), np.asarray(tex.faces), colour), "texture"))
-    report = _json(fit / "report.json")
     selection = (report or {}).get("model_selection") or {}
     if selection.get("by") == "training residual":
         body = (f"<p><b>Not validated:</b> {html.escape(selection['why'])} (kept: {html.escape(selection['kept'])}).</p>"
                 + body)
     if report:
-        body += ("<details><summary>fit/report.json</summary><pre>"
-                 + html.escape(json.dumps(report, indent=1)[:20000]) + "</pre></details>")
+        body += fit_tables(report)
     return _section("BRDF", body)
+
+
+def brdf_table(brdf: dict, truth: dict | None) -> str:
+    """The fitted material's parameters (3 significant digits); with the capture's truth (gt/brdf.json,
+    synthetic captures) a truth column and each parameter's error (fit − truth, and relative)."""
+    materials = brdf.get("materials")
+    shown = {k: v for k, v in brdf.items() if k != "materials"}
+    if truth is None or truth.get("model") != brdf.get("model"):
+        note = "" if truth is None else (f"<p>The capture's truth (gt/brdf.json) is a {html.escape(str(truth.get('model')))} "
+                                         "material: not compared parameter by parameter.</p>")
+        out = note + _table([[k, v] for k, v in shown.items()], ["parameter", "fitted"])
+    else:
+        rows = []
+        for k, v in shown.items():
+            t = truth.get(k)
+            err = rel = None
+            if t is not None and isinstance(v, (int, float, list)) and not isinstance(v, bool):
+                fv, tv = np.atleast_1d(np.asarray(v, float)), np.atleast_1d(np.asarray(t, float))
+                if fv.shape == tv.shape:
+                    err = (fv - tv).tolist()
+                    rel = [f"{100 * (a - b) / abs(b):+.3g}%" if b != 0 else "—" for a, b in zip(fv, tv)]
+                    err, rel = (err[0], rel[0]) if fv.size == 1 else (err, ", ".join(rel))
+            rows.append([k, v, t, err, rel])
+        out = ("<p>Against the capture's truth (gt/brdf.json).</p>"
+               + _table(rows, ["parameter", "fitted", "truth", "error (fit − truth)", "relative error"]))
+    if materials:
+        keys = sorted({k for m in materials for k in m if k != "model"})
+        out += "<h3>Materials (fit/material.ply's material_id)</h3>" + _table(
+            [[i, m.get("model")] + [m.get(k) for k in keys] for i, m in enumerate(materials)], ["id", "model", *keys])
+    return out
+
+
+def fit_tables(report: dict) -> str:
+    """fit/report.json as tables: the choices, the candidates compared, and the rest of its entries."""
+    parts = []
+    chosen = [[k, report[k]] for k in ("mode", "forward_model", "order", "brdf_model") if k in report]
+    selection = report.get("model_selection")
+    if isinstance(selection, dict):
+        chosen += [[f"model selection: {k}", v] for k, v in selection.items() if not isinstance(v, (dict, list))]
+    parts.append("<h3>What the fit chose</h3>" + _table(chosen, ["", "value"]))
+    cands = report.get("candidates") or []
+    if cands and isinstance(cands, list) and isinstance(cands[0], dict):
+        cols = [c for c in ("name", "params", "train_rmse", "validation_rmse", "seconds") if any(c in r for r in cands)]
+        parts.append("<h3>Candidates compared (lowest validation RMSE wins, within the parsimony rule)</h3>"
+                     + _table([[r.get(c) for c in cols] for r in cands], [c.replace("_", " ") for c in cols]))
+    shown = {"mode", "forward_model", "order", "brdf_model", "model_selection", "candidates", "bands", "labels",
+             "residuals_per_view", "brdf", "schema"}
+    rest = {k: v for k, v in report.items() if k not in shown}
+    if rest:
+        parts.append("<details><summary>Everything else in fit/report.json</summary>"
+                     + _table(_flat(rest), ["entry", "value"]) + "</details>")
+    return "".join(parts)
 
 
 def _relight(work: Path) -> str:
@@ -341,7 +514,7 @@ def _relight(work: Path) -> str:
     which = "held-out views (not used by the fit)" if check["heldout"] else "training views (no view was held out)"
     head = (f"<p>{len(check['views'])} {which}: relative RMS error <b>{100 * check['relative_error']:.2f}%</b>"
             + html.escape(noise_phrase(check))
-            + (f" after one global scale {check['scale']:.4g}" if check.get("scale_fitted") else "")
+            + (f" after one global scale {check['scale']:.3g}" if check.get("scale_fitted") else "")
             + f". Relit images made by the <b>{html.escape(method_description(check))}</b>"
             + f"; error maps show |relit − photo| / mean photo from 0 (black) to "
               f"{100 * check.get('error_map_range', 0.2):.0f}% (white).</p>")
@@ -350,7 +523,7 @@ def _relight(work: Path) -> str:
         stem = Path(key).stem
         imgs = "".join(_file_tag(folder / f"{stem}{suffix}.png", f"{stem}{suffix}", THUMB_PX)
                        for suffix in ("_photo", "", "_error"))
-        cells.append(f"<figure>{imgs}<figcaption>{html.escape(key)}: photo | relit | error — "
+        cells.append(f"<figure class=\"photo\">{imgs}<figcaption>{html.escape(key)}: photo | relit | error — "
                      f"{100 * entry['relative_error']:.2f}%{html.escape(noise_phrase(entry))}</figcaption></figure>")
     extra = []
     for sub in sorted(p for p in (Path(work) / "relight").iterdir() if p.is_dir() and p.name != "check"):
@@ -394,23 +567,27 @@ def _settings(work: Path) -> str:
     files = sorted(Path(work).glob("*.settings.json"))
     if not files:
         return ""
-    body = "".join(f"<details><summary>{html.escape(p.name)}</summary><pre>"
-                   f"{html.escape(p.read_text())}</pre></details>" for p in files)
+    body = "".join(f"<details><summary>{html.escape(p.name)}</summary>"
+                   f"{_table(_flat(_json(p) or {}), ['entry', 'value'])}</details>" for p in files)
     return _section("Settings", body)
 
 
 STYLE = """body{font-family:sans-serif;max-width:1100px;margin:1em auto;padding:0 1em;color:#222}
-h2{border-bottom:1px solid #ccc;margin-top:1.5em}figure{display:inline-block;margin:4px;text-align:center}
-figcaption{font-size:12px}.missing{color:#999;font-style:italic}table{border-collapse:collapse}
-td{border:1px solid #ddd;padding:2px 8px;font-family:monospace}pre{background:#f6f6f6;padding:6px;overflow-x:auto}
-.grid figure img{display:block}"""
+h2{border-bottom:1px solid #ccc;margin-top:1.5em}figure{display:inline-block;margin:4px;text-align:center;max-width:100%}
+figcaption{font-size:12px}.missing{color:#999;font-style:italic}table{border-collapse:collapse;margin:4px 0}
+td,th{border:1px solid #ddd;padding:2px 8px;text-align:left;vertical-align:top;overflow-wrap:anywhere}
+th{background:#f3f3f3;font-weight:600}td{font-family:monospace}
+pre{background:#f6f6f6;padding:6px;overflow-x:auto}img{max-width:100%;height:auto}
+.photo img{border:1px solid #888;margin:1px}.swatch{display:inline-block;width:0.9em;height:0.9em;
+background:rgb(255,26,26);vertical-align:middle;border:1px solid #888}
+ul.warnings li{color:#8a4b00}summary{cursor:pointer;margin:4px 0}"""
 
 
 def build_report(capture: Path, work: Path) -> str:
     """The report as one HTML string (no external references)."""
     capture, work = Path(capture), Path(work)
-    sections = [_summary(capture, work), _photos(capture, work), _cameras(capture, work), _coverage(work),
-                _lighting(work), _brdf(work), _relight(work), _export(work), _settings(work)]
+    sections = [_summary(capture, work), _warnings(work), _photos(capture, work), _cameras(capture, work), _coverage(work),
+                _lighting(work), _brdf(capture, work), _relight(work), _export(work), _settings(work)]
     return ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>sigrend report: "
             f"{html.escape(Path(capture).name)}</title><style>{STYLE}</style></head><body>\n"
             f"<h1>sigrend report: {html.escape(Path(capture).resolve().name)}</h1>\n"

@@ -237,14 +237,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run_capture(plan: RunPlan, report: bool = True, progress: bool = True) -> dict:
-    """`sigrend run` of one capture: the stages of ``plan``, WORK/run.json (returned as a dict)
-    and, if ``report``, WORK/report.html.  UserError as the stages raise it."""
+    """`sigrend run` of one capture: the stages of ``plan``, WORK/run.json (returned as a dict;
+    its "warnings": the run's warnings, each once, also passed on to the caller's handler) and, if
+    ``report``, WORK/report.html.  UserError as the stages raise it."""
     started = time.perf_counter()
     with work_lock(plan.work):
-        results = run_pipeline(plan, progress=progress)
+        with warnings.catch_warnings(record=True) as caught:     # kept for run.json (report.html), then passed on
+            results = run_pipeline(plan, progress=progress)
+        for w in caught:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
         record = {"capture": str(Path(plan.capture).resolve()), "stages": [
             {"name": r.name, "skipped": r.skipped, "seconds": r.seconds, "outputs": [str(p) for p in r.outputs]}
-            for r in results], "total_seconds": time.perf_counter() - started}
+            for r in results], "total_seconds": time.perf_counter() - started,
+            "warnings": list(dict.fromkeys(str(w.message) for w in caught))}
         page = plan.work / "report.html"
         if report and all(r.skipped for r in results) and page.exists() and (plan.work / "run.json").exists():
             # nothing ran: run.json and report.html still describe the run that made these outputs

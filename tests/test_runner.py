@@ -187,8 +187,8 @@ def test_report_is_self_contained_and_says_what_is_missing(capture, tmp_path, ca
     assert cli.main(["run", str(capture), "-w", str(work), "--to", "samples"]) == 0
     assert f"report: {work / 'report.html'}" in capsys.readouterr().out
     html = (work / "report.html").read_text()
-    # photos + masks, the camera plot and the coverage plot are embedded; nothing is linked
-    assert html.count('src="data:image/png;base64,') >= 2 * 8 + 2
+    # the photos (their masks drawn over them), the camera plot and the coverage plot are embedded; nothing is linked
+    assert html.count('src="data:image/png;base64,') >= 8 + 2
     assert 'src="http' not in html and 'href="' not in html
     for title in ("Summary", "Photos and masks", "Cameras", "Sample coverage", "Fitted lighting", "Relit vs photo"):
         assert f"<h2>{title}</h2>" in html
