@@ -65,6 +65,8 @@ from pipeline.io.lighting import (
 from pipeline.io.linear_manifest import image_source, linear_manifest, load_linear_image
 from pipeline.io.mesh import mesh_path, read_material_ply, read_mesh, read_vertex_albedo
 from pipeline.io.poses import capture_poses_path, read_poses
+from pipeline.io.textures import FOLDER as TEXTURES
+from pipeline.io.textures import read_base_color_texture
 from pipeline.raycast import first_hits, ray_mesh
 from pipeline.settings import setting
 from pipeline.workdir import default_work, make_folder, write_json
@@ -378,7 +380,7 @@ class AngularLighting:
 
     def __init__(self, brdf: Brdf, mesh, *, coeffs: np.ndarray | None = None, env: np.ndarray | None = None,
                  env_height: int = 64, cell_height: int = 32, shadows: bool = True, vertex_albedo=None,
-                 board=None, source: str = "", lobe_sh_order: int = 24, prefilter_height: int = 128,
+                 albedo_texture=None, board=None, source: str = "", lobe_sh_order: int = 24, prefilter_height: int = 128,
                  clamp_sh: bool = False, bounces: int = 8, bounce_samples: int = 64, lobe_samples: int = 64,
                  sources: tuple | None = None):
         from pipeline.core.render import Renderer
@@ -403,7 +405,7 @@ class AngularLighting:
             self.kind, self.order, self.signed = "envmap", None, False
         self.shadows = bool(shadows)
         self.board = board is not None and self.shadows
-        options = dict(shadows=self.shadows, vertex_albedo=vertex_albedo, board=board if self.shadows else None,
+        options = dict(shadows=self.shadows, vertex_albedo=vertex_albedo, albedo_texture=albedo_texture, board=board if self.shadows else None,
                        cell_height=cell_height, interreflection=bounces > 0, max_bounces=max(bounces, 1),
                        bounce_samples=bounce_samples, lobe_samples=lobe_samples,
                        bright_block=bright_block(brdf, env.shape[0], cell_height))
@@ -544,9 +546,10 @@ def board_occludes(work: Path, settings: Settings) -> bool:
 
 
 def prepare_lighting(path: LightingArgument | KnownLight, brdf: Brdf, mesh, settings: Settings, *,
-                     capture: Path | None = None, vertex_colors=None, with_board: bool = False):
+                     capture: Path | None = None, vertex_colors=None, albedo_texture=None, with_board: bool = False):
     """The lighting ``path`` (a lighting argument, or a capture.toml [lighting] entry) prepared for
-    ``settings.method`` (Lighting or AngularLighting)."""
+    ``settings.method`` (Lighting or AngularLighting); ``albedo_texture``: fit/textures' (atlas, base
+    colour map) for the renderer (the frequency path takes ``vertex_colors``, the map at the vertices)."""
     if settings.method == "frequency" and brdf.model == "principled":
         raise UserError("--method frequency renders the seed's convex lobes (lambert, phong, microfacet) only; "
                         "a principled material needs --method angular (the default)")
@@ -560,7 +563,7 @@ def prepare_lighting(path: LightingArgument | KnownLight, brdf: Brdf, mesh, sett
     board = board_occluder(capture) if capture is not None and with_board else None
     make = AngularLighting.from_directional_light if isinstance(path, KnownLight) else AngularLighting.from_argument
     return make(path, brdf, mesh, env_height=settings.env_height, cell_height=settings.cell_height,
-                shadows=settings.shadows, vertex_albedo=vertex_colors, board=board,
+                shadows=settings.shadows, vertex_albedo=vertex_colors, albedo_texture=albedo_texture, board=board,
                 lobe_sh_order=settings.lobe_sh_order, prefilter_height=settings.prefilter_height,
                 clamp_sh=settings.clamp_sh, bounces=settings.bounces, bounce_samples=settings.bounce_samples,
                 lobe_samples=settings.lobe_samples)
@@ -571,6 +574,11 @@ def prepare_lighting(path: LightingArgument | KnownLight, brdf: Brdf, mesh, sett
 def vertex_albedo(work: Path, mesh) -> np.ndarray | None:
     """Per-vertex linear albedo (V, 3) from WORK/fit/albedo.ply when the fit wrote one."""
     return read_vertex_albedo(Path(work) / "fit" / "albedo.ply", len(mesh.vertices))
+
+
+def albedo_texture(work: Path, mesh) -> tuple | None:
+    """(atlas, linear base colour map) from WORK/fit/textures/ when the fit wrote one for this mesh."""
+    return read_base_color_texture(Path(work) / "fit" / TEXTURES, len(mesh.faces))
 
 
 def _render_pixels(view: View, mesh, rays, lighting, albedo, vertex_colors, pixels: np.ndarray,
@@ -760,13 +768,14 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     views = resolve_views(capture=source, work=source_work, settings=settings, mesh=mesh)
     materials = material_map(work, mesh)
     vertex_colors = vertex_albedo(work, mesh) if materials is None else materials[1]
+    texture = albedo_texture(work, mesh) if materials is None else None
     lights = view_lights(source, views) if settings.compare_with and not settings.env else {}
     scene_mesh = ray_mesh(mesh)     # one intersector for the camera rays and every lighting's renderer
 
     def lighting_for(light):
         def prepared(material: Brdf):
             return prepare_lighting(light, material, scene_mesh, settings, capture=source, vertex_colors=vertex_colors,
-                                    with_board=board_occludes(work, settings))
+                                    albedo_texture=texture, with_board=board_occludes(work, settings))
         if materials is None:
             return prepared(brdf)
         return MaterialLightings([prepared(m) for m in materials[0]], materials[2])

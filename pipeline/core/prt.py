@@ -38,8 +38,14 @@ from pipeline.core.brdf import Brdf
 from pipeline.core.material import Principled
 from pipeline.core.render import Renderer, bounce_powers, bounce_series, bounce_terms_needed
 from pipeline.core.sh import num_coeffs, sh_basis
-from pipeline.core.shading import (LobeSamples, front_cos, lobe_support_cos, specular_columns,
-                                   specular_over_footprint, specular_samples)
+from pipeline.core.shading import (
+    LobeSamples,
+    front_cos,
+    lobe_support_cos,
+    specular_columns,
+    specular_over_footprint,
+    specular_samples,
+)
 from pipeline.core.threads import thread_map
 
 
@@ -117,17 +123,36 @@ def geometry(mesh, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, o
     env = np.ones((cell_height, 2 * cell_height, 3), np.float32)
     r = Renderer(mesh, env, Brdf("lambert", albedo=(1.0, 1.0, 1.0)), cell_height=cell_height,
                  bounce_samples=bounce_samples, seed=seed)
+    samples = _sample_transfer(r, order, faces, bary, view_dirs)
+    power = sh_basis(r.lights.directions, order) * r.lights.power[:, :1]          # (D, K): Y_k(w_j) dω_j
+    rays = r.bounce_rays()
+    blocked = sh_basis(rays.directions, order) * (np.pi / rays.per_vertex)
+    vertex_direct = r._open_irradiance(power) - rays.per_owner(blocked, len(mesh.vertices))
+    return Geometry(r, order, *samples, vertex_direct, footprint)
+
+
+def geometry_at(geo: Geometry, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray,
+                footprint: tuple[np.ndarray, np.ndarray] | None = None) -> Geometry:
+    """``geo``'s mesh part (renderer, vertex transfer, bounce matrices: shared) at other samples: the
+    same transfer as geometry() of those samples, without recomputing the vertices' part (a stream
+    of chunks of samples on one mesh)."""
+    samples = _sample_transfer(geo.renderer, geo.order, faces, bary, view_dirs)
+    return Geometry(geo.renderer, geo.order, *samples, geo.vertex_direct, footprint, None, geo._bounces)
+
+
+def _sample_transfer(r: Renderer, order: int, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray) -> tuple:
+    """(faces, vertex ids, barycentrics, normals, view directions, mu_o, direct transfer D (N, K)) of
+    samples under the renderer ``r``'s direction set and point visibility."""
     faces = np.asarray(faces, np.int64)
     bary = np.asarray(bary, float)
-    tri = np.asarray(mesh.faces)[faces]
+    tri = np.asarray(r.mesh.faces)[faces]
     normals = r._normals_at(faces, bary)
     view_dirs = np.asarray(view_dirs, float)
     mu_out = np.einsum("pc,pc->p", normals, view_dirs)
     dirs = r.lights.directions
     power = sh_basis(dirs, order) * r.lights.power[:, :1]          # (D, K): Y_k(w_j) dω_j
     r._ensure_visibility(tri.ravel())
-    k = num_coeffs(order)
-    direct = np.zeros((faces.size, k))
+    direct = np.zeros((faces.size, num_coeffs(order)))
     per_chunk = max(1, r.chunk_pairs // len(dirs))
 
     def chunk(s: int) -> None:
@@ -136,10 +161,7 @@ def geometry(mesh, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, o
         direct[sl] = (cos * r._point_visibility(faces[sl], tri[sl], bary[sl], cos > 0)) @ power
 
     thread_map(chunk, range(0, faces.size, per_chunk))
-    rays = r.bounce_rays()
-    blocked = sh_basis(rays.directions, order) * (np.pi / rays.per_vertex)
-    vertex_direct = r._open_irradiance(power) - rays.per_owner(blocked, len(mesh.vertices))
-    return Geometry(r, order, faces, tri, bary, normals, view_dirs, mu_out, direct, vertex_direct, footprint)
+    return faces, tri, bary, normals, view_dirs, mu_out, direct
 
 
 def diffuse_layer(material: Principled | None, mu_out: np.ndarray) -> np.ndarray:

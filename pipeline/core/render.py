@@ -42,18 +42,25 @@ from __future__ import annotations
 import copy
 import hashlib
 import os
-
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from pipeline.core.brdf import Brdf, beckmann_distribution, phong_lobe, vcavity_shadowing
 from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays, subpixel_offsets
-from pipeline.core.envmap import (downsample, equirect_directions, equirect_solid_angles, lookup)
+from pipeline.core.envmap import downsample, equirect_directions, equirect_solid_angles, lookup
 from pipeline.core.material import material_from_brdf
+from pipeline.core.shading import (
+    EnvPyramid,
+    front_cos,
+    lobe_support_cos,
+    specular_over_directions,
+    specular_over_footprint,
+    specular_samples,
+    stratified_unit_square,
+    tangent_frames,
+)
 from pipeline.core.surface import POINT_LIFT, VERTEX_LIFT, barycentric, interpolated_normals, lifted
-from pipeline.core.shading import (EnvPyramid, front_cos, lobe_support_cos, specular_over_directions,
-                                   specular_over_footprint, specular_samples, stratified_unit_square, tangent_frames)
 from pipeline.core.threads import thread_map
 
 _VIS_HORIZON = -0.3  # shadow rays only for directions with n_vertex . w > this (others: occluded)
@@ -257,7 +264,9 @@ class Renderer:
     """A prepared scene: mesh (object frame, metres: a pipeline.raycast.RayMesh, its arrays and
     its ray intersector), environment map, Brdf (pipeline.core.brdf).
 
-    ``vertex_albedo`` (V, 3) replaces the Brdf's diffuse colour per vertex (linear).  Build once, call
+    ``vertex_albedo`` (V, 3) replaces the Brdf's diffuse colour per vertex (linear); ``albedo_texture``
+    (pipeline.core.atlas.Atlas, map (H, W, 3) linear) per point, bilinear in the map (the
+    interreflection then takes the map at the vertices).  Build once, call
     ``render`` per view: the light set and the per-vertex visibility are shared by all views.
     """
 
@@ -266,6 +275,7 @@ class Renderer:
     brdf: Brdf
     shadows: bool = True
     vertex_albedo: np.ndarray | None = None
+    albedo_texture: tuple | None = None
     board: BoardPlane | None = None
     cell_height: int = 16
     max_bright: int = 1024
@@ -394,8 +404,16 @@ class Renderer:
         """The vertices (V, 3), lifted along their normals: ray origins that do not hit their own surface."""
         return lifted(self.mesh.vertices, self._vertex_normals, self._scale, VERTEX_LIFT)
 
+    @property
+    def _varying_base(self) -> bool:
+        return self.vertex_albedo is not None or self.albedo_texture is not None
+
     def _vertex_base(self) -> np.ndarray:
-        """Per-vertex diffuse colour (V, 3): vertex_albedo, or the material's base colour / albedo."""
+        """Per-vertex diffuse colour (V, 3): vertex_albedo, the texture at the vertices, or the
+        material's base colour / albedo."""
+        if self.albedo_texture is not None:
+            atlas, image = self.albedo_texture
+            return atlas.at_vertices(image, self.mesh.faces, len(self.mesh.vertices))
         if self.vertex_albedo is not None:
             return np.asarray(self.vertex_albedo, float)
         return np.broadcast_to(self.brdf.diffuse_color, (len(self.mesh.vertices), 3))
@@ -406,8 +424,11 @@ class Renderer:
             return base
         return self.material.diffuse_weight(mu_out, base)
 
-    def _base(self, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
-        """Diffuse colour (P, 3) interpolated at points."""
+    def _base(self, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """Diffuse colour (P, 3) at points: the texture's, or the vertices' interpolated."""
+        if self.albedo_texture is not None:
+            atlas, image = self.albedo_texture
+            return atlas.lookup(image, faces, bary)
         return np.einsum("pk,pkc->pc", bary, self._vertex_base()[tri])
 
     # -- interreflection ---------------------------------------------------------------------
@@ -508,7 +529,7 @@ class Renderer:
         bary = barycentric(self.mesh.triangles[faces], points)
         mu = np.clip(np.einsum("pc,pc->p", self._normals_at(faces, bary), w_toward), 0.0, 1.0)
         e_total = np.einsum("pk,pkc->pc", bary, self.vertex_irradiance()[0][tri])
-        return self._diffuse_albedo(mu, self._base(tri, bary)) / np.pi * e_total
+        return self._diffuse_albedo(mu, self._base(faces, tri, bary)) / np.pi * e_total
 
     def _specular_sampled(self, faces, bary, normals, view_dirs, base) -> np.ndarray:
         """The remainder map through the lobe by filtered importance sampling (pipeline.core.shading),
@@ -520,7 +541,7 @@ class Renderer:
         for s in range(0, p, per_chunk):
             sl = slice(s, s + per_chunk)
             samples = specular_samples(self.material, normals[sl], view_dirs[sl], self.lobe_samples, rng,
-                                       None if self.vertex_albedo is None else base[sl])
+                                       None if not self._varying_base else base[sl])
             q, ns = samples.directions.shape[:2]
             dirs = samples.directions.reshape(-1, 3)
             live = np.flatnonzero(samples.weight.reshape(-1, 3).max(axis=1) > 0)
@@ -547,9 +568,9 @@ class Renderer:
         tri = np.asarray(self.mesh.faces)[faces]
         if self.material is not None or self.brdf.model == "lambert":
             diffuse, specular = self.shade_parts(faces, bary, view_dirs)
-            return self._base(tri, bary) * diffuse + specular
+            return self._base(faces, tri, bary) * diffuse + specular
         normals = self._normals_at(faces, bary)
-        albedo = self._base(tri, bary)
+        albedo = self._base(faces, tri, bary)
         if self.shadows:
             self._ensure_visibility(tri.ravel())
         dirs, power = self.lights.directions, self.lights.power
@@ -605,7 +626,7 @@ class Renderer:
         pixels' specular is averaged over them (shading.specular_over_footprint)."""
         tri = np.asarray(self.mesh.faces)[faces]
         normals = self._normals_at(faces, bary)
-        base = self._base(tri, bary)
+        base = self._base(faces, tri, bary)
         irradiance, bright_vis = self.direct_parts(faces, bary, view_dirs) if direct is None else direct
         mu_out = np.einsum("pc,pc->p", normals, view_dirs)
         kd = self._diffuse_albedo(np.clip(mu_out, 0, 1), np.ones_like(base)) / np.pi
@@ -618,7 +639,7 @@ class Renderer:
         for s in range(0, faces.shape[0] if nb else 0, per_chunk):
             sl = slice(s, s + per_chunk)
             args = (self.lights.directions[-nb:], self.lights.power[-nb:], bright_vis[sl] if self.shadows else None,
-                    self._spec_cut_cos, None if self.vertex_albedo is None else base[sl])
+                    self._spec_cut_cos, None if not self._varying_base else base[sl])
             if footprint is None:
                 specular[sl] = specular_over_directions(self.material, normals[sl], view_dirs[sl], *args)
             else:
@@ -635,6 +656,7 @@ class Renderer:
         other = copy.copy(self)
         other.brdf = brdf
         other.vertex_albedo = None
+        other.albedo_texture = None
         other._vertex_irradiance = None
         other.material = material_from_brdf(brdf)
         if other.material is not None:

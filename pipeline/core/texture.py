@@ -105,28 +105,45 @@ def weighted_rmse(pred: np.ndarray, target: np.ndarray, weight: np.ndarray) -> f
     return float(np.sqrt(((pred - target) ** 2 * w[:, None]).sum() / (3 * max(w.sum(), 1e-300))))
 
 
+def vertex_fold_fits(faces: np.ndarray, n_vertices: int, face: np.ndarray, bary: np.ndarray, fold: np.ndarray,
+                     weight: np.ndarray, shade: np.ndarray, target: np.ndarray,
+                     smoothness: float) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """Per fold f with other folds: (the uniform albedo (3,), the per-vertex albedo (V, 3)) fitted on
+    the samples of the other folds (arguments as :func:`choose_vertex_albedo`'s)."""
+    w = np.asarray(weight, float)
+    interp = interpolation_matrix(faces, face, bary, n_vertices)
+    lap = graph_laplacian(faces, n_vertices)
+    fits = {}
+    for f in np.unique(fold):
+        tr = fold != f
+        if tr.any():
+            fits[int(f)] = (uniform_albedo(shade[tr], target[tr], w[tr]),
+                            fit_vertex_albedo(interp[tr], shade[tr], target[tr], w[tr], lap, smoothness))
+    return fits
+
+
 def choose_vertex_albedo(faces: np.ndarray, n_vertices: int, face: np.ndarray, bary: np.ndarray,
                          fold: np.ndarray, weight: np.ndarray, shade: np.ndarray, target: np.ndarray, *,
-                         smoothness: float, parsimony: float, noise: float) -> tuple[list[dict], str, np.ndarray, int]:
+                         smoothness: float, parsimony: float, noise: float,
+                         fits: dict | None = None) -> tuple[list[dict], str, np.ndarray, int]:
     """Textured vs uniform albedo by held-out views: each fold's views held out of a uniform and a
     per-vertex fit (:func:`fit_vertex_albedo`, Laplacian weight ``smoothness``) of the samples'
     radiance less the specular part ``target`` (N, 3) from their shading per unit albedo ``shade``
     (N, 3), and scored on them; textured is chosen when uniform's held-out RMSE exceeds textured's
     by more than the parsimony rule (selection.parsimonious_choice with ``parsimony``, ``noise``).
-    ``face`` (N,), ``bary`` (N, 3): the samples on the mesh ``faces`` (F, 3) of ``n_vertices``.
+    ``face`` (N,), ``bary`` (N, 3): the samples on the mesh ``faces`` (F, 3) of ``n_vertices``;
+    ``fits``: :func:`vertex_fold_fits` of the same arguments when already made.
     -> (the two candidates {name, params, validation_rmse, train_rmse, albedo | albedo_mean}, the
     rule's choice, the per-vertex albedo (V, 3) fitted on all samples, the vertices with samples)."""
     w = np.asarray(weight, float)
     interp = interpolation_matrix(faces, face, bary, n_vertices)
     lap = graph_laplacian(faces, n_vertices)
+    if fits is None:
+        fits = vertex_fold_fits(faces, n_vertices, face, bary, fold, weight, shade, target, smoothness)
     sse = {"uniform": [0.0, 0.0], "textured": [0.0, 0.0]}       # validation, training (weighted SSE)
     wsum = [0.0, 0.0]
-    for f in np.unique(fold):
+    for f, (rho_u, rho_t) in fits.items():
         tr, va = fold != f, fold == f
-        if not tr.any():
-            continue
-        rho_u = uniform_albedo(shade[tr], target[tr], w[tr])
-        rho_t = fit_vertex_albedo(interp[tr], shade[tr], target[tr], w[tr], lap, smoothness)
         for name, rho in (("uniform", rho_u), ("textured", rho_t)):
             for k, m in ((0, va), (1, tr)):
                 pred = predict(interp[m], shade[m], rho)
@@ -143,3 +160,74 @@ def choose_vertex_albedo(faces: np.ndarray, n_vertices: int, face: np.ndarray, b
     cands[1]["albedo_mean"] = rho.mean(axis=0).tolist()
     observed = int((np.asarray(interp.sum(axis=0)).ravel() > 0).sum())
     return cands, auto, rho, observed
+
+
+# ------------------------------------------------------------------------------ per-texel detail
+#
+# Over a coarser base colour b (uniform, or the per-vertex albedo above) each texel t of an atlas
+# (pipeline.core.atlas) gets a detail d_t, per channel, from every sample i that falls in it
+# (nearest texel), with a ridge towards 0 (the coarser level where the photos say little):
+#
+#     min  sum_i w_i (y_i - s_i (b_i + d_t(i)))^2 + lam * m * d_t^2      ->
+#     d_t = sum_i w_i s_i r_i / (sum_i w_i s_i^2 + lam * m),   r_i = y_i - s_i b_i,
+#
+# m = the mean of w s^2 over the samples (so ``lam`` counts typical samples: lam = 1 weighs the
+# coarser level like one more observation).  The texels are independent: two sums per texel,
+# accumulated over chunks of samples (np.bincount), closed form.  With the pixel noise sigma (in
+# the weights' units) d_t's standard deviation is sigma / sqrt(sum w s^2 + lam m).
+
+
+def texel_sums(texel: np.ndarray, weight: np.ndarray, shade: np.ndarray, residual: np.ndarray,
+               n_texels: int) -> tuple[np.ndarray, np.ndarray]:
+    """(sum w s^2, sum w s r) per texel and channel, (T, 3) each, of samples in texels ``texel`` (N,)
+    with weights (N,), shading per unit base colour ``shade`` (N, 3) and residual radiance (N, 3)."""
+    w = np.asarray(weight, float)[:, None]
+    den = np.stack([np.bincount(texel, (w * shade * shade)[:, c], minlength=n_texels) for c in range(3)], axis=1)
+    num = np.stack([np.bincount(texel, (w * shade * residual)[:, c], minlength=n_texels) for c in range(3)], axis=1)
+    return den, num
+
+
+def texel_detail(den: np.ndarray, num: np.ndarray, ridge: np.ndarray) -> np.ndarray:
+    """The closed-form detail (T, 3) of the sums with the absolute ridge (3,) (section comment)."""
+    return num / (den + np.asarray(ridge, float)[None, :])
+
+
+def choose_texel_detail(texel: np.ndarray, fold: np.ndarray, weight: np.ndarray, shade: np.ndarray,
+                        target: np.ndarray, coarse: np.ndarray, coarse_per_fold: dict[int, np.ndarray],
+                        n_texels: int, ridges: tuple[float, ...], *, parsimony: float,
+                        noise: float) -> tuple[list[dict], int, np.ndarray, np.ndarray]:
+    """The per-texel detail (section comment) with each ridge of ``ridges`` (dimensionless lam) and
+    without (the coarser level alone), scored on held-out folds: for each fold f, the coarser level
+    fitted without f (``coarse_per_fold[f]``: its base colour at every sample (N, 3)) and the texels'
+    sums over the other folds predict f's samples.  ``coarse`` (N, 3): the coarser level fitted on
+    all samples.  -> (candidates {name, ridge, params, validation_rmse, train_rmse}, the index the
+    parsimony rule chose (0: no detail), the chosen detail (T, 3) from all samples (zeros for 0), the
+    absolute ridge (3,) it used)."""
+    w = np.asarray(weight, float)
+    scale = (w[:, None] * shade * shade).sum(axis=0) / max(w.sum(), 1e-300)
+    sse = np.zeros((1 + len(ridges), 2))
+    wsum = np.zeros(2)
+    for f, base_f in coarse_per_fold.items():
+        va = fold == f
+        residual = target - shade * base_f
+        den, num = texel_sums(texel[~va], w[~va], shade[~va], residual[~va], n_texels)
+        for j, lam in enumerate((None, *ridges)):
+            d = np.zeros((n_texels, 3)) if lam is None else texel_detail(den, num, lam * scale)
+            for k, m in ((0, va), (1, ~va)):
+                err = residual[m] - shade[m] * d[texel[m]]
+                sse[j, k] += float((err ** 2 * w[m, None]).sum())
+        wsum += [w[va].sum(), w[~va].sum()]
+    rmse = np.sqrt(sse / (3 * np.maximum(wsum, 1e-300)))
+    den, num = texel_sums(texel, w, shade, target - shade * coarse, n_texels)
+    observed = int((den.max(axis=1) > 0).sum())
+    cands = [{"name": "coarser level", "ridge": None, "params": 0,
+              "validation_rmse": float(rmse[0, 0]), "train_rmse": float(rmse[0, 1])}]
+    cands += [{"name": f"texels, ridge {lam:g}", "ridge": float(lam), "params": 3 * observed,
+               "validation_rmse": float(rmse[j, 0]), "train_rmse": float(rmse[j, 1])}
+              for j, lam in enumerate(ridges, start=1)]
+    best = min(range(1, len(cands)), key=lambda j: cands[j]["validation_rmse"])
+    choice = best if parsimonious_choice([cands[0], cands[best]], parsimony, noise=noise) == 1 else 0
+    if choice == 0:
+        return cands, 0, np.zeros((n_texels, 3)), np.zeros(3)
+    ridge = ridges[choice - 1] * scale
+    return cands, choice, texel_detail(den, num, ridge), ridge

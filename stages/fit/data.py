@@ -50,9 +50,10 @@ def load_subset(path: Path, settings: Settings, total: int, min_cos: float) -> d
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def load_physical(path: Path, settings: Settings, n_faces: int) -> tuple[dict, dict]:
-    """At most ``physical_samples`` usable samples (positive weight, finite, on the mesh), and the
-    photos' noise measured on all of them (pipeline.core.noise): {"sigma": the pixel noise (NaN if
+def load_physical(path: Path, settings: Settings, n_faces: int) -> tuple[dict, dict, dict]:
+    """At most ``physical_samples`` usable samples (positive weight, finite, on the mesh), the photos'
+    noise measured on all of them, and all of them (the per-texel fit's: every pixel counts).
+    The noise (pipeline.core.noise): {"sigma": the pixel noise (NaN if
     unmeasurable), "a", "b": the Poisson-Gaussian noise level sigma^2 = a + b B, "weighting"}.
     With ``--noise-model measured`` each sample's weight is divided by its noise variance
     (normalized at the median radiance), a floored at (noise_floor x RMS radiance)^2: a highlight
@@ -79,8 +80,9 @@ def load_physical(path: Path, settings: Settings, n_faces: int) -> tuple[dict, d
                                    "median; a floored at (noise_floor x RMS radiance)^2")
         else:
             noise["weighting"] = "uniform (the noise level could not be measured: too few neighbouring samples)"
+    everything = data
     if n > settings.physical_samples:
         keep = np.sort(np.random.default_rng(settings.seed).choice(n, settings.physical_samples, replace=False))
         data = {k: v[keep] for k, v in data.items()}
-    return data, noise
+    return data, noise, everything
 

@@ -4,6 +4,8 @@ stderr summary line that both forward models share."""
 
 from __future__ import annotations
 
+
+import shutil
 import sys
 from pathlib import Path
 
@@ -22,6 +24,8 @@ from pipeline.io.lighting import write_lighting_sh
 from pipeline.io.mesh import write_material_ply, write_vertex_albedo
 from pipeline.io.report import write_report
 from pipeline.io.run_summary import model_limits_line
+from pipeline.io.textures import FOLDER as TEXTURES
+from pipeline.io.textures import write_base_color_textures
 from pipeline.workdir import atomic_path
 from stages.fit.settings import DEFAULT_ALBEDO, Settings
 
@@ -31,14 +35,16 @@ OUTPUT_NAMES = ("lighting_sh.json", "lighting.exr", "brdf.json", "report.json", 
 
 def write_fit(out: Path, coeffs: np.ndarray, brdf: Brdf, report: dict, *, env_height: int, source: str,
               sources: Sources | None = None, angular: bool = False,
-              texture: tuple | None = None, materials: tuple | None = None) -> list[Path]:
+              texture: tuple | None = None, materials: tuple | None = None, texels=None) -> list[Path]:
     """fit/: lighting_sh.json (``coeffs`` ((L+1)^2, 3), with ``angular`` the directional
     ``sources``' projection added and the sources listed), lighting.exr (the SH map with the sources
     drawn in), brdf.json, report.json, the plots, and albedo.ply when ``texture`` = (mesh, per-vertex
     albedo (V, 3)) has one (a stale one is removed: relight reads it); with ``materials`` = (mesh,
     svbrdf.MaterialMap, [Brdf per material]) brdf.json lists them and material.ply holds the map
-    (instead of albedo.ply).  ``source``: the provenance line.  -> the paths written, in
-    OUTPUT_NAMES' order (albedo.ply or material.ply last)."""
+    (instead of albedo.ply); with ``texels`` (stages.fit.texels.TexelFit) the base colour map in
+    textures/ (pipeline.io.textures) and albedo.ply its values at the vertices.  ``source``: the
+    provenance line.  -> the paths written, in OUTPUT_NAMES' order (albedo.ply or material.ply, then
+    the textures last)."""
     env = np.maximum(envmap_from_sh(coeffs, env_height), 0.0)
     total, extra = coeffs, {}
     if sources is not None:
@@ -57,9 +63,13 @@ def write_fit(out: Path, coeffs: np.ndarray, brdf: Brdf, report: dict, *, env_he
         written.append(write_vertex_albedo(out / "albedo.ply", mesh, vertex_rho))
     if materials is not None:
         written.append(write_material_ply(out / "material.ply", materials[0], material_values(materials[1])))
+    if texels is not None:
+        written += write_base_color_textures(out / TEXTURES, texels.atlas, texels.base, texels.std)
     for name, kept in (("albedo.ply", vertex_rho is not None), ("material.ply", materials is not None)):
         if not kept and (out / name).exists():
             (out / name).unlink()     # a stale map from an earlier run would be read by relight
+    if texels is None and (out / TEXTURES).exists():
+        shutil.rmtree(out / TEXTURES)
     return written
 
 

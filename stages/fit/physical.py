@@ -67,6 +67,7 @@ from stages.fit.outputs import (
     write_fit,
 )
 from stages.fit.settings import DEFAULT_ALBEDO, Settings
+from stages.fit.texels import fit_texels
 from stages.fit.texture import albedo_from_shading
 
 
@@ -89,7 +90,7 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
     mesh = read_mesh(mesh_path(capture))
     rays = ray_mesh(mesh)        # the renderer's view of the mesh: arrays and ray intersector, built once
     samples_path = Path(work) / "samples.npz"
-    data, noise = load_physical(samples_path, settings, len(mesh.faces))
+    data, noise, everything = load_physical(samples_path, settings, len(mesh.faces))
     order = settings.candidate_order
     orders = [order] if settings.explicit_order is not None else list(range(order + 1))
     top = order if settings.explicit_order is not None else max(order, settings.max_order)  # final lighting's orders
@@ -140,6 +141,16 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
         report["materials"], found = fit_materials(mesh, data, replace(geo, pattern=None), obs, best, settings,
                                                    candidate.opts)
     materials = None if found is None else (mesh, found, material_brdfs(found))
+    texels = None
+    if settings.texels == "auto" and settings.albedo != "uniform" and found is None:
+        t0 = time.perf_counter()
+        report["texels"], texels = fit_texels(mesh, replace(geo, pattern=None), chosen.best, everything, noise,
+                                              read_poses(poses_path(capture, work)), keys, settings)
+        timings["texels"] = time.perf_counter() - t0
+        if texels is not None:      # brdf.json's colour: the map's mean at the vertices
+            vertex_rho = texels.vertex_base
+            brdf = brdf.with_diffuse_color(np.clip(vertex_rho.mean(axis=0), 0.0, 1.0))
+            report["brdf"] = brdf.to_dict()
     print(summary_line(brdf, None if one_fold else interval, len(report["sources"]), known_brdf is not None,
                         textured=vertex_rho is not None, detail_rows=report["lighting_detail"].get("rows"),
                         colour_by=report["scale_convention"]),
@@ -148,7 +159,7 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
     report["timings"] = timings
     return write_fit(Path(work) / "fit", best.coeffs, brdf, report, env_height=settings.env_height,
                      source=f"sigrend fit ({mode}, physical)", sources=best.sources, angular=True,
-                     texture=(mesh, vertex_rho), materials=materials)
+                     texture=(mesh, vertex_rho), materials=materials, texels=texels)
 
 
 def chart_colour(chart, chosen: "Chosen", candidate: CandidateFit, settings: Settings, models: list[str], hint,

@@ -51,6 +51,10 @@ class Settings:
                                   "(textured only if it beats uniform on the held-out views by more than --parsimony)")
     albedo_smoothness: float = setting(0.001, "weight of the mesh-Laplacian smoothness term of the per-vertex albedo "
                                              "(relative to the mean data weight per vertex)")
+    texels: Literal["off", "auto"] = setting("off", "physical fit: a base colour per texel of a UV atlas at the photos' footprint "
+                                             "(the mesh's own UVs, else an xatlas unwrap) from every sample, over the per-vertex "
+                                             "albedo refitted on every sample; 'auto' keeps each level where the held-out views "
+                                             "improve (fit/textures/)")
     materials: Literal["one", "auto"] = setting("one", "physical fit, material unknown: 'one' material over the surface, or "
                                                 "'auto' (experimental, slow on large meshes): candidate materials shaded under "
                                                 "the fitted lighting, each vertex taking the one that explains its samples "

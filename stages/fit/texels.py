@@ -1,0 +1,130 @@
+"""The fit's spatially varying base colour from every sample (--texels auto): the chosen material and
+lighting fixed, every usable sample's shading computed in chunks on the fit's own forward model
+(prt.geometry_at + material_fit.shading_parts: shadows, interreflection, the lobe), then
+
+  1. the per-vertex albedo refitted on all of them (core.texture.choose_vertex_albedo), and
+  2. a per-texel detail over it on a UV atlas at the photos' footprint (core.atlas: the mesh's UVs
+     or an xatlas unwrap; core.texture.choose_texel_detail: closed form per texel),
+
+each level kept only where the held-out views (folds = image_id mod folds) improve.  -> a TexelFit
+(the base colour map, its standard deviation, the atlas) for stages.fit.outputs.write_fit."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from pipeline.core import atlas as atlas_mod
+from pipeline.core import material_fit, prt, texture
+from pipeline.core.camera import camera_center
+from pipeline.core.factorization import rms_radiance
+from pipeline.core.selection import fold_of
+from pipeline.core.sources import Sources
+from pipeline.io.poses import Poses
+from pipeline.unwrap import unwrap
+from stages.fit.settings import Settings
+
+RIDGES = (0.5, 2.0, 8.0)     # the per-texel ridge's candidates (core.texture: typical samples' worth)
+CHUNK = 20000                # samples per chunk of the shading pass
+
+
+@dataclass(frozen=True)
+class TexelFit:
+    """The base colour map (H, W, 3) linear, padded past the charts; its standard deviation (H, W, 3)
+    (NaN where no sample fell); the atlas; the per-vertex base colour (V, 3) (the map at the vertices:
+    fit/albedo.ply's, for consumers without UVs)."""
+
+    atlas: atlas_mod.Atlas
+    base: np.ndarray
+    std: np.ndarray
+    vertex_base: np.ndarray
+
+
+def shading_at_all(geo: prt.Geometry, best: material_fit.MaterialFit, data: dict, settings: Settings):
+    """(shade per unit base colour (N, 3), specular (N, 3)) of ``best`` at every sample of ``data``
+    (face, bary, view_dir), ``CHUNK`` at a time on ``geo``'s mesh part (its renderer, vertex transfer
+    and bounce matrices)."""
+    n = len(data["face"])
+    shade, specular = np.zeros((n, 3)), np.zeros((n, 3))
+    for s in range(0, n, CHUNK):
+        sl = slice(s, s + CHUNK)
+        g = prt.geometry_at(geo, data["face"][sl], data["bary"][sl].astype(float), data["view_dir"][sl].astype(float))
+        fit = best
+        if best.sources is not None:
+            st = prt.source_transfer(g, best.material, best.sources.directions)
+            fit = replace(best, sources=Sources(st, best.sources.power))
+        spec = None if best.material is None else prt.specular_transfer(g, best.material, settings.lobe_samples,
+                                                                          settings.seed)
+        shade[sl], specular[sl] = material_fit.shading_parts(g, fit, spec)
+    return shade, specular
+
+
+def make_atlas(mesh, data: dict, poses: Poses, keys: list[str]) -> atlas_mod.Atlas:
+    """The mesh's own UVs (at the footprint's size) or an xatlas unwrap at the photos' median footprint."""
+    centres = np.array([camera_center(poses.images[k].R, poses.images[k].t) for k in keys])
+    focal = np.array([poses.camera_of(k).focal_principal()[0] for k in keys])
+    ids = data["image_id"].astype(np.int64)
+    points = np.einsum("pk,pkc->pc", data["bary"].astype(float), mesh.triangles[data["face"]])
+    footprint = atlas_mod.photo_footprint_m(points, centres[ids], focal[ids])
+    uv = getattr(mesh.visual, "uv", None)
+    if uv is not None and len(uv) == len(mesh.vertices):
+        side = int(min(atlas_mod.MAX_SIZE, 2 ** np.ceil(np.log2(np.sqrt(mesh.area) / footprint))))
+        return atlas_mod.from_vertex_uv(uv, mesh.faces, side)
+    return unwrap(mesh.vertices, mesh.faces, footprint)
+
+
+def fit_texels(mesh, geo: prt.Geometry, best: material_fit.MaterialFit, data: dict, noise: dict,
+               poses: Poses, keys: list[str], settings: Settings) -> tuple[dict, TexelFit | None]:
+    """The per-vertex and per-texel base colour of the module docstring from all samples ``data``
+    (load_physical's everything; ``noise`` its measured pixel noise) under the chosen fit ``best``.
+    -> (report.json's "texels" entry, the TexelFit or None when neither level beats the uniform
+    base colour)."""
+    if best.parts is not None or best.detail is not None:
+        return {"choice": "uniform", "note": "no per-texel fit: the chosen lighting is a known map's or has a "
+                                             "detail part, whose shading at every sample is not computed"}, None
+    shade, specular = shading_at_all(geo, best, data, settings)
+    target = data["radiance"].astype(float) - specular
+    weight = data["weight"].astype(float)
+    fold = fold_of(data["image_id"], settings.folds)
+    face, bary = data["face"].astype(np.int64), data["bary"].astype(float)
+    floor = settings.noise_floor * rms_radiance(data)
+    nv = len(mesh.vertices)
+    fits = texture.vertex_fold_fits(mesh.faces, nv, face, bary, fold, weight, shade, target, settings.albedo_smoothness)
+    vertex_cands, vertex_choice, vertex_rho, observed = texture.choose_vertex_albedo(
+        mesh.faces, nv, face, bary, fold, weight, shade, target, smoothness=settings.albedo_smoothness,
+        parsimony=settings.parsimony, noise=floor, fits=fits)
+    textured = vertex_choice == "textured"
+    if not textured:
+        vertex_rho = np.broadcast_to(vertex_cands[0]["albedo"], (nv, 3)).copy()
+    interp = texture.interpolation_matrix(mesh.faces, face, bary, nv)
+    per_fold = {f: interp @ rho_t if textured else np.broadcast_to(rho_u, (len(face), 3))
+                for f, (rho_u, rho_t) in fits.items()}
+    atlas = make_atlas(mesh, data, poses, keys)
+    n_texels = atlas.height * atlas.width
+    texel = atlas.texel_of(face, bary)
+    texel_cands, choice, detail, ridge = texture.choose_texel_detail(
+        texel, fold, weight, shade, target, interp @ vertex_rho, per_fold, n_texels, RIDGES,
+        parsimony=settings.parsimony, noise=floor)
+    entry = {"samples": int(len(weight)), "vertex_level": {"choice": vertex_choice, "candidates": vertex_cands,
+                                                           "vertices_with_samples": observed},
+             "texel_level": {"candidates": texel_cands, "ridges": list(RIDGES)},
+             "atlas": {"height": atlas.height, "width": atlas.width, "texel_mm": 1e3 * atlas.texel_m,
+                       "own_uvs": atlas.texel_m == 0.0}}
+    if choice == 0 and vertex_choice != "textured":
+        return {**entry, "choice": "uniform"}, None
+    entry["choice"] = "texels" if choice else "vertices"
+    tex_id, tex_face, tex_bary = atlas_mod.texel_points(atlas)
+    base = np.zeros((n_texels, 3))
+    base[tex_id] = np.einsum("pk,pkc->pc", tex_bary, vertex_rho[np.asarray(mesh.faces)[tex_face]]) + detail[tex_id]
+    base = np.clip(base, 0.0, 1.0)
+    filled = np.zeros(n_texels, bool)
+    filled[tex_id] = True
+    image = atlas_mod.dilate(base.reshape(atlas.height, atlas.width, 3), filled.reshape(atlas.height, atlas.width))
+    den, _ = texture.texel_sums(texel, weight, shade, target, n_texels)
+    with np.errstate(divide="ignore"):
+        std = np.where(den > 0, noise.get("unit_sigma", np.nan) / np.sqrt(den + ridge), np.nan)
+    entry["texels_with_samples"] = int((den.max(axis=1) > 0).sum())
+    entry["texels_in_charts"] = int(len(tex_id))
+    vertex_base = atlas.at_vertices(image, mesh.faces, nv)
+    return entry, TexelFit(atlas, image, std.reshape(atlas.height, atlas.width, 3), vertex_base)
