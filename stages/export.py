@@ -1,6 +1,6 @@
 """export: the fitted object as a relightable asset for Blender, game engines and web viewers.
 
-Usage: ``sigrend export CAPTURE -w WORK [-o asset.glb|.gltf|.usda|.usdc|.usd] [--env-height 512]``.
+Usage: ``sigrend export CAPTURE -w WORK [-o asset.glb|.gltf|.usda|.usdc|.usd|scene.xml] [--env-height 512]``.
 Inputs: the mesh (CAPTURE/mesh.*), WORK/fit/brdf.json (lambert or principled), the optional
 per-vertex base colour WORK/fit/albedo.ply and the fitted lighting WORK/fit/lighting_sh.json.
 Outputs (default WORK/export/asset.glb), beside each other, the extras named after the asset's own
@@ -11,7 +11,9 @@ keep their own:
   +Y up, and the material as glTF 2.0 metallic-roughness (pipeline.io.gltf); or ``asset.usda``
   (.usdc, .usd): the mesh in the object frame (Z up) with a UsdPreviewSurface and a UsdLux
   DomeLight ``/lighting`` of the lighting map below (pipeline.io.usd, its orientation
-  pipeline.core.envmap.USD_DOME_TO_OBJECT).
+  pipeline.core.envmap.USD_DOME_TO_OBJECT); or ``scene.xml``: a Mitsuba 3 scene (pipeline.io.mitsuba) with
+  its mesh ``scene.xml.mesh.ply``, a principled (or diffuse) BSDF, an ``envmap`` emitter of the lighting
+  map below (to_world pipeline.core.envmap.MITSUBA_ENVMAP_TO_OBJECT) and a sensor of the capture's first view.
 * ``asset.glb.lighting.exr``: the fitted lighting as an equirect float map (SH evaluated and clamped
   at 0, directional sources splatted into their texels) in the column order Blender's
   Environment Texture node (default mapping) and three.js's equirectangular loader read:
@@ -37,27 +39,29 @@ from pipeline.core.brdf import Brdf
 from pipeline.core.envmap import add_sources, blender_columns, equirect_solid_angles
 from pipeline.core.sh import envmap_from_sh
 from pipeline.errors import UserError
-from pipeline.io import gltf, usd
+from pipeline.io import gltf, mitsuba, usd
 from pipeline.io.brdf import read_brdf
 from pipeline.io.images import preview_exposure, write_image, write_preview
 from pipeline.io.lighting import read_lighting_parts
 from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
+from pipeline.io.poses import capture_poses_path
 from pipeline.settings import setting
 from pipeline.workdir import make_folder, write_json, written_size
 
 EXPORTABLE = ("lambert", "principled")
-WRITERS = {**{suffix: gltf.write_gltf for suffix in gltf.FORMATS}, **{suffix: usd.write_usd for suffix in usd.FORMATS}}
+WRITERS = {**{suffix: gltf.write_gltf for suffix in gltf.FORMATS}, **{suffix: usd.write_usd for suffix in usd.FORMATS},
+           **{suffix: mitsuba.write_mitsuba for suffix in mitsuba.FORMATS}}
 
 
 @dataclass(frozen=True)
 class Settings:
-    out: str = setting("", "the asset file: .glb or .gltf (glTF 2.0), .usda, .usdc or .usd (USD); "
+    out: str = setting("", "the asset file: .glb or .gltf (glTF 2.0), .usda, .usdc or .usd (USD), .xml (Mitsuba 3); "
                            "empty = WORK/export/asset.glb")
     env_height: int = setting(512, "height of the exported lighting map (width = 2 x height)")
 
     def validate(self) -> None:
         if self.out and Path(self.out).suffix.lower() not in WRITERS:
-            raise UserError(f"--out {self.out}: write a glTF or USD asset, ending in {', '.join(WRITERS)}")
+            raise UserError(f"--out {self.out}: write a glTF, USD or Mitsuba asset, ending in {', '.join(WRITERS)}")
         if not 8 <= self.env_height <= 4096:
             raise UserError(f"--env-height {self.env_height}: use 8 to 4096")
 
@@ -87,6 +91,8 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         paths.append(mesh_path(capture))
     except UserError:
         pass
+    if asset_path(work, settings).suffix.lower() in mitsuba.FORMATS:
+        paths.append(capture_poses_path(capture, work))     # the Mitsuba scene's sensor
     return paths
 
 
@@ -96,8 +102,9 @@ PREVIEW_PX = 256
 
 def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     asset = asset_path(work, settings)
+    scene_mesh = [mitsuba.mesh_file(asset)] if asset.suffix.lower() in mitsuba.FORMATS else []
     return ([asset, companion(asset, "lighting.exr")] + [companion(asset, f"preview_{tag}.png") for tag in PREVIEWS]
-            + [companion(asset, "export.json")])
+            + scene_mesh + [companion(asset, "export.json")])
 
 
 def preview(mesh, brdf: Brdf, colors: np.ndarray | None, env_spec: str) -> tuple[np.ndarray, np.ndarray]:
@@ -145,23 +152,31 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     write = WRITERS[asset.suffix.lower()]
     lighting = write_image(companion(asset, "lighting.exr"), blender_columns(env).astype(np.float32), dtype="float")
     extra = {"dome_light": lighting.name} if write is usd.write_usd else {}   # the USD's DomeLight reads the map
+    if write is mitsuba.write_mitsuba:   # the scene's envmap reads the map; its sensor is the capture's first view
+        extra = {"envmap": lighting.name, "view": mitsuba.capture_view(capture_poses_path(capture, work))}
     written = [write(asset, mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, colors,
                      generator=f"sigrend {__version__}", **extra), lighting]
     for tag, spec in PREVIEWS.items():
         rgb, mask = preview(mesh, brdf, colors, spec)
         written.append(write_preview(companion(asset, f"preview_{tag}.png"), rgb, preview_exposure(rgb, mask)))
+    if write is mitsuba.write_mitsuba:
+        written.append(mitsuba.mesh_file(asset))     # the scene's PLY, beside it
     manifest = {
         "asset": asset.name, "lighting": written[1].name,
         "previews": {spec: p.name for spec, p in zip(PREVIEWS.values(), written[2:])},
         "files": [{"file": p.name, "bytes": written_size(p)} for p in written],
         "material": brdf.to_dict(), "per_vertex_base_color": colors is not None,
         "frame": ("glTF +Y up, metres: (x, y, z)_object -> (x, z, -y)_glTF (Blender's importer turns it back)"
-                  if write is gltf.write_gltf else "USD stage upAxis Z, metersPerUnit 1: the object frame as it is"),
+                  if write is gltf.write_gltf else "USD stage upAxis Z, metersPerUnit 1: the object frame as it is"
+                  if write is usd.write_usd else "Mitsuba 3 world = the object frame (+Z up), metres"),
         "lighting_mapping": "equirect, Blender Environment Texture default mapping / three.js equirectangular: "
                             "u = 0.5 - atan2(y, x) / 2pi in the object frame, v = acos(z) / pi from the top",
         "lighting_clamped_fraction": clamped,
         "lighting_in_asset": ("UsdLux.DomeLight /lighting, texture:format latlong, rotated so that the map's pole is "
                               "the object's +Z (docs/export.md)" if write is usd.write_usd else
+                              "Mitsuba envmap emitter of the map above, to_world = "
+                              "pipeline.core.envmap.MITSUBA_ENVMAP_TO_OBJECT (docs/export.md)"
+                              if write is mitsuba.write_mitsuba else
                               "none (glTF has no environment light): the map is the sidecar above; docs/export.md's "
                               "script sets it as Blender's World"),
         "source": {"brdf": str(fit / "brdf.json"), "lighting": str(fit / "lighting_sh.json")},

@@ -119,6 +119,21 @@ def camera_center(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return -np.asarray(R, float).T @ np.asarray(t, float)
 
 
+# Mitsuba 3's sensor frame (its look_at: columns left, up, forward; the film's x runs to the left of
+# +X): +Z forward as OpenCV's, +X to the image's left and +Y up, i.e. OpenCV's camera axes with X and Y
+# negated.
+MITSUBA_FROM_OPENCV_CAMERA = np.diag([-1.0, -1.0, 1.0])
+
+
+def mitsuba_sensor_to_world(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The 4x4 ``to_world`` of a Mitsuba 3 ``perspective`` sensor seen as the world-to-camera pose (R, t)
+    (DESIGN.md's OpenCV axes): x_world = R^T diag(-1, -1, 1) x_sensor + C, C = -R^T t."""
+    out = np.eye(4)
+    out[:3, :3] = np.asarray(R, float).T @ MITSUBA_FROM_OPENCV_CAMERA
+    out[:3, 3] = camera_center(R, t)
+    return out
+
+
 def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
     """World-to-camera (R, t) for a camera at ``center`` looking at ``target`` (OpenCV axes, +Y down)."""
     center = np.asarray(center, float)

@@ -85,6 +85,19 @@ def blender_columns(env: np.ndarray, rotation_texels: int = 0) -> np.ndarray:
 USD_DOME_TO_OBJECT = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])   # d_object = M @ d_light
 USD_DOME_ROTATE_XYZ_DEG = (90.0, 0.0, 90.0)
 
+# The same map as the radiance of a Mitsuba 3 ``envmap`` emitter (src/emitters/envmap.cpp; checked on
+# mitsuba 3.9.1 by evaluating the emitter).  Mitsuba reads its latlong image in the emitter's own frame,
+# pole +Y: direction_to_uv u = atan2(d_x, -d_z) / 2 pi, v = acos(d_y) / pi, i.e. (u, v) is the direction
+# (sin 2 pi u sin pi v, cos pi v, -cos 2 pi u sin pi v); column x sits at u = (x + 0.5) / W (its
+# half-texel shift) and row y at v = y / (H - 1) (rows from pole to pole inclusive, not pixel centres).
+# Blender's column x holds our azimuth phi = pi - 2 pi (x + 0.5) / W, so 2 pi u = pi - phi and the
+# emitter's (x, y, z) is our (sin th sin phi, cos th, sin th cos phi): d_object = (d_em_z, d_em_x, d_em_y),
+# OpenEXR's latlong exactly as USD's DomeLight reads it, so the same rotation as USD_DOME_TO_OBJECT is
+# the emitter's ``to_world`` (a map in our own column order would need a mirror: det -1).  Rows: Mitsuba
+# puts row y at theta = pi y / (H - 1), we at pi (y + 0.5) / H; they agree at the equator and differ by
+# up to half a texel towards the poles (0.18 degrees for export's default 512 rows).
+MITSUBA_ENVMAP_TO_OBJECT = USD_DOME_TO_OBJECT   # d_object = M @ d_emitter
+
 
 def add_sources(env: np.ndarray, directions: np.ndarray, intensity: np.ndarray) -> np.ndarray:
     """A copy of an (H, 2H, 3) map with directional sources added: each source's intensity
