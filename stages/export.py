@@ -14,6 +14,10 @@ keep their own:
   pipeline.core.envmap.USD_DOME_TO_OBJECT); or ``scene.xml``: a Mitsuba 3 scene (pipeline.io.mitsuba) with
   its mesh ``scene.xml.mesh.ply``, a principled (or diffuse) BSDF, an ``envmap`` emitter of the lighting
   map below (to_world pipeline.core.envmap.MITSUBA_ENVMAP_TO_OBJECT) and a sensor of the capture's first view.
+* Textured, when the fit wrote fit/textures/ for this mesh (``fit --texels auto``): the glTF's mesh is
+  split at the atlas's seams with TEXCOORD_0 and the base colour PNG embedded as baseColorTexture;
+  the USD gets ``primvars:st`` and a UsdUVTexture of ``asset.usda.base_color.png``, a copy of
+  fit/textures/base_color.png beside it (pipeline.io.gltf, pipeline.io.usd).
 * ``asset.glb.lighting.exr``: the fitted lighting as an equirect float map (SH evaluated and clamped
   at 0, directional sources splatted into their texels) in the column order Blender's
   Environment Texture node (default mapping) and three.js's equirectangular loader read:
@@ -45,8 +49,10 @@ from pipeline.io.images import preview_exposure, write_image, write_preview
 from pipeline.io.lighting import read_lighting_parts
 from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
 from pipeline.io.poses import capture_poses_path
+from pipeline.io.textures import FOLDER as TEXTURES
+from pipeline.io.textures import read_base_color_texture
 from pipeline.settings import setting
-from pipeline.workdir import make_folder, write_json, written_size
+from pipeline.workdir import atomic_path, make_folder, write_json, written_size
 
 EXPORTABLE = ("lambert", "principled")
 WRITERS = {**{suffix: gltf.write_gltf for suffix in gltf.FORMATS}, **{suffix: usd.write_usd for suffix in usd.FORMATS},
@@ -86,7 +92,8 @@ def companion(asset: Path, extra: str) -> Path:
 
 def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     fit = Path(work) / "fit"
-    paths = [fit / "brdf.json", fit / "albedo.ply", fit / "lighting_sh.json"]
+    paths = [fit / "brdf.json", fit / "albedo.ply", fit / "lighting_sh.json",
+             *(fit / TEXTURES / name for name in ("atlas.npz", "base_color.exr", "base_color.png"))]
     try:
         paths.append(mesh_path(capture))
     except UserError:
@@ -107,9 +114,11 @@ def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             + scene_mesh + [companion(asset, "export.json")])
 
 
-def preview(mesh, brdf: Brdf, colors: np.ndarray | None, env_spec: str) -> tuple[np.ndarray, np.ndarray]:
+def preview(mesh, brdf: Brdf, colors: np.ndarray | None, env_spec: str,
+            texture: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Linear radiance (H, W, 3) and object mask of the asset under a bundled map, one view on a ring
-    20 degrees above the object (pipeline.core.camera.orbit_poses), the map as background."""
+    20 degrees above the object (pipeline.core.camera.orbit_poses), the map as background; ``texture``:
+    fit/textures' (atlas, linear base colour map), which then replaces ``colors``."""
     from pipeline.core.camera import orbit_poses
     from pipeline.core.procedural_envmaps import envmap_from_spec
     from pipeline.core.render import Renderer
@@ -117,8 +126,18 @@ def preview(mesh, brdf: Brdf, colors: np.ndarray | None, env_spec: str) -> tuple
 
     sphere = mesh.bounding_sphere.primitive
     camera, [(R, t)] = orbit_poses(sphere.center, float(sphere.radius), 1, PREVIEW_PX, PREVIEW_PX)
-    result = Renderer(ray_mesh(mesh), envmap_from_spec(env_spec), brdf, vertex_albedo=colors).render(camera, R, t)
+    result = Renderer(ray_mesh(mesh), envmap_from_spec(env_spec), brdf, vertex_albedo=None if texture else colors,
+                      albedo_texture=texture).render(camera, R, t)
     return result.radiance, result.object_mask
+
+
+def copy_file(source: Path, target: Path) -> Path:
+    """``source`` copied to ``target`` atomically (the stage's transaction renames it with the rest)."""
+    import shutil
+
+    with atomic_path(target) as tmp:
+        shutil.copyfile(source, tmp)
+    return target
 
 
 def lighting_map(path: Path, height: int) -> tuple[np.ndarray, float]:
@@ -146,6 +165,10 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
                         "--brdf principled (or lambert)")
     mesh = read_mesh(mesh_path(capture))
     colors = read_vertex_albedo(fit / "albedo.ply", len(mesh.vertices))
+    texture = read_base_color_texture(fit / TEXTURES, len(mesh.faces))    # None: no map for this mesh
+    png = fit / TEXTURES / "base_color.png"
+    if texture is not None and not png.exists():
+        raise UserError(f"{png}: missing beside {fit / TEXTURES / 'atlas.npz'}; rerun `sigrend fit --texels auto`")
     env, clamped = lighting_map(fit / "lighting_sh.json", settings.env_height)
     asset = asset_path(work, settings)
     make_folder(asset.parent, "-o")
@@ -154,18 +177,36 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     extra = {"dome_light": lighting.name} if write is usd.write_usd else {}   # the USD's DomeLight reads the map
     if write is mitsuba.write_mitsuba:   # the scene's envmap reads the map; its sensor is the capture's first view
         extra = {"envmap": lighting.name, "view": mitsuba.capture_view(capture_poses_path(capture, work))}
+    if write is mitsuba.write_mitsuba:
+        texture = None    # the Mitsuba scene takes the base colour per vertex (albedo.ply holds the map there)
+    sidecars = []
+    if texture is not None:
+        # fit/textures/ has no roughness/metallic maps yet (DESIGN.md): when it has, its packed PNG
+        # (G = roughness, B = metallic) goes in as metallic_roughness_texture, beside the base colour
+        extra["face_uv"] = texture[0].face_uv
+        if write is usd.write_usd:    # USD references the PNG beside the asset; glTF embeds it
+            sidecars.append(copy_file(png, companion(asset, "base_color.png")))
+            extra["base_color_texture"] = sidecars[-1].name
+        else:
+            extra["base_color_texture"] = png
     written = [write(asset, mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, colors,
                      generator=f"sigrend {__version__}", **extra), lighting]
     for tag, spec in PREVIEWS.items():
-        rgb, mask = preview(mesh, brdf, colors, spec)
+        rgb, mask = preview(mesh, brdf, colors, spec, texture)
         written.append(write_preview(companion(asset, f"preview_{tag}.png"), rgb, preview_exposure(rgb, mask)))
     if write is mitsuba.write_mitsuba:
         written.append(mitsuba.mesh_file(asset))     # the scene's PLY, beside it
+    written.extend(sidecars)
     manifest = {
         "asset": asset.name, "lighting": written[1].name,
         "previews": {spec: p.name for spec, p in zip(PREVIEWS.values(), written[2:])},
         "files": [{"file": p.name, "bytes": written_size(p)} for p in written],
-        "material": brdf.to_dict(), "per_vertex_base_color": colors is not None,
+        "material": brdf.to_dict(), "per_vertex_base_color": colors is not None and texture is None,
+        "base_color_texture": None if texture is None else {
+            "file": sidecars[0].name if sidecars else f"embedded ({png.name})", "height": texture[0].height,
+            "width": texture[0].width, "uv": ("TEXCOORD_0, glTF's (0, 0) top-left, v down; the mesh split at seams"
+                                              if write is gltf.write_gltf else
+                                              "primvars:st faceVarying, st = (u, 1 - v): (0, 0) the image's lower left")},
         "frame": ("glTF +Y up, metres: (x, y, z)_object -> (x, z, -y)_glTF (Blender's importer turns it back)"
                   if write is gltf.write_gltf else "USD stage upAxis Z, metersPerUnit 1: the object frame as it is"
                   if write is usd.write_usd else "Mitsuba 3 world = the object frame (+Z up), metres"),
