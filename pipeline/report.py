@@ -443,6 +443,8 @@ def _brdf(capture: Path, work: Path) -> str:
             word = "albedo" if brdf.get("model") == "lambert" else "base colour"
             body += (f"<h3>Textured {word} (fit/albedo.ply; the table holds its mean)</h3>"
                      + _img_tag(texture_views(np.asarray(tex.vertices), np.asarray(tex.faces), colour), "texture"))
+    if (fit / "textures" / "base_color.png").exists():
+        body += _texels(fit / "textures", (report or {}).get("texels") or {})
     selection = (report or {}).get("model_selection") or {}
     if selection.get("by") == "training residual":
         body = (f"<p><b>Not validated:</b> {html.escape(selection['why'])} (kept: {html.escape(selection['kept'])}).</p>"
@@ -450,6 +452,40 @@ def _brdf(capture: Path, work: Path) -> str:
     if report:
         body += fit_tables(report)
     return _section("BRDF", body)
+
+
+def _texels(folder: Path, entry: dict) -> str:
+    """fit/textures/: the base colour map and its relative uncertainty, and the levels the held-out
+    views chose (report.json "texels")."""
+    from pipeline.io.images import read_image
+
+    base = read_image(folder / "base_color.png")[:, :, :3]
+    std = read_image(folder / "base_color_std.exr")[:, :, :3].astype(float)
+    linear = read_image(folder / "base_color.exr")[:, :, :3].astype(float)
+    seen = np.isfinite(std).all(axis=2)
+    relative = np.full(seen.shape, np.nan)
+    relative[seen] = std[seen].mean(axis=1) / np.maximum(linear[seen].mean(axis=1), 1e-3)
+    plt = _figure()
+    fig, axes = plt.subplots(1, 2, figsize=(9.0, 4.2))
+    axes[0].imshow(base, interpolation="nearest")
+    axes[0].set_title("base colour (sRGB)")
+    shown = axes[1].imshow(np.log10(relative), cmap="viridis", vmin=-3, vmax=0, interpolation="nearest")
+    axes[1].set_facecolor("0.6")
+    axes[1].set_title("std / value (log10); grey: no sample")
+    fig.colorbar(shown, ax=axes[1], fraction=0.046, pad=0.04, label="log10 relative std")
+    for ax in axes:
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.tight_layout()
+    rows = [["levels kept", entry.get("choice", "?")],
+            ["texel size (mm)", _fmt(entry.get("atlas", {}).get("texel_mm"))],
+            ["texels with samples / in charts", f"{entry.get('texels_with_samples', '?')} / {entry.get('texels_in_charts', '?')}"],
+            ["samples", _fmt(entry.get("samples"))]]
+    cands = [[c["name"], _fmt(c["validation_rmse"]), _fmt(c["train_rmse"])]
+             for c in entry.get("vertex_level", {}).get("candidates", []) + entry.get("texel_level", {}).get("candidates", [])]
+    return ("<h3>Base colour per texel (fit/textures/; grey texels saw no sample: their colour is the "
+            "per-vertex level's)</h3>" + _img_tag(_fig_png(fig), "base colour map and uncertainty") + _table(rows)
+            + (_table(cands, ["level", "held-out RMSE", "training RMSE"]) if cands else ""))
 
 
 def brdf_table(brdf: dict, truth: dict | None) -> str:

@@ -140,6 +140,16 @@ def geometry_at(geo: Geometry, faces: np.ndarray, bary: np.ndarray, view_dirs: n
     return Geometry(geo.renderer, geo.order, *samples, geo.vertex_direct, footprint, None, geo._bounces)
 
 
+def over_chunks(geo: Geometry, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, shade: Callable,
+                chunk: int = 20000) -> tuple[np.ndarray, ...]:
+    """``shade(g)`` -> a tuple of (n, ...) arrays, on geometry_at(geo, ...) of consecutive chunks of
+    ``chunk`` samples (faces (N,), barycentrics (N, 3), view directions (N, 3)), concatenated: what
+    the transfer of every sample yields without holding all of it at once (memory ~ chunk x (K + lobe))."""
+    parts = [shade(geometry_at(geo, faces[s:s + chunk], bary[s:s + chunk], view_dirs[s:s + chunk]))
+             for s in range(0, len(faces), chunk)]
+    return tuple(np.concatenate([p[i] for p in parts]) for i in range(len(parts[0])))
+
+
 def _sample_transfer(r: Renderer, order: int, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray) -> tuple:
     """(faces, vertex ids, barycentrics, normals, view directions, mu_o, direct transfer D (N, K)) of
     samples under the renderer ``r``'s direction set and point visibility."""

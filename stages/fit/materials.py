@@ -15,7 +15,7 @@ from pipeline.core.brdf import Brdf
 from pipeline.core.candidate import Observations
 from pipeline.core.material import Principled, brdf_from_material
 from pipeline.core.material_search import SearchOptions
-from pipeline.core.selection import parsimonious_choice
+from pipeline.core.selection import fold_of, parsimonious_choice
 from pipeline.core.sh import order_of
 from pipeline.core.sources import Sources
 from stages.fit.settings import Settings
@@ -44,14 +44,25 @@ def candidate_shading(geo: prt.Geometry, best: material_fit.MaterialFit, materia
     return svbrdf.CandidateShading(material, shade, specular)
 
 
-def fit_materials(mesh, data: dict, geo: prt.Geometry, obs: Observations, best: material_fit.MaterialFit,
-                  settings: Settings, opts: SearchOptions) -> tuple[dict, svbrdf.MaterialMap | None]:
-    """(report.json's "materials" entry, the material map or None when one material is kept)."""
+def fit_materials(mesh, data: dict, geo: prt.Geometry, best: material_fit.MaterialFit, settings: Settings,
+                  opts: SearchOptions) -> tuple[dict, svbrdf.MaterialMap | None]:
+    """(report.json's "materials" entry, the material map or None when one material is kept) from
+    every sample ``data`` (load_physical's everything: face, bary, view_dir, radiance, weight,
+    image_id), each candidate shaded in chunks on ``geo``'s mesh part (prt.over_chunks)."""
     t0 = time.perf_counter()
     nv = len(mesh.vertices)
+    obs = Observations(data["radiance"].astype(float), data["weight"].astype(float),
+                       fold_of(data["image_id"], settings.folds))
     interp = texture.interpolation_matrix(mesh.faces, data["face"], data["bary"].astype(float), nv)
     lap = texture.graph_laplacian(mesh.faces, nv)
-    shadings = [candidate_shading(geo, best, m, opts) for m in candidate_materials(best.material, settings.ior)]
+    materials = candidate_materials(best.material, settings.ior)
+
+    def shade(g: prt.Geometry) -> tuple[np.ndarray, ...]:
+        shaded = [candidate_shading(g, best, m, opts) for m in materials]
+        return tuple(a for c in shaded for a in (c.shade, c.specular))
+
+    arrays = prt.over_chunks(geo, data["face"], data["bary"].astype(float), data["view_dir"].astype(float), shade)
+    shadings = [svbrdf.CandidateShading(m, arrays[2 * i], arrays[2 * i + 1]) for i, m in enumerate(materials)]
     smooth = settings.albedo_smoothness
     one = svbrdf.held_out_rmse(interp, lap, shadings[:1], obs.radiance, obs.weight, obs.fold, smooth)
     many = svbrdf.held_out_rmse(interp, lap, shadings, obs.radiance, obs.weight, obs.fold, smooth)

@@ -138,7 +138,7 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
                             settings.folds), file=sys.stderr)
     found = None
     if settings.materials == "auto" and known_brdf is None and candidate.known is None:
-        report["materials"], found = fit_materials(mesh, data, replace(geo, pattern=None), obs, best, settings,
+        report["materials"], found = fit_materials(mesh, everything, replace(geo, pattern=None), best, settings,
                                                    candidate.opts)
     materials = None if found is None else (mesh, found, material_brdfs(found))
     texels = None

@@ -27,6 +27,7 @@ from stages.fit.settings import Settings
 
 RIDGES = (0.5, 2.0, 8.0)     # the per-texel ridge's candidates (core.texture: typical samples' worth)
 CHUNK = 20000                # samples per chunk of the shading pass
+FILL_RINGS = 2               # texels a detail spreads into unseen texels of its chart
 
 
 @dataclass(frozen=True)
@@ -43,21 +44,17 @@ class TexelFit:
 
 def shading_at_all(geo: prt.Geometry, best: material_fit.MaterialFit, data: dict, settings: Settings):
     """(shade per unit base colour (N, 3), specular (N, 3)) of ``best`` at every sample of ``data``
-    (face, bary, view_dir), ``CHUNK`` at a time on ``geo``'s mesh part (its renderer, vertex transfer
-    and bounce matrices)."""
-    n = len(data["face"])
-    shade, specular = np.zeros((n, 3)), np.zeros((n, 3))
-    for s in range(0, n, CHUNK):
-        sl = slice(s, s + CHUNK)
-        g = prt.geometry_at(geo, data["face"][sl], data["bary"][sl].astype(float), data["view_dir"][sl].astype(float))
+    (face, bary, view_dir), in chunks on ``geo``'s mesh part (prt.over_chunks)."""
+    def shade(g: prt.Geometry) -> tuple[np.ndarray, np.ndarray]:
         fit = best
         if best.sources is not None:
-            st = prt.source_transfer(g, best.material, best.sources.directions)
-            fit = replace(best, sources=Sources(st, best.sources.power))
+            fit = replace(best, sources=Sources(prt.source_transfer(g, best.material, best.sources.directions),
+                                                best.sources.power))
         spec = None if best.material is None else prt.specular_transfer(g, best.material, settings.lobe_samples,
                                                                           settings.seed)
-        shade[sl], specular[sl] = material_fit.shading_parts(g, fit, spec)
-    return shade, specular
+        return material_fit.shading_parts(g, fit, spec)
+
+    return prt.over_chunks(geo, data["face"], data["bary"].astype(float), data["view_dir"].astype(float), shade, CHUNK)
 
 
 def make_atlas(mesh, data: dict, poses: Poses, keys: list[str]) -> atlas_mod.Atlas:
@@ -115,13 +112,17 @@ def fit_texels(mesh, geo: prt.Geometry, best: material_fit.MaterialFit, data: di
         return {**entry, "choice": "uniform"}, None
     entry["choice"] = "texels" if choice else "vertices"
     tex_id, tex_face, tex_bary = atlas_mod.texel_points(atlas)
+    den, _ = texture.texel_sums(texel, weight, shade, target, n_texels)
+    # a texel no sample fell in (oblique views see fewer pixels than the texels) takes its neighbours'
+    # detail, FILL_RINGS texels out, instead of the bare coarser level: no salt in the map
+    seen = (den.max(axis=1) > 0).reshape(atlas.height, atlas.width)
+    detail = atlas_mod.dilate(detail.reshape(atlas.height, atlas.width, 3), seen, FILL_RINGS).reshape(-1, 3)
     base = np.zeros((n_texels, 3))
     base[tex_id] = np.einsum("pk,pkc->pc", tex_bary, vertex_rho[np.asarray(mesh.faces)[tex_face]]) + detail[tex_id]
     base = np.clip(base, 0.0, 1.0)
     filled = np.zeros(n_texels, bool)
     filled[tex_id] = True
     image = atlas_mod.dilate(base.reshape(atlas.height, atlas.width, 3), filled.reshape(atlas.height, atlas.width))
-    den, _ = texture.texel_sums(texel, weight, shade, target, n_texels)
     with np.errstate(divide="ignore"):
         std = np.where(den > 0, noise.get("unit_sigma", np.nan) / np.sqrt(den + ridge), np.nan)
     entry["texels_with_samples"] = int((den.max(axis=1) > 0).sum())
