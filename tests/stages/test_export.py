@@ -32,10 +32,11 @@ TEAPOT = DATA / "cycles" / "teapot_city_glossy"
 BPY = "bpy==4.5.15"        # the Blender the shared Cycles captures were rendered with
 
 
-def make_fit(tmp_path: Path, brdf: Brdf, textured: bool, sun: bool = True) -> tuple[Path, Path]:
+def make_fit(tmp_path: Path, brdf: Brdf, textured: bool, sun: bool = True, texels: bool = False) -> tuple[Path, Path]:
     """A capture (the Cycles teapot's mesh and poses) and a work folder holding a fit: ``brdf``,
     the sunrise HDRI as a fit would hold it (the rest clipped at the 99.9th percentile as SH order
-    8, with its sun as a directional source if ``sun``), optionally a per-vertex base colour."""
+    8, with its sun as a directional source if ``sun``), optionally a per-vertex base colour, or
+    (``texels``) a per-texel one in fit/textures/ as ``fit --texels auto`` writes it (texel_map)."""
     capture, work = tmp_path / "capture", tmp_path / "work"
     (capture / "images").mkdir(parents=True)
     (capture / "mesh.ply").write_bytes((TEAPOT / "mesh.ply").read_bytes())
@@ -56,7 +57,33 @@ def make_fit(tmp_path: Path, brdf: Brdf, textured: bool, sun: bool = True) -> tu
         z = mesh.vertices[:, 2]
         rho = brdf.diffuse_color[None, :] * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None]
         write_vertex_albedo(work / "fit" / "albedo.ply", mesh, rho)
+    if texels:
+        texel_map(read_mesh(capture / "mesh.ply"), brdf, work / "fit")
     return capture, work
+
+
+def texel_map(mesh, brdf: Brdf, fit: Path, texel_m: float = 0.001, wavelength_m: float = 0.05) -> None:
+    """fit/textures/ and albedo.ply as ``fit --texels auto`` leaves them, for the teapot: an xatlas
+    atlas at ``texel_m`` (pipeline.unwrap) and a base colour brdf.base_color x (0.3 + 0.7 s_c(p)) with
+    s_c = 0.5 + 0.5 sin(2 pi p . d_c / wavelength) along a different direction d_c per channel (a
+    pattern that a texture read at the wrong place, or flipped, cannot reproduce), padded 8 texels
+    past the charts; albedo.ply holds the map at the vertices."""
+    from pipeline.core.atlas import dilate, texel_points
+    from pipeline.io.textures import write_base_color_textures
+    from pipeline.unwrap import unwrap
+
+    atlas = unwrap(mesh.vertices, mesh.faces, texel_m)
+    texel, face, bary = texel_points(atlas)
+    points = np.einsum("pk,pkc->pc", bary, mesh.vertices[mesh.faces[face]])
+    directions = np.array([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8], [0.6, -0.8, 0.0]])
+    pattern = 0.5 + 0.5 * np.sin(2 * np.pi * (points - mesh.vertices.mean(axis=0)) @ directions.T / wavelength_m)
+    flat = np.zeros((atlas.height * atlas.width, 3))
+    flat[texel] = np.asarray(brdf.base_color)[None, :] * (0.3 + 0.7 * pattern)
+    filled = np.zeros(atlas.height * atlas.width, bool)
+    filled[texel] = True
+    image = dilate(flat.reshape(atlas.height, atlas.width, 3), filled.reshape(atlas.height, atlas.width), 8)
+    write_base_color_textures(fit / "textures", atlas, image, np.zeros_like(image))
+    write_vertex_albedo(fit / "albedo.ply", mesh, atlas.at_vertices(image, mesh.faces, len(mesh.vertices)))
 
 
 def test_glb_holds_the_mesh_material_and_lighting_in_gltf_conventions(tmp_path):
@@ -165,17 +192,21 @@ def blender_python(tmp_path_factory) -> str:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("asset_name", ["asset.glb", "asset.usda"])
-def test_blender_renders_the_exported_asset_as_sigrend_relights_it(tmp_path, blender_python, asset_name):
+@pytest.mark.parametrize(("asset_name", "texels"), [("asset.glb", False), ("asset.usda", False),
+                                                    ("asset.glb", True), ("asset.usda", True)])
+def test_blender_renders_the_exported_asset_as_sigrend_relights_it(tmp_path, blender_python, asset_name, texels):
     """Issue 13's round trip: the .glb imported by Blender's glTF importer, the world lit by the
     exported map, Cycles 256 spp at 128 x 128 against `sigrend relight` (2 x 2 rays per pixel) of
     the same view under the same map, no scale fitted.  Limit 3 % (issue 13).  The lighting is the
     sunrise sky without its sun: with the sun as a source the error is 3.2 % at 1024 spp, all of it
     where the sun's light reflects off the glossy body onto the rest of the teapot (a caustic
     path sigrend's renderer leaves out: 1.3 % of the view's light; docs/relight.md) — a sun alone
-    on the sphere agrees to 0.05 %."""
-    brdf = Brdf("principled", base_color=[0.7, 0.45, 0.1], roughness=0.3)
-    capture, work = make_fit(tmp_path, brdf, textured=True, sun=False)
+    on the sphere agrees to 0.05 %.  With ``texels`` the base colour is a map on an xatlas atlas
+    (texel_map: 1 mm texels, stripes of 5 cm along a different direction per channel), exported as
+    the glTF's embedded baseColorTexture on TEXCOORD_0 / the USD's UsdUVTexture on st, and relit by
+    sigrend from fit/textures/base_color.exr."""
+    brdf = Brdf("principled", base_color=[0.8, 0.7, 0.6] if texels else [0.7, 0.45, 0.1], roughness=0.3)
+    capture, work = make_fit(tmp_path, brdf, textured=not texels, sun=False, texels=texels)
     asset = work / "export"
     assert sigrend(["export", str(capture), "-w", str(work), "-o", str(asset / asset_name)]) == 0
     poses = json.loads((TEAPOT / "gt" / "relight" / "poses.json").read_text())
@@ -195,6 +226,7 @@ def test_blender_renders_the_exported_asset_as_sigrend_relights_it(tmp_path, ble
                     "-o", str(tmp_path / "relight")]) == 0
     ours = read_image(tmp_path / "relight" / f"{Path(key).stem}.exr")
     error = block_relative_rmse([ours], [read_image(tmp_path / "blender.exr")], fit_scale=False)
+    print(f"{asset_name}{' textured' if texels else ''}: Blender vs sigrend relight {error}")
     assert error.total < 0.03, f"Blender vs sigrend relight of the exported asset: {error}"
 
 
