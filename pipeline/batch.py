@@ -19,9 +19,10 @@ import os
 import sys
 from pathlib import Path
 
-from pipeline.errors import UserError
 from pipeline import STAGES
+from pipeline.errors import UserError
 from pipeline.logs import progress
+from pipeline.runner import relight_argument
 from pipeline.workdir import make_folder, write_text
 
 HELP = "Run many captures (sigrend run each) as tasks on Dask distributed: a local cluster or an existing scheduler."
@@ -146,9 +147,7 @@ def write_tables(rows: list[dict], out: Path) -> tuple[Path, Path]:
 def main(args: argparse.Namespace) -> int:
     if args.workers < 1 or args.threads_per_worker < 1 or args.retries < 0 or args.holdout < 0:
         raise UserError("--workers and --threads-per-worker must be >= 1, --retries and --holdout >= 0")
-    for env in args.relight:
-        if not Path(env).is_file():
-            raise UserError(f"--relight {env}: file not found; give an equirect EXR or a lighting_sh.json")
+    relight = tuple(relight_argument(env) for env in args.relight)
     missing = [str(c) for c in args.captures if not Path(c).is_dir()]
     if missing:
         raise UserError(f"{missing[0]}: capture folder not found ({len(missing)} of {len(args.captures)} missing); "
@@ -165,7 +164,7 @@ def main(args: argparse.Namespace) -> int:
             futures = client.map(run_one, [str(Path(c).resolve()) for c in args.captures], [str(w) for w in works],
                                  holdout=args.holdout, force=args.force, threads=args.threads_per_worker,
                                  first=args.first, last=args.last,
-                                 relight=tuple(str(Path(e).resolve()) for e in args.relight),
+                                 relight=relight,
                                  retries=args.retries, pure=False)
             index = {f.key: i for i, f in enumerate(futures)}
             rows: list[dict | None] = [None] * len(futures)

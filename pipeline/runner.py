@@ -20,6 +20,7 @@ import dataclasses
 import importlib
 import inspect
 import json
+import re
 import time
 import warnings
 from dataclasses import dataclass
@@ -28,11 +29,23 @@ from types import SimpleNamespace
 
 from pipeline import STAGES, __version__
 from pipeline.errors import UserError
+from pipeline.io.lighting import lighting_argument, lighting_help
 from pipeline.io.run_summary import HOLDOUT_FIELD, StageResult, samples_holdout, stage_table, summary_lines
-from pipeline.logs import LOGGER, progress as progress_bar
+from pipeline.logs import LOGGER
+from pipeline.logs import progress as progress_bar
 from pipeline.settings import add_settings_arguments, make_settings, settings_dict, settings_from_args
-from pipeline.workdir import (changed_settings, default_work, fingerprints, is_fresh, record_settings,
-                              remove_stale_temporaries, settings_path, transaction, work_lock, write_json)
+from pipeline.workdir import (
+    changed_settings,
+    default_work,
+    fingerprints,
+    is_fresh,
+    record_settings,
+    remove_stale_temporaries,
+    settings_path,
+    transaction,
+    work_lock,
+    write_json,
+)
 
 HELP = "Run the whole pipeline on a capture folder (linearize, poses, samples, fit, relight) and write the report."
 
@@ -204,6 +217,24 @@ def _say_if_replacing(work: Path, name: str, settings) -> None:
                       UserWarning, stacklevel=2)
 
 
+def relight_argument(env: str) -> str:
+    """A --relight lighting checked (UserError, one line: a missing file or a misspelt spec) and made
+    independent of the working directory: a file's absolute path, or the procedural spec as given."""
+    given = lighting_argument(env, "--relight")
+    if given.path is None:
+        return env
+    if not given.path.is_file():
+        raise UserError(f"--relight {env}: file not found; give {lighting_help()}")
+    return str(given.path.resolve())
+
+
+def env_name(env: str) -> str:
+    """WORK/relight/<name>/ of a --relight lighting: a file's stem, or a procedural spec with the
+    characters a folder name should not hold replaced by '_'."""
+    given = lighting_argument(env, "--relight")
+    return given.path.stem if given.path is not None else re.sub(r"[^A-Za-z0-9.+_-]", "_", env)
+
+
 def _relight_runs(plan: RunPlan) -> list[StageResult]:
     results = []
     common = dict(capture=plan.capture, work=plan.work, force=plan.force)
@@ -212,9 +243,10 @@ def _relight_runs(plan: RunPlan) -> list[StageResult]:
     settings = stage_settings("relight", views=views, compare=True, out_dir=str(Path(plan.work) / "relight" / "check"))
     results.append(run_stage("relight", settings=settings, record="relight-check", **common))
     for env in plan.relight_envs:
-        out = Path(plan.work) / "relight" / Path(env).stem
-        settings = stage_settings("relight", env=str(Path(env).resolve()), views="capture", out_dir=str(out))
-        results.append(run_stage("relight", settings=settings, record=f"relight-{Path(env).stem}", **common))
+        name = env_name(env)
+        settings = stage_settings("relight", env=relight_argument(env), views="capture",
+                                  out_dir=str(Path(plan.work) / "relight" / name))
+        results.append(run_stage("relight", settings=settings, record=f"relight-{name}", **common))
     return results
 
 
@@ -222,8 +254,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", type=Path, help="capture folder (images/, mesh, optional capture.toml, poses.json)")
     parser.add_argument("-w", "--work", type=Path, default=None, help="work folder (default: <capture>-work)")
     parser.add_argument("--relight", metavar="ENV", nargs="+", default=[],
-                        help="also relight the capture's views under these environments (equirect EXR or "
-                             "lighting_sh.json); renders go to WORK/relight/<env name>/")
+                        help=f"also relight the capture's views under these lightings ({lighting_help()}); "
+                             "renders go to WORK/relight/<name>/ (a file's stem, or the spec)")
     parser.add_argument("--from", dest="first", choices=STAGES, default=STAGES[0], help="first stage to run")
     parser.add_argument("--to", dest="last", choices=STAGES, default=STAGES[-1], help="last stage to run")
     parser.add_argument("--force", action="store_true", help="run the stages even if their outputs are fresh")
@@ -270,16 +302,14 @@ def main(args: argparse.Namespace) -> int:
     work = Path(args.work or default_work(capture))
     if args.holdout < 0:
         raise UserError(f"--holdout {args.holdout}: give N >= 0 (every N-th view held out; 0 = none)")
-    for env in args.relight:
-        if not Path(env).is_file():
-            raise UserError(f"--relight {env}: file not found; give an equirect EXR or a lighting_sh.json")
+    relight = [relight_argument(env) for env in args.relight]     # a bad one is one line before any stage runs
     export = ""
     if args.export:
         if STAGES.index(args.last) < STAGES.index("fit"):
             raise UserError(f"--export needs the fit: drop --to {args.last} (or use --to fit)")
         export = str(Path(args.export).resolve())
         stage_settings("export", out=export)     # a bad suffix is a one-line error before any stage runs
-    plan = RunPlan(capture, work, args.first, args.last, args.force, args.holdout, list(args.relight), export)
+    plan = RunPlan(capture, work, args.first, args.last, args.force, args.holdout, relight, export)
     record = run_capture(plan, report=args.report)
     print(record["table"])
     for line in summary_lines(work):

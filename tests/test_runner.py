@@ -206,3 +206,18 @@ def test_verbose_logs_each_stage_settings_at_its_start(tmp_path):
     assert json.loads(line.split("running with ", 1)[1])["saturation"] == 0.98
     quiet = subprocess.run([*args, "linearize", str(capture), "-w", str(tmp_path / "q")], capture_output=True, text=True)
     assert quiet.returncode == 0 and "running with" not in quiet.stderr
+
+
+def test_relight_takes_a_procedural_lighting(capture, tmp_path, capsys):
+    """`sigrend run --relight sun+sky` relights the capture's views under the procedural map (the same
+    specs as synth and `sigrend relight --env`), into WORK/relight/sun+sky/, a row of its own in
+    run.json; a misspelt spec is one line naming --relight, exit 2, before any stage runs."""
+    work = tmp_path / "work"
+    assert _run(capture, "-w", work, "--relight", "sun+skyy") == 2
+    assert "--relight" in capsys.readouterr().err and not work.exists()
+    assert _run(capture, "-w", work, "--relight", "sun+sky") == 0
+    run = json.loads((work / "run.json").read_text())
+    assert [s["name"] for s in run["stages"]][-1] == "relight-sun+sky"
+    renders = sorted((work / "relight" / "sun+sky").glob("*.exr"))
+    assert len(renders) == 8
+    assert json.loads((work / "relight" / "sun+sky" / "relight.json").read_text())["lighting"]
