@@ -43,7 +43,7 @@ def test_a_bad_export_is_one_line_before_any_stage(tiny_capture, tmp_path, capsy
     capture = tiny_capture(views=8, size=(48, 48))
     work = tmp_path / "work"
     assert cli.main(["run", str(capture), "-w", str(work), "--export", str(tmp_path / "asset.usdz")]) == 2
-    assert_one_line_error(capsys.readouterr().err, "glTF or USD")
+    assert_one_line_error(capsys.readouterr().err, "glTF, USD or Mitsuba")
     assert cli.main(["run", str(capture), "-w", str(work), "--to", "poses", "--export", str(tmp_path / "a.glb")]) == 2
     assert_one_line_error(capsys.readouterr().err, "--export needs the fit")
     assert not work.exists()
