@@ -39,7 +39,8 @@ def intersector(mesh):
 class RayMesh:
     """A mesh as the renderer (pipeline.core.render.Renderer) takes it: its arrays (vertices (V, 3),
     faces (F, 3), unit vertex and face normals, triangles (F, 3, 3), extents (3,) of its box) and
-    its Embree intersector ``rays`` (intersects_id, intersects_any); ``mesh`` is the trimesh mesh."""
+    its Embree intersector ``rays`` (intersects_id, intersects_any); ``mesh`` is the trimesh mesh;
+    ``proxy``: a pipeline.proxy.Proxy (a simplified mesh for the renderer's vertex-level parts) or None."""
 
     mesh: object
     vertices: np.ndarray
@@ -49,6 +50,7 @@ class RayMesh:
     triangles: np.ndarray
     extents: np.ndarray
     rays: object
+    proxy: object = None
 
     def with_occluder(self, corners: np.ndarray):
         """An intersector of the mesh together with a planar quad (corners (4, 3), in order), e.g.

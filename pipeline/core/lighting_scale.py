@@ -194,7 +194,7 @@ def map_shading(scene, direct, geo: prt.Geometry, base: np.ndarray, scale: float
     samples, the map times ``scale``; the interreflection at the grey ``base``.  The scene's
     bounce rays are cast here, once, so that its copies for each material (with_brdf) share them."""
     for one in getattr(scene, "scenes", [scene]):
-        one.bounce_rays()
+        one.vertex_scene.bounce_rays()
 
     def shading(material: Principled | None) -> tuple[np.ndarray, np.ndarray]:
         def parts(b) -> tuple[np.ndarray, np.ndarray]:

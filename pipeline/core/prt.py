@@ -103,14 +103,15 @@ class Geometry:
     def interreflects(self) -> bool:
         """Whether any vertex's occlusion ray hits the object (a convex one: none, so no
         interreflection whatever the base colour)."""
-        return bool(self.renderer.bounce_rays().on_mesh.any())
+        return bool(self.renderer.vertex_scene.bounce_rays().on_mesh.any())
 
     def bounce_matrices(self, material: Principled | None) -> list:
         """The renderer's bounce matrices with this material's diffuse layer at the hits (cached)."""
         key = self._layer_key(material)
         if key not in self._bounces:
-            layer = diffuse_layer(material, self.renderer.bounce_rays().mu_hit)
-            self._bounces[key] = self.renderer.bounce_matrices(layer)
+            scene = self.renderer.vertex_scene
+            layer = diffuse_layer(material, scene.bounce_rays().mu_hit)
+            self._bounces[key] = scene.bounce_matrices(layer)
         return self._bounces[key]
 
 
@@ -118,16 +119,17 @@ def geometry(mesh, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, o
              cell_height: int = 16, bounce_samples: int = 64, seed: int = 0,
              footprint: tuple[np.ndarray, np.ndarray] | None = None) -> Geometry:
     """Direct transfer of samples on ``mesh`` (faces (N,), barycentrics (N, 3), unit view
-    directions (N, 3)) and of its vertices, for SH lighting up to ``order``; ``footprint``: see
-    Geometry."""
+    directions (N, 3)) and of its vertices (the renderer's vertex_scene's: a proxy's when the mesh
+    has one, pipeline.proxy), for SH lighting up to ``order``; ``footprint``: see Geometry."""
     env = np.ones((cell_height, 2 * cell_height, 3), np.float32)
     r = Renderer(mesh, env, Brdf("lambert", albedo=(1.0, 1.0, 1.0)), cell_height=cell_height,
                  bounce_samples=bounce_samples, seed=seed)
     samples = _sample_transfer(r, order, faces, bary, view_dirs)
     power = sh_basis(r.lights.directions, order) * r.lights.power[:, :1]          # (D, K): Y_k(w_j) dω_j
-    rays = r.bounce_rays()
+    scene = r.vertex_scene
+    rays = scene.bounce_rays()
     blocked = sh_basis(rays.directions, order) * (np.pi / rays.per_vertex)
-    vertex_direct = r._open_irradiance(power) - rays.per_owner(blocked, len(mesh.vertices))
+    vertex_direct = scene._open_irradiance(power) - rays.per_owner(blocked, len(scene.mesh.vertices))
     return Geometry(r, order, *samples, vertex_direct, footprint)
 
 
@@ -191,7 +193,7 @@ LOBE_CACHE = 6       # lobe transfers kept per geometry (specular: (N, 81, 3) fl
 def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarray,
                       max_bounces: int = 8, vertex_direct: np.ndarray | None = None) -> np.ndarray:
     """I (N, K', 3): interreflected irradiance transfer at the samples for base colour ``base``
-    (3,) or per vertex (V, 3), from the vertices' bounce series (Renderer.bounce_matrices) of the
+    (3,) or per vertex (V, 3) of the mesh (with a proxy: mapped to its vertices), from the vertices' bounce series (Renderer.bounce_matrices) of the
     vertices' direct transfer (V, K) (default: the SH lighting's, geo.vertex_direct, whose
     bands above INDIRECT_ORDER are left out of the bounces: the diffuse hit points filter them, and
     K' is the bands up to INDIRECT_ORDER only; with ``vertex_direct`` (V, J) its J columns)."""
@@ -208,6 +210,12 @@ def indirect_transfer(geo: Geometry, material: Principled | None, base: np.ndarr
         at_samples, peaks, scale = terms
         n = min(bounce_terms_needed(peaks, scale, float(np.abs(base).max())), len(at_samples))
         out = np.tensordot(at_samples[:n], base[None, :] ** np.arange(1, n + 1)[:, None], axes=(0, 0))
+    elif geo.renderer.vertex_scene is not geo.renderer:      # a proxy carries the bounces
+        r = geo.renderer
+        base_v = np.broadcast_to(base, (len(r.mesh.vertices), 3)) if base.ndim == 1 else base
+        e_ind = bounce_series(geo.bounce_matrices(material), r.to_vertex_scene(base_v),
+                              np.repeat(direct[..., None], 3, axis=2), max_bounces)
+        out = r.at_points(e_ind, geo.tri, geo.bary)
     else:
         base_v = np.broadcast_to(base, (len(geo.renderer.mesh.vertices), 3))
         e_ind = bounce_series(geo.bounce_matrices(material), base_v, np.repeat(direct[..., None], 3, axis=2),
@@ -238,8 +246,10 @@ def _bounce_terms(geo: Geometry, material: Principled | None, direct: np.ndarray
             peaks = np.array([np.abs(x).max(initial=0.0) for x in powers])
             live = int(np.cumprod(peaks > 0).sum())      # after a zero term (nothing bounces) all are zero
             at_samples = np.zeros((live, geo.faces.size, direct.shape[1]))
+            proxy = geo.renderer.vertex_scene is not geo.renderer
             for i in range(live):
-                at_samples[i] = np.einsum("pj,pjk->pk", geo.bary, powers[i][geo.tri])
+                at_samples[i] = geo.renderer.at_points(powers[i], geo.tri, geo.bary) if proxy else \
+                    np.einsum("pj,pjk->pk", geo.bary, powers[i][geo.tri])
             value = (at_samples, peaks, float(np.abs(direct).max(initial=0.0)))
         while len(geo._bounce_terms) >= BOUNCE_CACHE:
             geo._bounce_terms.pop(next(iter(geo._bounce_terms)))
@@ -530,7 +540,8 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
     d = np.atleast_2d(np.asarray(directions, float))
     n, j = geo.faces.size, d.shape[0]
     pts = r._points_above(geo.faces, geo.bary) if visibility is None else None    # the rays' origins
-    vpts = r.vertices_above() if vertices else None
+    vs = r.vertex_scene           # the vertices' columns: at the proxy's vertices when the mesh has one
+    vpts = vs.vertices_above() if vertices else None
     direct = np.zeros((n, j))
     vdirect = np.zeros((len(vpts), j)) if vertices else None
     seen = np.zeros((n, j))       # the samples' visibility per direction
@@ -549,9 +560,9 @@ def source_transfer(geo: Geometry, material: Principled | None, directions: np.n
         direct[:, i] = cos * vis
         seen[:, i] = vis
         if vertices:
-            vcos = np.maximum(r._vertex_normals @ d[i], 0.0)
+            vcos = np.maximum(vs._vertex_normals @ d[i], 0.0)
             vl = np.flatnonzero(vcos > 0)
-            vdirect[vl, i] = vcos[vl] * ~r._shadow_rays.intersects_any(vpts[vl], np.broadcast_to(d[i], (vl.size, 3)))
+            vdirect[vl, i] = vcos[vl] * ~vs._shadow_rays.intersects_any(vpts[vl], np.broadcast_to(d[i], (vl.size, 3)))
         if material is None or geo.footprint is None:
             return
 

@@ -268,6 +268,12 @@ class Renderer:
     (pipeline.core.atlas.Atlas, map (H, W, 3) linear) per point, bilinear in the map (the
     interreflection then takes the map at the vertices).  Build once, call
     ``render`` per view: the light set and the per-vertex visibility are shared by all views.
+
+    A mesh with a proxy (``mesh.proxy``, pipeline.proxy: a simplified mesh ``.mesh`` and, per vertex
+    of this mesh, the proxy's closest point as vertex ids ``.tri`` and barycentrics ``.bary``) has
+    its interreflection (bounce rays, bounce matrices, vertex irradiance) on the proxy's vertices:
+    ``vertex_scene`` is the renderer of those vertices, ``at_points`` interpolates their values at
+    this mesh's points.  Without one (the default) both are this renderer's own.
     """
 
     mesh: object           # pipeline.raycast.RayMesh (ray_mesh(trimesh mesh))
@@ -308,6 +314,14 @@ class Renderer:
         self._rng = np.random.default_rng(self.seed)
         self._vertex_irradiance = None
         self._bounce_rays = None
+        self._proxy = None
+        proxy = getattr(self.mesh, "proxy", None)
+        if proxy is not None and self.shadows:
+            self._proxy = Renderer(proxy.mesh, self.env, self.brdf, shadows=True, board=self.board,
+                                   cell_height=self.cell_height, max_bright=self.max_bright,
+                                   bright_block=self.bright_block, chunk_pairs=self.chunk_pairs,
+                                   interreflection=self.interreflection, bounce_samples=self.bounce_samples,
+                                   lobe_samples=self.lobe_samples, max_bounces=self.max_bounces, seed=self.seed)
         if self.material is not None:
             self._remainder = self._remainder_pyramid()
             self._spec_cut_cos = lobe_support_cos(self.material.alpha)
@@ -327,6 +341,39 @@ class Renderer:
         if self.shadows and self.interreflection:
             self.vertex_irradiance()
         return self
+
+    @property
+    def vertex_scene(self) -> "Renderer":
+        """The renderer whose vertices carry the interreflection (bounce rays, bounce matrices, vertex
+        irradiance): this one's proxy's, or this one."""
+        return self if self._proxy is None else self._proxy
+
+    def at_points(self, values: np.ndarray, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """Values (Vs, ...) at vertex_scene's vertices interpolated at points of this mesh (their
+        faces' vertex ids (P, 3), barycentrics (P, 3)) -> (P, ...): barycentric in the point's
+        triangle, and with a proxy, each vertex's value barycentric in its closest proxy face."""
+        if self._proxy is None:
+            return np.einsum("pk,pk...->p...", bary, values[tri])
+        proxy = self.mesh.proxy
+        ids = proxy.tri[tri].reshape(len(tri), 9)
+        w = (np.asarray(bary, float)[:, :, None] * proxy.bary[tri]).reshape(len(tri), 9)
+        return np.einsum("pk,pk...->p...", w, values[ids])
+
+    def to_vertex_scene(self, values: np.ndarray) -> np.ndarray:
+        """Values (V, C) at this mesh's vertices at vertex_scene's vertices: as they are, or with a
+        proxy each proxy vertex's mean of the vertices mapped to it (weighted by their barycentrics;
+        a proxy vertex no vertex maps to takes the mean of all)."""
+        if self._proxy is None:
+            return values
+        proxy, values = self.mesh.proxy, np.asarray(values, float)
+        nv = len(self._proxy.mesh.vertices)
+        total = np.zeros((nv,) + values.shape[1:])
+        weight = np.zeros(nv)
+        np.add.at(weight, proxy.tri.ravel(), proxy.bary.ravel())
+        np.add.at(total, proxy.tri.ravel(), proxy.bary.reshape(-1, *([1] * (values.ndim - 1)))
+                  * np.repeat(values, 3, axis=0))
+        return np.where((weight > 0).reshape(-1, *([1] * (values.ndim - 1))),
+                        total / np.maximum(weight, 1e-300).reshape(-1, *([1] * (values.ndim - 1))), values.mean(axis=0))
 
     def _points_rng(self, faces: np.ndarray, bary: np.ndarray) -> np.random.Generator:
         """A generator seeded by this renderer's seed and the points themselves: the same points get
@@ -481,7 +528,8 @@ class Renderer:
 
     def vertex_irradiance(self) -> tuple[np.ndarray, np.ndarray]:
         """Per-vertex irradiance (V, 3) with self-shadowing and diffuse interreflection, and the
-        indirect part of it (V, 3): ``(E_total, E_indirect)``, computed once per scene.
+        indirect part of it (V, 3): ``(E_total, E_indirect)``, computed once per scene, at
+        vertex_scene's vertices (a proxy's, when the mesh has one).
 
         Direct: the unshadowed irradiance of the light set (exact) minus the occluded rays'
         (bounce_rays) share, pi / S * L(w_s) read from the map prefiltered to the ray's solid angle
@@ -490,6 +538,10 @@ class Renderer:
         iterated until a bounce adds < 0.5 % (at most ``max_bounces``).
         """
         if self._vertex_irradiance is not None:
+            return self._vertex_irradiance
+        if self._proxy is not None:     # at the proxy's vertices, with this mesh's base colour there
+            self._proxy.vertex_albedo = self.to_vertex_scene(self._vertex_base()) if self._varying_base else None
+            self._vertex_irradiance = self._proxy.vertex_irradiance()
             return self._vertex_irradiance
         e_open = self._open_irradiance(self.lights.power)
         if not self.shadows:  # no occlusion at all: convex treatment, nothing bounces
@@ -521,6 +573,8 @@ class Renderer:
         if not (self.shadows and self.interreflection):
             return np.zeros((tri.shape[0], 3))
         e_ind = self.vertex_irradiance()[1]
+        if self._proxy is not None:
+            return self.at_points(e_ind, tri, bary)
         return np.einsum("pk,pkc->pc", bary, e_ind[tri])
 
     def _object_radiance(self, faces: np.ndarray, points: np.ndarray, w_toward: np.ndarray) -> np.ndarray:
@@ -528,7 +582,8 @@ class Renderer:
         tri = np.asarray(self.mesh.faces)[faces]
         bary = barycentric(self.mesh.triangles[faces], points)
         mu = np.clip(np.einsum("pc,pc->p", self._normals_at(faces, bary), w_toward), 0.0, 1.0)
-        e_total = np.einsum("pk,pkc->pc", bary, self.vertex_irradiance()[0][tri])
+        e_total = np.einsum("pk,pkc->pc", bary, self.vertex_irradiance()[0][tri]) if self._proxy is None \
+            else self.at_points(self.vertex_irradiance()[0], tri, bary)
         return self._diffuse_albedo(mu, self._base(faces, tri, bary)) / np.pi * e_total
 
     def _specular_sampled(self, faces, bary, normals, view_dirs, base) -> np.ndarray:
@@ -658,6 +713,8 @@ class Renderer:
         other.vertex_albedo = None
         other.albedo_texture = None
         other._vertex_irradiance = None
+        if self._proxy is not None:
+            other._proxy = self._proxy.with_brdf(brdf)
         other.material = material_from_brdf(brdf)
         if other.material is not None:
             if self.material is None:

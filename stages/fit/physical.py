@@ -45,6 +45,7 @@ from pipeline.core.selection import fold_of
 from pipeline.errors import UserError
 from pipeline.io.mesh import mesh_path, read_mesh
 from pipeline.io.poses import poses_path, read_poses
+from pipeline.proxy import samples_footprint_m, with_proxy
 from pipeline.raycast import RayMesh, pixel_footprints, ray_mesh
 from stages.fit.data import load_physical
 from stages.fit.known import (
@@ -88,9 +89,15 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
     mesh = read_mesh(mesh_path(capture))
-    rays = ray_mesh(mesh)        # the renderer's view of the mesh: arrays and ray intersector, built once
     samples_path = Path(work) / "samples.npz"
     data, noise, everything = load_physical(samples_path, settings, len(mesh.faces))
+    # the renderer's view of the mesh: arrays and ray intersector, built once; a proxy for the
+    # interreflection where the mesh is much finer than the photos resolve (pipeline/proxy.py)
+    rays = with_proxy(mesh, samples_footprint_m(mesh.triangles, data, read_poses(poses_path(capture, work)), keys),
+                      settings.proxy_pixels) if settings.proxy_pixels > 0 else ray_mesh(mesh)
+    if rays.proxy is not None:
+        print(f"fit: interreflection on a proxy of {len(rays.proxy.mesh.faces)} faces ({len(mesh.faces)} in the mesh; "
+              f"edges {rays.proxy.spacing * 1000:.2g} mm = {settings.proxy_pixels:g} photo pixels)")
     order = settings.candidate_order
     orders = [order] if settings.explicit_order is not None else list(range(order + 1))
     top = order if settings.explicit_order is not None else max(order, settings.max_order)  # final lighting's orders

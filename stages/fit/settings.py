@@ -11,6 +11,7 @@ from typing import Literal
 from pipeline.core.factorization import ConvexOptions
 from pipeline.core.material import MIN_ROUGHNESS
 from pipeline.errors import UserError
+from pipeline.proxy import PROXY_PIXELS
 from pipeline.settings import setting
 
 DEFAULT_ALBEDO = 0.5        # the scale convention of a Lambertian fit under unknown lighting when no hint is given
@@ -86,6 +87,9 @@ class Settings:
     physical_samples: int = setting(30000, "principled fit: samples used (random subset)")
     lobe_samples: int = setting(32, "principled fit: GGX lobe samples per sample in the specular transfer")
     bounce_samples: int = setting(64, "principled fit: occlusion / bounce rays per vertex (shadows, interreflection)")
+    proxy_pixels: float = setting(PROXY_PIXELS, "principled fit: a mesh much finer than the photos resolve (more than twice the "
+                                       "faces of edges this many photo pixels long) gets a simplified proxy of such "
+                                       "edges for its interreflection (pipeline/proxy.py); 0: never")
     noise_model: Literal["measured", "uniform"] = setting("measured", "principled fit: 'measured' (samples weighted by 1 / sigma^2 of the "
                                            "Poisson-Gaussian noise level measured on the photos: bright pixels are "
                                            "noisier) or 'uniform' (equal weights)")
@@ -179,6 +183,8 @@ class Settings:
         if self.max_sources < 0 or self.physical_samples < 100 or self.lobe_samples < 1 or self.bounce_samples < 1:
             raise UserError("--max-sources must be >= 0, --physical-samples >= 100, --lobe-samples and "
                             "--bounce-samples >= 1")
+        if not self.proxy_pixels >= 0:
+            raise UserError(f"--proxy-pixels must be >= 0 (0: no proxy), got {self.proxy_pixels}")
         if not 1 <= self.footprint <= 8:
             raise UserError(f"--footprint must be 1 to 8 rays per pixel axis, got {self.footprint}")
         if self.blas_threads < 0:
