@@ -25,7 +25,7 @@ from pipeline.workdir import read_json, write_json
 UNIT_PARAMS = ("albedo", "base_color", "specular_tint", "metallic")  # physically within [0, 1]
 LEGACY_MODELS = {"lambertian": "lambert", "principled_v2": "principled", "ggx": "principled"}
 # keys a brdf.json may carry besides its model's parameters (provenance, notes)
-FREE_KEYS = ("model", "notes", "source", "blender", "note", "evidence", "materials", "material_map")
+FREE_KEYS = ("model", "notes", "source", "blender", "note", "evidence", "materials", "material_map", "colour_fixed_by")
 
 
 def _principled_ranges(name: str, doc: dict) -> None:
@@ -127,17 +127,26 @@ def read_brdf(path: str | os.PathLike) -> Brdf:
     return validate_brdf(doc, str(path))
 
 
-def write_brdf(path: str | os.PathLike, brdf: Brdf) -> Path:
-    """brdf.json of a Brdf, its ranges checked (pipeline.io.brdf's rules) before anything is written."""
-    return write_json(path, validate_brdf(brdf.to_dict()).to_dict())
+def write_brdf(path: str | os.PathLike, brdf: Brdf, notes: dict | None = None) -> Path:
+    """brdf.json of a Brdf, its ranges checked (pipeline.io.brdf's rules) before anything is written;
+    ``notes``: free keys (FREE_KEYS) written beside the parameters, e.g. "colour_fixed_by"."""
+    return write_json(path, {**validate_brdf(brdf.to_dict()).to_dict(), **_free(notes)})
 
 
-def write_materials_brdf(path: str | os.PathLike, materials: list[Brdf], material_map: str) -> Path:
+def write_materials_brdf(path: str | os.PathLike, materials: list[Brdf], material_map: str,
+                         notes: dict | None = None) -> Path:
     """brdf.json of a surface of several materials: the first (the one most of the surface has) at
     the top level, as one-material readers take it, and every one under "materials" (index =
-    material.ply's material_id), with the map's file name."""
+    material.ply's material_id), with the map's file name; ``notes`` as write_brdf's."""
     docs = [validate_brdf(m.to_dict()).to_dict() for m in materials]
-    return write_json(path, {**docs[0], "materials": docs, "material_map": material_map})
+    return write_json(path, {**docs[0], "materials": docs, "material_map": material_map, **_free(notes)})
+
+
+def _free(notes: dict | None) -> dict:
+    unknown = sorted(set(notes or {}) - set(FREE_KEYS))
+    if unknown:
+        raise ValueError(f"brdf.json notes must use FREE_KEYS, not {unknown}")
+    return dict(notes or {})
 
 
 def read_materials(path: str | os.PathLike) -> tuple[list[Brdf], str] | None:

@@ -4,7 +4,6 @@ stderr summary line that both forward models share."""
 
 from __future__ import annotations
 
-
 import shutil
 import sys
 from pathlib import Path
@@ -54,8 +53,8 @@ def write_fit(out: Path, coeffs: np.ndarray, brdf: Brdf, report: dict, *, env_he
         extra = {"sources": report["sources"], "sources_note": SOURCES_NOTE}
     written = [write_lighting_sh(out / "lighting_sh.json", total, source=source, **extra),
                write_image(out / "lighting.exr", env.astype(np.float32), dtype="float"),
-               write_brdf(out / "brdf.json", brdf) if materials is None else
-               write_materials_brdf(out / "brdf.json", materials[2], "material.ply"),
+               write_brdf(out / "brdf.json", brdf, colour_note(report)) if materials is None else
+               write_materials_brdf(out / "brdf.json", materials[2], "material.ply", colour_note(report)),
                write_report(out / "report.json", report)]
     written += write_plots(out, env, report["bands"], report["residuals_per_view"])
     mesh, vertex_rho = texture if texture is not None and materials is None else (None, None)
@@ -71,6 +70,20 @@ def write_fit(out: Path, coeffs: np.ndarray, brdf: Brdf, report: dict, *, env_he
     if texels is None and (out / TEXTURES).exists():
         shutil.rmtree(out / TEXTURES)
     return written
+
+
+def colour_note(report: dict) -> dict:
+    """brdf.json's "colour_fixed_by": what fixed the base colour's level and its chromaticity (report.json
+    scale_convention's words: a convention, a Fresnel layer, interreflection, a known albedo or
+    lighting, a colour chart), so that a reader of brdf.json alone knows which of its numbers the
+    photos determined."""
+    convention = report.get("scale_convention") or {}
+    source = str(convention.get("source", "not stated"))
+    note = {"level": source, "chromaticity": str(convention.get("chromaticity", source))}
+    chart = convention.get("chart")
+    if chart and chart.get("used") == "applied":
+        note = {"level": chart["chart"], "chromaticity": chart["chart"]}
+    return {"colour_fixed_by": note}
 
 
 def material_values(found: MaterialMap) -> dict[str, np.ndarray]:

@@ -135,6 +135,8 @@ def test_a_rendered_colorchecker_fixes_the_lambert_base_colour(lambert_capture, 
     report = json.loads((work / "fit" / "report.json").read_text())
     assert report["scale_convention"]["chart"]["used"] == "applied"
     assert report["scale_convention"]["before_chart"]["chromaticity"].startswith("the convention")
+    fixed = json.loads((work / "fit" / "brdf.json").read_text())["colour_fixed_by"]   # brdf.json says so too
+    assert fixed == {"level": "the ColorChecker in 0000.exr", "chromaticity": "the ColorChecker in 0000.exr"}, fixed
 
 
 def test_a_grey_card_box_measures_the_irradiance(lambert_capture, tmp_path):

@@ -371,8 +371,9 @@ def test_summary_line_names_the_detail_part():
 def test_summary_line_says_when_a_lambert_colour_is_a_convention():
     """Issue 49 item 5: a Lambertian albedo under unknown lighting whose colour (and level) the photos
     do not fix says so on the fit's stderr line, naming the fix; interreflection that fixed the level
-    leaves only the colour to the convention; a known albedo says nothing."""
-    from stages.fit.outputs import scale_note, summary_line
+    leaves only the colour to the convention; a known albedo says nothing; brdf.json's "colour_fixed_by"
+    carries the same words (a dielectric's Fresnel layer fixes level and colour alike)."""
+    from stages.fit.outputs import colour_note, scale_note, summary_line
 
     brdf = Brdf("lambert", albedo=[0.5] * 3)
     convex = summary_line(brdf, None, 0, colour_by=scale_note(brdf, None))
@@ -380,3 +381,9 @@ def test_summary_line_says_when_a_lambert_colour_is_a_convention():
     bounced = scale_note(brdf, None, {"determined": True, "mean_albedo": 0.6})
     assert "its colour is the convention's" in summary_line(brdf, None, 0, colour_by=bounced)
     assert "convention" not in summary_line(brdf, None, 0, colour_by=scale_note(brdf, [0.7, 0.6, 0.5]))
+    # brdf.json says the same (outputs.colour_note): what fixed the level, and the colour
+    note = colour_note({"scale_convention": bounced})["colour_fixed_by"]
+    assert note["level"] == "interreflection" and note["chromaticity"].startswith("the convention")
+    dielectric = colour_note({"scale_convention": scale_note(Brdf("principled", base_color=[0.5] * 3, roughness=0.3),
+                                                               None)})["colour_fixed_by"]
+    assert "dielectric specular layer" in dielectric["level"] and dielectric["chromaticity"] == dielectric["level"]
