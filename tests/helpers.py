@@ -4,6 +4,7 @@ pytest ``pythonpath``)."""
 from __future__ import annotations
 
 import json
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -16,17 +17,30 @@ RELIGHT_WORLDS = {"bunny_sunrise_diffuse": ("city", 123.046875),
                   "sphere_night_glossy": ("city", 14.0625)}
 
 
-def assert_one_line_error(stderr: str, *fragments: str, code: int | None = None, expected: int = 2) -> None:
+def assert_one_line_error(result: str | subprocess.CompletedProcess, *fragments: str, code: int | None = None,
+                          expected: int = 2, prefix: str = "sigrend", progress: bool = False) -> str:
     """The house's contract for a user error: one line on stderr (``sigrend: error: ...`` or
     argparse's ``sigrend CMD: error: ...``), no traceback, every fragment in it; with ``code``,
-    that exit code is ``expected`` (2)."""
+    that exit code is ``expected`` (2). ``result`` is stderr, or a finished subprocess (its stderr
+    and, unless ``code`` is given, its exit code). ``prefix``: how the line starts (``"sigrend: error:"``
+    for the CLI's own errors only). ``progress``: the stage's progress lines may come first; the
+    error is then the last line and the only one starting with ``prefix``. Returns the error line."""
+    if isinstance(result, subprocess.CompletedProcess):
+        stderr, code = result.stderr, result.returncode if code is None else code
+    else:
+        stderr = result
     lines = stderr.strip().splitlines()
     assert code is None or code == expected, (code, stderr)
     assert "Traceback" not in stderr, stderr
-    assert len(lines) == 1, stderr
-    assert lines[0].startswith("sigrend") and "error:" in lines[0], stderr
+    if progress:
+        assert lines and [line for line in lines if line.startswith(prefix)] == lines[-1:], stderr
+    else:
+        assert len(lines) == 1, stderr
+    line = lines[-1]
+    assert line.startswith(prefix) and "error:" in line, stderr
     for fragment in fragments:
-        assert fragment in lines[0], (fragment, stderr)
+        assert fragment in line, (fragment, stderr)
+    return line
 
 
 def blender_world(path: Path, rotation_deg: float) -> np.ndarray:

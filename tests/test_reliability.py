@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import hashlib
 import json
-import shutil
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import assert_one_line_error
 
 from pipeline import cli
 from pipeline.core.brdf import Brdf
@@ -228,8 +229,7 @@ def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch, ca
     capsys.readouterr()
     assert cli.main(["linearize", str(capture), "-w", str(work), "--saturation", "0.6", "--workers", "1"]) == 2
     assert len(calls) == 3
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and fragment in err[0], err
+    assert_one_line_error(capsys.readouterr().err, fragment)
     assert digest(work) == before           # the two images written before the failure were not committed
 
 
@@ -290,8 +290,7 @@ def test_bad_capture_toml_is_one_line_naming_the_key(tiny_capture, tmp_path, cap
     (capture / "capture.toml").write_text(text)
     capsys.readouterr()
     assert cli.main(["linearize", str(capture), "-w", str(tmp_path / "work")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and fragment in err[0] and "Traceback" not in err[0], err
+    assert_one_line_error(capsys.readouterr().err, fragment)
     assert not (tmp_path / "work" / "linear").exists()
 
 
@@ -300,8 +299,7 @@ def test_two_meshes_are_an_error_not_a_guess(tiny_capture, tmp_path, capsys):
     shutil.copy(capture / "mesh.ply", capture / "mesh.obj")
     capsys.readouterr()
     assert cli.main(["samples", str(capture), "-w", str(tmp_path / "work")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "mesh.ply and mesh.obj are both there" in err[0], err
+    assert_one_line_error(capsys.readouterr().err, "mesh.ply and mesh.obj are both there")
 
 
 def test_a_truncated_jpeg_is_an_error_not_grey_pixels(tmp_path):
@@ -338,8 +336,7 @@ def test_a_mesh_with_flipped_faces_is_an_error_naming_the_fix(tiny_capture, tmp_
     capture = _with_mesh(tiny_capture, tmp_path, edit)
     capsys.readouterr()
     assert cli.main(["samples", str(capture), "-w", str(tmp_path / "work")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and fragment in err[0] and "Recalculate Outside" in err[0], err
+    assert_one_line_error(capsys.readouterr().err, fragment, "Recalculate Outside")
     assert not (tmp_path / "work" / "samples.npz").exists()
 
 
@@ -363,8 +360,7 @@ def test_a_second_run_on_a_busy_work_folder_says_so(linearized, capsys):
         assert holder.stdout.readline().strip() == "held"
         capsys.readouterr()
         assert cli.main(["linearize", str(capture), "-w", str(work), "--force"]) == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and f"in use by sigrend pid {holder.pid}" in err[0], err
+        assert_one_line_error(capsys.readouterr().err, f"in use by sigrend pid {holder.pid}")
     finally:
         holder.kill()
         holder.wait()
@@ -392,8 +388,7 @@ def test_malformed_poses_json_is_one_line(tiny_capture, tmp_path, capsys, edit, 
     (capture / "poses.json").write_text(json.dumps(doc))
     capsys.readouterr()
     assert cli.main(["samples", str(capture), "-w", str(tmp_path / "work")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and fragment in err[0], err
+    assert_one_line_error(capsys.readouterr().err, fragment)
 
 
 @pytest.mark.parametrize("args, fragment", [
@@ -412,8 +407,7 @@ def test_an_output_path_that_is_a_file_is_one_line(linearized, tmp_path, capsys,
     argv = [a.format(capture=capture, work=work, file=tmp_path / "afile") for a in args]
     capsys.readouterr()
     assert cli.main(argv) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and fragment in err[0], err
+    assert_one_line_error(capsys.readouterr().err, fragment)
     assert (tmp_path / "afile").read_text() == "not a folder"
 
 
@@ -473,8 +467,7 @@ def test_a_wrong_type_in_a_json_file_is_one_line(linearized, tmp_path, capsys, c
             ["relight", str(capture), "-w", str(work), "-o", str(tmp_path / "out")])
     capsys.readouterr()
     assert cli.main(argv) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and fragment in err[0] and "Traceback" not in err[0], err
+    assert_one_line_error(capsys.readouterr().err, fragment)
 
 
 def test_warnings_wait_until_the_command_succeeds(tiny_capture, tmp_path, capsys):
@@ -492,8 +485,7 @@ def test_warnings_wait_until_the_command_succeeds(tiny_capture, tmp_path, capsys
     with warnings.catch_warnings(record=True) as shown:
         warnings.simplefilter("always")
         assert cli.main(["linearize", str(capture), "-w", str(tmp_path / "work")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "lies outside the 48x48 image" in err[0], err
+    assert_one_line_error(capsys.readouterr().err, "lies outside the 48x48 image")
     assert not shown     # held back, then dropped with the failed command
 
 
@@ -516,5 +508,4 @@ def test_an_all_transparent_exr_is_named_transparent_not_black(tiny_capture, tmp
     write_image(capture / "images" / "0002.exr", np.dstack([rgb, np.zeros(rgb.shape[:2], np.float32)]))
     capsys.readouterr()
     assert cli.main(["linearize", str(capture), "-w", str(tmp_path / "work")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "0002.exr: every pixel is transparent (alpha = 0)" in err[0], err
+    assert_one_line_error(capsys.readouterr().err, "0002.exr: every pixel is transparent (alpha = 0)")

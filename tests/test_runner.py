@@ -11,13 +11,12 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import assert_one_line_error
 
 from pipeline import STAGES, cli
 from pipeline.io.run_summary import StageResult, stage_table
 from pipeline.io.samples import read_samples_meta
 from pipeline.runner import heldout_keys
-
-
 
 # linear EXR renders carry no EXIF: linearize warns once per run and assumes equal exposure
 pytestmark = pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning")
@@ -158,10 +157,8 @@ def test_failing_stage_is_one_line_and_keeps_earlier_outputs(capture, tmp_path, 
     assert _run(bad, "-w", work, "--to", "linearize") == 0
     before = _mtimes(work, ["linear/manifest.json"])
     capsys.readouterr()
-    assert _run(bad, "-w", work, "--to", "samples") == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len([line for line in err if line.startswith("sigrend: error:")]) == 1
-    assert "poses.json" in err[-1] and "Traceback" not in "\n".join(err)
+    code = _run(bad, "-w", work, "--to", "samples")
+    assert_one_line_error(capsys.readouterr().err, "poses.json", code=code, prefix="sigrend: error:", progress=True)
     assert _mtimes(work, ["linear/manifest.json"]) == before
     assert not (work / "samples.npz").exists()
 

@@ -9,8 +9,7 @@ from helpers import assert_one_line_error
 def test_user_error_is_one_line_exit_2(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(tmp_path / "nope")],
                           capture_output=True, text=True)
-    assert_one_line_error(proc.stderr, code=proc.returncode)
-    assert proc.stderr.startswith("sigrend: error:")
+    assert_one_line_error(proc, prefix="sigrend: error:")
 
 
 def test_every_command_prints_its_help(capsys):

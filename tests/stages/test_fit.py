@@ -177,35 +177,31 @@ def _cli(*args):
     return subprocess.run([sys.executable, "-m", "pipeline.cli", "fit", *map(str, args)], capture_output=True, text=True)
 
 
-def _one_line_error(proc, needle):
-    assert_one_line_error(proc.stderr, needle, code=proc.returncode)
-
-
 def test_bad_inputs_are_one_line_errors_and_keep_outputs(lambert_scene, tmp_path):
     capture, work, env = lambert_scene
     brdf_file = write_brdf(tmp_path / "brdf.json", Brdf("lambert", albedo=ALBEDO))
     run_fit(capture, work, brdf=str(brdf_file), order="2")
     before = (work / "fit" / "lighting_sh.json").read_bytes()
     # an order the data cannot carry: 41^2 = 1681 coefficients > the 1152 direction cells
-    _one_line_error(_cli(capture, "-w", work, "--brdf", brdf_file, "--order", "40", "--force"), "--order auto")
+    assert_one_line_error(_cli(capture, "-w", work, "--brdf", brdf_file, "--order", "40", "--force"), "--order auto")
     # known lighting in the wrong shape / convention
     from pipeline.io.images import write_image
     square = write_image(tmp_path / "square.exr", np.ones((16, 16, 3), np.float32), dtype="float")
-    _one_line_error(_cli(capture, "-w", work, "--lighting", square, "--force"), "width = 2*height")
+    assert_one_line_error(_cli(capture, "-w", work, "--lighting", square, "--force"), "width = 2*height")
     bad_basis = tmp_path / "bad_sh.json"
     bad_basis.write_text(json.dumps({"order": 1, "basis": "complex", "coeffs": [[1, 1, 1]] * 4}))
-    _one_line_error(_cli(capture, "-w", work, "--lighting", bad_basis, "--force"), "real-orthonormal")
-    _one_line_error(_cli(capture, "-w", work, "--lighting", tmp_path / "nope.exr", "--force"), "no such file")
-    _one_line_error(_cli(capture, "-w", work, "--order", "many"), "--order")
-    _one_line_error(_cli(capture, "-w", work, "--footprint", "0"), "--footprint")
-    _one_line_error(_cli(capture, "-w", work, "--noise-model", "poisson"), "--noise-model")
+    assert_one_line_error(_cli(capture, "-w", work, "--lighting", bad_basis, "--force"), "real-orthonormal")
+    assert_one_line_error(_cli(capture, "-w", work, "--lighting", tmp_path / "nope.exr", "--force"), "no such file")
+    assert_one_line_error(_cli(capture, "-w", work, "--order", "many"), "--order")
+    assert_one_line_error(_cli(capture, "-w", work, "--footprint", "0"), "--footprint")
+    assert_one_line_error(_cli(capture, "-w", work, "--noise-model", "poisson"), "--noise-model")
     assert (work / "fit" / "lighting_sh.json").read_bytes() == before
     # no samples file / no samples left
-    _one_line_error(_cli(capture, "-w", tmp_path / "empty", "--force"), "sigrend samples")
+    assert_one_line_error(_cli(capture, "-w", tmp_path / "empty", "--force"), "sigrend samples")
     rng = np.random.default_rng(1)
     n, v, ids = sphere_views(rng, 3, 20)
     write_scene(tmp_path / "shadowed", n, v, ids, np.ones((len(n), 3)), visibility=np.full(len(n), 0.2))
-    _one_line_error(_cli(capture, "-w", tmp_path / "shadowed", "--brdf", brdf_file, "--force"), "no samples left")
+    assert_one_line_error(_cli(capture, "-w", tmp_path / "shadowed", "--brdf", brdf_file, "--force"), "no samples left")
 
 
 def test_check_mode_reports_residuals_of_known_lighting_and_brdf(lambert_scene, tmp_path):

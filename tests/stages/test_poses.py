@@ -15,11 +15,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from helpers import assert_one_line_error
 
-from pipeline.cli import main as cli_main
 from pipeline.board import board_corners_object, detect_board
-from pipeline.commands.bench.poses import (BOARD, BOARD_TO_OBJECT, make_textured_capture, noise_texture,
-                                           pose_errors, render, scene_quads)
+from pipeline.cli import main as cli_main
+from pipeline.commands.bench.poses import (
+    BOARD,
+    BOARD_TO_OBJECT,
+    make_textured_capture,
+    noise_texture,
+    pose_errors,
+    render,
+    scene_quads,
+)
 from pipeline.core.camera import Camera, camera_center, look_at, project
 from pipeline.io.capture_toml import BoardSpec, read_capture_config
 from pipeline.io.poses import Poses, read_poses, write_poses
@@ -28,6 +36,7 @@ from stages import poses as stage
 from stages.poses.colmap import tone_map
 from stages.poses.photos import pose_keys
 from stages.poses.settings import MIN_BOARD_CORNERS
+
 
 @pytest.fixture(scope="session")
 def capture_dir(tmp_path_factory) -> Path:
@@ -107,13 +116,7 @@ def _expect_user_error(capsys, capture: Path, work: Path, *needles: str) -> str:
     sentinel = b'{"earlier": "output"}\n'
     (work / "poses.json").write_bytes(sentinel)
     code = cli_main(["poses", str(capture), "-w", str(work)])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert code == 2
-    message = err[-1]
-    assert message.startswith("sigrend: error:")
-    assert not any(line.startswith("Traceback") for line in err)
-    for needle in needles:
-        assert needle in message
+    message = assert_one_line_error(capsys.readouterr().err, *needles, code=code, prefix="sigrend: error:", progress=True)
     assert (work / "poses.json").read_bytes() == sentinel
     return message
 

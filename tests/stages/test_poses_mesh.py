@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from helpers import assert_one_line_error
 from scipy.spatial.transform import Rotation
 
 from pipeline.cli import main as cli_main
@@ -272,9 +273,8 @@ def test_bad_transforms_json(bunny_capture, tmp_path, capsys, change, needle):
     work = tmp_path / "work"
     work.mkdir()
     (work / "poses.json").write_text("earlier")
-    assert cli_main(["poses", str(capture), "-w", str(work)]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert needle in err[-1] and not any(line.startswith("Traceback") for line in err)
+    code = cli_main(["poses", str(capture), "-w", str(work)])
+    assert_one_line_error(capsys.readouterr().err, needle, code=code, progress=True)
     assert (work / "poses.json").read_text() == "earlier"
 
 

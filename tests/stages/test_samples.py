@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
+from helpers import assert_one_line_error
 
 import stages.samples as samples_stage
 from pipeline.core.camera import Camera, camera_center, look_at, pixel_centers, pixel_rays, project
@@ -452,7 +453,5 @@ def test_bad_input_is_one_line_and_exit_2(good_work, case, capsys):
         capsys.readouterr()
         code = main(["samples", str(capture), "-w", str(work), "--force"])
         stderr = capsys.readouterr().err
-    assert code == 2, stderr
-    lines = stderr.strip().splitlines()
-    assert len(lines) == 1 and message in lines[0], stderr
+    assert_one_line_error(stderr, message, code=code)
     assert outputs() == before

@@ -103,8 +103,7 @@ def test_one_lighting_for_the_fit_is_worse_than_the_truth(captures, tmp_path):
         assert (abs(brdf["roughness"] / ROUGHNESS - 1) > 0.1
                 or np.max(np.abs(np.asarray(brdf["base_color"]) / BASE - 1)) > 0.03), brdf
     else:
-        assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].startswith(
-            "sigrend: error: capture.toml [lighting]: the photos are")
+        assert_one_line_error(proc, prefix="sigrend: error: capture.toml [lighting]: the photos are", progress=True)
 
 
 def test_directional_light_entries(tmp_path):
