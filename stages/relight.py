@@ -48,6 +48,7 @@ from threadpoolctl import threadpool_limits
 from pipeline.core import camera as cam
 from pipeline.core.brdf import Brdf
 from pipeline.core.envmap import add_sources
+from pipeline.core.image_metrics import interior_pixels
 from pipeline.core.prefilter import MAX_LOBE_ORDER, Lighting, brdf_lobe_filter, needed_order
 from pipeline.core.sh import envmap_from_sh, order_of
 from pipeline.errors import UserError
@@ -656,17 +657,6 @@ def error_map_image(rel_error: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.where(mask[..., None], colours, 0.0)
 
 
-def _interior(alpha: np.ndarray) -> np.ndarray:
-    """Pixels fully covered by the object whose 4-neighbours are covered too (no silhouette mixing)."""
-    full = alpha >= 0.999
-    inner = full.copy()
-    inner[1:] &= full[:-1]
-    inner[:-1] &= full[1:]
-    inner[:, 1:] &= full[:, :-1]
-    inner[:, :-1] &= full[:, 1:]
-    return inner
-
-
 def compare_views(rendered: dict[str, np.ndarray], photos: dict[str, np.ndarray], masks: dict[str, np.ndarray],
                   fit_scale: bool) -> dict:
     """Relative RMS errors ||s R - P|| / ||P|| per view and over all, on interior object pixels, and
@@ -854,7 +844,7 @@ def render_views(views: list[View], mesh, rays, lighting_of: dict, albedo: np.nd
                                     f"{rgba.shape[1]}x{rgba.shape[0]}; --compare needs the native size (drop --size)")
                 valid = weight > 0.999  # fully valid pixels only (linearize's masks, alpha)
                 shot.renders[view.key], shot.photos[view.key], shot.exposures[view.key] = rgba, photo, exposure
-                shot.masks[view.key] = _interior(rgba[..., 3]) & valid & np.all(np.isfinite(photo), axis=-1)
+                shot.masks[view.key] = interior_pixels(rgba[..., 3]) & valid & np.all(np.isfinite(photo), axis=-1)
     return written, shot
 
 

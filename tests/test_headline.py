@@ -20,10 +20,9 @@ import numpy as np
 import pytest
 
 from pipeline import cli
-from pipeline.core.image_metrics import block_means, full_blocks
+from pipeline.core.image_metrics import block_means, full_blocks, interior_pixels
 from pipeline.io.images import read_image
 from pipeline.io.run_summary import relight_check, summary_lines
-from stages.relight import _interior
 
 # linear EXR renders carry no EXIF: linearize warns and assumes equal exposure
 pytestmark = pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning")
@@ -60,7 +59,7 @@ def _added_noise(clean_work: Path, noisy_work: Path, views: list[str]) -> tuple[
         stem = Path(key).stem
         clean = read_image(clean_work / "linear" / f"{stem}.exr")[..., :3].astype(float)
         noisy = read_image(noisy_work / "linear" / f"{stem}.exr")[..., :3].astype(float)
-        mask = _interior(read_image(noisy_work / "relight" / "check" / f"{stem}.exr")[..., 3])
+        mask = interior_pixels(read_image(noisy_work / "relight" / "check" / f"{stem}.exr")[..., 3])
         err += float(((noisy - clean)[mask] ** 2).sum())
         ref += float((noisy[mask] ** 2).sum())
         full = full_blocks(mask)

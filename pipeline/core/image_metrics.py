@@ -62,6 +62,18 @@ def block_relative_rmse(predictions: list[np.ndarray], references: list[np.ndarr
 
 # -------------------------------------------------------------- the relight check's figures (relight --compare)
 
+def interior_pixels(alpha: np.ndarray) -> np.ndarray:
+    """Pixels fully covered by the object (alpha >= 0.999) whose 4-neighbours are covered too (no silhouette
+    mixing): the pixels the relight check compares."""
+    full = alpha >= 0.999
+    inner = full.copy()
+    inner[1:] &= full[:-1]
+    inner[:-1] &= full[1:]
+    inner[:, 1:] &= full[:, :-1]
+    inner[:, :-1] &= full[:, 1:]
+    return inner
+
+
 def full_blocks(mask: np.ndarray, block: int = BLOCK) -> np.ndarray:
     """(H // b, W // b) bool: the blocks of ``mask`` (H, W) whose every pixel is in it."""
     return block_means(np.asarray(mask, float)[..., None], block)[..., 0] > 1.0 - 1e-9

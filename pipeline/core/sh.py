@@ -67,7 +67,7 @@ def _z_and_sin(z: np.ndarray, s: np.ndarray | None) -> tuple[np.ndarray, np.ndar
     return z, s
 
 
-def _legendre_table(z: np.ndarray, order: int, s: np.ndarray | None = None) -> np.ndarray:
+def legendre_table(z: np.ndarray, order: int, s: np.ndarray | None = None) -> np.ndarray:
     """K_l|m| P_l^|m|(z) in SH column order: (N, K); column k = l^2 + l + m holds (l, |m|).
 
     So Y_k = table_k * trig_m(phi).  ``s`` = sin(theta) when known more accurately than
@@ -82,7 +82,7 @@ def _legendre_table(z: np.ndarray, order: int, s: np.ndarray | None = None) -> n
     return out.T
 
 
-def _trig_table(phi: np.ndarray, order: int) -> np.ndarray:
+def trig_table(phi: np.ndarray, order: int) -> np.ndarray:
     """Azimuthal factors for m = -L..L (column m + L): sqrt2 sin(|m| phi), 1, sqrt2 cos(m phi)."""
     phi = np.asarray(phi, dtype=float).reshape(-1)
     m = np.arange(1, order + 1)
@@ -92,7 +92,7 @@ def _trig_table(phi: np.ndarray, order: int) -> np.ndarray:
 
 
 def _azimuth_rows(x: np.ndarray, y: np.ndarray, order: int) -> np.ndarray:
-    """Azimuthal factors as rows m + L (m = -L..L) of a (2L+1, N) array, like ``_trig_table``.T.
+    """Azimuthal factors as rows m + L (m = -L..L) of a (2L+1, N) array, like ``trig_table``.T.
 
     cos(m phi), sin(m phi) by the Chebyshev recurrence t_m = 2 cos(phi) t_{m-1} - t_{m-2} from
     cos(phi) = x / rho, sin(phi) = y / rho (rho = hypot(x, y); phi = 0 at the poles, as arctan2
@@ -214,7 +214,7 @@ def project_envmap(env: np.ndarray, order: int, rows_per_chunk: int = 64) -> np.
         raise ValueError("order must be >= 0")
     theta, phi = equirect_angles(h)
     omega = equirect_solid_angles(h)
-    trig = _trig_table(phi, order).T                      # (2L+1, W)
+    trig = trig_table(phi, order).T                       # (2L+1, W)
     m_col = m_of_index(order) + order
     coeffs = np.zeros((num_coeffs(order), c))
     for start in range(0, h, rows_per_chunk):
@@ -223,7 +223,7 @@ def project_envmap(env: np.ndarray, order: int, rows_per_chunk: int = 64) -> np.
         r = block.shape[0]
         # azimuthal sums: (2L+1, W) @ (W, r*C) -> (2L+1, r, C)
         fourier = (trig @ block.transpose(1, 0, 2).reshape(w, r * c)).reshape(2 * order + 1, r, c)
-        legendre = _legendre_table(np.cos(theta[rows]), order, s=np.sin(theta[rows]))  # (r, K)
+        legendre = legendre_table(np.cos(theta[rows]), order, s=np.sin(theta[rows]))   # (r, K)
         weighted = legendre * omega[rows, None]                # (r, K)
         coeffs += np.einsum("rk,krc->kc", weighted, fourier[m_col])
     return coeffs[:, 0] if squeeze else coeffs
@@ -239,14 +239,14 @@ def envmap_from_sh(coeffs: np.ndarray, height: int) -> np.ndarray:
         coeffs = coeffs[:, None]
     order = order_of(coeffs.shape[0])
     theta, phi = equirect_angles(height)
-    legendre = _legendre_table(np.cos(theta), order, s=np.sin(theta))   # (H, K)
+    legendre = legendre_table(np.cos(theta), order, s=np.sin(theta))    # (H, K)
     m_of_k = m_of_index(order)
     # per row and m: G[i, m, c] = sum_{l >= |m|} c_lm P̄_l|m|(z_i)
     per_m = np.zeros((height, 2 * order + 1, coeffs.shape[1]))
     for m in range(-order, order + 1):
         ks = np.nonzero(m_of_k == m)[0]
         per_m[:, m + order] = legendre[:, ks] @ coeffs[ks]
-    trig = _trig_table(phi, order)                                       # (W, 2L+1)
+    trig = trig_table(phi, order)                                        # (W, 2L+1)
     env = np.matmul(per_m.transpose(0, 2, 1), trig.T).transpose(0, 2, 1)  # (H, C, W) -> (H, W, C)
     return env[:, :, 0] if squeeze else np.ascontiguousarray(env)
 

@@ -12,8 +12,18 @@ from scipy.spatial.transform import Rotation
 from pipeline.core.envmap import equirect_directions
 from pipeline.core.quadrature import gauss_legendre, sphere_product_rule, sphere_rule_for_degree
 from pipeline.core.sh import (
-    _legendre_table, band_energy, band_relative_errors, envmap_from_sh, m_of_index, num_coeffs, project_envmap,
-    rotate_sh, sh_basis, sh_evaluate, sh_rotation_matrices)
+    band_energy,
+    band_relative_errors,
+    envmap_from_sh,
+    legendre_table,
+    m_of_index,
+    num_coeffs,
+    project_envmap,
+    rotate_sh,
+    sh_basis,
+    sh_evaluate,
+    sh_rotation_matrices,
+)
 
 
 def random_dirs(rng, n):
@@ -70,7 +80,7 @@ def test_finite_and_orthonormal_at_order_100(rng):
     # (a) every Legendre factor, exhaustively: integral P̄_lm P̄_l'm dz * 2 pi = delta_ll'
     #     (the azimuthal factors integrate to 2 pi for every m); 101 Gauss nodes are exact to degree 201
     z, wz = gauss_legendre(order + 1)
-    table = _legendre_table(z, order)
+    table = legendre_table(z, order)
     m_of_k = m_of_index(order)
     for m in range(order + 1):
         cols = np.nonzero(m_of_k == m)[0]

@@ -2,13 +2,13 @@
 
 import numpy as np
 
-from pipeline.core.sh import _legendre_table, _trig_table, m_of_index, sh_basis
+from pipeline.core.sh import legendre_table, m_of_index, sh_basis, trig_table
 
 
 def direct_basis(dirs: np.ndarray, order: int) -> np.ndarray:
     """Y_k = K_l|m| P_l^|m|(z) trig_m(phi) with phi = arctan2(y, x): the DESIGN.md formula."""
-    legendre = _legendre_table(dirs[:, 2], order, s=np.hypot(dirs[:, 0], dirs[:, 1]))
-    trig = _trig_table(np.arctan2(dirs[:, 1], dirs[:, 0]), order)
+    legendre = legendre_table(dirs[:, 2], order, s=np.hypot(dirs[:, 0], dirs[:, 1]))
+    trig = trig_table(np.arctan2(dirs[:, 1], dirs[:, 0]), order)
     return legendre * trig[:, m_of_index(order) + order]
 
 
