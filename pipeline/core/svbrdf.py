@@ -188,3 +188,40 @@ def base_std(interp: sp.csr_matrix, shadings: list[CandidateShading], labels: np
     info = (interp.multiply(interp)).T @ (weight[:, None] * shade ** 2)        # (V, 3)
     with np.errstate(divide="ignore"):
         return np.where(info > 0, np.sqrt(sigma2[None, :] / np.maximum(info, 1e-300)), np.inf)
+
+
+# ------------------------------------------------------------------------------ a lighting-free seed
+#
+# A Lambertian surface sends the same radiance to every view; a metal's radiance is the lighting
+# reflected, and changes with the view.  Per patch of surface, the spread across views of each
+# view's mean radiance over the patch (std / mean, over the views with enough samples there) is
+# therefore near 0 for a diffuse patch (the views see the same points, up to which of them they
+# sample) and large for a metal — without any lighting or material model.
+
+
+def voxel_patches(vertices: np.ndarray, n_patches: int) -> np.ndarray:
+    """(V,) a patch id per vertex: the cells of a grid over the vertices' bounding box sized for
+    about ``n_patches`` occupied cells (cell edge 0.6 x (box volume / n)^(1/3): a surface fills a
+    small part of its box)."""
+    v = np.asarray(vertices, float)
+    cell = 0.6 * (np.prod(np.maximum(np.ptp(v, axis=0), 1e-12)) / n_patches) ** (1.0 / 3.0)
+    q = np.floor((v - v.min(axis=0)) / cell).astype(np.int64)
+    return np.unique(q[:, 0] * (1 << 40) + q[:, 1] * (1 << 20) + q[:, 2], return_inverse=True)[1].ravel()
+
+
+def view_spread(patch: np.ndarray, image_id: np.ndarray, radiance: np.ndarray, n_patches: int,
+                min_samples: int = 3) -> np.ndarray:
+    """(P,) per patch the spread across views of the views' mean radiance over it (std / mean of the
+    channel-mean radiance, over the views with >= ``min_samples`` samples in it); NaN where fewer
+    than two views qualify.  ``patch``, ``image_id`` (N,) per sample, ``radiance`` (N, 3)."""
+    views = int(np.max(image_id)) + 1
+    key = np.asarray(patch, np.int64) * views + np.asarray(image_id, np.int64)
+    count = np.bincount(key, minlength=n_patches * views).reshape(n_patches, views)
+    total = np.bincount(key, np.asarray(radiance, float).mean(axis=1), minlength=n_patches * views)
+    mean = np.where(count >= min_samples, total.reshape(n_patches, views) / np.maximum(count, 1), np.nan)
+    seen = np.isfinite(mean).sum(axis=1) >= 2
+    out = np.full(n_patches, np.nan)
+    m = mean[seen]
+    mu = np.nanmean(m, axis=1)
+    out[seen] = np.sqrt(np.nanmean((m - mu[:, None]) ** 2, axis=1)) / np.maximum(mu, 1e-12)
+    return out

@@ -44,27 +44,52 @@ def candidate_shading(geo: prt.Geometry, best: material_fit.MaterialFit, materia
     return svbrdf.CandidateShading(material, shade, specular)
 
 
+SEED_PATCHES = 5000      # patches of the lighting-free seed (svbrdf.voxel_patches)
+SEED_SPREAD = 0.2        # view spread above which a patch is seeded as view-dependent (metal-like):
+                         # teapot_two_materials' copper 0.52, glazed body 0.04-0.07 (medians, docs/fit.md)
+
+
+def view_dependent_seed(mesh, data: dict) -> np.ndarray | None:
+    """(V,) bool, the vertices of patches whose radiance changes with the view (svbrdf.view_spread
+    > SEED_SPREAD), or None when they are under MIN_SHARE or over 1 - MIN_SHARE of the seen vertices
+    (nothing to separate)."""
+    patch_of_vertex = svbrdf.voxel_patches(mesh.vertices, SEED_PATCHES)
+    n = int(patch_of_vertex.max()) + 1
+    vertex = np.asarray(mesh.faces)[data["face"], np.argmax(data["bary"], axis=1)]
+    spread = svbrdf.view_spread(patch_of_vertex[vertex], data["image_id"], data["radiance"], n)
+    seeded = (spread > SEED_SPREAD)[patch_of_vertex]
+    seen = np.isfinite(spread)[patch_of_vertex]
+    share = seeded.sum() / max(seen.sum(), 1)
+    return seeded if svbrdf.MIN_SHARE <= share <= 1 - svbrdf.MIN_SHARE else None
+
+
 def fit_materials(mesh, data: dict, geo: prt.Geometry, best: material_fit.MaterialFit, settings: Settings,
-                  opts: SearchOptions) -> tuple[dict, svbrdf.MaterialMap | None]:
+                  opts: SearchOptions, lit: material_fit.MaterialFit | None = None) -> tuple[dict, svbrdf.MaterialMap | None]:
     """(report.json's "materials" entry, the material map or None when one material is kept) from
     every sample ``data`` (load_physical's everything: face, bary, view_dir, radiance, weight,
-    image_id), each candidate shaded in chunks on ``geo``'s mesh part (prt.over_chunks)."""
+    image_id), each candidate shaded in chunks on ``geo``'s mesh part (prt.over_chunks) under the
+    lighting of ``lit`` (a fit of part of the surface, e.g. without its view-dependent seed) or of
+    ``best``; the one-material baseline is ``best`` under its own lighting."""
     t0 = time.perf_counter()
     nv = len(mesh.vertices)
     obs = Observations(data["radiance"].astype(float), data["weight"].astype(float),
                        fold_of(data["image_id"], settings.folds))
     interp = texture.interpolation_matrix(mesh.faces, data["face"], data["bary"].astype(float), nv)
     lap = texture.graph_laplacian(mesh.faces, nv)
-    materials = candidate_materials(best.material, settings.ior)
+    lighting = best if lit is None else lit
+    materials = candidate_materials(lighting.material, settings.ior)
 
     def shade(g: prt.Geometry) -> tuple[np.ndarray, ...]:
-        shaded = [candidate_shading(g, best, m, opts) for m in materials]
+        shaded = [candidate_shading(g, lighting, m, opts) for m in materials]
+        if lit is not None:
+            shaded.append(candidate_shading(g, best, best.material, opts))
         return tuple(a for c in shaded for a in (c.shade, c.specular))
 
     arrays = prt.over_chunks(geo, data["face"], data["bary"].astype(float), data["view_dir"].astype(float), shade)
     shadings = [svbrdf.CandidateShading(m, arrays[2 * i], arrays[2 * i + 1]) for i, m in enumerate(materials)]
+    baseline = shadings[:1] if lit is None else [svbrdf.CandidateShading(best.material, arrays[-2], arrays[-1])]
     smooth = settings.albedo_smoothness
-    one = svbrdf.held_out_rmse(interp, lap, shadings[:1], obs.radiance, obs.weight, obs.fold, smooth)
+    one = svbrdf.held_out_rmse(interp, lap, baseline, obs.radiance, obs.weight, obs.fold, smooth)
     many = svbrdf.held_out_rmse(interp, lap, shadings, obs.radiance, obs.weight, obs.fold, smooth)
     found = svbrdf.material_map(interp, lap, shadings, obs.radiance, obs.weight, smooth)
     k = len(found.materials)

@@ -56,7 +56,7 @@ from stages.fit.known import (
     fitted_material_scale,
     known_lighting_setup,
 )
-from stages.fit.materials import fit_materials, material_brdfs
+from stages.fit.materials import SEED_SPREAD, fit_materials, material_brdfs, view_dependent_seed
 from stages.fit.outputs import (
     lighting_report,
     one_view_line,
@@ -143,10 +143,15 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
     if one_fold and known_brdf is None and len(models) > 1:     # --brdf auto: say what it kept and why
         print(one_view_line(report["candidates"], brdf, settings.parsimony, len(np.unique(data["image_id"])),
                             settings.folds), file=sys.stderr)
-    found = None
+    found = lit = None
     if settings.materials == "auto" and known_brdf is None and candidate.known is None:
+        lit, seed_note = body_lighting(mesh, everything, data, replace(candidate, geo=replace(geo, pattern=None)),
+                                       models, hint)
         report["materials"], found = fit_materials(mesh, everything, replace(geo, pattern=None), best, settings,
-                                                   candidate.opts)
+                                                   candidate.opts, lit)
+        report["materials"]["seed"] = seed_note
+        if found is not None and lit is not None:      # the map's materials were shaded under the body's lighting
+            best = lit
     materials = None if found is None else (mesh, found, material_brdfs(found))
     texels = None
     if settings.texels == "auto" and settings.albedo != "uniform" and found is None:
@@ -207,6 +212,26 @@ def chart_convention(convention: dict, chart, chosen: "Chosen", applied: dict | 
                                             ("the metal", "the metal's F0"), ("the known lighting", "the known lighting"))
                  if source.startswith(start)), source)
     return {**convention, "chart": chart_check(chart, chosen.best, what)}
+
+
+def body_lighting(mesh, everything: dict, data: dict, candidate: CandidateFit, models: list[str],
+                  hint) -> tuple[material_fit.MaterialFit | None, dict]:
+    """The material and lighting fitted again without the view-dependent seed's samples
+    (materials.view_dependent_seed on every sample; the fit's subset ``data`` / ``candidate`` less
+    the seeded vertices'): a metal part's reflections no longer bend the lighting the rest of the
+    surface explains, so the metal candidates can then be shaded under it.  -> (that fit or None
+    when there is no seed, report.json's note)."""
+    seed = view_dependent_seed(mesh, everything)
+    if seed is None:
+        return None, {"seeded": False, "why": "no view-dependent part between 2 % and 98 % of the surface seen"}
+    vertex = np.asarray(mesh.faces)[data["face"], np.argmax(data["bary"], axis=1)]
+    keep = np.flatnonzero(~seed[vertex])
+    obs = candidate.obs
+    body = replace(candidate, geo=candidate.geo.rows(keep),
+                   obs=Observations(obs.radiance[keep], obs.weight[keep], obs.fold[keep]))
+    fit = select_material(body, models, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float), False)[0]
+    return fit, {"seeded": True, "vertex_share": float(seed.mean()), "samples_left_out": int(len(obs.weight) - len(keep)),
+                 "spread_threshold": SEED_SPREAD, "body_material": brdf_from_material(fit.material, fit.base).to_dict()}
 
 
 def sample_footprints(capture: Path, work: Path, mesh: RayMesh, data: dict, keys: list[str], n: int) -> tuple | None:

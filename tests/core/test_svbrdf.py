@@ -5,6 +5,7 @@ is known exactly: the halves, the base colour, and the held-out choice of two ma
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import trimesh
 
 from pipeline.core import svbrdf, texture
@@ -69,3 +70,29 @@ def test_held_out_views_prefer_two_materials_only_when_there_are_two(rng):
     one_u = svbrdf.held_out_rmse(interp, lap, cands[:1], uniform, w, fold, 1e-3)
     two_u = svbrdf.held_out_rmse(interp, lap, cands, uniform, w, fold, 1e-3)
     assert two_u < 1.05 * one_u
+
+
+def test_view_spread_separates_view_dependent_patches():
+    """svbrdf.view_spread: a patch whose radiance is the same from every view spreads 0; one seen at
+    mean radiance 1 from one view and 3 from another spreads std / mean = 1 / 2 (closed form); a
+    patch seen by one view only (or with under min_samples in the others) is NaN."""
+    patch = np.repeat([0, 0, 1, 1, 2], 4)
+    image = np.repeat([0, 1, 0, 1, 0], 4)
+    radiance = np.repeat([[0.5], [0.5], [1.0], [3.0], [2.0]], 4, axis=0) * np.ones((1, 3))
+    spread = svbrdf.view_spread(patch, image, radiance, 3, min_samples=3)
+    assert spread[0] == pytest.approx(0.0, abs=1e-12)
+    assert spread[1] == pytest.approx(0.5, rel=1e-12)
+    assert np.isnan(spread[2])
+
+
+def test_voxel_patches_are_local():
+    """voxel_patches: about the asked number of patches on a sphere (within a factor 2: the cell
+    edge is a rule of thumb), and every patch is smaller than 3 cell edges across."""
+    sphere = trimesh.creation.icosphere(subdivisions=4)
+    labels = svbrdf.voxel_patches(sphere.vertices, 200)
+    n = labels.max() + 1
+    assert 100 <= n <= 400, n
+    cell = 0.6 * (8.0 / 200) ** (1 / 3)
+    for k in range(n):
+        pts = sphere.vertices[labels == k]
+        assert np.ptp(pts, axis=0).max() <= 3 * cell
