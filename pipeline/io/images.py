@@ -29,8 +29,8 @@ def open_image_input(path: str | os.PathLike):
         raise UserError(f"{path}: file not found")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise UserError(f"{path}: cannot read this image ({oiio.geterror().strip() or 'unknown format'}); "
-                        "check the file is complete and in a supported format")
+        why = " ".join(oiio.geterror().split()) or "unknown format"      # OIIO's message spans lines: one line
+        raise UserError(f"{path}: cannot read this image ({why}); check the file is complete and in a supported format")
     return inp
 
 
