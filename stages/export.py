@@ -17,7 +17,8 @@ keep their own:
 * Textured, when the fit wrote fit/textures/ for this mesh (``fit --texels auto``): the glTF's mesh is
   split at the atlas's seams with TEXCOORD_0 and the base colour PNG embedded as baseColorTexture;
   the USD gets ``primvars:st`` and a UsdUVTexture of ``asset.usda.base_color.png``, a copy of
-  fit/textures/base_color.png beside it (pipeline.io.gltf, pipeline.io.usd).
+  fit/textures/base_color.png beside it (pipeline.io.gltf, pipeline.io.usd); the Mitsuba scene's PLY
+  gets u, v and its BSDF a bitmap of ``scene.xml.base_color.exr`` (pipeline.io.mitsuba).
 * ``asset.glb.lighting.exr``: the fitted lighting as an equirect float map (SH evaluated and clamped
   at 0, directional sources splatted into their texels) in the column order Blender's
   Environment Texture node (default mapping) and three.js's equirectangular loader read:
@@ -177,10 +178,11 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     extra = {"dome_light": lighting.name} if write is usd.write_usd else {}   # the USD's DomeLight reads the map
     if write is mitsuba.write_mitsuba:   # the scene's envmap reads the map; its sensor is the capture's first view
         extra = {"envmap": lighting.name, "view": mitsuba.capture_view(capture_poses_path(capture, work))}
-    if write is mitsuba.write_mitsuba:
-        texture = None    # the Mitsuba scene takes the base colour per vertex (albedo.ply holds the map there)
     sidecars = []
-    if texture is not None:
+    if texture is not None and write is mitsuba.write_mitsuba:    # the map (linear) as an EXR beside the scene
+        extra.update(face_uv=texture[0].face_uv, base_color_map=texture[1])
+        sidecars.append(mitsuba.texture_file(asset))
+    elif texture is not None:
         # fit/textures/ has no roughness/metallic maps yet (DESIGN.md): when it has, its packed PNG
         # (G = roughness, B = metallic) goes in as metallic_roughness_texture, beside the base colour
         extra["face_uv"] = texture[0].face_uv

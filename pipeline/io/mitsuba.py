@@ -3,7 +3,8 @@ as an ``envmap`` emitter and a ``perspective`` sensor (docs/export.md).
 
 Files: ``scene.xml`` and ``scene.xml.mesh.ply`` (binary PLY in the object frame, metres: positions,
 unit vertex normals and, with a per-vertex base colour, float ``r g b`` = linear base colour, which
-Mitsuba's PLY loader exposes as the mesh attribute ``vertex_color``).  Mitsuba has no up axis: the
+Mitsuba's PLY loader exposes as the mesh attribute ``vertex_color``; textured: ``u v`` and
+``scene.xml.base_color.exr``, :func:`write_mitsuba`).  Mitsuba has no up axis: the
 object frame (+Z up) is the scene's world as it is.
 
 Material (:func:`bsdf_element`, the one home of the mapping; Mitsuba's src/bsdfs/principled.cpp):
@@ -51,6 +52,8 @@ from pipeline.core.brdf import Brdf
 from pipeline.core.camera import Camera, mitsuba_sensor_to_world
 from pipeline.core.envmap import MITSUBA_ENVMAP_TO_OBJECT
 from pipeline.errors import UserError
+from pipeline.io.gltf import split_at_seams
+from pipeline.io.images import write_image
 from pipeline.workdir import atomic_path
 
 FORMATS = (".xml",)
@@ -65,6 +68,11 @@ class SensorView:
     R: np.ndarray
     t: np.ndarray
     name: str = ""
+
+
+def texture_file(path: Path) -> Path:
+    """The base colour map beside a textured scene: scene.xml.base_color.exr."""
+    return Path(path).with_name(Path(path).name + ".base_color.exr")
 
 
 def mesh_file(path: Path) -> Path:
@@ -95,14 +103,21 @@ def diffuse_compensation(brdf: Brdf) -> float:
     return float(1.0 - 2.0 * np.sum(spec * mu * w))
 
 
-def bsdf_element(brdf: Brdf, vertex_colors: bool) -> str:
+def bsdf_element(brdf: Brdf, vertex_colors: bool, bitmap: str | None = None) -> str:
     """The Mitsuba 3 ``<bsdf>`` of a Brdf (module docstring); ``vertex_colors``: the base colour (or
     Lambert albedo) is the mesh attribute ``vertex_color`` (the PLY holds brdf.json's values, the
-    texture's ``scale`` the compensation)."""
+    texture's ``scale`` the compensation); ``bitmap``: it is that linear EXR beside the scene, read at
+    the mesh's UVs (the compensation baked into it: a bitmap has no scale)."""
     color_name = "reflectance" if brdf.model == "lambert" else "base_color"
     factor = diffuse_compensation(brdf)
-    color = (f'<texture type="mesh_attribute" name="{color_name}"><string name="name" value="vertex_color"/>'
-             f'{_float("scale", factor)}</texture>' if vertex_colors else _rgb(color_name, factor * brdf.diffuse_color))
+    if bitmap is not None:
+        color = (f'<texture type="bitmap" name="{color_name}"><string name="filename" value={quoteattr(bitmap)}/>'
+                 '<string name="filter_type" value="bilinear"/><string name="wrap_mode" value="clamp"/></texture>')
+    elif vertex_colors:
+        color = (f'<texture type="mesh_attribute" name="{color_name}"><string name="name" value="vertex_color"/>'
+                 f'{_float("scale", factor)}</texture>')
+    else:
+        color = _rgb(color_name, factor * brdf.diffuse_color)
     if brdf.model == "lambert":
         return f'<bsdf type="diffuse">\n      {color}\n    </bsdf>'
     if brdf.model != "principled":
@@ -145,12 +160,15 @@ def sensor_element(view: SensorView, vertices: np.ndarray, spp: int = SAMPLES_PE
 
 
 def write_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
-              vertex_colors: np.ndarray | None = None) -> Path:
-    """A binary little-endian PLY: float x y z nx ny nz [r g b] per vertex, triangles as uchar-int lists."""
+              vertex_colors: np.ndarray | None = None, uv: np.ndarray | None = None) -> Path:
+    """A binary little-endian PLY: float x y z nx ny nz [r g b] [u v] per vertex, triangles as uchar-int
+    lists (Mitsuba's PLY loader takes u, v as the texture coordinates)."""
     v = np.asarray(vertices, float)
     props = [(name, "<f4") for name in ("x", "y", "z", "nx", "ny", "nz")]
     if vertex_colors is not None:
         props += [(name, "<f4") for name in ("r", "g", "b")]
+    if uv is not None:
+        props += [("u", "<f4"), ("v", "<f4")]
     data = np.zeros(len(v), dtype=props)
     for i, name in enumerate(("x", "y", "z")):
         data[name] = v[:, i]
@@ -158,6 +176,8 @@ def write_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, 
     if vertex_colors is not None:
         for i, name in enumerate(("r", "g", "b")):
             data[name] = np.asarray(vertex_colors, float)[:, i]
+    if uv is not None:
+        data["u"], data["v"] = np.asarray(uv, float)[:, 0], np.asarray(uv, float)[:, 1]
     tri = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     tri["n"], tri["i"] = 3, np.asarray(faces, np.int64)
     header = ("ply\nformat binary_little_endian 1.0\ncomment written by sigrend\n"
@@ -172,18 +192,26 @@ def write_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, 
 def write_mitsuba(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
                   brdf: Brdf, vertex_colors: np.ndarray | None = None, generator: str = "sigrend",
                   envmap: str | None = None, view: SensorView | None = None, face_uv: np.ndarray | None = None,
-                  base_color_texture: str | os.PathLike | None = None) -> Path:
+                  base_color_map: np.ndarray | None = None) -> Path:
     """Write the scene (module docstring) and its PLY (:func:`mesh_file`) atomically.  ``envmap``: the
     lighting map's file name beside the scene (Blender's column order); ``view``: the sensor's view
-    (none: the scene has no sensor; Mitsuba then adds its default one).  ``face_uv`` and
-    ``base_color_texture`` (fit/textures/, as the glTF writer takes them) are not written yet: the
-    scene takes the base colour per vertex (fit/albedo.ply holds the map at the vertices, DESIGN.md)."""
+    (none: the scene has no sensor; Mitsuba then adds its default one).  Textured: ``face_uv`` (F, 3,
+    2; pipeline.core.atlas's convention, which is also Mitsuba's: (0, 0) the image's top-left) with
+    ``base_color_map`` (H, W, 3) linear (fit/textures/base_color.exr): the PLY split at the atlas's
+    seams (pipeline.io.gltf.split_at_seams) with u, v, and the map times the compensation written as
+    :func:`texture_file` beside the scene."""
     path = Path(path)
     if path.suffix.lower() not in FORMATS:
         raise ValueError(f"{path}: a Mitsuba scene ends in .xml")
     colors = None if vertex_colors is None else np.clip(np.asarray(vertex_colors, float)[:, :3], 0.0, 1.0)
-    bsdf = bsdf_element(brdf, colors is not None)
-    ply = write_ply(mesh_file(path), vertices, faces, normals, colors)
+    uv = bitmap = None
+    if face_uv is not None and base_color_map is not None:
+        old, uv, faces = split_at_seams(faces, face_uv)
+        vertices, normals, colors = np.asarray(vertices)[old], np.asarray(normals)[old], None
+        scaled = np.clip(np.asarray(base_color_map, float), 0.0, 1.0) * diffuse_compensation(brdf)
+        bitmap = write_image(texture_file(path), scaled.astype(np.float32), dtype="float").name
+    bsdf = bsdf_element(brdf, colors is not None, bitmap)
+    ply = write_ply(mesh_file(path), vertices, faces, normals, colors, uv)
     parts = [f"<!-- written by {generator}: object frame (+Z up), metres; docs/export.md -->",
              '<integrator type="path"><integer name="max_depth" value="-1"/></integrator>']
     if view is not None:
