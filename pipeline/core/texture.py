@@ -46,6 +46,11 @@ def interpolation_matrix(faces: np.ndarray, face: np.ndarray, bary: np.ndarray, 
                          shape=(len(face), n_vertices))
 
 
+def heaviest_vertex(faces: np.ndarray, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
+    """(N,) each sample's vertex of largest barycentric weight: the vertex a sample belongs to."""
+    return np.asarray(faces, np.int64)[np.asarray(face, np.int64), np.argmax(bary, axis=1)]
+
+
 def uniform_albedo(shade: np.ndarray, target: np.ndarray, weight: np.ndarray) -> np.ndarray:
     """Per-channel least-squares constant albedo (3,): target ~ shade * rho."""
     w = np.asarray(weight, float)[:, None]

@@ -32,11 +32,12 @@ def candidate_materials(chosen: Principled | None, ior: float) -> list[Principle
 
 
 def candidate_shading(geo: prt.Geometry, best: material_fit.MaterialFit, material: Principled | None,
-                      opts: SearchOptions) -> svbrdf.CandidateShading:
+                      lobe_samples: int, seed: int) -> svbrdf.CandidateShading:
     """``material``'s shading at the samples under ``best``'s lighting (SH to its order and its
-    sources; the lighting's detail part belongs to the chosen lobe and is left out)."""
+    sources; the lighting's detail part belongs to the chosen lobe and is left out); the lobe by
+    ``lobe_samples`` GGX samples drawn with ``seed`` (prt.specular_transfer)."""
     order = order_of(best.coeffs.shape[0])
-    spec = None if material is None else prt.specular_transfer(geo, material, opts.lobe_samples, opts.seed, order=order)
+    spec = None if material is None else prt.specular_transfer(geo, material, lobe_samples, seed, order=order)
     sources = None if best.sources is None else Sources(prt.source_transfer(geo, material, best.sources.directions),
                                                         best.sources.power)
     fit = material_fit.MaterialFit(material, best.base, best.coeffs, None, [], 0.0, 0.0, sources)
@@ -55,7 +56,7 @@ def view_dependent_seed(mesh, data: dict) -> np.ndarray | None:
     (nothing to separate)."""
     patch_of_vertex = svbrdf.voxel_patches(mesh.vertices, SEED_PATCHES)
     n = int(patch_of_vertex.max()) + 1
-    vertex = np.asarray(mesh.faces)[data["face"], np.argmax(data["bary"], axis=1)]
+    vertex = texture.heaviest_vertex(mesh.faces, data["face"], data["bary"])
     spread = svbrdf.view_spread(patch_of_vertex[vertex], data["image_id"], data["radiance"], n)
     seeded = (spread > SEED_SPREAD)[patch_of_vertex]
     seen = np.isfinite(spread)[patch_of_vertex]
@@ -80,9 +81,9 @@ def fit_materials(mesh, data: dict, geo: prt.Geometry, best: material_fit.Materi
     materials = candidate_materials(lighting.material, settings.ior)
 
     def shade(g: prt.Geometry) -> tuple[np.ndarray, ...]:
-        shaded = [candidate_shading(g, lighting, m, opts) for m in materials]
+        shaded = [candidate_shading(g, lighting, m, opts.lobe_samples, opts.seed) for m in materials]
         if lit is not None:
-            shaded.append(candidate_shading(g, best, best.material, opts))
+            shaded.append(candidate_shading(g, best, best.material, opts.lobe_samples, opts.seed))
         return tuple(a for c in shaded for a in (c.shade, c.specular))
 
     arrays = prt.over_chunks(geo, data["face"], data["bary"].astype(float), data["view_dir"].astype(float), shade)

@@ -224,8 +224,7 @@ def body_lighting(mesh, everything: dict, data: dict, candidate: CandidateFit, m
     seed = view_dependent_seed(mesh, everything)
     if seed is None:
         return None, {"seeded": False, "why": "no view-dependent part between 2 % and 98 % of the surface seen"}
-    vertex = np.asarray(mesh.faces)[data["face"], np.argmax(data["bary"], axis=1)]
-    keep = np.flatnonzero(~seed[vertex])
+    keep = np.flatnonzero(~seed[texture.heaviest_vertex(mesh.faces, data["face"], data["bary"])])
     obs = candidate.obs
     body = replace(candidate, geo=candidate.geo.rows(keep),
                    obs=Observations(obs.radiance[keep], obs.weight[keep], obs.fold[keep]))

@@ -11,7 +11,7 @@ each level kept only where the held-out views (folds = image_id mod folds) impro
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -20,9 +20,9 @@ from pipeline.core import material_fit, prt, texture
 from pipeline.core.camera import camera_center
 from pipeline.core.factorization import rms_radiance
 from pipeline.core.selection import fold_of
-from pipeline.core.sources import Sources
 from pipeline.io.poses import Poses
 from pipeline.unwrap import unwrap
+from stages.fit.materials import candidate_shading
 from stages.fit.settings import Settings
 
 RIDGES = (0.5, 2.0, 8.0)     # the per-texel ridge's candidates (core.texture: typical samples' worth)
@@ -44,15 +44,11 @@ class TexelFit:
 
 def shading_at_all(geo: prt.Geometry, best: material_fit.MaterialFit, data: dict, settings: Settings):
     """(shade per unit base colour (N, 3), specular (N, 3)) of ``best`` at every sample of ``data``
-    (face, bary, view_dir), in chunks on ``geo``'s mesh part (prt.over_chunks)."""
+    (face, bary, view_dir), in chunks on ``geo``'s mesh part (prt.over_chunks; each chunk through
+    materials.candidate_shading, the materials step's own)."""
     def shade(g: prt.Geometry) -> tuple[np.ndarray, np.ndarray]:
-        fit = best
-        if best.sources is not None:
-            fit = replace(best, sources=Sources(prt.source_transfer(g, best.material, best.sources.directions),
-                                                best.sources.power))
-        spec = None if best.material is None else prt.specular_transfer(g, best.material, settings.lobe_samples,
-                                                                          settings.seed)
-        return material_fit.shading_parts(g, fit, spec)
+        shaded = candidate_shading(g, best, best.material, settings.lobe_samples, settings.seed)
+        return shaded.shade, shaded.specular
 
     return prt.over_chunks(geo, data["face"], data["bary"].astype(float), data["view_dir"].astype(float), shade, CHUNK)
 
