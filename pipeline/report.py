@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.brdf import Brdf
+from pipeline.core.material import material_from_brdf
+from pipeline.core.shading import sphere_radiance
 from pipeline.workdir import write_text
 
 MAX_PHOTOS = 12
@@ -261,19 +263,9 @@ def _coverage(work: Path) -> str:
 
 
 def principled_sphere(coeffs: np.ndarray, brdf: Brdf, normal: np.ndarray, view: np.ndarray) -> np.ndarray:
-    """Radiance (P, 3) of a principled sphere under SH lighting (a sphere casts no shadows): the
-    layered diffuse from the irradiance plus the lobe by GGX samples (pipeline.core.shading)."""
-    from pipeline.core.material import material_from_brdf
-    from pipeline.core.sh import sh_evaluate
-    from pipeline.core.shading import specular_samples
-    from pipeline.core.transfer import irradiance_from_sh
-
-    material = material_from_brdf(brdf)
-    mu = np.einsum("pc,pc->p", normal, view)
-    out = material.diffuse_weight(np.clip(mu, 0, 1)) / np.pi * irradiance_from_sh(coeffs, normal)
-    lobe = specular_samples(material, normal, view, 64, np.random.default_rng(0))
-    seen = sh_evaluate(coeffs, lobe.directions.reshape(-1, 3)).reshape(lobe.weight.shape)
-    return out + np.einsum("psc,psc->pc", lobe.weight, np.maximum(seen, 0.0))
+    """Radiance (P, 3) of a principled sphere under SH lighting (a sphere casts no shadows), shaded
+    as the renderer shades (pipeline.core.shading.sphere_radiance)."""
+    return sphere_radiance(material_from_brdf(brdf), coeffs, normal, view, brdf.base_color)
 
 
 def sphere_renders(coeffs: np.ndarray, brdf: Brdf | None, size: int = 128) -> bytes:

@@ -18,7 +18,12 @@ import trimesh
 
 from pipeline import cli
 from pipeline.io.images import read_image
-from pipeline.report import build_report, texture_views
+from pipeline.core.brdf import Brdf
+from pipeline.core.material import material_from_brdf
+from pipeline.core.shading import specular_samples
+from pipeline.core.sh import sh_evaluate
+from pipeline.core.transfer import irradiance_from_sh
+from pipeline.report import build_report, principled_sphere, texture_views
 
 SAMPLE = Path(__file__).parents[1] / "sample_data" / "capture"
 
@@ -175,3 +180,34 @@ def test_the_report_in_a_browser_has_no_blank_picture_and_no_text_out_of_its_box
                    capture_output=True, timeout=300)
     pixels = read_image(shot)[..., :3]
     assert pixels.shape[1] == 1024 and pixels.std() > 0.05, pixels.std()
+
+
+def test_the_sphere_preview_is_the_material_of_the_core_shading_path():
+    """The report's 'fitted material' sphere is the core material's reflection equation: at a few pixels
+    it equals, to round-off, the diffuse layer / pi x the SH irradiance plus, over the lobe's importance
+    samples, f cos / pdf (Principled.eval_cos without its diffuse part, times the sample's 1 / (S pdf))
+    times the lighting along the sample — a metal-dielectric mix, so F0, Fresnel and the energy
+    compensation are all in the comparison."""
+    brdf = Brdf("principled", base_color=(0.6, 0.35, 0.2), roughness=0.4, metallic=0.3, ior=1.5)
+    rng = np.random.default_rng(3)
+    coeffs = 0.2 * rng.standard_normal((25, 3))
+    coeffs[0] = 2.0                                        # a positive lighting, order 4
+    xz = np.array([[0.0, 0.0], [0.3, 0.2], [-0.5, 0.4], [0.6, -0.55], [-0.1, -0.8]])
+    normal = np.column_stack([xz[:, 0], np.sqrt(1 - (xz ** 2).sum(axis=1)), xz[:, 1]])
+    view = np.tile([0.0, 1.0, 0.0], (len(normal), 1))
+    preview = principled_sphere(coeffs, brdf, normal, view)
+
+    material = material_from_brdf(brdf)
+    mu_out = normal[:, 1]
+    kd = material.diffuse_weight(mu_out)                   # base colour x the diffuse layer
+    lobe = specular_samples(material, normal, view, 64, np.random.default_rng(0))
+    s = lobe.directions.shape[1]
+    w_in = lobe.directions.reshape(-1, 3)
+    n, v = (np.repeat(a, s, axis=0) for a in (normal, view))
+    mu_in = np.einsum("pc,pc->p", n, w_in)
+    spec = material.eval_cos(n, w_in, v) - np.repeat(kd, s, axis=0) * (np.maximum(mu_in, 0) / np.pi)[:, None]
+    seen = np.maximum(sh_evaluate(coeffs, w_in), 0.0)
+    lobe_sum = (spec * lobe.solid_angle.reshape(-1, 1) * seen).reshape(len(normal), s, 3).sum(axis=1)
+    expected = kd / np.pi * irradiance_from_sh(coeffs, normal) + lobe_sum
+    assert (lobe_sum > 0.1 * expected).all()               # the lobe is a real part of each pixel
+    np.testing.assert_allclose(preview, expected, rtol=1e-10, atol=0)

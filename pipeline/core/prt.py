@@ -40,6 +40,7 @@ from pipeline.core.render import Renderer, bounce_powers, bounce_series, bounce_
 from pipeline.core.sh import num_coeffs, sh_basis
 from pipeline.core.shading import (
     LobeSamples,
+    diffuse_layer,
     front_cos,
     lobe_support_cos,
     specular_columns,
@@ -174,13 +175,6 @@ def _sample_transfer(r: Renderer, order: int, faces: np.ndarray, bary: np.ndarra
 
     thread_map(chunk, range(0, faces.size, per_chunk))
     return faces, tri, bary, normals, view_dirs, mu_out, direct
-
-
-def diffuse_layer(material: Principled | None, mu_out: np.ndarray) -> np.ndarray:
-    """kd(mu_o) (N, 3): the base colour's weight in the diffuse reflectance (1 for Lambert)."""
-    if material is None:
-        return np.ones((np.asarray(mu_out).shape[0], 3))
-    return material.diffuse_weight(np.clip(mu_out, 0.0, 1.0), np.ones((np.asarray(mu_out).shape[0], 3)))
 
 
 QUADRATURE_FLOOR = 1e-2  # the direct transfer's relative accuracy on 16-row cells (odd bands of a sphere: 0.5-0.8%)

@@ -1,8 +1,14 @@
-"""Angular-domain reference renderer: the independent forward model that synthetic captures come from.
+"""The angular-domain renderer: the pixels of relight and of synthetic captures, and the scene half
+of the physical fit's forward model.
 
-It integrates the reflection equation numerically over the environment map's directions and
-never touches the spherical-harmonic or transfer code (pipeline.core.sh / .transfer), so that
-testing the frequency-space fit against its images is not circular:
+It is not an independent reference: pipeline.core.prt builds the fit's per-sample transfer from
+its light set, visibility and bounce series (Renderer, bounce_*), and both shade through
+pipeline.core.shading and pipeline.core.material, so a fit checked against its images checks the
+fit's inversion, not the forward model; the independent reference for the forward model is Cycles
+(tests/data/cycles, tests/stages/test_relight_cycles.py).  It does integrate the reflection
+equation over the environment map's directions and never touches the spherical-harmonic or
+transfer code (pipeline.core.sh / .transfer), so the frequency-space (convex) fit and forward
+model (pipeline.core.forward) tested against its images are not tested against themselves:
 
     B(x, w_o) = sum_j  L_j dω_j  V(x, w_j)  f_r(w_j, w_o) max(0, n . w_j)
 
@@ -52,11 +58,12 @@ from pipeline.core.envmap import downsample, equirect_directions, equirect_solid
 from pipeline.core.material import material_from_brdf
 from pipeline.core.shading import (
     EnvPyramid,
+    diffuse_layer,
     front_cos,
     lobe_support_cos,
+    sampled_lobe,
     specular_over_directions,
     specular_over_footprint,
-    specular_samples,
     stratified_unit_square,
     tangent_frames,
 )
@@ -593,26 +600,25 @@ class Renderer:
         out = np.zeros((p, 3))
         rng = self._points_rng(faces, bary)
         per_chunk = max(1, (1 << 16) // max(self.lobe_samples, 1))
+        ns = self.lobe_samples
         for s in range(0, p, per_chunk):
             sl = slice(s, s + per_chunk)
-            samples = specular_samples(self.material, normals[sl], view_dirs[sl], self.lobe_samples, rng,
-                                       None if not self._varying_base else base[sl])
-            q, ns = samples.directions.shape[:2]
-            dirs = samples.directions.reshape(-1, 3)
-            live = np.flatnonzero(samples.weight.reshape(-1, 3).max(axis=1) > 0)
-            radiance = np.zeros((q * ns, 3))
-            radiance[live] = self._remainder.lookup(dirs[live], samples.solid_angle.reshape(-1)[live])
-            if self.shadows:
-                pts = self._points_above(faces[sl], bary[sl])
-                hit_face, ray_id, loc = self._shadow_rays.intersects_id(
-                    np.repeat(pts, ns, axis=0)[live], dirs[live], multiple_hits=False, return_locations=True)
-                idx = live[ray_id]
-                on_mesh = hit_face < len(self.mesh.faces)
-                radiance[idx] = 0.0
-                if self.interreflection and on_mesh.any():
-                    radiance[idx[on_mesh]] = self._object_radiance(hit_face[on_mesh], loc[on_mesh],
-                                                                   -dirs[idx[on_mesh]])
-            out[sl] = np.einsum("psc,psc->pc", samples.weight, radiance.reshape(q, ns, 3))
+
+            def seen(dirs: np.ndarray, solid_angle: np.ndarray, ids: np.ndarray, sl: slice = sl) -> np.ndarray:
+                radiance = self._remainder.lookup(dirs, solid_angle)
+                if self.shadows:
+                    pts = self._points_above(faces[sl], bary[sl])
+                    hit_face, ray_id, loc = self._shadow_rays.intersects_id(
+                        np.repeat(pts, ns, axis=0)[ids], dirs, multiple_hits=False, return_locations=True)
+                    on_mesh = hit_face < len(self.mesh.faces)
+                    radiance[ray_id] = 0.0
+                    if self.interreflection and on_mesh.any():
+                        radiance[ray_id[on_mesh]] = self._object_radiance(hit_face[on_mesh], loc[on_mesh],
+                                                                          -dirs[ray_id[on_mesh]])
+                return radiance
+
+            out[sl] = sampled_lobe(self.material, normals[sl], view_dirs[sl], ns, rng, seen,
+                                   None if not self._varying_base else base[sl])
         return out
 
     def shade(self, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
@@ -684,7 +690,7 @@ class Renderer:
         base = self._base(faces, tri, bary)
         irradiance, bright_vis = self.direct_parts(faces, bary, view_dirs) if direct is None else direct
         mu_out = np.einsum("pc,pc->p", normals, view_dirs)
-        kd = self._diffuse_albedo(np.clip(mu_out, 0, 1), np.ones_like(base)) / np.pi
+        kd = diffuse_layer(self.material, mu_out) / np.pi
         diffuse = kd * (irradiance + self._indirect_at(tri, bary))
         specular = np.zeros((faces.shape[0], 3))
         if self.material is None:

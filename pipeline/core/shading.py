@@ -1,5 +1,7 @@
-"""The reflection equation's pieces that do not cast rays (pure NumPy): a prefiltered
-environment pyramid and importance samples of a material's specular lobe.
+"""The reflection equation's pieces that do not cast rays (pure NumPy): the principled material's
+diffuse layer, importance samples of its specular lobe and their sum, a prefiltered environment
+pyramid, and the lobe over discrete directions.  The renderer (pixels), the fit's transfer
+(pipeline.core.prt, samples) and the report's sphere preview (sphere_radiance) shade through them.
 
 The renderer (pipeline.core.render) integrates
 
@@ -23,7 +25,9 @@ import numpy as np
 
 from pipeline.core.envmap import downsample
 from pipeline.core.material import Principled, ggx_distribution, ggx_lobe_cos, sample_ggx_vndf, smith_g1, smith_g2
+from pipeline.core.sh import sh_evaluate
 from pipeline.core.threads import thread_map
+from pipeline.core.transfer import irradiance_from_sh
 
 _EPS = 1e-12
 
@@ -139,6 +143,49 @@ def specular_samples(material: Principled, normal: np.ndarray, view_dir: np.ndar
     fres = material.specular_fresnel(np.clip(c, 0, 1), mu_out, None if base_color is None else np.asarray(base_color, float))
     pdf = g1 * ggx_distribution(h[..., 2], alpha) / (4.0 * mu_out[:, None])
     return LobeSamples(dirs, fres * ratio[..., None], 1.0 / (s * np.maximum(pdf, _EPS)))
+
+
+def diffuse_layer(material: Principled | None, mu_out: np.ndarray) -> np.ndarray:
+    """kd(mu_o) (N, 3): the base colour's weight in the diffuse reflectance (1 for Lambert); the
+    diffuse radiance is base colour x kd / pi x irradiance."""
+    if material is None:
+        return np.ones((np.asarray(mu_out).shape[0], 3))
+    return material.diffuse_weight(np.clip(mu_out, 0.0, 1.0), np.ones((np.asarray(mu_out).shape[0], 3)))
+
+
+def sampled_lobe(material: Principled, normal: np.ndarray, view_dir: np.ndarray, n_samples: int,
+                 rng: np.random.Generator, seen, base_color: np.ndarray | None = None) -> np.ndarray:
+    """The specular lobe by importance sampling (P, 3): sum_s w_s L_s over specular_samples' S
+    samples per point, where ``seen(directions (M, 3), solid_angles (M,), ids (M,))`` gives the
+    radiance L (M, 3) arriving along the M samples of non-zero weight (``ids`` index the P x S
+    samples, point-major: a sample's point is id // S); the other samples see nothing."""
+    samples = specular_samples(material, normal, view_dir, n_samples, rng, base_color)
+    q, ns = samples.directions.shape[:2]
+    dirs = samples.directions.reshape(-1, 3)
+    live = np.flatnonzero(samples.weight.reshape(-1, 3).max(axis=1) > 0)
+    radiance = np.zeros((q * ns, 3))
+    radiance[live] = seen(dirs[live], samples.solid_angle.reshape(-1)[live], live)
+    return np.einsum("psc,psc->pc", samples.weight, radiance.reshape(q, ns, 3))
+
+
+def sphere_radiance(material: Principled | None, coeffs: np.ndarray, normal: np.ndarray, view_dir: np.ndarray,
+                    base_color: np.ndarray, n_samples: int = 64, seed: int = 0) -> np.ndarray:
+    """Radiance (P, 3) of a convex object (a sphere: no shadows, no interreflection) under SH lighting
+    ``coeffs`` at unit normals and view directions (P, 3), with the renderer's shading
+    (Renderer.shade_parts): base colour x diffuse_layer / pi x the irradiance (exact, from the SH) plus
+    the lobe by sampled_lobe (``n_samples`` per point) reading the lighting, clamped at 0, along each
+    sample.  The report's sphere preview."""
+    n = np.asarray(normal, float)
+    v = np.asarray(view_dir, float)
+    mu_out = np.einsum("pc,pc->p", n, v)
+    out = np.asarray(base_color, float) * diffuse_layer(material, mu_out) / np.pi * irradiance_from_sh(coeffs, n)
+    if material is None:
+        return out
+
+    def seen(dirs: np.ndarray, solid_angle: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        return np.maximum(sh_evaluate(coeffs, dirs), 0.0)
+
+    return out + sampled_lobe(material, n, v, n_samples, np.random.default_rng(seed), seen)
 
 
 def specular_over_directions(material: Principled, normal: np.ndarray, view_dir: np.ndarray, dirs: np.ndarray,
