@@ -255,7 +255,8 @@ def _coverage(work: Path) -> str:
         for name in ("normals", "reflections"):
             cov = (summary.get("coverage") or {}).get(name)
             if cov:
-                rows.append([f"{name}: sphere covered", f"{100 * cov['fraction']:.3g}% ({cov['cells_hit']}/{cov['cells']} cells)"])
+                rows.append([f"{name}: sphere covered",
+                             f"{100 * cov['fraction']:.3g}% ({cov['cells_hit']}/{cov['cells']} cells)"])
         if summary.get("holdout"):
             rows.append(["held out of the fit", summary["holdout"]])
         body += _table(rows, ["", "value"])
@@ -471,7 +472,8 @@ def _texels(folder: Path, entry: dict) -> str:
     fig.tight_layout()
     rows = [["levels kept", entry.get("choice", "?")],
             ["texel size (mm)", _fmt(entry.get("atlas", {}).get("texel_mm"))],
-            ["texels with samples / in charts", f"{entry.get('texels_with_samples', '?')} / {entry.get('texels_in_charts', '?')}"],
+            ["texels with samples / in charts",
+             f"{entry.get('texels_with_samples', '?')} / {entry.get('texels_in_charts', '?')}"],
             ["samples", _fmt(entry.get("samples"))]]
     cands = [[c["name"], _fmt(c["validation_rmse"]), _fmt(c["train_rmse"])]
              for c in entry.get("vertex_level", {}).get("candidates", []) + entry.get("texel_level", {}).get("candidates", [])]

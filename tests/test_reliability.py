@@ -209,8 +209,10 @@ def _disk_full(path):
 
 # a stage failing half-way: a user error, or the machine's (a full disk: one line naming the file, no
 # traceback) -> a fragment of the one-line message; either way nothing of the stage is committed
-@pytest.mark.parametrize("fault, fragment", [(_user_error, "injected failure after two images"),
-                                             (_disk_full, "No space left on device; free some space or give -w a folder on another disk")])
+@pytest.mark.parametrize("fault, fragment", [
+    (_user_error, "injected failure after two images"),
+    (_disk_full, "No space left on device; free some space or give -w a folder on another disk"),
+])
 def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch, capsys, fault, fragment):
     from stages import linearize
 

@@ -17,12 +17,12 @@ import pytest
 import trimesh
 
 from pipeline import cli
-from pipeline.io.images import read_image
 from pipeline.core.brdf import Brdf
 from pipeline.core.material import material_from_brdf
-from pipeline.core.shading import specular_samples
 from pipeline.core.sh import sh_evaluate
+from pipeline.core.shading import specular_samples
 from pipeline.core.transfer import irradiance_from_sh
+from pipeline.io.images import read_image
 from pipeline.report import build_report, principled_sphere, texture_views
 
 SAMPLE = Path(__file__).parents[1] / "sample_data" / "capture"

@@ -71,7 +71,8 @@ def design_terms(normal: np.ndarray, view_dir: np.ndarray, order: int, with_lobe
     diffuse = sh_basis(normal, order)
     diffuse *= a_hat[None, :]
     cos_view = np.einsum("ij,ij->i", normal, view_dir)
-    reflected = sh_basis(2.0 * cos_view[:, None] * normal - view_dir, order) if with_lobe else None   # core.brdf.reflect, with n.v reused
+    # the mirror direction: core.brdf.reflect, with n.v reused
+    reflected = sh_basis(2.0 * cos_view[:, None] * normal - view_dir, order) if with_lobe else None
     grazing = (1.0 - np.clip(cos_view, 0.0, 1.0)) ** 5                                               # fresnel_grazing
     return DesignTerms(diffuse, reflected, grazing, cos_view)
 

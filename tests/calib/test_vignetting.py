@@ -41,8 +41,8 @@ def test_noise_free_fit_matches_falloff():
 
 def test_linearize_divides_by_vignetting(tmp_path):
     """End to end: a vignetted flat through linearize with capture.toml [vignetting] comes out flat."""
-    from stages import linearize
     from pipeline.io.linear_manifest import read_linear_image
+    from stages import linearize
 
     gain = true_gain()
     capture = tmp_path / "cap"

@@ -134,7 +134,7 @@ def test_flags_are_worded_as_flags(helps):
 
 def test_the_global_verbose_is_the_only_one(helps):
     """`sigrend -v` serves every command; poses' old --verbose still works, hidden, with a warning."""
-    for name, (path, parser, text) in helps.items():
+    for name, (path, _parser, text) in helps.items():
         if path:
             assert "--verbose" not in text, name
     for argv in (["-v", "poses", "CAP"], ["poses", "CAP", "--verbose"]):

@@ -62,8 +62,10 @@ def test_reflect_is_the_mirror_direction():
     normal itself comes back, a tangent direction flips, and reflecting twice is the identity
     (the identity alone would pass that last check, not the first two)."""
     rng = np.random.default_rng(0)
-    n = rng.normal(size=(10, 3)); n /= np.linalg.norm(n, axis=1, keepdims=True)
-    w = rng.normal(size=(10, 3)); w /= np.linalg.norm(w, axis=1, keepdims=True)
+    n = rng.normal(size=(10, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    w = rng.normal(size=(10, 3))
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
     r = reflect(w, n)
     np.testing.assert_allclose(np.sum(r * n, axis=1), np.sum(w * n, axis=1), atol=1e-12)     # same angle to n
     np.testing.assert_allclose(r + w, 2 * np.sum(w * n, axis=1, keepdims=True) * n, atol=1e-12)  # in-plane mirror

@@ -5,8 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.core.material import (Principled, f0_from_ior, fresnel_dielectric, ggx_distribution,
-                                    microfacet_reflection, sample_ggx_vndf, smith_g1, smith_g2, smith_lambda)
+from pipeline.core.material import (
+    Principled,
+    f0_from_ior,
+    fresnel_dielectric,
+    ggx_distribution,
+    microfacet_reflection,
+    sample_ggx_vndf,
+    smith_g1,
+    smith_g2,
+    smith_lambda,
+)
 from pipeline.core.quadrature import gauss_legendre
 
 ROUGHNESS = [0.1, 0.3, 0.6, 1.0]

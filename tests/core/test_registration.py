@@ -13,8 +13,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from pipeline.core.registration import (project_to_surface, register_to_surface, rotation_angle_deg, scale_guess,
-                                        viewing_center)
+from pipeline.core.registration import project_to_surface, register_to_surface, rotation_angle_deg, scale_guess, viewing_center
 from pipeline.core.similarity import Similarity
 
 BUNNY = Path(__file__).resolve().parents[2] / "sample_data" / "meshes" / "stanford-bunny.obj"

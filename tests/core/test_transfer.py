@@ -8,9 +8,19 @@ from pipeline.core.envmap import equirect_directions, equirect_solid_angles
 from pipeline.core.quadrature import gauss_legendre
 from pipeline.core.sh import num_coeffs, project_envmap, sh_evaluate
 from pipeline.core.transfer import (
-    irradiance_9term, irradiance_from_sh, lambert_filter, legendre_polynomials, lobe_filter,
-    microfacet_filter, microfacet_filter_approx, microfacet_lobe_normal_view, mirror_filter,
-    normalization_lambda, phong_filter, phong_filter_approx)
+    irradiance_9term,
+    irradiance_from_sh,
+    lambert_filter,
+    legendre_polynomials,
+    lobe_filter,
+    microfacet_filter,
+    microfacet_filter_approx,
+    microfacet_lobe_normal_view,
+    mirror_filter,
+    normalization_lambda,
+    phong_filter,
+    phong_filter_approx,
+)
 
 
 def test_lambda():

@@ -12,9 +12,19 @@ from pipeline.core.camera import Camera, look_at
 from pipeline.core.procedural_envmaps import make_envmap
 from pipeline.core.render import Renderer
 from pipeline.io.camera_decode import decode_raw
-from pipeline.io.camera_files import (DNG_BLACK, DNG_WHITE, Exposure, add_sensor_noise, bayer_mosaic,
-                                      sensor_value, srgb_encode, write_dng, write_exr, write_jpeg_srgb,
-                                      write_tiff16)
+from pipeline.io.camera_files import (
+    DNG_BLACK,
+    DNG_WHITE,
+    Exposure,
+    add_sensor_noise,
+    bayer_mosaic,
+    sensor_value,
+    srgb_encode,
+    write_dng,
+    write_exr,
+    write_jpeg_srgb,
+    write_tiff16,
+)
 from pipeline.io.images import read_image
 from pipeline.raycast import ray_mesh
 

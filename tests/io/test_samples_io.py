@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 
 from pipeline.errors import UserError
-from pipeline.io.samples import (SAMPLE_FIELDS, SCHEMA, SamplesWriter, iter_sample_chunks, read_samples,
-                                 read_samples_meta, write_samples)
+from pipeline.io.samples import (
+    SAMPLE_FIELDS,
+    SCHEMA,
+    SamplesWriter,
+    iter_sample_chunks,
+    read_samples,
+    read_samples_meta,
+    write_samples,
+)
 
 
 def random_samples(rng, n):

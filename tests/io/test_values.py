@@ -7,8 +7,7 @@ import pytest
 from calib import response
 from pipeline.errors import UserError
 from pipeline.io.capture_toml import read_capture_config
-from pipeline.settings import number
-from pipeline.settings import add_settings_arguments, settings_from_args
+from pipeline.settings import add_settings_arguments, number, settings_from_args
 
 
 @pytest.mark.parametrize("text, value", [("1/250", 0.004), ("0.004", 0.004), (" 4e-3 ", 0.004), ("2", 2.0)])
