@@ -51,6 +51,14 @@ def setting(default: Any, help: str, **kwargs: Any) -> Any:
     return dataclasses.field(default=default, metadata={"help": help, **kwargs})
 
 
+def memory_limit_setting() -> Any:
+    """The ``memory_limit`` field of every stage that streams (linearize, samples): one definition,
+    parsed by pipeline.memory (a size, or a share of the machine's RAM)."""
+    return setting("50%", "peak memory of the stage, its worker processes included: a size (8GB, 512MB, 16GiB) or a "
+                          "share of the machine's RAM (50%); chunks and workers are chosen to fit, and a capture that "
+                          "cannot fit is one line saying what to reduce")
+
+
 def choices_of(cls: type, name: str) -> tuple:
     """The values of field ``name`` of settings class ``cls`` when its type is a Literal (the one
     list of its choices: checked by make_settings, listed by --help), else ()."""
