@@ -19,6 +19,11 @@ keep their own:
   the USD gets ``primvars:st`` and a UsdUVTexture of ``asset.usda.base_color.png``, a copy of
   fit/textures/base_color.png beside it (pipeline.io.gltf, pipeline.io.usd); the Mitsuba scene's PLY
   gets u, v and its BSDF a bitmap of ``scene.xml.base_color.exr`` (pipeline.io.mitsuba).
+* Several materials (brdf.json's "materials" with fit/material.ply, ``fit --materials auto``): one
+  glTF/USD material whose roughness and metallic come from fit/textures/metallic_roughness.png
+  (glTF's metallicRoughnessTexture, G and B; USD's roughness/metallic from a UsdUVTexture of
+  ``asset.usda.metallic_roughness.png``) and its ior from the first principled material; the base
+  colour as above.  A Mitsuba scene holds one material: such a fit is refused there.
 * ``asset.glb.lighting.exr``: the fitted lighting as an equirect float map (SH evaluated and clamped
   at 0, directional sources splatted into their texels) in the column order Blender's
   Environment Texture node (default mapping) and three.js's equirectangular loader read:
@@ -45,7 +50,7 @@ from pipeline.core.envmap import add_sources, blender_columns, equirect_solid_an
 from pipeline.core.sh import envmap_from_sh
 from pipeline.errors import UserError
 from pipeline.io import gltf, mitsuba, usd
-from pipeline.io.brdf import read_brdf
+from pipeline.io.brdf import read_brdf, read_material_map
 from pipeline.io.images import preview_exposure, write_image, write_preview
 from pipeline.io.lighting import read_lighting_parts
 from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
@@ -93,8 +98,9 @@ def companion(asset: Path, extra: str) -> Path:
 
 def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     fit = Path(work) / "fit"
-    paths = [fit / "brdf.json", fit / "albedo.ply", fit / "lighting_sh.json",
-             *(fit / TEXTURES / name for name in ("atlas.npz", "base_color.exr", "base_color.png"))]
+    paths = [fit / "brdf.json", fit / "albedo.ply", fit / "material.ply", fit / "lighting_sh.json",
+             *(fit / TEXTURES / name for name in ("atlas.npz", "base_color.exr", "base_color.png",
+                                                  "metallic_roughness.png"))]
     try:
         paths.append(mesh_path(capture))
     except UserError:
@@ -115,21 +121,74 @@ def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             + scene_mesh + [companion(asset, "export.json")])
 
 
-def preview(mesh, brdf: Brdf, colors: np.ndarray | None, env_spec: str,
-            texture: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class AssetMaterial:
+    """What the asset's material is made of: ``brdf`` the exported material (with a material map, its
+    first principled one, roughness and metallic then read from ``metallic_roughness``); ``colors``
+    per-vertex base colour (V, 3) or None; ``texture`` fit/textures' (atlas, linear base colour map) or
+    None; ``metallic_roughness`` fit/textures' packed PNG or None; ``parts`` a material map's
+    [(Brdf, faces (F,) bool)] for the previews, else None."""
+
+    brdf: Brdf
+    colors: np.ndarray | None
+    texture: tuple | None
+    metallic_roughness: Path | None = None
+    parts: list | None = None
+
+
+def asset_material(fit: Path, mesh) -> AssetMaterial:
+    """The fit's material for the asset (AssetMaterial): brdf.json, albedo.ply, fit/textures/ — or
+    brdf.json's materials with material.ply and the textures the fit made of them."""
+    brdf = read_brdf(fit / "brdf.json")
+    texture = read_base_color_texture(fit / TEXTURES, len(mesh.faces))    # None: no map for this mesh
+    png = fit / TEXTURES / "base_color.png"
+    if texture is not None and not png.exists():
+        raise UserError(f"{png}: missing beside {fit / TEXTURES / 'atlas.npz'}; rerun `sigrend fit --texels auto`")
+    surface = read_material_map(fit / "brdf.json", mesh)
+    if surface is None:
+        if brdf.model not in EXPORTABLE:
+            raise UserError(f"{fit / 'brdf.json'}: a {brdf.model} material has no glTF or USD equivalent; refit with "
+                            "--brdf principled (or lambert)")
+        return AssetMaterial(brdf, read_vertex_albedo(fit / "albedo.ply", len(mesh.vertices)), texture)
+    materials, base, face_material = surface
+    packed = fit / TEXTURES / "metallic_roughness.png"
+    if texture is None or not packed.exists():
+        raise UserError(f"{fit / TEXTURES}: no roughness/metallic maps of the {len(materials)} materials in "
+                        f"{fit / 'brdf.json'} for this mesh; rerun `sigrend fit --materials auto --force`")
+    principled = [m for m in materials if m.model == "principled"]
+    exported = (principled or materials)[0].with_diffuse_color(np.clip(base.mean(axis=0), 0.0, 1.0))
+    return AssetMaterial(exported, base, texture, packed if principled else None,
+                         [(m, face_material == k) for k, m in enumerate(materials)])
+
+
+def preview(mesh, material: AssetMaterial, env_spec: str) -> tuple[np.ndarray, np.ndarray]:
     """Linear radiance (H, W, 3) and object mask of the asset under a bundled map, one view on a ring
-    20 degrees above the object (pipeline.core.camera.orbit_poses), the map as background; ``texture``:
-    fit/textures' (atlas, linear base colour map), which then replaces ``colors``."""
-    from pipeline.core.camera import orbit_poses
+    20 degrees above the object (pipeline.core.camera.orbit_poses), the map as background; the base
+    colour from the texture when there is one, else per vertex; a material map's pixels each shaded
+    by the material of the face they see (its own render of the whole object)."""
+    from pipeline.core.camera import orbit_poses, pixel_centers, pixel_rays
     from pipeline.core.procedural_envmaps import envmap_from_spec
     from pipeline.core.render import Renderer
-    from pipeline.raycast import ray_mesh
+    from pipeline.raycast import first_hits, ray_mesh
 
     sphere = mesh.bounding_sphere.primitive
     camera, [(R, t)] = orbit_poses(sphere.center, float(sphere.radius), 1, PREVIEW_PX, PREVIEW_PX)
-    result = Renderer(ray_mesh(mesh), envmap_from_spec(env_spec), brdf, vertex_albedo=None if texture else colors,
-                      albedo_texture=texture).render(camera, R, t)
-    return result.radiance, result.object_mask
+    scene, env = ray_mesh(mesh), envmap_from_spec(env_spec)
+    colors = material.colors if material.parts is not None or material.texture is None else None
+    texture = None if material.parts is not None else material.texture
+    if material.parts is None:
+        result = Renderer(scene, env, material.brdf, vertex_albedo=colors, albedo_texture=texture).render(camera, R, t)
+        return result.radiance, result.object_mask
+    origins, dirs = pixel_rays(camera, R, t, pixel_centers(camera.width, camera.height))
+    hits = first_hits(mesh, scene.rays, origins, dirs)
+    radiance = None
+    for brdf, faces in material.parts:
+        result = Renderer(scene, env, brdf, vertex_albedo=colors).render(camera, R, t)
+        if radiance is None:
+            radiance = result.radiance.reshape(-1, 3).copy()
+        own = hits.ray[faces[hits.face]]
+        radiance[own] = result.radiance.reshape(-1, 3)[own]
+    return radiance.reshape(result.radiance.shape), result.object_mask
 
 
 def copy_file(source: Path, target: Path) -> Path:
@@ -160,18 +219,14 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     for name, what in (("brdf.json", "material"), ("lighting_sh.json", "lighting")):
         if not (fit / name).exists():
             raise UserError(f"{fit / name}: no fitted {what}; run `sigrend fit` (or `sigrend run`) first")
-    brdf = read_brdf(fit / "brdf.json")
-    if brdf.model not in EXPORTABLE:
-        raise UserError(f"{fit / 'brdf.json'}: a {brdf.model} material has no glTF or USD equivalent; refit with "
-                        "--brdf principled (or lambert)")
     mesh = read_mesh(mesh_path(capture))
-    colors = read_vertex_albedo(fit / "albedo.ply", len(mesh.vertices))
-    texture = read_base_color_texture(fit / TEXTURES, len(mesh.faces))    # None: no map for this mesh
-    png = fit / TEXTURES / "base_color.png"
-    if texture is not None and not png.exists():
-        raise UserError(f"{png}: missing beside {fit / TEXTURES / 'atlas.npz'}; rerun `sigrend fit --texels auto`")
-    env, clamped = lighting_map(fit / "lighting_sh.json", settings.env_height)
+    material = asset_material(fit, mesh)
+    brdf, colors, texture, png = material.brdf, material.colors, material.texture, fit / TEXTURES / "base_color.png"
     asset = asset_path(work, settings)
+    if material.parts is not None and asset.suffix.lower() in mitsuba.FORMATS:
+        raise UserError(f"{asset}: the Mitsuba scene carries one material and {fit / 'brdf.json'} lists "
+                        f"{len(material.parts)}; export .glb or .usda (their roughness/metallic maps carry them)")
+    env, clamped = lighting_map(fit / "lighting_sh.json", settings.env_height)
     make_folder(asset.parent, "-o")
     write = WRITERS[asset.suffix.lower()]
     lighting = write_image(companion(asset, "lighting.exr"), blender_columns(env).astype(np.float32), dtype="float")
@@ -183,18 +238,18 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         extra.update(face_uv=texture[0].face_uv, base_color_map=texture[1])
         sidecars.append(mitsuba.texture_file(asset))
     elif texture is not None:
-        # fit/textures/ has no roughness/metallic maps yet (DESIGN.md): when it has, its packed PNG
-        # (G = roughness, B = metallic) goes in as metallic_roughness_texture, beside the base colour
         extra["face_uv"] = texture[0].face_uv
-        if write is usd.write_usd:    # USD references the PNG beside the asset; glTF embeds it
-            sidecars.append(copy_file(png, companion(asset, "base_color.png")))
-            extra["base_color_texture"] = sidecars[-1].name
-        else:
-            extra["base_color_texture"] = png
+        maps = {"base_color_texture": png, "metallic_roughness_texture": material.metallic_roughness}
+        for key, path in maps.items():
+            if path is not None and write is usd.write_usd:    # USD references the PNGs beside the asset; glTF embeds them
+                sidecars.append(copy_file(path, companion(asset, path.name)))
+                extra[key] = sidecars[-1].name
+            elif path is not None:
+                extra[key] = path
     written = [write(asset, mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, colors,
                      generator=f"sigrend {__version__}", **extra), lighting]
     for tag, spec in PREVIEWS.items():
-        rgb, mask = preview(mesh, brdf, colors, spec, texture)
+        rgb, mask = preview(mesh, material, spec)
         written.append(write_preview(companion(asset, f"preview_{tag}.png"), rgb, preview_exposure(rgb, mask)))
     if write is mitsuba.write_mitsuba:
         written.append(mitsuba.mesh_file(asset))     # the scene's PLY, beside it
@@ -204,6 +259,11 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         "previews": {spec: p.name for spec, p in zip(PREVIEWS.values(), written[2:])},
         "files": [{"file": p.name, "bytes": written_size(p)} for p in written],
         "material": brdf.to_dict(), "per_vertex_base_color": colors is not None and texture is None,
+        "materials": None if material.parts is None else {
+            "count": len(material.parts), "source": str(fit / "brdf.json"),
+            "metallic_roughness_texture": None if material.metallic_roughness is None else
+            "G = roughness, B = metallic, linear; a Lambert material's texels are a dielectric of roughness 1 "
+            "(glTF and UsdPreviewSurface keep a specular layer)"},
         "base_color_texture": None if texture is None else {
             "file": sidecars[0].name if sidecars else f"embedded ({png.name})", "height": texture[0].height,
             "width": texture[0].width, "uv": ("TEXCOORD_0, glTF's (0, 0) top-left, v down; the mesh split at seams"

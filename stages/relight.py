@@ -52,7 +52,7 @@ from pipeline.core.image_metrics import interior_pixels
 from pipeline.core.prefilter import MAX_LOBE_ORDER, Lighting, brdf_lobe_filter, needed_order
 from pipeline.core.sh import envmap_from_sh, order_of
 from pipeline.errors import UserError
-from pipeline.io.brdf import read_brdf, read_materials
+from pipeline.io.brdf import read_brdf, read_material_map
 from pipeline.io.capture_toml import KnownLight, read_capture_config
 from pipeline.io.images import preview_exposure, write_image, write_preview
 from pipeline.io.lighting import (
@@ -64,7 +64,7 @@ from pipeline.io.lighting import (
     read_lighting_sh,
 )
 from pipeline.io.linear_manifest import image_source, linear_manifest, load_linear_image
-from pipeline.io.mesh import mesh_path, read_material_ply, read_mesh, read_vertex_albedo
+from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
 from pipeline.io.poses import capture_poses_path, read_poses
 from pipeline.io.textures import FOLDER as TEXTURES
 from pipeline.io.textures import read_base_color_texture
@@ -485,29 +485,6 @@ class MaterialLightings:
         return out
 
 
-def face_materials(faces: np.ndarray, vertex_material: np.ndarray) -> np.ndarray:
-    """(F,) each face's material: the one two or three of its vertices have (else its first vertex's)."""
-    lab = np.asarray(vertex_material, np.int64)[np.asarray(faces)]
-    return np.where(lab[:, 1] == lab[:, 2], lab[:, 1], lab[:, 0])
-
-
-def material_map(work: Path, mesh) -> tuple[list[Brdf], np.ndarray, np.ndarray] | None:
-    """(the materials, per-vertex base colour (V, 3), each face's material (F,)) of a fit whose
-    brdf.json lists several materials (fit/material.ply), else None."""
-    listed = read_materials(Path(work) / "fit" / "brdf.json")
-    if listed is None:
-        return None
-    materials, name = listed
-    values = read_material_ply(Path(work) / "fit" / name, len(mesh.vertices))
-    if values is None:
-        raise UserError(f"{Path(work) / 'fit' / name}: missing or made for another mesh; run `sigrend fit --force`")
-    base = np.stack([values["base_r"], values["base_g"], values["base_b"]], axis=1)
-    ids = np.round(values["material_id"]).astype(np.int64)
-    if ids.min() < 0 or ids.max() >= len(materials):
-        raise UserError(f"{Path(work) / 'fit' / name}: material_id outside the {len(materials)} materials of brdf.json")
-    return materials, base, face_materials(np.asarray(mesh.faces), ids)
-
-
 def bright_block(brdf: Brdf, env_height: int, cell_height: int) -> int:
     """Pixels per side of the blocks in which the renderer merges a map's broad bright pixels
     (render.light_set's bright_block): a principled lobe's width 2 alpha over two of the map's
@@ -756,7 +733,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     brdf = read_brdf(brdf_path)
     mesh = read_mesh(mesh_path(capture))
     views = resolve_views(capture=source, work=source_work, settings=settings, mesh=mesh)
-    materials = material_map(work, mesh)
+    materials = read_material_map(Path(work) / "fit" / "brdf.json", mesh)
     vertex_colors = vertex_albedo(work, mesh) if materials is None else materials[1]
     texture = albedo_texture(work, mesh) if materials is None else None
     lights = view_lights(source, views) if settings.compare_with and not settings.env else {}

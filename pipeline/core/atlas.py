@@ -116,6 +116,18 @@ def texel_points(atlas: Atlas, chunk: int = 1 << 20) -> tuple[np.ndarray, np.nda
     return texel, np.concatenate(found_face)[keep], np.clip(np.concatenate(found_bary)[keep], 0.0, 1.0)
 
 
+def paint(atlas: Atlas, texel: np.ndarray, values: np.ndarray, pad: int = 8) -> np.ndarray:
+    """An (H, W, C) map holding ``values`` (M, C) at the flat texels ``texel`` (M,) (texel_points'),
+    padded ``pad`` rings past them (:func:`dilate`); texels further out are 0."""
+    values = np.asarray(values, float).reshape(len(texel), -1)
+    flat = np.zeros((atlas.height * atlas.width, values.shape[1]))
+    flat[texel] = values
+    filled = np.zeros(atlas.height * atlas.width, bool)
+    filled[texel] = True
+    shape = (atlas.height, atlas.width)
+    return dilate(flat.reshape(*shape, -1), filled.reshape(shape), pad)
+
+
 def dilate(image: np.ndarray, filled: np.ndarray, texels: int = 8) -> np.ndarray:
     """``image`` (H, W, C) with the texels outside ``filled`` (H, W) given their filled neighbours'
     mean, ``texels`` rings outwards: the padding that keeps a renderer's bilinear and mip-mapped

@@ -45,6 +45,13 @@ class CandidateShading:
         return CandidateShading(self.material, self.shade[mask], self.specular[mask])
 
 
+def face_materials(faces: np.ndarray, vertex_material: np.ndarray) -> np.ndarray:
+    """(F,) each face's material: the one two or three of its vertices have (else its first vertex's).
+    relight shades a face with it, and the fit's roughness/metallic maps take it per texel."""
+    lab = np.asarray(vertex_material, np.int64)[np.asarray(faces)]
+    return np.where(lab[:, 1] == lab[:, 2], lab[:, 1], lab[:, 0])
+
+
 @dataclass(frozen=True)
 class MaterialMap:
     """The surface's materials: ``materials`` (K principled or None for Lambert) and ``chosen`` (K,)

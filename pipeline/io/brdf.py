@@ -18,7 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.brdf import BRDF_PARAMS, PARAM_DEFAULTS, RGB_PARAMS, Brdf
+from pipeline.core.svbrdf import face_materials
 from pipeline.errors import UserError
+from pipeline.io.mesh import read_material_ply
 from pipeline.io.values import is_number, number_array
 from pipeline.workdir import read_json, write_json
 
@@ -159,6 +161,25 @@ def read_materials(path: str | os.PathLike) -> tuple[list[Brdf], str] | None:
     if not isinstance(items, list) or not items or not isinstance(name, str):
         raise UserError(f"{path}: 'materials' must be a non-empty list of materials with a 'material_map' file name")
     return [validate_brdf(m, f"{path}: materials[{i}]") for i, m in enumerate(items)], name
+
+
+def read_material_map(path: str | os.PathLike, mesh) -> tuple[list[Brdf], np.ndarray, np.ndarray] | None:
+    """(the materials, per-vertex base colour (V, 3), each face's material (F,), core.svbrdf.face_materials)
+    of a brdf.json ``path`` that lists several materials, from the material.ply beside it; None for a
+    one-material file.  A map missing or made for another ``mesh`` is a UserError."""
+    listed = read_materials(path)
+    if listed is None:
+        return None
+    materials, name = listed
+    map_path = Path(path).parent / name
+    values = read_material_ply(map_path, len(mesh.vertices))
+    if values is None:
+        raise UserError(f"{map_path}: missing or made for another mesh; run `sigrend fit --force`")
+    base = np.stack([values["base_r"], values["base_g"], values["base_b"]], axis=1)
+    ids = np.round(values["material_id"]).astype(np.int64)
+    if ids.min() < 0 or ids.max() >= len(materials):
+        raise UserError(f"{map_path}: material_id outside the {len(materials)} materials of {path}")
+    return materials, base, face_materials(np.asarray(mesh.faces), ids)
 
 
 def material_from_blender(doc: dict) -> Brdf:

@@ -17,8 +17,8 @@ normal from the mesh), TEXCOORD_0 = the atlas's face-corner UVs as they are (pip
 uses glTF's convention: (0, 0) the image's top-left, v down), ``baseColorTexture`` = the base colour
 PNG (8-bit sRGB, as glTF requires) embedded in the file, baseColorFactor 1.  A packed
 ``metallicRoughnessTexture`` (linear, G = roughness, B = metallic: glTF's packing) is written when one
-is given, its factors then 1; the fit writes no such map yet (DESIGN.md), so the stage passes none
-and the uniform factors stay.
+is given, its factors then 1: the fit writes one beside a material map (``fit --materials auto``:
+fit/textures/metallic_roughness.png); otherwise the uniform factors stay.
 """
 
 from __future__ import annotations

@@ -41,7 +41,8 @@ def write_fit(out: Path, coeffs: np.ndarray, brdf: Brdf, report: dict, *, env_he
     albedo (V, 3)) has one (a stale one is removed: relight reads it); with ``materials`` = (mesh,
     svbrdf.MaterialMap, [Brdf per material]) brdf.json lists them and material.ply holds the map
     (instead of albedo.ply); with ``texels`` (stages.fit.texels.TexelFit) the base colour map in
-    textures/ (pipeline.io.textures) and albedo.ply its values at the vertices.  ``source``: the
+    textures/ (pipeline.io.textures) and albedo.ply its values at the vertices — or, beside a material
+    map, that map's base colour, roughness and metallic as textures (material.ply stays the source).  ``source``: the
     provenance line.  -> the paths written, in OUTPUT_NAMES' order (albedo.ply or material.ply, then
     the textures last)."""
     env = np.maximum(envmap_from_sh(coeffs, env_height), 0.0)
@@ -63,7 +64,8 @@ def write_fit(out: Path, coeffs: np.ndarray, brdf: Brdf, report: dict, *, env_he
     if materials is not None:
         written.append(write_material_ply(out / "material.ply", materials[0], material_values(materials[1])))
     if texels is not None:
-        written += write_base_color_textures(out / TEXTURES, texels.atlas, texels.base, texels.std)
+        written += write_base_color_textures(out / TEXTURES, texels.atlas, texels.base, texels.std,
+                                             texels.roughness, texels.metallic)
     for name, kept in (("albedo.ply", vertex_rho is not None), ("material.ply", materials is not None)):
         if not kept and (out / name).exists():
             (out / name).unlink()     # a stale map from an earlier run would be read by relight

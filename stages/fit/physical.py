@@ -68,7 +68,7 @@ from stages.fit.outputs import (
     write_fit,
 )
 from stages.fit.settings import DEFAULT_ALBEDO, Settings
-from stages.fit.texels import fit_texels
+from stages.fit.texels import fit_texels, make_atlas, material_textures
 from stages.fit.texture import albedo_from_shading
 
 
@@ -154,6 +154,12 @@ def fit_physical(*, capture: Path, work: Path, settings: Settings, keys: list[st
             best = lit
     materials = None if found is None else (mesh, found, material_brdfs(found))
     texels = None
+    if found is not None:      # the map as textures, for glTF/USD/Mitsuba (relight reads material.ply)
+        t0 = time.perf_counter()
+        texels = material_textures(mesh, found, make_atlas(mesh, everything, read_poses(poses_path(capture, work)), keys))
+        report["materials"]["textures"] = {"height": texels.atlas.height, "width": texels.atlas.width,
+                                           "texel_mm": 1e3 * texels.atlas.texel_m}
+        timings["material_textures"] = time.perf_counter() - t0
     if settings.texels == "auto" and settings.albedo != "uniform" and found is None:
         t0 = time.perf_counter()
         report["texels"], texels = fit_texels(mesh, replace(geo, pattern=None), chosen.best, everything, noise,

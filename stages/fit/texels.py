@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.core import atlas as atlas_mod
-from pipeline.core import material_fit, prt, texture
+from pipeline.core import material_fit, prt, svbrdf, texture
 from pipeline.core.camera import camera_center
 from pipeline.core.factorization import rms_radiance
 from pipeline.core.selection import fold_of
@@ -34,12 +34,15 @@ FILL_RINGS = 2               # texels a detail spreads into unseen texels of its
 class TexelFit:
     """The base colour map (H, W, 3) linear, padded past the charts; its standard deviation (H, W, 3)
     (NaN where no sample fell); the atlas; the per-vertex base colour (V, 3) (the map at the vertices:
-    fit/albedo.ply's, for consumers without UVs)."""
+    fit/albedo.ply's, for consumers without UVs); with a material map, its roughness and metallic
+    (H, W) per texel (material_textures)."""
 
     atlas: atlas_mod.Atlas
     base: np.ndarray
     std: np.ndarray
     vertex_base: np.ndarray
+    roughness: np.ndarray | None = None
+    metallic: np.ndarray | None = None
 
 
 def shading_at_all(geo: prt.Geometry, best: material_fit.MaterialFit, data: dict, settings: Settings):
@@ -113,15 +116,32 @@ def fit_texels(mesh, geo: prt.Geometry, best: material_fit.MaterialFit, data: di
     # detail, FILL_RINGS texels out, instead of the bare coarser level: no salt in the map
     seen = (den.max(axis=1) > 0).reshape(atlas.height, atlas.width)
     detail = atlas_mod.dilate(detail.reshape(atlas.height, atlas.width, 3), seen, FILL_RINGS).reshape(-1, 3)
-    base = np.zeros((n_texels, 3))
-    base[tex_id] = np.einsum("pk,pkc->pc", tex_bary, vertex_rho[np.asarray(mesh.faces)[tex_face]]) + detail[tex_id]
-    base = np.clip(base, 0.0, 1.0)
-    filled = np.zeros(n_texels, bool)
-    filled[tex_id] = True
-    image = atlas_mod.dilate(base.reshape(atlas.height, atlas.width, 3), filled.reshape(atlas.height, atlas.width))
+    base = np.einsum("pk,pkc->pc", tex_bary, vertex_rho[np.asarray(mesh.faces)[tex_face]]) + detail[tex_id]
+    image = atlas_mod.paint(atlas, tex_id, np.clip(base, 0.0, 1.0))
     with np.errstate(divide="ignore"):
         std = np.where(den > 0, noise.get("unit_sigma", np.nan) / np.sqrt(den + ridge), np.nan)
     entry["texels_with_samples"] = int((den.max(axis=1) > 0).sum())
     entry["texels_in_charts"] = int(len(tex_id))
     vertex_base = atlas.at_vertices(image, mesh.faces, nv)
     return entry, TexelFit(atlas, image, std.reshape(atlas.height, atlas.width, 3), vertex_base)
+
+
+def material_textures(mesh, found: svbrdf.MaterialMap, atlas: atlas_mod.Atlas) -> TexelFit:
+    """A material map (fit/material.ply's, per vertex) as the maps of fit/textures/, for consumers that
+    read materials from textures (glTF, USD): on ``atlas`` (the fit's: :func:`make_atlas`), each texel's
+    base colour and its standard deviation interpolated from its face's vertices (NaN where they have
+    no samples of their own), its roughness and metallic its face's material's
+    (svbrdf.face_materials, as relight shades the face: a material boundary stays sharp)."""
+    faces = np.asarray(mesh.faces, np.int64)
+    tex_id, tex_face, tex_bary = atlas_mod.texel_points(atlas)
+
+    def interpolated(per_vertex: np.ndarray) -> np.ndarray:
+        return atlas_mod.paint(atlas, tex_id, np.einsum("pk,pkc->pc", tex_bary, per_vertex[faces[tex_face]]))
+
+    material = svbrdf.face_materials(faces, found.labels)[tex_face]
+    roughness = np.array([1.0 if m is None else m.roughness for m in found.materials])[material]
+    metallic = np.array([0.0 if m is None else m.metallic for m in found.materials])[material]
+    base = np.clip(interpolated(found.base), 0.0, 1.0)
+    std = interpolated(np.where(np.isfinite(found.base_std), found.base_std, np.nan))
+    return TexelFit(atlas, base, std, found.base, atlas_mod.paint(atlas, tex_id, roughness)[:, :, 0],
+                    atlas_mod.paint(atlas, tex_id, metallic)[:, :, 0])

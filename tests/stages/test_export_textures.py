@@ -121,7 +121,7 @@ def test_glb_texcoords_and_embedded_texture_give_the_map_at_every_face_corner(te
     """The .glb's mesh is split at the atlas's seams (one vertex per distinct (vertex, UV) pair: more
     vertices than the mesh, each corner's position the mesh's, rotated to +Y up); the material's
     baseColorTexture is the embedded sRGB PNG with factor 1 and the uniform roughness/metallic
-    factors, no metallicRoughnessTexture (the fit writes no such map) and no COLOR_0.  Sampling the
+    factors, no metallicRoughnessTexture (one material: no such map) and no COLOR_0.  Sampling the
     PNG bilinearly at each corner's TEXCOORD_0 in glTF's convention gives the fitted map there
     (atlas.lookup of base_color.exr) within 8-bit sRGB quantization, and its colour gives back the
     vertex's position within 2 texels (measured 1.41: at a chart's edge the bilinear read mixes in the
@@ -216,8 +216,8 @@ def test_usd_st_and_uv_texture_give_the_map_at_every_face_corner(textured_fit, e
 
 
 def test_metallic_roughness_texture_hook_packs_as_gltf_and_usd_read_it(textured_fit, tmp_path):
-    """The writers' hook for a packed roughness (G) / metallic (B) map, which the fit does not write
-    yet: given one, the glTF material points metallicRoughnessTexture at a second embedded image with
+    """The writers' packed roughness (G) / metallic (B) map (the fit's beside a material map; here a
+    constant one): given one, the glTF material points metallicRoughnessTexture at a second embedded image with
     factors 1 (glTF multiplies factor and texel), and the USD's roughness and metallic read the
     texture's g and b outputs, raw (linear)."""
     from pxr import Usd, UsdShade

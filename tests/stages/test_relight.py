@@ -405,6 +405,7 @@ def test_two_materials_each_pixel_is_its_faces_material(tmp_path, rng):
     from scipy import ndimage
 
     from pipeline.core.camera import pixel_centers, pixel_rays
+    from pipeline.core.svbrdf import face_materials
     from pipeline.io.brdf import write_materials_brdf
     from pipeline.io.mesh import read_mesh, write_material_ply, write_vertex_albedo
     from pipeline.raycast import first_hits, ray_mesh
@@ -437,7 +438,7 @@ def test_two_materials_each_pixel_is_its_faces_material(tmp_path, rng):
     origins, dirs = pixel_rays(view.camera, view.R, view.t, pixel_centers(view.camera.width, view.camera.height))
     hits = first_hits(mesh, ray_mesh(mesh).rays, origins, dirs)
     pixel_material = np.full(len(both), -1)
-    pixel_material[hits.ray] = relight.face_materials(np.asarray(mesh.faces), label)[hits.face]
+    pixel_material[hits.ray] = face_materials(np.asarray(mesh.faces), label)[hits.face]
     for k in (0, 1):
         own = (pixel_material == k).reshape(view.camera.height, view.camera.width)
         rows = (both[:, 3] == 1.0) & ndimage.binary_erosion(own, iterations=2).ravel()
