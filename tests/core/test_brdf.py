@@ -17,6 +17,8 @@ def _hemisphere_rule(n_theta=400, n_phi=800):
 
 
 def test_lambert_directional_albedo_equals_albedo():
+    """A Lambertian BRDF's cosine-weighted integral over the hemisphere (its directional albedo) is its albedo,
+    per channel, to the grid's 1e-5."""
     dirs, w = _hemisphere_rule()
     n = np.tile([0.0, 0.0, 1.0], (len(dirs), 1))
     wo = np.tile([0.3, 0.0, np.sqrt(1 - 0.09)], (len(dirs), 1))
@@ -27,6 +29,8 @@ def test_lambert_directional_albedo_equals_albedo():
 
 
 def test_beckmann_is_normalized():
+    """The Beckmann distribution integrates to 1 against cos(theta_h) over the hemisphere for sigma 0.1-0.6
+    (within the 2000-node grid's 2e-3)."""
     dirs, w = _hemisphere_rule(2000, 16)  # D depends on theta only
     for sigma in (0.1, 0.3, 0.6):
         total = (beckmann_distribution(dirs[:, 2], sigma) * dirs[:, 2] * w).sum()
@@ -35,6 +39,8 @@ def test_beckmann_is_normalized():
 
 @pytest.mark.parametrize("view_cos", [1.0, 0.7, 0.3])
 def test_phong_transfer_has_at_most_unit_energy(view_cos):
+    """The R&H Phong transfer (s = 50, unit specular) reflects exactly 1 at normal view and never more than 1 at
+    oblique views, where the horizon clips it."""
     dirs, w = _hemisphere_rule()
     n = np.tile([0.0, 0.0, 1.0], (len(dirs), 1))
     wo = np.tile([np.sqrt(1 - view_cos**2), 0.0, view_cos], (len(dirs), 1))
@@ -49,6 +55,8 @@ def test_phong_transfer_has_at_most_unit_energy(view_cos):
 @pytest.mark.parametrize("roughness", [0.1, 0.3])
 @pytest.mark.parametrize("view_cos", [1.0, 0.5, 0.15])
 def test_microfacet_never_returns_more_than_it_receives(roughness, view_cos):
+    """The Torrance-Sparrow lobe with F = 1 keeps more than half the energy and never creates any (<= 1 + 2e-3),
+    for roughness 0.1 and 0.3 at normal to grazing views."""
     dirs, w = _hemisphere_rule(1000, 1000)
     n = np.tile([0.0, 0.0, 1.0], (len(dirs), 1))
     wo = np.tile([np.sqrt(1 - view_cos**2), 0.0, view_cos], (len(dirs), 1))

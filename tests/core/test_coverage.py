@@ -16,6 +16,8 @@ def fibonacci_sphere(n):
 
 
 def test_cells_have_equal_solid_angle_by_monte_carlo(rng):
+    """400 000 uniform directions fall evenly into an 8x16 EqualAreaGrid (every cell within 5 binomial sd of
+    1/128 of them), and each cell's solid angle is 4 pi / 128."""
     grid = EqualAreaGrid(8, 16)
     d = rng.standard_normal((400_000, 3))
     counts = grid.histogram(d)
@@ -26,6 +28,8 @@ def test_cells_have_equal_solid_angle_by_monte_carlo(rng):
 
 
 def test_cell_of_known_directions():
+    """The poles, a direction on a band edge and directions just either side of azimuth 180 deg land in the cells
+    the band and sector edges say."""
     grid = EqualAreaGrid(4, 4)  # bands: z in [0.5, 1], [0, 0.5), [-0.5, 0), [-1, -0.5); sectors of 90 deg
     d = np.array([
         [0, 0, 1.0],          # +Z: top band, sector 0
@@ -39,6 +43,8 @@ def test_cell_of_known_directions():
 
 @pytest.mark.parametrize("z_min, expected", [(0.0, 0.5), (0.5, 0.25), (-1.0, 1.0)])
 def test_coverage_of_caps(z_min, expected):
+    """A dense cloud on the cap z >= z_min (on a band edge) covers exactly that cap's fraction of the cells and
+    its solid angle: a half, a quarter, the whole sphere."""
     # a dense uniform cloud restricted to the cap z >= z_min, z_min on a band edge (16 bands: edges at k/8 - 1)
     grid = EqualAreaGrid(16, 32)
     d = fibonacci_sphere(200_000)
@@ -49,6 +55,7 @@ def test_coverage_of_caps(z_min, expected):
 
 
 def test_min_count_and_weights():
+    """The histogram sums the sample weights, and a cell counts as hit only when its weight reaches min_count."""
     grid = EqualAreaGrid(2, 2)
     d = np.array([[1.0, 0.1, 0.5], [1.0, 0.1, 0.5], [-1.0, -0.1, -0.5]])
     hist = grid.histogram(d, weights=np.array([1.0, 2.0, 0.5]))

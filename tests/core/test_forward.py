@@ -46,6 +46,8 @@ def test_one_band_through_the_clamped_cosine(rng):
 
 
 def test_linear_in_the_lighting(rng):
+    """The forward model is linear in the SH lighting for a fixed BRDF: render(2a + b) = 2 render(a) + render(b)
+    to 1e-10 (what the solvers rely on)."""
     brdf = Brdf("microfacet", albedo=[0.4, 0.3, 0.2], specular=[0.04] * 3, roughness=0.2)
     a, b = rng.normal(size=(num_coeffs(6), 3)), rng.normal(size=(num_coeffs(6), 3))
     normal, view = directions(rng)

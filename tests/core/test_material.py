@@ -44,6 +44,9 @@ def test_ggx_is_normalized(roughness):
 
 
 def test_smith_limits():
+    """Smith masking: G1 is 1 at normal view, grows monotonically away from grazing and vanishes there; the
+    height-correlated G2 lies between G1 G1 and min(G1, G1); Lambda vanishes for a smooth surface and has its
+    closed form at alpha = 1."""
     mu = np.linspace(0.01, 1.0, 50)
     for alpha in (0.01, 0.09, 0.36, 1.0):
         assert smith_g1(np.array([1.0]), alpha)[0] == pytest.approx(1.0)
@@ -61,6 +64,8 @@ def test_smith_limits():
 
 @pytest.mark.parametrize("ior", [1.33, 1.5, 2.4])
 def test_fresnel_limits(ior):
+    """Dielectric Fresnel: F0 = ((n-1)/(n+1))^2 at normal incidence, 1 at grazing, and half of R_s at Brewster's
+    angle, for IOR 1.33, 1.5 and 2.4."""
     assert fresnel_dielectric(np.array([1.0]), ior)[0] == pytest.approx(((ior - 1) / (ior + 1)) ** 2, rel=1e-12)
     assert f0_from_ior(ior) == pytest.approx(((ior - 1) / (ior + 1)) ** 2)
     assert fresnel_dielectric(np.array([0.0]), ior)[0] == pytest.approx(1.0)
@@ -124,6 +129,8 @@ def test_white_furnace_metal_conserves_energy(roughness):
 
 @pytest.mark.parametrize("roughness", ROUGHNESS)
 def test_no_configuration_reflects_more_than_it_receives(roughness):
+    """No mix of base colour, metallic and IOR reflects more than it receives at any view (brute-force albedo <=
+    1 + 2e-3), and a white dielectric is a perfect white furnace (albedo 1 within 3e-3)."""
     for base, metallic, ior in [((1, 1, 1), 0.0, 1.5), ((0.9, 0.5, 0.1), 0.5, 1.5), ((1, 1, 1), 0.0, 2.4),
                                 ((0.2, 0.9, 0.9), 1.0, 1.5)]:
         m = Principled(base_color=base, roughness=roughness, metallic=metallic, ior=ior)

@@ -41,6 +41,9 @@ def bounced_scene(rng, bounce: float, truth: np.ndarray, n: int = 400, folds: in
 
 
 def test_level_found_where_light_bounces(rng):
+    """Where light bounces (30 % one-bounce strength), the held-out score fixes the albedo's absolute level:
+    albedo_level finds it within 1 % (+ its tolerance) of the truth from the right chromaticity at the wrong
+    level, and returns its curve in order."""
     truth = np.array([0.7, 0.62, 0.5])
     chroma = truth / truth.mean() * 0.5                               # the convention's level, right colour
     s, determined, curve = albedo_level(bounced_scene(rng, 0.3, truth), chroma)

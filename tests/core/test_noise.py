@@ -25,6 +25,8 @@ def _samples(sigma: float, seed: int = 0):
 
 @pytest.mark.parametrize("sigma", [0.002, 0.02])
 def test_pixel_noise_sigma_recovers_known_noise_despite_highlights(sigma):
+    """pixel_noise_sigma recovers the added noise's sigma within 5 % from images with highlights 2000x the noise
+    and edges, where a residual's spread is over 10x the noise."""
     radiance, ids, pixel = _samples(sigma)
     assert pixel_noise_sigma(radiance, ids, pixel) == pytest.approx(sigma, rel=0.05)
     # a residual RMS would not: the highlights alone are far above the noise
@@ -32,6 +34,8 @@ def test_pixel_noise_sigma_recovers_known_noise_despite_highlights(sigma):
 
 
 def test_pixel_noise_sigma_needs_neighbouring_samples():
+    """Without neighbouring pixels (every other row and column) there is nothing to difference: pixel_noise_sigma
+    is NaN, not a guess."""
     radiance, ids, pixel = _samples(0.01)
     every_other = (pixel[:, 0] % 2 == 0) & (pixel[:, 1] % 2 == 0)
     assert np.isnan(pixel_noise_sigma(radiance[every_other], ids[every_other], pixel[every_other]))
@@ -53,6 +57,7 @@ def test_noise_level_function_recovers_poisson_gaussian_noise(a, b):
 
 
 def test_noise_level_function_needs_neighbouring_samples():
+    """Likewise the noise level function is all NaN without neighbouring pixels."""
     from pipeline.core.noise import noise_level_function
 
     radiance, ids, pixel = _samples(0.01)

@@ -27,6 +27,8 @@ def random_lighting(rng, band=BAND):
 
 
 def test_fourier_round_trip(rng):
+    """Fourier synthesis on 32 circle points then analysis gives a band-8 lighting back to round-off (the
+    trapezoid rule is exact below half the grid)."""
     coeffs = random_lighting(rng)
     theta = pl.circle_grid(32)
     recovered = pl.fourier_coefficients(pl.fourier_synthesis(coeffs, theta), BAND)
@@ -35,6 +37,8 @@ def test_fourier_round_trip(rng):
 
 
 def test_lambert_closed_form_matches_quadrature():
+    """The planar Lambertian filter by quadrature equals its closed form (rho_2p = (-1)^(p+1) / (2 pi (4p^2 -
+    1)), rho_+-1 = 1/8, DESIGN.md) to 1e-13, with only q = 0 non-zero."""
     rho = pl.transfer_coefficients(pl.Lambertian(), 20, 3)
     # Gauss–Legendre integrates cos θ e^{−ipθ} (entire function) to round-off: 1e-13
     np.testing.assert_allclose(rho[:, 3], pl.lambert_filter(20), atol=1e-13)
@@ -56,6 +60,8 @@ def test_lambert_energy_in_low_band():
 
 @pytest.mark.parametrize("brdf", SMOOTH_BRDFS, ids=repr)
 def test_forward_convolution_equals_brute_force(brdf, rng):
+    """For each smooth BRDF the light field by Fourier convolution (B = 2 pi L rho) equals the brute-force
+    integral over incident angles within 1e-6 at 40 random (alpha, theta_o)."""
     lighting = random_lighting(rng)
     rho = pl.transfer_coefficients(brdf, BAND, 128)
     alpha, theta_o = rng.uniform(0, 2 * np.pi, 40), rng.uniform(-np.pi, np.pi, 40)
@@ -79,6 +85,8 @@ def test_forward_convolution_mirror(rng):
 
 
 def test_inverse_lighting_exact_mirror_and_sharp_phong(rng):
+    """Inverse lighting from noise-free fields of a mirror and of a sharp Phong (s = 64) recovers the lighting to
+    1e-8, and the Phong filter is labelled well-conditioned in every band."""
     lighting = random_lighting(rng)
     light_fn = lambda t: pl.fourier_synthesis(lighting, t)  # noqa: E731
     theta_o, weights = pl.visible_quadrature(200)
@@ -97,6 +105,9 @@ def test_inverse_lighting_exact_mirror_and_sharp_phong(rng):
 
 
 def test_lambertian_odd_frequencies_ill_posed(rng):
+    """A Lambertian curve's odd frequencies above 1 are labelled ill-posed and its even ones well-conditioned up
+    to where noise (p^2 - 1) crosses 1 (p = 12 at noise 1e-2); the regularized inverse leaves the ill-posed
+    ones at 0 and recovers |p| <= 2 within 1e-3."""
     band = 12
     rho = pl.transfer_coefficients(pl.Lambertian(), band, 4)
     labels = pl.lighting_conditioning(rho, noise=1e-3, signal=1.0)
@@ -121,6 +132,8 @@ def test_lambertian_odd_frequencies_ill_posed(rng):
 
 
 def test_brdf_estimation_directional_vs_area(rng):
+    """Under a directional source BRDF estimation is a division, exact to round-off and well-conditioned in every
+    band; under a 0.5 rad area source the bands above 6 fall below the noise and are labelled ill-conditioned."""
     phong = pl.Phong(32)
     rho = pl.transfer_coefficients(phong, BAND, 32)
     directional = np.full(2 * BAND + 1, 1 / (2 * np.pi), complex)      # δ(θ): L_p = 1/(2π)
@@ -145,6 +158,8 @@ def _weighted_field(rng, brdf, band_q=BAND + 4):
 
 @pytest.mark.parametrize("brdf", [pl.Phong(16), pl.Microfacet(0.2), pl.Mirror()], ids=repr)
 def test_factorization_noise_free(brdf, rng):
+    """From a noise-free cosine-weighted field, factorize recovers lighting and BRDF kernel up to the one global
+    scale to 1e-6, for Phong, microfacet and mirror."""
     lighting, kernel, observed = _weighted_field(rng, brdf)
     # the observed (GL on the visible half) cosine-weighted field obeys B̃ = 2π L K (round-off)
     assert np.abs(observed - pl.reflect(lighting, kernel)).max() <= 1e-10 * np.abs(observed).max()
@@ -157,6 +172,8 @@ def test_factorization_noise_free(brdf, rng):
 
 
 def test_factorization_degrades_gracefully_with_noise(rng):
+    """The factorization's lighting error grows linearly with the noise (3-30x per decade, over 4 trials) and is
+    never amplified more than 200x (measured 31-37x)."""
     lighting, kernel, observed = _weighted_field(rng, pl.Phong(16))
     errors = []
     for level in (1e-6, 1e-5, 1e-4):
@@ -177,6 +194,8 @@ def test_factorization_degrades_gracefully_with_noise(rng):
 
 
 def test_lambertian_factorization_reports_undetermined(rng):
+    """Factorizing a Lambertian field marks exactly the odd frequencies above 1 undetermined and recovers the
+    determined ones to 1e-8."""
     lighting = random_lighting(rng)
     kernel = pl.transfer_coefficients(pl.Lambertian(), BAND, BAND + 2, cosine_outgoing=True)
     result = pl.factorize(pl.reflect(lighting, kernel))
@@ -187,6 +206,8 @@ def test_lambertian_factorization_reports_undetermined(rng):
 
 
 def test_reflected_angle_spectra_match_seed_approximations():
+    """The spectra in the reflected angle match the seed's Gaussian approximations within 2 %: Phong exp(-p^2/2s)
+    at s = 64, microfacet exp(-(sigma p)^2) at sigma = 0.05."""
     p = pl.frequencies(6)
     # Phong cos^s ≈ exp(−s x²/2) -> exp(−p²/(2s)); the error is O(1/s): 2% at s = 64 for p <= 6
     np.testing.assert_allclose(pl.reflected_angle_spectrum(pl.Phong(64), 6), np.exp(-p**2 / 128), rtol=0.02)

@@ -16,6 +16,7 @@ def power(env: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
 
 
 def test_constant_map_holds_4_pi_times_its_radiance():
+    """A constant map of radiance 2 holds 8 pi of power (4 pi sr x 2) under the equirect solid angles."""
     np.testing.assert_allclose(power(make_envmap("constant", 32, value=2.0)), 8 * np.pi, rtol=1e-6)
 
 
@@ -44,6 +45,9 @@ def test_overcast_sky_integrates_to_its_closed_form():
 
 
 def test_spec_grammar():
+    """An environment spec 'name:key=value,...' parses to its name, height and parameters, and each kind of bad
+    spec (unknown name, missing '=', a non-number, an unknown key, height < 2) is refused with a message
+    naming the fault."""
     assert parse_env_spec("area:n=3,seed=2,height=32") == ("area", 32, {"n": 3.0, "seed": 2.0})
     assert envmap_from_spec("smooth:height=8").shape == (8, 16, 3)
     for spec, words in (("sunny", "unknown environment"), ("area:n", "key=value"), ("area:n=x", "must be a number"),

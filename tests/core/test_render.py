@@ -173,6 +173,8 @@ def test_concave_box_floor_gets_the_view_factor_of_its_opening():
 
 
 def test_light_set_preserves_power_and_isolates_sources():
+    """The light set of a sun+sky map keeps its total power to 1e-6, keeps the sun's brightest pixel alone at
+    full resolution, and stays under coarse cells + 1024 bright directions."""
     env = make_envmap("sun+sky", 64)
     omega = equirect_solid_angles(64)[:, None, None]
     total = (env * omega).sum(axis=(0, 1))
@@ -228,6 +230,7 @@ def test_bright_blocks_the_lobe_cannot_resolve_leave_the_render_as_it_was():
 
 
 def test_every_procedural_env_covers_the_sphere():
+    """Every procedural environment is a finite 16x32 RGB map with a lit ground in its lower rows."""
     for name in ENV_PARAMS:
         env = make_envmap(name, 16)
         assert env.shape == (16, 32, 3)
@@ -236,6 +239,7 @@ def test_every_procedural_env_covers_the_sphere():
 
 
 def test_camera_inside_a_closed_mesh_is_refused():
+    """A camera inside a closed sphere is refused with InsideMeshError rather than rendering its back faces."""
     renderer = Renderer(ray_mesh(sphere(3)), make_envmap("constant", 8), Brdf("lambert", albedo=[0.5] * 3),
                         shadows=False)
     camera = Camera("PINHOLE", 16, 16, (16.0, 16.0, 8.0, 8.0))

@@ -41,6 +41,8 @@ def _integrate(env, brdf, normal, view):
 
 
 def test_chunked_normal_equations_equal_one_shot_least_squares(rng):
+    """Weighted normal equations accumulated in chunks solve to the one-shot weighted least-squares answer (rtol
+    1e-8) per channel, give its residual sum of squares, and count every sample and weight."""
     normal, view, ids = _sphere(rng, 3000)
     brdf = Brdf("phong", albedo=[0.5, 0.4, 0.3], specular=[0.3, 0.3, 0.3], exponent=50.0)
     b = rng.normal(size=(len(normal), 3))
@@ -62,6 +64,8 @@ def test_chunked_normal_equations_equal_one_shot_least_squares(rng):
 
 
 def test_retargeted_normal_equations_equal_fresh_ones(rng):
+    """Normal equations retargeted to new data share the Gram matrix and equal ones built afresh for that data
+    (1e-12), and retargeting to the first data gives its right-hand side back."""
     normal, view, ids = _sphere(rng, 2000)
     brdf = Brdf("phong", albedo=[0.5, 0.4, 0.3], specular=[0.3, 0.3, 0.3], exponent=50.0)
     designs = forward.channel_designs(forward.design_terms(normal, view, 3, True), brdf, 3)
@@ -78,6 +82,8 @@ def test_retargeted_normal_equations_equal_fresh_ones(rng):
     np.testing.assert_allclose(eqs.rhs, eqs.retargeted(designs, first, w, ids % 3).rhs, rtol=1e-12, atol=1e-12)
 
 def test_forward_model_against_numerical_integration(rng):
+    """The frequency-space forward model equals numerical integration of the reflection equation over a 32x64
+    map: Lambert within 0.5 %, R&H Phong within 1 %, the microfacet reflection-space approximation within 5 %."""
     env = _env(32)
     normal, view, _ = _sphere(rng, 400)
     coeffs = project_envmap(env, 24)
@@ -110,6 +116,9 @@ def _lambert_system(rng, noise, n=6000, order=8):
 
 
 def test_lambertian_bands_labelled_and_noise_sweep(rng):
+    """Inverse lighting from a Lambertian sphere labels bands 3, 5, 7 ill-posed (and zeroes band 3), never
+    vouches for bands 4, 6, 8, recovers bands 0-2 with an error that grows smoothly with the noise (< 10 % at
+    10 % noise), and counts fewer recoverable bands as the noise grows (3, 3, 2, 0)."""
     errors, recoverable = [], []
     for noise in (0.0, 0.01, 0.03, 0.1):
         fit, truth = _lambert_system(rng, noise)

@@ -9,6 +9,7 @@ from pipeline.core.surface import barycentric, interpolated_normals
 
 
 def test_barycentrics_recover_the_weights_that_made_the_points(rng):
+    """barycentric() gives back the weights that made 500 random points on an icosphere's triangles, to 1e-12."""
     mesh = trimesh.creation.icosphere(3)
     faces = rng.integers(0, len(mesh.faces), 500)
     weights = rng.dirichlet([1.0, 1.0, 1.0], 500)
@@ -17,6 +18,8 @@ def test_barycentrics_recover_the_weights_that_made_the_points(rng):
 
 
 def test_points_just_outside_are_clipped_and_degenerate_triangles_get_the_centroid():
+    """A point a rounding error outside an edge gets barycentrics on the edge (non-negative, summing to 1), and a
+    zero-area triangle gets the centroid's."""
     tri = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 0, 0], [1, 0, 0], [2, 0, 0]]], float)
     bary = barycentric(tri, np.array([[-1e-9, 0.5, 0.0], [0.5, 0.0, 0.0]]))
     np.testing.assert_allclose(bary[0], [0.5, 0.0, 0.5], atol=1e-8)    # rounding outside the edge: on it
@@ -25,6 +28,7 @@ def test_points_just_outside_are_clipped_and_degenerate_triangles_get_the_centro
 
 
 def test_normals_interpolate_and_fall_back_to_the_face_where_vertex_normals_cancel():
+    """Interpolated vertex normals are normalized, and where they cancel to zero the face normal is used instead."""
     vertex_normals = np.array([[0, 0, 1], [0, 0, 1], [1, 0, 0], [0, 0, -1]], float)
     faces = np.array([[0, 1, 2], [0, 1, 3]])
     face_normals = np.array([[0, 0, 1], [0, 1, 0]], float)

@@ -16,6 +16,8 @@ def sampled_sphere(rng, n: int = 6000):
 
 
 def test_interpolation_reproduces_linear_functions(rng):
+    """The vertex-to-sample interpolation matrix has rows summing to 1 and reproduces x, y, z (linear functions)
+    at the samples to 1e-12."""
     mesh, face, bary = sampled_sphere(rng)
     interp = texture.interpolation_matrix(mesh.faces, face, bary, len(mesh.vertices))
     np.testing.assert_allclose(np.asarray(interp.sum(axis=1)).ravel(), 1.0, atol=1e-12)
@@ -24,6 +26,8 @@ def test_interpolation_reproduces_linear_functions(rng):
 
 
 def test_laplacian_is_symmetric_psd_with_constants_in_its_null_space():
+    """The mesh graph Laplacian is symmetric, positive semi-definite, zero on constants, with each vertex's
+    degree on the diagonal."""
     mesh = trimesh.creation.icosphere(subdivisions=2)
     lap = texture.graph_laplacian(mesh.faces, len(mesh.vertices)).toarray()
     np.testing.assert_allclose(lap, lap.T)
@@ -33,6 +37,8 @@ def test_laplacian_is_symmetric_psd_with_constants_in_its_null_space():
 
 
 def test_uniform_albedo_is_the_weighted_least_squares_ratio(rng):
+    """uniform_albedo is the weighted least-squares ratio sum w s t / sum w s^2 per channel (1e-12), within 0.005
+    of the true albedo at 1 % noise."""
     shade = rng.uniform(0.2, 1.0, (500, 3))
     weight = rng.uniform(0.5, 2.0, 500)
     rho = np.array([0.6, 0.4, 0.2])
