@@ -11,6 +11,8 @@ GOOD = {"model": "principled", "base_color": [0.1, 0.45, 0.15], "roughness": 0.1
 
 
 def test_defaults_and_round_trip(tmp_path):
+    """A principled brdf.json gets metallic 0, IOR 1.5 and a white specular tint by default, writes back with
+    them spelled out, reads back equal, and its diffuse colour is its base colour."""
     brdf = validate_brdf(GOOD)
     assert brdf.metallic == 0.0 and brdf.ior == 1.5 and brdf.specular_tint == (1.0, 1.0, 1.0)
     path = write_brdf(tmp_path / "brdf.json", brdf)
@@ -27,6 +29,8 @@ def test_defaults_and_round_trip(tmp_path):
     ({"roughness": "rough"}, "roughness"),
 ])
 def test_out_of_range_or_unknown_is_one_line_naming_it(change, words):
+    """Each out-of-range value, wrong type or misspelt key is a one-line UserError starting with the file's name
+    and naming the key."""
     with pytest.raises(UserError) as err:
         validate_brdf({**GOOD, **change}, "brdf.json")
     message = str(err.value)
@@ -34,6 +38,8 @@ def test_out_of_range_or_unknown_is_one_line_naming_it(change, words):
 
 
 def test_blender_side_names_are_pointed_to_the_sigrend_model():
+    """The ground truth's Blender-side model names (principled_v2 ..., lambertian) are refused with a message
+    saying which sigrend model to write."""
     with pytest.raises(UserError, match='write "principled"'):
         validate_brdf({"model": "principled_v2 (lambert + dielectric GGX)", "base_color": [0.5] * 3})
     with pytest.raises(UserError, match='write "lambert"'):
@@ -70,6 +76,7 @@ def test_blender_node_inputs_are_read_as_blender_means_them(tmp_path):
 
 
 def test_material_from_blender_gt():
+    """material_from_blender turns the synthetic captures' gt names into sigrend's principled and lambert models."""
     gt = {"model": "principled_v2 (lambert + dielectric GGX)", "base_color": [0.7, 0.45, 0.1], "roughness": 0.3,
           "ior": 1.5, "metallic": 0.0, "specular_tint": [1, 1, 1], "blender": {}}
     assert material_from_blender(gt).model == "principled"

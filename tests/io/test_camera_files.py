@@ -46,6 +46,9 @@ def rendered() -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_dng_decodes_through_rawpy_to_the_rendered_radiance(tmp_path, rendered, rng):
+    """A synthetic DNG is a real RGGB raw to rawpy (black and white levels, shutter, aperture), holds the noisy
+    photosites to 14-bit quantization, and decodes through decode_raw to the rendered radiance without bias (<
+    0.5 %) and with about the photosite noise."""
     radiance, interior = rendered
     exposure = Exposure(time=0.6 * 64.0 / radiance.max(), iso=100.0, fnumber=8.0)  # peak at 0.6 of full scale
     value = add_sensor_noise(sensor_value(radiance, exposure), rng, full_well=FULL_WELL, read_noise=READ)
@@ -71,6 +74,8 @@ def test_dng_decodes_through_rawpy_to_the_rendered_radiance(tmp_path, rendered, 
 
 
 def test_jpeg_exif_exposure_is_readable_and_highlights_clip(tmp_path, rendered):
+    """A synthetic JPEG's EXIF exposure time, f-number and ISO read back, its highlights clip at code 255 as a
+    camera's do, and below clipping its codes are the sRGB curve within 2 codes."""
     radiance, interior = rendered
     exposure = Exposure(time=1 / 250, iso=400.0, fnumber=5.6)
     value = sensor_value(radiance, exposure) * (1.5 / sensor_value(radiance, exposure).max())  # overexposed
@@ -88,6 +93,8 @@ def test_jpeg_exif_exposure_is_readable_and_highlights_clip(tmp_path, rendered):
 
 
 def test_tiff16_and_exr_keep_linear_values(tmp_path, rendered):
+    """A 16-bit TIFF keeps the linear values to quantization with its exposure time, and an EXR keeps the
+    radiance (value / exposure scale) in float."""
     radiance, _ = rendered
     exposure = Exposure(time=0.02, iso=100.0, fnumber=4.0)
     value = np.clip(sensor_value(radiance, exposure) * 0.5 / sensor_value(radiance, exposure).max(), 0, 1)
@@ -99,11 +106,13 @@ def test_tiff16_and_exr_keep_linear_values(tmp_path, rendered):
 
 
 def test_dng_needs_even_size(tmp_path):
+    """A DNG of odd size (no whole Bayer quad) is refused with ValueError."""
     with pytest.raises(ValueError):
         write_dng(tmp_path / "odd.dng", np.zeros((5, 6, 3)), Exposure())
 
 
 def test_no_file_left_behind_on_failure(tmp_path):
+    """A refused DNG write leaves no file behind."""
     with pytest.raises(ValueError):
         write_dng(tmp_path / "odd.dng", np.zeros((5, 6, 3)), Exposure())
     assert list(Path(tmp_path).iterdir()) == []

@@ -29,6 +29,8 @@ board_to_object = [[1, 0, 0, 0.1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
 
 
 def test_full_capture_toml(tmp_path):
+    """Every section of a full capture.toml is read: the camera path, white balance, per-image exposure over the
+    default field by field, brackets and the board's size and placement."""
     (tmp_path / "camera.json").write_text("{}")
     (tmp_path / "capture.toml").write_text(FULL)
     cfg = read_capture_config(tmp_path)
@@ -42,6 +44,7 @@ def test_full_capture_toml(tmp_path):
 
 
 def test_missing_file_gives_defaults(tmp_path):
+    """A capture without capture.toml gets the defaults: no camera, no brackets, no board."""
     cfg = read_capture_config(tmp_path)
     assert cfg.camera is None and cfg.brackets == {} and cfg.board is None
 
@@ -58,12 +61,17 @@ def test_missing_file_gives_defaults(tmp_path):
     ("this is = = not toml", "not valid TOML"),
 ])
 def test_bad_capture_toml(tmp_path, text, match):
+    """Each kind of bad capture.toml (a missing camera file, a zero time, an unknown exposure key, a one-photo
+    bracket, an empty grey patch, markers larger than squares, a board without dictionary, broken TOML) is a
+    UserError saying what is wrong."""
     (tmp_path / "capture.toml").write_text(text)
     with pytest.raises(UserError, match=match):
         read_capture_config(tmp_path)
 
 
 def test_board_file_top_level_keys(tmp_path):
+    """A board file with its keys at the top level reads, placed at the object frame's origin (identity) by
+    default."""
     (tmp_path / "b.toml").write_text('dictionary = "DICT_4X4_50"\nsquares = [5, 4]\nsquare_length = 0.05\n'
                                      'marker_length = 0.04\n')
     board = read_board(tmp_path / "b.toml")
@@ -71,6 +79,8 @@ def test_board_file_top_level_keys(tmp_path):
 
 
 def test_camera_json_round_trip_and_errors(tmp_path):
+    """camera.json round-trips an OPENCV camera exactly, and a PINHOLE with the wrong number of parameters is a
+    UserError naming the model."""
     cam = Camera("OPENCV", 640, 480, (500.0, 501.0, 320.5, 240.5, 0.01, -0.02, 0.0, 0.001))
     write_camera_json(tmp_path / "c.json", cam, rms_px=0.1)
     assert read_camera_json(tmp_path / "c.json") == cam
@@ -80,6 +90,8 @@ def test_camera_json_round_trip_and_errors(tmp_path):
 
 
 def test_response_json_round_trip_and_monotonicity(tmp_path):
+    """response.json keeps the response table to its 8 stored decimals, and a decreasing curve is refused as not
+    non-decreasing."""
     table = srgb_inverse_table()
     write_response_json(tmp_path / "r.json", table, method="test")
     np.testing.assert_allclose(read_response_json(tmp_path / "r.json"), table, atol=1e-8)  # 8 decimals stored

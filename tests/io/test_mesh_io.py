@@ -9,6 +9,7 @@ from pipeline.io.mesh import mesh_path, read_mesh
 
 
 def test_mesh_found_and_read_exactly(tmp_path):
+    """mesh_path finds a capture's mesh.obj and read_mesh reads its 12 faces and extents to OBJ's 7 digits."""
     box = trimesh.creation.box(extents=(0.1, 0.2, 0.3))
     box.export(tmp_path / "mesh.obj")
     assert mesh_path(tmp_path) == tmp_path / "mesh.obj"
@@ -18,6 +19,7 @@ def test_mesh_found_and_read_exactly(tmp_path):
 
 
 def test_mesh_errors_are_user_errors(tmp_path):
+    """No mesh, a missing file and a broken PLY are each a UserError (the last naming mesh.ply), not a traceback."""
     with pytest.raises(UserError, match="no mesh found"):
         mesh_path(tmp_path)
     with pytest.raises(UserError, match="not found"):

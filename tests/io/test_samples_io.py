@@ -28,6 +28,8 @@ def random_samples(rng, n):
 
 
 def test_round_trip_is_exact(tmp_path, rng):
+    """samples.npz round-trips every field with its dtype exactly, with image keys and metadata; plain np.load
+    reads it, and every member is stored uncompressed (memory-mappable)."""
     arrays = random_samples(rng, 101)
     arrays["image_keys"] = ["a.exr", "sub/b.exr"]
     write_samples(tmp_path / "s.npz", arrays, {"drops": {"background": 7}})
@@ -48,6 +50,8 @@ def test_round_trip_is_exact(tmp_path, rng):
 
 @pytest.mark.parametrize("chunk", [1, 7, 50, 1000])
 def test_chunked_write_and_read_match_whole(tmp_path, rng, chunk):
+    """Writing in parts (an empty one included) and reading in chunks of 1 to 1000 rows gives the whole arrays
+    back, in chunks of the asked size."""
     parts = [random_samples(rng, n) for n in (13, 0, 30, 1)]
     with SamplesWriter(tmp_path / "s.npz") as writer:
         for part in parts:
@@ -61,6 +65,7 @@ def test_chunked_write_and_read_match_whole(tmp_path, rng, chunk):
 
 
 def test_compressed_npz_from_numpy_is_read_in_chunks_too(tmp_path, rng):
+    """A compressed npz written by NumPy itself is read in chunks as well."""
     arrays = random_samples(rng, 9)
     np.savez_compressed(tmp_path / "c.npz", **arrays, image_keys=np.array(["x"]), meta=np.array("{}"))
     chunks = list(iter_sample_chunks(tmp_path / "c.npz", chunk=4, fields=["bary"]))
@@ -68,6 +73,7 @@ def test_compressed_npz_from_numpy_is_read_in_chunks_too(tmp_path, rng):
 
 
 def test_failed_write_leaves_nothing(tmp_path, rng):
+    """A write interrupted by an exception leaves no file behind."""
     with pytest.raises(RuntimeError):
         with SamplesWriter(tmp_path / "s.npz") as writer:
             writer.append(random_samples(rng, 3))
@@ -76,6 +82,8 @@ def test_failed_write_leaves_nothing(tmp_path, rng):
 
 
 def test_bad_chunks_and_files(tmp_path, rng):
+    """A chunk whose fields disagree in length is refused naming the field; a missing file and an npz without the
+    samples' fields are UserErrors."""
     bad = random_samples(rng, 3)
     bad["normal"] = bad["normal"][:2]
     with SamplesWriter(tmp_path / "s.npz") as writer, pytest.raises(ValueError, match="normal"):

@@ -15,12 +15,14 @@ from pipeline.io.poses import ImagePose, Poses, read_poses, write_poses
 
 
 def test_exr_round_trip_is_exact_in_float(tmp_path, rng):
+    """A float EXR round-trips bit-exactly."""
     img = rng.random((5, 7, 3)).astype(np.float32)
     write_image(tmp_path / "a.exr", img, dtype="float")
     np.testing.assert_array_equal(read_image(tmp_path / "a.exr"), img)
 
 
 def test_exr_half_round_trip_within_half_precision(tmp_path, rng):
+    """A half EXR of 4 channels round-trips within half precision (relative 2^-11)."""
     img = rng.random((4, 4, 4)).astype(np.float32)
     write_image(tmp_path / "a.exr", img)
     # half floats carry 11 significant bits: relative error <= 2^-11
@@ -28,6 +30,7 @@ def test_exr_half_round_trip_within_half_precision(tmp_path, rng):
 
 
 def test_unreadable_images_raise_user_error(tmp_path):
+    """A missing image and a file that is not an EXR are UserErrors, the latter naming the file."""
     with pytest.raises(UserError, match="not found"):
         read_image(tmp_path / "missing.exr")
     (tmp_path / "bad.exr").write_bytes(b"not an exr")
@@ -36,6 +39,7 @@ def test_unreadable_images_raise_user_error(tmp_path):
 
 
 def test_envmap_shape_and_values_are_checked(tmp_path):
+    """An environment map that is not 2:1 and one with a NaN are refused with messages saying so."""
     write_image(tmp_path / "square.exr", np.ones((8, 8, 3)))
     with pytest.raises(UserError, match="width = 2\\*height"):
         read_envmap(tmp_path / "square.exr")
@@ -47,6 +51,7 @@ def test_envmap_shape_and_values_are_checked(tmp_path):
 
 
 def test_poses_round_trip(tmp_path):
+    """poses.json round-trips cameras, rotations and translations exactly."""
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     poses = Poses({"cam0": Camera("PINHOLE", 64, 48, (50.0, 51.0, 32.0, 24.0))},
                   {"0000.exr": ImagePose("cam0", R, np.array([0.1, 0.2, 1.0]))})
@@ -58,6 +63,7 @@ def test_poses_round_trip(tmp_path):
 
 
 def test_malformed_poses_raise_user_error(tmp_path):
+    """A non-orthonormal rotation and broken JSON in poses.json are UserErrors saying which."""
     doc = {"cameras": {"c": {"model": "PINHOLE", "width": 8, "height": 8, "params": [1, 1, 4, 4]}},
            "images": {"a.exr": {"camera": "c", "R": [[2, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [0, 0, 1]}}}
     (tmp_path / "p.json").write_text(json.dumps(doc))
@@ -69,6 +75,8 @@ def test_malformed_poses_raise_user_error(tmp_path):
 
 
 def test_lighting_sh_round_trip_and_shape_check(tmp_path, rng):
+    """lighting_sh.json round-trips the coefficients exactly, and a file with too few rows for its order is
+    refused naming the count it needs."""
     c = rng.normal(size=(16, 3))
     write_lighting_sh(tmp_path / "l.json", c)
     np.testing.assert_array_equal(read_lighting_sh(tmp_path / "l.json"), c)
@@ -78,6 +86,8 @@ def test_lighting_sh_round_trip_and_shape_check(tmp_path, rng):
 
 
 def test_brdf_spec_and_file(tmp_path):
+    """A --brdf spec string parses to the Brdf, which round-trips through brdf.json; an unknown model and a
+    missing parameter are UserErrors naming them."""
     b = parse_brdf_spec("microfacet:albedo=0.2,0.3,0.5,specular=0.04,roughness=0.2")
     assert b == Brdf("microfacet", albedo=[0.2, 0.3, 0.5], specular=[0.04] * 3, roughness=0.2)
     write_brdf(tmp_path / "b.json", b)
@@ -89,6 +99,8 @@ def test_brdf_spec_and_file(tmp_path):
 
 
 def test_atomic_writes_have_ordinary_permissions(tmp_path):
+    """Files written atomically (through a temporary file) get the ordinary 0666 & ~umask permissions, not the
+    temporary file's 0600."""
     import os
     import stat
 

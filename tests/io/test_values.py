@@ -12,16 +12,19 @@ from pipeline.settings import add_settings_arguments, number, settings_from_args
 
 @pytest.mark.parametrize("text, value", [("1/250", 0.004), ("0.004", 0.004), (" 4e-3 ", 0.004), ("2", 2.0)])
 def test_number_reads_decimals_and_fractions(text, value):
+    """number() reads decimals, exponents and fractions such as 1/250."""
     assert number(text) == pytest.approx(value)
 
 
 @pytest.mark.parametrize("text", ["1/0", "x", "1/", "nan", "inf"])
 def test_number_refuses_what_is_not_a_finite_number(text):
+    """number() refuses division by zero, words, a half fraction, NaN and infinity."""
     with pytest.raises(ValueError):
         number(text)
 
 
 def test_exposure_times_as_fractions_on_the_command_line():
+    """Exposure times on the command line may be fractions (--times 1/250 1/125 0.016)."""
     parser = argparse.ArgumentParser()
     add_settings_arguments(parser, response.Settings)
     settings = settings_from_args(response.Settings, parser.parse_args(["--times", "1/250", "1/125", "0.016"]))
@@ -29,6 +32,7 @@ def test_exposure_times_as_fractions_on_the_command_line():
 
 
 def test_exposure_time_as_a_fraction_in_capture_toml(tmp_path):
+    """An exposure time in capture.toml may be the string '1/250', and a word there is a UserError."""
     (tmp_path / "capture.toml").write_text('[exposure]\ndefault = {time = "1/250", iso = 200}\n')
     assert read_capture_config(tmp_path).exposure_for("a.jpg").time == pytest.approx(0.004)
     (tmp_path / "capture.toml").write_text('[exposure]\ndefault = {time = "fast"}\n')
@@ -37,6 +41,8 @@ def test_exposure_time_as_a_fraction_in_capture_toml(tmp_path):
 
 
 def test_json_ready_makes_what_json_cannot_hold_plain():
+    """json_ready turns NumPy scalars and arrays, paths, tuples and non-string keys into plain JSON, and NaN and
+    infinity into null, so strict json.dumps accepts it."""
     import json
     from pathlib import Path
 
