@@ -39,17 +39,31 @@ import numpy as np
 
 from pipeline.chart import measure_chart
 from pipeline.errors import UserError
-from pipeline.io.camera_decode import Probe, decode_other, decode_raw, probe
+from pipeline.io.camera_decode import (
+    OTHER_BYTES_PER_PIXEL,
+    RAW_DECODE_BYTES_PER_PIXEL,
+    RAW_HELD_BYTES_PER_PIXEL,
+    Probe,
+    decode_other,
+    decode_other_rows,
+    decode_raw,
+    decode_raw16,
+    no_alpha_error,
+    probe,
+    raw_rows_to_float,
+)
 from pipeline.io.camera_files import Exposure
 from pipeline.io.camera_json import read_camera_json
 from pipeline.io.capture_toml import CAPTURE_TOML, CaptureConfig, did_you_mean, read_capture_config
 from pipeline.io.chart_json import chart_path, write_chart
-from pipeline.io.images import read_image, write_image
+from pipeline.io.images import ImageRowReader, ImageRowWriter
 from pipeline.io.linear_manifest import linear_dir, manifest_path, write_manifest
 from pipeline.io.photos import capture_photos
 from pipeline.io.response_json import inverse_table
 from pipeline.logs import progress
-from pipeline.settings import setting, settings_dict
+from pipeline.memory import DEFAULT as DEFAULT_LIMIT
+from pipeline.memory import WORKER_BASE, Budget, band_rows
+from pipeline.settings import memory_limit_setting, setting, settings_dict
 from pipeline.workdir import collected_writes, commit_writes, fingerprints
 
 ROLLOFF = 0.1  # bracket weights fall linearly to 0 over the top 10 % below the saturation level
@@ -65,7 +79,9 @@ class Settings:
                                 "from which a pixel counts as saturated and is masked")
     bracket_size: int = setting(0, "merge every N consecutive images (sorted by name) into one HDR bracket; "
                                 "0 = only the [brackets] of capture.toml")
-    workers: int = setting(0, "worker processes (0 = one per CPU core, 1 = serial)")
+    workers: int = setting(0, "worker processes (0 = one per CPU core, 1 = serial); fewer when --memory-limit "
+                              "leaves room for fewer")
+    memory_limit: str = memory_limit_setting()
 
     def validate(self) -> None:
         parse_wb(self.wb)
@@ -75,6 +91,7 @@ class Settings:
             raise UserError(f"--bracket-size {self.bracket_size}: use 0 (no automatic brackets) or >= 2")
         if self.workers < 0:
             raise UserError(f"--workers {self.workers}: must be >= 0")
+        Budget.of(self.memory_limit)
 
 
 def parse_wb(text: str) -> tuple[str, tuple]:
@@ -195,7 +212,9 @@ def exposure_scales(probes: list[Probe], config: CaptureConfig) -> dict[str, dic
 
 
 def _digest(job: dict) -> str:
-    return hashlib.sha1(json.dumps(job, sort_keys=True).encode()).hexdigest()
+    """The recipe of a job: everything it depends on (its pixel size, known from the files, is not)."""
+    recipe = {k: v for k, v in job.items() if k != "size"}
+    return hashlib.sha1(json.dumps(recipe, sort_keys=True).encode()).hexdigest()
 
 
 def _read_header_entry(exr: Path) -> dict | None:
@@ -227,76 +246,192 @@ def _fresh_entry(job: dict) -> dict | None:
     return header["entry"]
 
 
-def linearize_job(job: dict) -> dict:
+def linearize_job(job: dict, rows: int | None = None) -> dict:
     """Decode, normalize and (for brackets) merge the sources of one output; write EXR + mask.
 
-    Returns the manifest entry.  Runs in a worker process: everything it needs is in ``job``.
+    ``rows``: image rows decoded at a time (None: the whole image at once).  With fewer rows than
+    the image the sources are decoded twice, band by band: once to count the valid pixels the EXR's
+    header records, once to write; the files hold the same values either way (every step is per
+    pixel).  Returns the manifest entry.  Runs in a worker process: everything it needs is in ``job``.
     """
-    merged, valid, sources = job_radiance(job)
     key = job["key"]
-    valid_fraction = np.count_nonzero(valid) / valid.size
-    entry = {"exr": f"{key}.exr", "mask": f"masks/{key}.png", "width": int(merged.shape[1]),
-             "height": int(merged.shape[0]), "sources": sources, "white_balance": job["white_balance"],
-             "saturated_fraction": round(1.0 - valid_fraction, 6), "valid_fraction": round(valid_fraction, 6),
-             "vignetting": job["vignetting"], "response": job["response"] or job["response_curve"]}
-    header = json.dumps({"recipe": _digest(job), "entry": entry})
-    write_image(job["mask"], valid.astype(np.float32), dtype="uint8")
-    write_image(job["exr"], merged, dtype="float", attributes={HEADER_KEY: header})
+    with JobSources(job) as sources:
+        height, width = sources.height, sources.width
+        rows = min(rows or height, height)
+        bands = [(y, min(y + rows, height)) for y in range(0, height, rows)]
+        kept = None
+        for y0, y1 in bands:          # the first pass: counts (and the one band, when it is the image)
+            merged, valid = sources.band(y0, y1, count=True)
+            kept = (merged, valid) if len(bands) == 1 else None
+        valid_fraction = sources.valid_count / (height * width)
+        entry = {"exr": f"{key}.exr", "mask": f"masks/{key}.png", "width": int(width),
+                 "height": int(height), "sources": sources.entries(), "white_balance": job["white_balance"],
+                 "saturated_fraction": round(1.0 - valid_fraction, 6), "valid_fraction": round(valid_fraction, 6),
+                 "vignetting": job["vignetting"], "response": job["response"] or job["response_curve"]}
+        header = json.dumps({"recipe": _digest(job), "entry": entry})
+        if kept is None:
+            sources.rewind()
+        with ImageRowWriter(job["mask"], width, height, 1, dtype="uint8") as mask, \
+                ImageRowWriter(job["exr"], width, height, 3, dtype="float", attributes={HEADER_KEY: header}) as exr:
+            for y0, y1 in bands:
+                merged, valid = kept if kept is not None else sources.band(y0, y1)
+                mask.write(valid.astype(np.float32))
+                exr.write(merged)
     return entry
 
 
 def job_radiance(job: dict) -> tuple[np.ndarray, np.ndarray, list[dict]]:
     """One output's linear radiance (H, W, 3) float32, its valid mask (H, W) and its sources'
-    manifest entries: the sources decoded, scaled and (brackets) merged."""
-    inverse = inverse_table(job["response"], job["response_curve"])
-    gain = read_image(job["vignetting"])[:, :, :3] if job["vignetting"] else None
-    single = len(job["sources"]) == 1
-    num = den = merged = None
-    sources = []
-    for src in job["sources"]:
-        radiance, valid, level, entry = _linear_source(src, job, inverse, gain, want_level=not single)
-        sources.append(entry)
-        if single:  # no merge: the scaled image with its mask
-            merged = radiance
-            break
-        weight = _bracket_weight(valid, level, job["saturation"], src["scale"])
-        num = radiance * weight[:, :, None] if num is None else num + radiance * weight[:, :, None]
-        den = weight if den is None else den + weight
-    if not single:
+    manifest entries: the sources decoded, scaled and (brackets) merged, the whole image at once."""
+    with JobSources(job) as sources:
+        merged, valid = sources.band(0, sources.height, count=True)
+        return merged, valid, sources.entries()
+
+
+def job_bytes(job: dict) -> tuple[int, float]:
+    """A job's memory: (bytes it holds whatever the band, bytes per row of a band).  A RAW source is
+    decoded whole by LibRaw (its 16-bit output kept for the bands); a band's arrays (the decoded rows,
+    radiance, masks, bracket sums, the writers' conversions) cost ~BAND_BYTES_PER_PIXEL per pixel."""
+    raws = sum(src["kind"] == "raw" for src in job["sources"])
+    pixels = job["size"][0] * job["size"][1]
+    fixed = raws and pixels * (RAW_HELD_BYTES_PER_PIXEL * (raws - 1) + RAW_DECODE_BYTES_PER_PIXEL)
+    per_pixel = BAND_BYTES_PER_PIXEL + (OTHER_BYTES_PER_PIXEL + 24) * (len(job["sources"]) - raws) + 24 * raws
+    return int(fixed), float(per_pixel * job["size"][0])
+
+
+BAND_BYTES_PER_PIXEL = 64     # radiance, valid, weights, bracket sums, merged, the mask's float copy
+BAND_CAP = 256 * 10**6        # bytes of a band beyond which a band is not worth a second decode
+
+
+class JobSources:
+    """The sources of a job opened for reading band by band (a RAW file decoded once, its 16-bit
+    output kept; other files read by rows through OpenImageIO), the vignetting gain map with them.
+    ``band(y0, y1)`` -> the merged radiance and valid mask of those rows, as job_radiance computed
+    them for the whole image; with ``count`` it also counts valid pixels and, at the last row,
+    raises the capture's one-line errors (a black or saturated photo)."""
+
+    def __init__(self, job: dict):
+        self.job = job
+        self.inverse = inverse_table(job["response"], job["response_curve"])
+        self.single = len(job["sources"]) == 1
+        self._raw: dict[int, tuple] = {}
+        self._readers: dict[int, ImageRowReader] = {}
+        self._gain: ImageRowReader | None = None
+        self.counts = [0] * len(job["sources"])
+        self.seen = [{"alpha": False, "black": True} for _ in job["sources"]]
+        self.valid_count = 0
+        self.infos: list[dict] = [{} for _ in job["sources"]]
+        self.open()
+
+    def open(self) -> None:
+        job = self.job
+        for i, src in enumerate(job["sources"]):
+            path = Path(src["path"])
+            if src["kind"] == "raw":
+                if i not in self._raw:
+                    rgb16, valid, info, all_black = decode_raw16(path, job["raw_wb"], job["saturation"])
+                    self._raw[i] = (rgb16, valid, all_black)
+                    self.infos[i] = info
+                    self.height, self.width = valid.shape
+            else:
+                self._readers[i] = ImageRowReader(path)
+                self.height, self.width = self._readers[i].height, self._readers[i].width
+        if job["vignetting"]:
+            self._gain = ImageRowReader(job["vignetting"])
+            if (self._gain.width, self._gain.height) != (self.width, self.height):
+                name = Path(job["sources"][0]["path"]).name
+                raise UserError(f"{job['vignetting']}: vignetting map is {self._gain.width}x{self._gain.height} but "
+                                f"{name} is {self.width}x{self.height}; calibrate vignetting with this camera's images")
+
+    def rewind(self) -> None:
+        """Back to the first row (OpenImageIO readers reopened; RAW decodes kept)."""
+        self.close(raw=False)
+        self.open()
+
+    def close(self, raw: bool = True) -> None:
+        for reader in self._readers.values():
+            reader.close()
+        self._readers = {}
+        if self._gain is not None:
+            self._gain.close()
+            self._gain = None
+        if raw:
+            self._raw = {}
+
+    def __enter__(self) -> "JobSources":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def band(self, y0: int, y1: int, count: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        job = self.job
+        gain = self._gain.rows(y0, y1)[:, :, :3] if self._gain is not None else None
+        num = den = None
+        for i, src in enumerate(job["sources"]):
+            radiance, valid, level = self._source_rows(i, src, y0, y1, gain, want_level=not self.single)
+            if count:
+                self.counts[i] += int(np.count_nonzero(valid))
+                if y1 == self.height:
+                    self._check(i, src)
+            if self.single:  # no merge: the scaled image with its mask
+                if count:
+                    self.valid_count += int(np.count_nonzero(valid))
+                return radiance, valid
+            weight = _bracket_weight(valid, level, job["saturation"], src["scale"])
+            num = radiance * weight[:, :, None] if num is None else num + radiance * weight[:, :, None]
+            den = weight if den is None else den + weight
         valid = den > 0
         merged = np.where(valid[:, :, None], num / np.where(valid, den, 1.0)[:, :, None], 0.0).astype(np.float32)
-    return merged, valid, sources
+        if count:
+            self.valid_count += int(np.count_nonzero(valid))
+        return merged, valid
 
+    def _source_rows(self, i: int, src: dict, y0: int, y1: int, gain: np.ndarray | None, want_level: bool):
+        """Rows y0:y1 of source ``i`` as linear radiance (its exposure scale applied, vignetting
+        ``gain`` divided out, saturated pixels 0), their valid mask and the raw level (brackets)."""
+        if src["kind"] == "raw":
+            rgb16, valid, all_black = self._raw[i]
+            rgb = raw_rows_to_float(rgb16[y0:y1])
+            valid = valid[y0:y1]
+            level = rgb.max(axis=2) if want_level else None
+            self.seen[i] = {"alpha": True, "black": all_black}
+        else:
+            rgb, valid, level, info, seen = decode_other_rows(self._readers[i], y0, y1, src["kind"], self.inverse,
+                                                              self.job["saturation"])
+            self.infos[i] = info
+            self.seen[i] = {"alpha": self.seen[i]["alpha"] or seen["alpha"],
+                            "black": self.seen[i]["black"] and seen["black"]}
+            rgb_gains = np.asarray(self.job["rgb_gains"], dtype=np.float32)
+            if np.any(rgb_gains != 1):
+                rgb = rgb * rgb_gains
+        if gain is not None:
+            rgb = rgb / gain
+        radiance = np.multiply(rgb, np.float32(src["scale"]), dtype=np.float32)
+        radiance[~valid] = 0.0
+        return radiance, valid, level
 
-def _linear_source(src: dict, job: dict, inverse, gain: np.ndarray | None, want_level: bool) -> tuple:
-    """One source image of a job decoded to linear radiance (H, W, 3) float32 (its exposure scale
-    applied, vignetting ``gain`` divided out, saturated pixels 0) -> (radiance, valid mask, raw
-    level for the bracket weight or None, its manifest entry).  UserError for an all-black or
-    all-saturated image, or a vignetting map of another size."""
-    path = Path(src["path"])
-    if src["kind"] == "raw":
-        rgb, valid, level, info, all_black = decode_raw(path, job["raw_wb"], job["saturation"], want_level=want_level)
-    else:
-        rgb, valid, level, info, all_black = decode_other(path, src["kind"], inverse, job["saturation"])
-        rgb_gains = np.asarray(job["rgb_gains"], dtype=np.float32)
-        if np.any(rgb_gains != 1):
-            rgb = rgb * rgb_gains
-    if all_black:
-        raise UserError(f"{path}: the image is entirely black; check the lens cap and exposure, or remove it")
-    if not np.count_nonzero(valid):
-        raise UserError(f"{path}: every pixel is saturated; shoot it darker (or bracket it) or remove it")
-    if gain is not None:
-        if gain.shape[:2] != rgb.shape[:2]:
-            raise UserError(f"{job['vignetting']}: vignetting map is {gain.shape[1]}x{gain.shape[0]} but {path.name} "
-                            f"is {rgb.shape[1]}x{rgb.shape[0]}; calibrate vignetting with this camera's images")
-        rgb = rgb / gain
-    entry = {"file": path.name, "format": src["format"], "exposure_time_s": src["exposure_time_s"],
-             "iso": src["iso"], "f_number": src["f_number"], "scale": src["scale"],
-             "black_level": info.get("black_level"), "white_level": info.get("white_level"),
-             "saturated_fraction": round(1.0 - np.count_nonzero(valid) / valid.size, 6)}
-    radiance = np.multiply(rgb, np.float32(src["scale"]), dtype=np.float32)
-    radiance[~valid] = 0.0
-    return radiance, valid, level, entry
+    def _check(self, i: int, src: dict) -> None:
+        """The whole-image errors of source ``i``, once its last row is counted."""
+        path = Path(src["path"])
+        if not self.seen[i]["alpha"]:
+            raise no_alpha_error(path)
+        if self.seen[i]["black"]:
+            raise UserError(f"{path}: the image is entirely black; check the lens cap and exposure, or remove it")
+        if not self.counts[i]:
+            raise UserError(f"{path}: every pixel is saturated; shoot it darker (or bracket it) or remove it")
+
+    def entries(self) -> list[dict]:
+        """The sources' manifest entries (after a counting pass over every row)."""
+        out = []
+        for i, src in enumerate(self.job["sources"]):
+            info = self.infos[i]
+            out.append({"file": Path(src["path"]).name, "format": src["format"],
+                        "exposure_time_s": src["exposure_time_s"], "iso": src["iso"], "f_number": src["f_number"],
+                        "scale": src["scale"], "black_level": info.get("black_level"),
+                        "white_level": info.get("white_level"),
+                        "saturated_fraction": round(1.0 - self.counts[i] / (self.height * self.width), 6)})
+        return out
 
 
 def _bracket_weight(valid: np.ndarray, level: np.ndarray | None, saturation: float, scale: float) -> np.ndarray:
@@ -393,23 +528,25 @@ def build_jobs(capture: Path, work: Path, settings: Settings) -> list[dict]:
             pr = by_name[m.name]
             fmt = "raw" if pr.kind == "raw" else m.suffix.lower().lstrip(".") + ("" if pr.kind == "float" else f"-{pr.kind}")
             sources.append({"path": str(m), "kind": pr.kind, "format": fmt, **exposure[m.name]})
-        jobs.append({"key": key, "sources": sources, "exr": str(folder / f"{key}.exr"),
+        size = (by_name[members[0].name].width, by_name[members[0].name].height)
+        jobs.append({"key": key, "sources": sources, "exr": str(folder / f"{key}.exr"), "size": size,
                      "mask": str(folder / "masks" / f"{key}.png"), "saturation": settings.saturation,
                      "raw_wb": raw_wb, "rgb_gains": rgb_gains, "white_balance": wb_record,
                      "response": str(config.response) if config.response else None,
                      "response_curve": config.response_curve,
                      "vignetting": str(config.vignetting) if config.vignetting else None,
-                     "settings": {k: v for k, v in settings_dict(settings).items() if k != "workers"},
+                     "settings": {k: v for k, v in settings_dict(settings).items()
+                                  if k not in ("workers", "memory_limit")},     # how, not what
                      "orientation": "as stored",   # in the recipe: RAW outputs made when LibRaw turned them are redone
                      "content": {p: content[str(Path(p).resolve())] for p in [str(m) for m in members] + extra}})
     return jobs
 
 
-def _linearize_job_collected(job: dict) -> tuple[dict, list]:
+def _linearize_job_collected(job: dict, rows: int | None = None) -> tuple[dict, list]:
     """linearize_job in a worker process: its files stay under temporary names, handed back to
     the parent so that they are committed with the rest of the stage."""
     with collected_writes() as written:
-        entry = linearize_job(job)
+        entry = linearize_job(job, rows)
     return entry, written
 
 
@@ -434,9 +571,9 @@ def exit_with(stage_pid: int, every_s: float = 0.5) -> None:
     threading.Thread(target=watch, daemon=True, name="exit-with-stage").start()
 
 
-def run_jobs(jobs: list[dict], workers: int, force: bool = False) -> dict[str, dict]:
+def run_jobs(jobs: list[dict], workers: int, force: bool = False, budget: Budget | None = None) -> dict[str, dict]:
     """Run ``linearize_job`` for every job not already fresh (every job with ``force``); serial or
-    in a process pool, with a progress bar."""
+    in a process pool of as many workers as ``budget`` leaves room for, with a progress bar."""
     entries: dict[str, dict] = {}
     todo = []
     for job in jobs:
@@ -448,18 +585,19 @@ def run_jobs(jobs: list[dict], workers: int, force: bool = False) -> dict[str, d
     workers = workers or os.cpu_count() or 1
     if multiprocessing.current_process().daemon:
         workers = 1   # a daemonic process (a Dask worker of `sigrend batch`) may not start children
+    workers, rows = plan_memory(todo, min(workers, max(len(todo), 1)), budget or Budget.of(DEFAULT_LIMIT))
     bar = progress(total=len(todo), desc="linearize", unit="img")
     try:
         if workers == 1 or len(todo) <= 1:
             for job in todo:
-                entries[job["key"]] = linearize_job(job)
+                entries[job["key"]] = linearize_job(job, rows)
                 bar.update()
         else:
             # forkserver, not fork: OpenImageIO's thread pool in this process would deadlock forked children
             context = multiprocessing.get_context("forkserver")
-            with cf.ProcessPoolExecutor(max_workers=min(workers, len(todo)), mp_context=context,
+            with cf.ProcessPoolExecutor(max_workers=workers, mp_context=context,
                                         initializer=exit_with, initargs=(os.getpid(),)) as pool:
-                futures = {pool.submit(_linearize_job_collected, job): job["key"] for job in todo}
+                futures = {pool.submit(_linearize_job_collected, job, rows): job["key"] for job in todo}
                 try:
                     for fut in cf.as_completed(futures):
                         entries[futures[fut]], written = fut.result()
@@ -471,6 +609,32 @@ def run_jobs(jobs: list[dict], workers: int, force: bool = False) -> dict[str, d
     finally:
         bar.close()
     return entries
+
+
+def plan_memory(todo: list[dict], workers: int, budget: Budget) -> tuple[int, int | None]:
+    """(workers, image rows decoded at a time) for ``todo`` within ``budget``: as many of ``workers``
+    as the largest job leaves room for, each with bands of at most BAND_CAP bytes (None: whole
+    images).  UserError (one line: what to reduce) when even one job at a time cannot fit."""
+    if not todo:
+        return 1, None
+    job = max(todo, key=lambda j: job_bytes(j)[0] + job_bytes(j)[1] * j["size"][1])
+    fixed, per_row = job_bytes(job)
+    width, height = job["size"]
+    least = min(height, 16)
+    free = budget.free()
+    need = fixed + least * per_row
+    if need > free:
+        raws = [Path(s["path"]).name for s in job["sources"] if s["kind"] == "raw"]
+        what = (f"{Path(job['sources'][0]['path']).name}: linearizing {'a bracket of ' if len(job['sources']) > 1 else ''}"
+                f"{len(job['sources'])} photo(s) of {width * height / 1e6:.0f} MP")
+        reduce = ("RAW photos are decoded whole by LibRaw: use smaller photos or fewer brackets per image (or "
+                  "JPEG/TIFF files, read by rows)" if raws else "use smaller photos")
+        raise budget.too_small(need, what, reduce)
+    band = min(BAND_CAP, height * per_row)
+    workers = budget.workers(workers, fixed + int(band), processes=workers > 1)
+    share = free // workers - fixed - (WORKER_BASE if workers > 1 else 0)
+    rows = band_rows(width, per_row / width, min(BAND_CAP, max(share, 0)), height, least)
+    return workers, (None if rows >= height else rows)
 
 
 def response_note(jobs: list[dict]) -> str | None:
@@ -491,7 +655,7 @@ def run(*, capture: Path, work: Path, settings: Settings, force: bool = False) -
     jobs = build_jobs(Path(capture), Path(work), settings)
     config = read_capture_config(capture)
     chart = None if config.chart is None else measure_capture_chart(config, jobs, work)   # before the long part
-    entries = run_jobs(jobs, settings.workers, force)
+    entries = run_jobs(jobs, settings.workers, force, Budget.of(settings.memory_limit))
     manifest = write_manifest(work, entries)
     if (note := response_note(jobs)) is not None:
         print(note, file=sys.stderr)

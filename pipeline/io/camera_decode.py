@@ -8,13 +8,15 @@ when it cannot be read.  See stages/linearize.py for the policy (white balance, 
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.io.images import open_image_input, read_image
+from pipeline.io.images import ImageRowReader, open_image_input
 
 RAW_EXTENSIONS = frozenset(
     ".dng .cr2 .cr3 .crw .nef .nrw .arw .srf .sr2 .orf .rw2 .raf .pef .srw .x3f .3fr .iiq .erf .kdc .dcr "
@@ -112,6 +114,23 @@ def decode_raw(path: Path, wb_multipliers: tuple[float, ...], saturation: float,
     ``camera_space``: output the camera's raw RGB instead of sRGB (used to measure a gray card).
     ``want_level``: False skips the level (returned as None; only bracket merging needs it).
     """
+    rgb16, valid, info, all_black = decode_raw16(path, wb_multipliers, saturation, camera_space=camera_space)
+    rgb = raw_rows_to_float(rgb16)
+    return rgb, valid, rgb.max(axis=2) if want_level else None, info, all_black
+
+
+def raw_rows_to_float(rgb16: np.ndarray) -> np.ndarray:
+    """LibRaw's 16-bit output (rows of it) as float32 in [0, 1]: value / 65535."""
+    return np.multiply(rgb16, np.float32(1 / 65535.0), dtype=np.float32)
+
+
+RAW_DECODE_BYTES_PER_PIXEL = 22   # LibRaw's raw (2) + its 4-channel image (8) + the 16-bit output (6) + masks (~6)
+RAW_HELD_BYTES_PER_PIXEL = 7      # what decode_raw16 returns: the 16-bit RGB (6) and the valid mask (1)
+
+
+def decode_raw16(path: Path, wb_multipliers: tuple[float, ...], saturation: float, *, camera_space: bool = False):
+    """decode_raw's work, its 16-bit output kept as it is: (rgb16 uint16 (H, W, 3), valid mask, info,
+    all_black); a third of the float image's memory (decode_raw, raw_rows_to_float band by band)."""
     rawpy = _rawpy()
     wb = list(wb_multipliers) + ([wb_multipliers[1]] if len(wb_multipliers) == 3 else [])
     with _open_raw(path) as raw:
@@ -132,6 +151,7 @@ def decode_raw(path: Path, wb_multipliers: tuple[float, ...], saturation: float,
         levels = np.asarray(white if white is not None and any(white) else [white_level] * 4, dtype=float)
         clipped = visible >= saturation * levels[colors]
         raw_max = int(visible.max())
+        del visible, colors
     import cv2
 
     kernel = np.ones((2 * DEMOSAIC_RADIUS + 1,) * 2, np.uint8)
@@ -139,32 +159,69 @@ def decode_raw(path: Path, wb_multipliers: tuple[float, ...], saturation: float,
     if clipped.shape != rgb16.shape[:2]:
         clipped = cv2.resize(clipped.astype(np.uint8), rgb16.shape[1::-1], interpolation=cv2.INTER_NEAREST) > 0
     clipped |= rgb16.max(axis=2) == 65535  # channels clipped by white balance or the colour matrix
-    rgb = np.multiply(rgb16, np.float32(1 / 65535.0), dtype=np.float32)
     info = {"black_level": black, "white_level": white_level, "raw_max": raw_max}
     all_black = raw_max <= max(black)
-    return rgb, ~clipped, rgb.max(axis=2) if want_level else None, info, all_black
+    return rgb16, ~clipped, info, all_black
 
 
 def decode_other(path: Path, kind: str, inverse_response: np.ndarray, saturation: float):
     """OpenImageIO decode: (rgb linear float32, valid mask, level in [0, 1] or None, info, all_black)."""
-    img = read_image(path)
+    with ImageRowReader(path) as image:
+        rgb, valid, level, info, seen = decode_other_rows(image, 0, image.height, kind, inverse_response, saturation)
+    if not seen["alpha"]:
+        raise no_alpha_error(path)
+    return rgb, valid, level, info, seen["black"]
+
+
+def no_alpha_error(path: Path) -> UserError:
+    return UserError(f"{path}: every pixel is transparent (alpha = 0), so nothing in it can be measured; "
+                     "export it again with the object covered (alpha = coverage) or remove it")
+
+
+@functools.lru_cache(maxsize=1)
+def _oiio_uint8_floats() -> np.ndarray:
+    """(256,) float32: OpenImageIO's float for each 8-bit code (not always code / 255 to the last bit)."""
+    import OpenImageIO as oiio
+
+    buf = oiio.ImageBuf(oiio.ImageSpec(256, 1, 1, "uint8"))
+    buf.set_pixels(oiio.ROI(0, 256, 0, 1, 0, 1, 0, 1), np.arange(256, dtype=np.uint8).reshape(1, 256, 1))
+    return np.asarray(buf.get_pixels("float"), np.float32).ravel()
+
+
+OTHER_BYTES_PER_PIXEL = 48   # decode_other_rows' arrays per pixel of a band: read, codes, linear RGB, masks, level
+
+
+def decode_other_rows(image: ImageRowReader, y0: int, y1: int, kind: str, inverse_response: np.ndarray,
+                      saturation: float):
+    """Rows y0:y1 of an OpenImageIO file decoded as decode_other does the whole image (the same
+    values: every operation is per pixel) -> (rgb, valid, level or None, info, seen) where ``seen``
+    says whether these rows hold an alpha above 0 ("alpha", True without alpha) and whether they are
+    all black ("black")."""
+    has_alpha = image.channels in (2, 4)
+    if kind == "uint8":
+        # the codes themselves (OpenImageIO's float is code / 255 exactly, so rint(float * 255) = code)
+        codes = image.rows(y0, y1, "uint8")
+        alpha = codes[:, :, -1] if has_alpha else None
+        codes = np.repeat(codes[:, :, :1], 3, axis=2) if codes.shape[2] < 3 else codes[:, :, :3]
+        table = np.asarray(inverse_response).astype(np.float32)     # float64 table entries cast, as before
+        lin = np.empty(codes.shape, np.float32)
+        for c in range(3):
+            np.take(table[c], codes[:, :, c], out=lin[:, :, c])
+        top = np.maximum(np.maximum(codes[:, :, 0], codes[:, :, 1]), codes[:, :, 2])   # codes.max(axis=2), faster
+        valid = top < math.ceil(saturation * 255.0)      # code < saturation x 255 for a whole code (saturation <= 1)
+        if alpha is not None:
+            valid &= alpha == 255       # >= 254.5 / 255
+        info = {"black_level": 0, "white_level": 255}
+        level = _oiio_uint8_floats()[top]       # rgb.max(axis=2): the float OpenImageIO gives each code
+        seen = {"alpha": alpha is None or bool(np.any(alpha > 0)), "black": int(top.max(initial=0)) == 0}
+        return lin, valid, level, info, seen
+    img = image.rows(y0, y1)
     # alpha: the last channel of grey+alpha and RGBA files.  Integer files: only opaque pixels are data
     # (a partly transparent pixel mixes in whatever was behind; OIIO also premultiplies it on read);
     # float files: alpha > 0, as EXR writers mark coverage.
-    alpha = img[:, :, -1] if img.shape[2] in (2, 4) else None
-    if alpha is not None and not np.any(alpha > 0):
-        raise UserError(f"{path}: every pixel is transparent (alpha = 0), so nothing in it can be measured; "
-                        "export it again with the object covered (alpha = coverage) or remove it")
+    alpha = img[:, :, -1] if has_alpha else None
     rgb = np.repeat(img[:, :, :1], 3, axis=2) if img.shape[2] < 3 else img[:, :, :3]
     info: dict = {}
-    if kind == "uint8":
-        codes = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.intp)
-        lin = np.stack([inverse_response[c][codes[:, :, c]] for c in range(3)], axis=2).astype(np.float32)
-        valid = np.all(codes < saturation * 255.0, axis=2)
-        if alpha is not None:
-            valid &= alpha >= 254.5 / 255.0
-        info = {"black_level": 0, "white_level": 255}
-        return lin, valid, rgb.max(axis=2), info, int(codes.max()) == 0
     valid = np.all(np.isfinite(rgb), axis=2)
     if kind == "uint16":
         valid &= np.all(rgb < saturation, axis=2)
@@ -174,5 +231,6 @@ def decode_other(path: Path, kind: str, inverse_response: np.ndarray, saturation
         level = None
     if alpha is not None:
         valid &= alpha >= 65534.5 / 65535.0 if kind == "uint16" else alpha > 0
-    all_black = not np.any(np.where(valid[:, :, None], rgb, 0) > 0)
-    return np.ascontiguousarray(rgb, dtype=np.float32), valid, level, info, all_black
+    seen = {"alpha": alpha is None or bool(np.any(alpha > 0)),
+            "black": not np.any(np.where(valid[:, :, None], rgb, 0) > 0)}
+    return np.ascontiguousarray(rgb, dtype=np.float32), valid, level, info, seen

@@ -6,7 +6,9 @@ Arrays are float32, shape (H, W, C), row 0 at the top of the image.  Errors a us
 
 from __future__ import annotations
 
+import contextlib
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +60,22 @@ def read_image(path: str | os.PathLike, *, with_metadata: bool = False):
     return (arr, meta) if with_metadata else arr
 
 
+def _output_spec(width: int, height: int, channels: int, dtype: str, suffix: str, attributes: dict | None):
+    """The ImageSpec write_image and ImageRowWriter write with (one place: the same file either way)."""
+    oiio = _oiio()
+    spec = oiio.ImageSpec(width, height, channels, dtype)
+    if channels == 3:
+        spec.channelnames = ("R", "G", "B")
+    elif channels == 4:
+        spec.channelnames = ("R", "G", "B", "A")
+        spec.alpha_channel = 3
+    if suffix.lower() == ".exr":
+        spec.attribute("compression", "zip")
+    for key, value in (attributes or {}).items():
+        spec.attribute(key, value)
+    return spec
+
+
 def write_image(path: str | os.PathLike, image: np.ndarray, *, dtype: str = "half",
                 attributes: dict | None = None) -> Path:
     """Write (H, W, C) or (H, W) ``image`` atomically; format from the extension.
@@ -71,16 +89,7 @@ def write_image(path: str | os.PathLike, image: np.ndarray, *, dtype: str = "hal
     if img.ndim == 2:
         img = img[:, :, None]
     h, w, c = img.shape
-    spec = oiio.ImageSpec(w, h, c, dtype)
-    if c == 3:
-        spec.channelnames = ("R", "G", "B")
-    elif c == 4:
-        spec.channelnames = ("R", "G", "B", "A")
-        spec.alpha_channel = 3
-    if path.suffix.lower() == ".exr":
-        spec.attribute("compression", "zip")
-    for key, value in (attributes or {}).items():
-        spec.attribute(key, value)
+    spec = _output_spec(w, h, c, dtype, path.suffix, attributes)
     with atomic_path(path) as tmp:
         out = oiio.ImageOutput.create(str(tmp))
         if out is None or not out.open(str(tmp), spec):
@@ -90,6 +99,81 @@ def write_image(path: str | os.PathLike, image: np.ndarray, *, dtype: str = "hal
         if not ok:
             raise OSError(f"cannot write {path}: {out.geterror()}")
     return path
+
+
+class ImageRowReader:
+    """An image read a band of rows at a time (OpenImageIO scanlines: a 45 MP photo need not be
+    decoded whole).  ``with ImageRowReader(path) as image: image.rows(y0, y1)`` -> float32
+    (y1 - y0, W, C) (or ``fmt="uint8"`` etc.), the same values read_image gives for those rows;
+    ``width``, ``height``, ``channels``, ``spec``.  Errors as read_image's."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        self._inp = open_image_input(self.path)
+        self.spec = self._inp.spec()
+        self.width, self.height, self.channels = self.spec.width, self.spec.height, self.spec.nchannels
+
+    def rows(self, y0: int, y1: int, fmt: str = "float") -> np.ndarray:
+        inp = self._inp
+        pixels = inp.read_scanlines(0, 0, self.spec.y + y0, self.spec.y + y1, 0, 0, self.channels, fmt)
+        if pixels is None:
+            raise UserError(f"{self.path}: image data is unreadable ({inp.geterror().strip()}); the file may be truncated")
+        if inp.has_error:   # decoded, but with an error (a truncated JPEG's missing rows come back grey)
+            raise UserError(f"{self.path}: the decoder reported {inp.geterror().strip()!r}; the file is damaged or "
+                            "truncated: copy it again or remove it")
+        dtype = np.float32 if fmt == "float" else None
+        return np.asarray(pixels, dtype=dtype).reshape(y1 - y0, self.width, self.channels)
+
+    def close(self) -> None:
+        if self._inp is not None:
+            self._inp.close()
+            self._inp = None
+
+    def __enter__(self) -> "ImageRowReader":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class ImageRowWriter:
+    """An image written a band of rows at a time, atomically (as write_image: the same spec, the same
+    file): ``with ImageRowWriter(path, width, height, channels, dtype=..., attributes=...) as out:
+    out.write(rows)`` for consecutive bands of (rows, W, C) or (rows, W); every row must be written."""
+
+    def __init__(self, path: str | os.PathLike, width: int, height: int, channels: int, *, dtype: str = "half",
+                 attributes: dict | None = None):
+        self.path, self.width, self.height, self.channels = Path(path), width, height, channels
+        self.spec = _output_spec(width, height, channels, dtype, self.path.suffix, attributes)
+        self.next_row = 0
+
+    def __enter__(self) -> "ImageRowWriter":
+        oiio = _oiio()
+        self._stack = contextlib.ExitStack()
+        tmp = self._stack.enter_context(atomic_path(self.path))
+        self._out = oiio.ImageOutput.create(str(tmp))
+        if self._out is None or not self._out.open(str(tmp), self.spec):
+            self._stack.close()
+            raise OSError(f"cannot write {self.path}: {oiio.geterror()}")
+        return self
+
+    def write(self, rows: np.ndarray) -> None:
+        band = np.ascontiguousarray(rows, dtype=np.float32)
+        band = band.reshape(band.shape[0], self.width, self.channels)
+        y0 = self.next_row
+        if not self._out.write_scanlines(y0, y0 + band.shape[0], 0, band):
+            raise OSError(f"cannot write {self.path}: {self._out.geterror()}")
+        self.next_row += band.shape[0]
+
+    def __exit__(self, kind, value, tb) -> bool:
+        self._out.close()
+        if kind is None and self.next_row != self.height:
+            try:
+                raise RuntimeError(f"{self.path}: {self.next_row} of {self.height} rows written")
+            except RuntimeError:
+                self._stack.__exit__(*sys.exc_info())
+                raise
+        return bool(self._stack.__exit__(kind, value, tb))
 
 
 def read_envmap(path: str | os.PathLike) -> np.ndarray:
