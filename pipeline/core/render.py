@@ -600,16 +600,15 @@ class Renderer:
         out = np.zeros((p, 3))
         rng = self._points_rng(faces, bary)
         per_chunk = max(1, (1 << 16) // max(self.lobe_samples, 1))
-        ns = self.lobe_samples
         for s in range(0, p, per_chunk):
             sl = slice(s, s + per_chunk)
 
-            def seen(dirs: np.ndarray, solid_angle: np.ndarray, ids: np.ndarray, sl: slice = sl) -> np.ndarray:
+            def seen(dirs: np.ndarray, solid_angle: np.ndarray, points: np.ndarray, sl: slice = sl) -> np.ndarray:
                 radiance = self._remainder.lookup(dirs, solid_angle)
                 if self.shadows:
                     pts = self._points_above(faces[sl], bary[sl])
                     hit_face, ray_id, loc = self._shadow_rays.intersects_id(
-                        np.repeat(pts, ns, axis=0)[ids], dirs, multiple_hits=False, return_locations=True)
+                        pts[points], dirs, multiple_hits=False, return_locations=True)
                     on_mesh = hit_face < len(self.mesh.faces)
                     radiance[ray_id] = 0.0
                     if self.interreflection and on_mesh.any():
@@ -617,7 +616,7 @@ class Renderer:
                                                                           -dirs[ray_id[on_mesh]])
                 return radiance
 
-            out[sl] = sampled_lobe(self.material, normals[sl], view_dirs[sl], ns, rng, seen,
+            out[sl] = sampled_lobe(self.material, normals[sl], view_dirs[sl], self.lobe_samples, rng, seen,
                                    None if not self._varying_base else base[sl])
         return out
 

@@ -156,15 +156,15 @@ def diffuse_layer(material: Principled | None, mu_out: np.ndarray) -> np.ndarray
 def sampled_lobe(material: Principled, normal: np.ndarray, view_dir: np.ndarray, n_samples: int,
                  rng: np.random.Generator, seen, base_color: np.ndarray | None = None) -> np.ndarray:
     """The specular lobe by importance sampling (P, 3): sum_s w_s L_s over specular_samples' S
-    samples per point, where ``seen(directions (M, 3), solid_angles (M,), ids (M,))`` gives the
-    radiance L (M, 3) arriving along the M samples of non-zero weight (``ids`` index the P x S
-    samples, point-major: a sample's point is id // S); the other samples see nothing."""
+    samples per point (S is ``n_samples`` rounded to a square), where ``seen(directions (M, 3),
+    solid_angles (M,), points (M,))`` gives the radiance L (M, 3) arriving along the M samples of
+    non-zero weight (``points``: each sample's point, 0..P-1); the other samples see nothing."""
     samples = specular_samples(material, normal, view_dir, n_samples, rng, base_color)
     q, ns = samples.directions.shape[:2]
     dirs = samples.directions.reshape(-1, 3)
     live = np.flatnonzero(samples.weight.reshape(-1, 3).max(axis=1) > 0)
     radiance = np.zeros((q * ns, 3))
-    radiance[live] = seen(dirs[live], samples.solid_angle.reshape(-1)[live], live)
+    radiance[live] = seen(dirs[live], samples.solid_angle.reshape(-1)[live], live // ns)
     return np.einsum("psc,psc->pc", samples.weight, radiance.reshape(q, ns, 3))
 
 
@@ -182,7 +182,7 @@ def sphere_radiance(material: Principled | None, coeffs: np.ndarray, normal: np.
     if material is None:
         return out
 
-    def seen(dirs: np.ndarray, solid_angle: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    def seen(dirs: np.ndarray, solid_angle: np.ndarray, points: np.ndarray) -> np.ndarray:
         return np.maximum(sh_evaluate(coeffs, dirs), 0.0)
 
     return out + sampled_lobe(material, n, v, n_samples, np.random.default_rng(seed), seen)
