@@ -128,6 +128,8 @@ def test_chessboard_board_files(tmp_path):
 
 
 def test_paths_that_are_not_photos(board_file, tmp_path):
+    """A path that does not exist and a single photo (too few to calibrate) each end with exit 2 and a message
+    saying which."""
     proc = calib(tmp_path / "nowhere", "--board", board_file)
     assert proc.returncode == 2 and "no such file or folder" in proc.stderr
     proc = calib(PHOTOS / "left01.jpg", "--board", board_file, "-o", tmp_path / "c.json")

@@ -36,6 +36,8 @@ def bracket(tmp_path_factory):
 
 
 def test_response_recovers_synthetic_curve(bracket, tmp_path):
+    """Debevec's method recovers a synthetic gamma-1.6 response from an 8-bit bracket within 2 % median and 5 %
+    max over codes 16-250 (sRGB is over 20 % off, so the test tells them apart), and writes its plot."""
     method = "debevec"
     out = tmp_path / "response.json"
     response.run(images=bracket, output=out, settings=make_settings(response.Settings, method=method))
@@ -53,6 +55,8 @@ def test_response_recovers_synthetic_curve(bracket, tmp_path):
 
 
 def test_cli_times_option_and_bad_inputs(bracket, tmp_path, capsys):
+    """--times gives the bracket's exposure times on the command line, and a count that does not match the photos
+    ends with exit 2 saying how many are needed."""
     out = tmp_path / "r.json"
     times = [str(t) for t in TIMES]
     assert cli_main(["calib", "response", str(bracket), "-o", str(out), "--times", *times]) == 0
@@ -62,6 +66,7 @@ def test_cli_times_option_and_bad_inputs(bracket, tmp_path, capsys):
 
 
 def test_same_exposure_everywhere_is_a_user_error(tmp_path):
+    """A bracket whose photos all have the same exposure time is a UserError saying so."""
     for i in range(3):
         write_image(tmp_path / f"{i}.png", np.full((8, 8, 3), 0.5), dtype="uint8", attributes={"ExposureTime": 0.1})
     with pytest.raises(UserError, match="same exposure time"):

@@ -18,6 +18,8 @@ def true_gain() -> np.ndarray:
 
 
 def test_flat_field_gain_recovered(tmp_path, rng):
+    """From 4 noisy flats (2 % noise) at different levels the vignetting gain is recovered within 0.5 % RMS and
+    2.5 % at worst (the border, where the fit has most leverage)."""
     gain = true_gain()
     flats = tmp_path / "flats"
     for i, level in enumerate((0.3, 0.5, 0.7, 0.4)):
@@ -34,6 +36,8 @@ def test_flat_field_gain_recovered(tmp_path, rng):
 
 
 def test_noise_free_fit_matches_falloff():
+    """Without noise the degree-8 fit matches the falloff within 0.5 % (measured 0.19 %: the polynomial's
+    approximation error alone)."""
     gain = true_gain()
     got = vignetting.flat_field_gain([(gain, np.ones(gain.shape[:2], bool))], degree=8)
     assert np.abs(got / gain - 1).max() < 0.005  # measured 0.19 %: polynomial approximation error only

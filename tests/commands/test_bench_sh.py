@@ -7,6 +7,8 @@ from pipeline.cli import main as sigrend
 
 
 def test_bench_sh_writes_csv(tmp_path, capsys):
+    """sigrend bench sh --quick writes bench_sh.csv with the evaluation and projection cases at their orders,
+    every value finite and positive, and prints its rates."""
     assert sigrend(["bench", "sh", "--quick", "--repeat", "1", "-o", str(tmp_path)]) == 0
     with open(tmp_path / "bench_sh.csv", newline="") as f:
         rows = list(csv.DictReader(f))

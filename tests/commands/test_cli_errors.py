@@ -7,6 +7,8 @@ from helpers import assert_one_line_error
 
 
 def test_user_error_is_one_line_exit_2(tmp_path):
+    """A user error (a capture that does not exist) is one line on stderr starting 'sigrend: error:', exit code
+    2, no traceback."""
     proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(tmp_path / "nope")],
                           capture_output=True, text=True)
     assert_one_line_error(proc, prefix="sigrend: error:")

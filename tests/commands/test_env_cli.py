@@ -29,6 +29,8 @@ def band_limited(tmp_path_factory):
 
 
 def test_project_then_render_round_trip(band_limited, tmp_path, capsys):
+    """env project recovers a band-limited map's coefficients within the pixel quadrature's 5e-3 and records the
+    source size, and env render draws them back as the map of those coefficients (float32)."""
     path, coeffs = band_limited
     lighting = tmp_path / "lighting_sh.json"
     assert sigrend(["env", "project", str(path), "--order", "4", "-o", str(lighting)]) == 0
@@ -48,6 +50,7 @@ def test_project_then_render_round_trip(band_limited, tmp_path, capsys):
 
 
 def test_render_clamps_ringing_unless_asked(tmp_path):
+    """env render clamps negative radiance (SH ringing) to 0 by default and keeps it with --keep-negative."""
     coeffs = np.zeros((4, 3))
     coeffs[2] = 1.0  # Y_10 ~ z: negative on the lower hemisphere
     lighting = write_lighting_sh(tmp_path / "l.json", coeffs)
@@ -59,7 +62,8 @@ def test_render_clamps_ringing_unless_asked(tmp_path):
 
 @pytest.mark.parametrize("order", [None, "6"])
 def test_irradiance_map_matches_brute_force(tmp_path, order):
-    # smooth env: constant + broad lobe + soft ramp, 32 x 64
+    """env irradiance, at its default order and at order 6, is within 1 % of each channel's largest irradiance of
+    the brute-force sum over the map's pixels."""
     height = 32
     dirs = equirect_directions(height).reshape(-1, 3)
     axis = np.array([0.5, -0.3, 0.8]) / np.linalg.norm([0.5, -0.3, 0.8])
@@ -117,6 +121,8 @@ BAD_CASES = {
 
 @pytest.mark.parametrize("case", sorted(BAD_CASES))
 def test_bad_input_is_one_line_exit_2(bad_inputs, case):
+    """Each bad input to the env commands is one line on stderr with exit 2, and an earlier output file survives
+    the failed run."""
     argv, expected = BAD_CASES[case]
     output = bad_inputs["folder"] / f"{case}.out.exr"
     if argv[1] == "project":

@@ -102,6 +102,7 @@ def shown_actions(parser: argparse.ArgumentParser):
 
 
 def test_every_command_has_a_help(helps):
+    """Every command and subcommand has a --help starting 'usage: sigrend'."""
     for name, (_, _, text) in helps.items():
         assert text.startswith("usage: sigrend"), name
 

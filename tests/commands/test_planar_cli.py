@@ -13,6 +13,7 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
 def test_figures_written(tmp_path, capsys):
+    """sigrend planar figures writes every figure as a real PNG, prints their paths and leaves no temporary file."""
     out = tmp_path / "figs"
     assert main(["planar", "figures", "-o", str(out), "--dpi", "40"]) == 0
     printed = capsys.readouterr().out.split()
@@ -25,6 +26,7 @@ def test_figures_written(tmp_path, capsys):
 
 @pytest.mark.parametrize("args", [["--noise", "-1"], ["--dpi", "5"]])
 def test_bad_arguments_one_line_exit_2(tmp_path, args):
+    """A negative noise and a too-small dpi are one-line errors with exit 2, and no output folder is made."""
     proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "planar", "figures",
                            "-o", str(tmp_path / "f"), *args], capture_output=True, text=True)
     assert_one_line_error(proc.stderr, code=proc.returncode)
@@ -32,6 +34,7 @@ def test_bad_arguments_one_line_exit_2(tmp_path, args):
 
 
 def test_output_is_a_file(tmp_path):
+    """An -o that is an existing file is refused ('not a folder', exit 2) and the file is kept."""
     target = tmp_path / "taken"
     target.write_text("keep me")
     proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "planar", "figures", "-o", str(target)],

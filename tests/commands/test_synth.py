@@ -24,6 +24,9 @@ def board_capture(tmp_path_factory):
 
 
 def test_capture_layout_and_ground_truth(tiny_capture):
+    """synth writes a capture's images, poses for each, and gt/ with the BRDF, the SH lighting, an equirect map
+    and masks; the mesh stands on z = 0 at the asked size, every vertex facing a camera projects inside its
+    mask, and the object is lit there."""
     cap = tiny_capture(views=3, size=(64, 48), brdf="microfacet:albedo=0.2,0.3,0.5,specular=0.04,roughness=0.3")
     keys = sorted(p.name for p in (cap / "images").iterdir())
     assert keys == ["0000.exr", "0001.exr", "0002.exr"]
@@ -54,6 +57,7 @@ def test_capture_layout_and_ground_truth(tiny_capture):
 
 
 def test_poses_json_round_trips(tiny_capture, tmp_path):
+    """The synthetic capture's poses.json round-trips exactly and gt/poses.json is the same file."""
     cap = tiny_capture(views=3, size=(64, 48))
     poses = read_poses(cap / "poses.json")
     again = read_poses(write_poses(tmp_path / "poses.json", poses))
@@ -65,6 +69,8 @@ def test_poses_json_round_trips(tiny_capture, tmp_path):
 
 
 def test_no_poses_brackets_and_camera_formats(tmp_path):
+    """--no-poses keeps poses out of the capture (only in gt/), --brackets 3 writes DNG brackets 2 EV apart in
+    capture.toml and their EXIF, and JPEG and TIFF captures carry an exposure time."""
     out = tmp_path / "cap"
     code = cli_main(["synth", "--mesh", "icosphere", "--views", "2", "--size", "32x24", "--format", "dng",
                      "--brackets", "3", "--no-poses", "--env", "point", "-o", str(out)])
