@@ -87,10 +87,13 @@ def test_microfacet_reflection_is_reciprocal(rng):
                                    rtol=1e-12)
 
 
-def brute_force_albedo(material: Principled, mu_out: float, n_theta: int = 600, n_phi: int = 720) -> np.ndarray:
+def brute_force_albedo(material: Principled, mu_out: float, n_theta: int = 200, n_phi: int = 180) -> np.ndarray:
     """int f cos dω_in by quadrature of the pointwise BSDF (not the tables): the specular part over
     half vectors (dω_in = 4 (w_out.h) dω_h, tan(theta_h) / alpha = x / (1 - x) with Gauss-Legendre in
-    x), the diffuse part over a cosine rule in w_in."""
+    x), the diffuse part over a cosine rule in w_in.  200 x 180 half vectors: over all 64 cases of the
+    two energy tests below within 9.2e-5 of 600 x 720 (the horizon's kink in phi converges slowest),
+    under 5 % of their 2e-3 and 3e-3 tolerances and of the closest case's margin (4.2e-4), in 12 s
+    instead of 139 s."""
     alpha = material.alpha
     wo = np.array([np.sqrt(1 - mu_out ** 2), 0.0, mu_out])
     x, wx = gauss_legendre(n_theta, (0.0, 1.0))
