@@ -33,6 +33,7 @@ from pipeline.io.lighting import lighting_argument, lighting_help
 from pipeline.io.run_summary import HOLDOUT_FIELD, StageResult, samples_holdout, stage_table, summary_lines
 from pipeline.logs import LOGGER
 from pipeline.logs import progress as progress_bar
+from pipeline.memory import Budget
 from pipeline.settings import add_settings_arguments, make_settings, settings_dict, settings_from_args
 from pipeline.workdir import (
     changed_settings,
@@ -159,6 +160,7 @@ class RunPlan:
     holdout: int
     relight_envs: list[str]
     export: str = ""          # the asset file `sigrend run --export` ends with ("": none)
+    memory_limit: str = ""    # --memory-limit for the stages that have one ("": their default)
 
 
 def _stage_range(first: str, last: str) -> list[str]:
@@ -178,6 +180,7 @@ def run_pipeline(plan: RunPlan, progress: bool = True) -> list[StageResult]:
     names = _stage_range(plan.first, plan.last)
     results: list[StageResult] = []
     common = dict(capture=plan.capture, work=plan.work)
+    limit = {"memory_limit": plan.memory_limit} if plan.memory_limit else {}   # stages without one drop it
     # no bar when stderr is not a terminal (a log file: pipeline.logs.progress); on an error the bar
     # is erased so the error stays the one line of stderr
     bar = progress_bar(names, desc="sigrend run", unit="stage", enabled=progress)
@@ -186,12 +189,12 @@ def run_pipeline(plan: RunPlan, progress: bool = True) -> list[StageResult]:
             bar.set_postfix_str(name)
             if name == "samples" and supports_holdout():
                 held = heldout_keys(image_keys(plan.capture, plan.work), plan.holdout)
-                settings = stage_settings("samples", **{HOLDOUT_FIELD: tuple(held)})
+                settings = stage_settings("samples", **{HOLDOUT_FIELD: tuple(held)}, **limit)
                 results.append(run_stage("samples", settings=settings, force=plan.force, **common))
             elif name == "relight":
                 results.extend(_relight_runs(plan))
             else:
-                settings = stage_settings(name)
+                settings = stage_settings(name, **limit)
                 _say_if_replacing(plan.work, name, settings)
                 results.append(run_stage(name, settings=settings, force=plan.force, **common))
         if plan.export:       # the run ends with the asset: one more row of the stage table
@@ -261,6 +264,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true", help="run the stages even if their outputs are fresh")
     parser.add_argument("--holdout", type=int, default=4, metavar="N",
                         help="leave every N-th view out of the fit and report the relight error on them (0: none)")
+    parser.add_argument("--memory-limit", metavar="SIZE", default="",
+                        help="peak memory of each stage that streams photos (linearize, samples), its workers included: "
+                             "8GB, 512MB, 16GiB or a share of the RAM, 50%% (default: each stage's, 50%%); a capture "
+                             "that cannot fit stops with one line saying what to reduce")
     parser.add_argument("--no-report", dest="report", action="store_false", help="do not write WORK/report.html")
     formats = ", ".join(importlib.import_module("stages.export").WRITERS)
     parser.add_argument("--export", metavar="ASSET", default="",
@@ -309,7 +316,9 @@ def main(args: argparse.Namespace) -> int:
             raise UserError(f"--export needs the fit: drop --to {args.last} (or use --to fit)")
         export = str(Path(args.export).resolve())
         stage_settings("export", out=export)     # a bad suffix is a one-line error before any stage runs
-    plan = RunPlan(capture, work, args.first, args.last, args.force, args.holdout, relight, export)
+    if args.memory_limit:
+        Budget.of(args.memory_limit)      # a bad size is one line before any stage runs
+    plan = RunPlan(capture, work, args.first, args.last, args.force, args.holdout, relight, export, args.memory_limit)
     record = run_capture(plan, report=args.report)
     print(record["table"])
     for line in summary_lines(work):

@@ -28,6 +28,11 @@ below its own threshold (``min_visibility`` is recorded in the meta as the recom
 
 from __future__ import annotations
 
+import concurrent.futures as cf
+import functools
+import os
+import shutil
+import tempfile
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -35,21 +40,22 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays, project
 from pipeline.core.brdf import reflect
+from pipeline.core.camera import Camera, camera_center, pixel_centers, pixel_rays, project
 from pipeline.core.coverage import EqualAreaGrid, coverage_stats
 from pipeline.core.surface import POINT_LIFT, lifted
 from pipeline.errors import UserError
 from pipeline.io.camera_decode import probe
 from pipeline.io.camera_files import Exposure
-from pipeline.io.linear_manifest import LINEAR_SUFFIXES, image_source, linear_manifest, load_linear_image
+from pipeline.io.linear_manifest import LINEAR_SUFFIXES, LinearImageRows, image_source, linear_manifest
 from pipeline.io.mesh import check_mesh_quality, mesh_path, read_mesh
 from pipeline.io.poses import Poses, poses_path, read_poses
 from pipeline.io.samples import SAMPLE_FIELDS, SamplesWriter
 from pipeline.logs import progress
+from pipeline.memory import Budget
 from pipeline.raycast import first_hits, occluded
-from pipeline.settings import setting, settings_dict
-from pipeline.workdir import atomic_path, write_json
+from pipeline.settings import memory_limit_setting, setting, settings_dict
+from pipeline.workdir import SPOOL_MARK, atomic_path, write_json
 
 DROP_REASONS = ("background", "silhouette_edge", "hidden", "grazing", "masked", "max_samples")
 
@@ -65,9 +71,12 @@ class Settings:
     stride: int = setting(1, "use every stride-th pixel in rows and columns (1: every pixel)")
     max_samples: int = setting(0, "keep at most this many samples, drawn uniformly per image (0: no limit)")
     chunk_pixels: int = setting(262144, "pixels ray cast at a time (bounds memory)")
-    seed: int = setting(0, "random seed of the max_samples subsampling")
+    seed: int = setting(0, "random seed of the max_samples subsampling (image i draws from the seed and i)")
     holdout: tuple[str, ...] = setting((), "image keys left out of the samples (held out to validate the fit; "
                                            "listed in the meta as 'holdout')")
+    workers: int = setting(0, "images sampled at once, in threads (0 = one per CPU core); fewer when --memory-limit "
+                              "leaves room for fewer")
+    memory_limit: str = memory_limit_setting()
 
     def validate(self) -> None:
         if not 0.0 <= self.min_cos < 1.0:
@@ -86,6 +95,9 @@ class Settings:
             raise UserError(f"--max-samples must be >= 0 (0: no limit), got {self.max_samples}")
         if self.chunk_pixels < 1:
             raise UserError(f"--chunk-pixels must be >= 1, got {self.chunk_pixels}")
+        if self.workers < 0:
+            raise UserError(f"--workers must be >= 0 (0: one per CPU core), got {self.workers}")
+        Budget.of(self.memory_limit)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -238,12 +250,14 @@ def _edge_mask(hit: np.ndarray, depth: np.ndarray, footprint: np.ndarray, settin
     return hit & (_dilate(~hit, settings.edge_px) | _dilate(jump, settings.edge_px - 1) | jump)
 
 
-def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, rgb: np.ndarray, weight: np.ndarray,
-                 image_id: int, settings: Settings, visibility: np.ndarray, progress=None):
+def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, image, image_id: int, settings: Settings,
+                 visibility: np.ndarray, progress=None):
     """Samples of one image, chunk by chunk.
 
-    Yields ``(arrays, drops)``: a dict with every field of SAMPLE_FIELDS for the kept pixels of one
-    chunk of rows, and a dict reason -> count of the dropped pixels of that chunk.
+    ``image``: the photo's rows, read as needed (``image.rows(y0, y1)`` -> (rgb, weight), e.g.
+    pipeline.io.linear_manifest.LinearImageRows, or ArrayRows of arrays in memory): a chunk reads
+    only its own rows.  Yields ``(arrays, drops)``: a dict with every field of SAMPLE_FIELDS for the
+    kept pixels of one chunk of rows, and a dict reason -> count of the dropped pixels of that chunk.
     """
     s = settings.stride
     rows, cols = np.arange(0, camera.height, s), np.arange(0, camera.width, s)
@@ -261,11 +275,24 @@ def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, rgb: np.nda
         hit_in, edge_in = hit[inner].ravel(), edge[inner].ravel()
         cand = np.arange(hit.size).reshape(hit.shape)[inner].ravel()[hit_in & ~edge_in]
         pixels = np.stack([rows[lo:hi][cand // len(cols)], cols[cand % len(cols)]], axis=1)
-        arrays, dropped = _pixel_samples(mesh, hits, at[cand], pixels, centre, rgb, weight, image_id, settings,
-                                         visibility)
+        first = int(rows[start])
+        rgb, weight = image.rows(first, int(rows[stop - 1]) + 1)   # this chunk's rows of the photo only
+        band = (rgb[::s, ::s], weight[::s, ::s], first)
+        arrays, dropped = _pixel_samples(mesh, hits, at[cand], pixels, centre, band, image_id, settings, visibility)
         if progress is not None:
             progress.update(stop - start)
         yield arrays, {"background": int((~hit_in).sum()), "silhouette_edge": int(edge_in.sum()), **dropped}
+
+
+class ArrayRows:
+    """A photo already in memory as sample_image's ``image``: rows(y0, y1) of (rgb, weight)."""
+
+    def __init__(self, rgb: np.ndarray, weight: np.ndarray):
+        self.rgb, self.weight = rgb, weight
+        self.height, self.width = weight.shape
+
+    def rows(self, y0: int, y1: int) -> tuple[np.ndarray, np.ndarray]:
+        return self.rgb[y0:y1], self.weight[y0:y1]
 
 
 def _grid_hits(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, grid_rows: np.ndarray, cols: np.ndarray):
@@ -287,11 +314,13 @@ def _grid_hits(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, grid_rows: np
     return h, hit.reshape(shape), depth.reshape(shape), at
 
 
-def _pixel_samples(mesh, hits, row: np.ndarray, pixels: np.ndarray, centre: np.ndarray, rgb: np.ndarray,
-                   weight: np.ndarray, image_id: int, settings: Settings, visibility: np.ndarray) -> tuple[dict, dict]:
+def _pixel_samples(mesh, hits, row: np.ndarray, pixels: np.ndarray, centre: np.ndarray, band: tuple,
+                   image_id: int, settings: Settings, visibility: np.ndarray) -> tuple[dict, dict]:
     """The samples of the pixels (P, 2) (row, column) whose rays hit the mesh at ``hits``' rows
     ``row`` (P,), left out where the surface faces away (hidden), is seen at n.v < min_cos (grazing)
-    or the pixel's weight is 0 (masked) -> (SAMPLE_FIELDS arrays of the kept ones, drop counts)."""
+    or the pixel's weight is 0 (masked) -> (SAMPLE_FIELDS arrays of the kept ones, drop counts).
+    ``band``: (rgb, weight) of the strided grid's rows from photo row ``first`` on, and ``first``."""
+    rgb, weight, first = band
     f, p, bary, normal = hits.face[row], hits.point[row], hits.bary[row], hits.normal[row]
     view = centre - p
     view /= np.linalg.norm(view, axis=1, keepdims=True)
@@ -299,12 +328,13 @@ def _pixel_samples(mesh, hits, row: np.ndarray, pixels: np.ndarray, centre: np.n
     hidden = (np.sum(np.asarray(mesh.face_normals, float)[f] * view, axis=1) <= 0) | (cos <= 0)
     grazing = ~hidden & (cos < settings.min_cos)
     pix_r, pix_c = pixels[:, 0], pixels[:, 1]
-    w = weight[pix_r, pix_c]
+    band_r, band_c = (pix_r - first) // settings.stride, pix_c // settings.stride
+    w = weight[band_r, band_c]
     masked = ~hidden & ~grazing & (w <= 0)
     k = ~(hidden | grazing | masked)
     vis = np.einsum("nk,nk->n", bary[k], visibility[np.asarray(mesh.faces)[f[k]]])
     arrays = {
-        "point": p[k], "normal": normal[k], "view_dir": view[k], "radiance": rgb[pix_r[k], pix_c[k]],
+        "point": p[k], "normal": normal[k], "view_dir": view[k], "radiance": rgb[band_r[k], band_c[k]],
         "image_id": np.full(int(k.sum()), image_id), "pixel": np.stack([pix_r[k], pix_c[k]], axis=1),
         "face": f[k], "bary": bary[k], "weight": w[k], "visibility": vis,
     }
@@ -344,6 +374,7 @@ class _Reservoir:
 def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     capture, work = Path(capture), Path(work)
     started = time.perf_counter()
+    budget = Budget.of(settings.memory_limit)
     mesh_file = mesh_path(capture)
     pose_file = poses_path(capture, work)
     poses = read_poses(pose_file)
@@ -355,20 +386,34 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     for line in mesh_warnings:
         warnings.warn(line, UserWarning, stacklevel=2)
     visibility = vertex_visibility(mesh, settings.visibility_rays, settings.chunk_pixels)
+    workers = sampling_workers(budget, poses, keys, settings)
+    for cached in ("triangles", "vertex_normals", "face_normals", "ray"):   # trimesh's lazy caches, made before
+        getattr(mesh, cached)                                              # any thread reads them
     tally = Tally(settings.min_visibility)
-    rng = np.random.default_rng(settings.seed)
     cap = -(-settings.max_samples // len(keys)) if settings.max_samples else 0
     out_npz = work / "samples.npz"
+
+    def open_image(key: str) -> LinearImageRows:
+        image = LinearImageRows(capture, work, key, manifest, scales[key])
+        camera = poses.camera_of(key)
+        if (image.height, image.width) != (camera.height, camera.width):
+            image.close()
+            raise UserError(f"{image.name}: image is {image.width}x{image.height} but its camera "
+                            f"{poses.images[key].camera!r} in {pose_file} is {camera.width}x{camera.height}")
+        return image
+
+    def sample(image_id: int, key: str, sink) -> tuple[dict, int]:
+        reservoir = _Reservoir(cap, np.random.default_rng([settings.seed, image_id])) if cap else None
+        with open_image(key) as image:
+            return sample_view(sink, mesh, poses, key, image_id, image, visibility, settings, reservoir)
+
     with SamplesWriter(out_npz) as writer:
-        for image_id, key in enumerate(keys):
-            rgb, weight, name = load_linear_image(capture, work, key, manifest, scales[key])
-            camera = poses.camera_of(key)
-            if rgb.shape[:2] != (camera.height, camera.width):
-                raise UserError(f"{name}: image is {rgb.shape[1]}x{rgb.shape[0]} but its camera "
-                                f"{poses.images[key].camera!r} in {pose_file} is {camera.width}x{camera.height}")
-            tally.images[key] = {**sample_view(writer, tally, mesh, poses, key, image_id, rgb, weight, visibility,
-                                               settings, _Reservoir(cap, rng) if cap else None),
-                                 "exposure_scale": scales[key]}
+        record = functools.partial(tally.record, writer)
+        if workers == 1:
+            for image_id, key in enumerate(keys):
+                tally.add_view(key, *sample(image_id, key, record), scales[key])
+        else:
+            _sample_in_threads(work, keys, workers, sample, record, tally, scales)
         if not tally.sees_outside:
             raise UserError(f"{mesh_file}: no pixel of any image sees the outside of the mesh: "
                             f"{_units_hint(mesh, poses, tally.drops)}")
@@ -385,6 +430,89 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     png = plot_coverage(work / "samples_coverage.png", tally.grid, tally.normal_hist, tally.reflect_hist,
                         summary["coverage"])
     return [out_npz, summary_path, png]
+
+
+RAY_BYTES = 1100    # per ray of a chunk: origins, directions, hits, depth, masks, the kept samples (tracemalloc)
+
+
+def image_bytes(width: int, settings: Settings) -> int:
+    """The memory one image's sampling holds at a time: a chunk of rays and the photo's rows under it."""
+    rays = max(settings.chunk_pixels, -(-width // settings.stride))
+    rows = -(-rays // -(-width // settings.stride)) * settings.stride + 2 * settings.edge_px + 2
+    return int(rays * RAY_BYTES + rows * width * LinearImageRows.BYTES_PER_PIXEL)
+
+
+def sampling_workers(budget: Budget, poses: Poses, keys: list[str], settings: Settings) -> int:
+    """Images sampled at once: --workers (0: one per core), fewer when the budget leaves room for
+    fewer; UserError (one line: what to reduce) when one image at a time does not fit."""
+    width = max(poses.camera_of(k).width for k in keys)
+    height = max(poses.camera_of(k).height for k in keys)
+    each = image_bytes(width, settings)
+    if each > budget.free():
+        raise budget.too_small(each, f"sampling {width}x{height} photos {settings.chunk_pixels} pixels at a time",
+                               "lower --chunk-pixels (or sample every 2nd pixel, --stride 2; or simplify the mesh)")
+    wanted = settings.workers or os.cpu_count() or 1
+    return int(min(len(keys), budget.workers(wanted, each, processes=False)))
+
+
+def _sample_in_threads(work: Path, keys: list[str], workers: int, sample, record, tally: "Tally", scales: dict) -> None:
+    """Every image's sampling in a pool of ``workers`` threads (Embree and NumPy's large operations
+    release the GIL), each into a spool of its own on disk; the spools are copied into the samples
+    in image order, chunk by chunk as they were made, so samples.npz and the summary are the serial
+    run's to the bit."""
+    folder = Path(tempfile.mkdtemp(prefix=".samples.", suffix=SPOOL_MARK, dir=work))
+    try:
+        def job(image_id: int, key: str):
+            spool = _Spool(folder / f"{image_id}")
+            try:
+                drops, kept = sample(image_id, key, spool.append)
+            finally:
+                spool.close()
+            return drops, kept, spool
+
+        with cf.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="samples") as pool:
+            futures = [pool.submit(job, image_id, key) for image_id, key in enumerate(keys)]
+            try:
+                for key, future in zip(keys, futures):
+                    drops, kept, spool = future.result()
+                    spool.replay(record)
+                    tally.add_view(key, drops, kept, scales[key])
+            except BaseException:
+                pool.shutdown(wait=True, cancel_futures=True)
+                raise
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+class _Spool:
+    """One image's sample chunks on disk (a raw file per field, the chunks' lengths in memory)."""
+
+    def __init__(self, folder: Path):
+        folder.mkdir()
+        self.folder, self.lengths = folder, []
+        self._files = {f: open(folder / f"{f}.bin", "wb") for f in SAMPLE_FIELDS}
+
+    def append(self, arrays: dict) -> int:
+        for name, arr in arrays.items():
+            self._files[name].write(np.ascontiguousarray(arr, dtype=SAMPLE_FIELDS[name][0]).tobytes())
+        self.lengths.append(len(arrays["image_id"]))
+        return self.lengths[-1]
+
+    def close(self) -> None:
+        for f in self._files.values():
+            f.close()
+
+    def replay(self, record) -> None:
+        """``record`` every chunk again, as it was appended; then the files are removed."""
+        files = {f: open(self.folder / f"{f}.bin", "rb") for f in SAMPLE_FIELDS}
+        try:
+            for n in self.lengths:
+                record({f: np.fromfile(files[f], dtype=dtype, count=n * int(np.prod(tail, dtype=int))).reshape(n, *tail)
+                        for f, (dtype, tail) in SAMPLE_FIELDS.items()})
+        finally:
+            for f in files.values():
+                f.close()
+            shutil.rmtree(self.folder, ignore_errors=True)
 
 
 def sampled_keys(poses: Poses, pose_file: Path, holdout) -> list[str]:
@@ -438,6 +566,15 @@ class Tally:
         self.visibility_sum += float(arrays["visibility"].sum())
         return len(arrays["image_id"])
 
+    def add_view(self, key: str, drops: dict, kept: int, exposure_scale: float) -> None:
+        """A view's drops and kept count (sample_view) into the totals and its samples_summary.json entry."""
+        considered = kept + sum(drops.values())
+        # pixels that reached the hidden test and passed it: the camera sees the mesh's outside
+        self.sees_outside |= considered - drops["background"] - drops["silhouette_edge"] - drops["hidden"] > 0
+        for reason, count in drops.items():
+            self.drops[reason] += count
+        self.images[key] = {"pixels": considered, "kept": kept, "drops": drops, "exposure_scale": exposure_scale}
+
     def summary(self, count: int, settings: Settings) -> dict:
         return {"count": count, "pixels": sum(v["pixels"] for v in self.images.values()), "drops": self.drops,
                 "coverage": {"grid": {"type": "equal-area z-phi", "n_bands": self.grid.n_bands,
@@ -449,32 +586,27 @@ class Tally:
                                "min_visibility": settings.min_visibility, "below_min_visibility": self.visibility_low}}
 
 
-def sample_view(writer: SamplesWriter, tally: Tally, mesh, poses: Poses, key: str, image_id: int, rgb: np.ndarray,
-                weight: np.ndarray, visibility: np.ndarray, settings: Settings, reservoir: "_Reservoir | None") -> dict:
-    """One view's samples (sample_image) written and counted (through ``reservoir`` when
-    --max-samples caps them); -> its samples_summary.json entry (pixels, kept, drops)."""
+def sample_view(sink, mesh, poses: Poses, key: str, image_id: int, image, visibility: np.ndarray, settings: Settings,
+                reservoir: "_Reservoir | None") -> tuple[dict, int]:
+    """One view's samples (sample_image) handed to ``sink`` chunk by chunk (through ``reservoir``
+    when --max-samples caps them) -> (drops per reason, samples kept)."""
     pose, camera = poses.images[key], poses.camera_of(key)
     drops = dict.fromkeys(DROP_REASONS, 0)
     kept = 0
     with progress(total=len(range(0, camera.height, settings.stride)), desc=f"samples {key}", unit="row",
                   leave=False) as bar:
-        for arrays, chunk_drops in sample_image(mesh, camera, pose.R, pose.t, rgb, weight, image_id, settings,
+        for arrays, chunk_drops in sample_image(mesh, camera, pose.R, pose.t, image, image_id, settings,
                                                 visibility, progress=bar):
             for reason, count in chunk_drops.items():
                 drops[reason] += count
             if reservoir is not None:
                 reservoir.add(arrays)
             else:
-                kept += tally.record(writer, arrays)
+                kept += sink(arrays)
     if reservoir is not None and reservoir.rows is not None:
         drops["max_samples"] = reservoir.seen - len(reservoir.keys)
-        kept += tally.record(writer, reservoir.rows)
-    considered = kept + sum(drops.values())
-    # pixels that reached the hidden test and passed it: the camera sees the mesh's outside
-    tally.sees_outside |= considered - drops["background"] - drops["silhouette_edge"] - drops["hidden"] > 0
-    for reason, count in drops.items():
-        tally.drops[reason] += count
-    return {"pixels": considered, "kept": kept, "drops": drops}
+        kept += sink(reservoir.rows)
+    return drops, kept
 
 
 def plot_coverage(path: Path, grid: EqualAreaGrid, normal_hist: np.ndarray, reflect_hist: np.ndarray,

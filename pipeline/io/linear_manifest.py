@@ -129,3 +129,73 @@ def load_linear_image(capture: Path, work: Path, key: str, manifest: dict | None
         raise UserError(f"{name}: {int(bad.sum())} pixels are NaN or Inf; re-export the image "
                         "(or mask those pixels) and run again")
     return rgb, weight, name
+
+
+class LinearImageRows:
+    """load_linear_image a band of rows at a time: ``rows(y0, y1)`` -> (rgb (y1 - y0, W, 3) float32,
+    weight (y1 - y0, W) float32), the values load_linear_image gives for those rows (every step is
+    per pixel), so a 45 MP photo is never held whole.  ``width``, ``height``, ``name`` (the file read).
+    The same errors: a missing or non-linear capture image at opening, NaN or Inf in an unmasked
+    pixel when its band is read (the count is the whole image's)."""
+
+    BYTES_PER_PIXEL = 40     # the rows read (RGB(A) float32), weight, mask, the finite test's booleans
+
+    def __init__(self, capture: Path, work: Path, key: str, manifest: dict | None, scale: float = 1.0):
+        from pipeline.io.images import ImageRowReader
+
+        self.capture, self.work, self.key, self.manifest, self.scale = capture, work, key, manifest, scale
+        self.name = image_source(capture, work, key, manifest)
+        self._mask = None
+        if manifest is not None:
+            entry = manifest["images"][resolve_key(manifest, key)]
+            folder = linear_dir(work)
+            self._image = ImageRowReader(folder / entry["exr"])
+            self._mask = ImageRowReader(folder / entry["mask"])
+            if (self._mask.width, self._mask.height) != (self._image.width, self._image.height):
+                self.close()
+                raise UserError(f"{folder / entry['mask']}: mask size differs from its image; run linearize --force")
+        else:
+            if not self.name.exists():
+                raise UserError(f"{self.name}: image listed in poses.json is missing from the capture; "
+                                "restore it or remove it from poses.json")
+            if self.name.suffix.lower() not in LINEAR_SUFFIXES:
+                raise UserError(f"{self.name}: not a linear image ({self.name.suffix}); run `sigrend linearize` first")
+            self._image = ImageRowReader(self.name)
+        self.width, self.height = self._image.width, self._image.height
+
+    def rows(self, y0: int, y1: int) -> tuple[np.ndarray, np.ndarray]:
+        rgb, weight = self._rows(y0, y1)
+        bad = ~np.all(np.isfinite(rgb), axis=2) & (weight > 0)
+        if bad.any():
+            count = int(bad.sum()) + sum(self._bad(y, min(y + 256, self.height)) for y in range(y1, self.height, 256))
+            raise UserError(f"{self.name}: {count} pixels are NaN or Inf; re-export the image "
+                            "(or mask those pixels) and run again")
+        return rgb, weight
+
+    def _bad(self, y0: int, y1: int) -> int:
+        rgb, weight = self._rows(y0, y1)
+        return int((~np.all(np.isfinite(rgb), axis=2) & (weight > 0)).sum())
+
+    def _rows(self, y0: int, y1: int) -> tuple[np.ndarray, np.ndarray]:
+        img = self._image.rows(y0, y1)
+        if self._mask is not None:
+            rgb = img[:, :, :3]
+            valid = (self._mask.rows(y0, y1)[:, :, 0] > 0.5) & np.all(np.isfinite(rgb), axis=2)
+            weight = np.asarray(valid, dtype=np.float32)
+        else:
+            if img.shape[2] == 1:
+                img = np.repeat(img, 3, axis=2)
+            rgb = img[:, :, :3] * np.float32(self.scale)
+            weight = np.clip(img[:, :, 3], 0.0, 1.0) if img.shape[2] >= 4 else np.ones(img.shape[:2], np.float32)
+        return np.asarray(rgb, dtype=np.float32), weight
+
+    def close(self) -> None:
+        self._image.close()
+        if self._mask is not None:
+            self._mask.close()
+
+    def __enter__(self) -> "LinearImageRows":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
