@@ -73,6 +73,9 @@ def interrupted_and_resumed(tiny_capture, tmp_path_factory):
 
 @pytest.mark.parametrize("fmt", ["jpeg", "dng"])
 def test_photos_to_relit_held_out_views_within_5_percent(interrupted_and_resumed, fmt):
+    """From JPEG or DNG photos without poses, a `sigrend run` interrupted and resumed redoes no finished stage
+    and relights the held-out views with the fitted lighting and BRDF (angular method, scale fitted) within
+    RELIGHT_TOLERANCE, printing the figure and a self-contained report."""
     run = interrupted_and_resumed(fmt)
     assert not (run.capture / "poses.json").exists()
     # the interrupted run resumed without redoing linearize, poses or samples
@@ -96,6 +99,8 @@ def test_photos_to_relit_held_out_views_within_5_percent(interrupted_and_resumed
 
 
 def test_force_redoes_and_a_bad_capture_keeps_earlier_outputs(interrupted_and_resumed, tmp_path, capsys):
+    """--force redoes linearize and poses; a capture with a truncated photo then fails with one line naming the
+    photo and leaves the earlier outputs untouched."""
     run = interrupted_and_resumed("jpeg")
     capture, work = run.capture, run.work
     before = {name: _mtime(work / name) for name in ("linear/manifest.json", "poses.json")}

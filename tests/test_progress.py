@@ -29,6 +29,8 @@ class _Terminal(io.StringIO):
 
 
 def test_the_bar_is_drawn_on_a_terminal_only(monkeypatch):
+    """The progress bar draws its '\\r' frames on a terminal only (not into a pipe or file), and enabled=False
+    draws nothing even on a terminal."""
     for stream, drawn in ((io.StringIO(), False), (_Terminal(), True)):
         monkeypatch.setattr(sys, "stderr", stream)
         assert list(logs.progress(range(3), desc="work")) == [0, 1, 2]

@@ -73,6 +73,9 @@ def linearized(tiny_capture, tmp_path):
 
 
 def test_a_killed_rerun_with_other_settings_leaves_the_outputs_byte_identical(linearized, capsys):
+    """linearize SIGKILLed half-way through a rerun with other settings leaves the committed outputs byte-
+    identical (only its temporaries behind); the old set is still fresh for its settings, the new settings run
+    again, and the stale temporaries are removed."""
     capture, work = linearized
     before = digest(work)
     # killed after the third mask of a re-run with other settings: nothing of it is committed
@@ -214,6 +217,8 @@ def _disk_full(path):
     (_disk_full, "No space left on device; free some space or give -w a folder on another disk"),
 ])
 def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch, capsys, fault, fragment):
+    """A stage failing at its third image (a user error, or a full disk) is one line with the expected message,
+    and the two images it wrote before are not committed: the work folder is byte-identical."""
     from stages import linearize
 
     capture, work = linearized
@@ -287,6 +292,7 @@ BAD_CAPTURE_TOML = {
 
 @pytest.mark.parametrize("case", sorted(BAD_CAPTURE_TOML))
 def test_bad_capture_toml_is_one_line_naming_the_key(tiny_capture, tmp_path, capsys, case):
+    """Each bad capture.toml is one line naming the section or key at fault, and linearize writes nothing."""
     text, fragment = BAD_CAPTURE_TOML[case]
     capture = shutil.copytree(tiny_capture(views=6, size=(48, 48)), tmp_path / "capture")
     (capture / "capture.toml").write_text(text)
@@ -297,6 +303,8 @@ def test_bad_capture_toml_is_one_line_naming_the_key(tiny_capture, tmp_path, cap
 
 
 def test_two_meshes_are_an_error_not_a_guess(tiny_capture, tmp_path, capsys):
+    """A capture with both mesh.ply and mesh.obj is one line saying both are there, not a guess at which is the
+    object."""
     capture = shutil.copytree(tiny_capture(views=6, size=(48, 48)), tmp_path / "capture")
     shutil.copy(capture / "mesh.ply", capture / "mesh.obj")
     capsys.readouterr()
@@ -335,6 +343,8 @@ def _with_mesh(tiny_capture, tmp_path, edit) -> Path:
     (lambda f: f[:, ::-1], "the mesh is inside out"),
 ])
 def test_a_mesh_with_flipped_faces_is_an_error_naming_the_fix(tiny_capture, tmp_path, capsys, edit, fragment):
+    """A mesh with flipped faces or inside out is one line naming the fault and Blender's fix (Recalculate
+    Outside), and no samples are written."""
     capture = _with_mesh(tiny_capture, tmp_path, edit)
     capsys.readouterr()
     assert cli.main(["samples", str(capture), "-w", str(tmp_path / "work")]) == 2
@@ -343,6 +353,8 @@ def test_a_mesh_with_flipped_faces_is_an_error_naming_the_fix(tiny_capture, tmp_
 
 
 def test_a_mesh_with_holes_is_sampled_with_a_warning_and_counted(tiny_capture, tmp_path):
+    """An open mesh is sampled with a warning counting its boundary edges, recorded in samples_summary.json's
+    mesh_quality (no inconsistent edges, not inside out)."""
     capture = _with_mesh(tiny_capture, tmp_path, lambda f: f[12:])
     with pytest.warns(UserWarning, match=r"mesh.ply: \d+ boundary edges \(holes"):
         assert cli.main(["samples", str(capture), "-w", str(tmp_path / "work")]) == 0
@@ -384,6 +396,7 @@ def _poses_camera_as_list(doc):
     (_poses_camera_as_list, "names unknown camera ['cam0']"),
 ])
 def test_malformed_poses_json_is_one_line(tiny_capture, tmp_path, capsys, edit, fragment):
+    """Each malformed poses.json value is one line naming it."""
     capture = shutil.copytree(tiny_capture(views=6, size=(48, 48)), tmp_path / "capture")
     doc = json.loads((capture / "poses.json").read_text())
     edit(doc)
@@ -399,6 +412,7 @@ def test_malformed_poses_json_is_one_line(tiny_capture, tmp_path, capsys, edit, 
     (["relight", "{capture}", "-w", "{work}", "-o", "{file}"], "give -o a folder path"),
 ])
 def test_an_output_path_that_is_a_file_is_one_line(linearized, tmp_path, capsys, args, fragment):
+    """A -w or -o that is an existing file (or under one) is one line saying to give a folder, and the file is kept."""
     from pipeline.io.brdf import write_brdf
     from pipeline.io.lighting import write_lighting_sh
 
@@ -453,6 +467,8 @@ BAD_JSON_VALUES = {
 
 @pytest.mark.parametrize("case", sorted(BAD_JSON_VALUES))
 def test_a_wrong_type_in_a_json_file_is_one_line(linearized, tmp_path, capsys, case):
+    """A value of the wrong type in poses.json or fit/brdf.json is one line naming the value, from the stage
+    that reads the file."""
     from pipeline.io.brdf import write_brdf
     from pipeline.io.lighting import write_lighting_sh
 
@@ -503,6 +519,8 @@ def test_force_redoes_every_linear_image(linearized):
 
 
 def test_an_all_transparent_exr_is_named_transparent_not_black(tiny_capture, tmp_path, capsys):
+    """An EXR whose alpha is 0 everywhere is one line saying every pixel is transparent, not that the photo is
+    black."""
     from pipeline.io.images import read_image, write_image
 
     capture = shutil.copytree(tiny_capture(views=6, size=(48, 48)), tmp_path / "capture")

@@ -29,6 +29,8 @@ SAMPLE = Path(__file__).parents[1] / "sample_data" / "capture"
 
 
 def test_an_empty_work_folder_says_what_has_not_run(tmp_path):
+    """An empty work folder still gives a whole page saying that the lighting, the BRDF and the relight
+    comparison are not there yet, with no external reference."""
     page = build_report(SAMPLE, tmp_path / "work")
     assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
     for missing in ("no fitted lighting yet", "no fitted BRDF yet", "no relight comparison yet"):

@@ -39,6 +39,8 @@ def _run(*args: str) -> int:
 
 
 def test_heldout_keys_every_fourth():
+    """Every fourth view is held out (0003, 0007 of ten), none with a stride of 0, and none when fewer than two
+    views per held-out one would remain."""
     keys = [f"{i:04d}.exr" for i in range(10)]
     assert heldout_keys(keys, 4) == ["0003.exr", "0007.exr"]
     assert heldout_keys(keys, 0) == []
@@ -46,6 +48,8 @@ def test_heldout_keys_every_fourth():
 
 
 def test_resume_skips_fresh_stages_and_force_redoes(capture, tmp_path, capsys):
+    """A run holds out every fourth view; a second run finds every stage fresh and rewrites nothing; --from
+    samples --force redoes samples alone, and --force over the range redoes every stage."""
     work = tmp_path / "work"
     assert _run(capture, "-w", work, "--to", "samples") == 0
     run = json.loads((work / "run.json").read_text())
@@ -147,6 +151,8 @@ def test_run_says_when_it_replaces_a_stage_made_with_other_settings(capture, tmp
 
 
 def test_failing_stage_is_one_line_and_keeps_earlier_outputs(capture, tmp_path, capsys):
+    """A stage failing on a broken poses.json is one line naming the file, the earlier stage's outputs stay as
+    they were, and the later stage writes nothing."""
     bad = tmp_path / "bad"
     bad.mkdir()
     for item in capture.iterdir():
@@ -164,6 +170,8 @@ def test_failing_stage_is_one_line_and_keeps_earlier_outputs(capture, tmp_path, 
 
 
 def test_bad_arguments_are_user_errors(capture, tmp_path, capsys):
+    """A missing capture, --from after --to and a missing --relight map are each exit 2 with a message saying
+    which."""
     assert _run(tmp_path / "missing", "-w", tmp_path / "w") == 2
     assert "capture folder not found" in capsys.readouterr().err
     assert _run(capture, "-w", tmp_path / "w", "--from", "fit", "--to", "poses") == 2
@@ -173,6 +181,8 @@ def test_bad_arguments_are_user_errors(capture, tmp_path, capsys):
 
 
 def test_stage_table_lists_every_stage():
+    """The stage table has a row per stage between its header and the total, marks the skipped one, and sums the
+    times."""
     results = [StageResult(name, [], 1.5, name == "poses") for name in STAGES]
     table = stage_table(results).splitlines()
     assert len(table) == len(STAGES) + 2
@@ -180,6 +190,8 @@ def test_stage_table_lists_every_stage():
 
 
 def test_report_is_self_contained_and_says_what_is_missing(capture, tmp_path, capsys):
+    """A run to samples writes report.html with the photos, camera and coverage plots embedded (nothing linked),
+    every section's heading, and a line saying the fit has not run."""
     work = tmp_path / "work"
     assert cli.main(["run", str(capture), "-w", str(work), "--to", "samples"]) == 0
     assert f"report: {work / 'report.html'}" in capsys.readouterr().out
