@@ -73,6 +73,7 @@ from pipeline.core.threads import thread_map
 _VIS_HORIZON = -0.3  # shadow rays only for directions with n_vertex . w > this (others: occluded)
 _LOBE_CUT_SIGMAS = 4.0  # microfacet support: tan(theta_h) < 4 sigma, D > exp(-16) of its peak
 _PHONG_CUT = 1e-7  # phong support: cos(alpha)^s > 1e-7
+HIT_LOBE_SAMPLES = 8  # lobe samples of a point a lobe sample hits (one glossy bounce; filtered: few suffice)
 
 
 class InsideMeshError(ValueError):
@@ -321,6 +322,7 @@ class Renderer:
         self._rng = np.random.default_rng(self.seed)
         self._vertex_irradiance = None
         self._bounce_rays = None
+        self._whole = None
         self._proxy = None
         proxy = getattr(self.mesh, "proxy", None)
         if proxy is not None and self.shadows:
@@ -585,13 +587,35 @@ class Renderer:
         return np.einsum("pk,pkc->pc", bary, e_ind[tri])
 
     def _object_radiance(self, faces: np.ndarray, points: np.ndarray, w_toward: np.ndarray) -> np.ndarray:
-        """Diffuse radiance (N, 3) that points on the mesh send along unit ``w_toward`` (N, 3)."""
+        """Radiance (N, 3) that points on the mesh send along unit ``w_toward`` (N, 3): the diffuse
+        layer's (vertex irradiance, interreflection included) and the lobe's under the whole map,
+        unshadowed (HIT_LOBE_SAMPLES filtered samples): one glossy bounce, the light a metal knob
+        takes from the metal lid it stands on (without it, 31 % of Blender's teapot of roughness 0.25
+        was missing at such places)."""
         tri = np.asarray(self.mesh.faces)[faces]
         bary = barycentric(self.mesh.triangles[faces], points)
-        mu = np.clip(np.einsum("pc,pc->p", self._normals_at(faces, bary), w_toward), 0.0, 1.0)
+        normals = self._normals_at(faces, bary)
+        cos_out = np.einsum("pc,pc->p", normals, w_toward)
+        mu = np.clip(cos_out, 0.0, 1.0)
         e_total = np.einsum("pk,pkc->pc", bary, self.vertex_irradiance()[0][tri]) if self._proxy is None \
             else self.at_points(self.vertex_irradiance()[0], tri, bary)
-        return self._diffuse_albedo(mu, self._base(faces, tri, bary)) / np.pi * e_total
+        base = self._base(faces, tri, bary)
+        out = self._diffuse_albedo(mu, base) / np.pi * e_total
+        front = np.flatnonzero(cos_out > 0)
+        if self.material is None or not front.size:
+            return out
+        whole = self._whole_map_pyramid()
+        out[front] += sampled_lobe(self.material, normals[front], w_toward[front], HIT_LOBE_SAMPLES,
+                                   self._points_rng(faces[front], bary[front]),
+                                   lambda dirs, solid_angle, ids: whole.lookup(dirs, solid_angle),
+                                   None if not self._varying_base else base[front])
+        return out
+
+    def _whole_map_pyramid(self) -> EnvPyramid:
+        """The whole map (bright pixels included) prefiltered, for the lobes of points the lobe samples hit."""
+        if self._whole is None:
+            self._whole = EnvPyramid.build(self.env)
+        return self._whole
 
     def _specular_sampled(self, faces, bary, normals, view_dirs, base) -> np.ndarray:
         """The remainder map through the lobe by filtered importance sampling (pipeline.core.shading),
