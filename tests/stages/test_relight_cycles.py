@@ -33,7 +33,8 @@ def relight_with_truth(capture: Path, work: Path, env: Path, views: str, brdf: B
 # with (Blender's 1024 x 512 map; gt/relight/env.exr is its 2x2 box-downsampled copy), measured
 # (relative RMSE / rim / interior, one ray per interior pixel: the default): bunny 1.35 / 1.31 / 1.38
 # (was 7.6% without interreflection; 1.02 with 2x2 rays), teapot 3.20 / 3.01 / 3.34 (was 19.4%;
-# 3.44 before the lobe's hits saw their own glossy reflection), night sphere 0.99 / 1.46 / 0.32 (was 40.6%) against the references with the city sun's
+# 3.44 before the lobe's hits saw their own glossy reflection), night sphere 0.99 / 1.46 / 0.32
+# (was 40.6%) against the references with the city sun's
 # highlights re-rendered by Cycles at 16384 samples (gt/relight/highlights, its README): at the
 # shared references' 512 samples that highlight's 4x4 block, ~100x the view's mean radiance, carries
 # +-4% Monte Carlo noise (three renders with other seeds: -2.4, -4.4, -1.8% of the reference's; the
