@@ -223,7 +223,7 @@ def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch, ca
 
     capture, work = linearized
     before = digest(work)
-    real = linearize.write_image
+    real = linearize.ImageRowWriter      # each photo's mask and EXR are written through one of these
     calls = []
 
     def failing(path, *args, **kwargs):
@@ -232,7 +232,7 @@ def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch, ca
             raise fault(path)
         return real(path, *args, **kwargs)
 
-    monkeypatch.setattr(linearize, "write_image", failing)
+    monkeypatch.setattr(linearize, "ImageRowWriter", failing)
     capsys.readouterr()
     assert cli.main(["linearize", str(capture), "-w", str(work), "--saturation", "0.6", "--workers", "1"]) == 2
     assert len(calls) == 3
