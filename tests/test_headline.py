@@ -25,7 +25,9 @@ from pipeline.io.images import read_image
 from pipeline.io.run_summary import relight_check, summary_lines
 
 # linear EXR renders carry no EXIF: linearize warns and assumes equal exposure
-pytestmark = pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning")
+# slow: two captures rendered, run and relit (~15 s): end to end, out of the inner loop (README)
+pytestmark = [pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning"),
+              pytest.mark.slow]
 
 SCENE = dict(mesh="sphere", brdf="lambert:albedo=0.6", env="area", views=6, size=(96, 96))
 NOISE = "full_well=400,read=0.002"     # about 7 % per pixel at the sphere's mean level

@@ -9,6 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from pipeline import logs
 
 ROOT = Path(__file__).parents[1]
@@ -42,6 +44,7 @@ def test_the_bar_is_drawn_on_a_terminal_only(monkeypatch):
     assert sys.stderr.getvalue() == ""
 
 
+@pytest.mark.slow     # four sigrend processes over a synthetic capture: ~30-45 s
 def test_piped_output_has_no_progress_frames(tiny_capture, tmp_path):
     """The stages with bars (linearize, samples, relight, synth, the run's own) with stdout and
     stderr piped, as into a log file: no '\\r' anywhere, and the stage table on lines of its own."""

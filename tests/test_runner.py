@@ -217,6 +217,7 @@ def test_verbose_logs_each_stage_settings_at_its_start(tmp_path):
     assert quiet.returncode == 0 and "running with" not in quiet.stderr
 
 
+@pytest.mark.slow     # a whole run and a relight of 8 views: ~18 s
 def test_relight_takes_a_procedural_lighting(capture, tmp_path, capsys):
     """`sigrend run --relight sun+sky` relights the capture's views under the procedural map (the same
     specs as synth and `sigrend relight --env`), into WORK/relight/sun+sky/, a row of its own in

@@ -12,6 +12,7 @@ from pipeline.commands.planar import FIGURES
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
+@pytest.mark.slow     # every figure of the planar analysis computed and drawn: ~30 s
 def test_figures_written(tmp_path, capsys):
     """sigrend planar figures writes every figure as a real PNG, prints their paths and leaves no temporary file."""
     out = tmp_path / "figs"
