@@ -432,7 +432,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     return [out_npz, summary_path, png]
 
 
-RAY_BYTES = 1100    # per ray of a chunk: origins, directions, hits, depth, masks, the kept samples (tracemalloc)
+RAY_BYTES = 600     # per ray of a chunk: origins, directions, hits, depth, masks, the kept samples (tracemalloc: 380-650)
 
 
 def image_bytes(width: int, settings: Settings) -> int:

@@ -23,9 +23,10 @@ from pipeline.cli import main as cli_main
 from pipeline.errors import UserError
 from pipeline.io.camera_files import Exposure
 from pipeline.io.camera_files import write_dng as write_camera_dng
-from pipeline.io.images import write_image
+from pipeline.io.images import read_image, write_image
 from pipeline.io.linear_manifest import read_linear_image, read_manifest
 from pipeline.io.response_json import write_response_json
+from pipeline.memory import Budget
 from pipeline.settings import make_settings
 from stages import linearize
 
@@ -412,3 +413,46 @@ def test_missing_iso_in_some_images_only(tmp_path):
     run_stage(cap, tmp_path / "work")
     entry = json.loads((tmp_path / "work" / "linear" / "manifest.json").read_text())["images"]["b"]
     assert entry["sources"][0]["iso"] == 100
+
+
+# ----------------------------------------------------------------------------------------------
+# streamed in bands of rows (issue 47): the same files as the whole image at once
+
+
+def test_bands_of_rows_give_the_whole_images_values(tmp_path):
+    """linearize_job decoding 5 rows at a time (a RAW's 16-bit output converted band by band; JPEG,
+    16-bit TIFF with alpha and EXR read by OpenImageIO scanlines; a 3-photo bracket merged band by
+    band; a vignetting map read by rows) writes the same pixels, masks and manifest entries as the
+    whole image at once, and the budget's default plan keeps these small images whole."""
+    L = scene(highlights=6.0)
+    cap = tmp_path / "cap"
+    write_dng(cap / "images" / "raw.dng", exposed(L, T_REF / 8), t=T_REF / 8)
+    write_jpeg(cap / "images" / "jpeg.jpg", exposed(L, T_REF))
+    alpha = np.where(np.arange(W) < W // 4, 0.0, 1.0)[None, :, None] * np.ones((H, 1, 1))
+    write_jpeg(cap / "images" / "tiff.tif", np.concatenate([exposed(L, T_REF), alpha], axis=2), ext_dtype="uint16",
+               encode=lambda v: np.clip(v, 0, 1))
+    write_image(cap / "images" / "float.exr", exposed(L, T_REF), dtype="float",
+                attributes={"ExposureTime": T_REF, "FNumber": N_REF})
+    for i, t in enumerate((T_REF / 8, T_REF, T_REF * 2)):
+        write_jpeg(cap / "images" / f"b_{i}.png", exposed(L, t), t=t)
+    gain = 1.0 - 0.3 * ((np.mgrid[0:H, 0:W][1] - W / 2) / W) ** 2
+    write_image(cap / "vignetting.exr", np.repeat(gain[:, :, None], 3, axis=2), dtype="float")
+    (cap / "capture.toml").write_text('[brackets]\nbracket = ["b_0.png", "b_1.png", "b_2.png"]\n'
+                                      '[vignetting]\npath = "vignetting.exr"\n[exposure]\ndefault = {iso = 100}\n')
+    settings = make_settings(linearize.Settings)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="no ISO", category=UserWarning)
+        whole = {job["key"]: (job, linearize.linearize_job(job)) for job in linearize.build_jobs(cap, tmp_path / "a", settings)}
+        bands = {job["key"]: (job, linearize.linearize_job(job, rows=5)) for job in linearize.build_jobs(cap, tmp_path / "b",
+                                                                                                          settings)}
+    assert sorted(whole) == ["bracket", "float", "jpeg", "raw", "tiff"]
+    for key, (job, entry) in whole.items():
+        other_job, other_entry = bands[key]
+        assert entry == other_entry, key
+        for a, b in ((job["exr"], other_job["exr"]), (job["mask"], other_job["mask"])):
+            np.testing.assert_array_equal(read_image(a), read_image(b), err_msg=key)
+    assert 0 < whole["tiff"][1]["valid_fraction"] < 0.8      # the alpha's transparent quarter is not data
+    assert whole["raw"][1]["saturated_fraction"] == 0
+    # a plan of the default budget: these 48 x 64 photos are linearized whole (one pass)
+    jobs = linearize.build_jobs(cap, tmp_path / "c", settings)
+    assert linearize.plan_memory(jobs, 2, Budget.of("50%"))[1] is None

@@ -455,3 +455,22 @@ def test_bad_input_is_one_line_and_exit_2(good_work, case, capsys):
         stderr = capsys.readouterr().err
     assert_one_line_error(stderr, message, code=code)
     assert outputs() == before
+
+
+def test_threads_and_streamed_rows_give_the_serial_samples(sphere_run, tmp_path):
+    """Images sampled in 2 threads (each into its own spool, copied in image order), each photo read
+    by the rows of chunks of 800 rays (10 rows), give samples.npz and samples_summary.json of the serial
+    whole-chunk run to the bit; with --max-samples too (image i's draw is seeded by (seed, i))."""
+    capture, _, _, _, _, _ = sphere_run
+
+    def without_time(summary):
+        return {k: v for k, v in summary.items() if k not in ("seconds", "settings")}
+
+    for extra in ({}, {"max_samples": 300}):
+        serial, meta, summary = run_samples(capture, tmp_path / f"serial{len(extra)}", workers=1, **extra)
+        threads, meta2, summary2 = run_samples(capture, tmp_path / f"threads{len(extra)}", workers=2, chunk_pixels=800,
+                                               **extra)
+        for field in serial:
+            np.testing.assert_array_equal(threads[field], serial[field], err_msg=field)
+        assert without_time(summary2) == without_time(summary)
+        assert not list((tmp_path / f"threads{len(extra)}").glob(".*"))     # no spool left behind

@@ -2,7 +2,7 @@
 
 A suite is a function ``suite(quick: bool, repeat: int) -> list[BenchRow]`` registered in
 ``SUITES`` (name -> (help, "module:function")); add a suite by adding one entry.  ``sh`` is here; the
-others are this package's modules (batch, fit, linearize, pipeline, poses, render, scale, synth), imported
+others are this package's modules (batch, fit, linearize, pipeline, pixels, poses, render, scale, synth), imported
 only when their suite runs; they import ``BenchRow`` and ``best_time`` from here, never the reverse.  Every timing is
 the best of ``--repeat`` runs (the least disturbed by other processes), measured with
 ``time.perf_counter``.  ``--quick`` shrinks the problem sizes (for smoke tests), so its numbers
@@ -51,6 +51,8 @@ SUITES: dict[str, tuple[str, str]] = {
     "scale": ("the fit's mesh-level transfer (30 000 samples, bounce rays, interreflection): seconds and peak memory "
               "vs triangles (69 k - 1.1 M), full mesh vs proxy; scale.png (log-log, slopes) in DIR",
               "pipeline.commands.bench.scale:scale_suite"),
+    "pixels": ("linearize and samples: seconds and peak memory (process tree) vs total pixels (12 x 0.2 MP - "
+               "48 x 12 MP JPEG); pixels.png (log-log, slopes) in DIR", "pipeline.commands.bench.pixels:pixels_suite"),
     "pipeline": ("speed vs accuracy of samples -> fit -> relight on synthetic scenes (SH order, data, fit mode); "
                  "bench.csv + bench.png (Pareto front) in DIR", "pipeline.commands.bench.pipeline:pipeline_suite"),
 }
