@@ -144,6 +144,20 @@ def point_to_plane_icp(x: np.ndarray, tree: cKDTree, surface: np.ndarray, normal
     return sim, r < cut_sigmas * sigma, r
 
 
+def truncated_costs(distances: list[np.ndarray], cut_sigmas: float = 3.0) -> np.ndarray:
+    """One score per candidate solution, comparable between them: the mean of min(r², τ²) over the same points,
+    with one τ for all = ``cut_sigmas`` x the smallest robust σ (1.4826 · median|r|) among the candidates.
+
+    Each candidate's own inlier RMS (its own 3σ cut) is not comparable: a wrong rotation that lays a third of
+    the points tightly on a similar patch (Suzanne's round skull) keeps only those and scores as well as the
+    right one, which keeps nearly all of them.  A common τ charges every point the wrong pose leaves off the
+    surface, and still charges background points (a table) equally to every candidate.
+    """
+    sigma = min(MAD_TO_SIGMA * float(np.median(d)) for d in distances) + 1e-300
+    tau = cut_sigmas * sigma
+    return np.array([float(np.mean(np.minimum(d, tau) ** 2)) for d in distances])
+
+
 def register_to_surface(points: np.ndarray, surface_points: np.ndarray, surface_normals: np.ndarray, *,
                         center: np.ndarray, scale: float, rotations: int = 64,
                         scale_factors: tuple[float, ...] = (0.5, 0.7, 1.0, 1.4, 2.0), search_points: int = 600,
@@ -179,7 +193,7 @@ def register_to_surface(points: np.ndarray, surface_points: np.ndarray, surface_
     survivors = candidates[:max(2 * refine_best, len(candidates) // 5)]
     candidates = sorted((_trimmed_icp(subset, coarse_tree, coarse, s, 8, keep) for s, _ in survivors),
                         key=lambda c: c[1])
-    refined: list[tuple[Similarity, float]] = []  # point-to-plane on the subset, scored in source units
+    refined: list[tuple[Similarity, np.ndarray]] = []  # point-to-plane on the subset, distances in source units
     tried: list[Similarity] = []
     for sim, _ in candidates:
         if len(tried) >= refine_best:
@@ -187,15 +201,16 @@ def register_to_surface(points: np.ndarray, surface_points: np.ndarray, surface_
         if any(rotation_angle_deg(sim.R, other.R) < ambiguity_deg for other in tried):
             continue
         tried.append(sim)
-        result, inliers, distance = point_to_plane_icp(subset, tree, surface, normals, sim)
+        result, _, distance = point_to_plane_icp(subset, tree, surface, normals, sim)
         if not 0.5 < result.scale / sim.scale < 2.0:  # ran away from its start: a collapse, not a fit
             continue
-        refined.append((result, float(np.sqrt(np.mean(distance[inliers] ** 2))) / result.scale))
+        refined.append((result, distance / result.scale))
     if not refined:
         raise ValueError("no start converged: the points do not resemble the surface at any scale tried")
-    refined.sort(key=lambda c: c[1])
-    best, best_score = refined[0]
-    alike = [rotation_angle_deg(best.R, sim.R) for sim, score in refined[1:] if score <= ambiguity_ratio * best_score]
+    scores = truncated_costs([distance for _, distance in refined])
+    order = np.argsort(scores)
+    best, best_score = refined[order[0]][0], scores[order[0]]
+    alike = [rotation_angle_deg(best.R, refined[k][0].R) for k in order[1:] if scores[k] <= ambiguity_ratio * best_score]
     ambiguous = max([a for a in alike if a > ambiguity_deg], default=0.0)
     best, inliers, distance = point_to_plane_icp(x, tree, surface, normals, best)  # all points, from the best
     rms = float(np.sqrt(np.mean(distance[inliers] ** 2)))

@@ -26,7 +26,7 @@ from pipeline.io.camera_decode import RAW_EXTENSIONS
 from pipeline.io.camera_files import srgb_encode
 from pipeline.io.capture_toml import BoardSpec
 from pipeline.io.images import read_image
-from pipeline.io.linear_manifest import manifest_path, read_linear_image
+from pipeline.io.linear_manifest import manifest_path, read_linear_image, read_manifest, resolve_key
 from pipeline.io.poses import ImagePose, Poses
 from pipeline.logs import progress
 from stages.poses.settings import MIN_BOARD_CORNERS, Settings
@@ -101,11 +101,18 @@ def load_8bit(path: Path) -> np.ndarray:
 
 
 def load_8bit_for_colmap(capture: Path, work: Path, key: str) -> np.ndarray:
-    """8-bit copy of photo ``key``: tone-mapped from the linearize stage's EXR when linearize has run,
-    else made from the capture's file (so the pixels match what later stages read)."""
+    """8-bit copy of photo ``key``, the same whether or not linearize has run (one input, one answer): the
+    capture's file (``load_8bit``: a JPEG or PNG as it is, what COLMAP users hand COLMAP).  Only a merged
+    exposure bracket, which exists as one image only in linearize's output, is tone-mapped from its EXR.
+
+    (Before, `sigrend run` -- linearize first -- handed COLMAP copies tone-mapped from the linear EXRs and
+    `sigrend poses` alone the JPEGs: on a 32-JPEG Suzanne the two registered different sets and one of them
+    failed; the pixel grid is the same either way, linearize never resamples.)"""
     if manifest_path(work).exists():
-        rgb, valid = read_linear_image(work, key)
-        return tone_map(rgb, valid)
+        manifest = read_manifest(work)
+        if len(manifest["images"][resolve_key(manifest, key)].get("sources", [])) > 1:
+            rgb, valid = read_linear_image(work, key, manifest)
+            return tone_map(rgb, valid)
     return load_8bit(Path(capture) / "images" / key)
 
 
@@ -243,7 +250,9 @@ def _extract_features(database: Path, image_dir: Path, names: list[str], setting
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = settings.max_image_size
     extraction.sift.max_num_features = settings.max_features
-    extraction.num_threads = -1
+    # several extraction threads write the images into the database in the order they finish, so the image
+    # ids -- and with them the mapper's choices -- change from run to run: one thread when runs must repeat
+    extraction.num_threads = 1 if settings.mapper_threads == 1 else -1
     pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=mode, reader_options=reader,
                               extraction_options=extraction, device=pycolmap.Device.cpu)
 
@@ -280,9 +289,10 @@ def _mapping_options(settings: Settings, fixed: Camera | None):
     return options
 
 
-def bundle_adjust(reconstruction, config) -> None:
+def bundle_adjust(reconstruction, config, threads: int = 1) -> None:
     """pycolmap's bundle adjuster on ``config`` (in place): Cauchy loss at 1 px, stop at 1e-6 relative change.
 
+    ``threads``: Ceres' threads (1, the default, is reproducible; -1 all cores).
     Points observed in fewer than two images are deleted first: COLMAP's adjuster refuses them, constant
     ones included (``Check failed: point3D.track.Length() > 1``), and an imported model may hold some.
     """
@@ -302,6 +312,9 @@ def bundle_adjust(reconstruction, config) -> None:
     # stop when the cost changes by < 1e-6 relative (COLMAP's default 0 runs to the iteration limit)
     options.ceres.solver_options.function_tolerance = 1e-6
     options.ceres.solver_options.max_num_iterations = 50
+    # one thread: Ceres' multi-threaded sums differ in the last bits from run to run (poses 6e-6 apart on the
+    # 32-view Suzanne of tests/data/blender_noboard); a reproducible run is the house's promise (--seed)
+    options.ceres.solver_options.num_threads = threads
     pycolmap.create_default_bundle_adjuster(options, config, reconstruction).solve()
     reconstruction.update_point_3d_errors()
 

@@ -34,6 +34,9 @@ from stages.poses.summary import enough, finish, named, status
 
 SURFACE_SAMPLES = 60000  # area-uniform samples of the mesh for nearest-surface queries
 NEAR_FRACTION = 0.6  # points farther than this x the median camera distance from the view centre: background
+VISIBILITY_TOLERANCE = 0.01  # x the mesh's size: how far in front of a point a camera ray may meet the mesh
+MIN_VISIBLE_FRACTION = 0.5  # a camera must see at least this fraction of its own points on the mesh
+MIN_VERIFIED_POINTS = 8  # ... and at least this many of them
 
 
 @dataclass(frozen=True)
@@ -43,6 +46,7 @@ class Surface:
     points: np.ndarray
     normals: np.ndarray
     size: float
+    mesh: object = None  # the trimesh mesh itself, for ray casting (verify_cameras)
 
 
 def mesh_surface(mesh, count: int = SURFACE_SAMPLES, seed: int = 0) -> Surface:
@@ -51,7 +55,7 @@ def mesh_surface(mesh, count: int = SURFACE_SAMPLES, seed: int = 0) -> Surface:
 
     points, faces = trimesh.sample.sample_surface(mesh, count, seed=seed)
     return Surface(np.asarray(points, float), np.asarray(mesh.face_normals[faces], float),
-                   float(np.linalg.norm(mesh.extents)))
+                   float(np.linalg.norm(mesh.extents)), mesh)
 
 
 def register_points(points: np.ndarray, centers: np.ndarray, axes: np.ndarray, surface: Surface, *,
@@ -113,18 +117,79 @@ def reconstruction_geometry(reconstruction) -> tuple[np.ndarray, np.ndarray, np.
 
 
 def register_reconstruction(reconstruction, surface: Surface, *, max_residual: float, seed: int, refine: bool,
-                            fixed_intrinsics: bool, what: str) -> dict:
-    """Carry a pycolmap.Reconstruction into the mesh's frame in place; with ``refine``, bundle-adjust it
-    with its points on the mesh held fixed.  Returns summary entries."""
+                            fixed_intrinsics: bool, what: str, names: dict[str, str] | None = None) -> dict:
+    """Carry a pycolmap.Reconstruction into the mesh's frame in place; drop the cameras that cannot see
+    their own points on the mesh (``drop_hidden_cameras``, before and after the refinement); with
+    ``refine``, bundle-adjust it with its points on the mesh held fixed.  ``names``: COLMAP image name ->
+    the name the status line uses.  Returns summary entries (``dropped_cameras_visible_fraction``)."""
     import pycolmap  # lazily: keeps `sigrend --help` fast
 
     points, centers, axes = reconstruction_geometry(reconstruction)
     similarity, summary = register_points(points, centers, axes, surface, max_residual=max_residual, seed=seed,
                                           what=what)
     reconstruction.transform(pycolmap.Sim3d(similarity.scale, pycolmap.Rotation3d(similarity.R), similarity.t))
+    tolerance = VISIBILITY_TOLERANCE * surface.size
+    dropped = drop_hidden_cameras(reconstruction, surface, tolerance, names or {})
     if refine:
         summary["mesh_bundle_adjustment_points"] = refine_on_mesh(reconstruction, surface, fixed_intrinsics)
+        dropped.update(drop_hidden_cameras(reconstruction, surface, tolerance, names or {}))
+    summary["dropped_cameras_visible_fraction"] = dropped
     return summary
+
+
+def visible_fractions(reconstruction, surface: Surface, tolerance: float) -> dict[int, tuple[float, int]]:
+    """Per registered image id: (the fraction of its observed SfM points on the mesh that its camera can see,
+    how many such points).
+
+    A point is on the mesh when it lies within ``project_to_surface``'s 3-sigma band; the camera sees it when the
+    ray from its centre towards the point meets the mesh first within ``tolerance`` of the point (or misses it:
+    a grazing ray at the silhouette), i.e. the point is on the side of the object that faces the camera and
+    not hidden behind another part.  A camera registered in a wrong place (SfM's mirrored or flipped solution
+    of a few matches, 180 degrees off) looks at its points through the object or from behind them.
+    """
+    from pipeline.raycast import first_hits, ray_mesh  # lazily: Embree
+
+    rays = ray_mesh(surface.mesh)
+    ids = [i for i, p in reconstruction.points3D.items() if p.track.length() >= 2]
+    xyz = np.array([reconstruction.points3D[i].xyz for i in ids], float).reshape(-1, 3)
+    _, on_mesh = project_to_surface(xyz, surface.points, surface.normals)
+    row = {pid: k for k, pid in enumerate(ids)}
+    out = {}
+    for image_id, image in reconstruction.images.items():
+        if not image.has_pose:
+            continue
+        rows = sorted({row[p.point3D_id] for p in image.points2D if p.has_point3D() and p.point3D_id in row})
+        rows = [k for k in rows if on_mesh[k]]
+        if not rows:
+            out[image_id] = (1.0, 0)
+            continue
+        pose = image.cam_from_world()
+        center = camera_center(pose.rotation.matrix(), np.asarray(pose.translation, float))
+        target = xyz[rows]
+        distance = np.linalg.norm(target - center, axis=1)
+        directions = (target - center) / distance[:, None]
+        hits = first_hits(rays, rays.rays, np.repeat(center[None], len(rows), axis=0), directions)
+        first = np.full(len(rows), np.inf)
+        first[hits.ray] = np.linalg.norm(hits.point - center, axis=1)
+        out[image_id] = (float(np.mean(first > distance - tolerance)), len(rows))
+    return out
+
+
+def drop_hidden_cameras(reconstruction, surface: Surface, tolerance: float, names: dict[str, str]) -> dict[str, float]:
+    """Deregister (in place) every camera that sees less than MIN_VISIBLE_FRACTION of its own points on the mesh
+    (``visible_fractions``; a camera with fewer than MIN_VERIFIED_POINTS such points is judged the same way: it
+    cannot be verified, and a camera the mesh cannot vouch for is not trusted); one status line names them.
+    Returns {name: visible fraction} of the dropped ones."""
+    dropped = {}
+    for image_id, (fraction, count) in visible_fractions(reconstruction, surface, tolerance).items():
+        if fraction < MIN_VISIBLE_FRACTION or count < MIN_VERIFIED_POINTS:
+            image = reconstruction.images[image_id]
+            dropped[names.get(image.name, image.name)] = round(fraction, 3)
+            reconstruction.deregister_frame(image.frame_id)
+    if dropped:
+        status(f"dropped {len(dropped)} camera(s) that do not see their own SfM points on the mesh (registered in a "
+               "wrong place): " + ", ".join(f"{n} ({100 * f:.0f}% visible)" for n, f in dropped.items()))
+    return dropped
 
 
 def refine_on_mesh(reconstruction, surface: Surface, fixed_intrinsics: bool) -> int:
@@ -205,7 +270,14 @@ def sfm_on_mesh(capture: Path, work: Path, keys: list[str], config: CaptureConfi
     status(f"registering {reconstruction.num_points3D()} SfM points to the mesh")
     registration = register_reconstruction(
         reconstruction, surface, max_residual=settings.max_registration_residual, seed=settings.seed,
-        refine=settings.mesh_bundle_adjustment, fixed_intrinsics=fixed is not None, what="the COLMAP reconstruction")
+        refine=settings.mesh_bundle_adjustment, fixed_intrinsics=fixed is not None, what="the COLMAP reconstruction",
+        names=name_to_key)
+    registered = {name_to_key[im.name] for im in reconstruction.images.values() if im.has_pose}
+    unregistered = [k for k in keys if k not in registered]
+    if not enough(len(registered), keys, settings):
+        raise UserError(f"only {len(registered)} of {len(keys)} photos keep a pose that agrees with the mesh "
+                        f"(dropped: {named(list(registration['dropped_cameras_visible_fraction']))}); take overlapping "
+                        "photos of a textured object, or add a board ([board]) or poses.json")
     camera_names = {im.camera_id: groups[name_to_key[im.name]] for im in reconstruction.images.values()}
     poses = poses_from_reconstruction(reconstruction, IDENTITY, name_to_key, camera_names)
     timings["registration"] = time.perf_counter() - start

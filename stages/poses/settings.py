@@ -46,9 +46,9 @@ class Settings:
     mesh_bundle_adjustment: bool = setting(
         True, "after registering to the mesh, bundle-adjust with the SfM points that lie on it held on the surface")
     seed: int = setting(0, "random seed for COLMAP and RANSAC (runs are reproducible with --mapper-threads 1)")
-    mapper_threads: int = setting(1, "threads of COLMAP's incremental mapping: 1 makes runs reproducible (with more, "
-                                     "the second initial pair and so the registered set can change from run to run); "
-                                     "0 = all cores, faster on large captures")
+    mapper_threads: int = setting(1, "threads of COLMAP's incremental mapping (and of SIFT extraction): 1 makes runs "
+                                     "reproducible (with more, the image ids and the second initial pair and so the "
+                                     "registered set can change from run to run); 0 = all cores, faster on large captures")
     verbose: bool = setting(False, "show COLMAP's log on the terminal instead of WORK/colmap/colmap.log",
                             deprecated="give the global -v instead, `sigrend -v poses CAPTURE`, which sets it")
 
