@@ -33,6 +33,7 @@ import functools
 import os
 import shutil
 import tempfile
+import threading
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -402,10 +403,11 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
                             f"{poses.images[key].camera!r} in {pose_file} is {camera.width}x{camera.height}")
         return image
 
-    def sample(image_id: int, key: str, sink) -> tuple[dict, int]:
+    def sample(image_id: int, key: str, sink, stop: threading.Event | None = None) -> tuple[dict, int]:
         reservoir = _Reservoir(cap, np.random.default_rng([settings.seed, image_id])) if cap else None
         with open_image(key) as image:
-            return sample_view(sink, mesh, poses, key, image_id, image, visibility, settings, reservoir)
+            rows = image if stop is None else _Stoppable(image, stop)
+            return sample_view(sink, mesh, poses, key, image_id, rows, visibility, settings, reservoir)
 
     with SamplesWriter(out_npz) as writer:
         record = functools.partial(tally.record, writer)
@@ -462,10 +464,12 @@ def _sample_in_threads(work: Path, keys: list[str], workers: int, sample, record
     run's to the bit."""
     folder = Path(tempfile.mkdtemp(prefix=".samples.", suffix=SPOOL_MARK, dir=work))
     try:
+        stop = threading.Event()      # set when the stage fails or is interrupted: the threads end at their next chunk
+
         def job(image_id: int, key: str):
             spool = _Spool(folder / f"{image_id}")
             try:
-                drops, kept = sample(image_id, key, spool.append)
+                drops, kept = sample(image_id, key, spool.append, stop)
             finally:
                 spool.close()
             return drops, kept, spool
@@ -478,10 +482,27 @@ def _sample_in_threads(work: Path, keys: list[str], workers: int, sample, record
                     spool.replay(record)
                     tally.add_view(key, drops, kept, scales[key])
             except BaseException:
+                stop.set()
                 pool.shutdown(wait=True, cancel_futures=True)
                 raise
     finally:
         shutil.rmtree(folder, ignore_errors=True)
+
+
+class _Stopped(Exception):
+    """A sampling thread told to stop (another image failed, or the stage was interrupted)."""
+
+
+class _Stoppable:
+    """An image's rows that raise _Stopped once ``stop`` is set: a thread ends at its next chunk."""
+
+    def __init__(self, image, stop: threading.Event):
+        self.image, self.stop = image, stop
+
+    def rows(self, y0: int, y1: int):
+        if self.stop.is_set():
+            raise _Stopped()
+        return self.image.rows(y0, y1)
 
 
 class _Spool:
