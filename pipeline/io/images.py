@@ -114,15 +114,32 @@ class ImageRowReader:
         self.width, self.height, self.channels = self.spec.width, self.spec.height, self.spec.nchannels
 
     def rows(self, y0: int, y1: int, fmt: str = "float") -> np.ndarray:
+        if self.spec.tile_width:
+            return self._tiled_rows(y0, y1, fmt)
         inp = self._inp
         pixels = inp.read_scanlines(0, 0, self.spec.y + y0, self.spec.y + y1, 0, 0, self.channels, fmt)
+        return self._checked(pixels, y1 - y0, fmt)
+
+    def _tiled_rows(self, y0: int, y1: int, fmt: str) -> np.ndarray:
+        """Rows of a tiled file: the rows of whole tiles around them (the last such band kept for the next call)."""
+        th, spec = self.spec.tile_height, self.spec
+        t0, t1 = y0 // th * th, min(-(-y1 // th) * th, self.height)
+        cached = getattr(self, "_tiles", None)
+        if cached is None or cached[0] > y0 or cached[1] < y1 or cached[2] != fmt:
+            pixels = self._inp.read_tiles(0, 0, spec.x, spec.x + self.width, spec.y + t0, spec.y + t1, spec.z,
+                                          spec.z + max(spec.depth, 1), 0, self.channels, fmt)
+            cached = self._tiles = (t0, t1, fmt, self._checked(pixels, t1 - t0, fmt))
+        return cached[3][y0 - cached[0]:y1 - cached[0]]
+
+    def _checked(self, pixels, rows: int, fmt: str) -> np.ndarray:
+        inp = self._inp
         if pixels is None:
             raise UserError(f"{self.path}: image data is unreadable ({inp.geterror().strip()}); the file may be truncated")
         if inp.has_error:   # decoded, but with an error (a truncated JPEG's missing rows come back grey)
             raise UserError(f"{self.path}: the decoder reported {inp.geterror().strip()!r}; the file is damaged or "
                             "truncated: copy it again or remove it")
         dtype = np.float32 if fmt == "float" else None
-        return np.asarray(pixels, dtype=dtype).reshape(y1 - y0, self.width, self.channels)
+        return np.asarray(pixels, dtype=dtype).reshape(rows, self.width, self.channels)
 
     def close(self) -> None:
         if self._inp is not None:

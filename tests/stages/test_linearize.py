@@ -421,7 +421,7 @@ def test_missing_iso_in_some_images_only(tmp_path):
 
 def test_bands_of_rows_give_the_whole_images_values(tmp_path):
     """linearize_job decoding 5 rows at a time (a RAW's 16-bit output converted band by band; JPEG,
-    16-bit TIFF with alpha and EXR read by OpenImageIO scanlines; a 3-photo bracket merged band by
+    16-bit TIFF with alpha and EXR read by OpenImageIO scanlines, a tiled EXR by rows of tiles; a 3-photo bracket merged band by
     band; a vignetting map read by rows) writes the same pixels, masks and manifest entries as the
     whole image at once, and the budget's default plan keeps these small images whole."""
     L = scene(highlights=6.0)
@@ -433,6 +433,15 @@ def test_bands_of_rows_give_the_whole_images_values(tmp_path):
                encode=lambda v: np.clip(v, 0, 1))
     write_image(cap / "images" / "float.exr", exposed(L, T_REF), dtype="float",
                 attributes={"ExposureTime": T_REF, "FNumber": N_REF})
+    import OpenImageIO as oiio
+
+    spec = oiio.ImageSpec(W, H, 3, "half")       # a tiled EXR: read by whole rows of 16 x 16 tiles
+    spec.tile_width = spec.tile_height = 16
+    spec.attribute("ExposureTime", T_REF)
+    spec.attribute("FNumber", N_REF)
+    out = oiio.ImageOutput.create(str(cap / "images" / "tiled.exr"))
+    assert out.open(str(cap / "images" / "tiled.exr"), spec) and out.write_image(exposed(L, T_REF).astype(np.float32))
+    out.close()
     for i, t in enumerate((T_REF / 8, T_REF, T_REF * 2)):
         write_jpeg(cap / "images" / f"b_{i}.png", exposed(L, t), t=t)
     gain = 1.0 - 0.3 * ((np.mgrid[0:H, 0:W][1] - W / 2) / W) ** 2
@@ -445,7 +454,7 @@ def test_bands_of_rows_give_the_whole_images_values(tmp_path):
         whole = {job["key"]: (job, linearize.linearize_job(job)) for job in linearize.build_jobs(cap, tmp_path / "a", settings)}
         bands = {job["key"]: (job, linearize.linearize_job(job, rows=5)) for job in linearize.build_jobs(cap, tmp_path / "b",
                                                                                                           settings)}
-    assert sorted(whole) == ["bracket", "float", "jpeg", "raw", "tiff"]
+    assert sorted(whole) == ["bracket", "float", "jpeg", "raw", "tiff", "tiled"]
     for key, (job, entry) in whole.items():
         other_job, other_entry = bands[key]
         assert entry == other_entry, key
