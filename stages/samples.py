@@ -75,8 +75,8 @@ class Settings:
     seed: int = setting(0, "random seed of the max_samples subsampling (image i draws from the seed and i)")
     holdout: tuple[str, ...] = setting((), "image keys left out of the samples (held out to validate the fit; "
                                            "listed in the meta as 'holdout')")
-    workers: int = setting(0, "images sampled at once, in threads (0 = one per CPU core); fewer when --memory-limit "
-                              "leaves room for fewer")
+    workers: int = setting(0, "images sampled at once, in threads (0 = one per CPU core; never more than the cores); "
+                              "fewer when --memory-limit leaves room for fewer")
     memory_limit: str = memory_limit_setting()
 
     def validate(self) -> None:
@@ -453,7 +453,8 @@ def sampling_workers(budget: Budget, poses: Poses, keys: list[str], settings: Se
     if each > budget.free():
         raise budget.too_small(each, f"sampling {width}x{height} photos {settings.chunk_pixels} pixels at a time",
                                "lower --chunk-pixels (or sample every 2nd pixel, --stride 2; or simplify the mesh)")
-    wanted = settings.workers or os.cpu_count() or 1
+    cores = os.cpu_count() or 1
+    wanted = min(settings.workers or cores, cores)      # threads beyond the cores only contend
     return int(min(len(keys), budget.workers(wanted, each, processes=False)))
 
 
