@@ -166,13 +166,12 @@ def preview(mesh, material: AssetMaterial, env_spec: str) -> tuple[np.ndarray, n
     20 degrees above the object (pipeline.core.camera.orbit_poses), the map as background; the base
     colour from the texture when there is one, else per vertex; a material map's pixels each shaded
     by the material of the face they see (its own render of the whole object)."""
-    from pipeline.core.camera import orbit_poses, pixel_centers, pixel_rays
+    from pipeline.core.camera import enclosing_sphere, orbit_poses, pixel_centers, pixel_rays
     from pipeline.core.procedural_envmaps import envmap_from_spec
     from pipeline.core.render import Renderer
     from pipeline.raycast import first_hits, ray_mesh
 
-    sphere = mesh.bounding_sphere.primitive
-    camera, [(R, t)] = orbit_poses(sphere.center, float(sphere.radius), 1, PREVIEW_PX, PREVIEW_PX)
+    camera, [(R, t)] = orbit_poses(*enclosing_sphere(mesh.vertices), 1, PREVIEW_PX, PREVIEW_PX)
     scene, env = ray_mesh(mesh), envmap_from_spec(env_spec)
     colors = material.colors if material.parts is not None or material.texture is None else None
     texture = None if material.parts is not None else material.texture

@@ -149,6 +149,16 @@ def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> tuple
     return R, -R @ center
 
 
+def enclosing_sphere(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """(centre (3,), radius) of a sphere holding every point (N, 3): the bounding box's centre and the
+    largest distance from it — at most sqrt(3) times the smallest sphere's radius (1.06 x on the
+    teapot), in one pass; the smallest (trimesh's bounding_sphere, a furthest-site Voronoi diagram of
+    the convex hull) took 103 s on a 78 k-vertex scan, a framing needs no more than this."""
+    pts = np.asarray(points, float)
+    centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+    return centre, float(np.sqrt(((pts - centre) ** 2).sum(axis=1).max()))
+
+
 def framing_distance(radius: float, fov_deg: float = 40.0) -> float:
     """Distance at which a sphere of ``radius`` fills a field of view of ``fov_deg`` with a 15% margin."""
     return 1.15 * radius / np.sin(np.radians(fov_deg) / 2)

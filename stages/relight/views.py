@@ -109,15 +109,13 @@ ORBIT_MARGIN = 1.05   # orbit views: the mesh's extent fills the frame but 5 % o
 
 
 def orbit_views(n: int, mesh, size: tuple[int, int] | None) -> list[View]:
-    """N views on a ring 20 degrees above the centre of the mesh's bounding sphere, at the distance
-    where that sphere fills a 40-degree field of view (pipeline.core.camera.framing_distance), with
+    """N views on a ring 20 degrees above the centre of a sphere holding the mesh (camera.enclosing_sphere),
+    at the distance where that sphere fills a 40-degree field of view (pipeline.core.camera.framing_distance), with
     one focal length for all of them at which the mesh's vertices fill the frame in every view but a
     5 % margin (camera.framing_focal): the asset fills the frame, whatever the distance the photos
     were taken from (a capture's cameras also frame the board around it)."""
     width, height = size or (256, 256)
-    centre = np.asarray(mesh.bounding_sphere.primitive.center, float)
-    radius = float(mesh.bounding_sphere.primitive.radius)
-    _, poses = cam.orbit_poses(centre, radius, n, width, height)
+    _, poses = cam.orbit_poses(*cam.enclosing_sphere(mesh.vertices), n, width, height)
     f = cam.framing_focal(np.asarray(mesh.vertices), poses, width, height, ORBIT_MARGIN)
     camera = cam.Camera("PINHOLE", width, height, (f, f, width / 2, height / 2))
     return [View(f"orbit_{i:03d}", camera, R, t, False) for i, (R, t) in enumerate(poses)]

@@ -5,7 +5,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from pipeline.core.camera import MODELS, Camera, pixel_rays, project
+from pipeline.core.camera import MODELS, Camera, enclosing_sphere, pixel_rays, project
 
 PARAMS = {
     "SIMPLE_PINHOLE": [520.0, 322.5, 238.0],
@@ -49,3 +49,20 @@ def test_resized_camera_keeps_the_lens():
     uv_half, _ = project(half, np.eye(3), np.zeros(3), points)
     np.testing.assert_allclose(uv_half, uv / 2, atol=1e-9)
     assert half.model == "FULL_OPENCV" and Camera("PINHOLE", 640, 480, (500, 500, 320, 240)).resized(320, 240).model == "OPENCV"
+
+
+def test_enclosing_sphere_holds_every_point_within_sqrt3_of_the_smallest():
+    """camera.enclosing_sphere: for 2000 points on a sphere of radius 0.3 about (1, -2, 0.5) (the
+    smallest enclosing sphere is that one), every point is inside the returned sphere, the radius is at
+    least 0.3 and at most sqrt(3) x 0.3 (the box-centre bound), and a box's eight corners give its
+    centre and half-diagonal exactly."""
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(2000, 3))
+    points = np.array([1.0, -2.0, 0.5]) + 0.3 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    centre, radius = enclosing_sphere(points)
+    assert np.linalg.norm(points - centre, axis=1).max() <= radius + 1e-12
+    assert 0.3 - 1e-9 <= radius <= np.sqrt(3) * 0.3
+    corners = np.array([[x, y, z] for x in (0.0, 2.0) for y in (0.0, 1.0) for z in (0.0, 4.0)])
+    centre, radius = enclosing_sphere(corners)
+    np.testing.assert_allclose(centre, [1.0, 0.5, 2.0])
+    assert radius == pytest.approx(np.sqrt(1 + 0.25 + 4))
