@@ -116,11 +116,11 @@ def texel_points(atlas: Atlas, chunk: int = 1 << 20) -> tuple[np.ndarray, np.nda
     return texel, np.concatenate(found_face)[keep], np.clip(np.concatenate(found_bary)[keep], 0.0, 1.0)
 
 
-def paint(atlas: Atlas, texel: np.ndarray, values: np.ndarray, pad: int = 8) -> np.ndarray:
+def paint(atlas: Atlas, texel: np.ndarray, values: np.ndarray, pad: int = 8, fill: float = 0.0) -> np.ndarray:
     """An (H, W, C) map holding ``values`` (M, C) at the flat texels ``texel`` (M,) (texel_points'),
-    padded ``pad`` rings past them (:func:`dilate`); texels further out are 0."""
+    padded ``pad`` rings past them (:func:`dilate`); texels further out are ``fill``."""
     values = np.asarray(values, float).reshape(len(texel), -1)
-    flat = np.zeros((atlas.height * atlas.width, values.shape[1]))
+    flat = np.full((atlas.height * atlas.width, values.shape[1]), float(fill))
     flat[texel] = values
     filled = np.zeros(atlas.height * atlas.width, bool)
     filled[texel] = True

@@ -130,18 +130,18 @@ def material_textures(mesh, found: svbrdf.MaterialMap, atlas: atlas_mod.Atlas) -
     """A material map (fit/material.ply's, per vertex) as the maps of fit/textures/, for consumers that
     read materials from textures (glTF, USD): on ``atlas`` (the fit's: :func:`make_atlas`), each texel's
     base colour and its standard deviation interpolated from its face's vertices (NaN where they have
-    no samples of their own), its roughness and metallic its face's material's
+    no samples of their own, and off the padded charts), its roughness and metallic its face's material's
     (svbrdf.face_materials, as relight shades the face: a material boundary stays sharp)."""
     faces = np.asarray(mesh.faces, np.int64)
     tex_id, tex_face, tex_bary = atlas_mod.texel_points(atlas)
 
-    def interpolated(per_vertex: np.ndarray) -> np.ndarray:
-        return atlas_mod.paint(atlas, tex_id, np.einsum("pk,pkc->pc", tex_bary, per_vertex[faces[tex_face]]))
+    def interpolated(per_vertex: np.ndarray, fill: float = 0.0) -> np.ndarray:
+        return atlas_mod.paint(atlas, tex_id, np.einsum("pk,pkc->pc", tex_bary, per_vertex[faces[tex_face]]), fill=fill)
 
     material = svbrdf.face_materials(faces, found.labels)[tex_face]
     roughness = np.array([1.0 if m is None else m.roughness for m in found.materials])[material]
     metallic = np.array([0.0 if m is None else m.metallic for m in found.materials])[material]
     base = np.clip(interpolated(found.base), 0.0, 1.0)
-    std = interpolated(np.where(np.isfinite(found.base_std), found.base_std, np.nan))
+    std = interpolated(np.where(np.isfinite(found.base_std), found.base_std, np.nan), fill=np.nan)
     return TexelFit(atlas, base, std, found.base, atlas_mod.paint(atlas, tex_id, roughness)[:, :, 0],
                     atlas_mod.paint(atlas, tex_id, metallic)[:, :, 0])
