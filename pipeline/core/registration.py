@@ -159,10 +159,10 @@ def truncated_costs(distances: list[np.ndarray], cut_sigmas: float = 3.0) -> np.
 
 
 def register_to_surface(points: np.ndarray, surface_points: np.ndarray, surface_normals: np.ndarray, *,
-                        center: np.ndarray, scale: float, rotations: int = 64,
+                        center: np.ndarray, scale: float, rotations: int = 128,
                         scale_factors: tuple[float, ...] = (0.5, 0.7, 1.0, 1.4, 2.0), search_points: int = 600,
                         search_surface: int = 4000,
-                        keep: float = 0.5, refine_best: int = 6, ambiguity_deg: float = 5.0,
+                        keep: float = 0.5, refine_best: int = 16, ambiguity_deg: float = 5.0,
                         ambiguity_ratio: float = 1.25, seed: int = 0) -> SurfaceRegistration:
     """Similarity mapping ``points`` (N, 3, source frame) onto the surface, without a rotation guess.
 

@@ -127,3 +127,25 @@ def test_a_camera_registered_the_wrong_way_round_is_dropped(capsys):
     assert list(dropped) == ["IMG_0004.JPG"] and dropped["IMG_0004.JPG"] < 0.5, dropped
     assert sum(im.has_pose for im in reconstruction.images.values()) == 31
     assert "IMG_0004.JPG" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_wrong_mesh_is_one_line_and_keeps_the_earlier_outputs(tmp_path):
+    """Every failure on this path is one line, exit 2, nothing lost: the same photos with a sphere of the
+    object's size as the mesh (the wrong object: its shape cannot orient the cameras, nor do the points fit it).
+    `sigrend run` stops at poses with one line asking for a board or poses; linearize's outputs stay, no
+    poses.json is written."""
+    import shutil
+
+    import trimesh
+    from helpers import assert_one_line_error
+
+    capture = tmp_path / "capture"
+    shutil.copytree(CAPTURE / "images", capture / "images")
+    trimesh.creation.icosphere(subdivisions=5, radius=0.08).export(capture / "mesh.ply")
+    work = tmp_path / "work"
+    result = sigrend("run", str(capture), "-w", str(work))
+    line = assert_one_line_error(result, "board", progress=True)
+    assert "does not fix the cameras' rotation" in line or "do not fit the mesh" in line, line
+    assert (work / "linear" / "manifest.json").exists()
+    assert not (work / "poses.json").exists()
