@@ -23,8 +23,16 @@ from pipeline.core.similarity import Similarity, ransac_similarity, transform_po
 from pipeline.errors import UserError
 from pipeline.io.capture_toml import BoardSpec, CaptureConfig
 from pipeline.io.poses import ImagePose, Poses
-from stages.poses.colmap import (IDENTITY, bundle_adjust, camera_from_pycolmap, colmap_copies, colmap_name,
-                                 colmap_output, poses_from_reconstruction, run_colmap)
+from stages.poses.colmap import (
+    IDENTITY,
+    bundle_adjust,
+    camera_from_pycolmap,
+    colmap_copies,
+    colmap_name,
+    colmap_output,
+    poses_from_reconstruction,
+    run_colmap,
+)
 from stages.poses.photos import calibrated_camera
 from stages.poses.settings import MIN_BOARD_CORNERS, Settings
 from stages.poses.summary import enough, finish, named, status

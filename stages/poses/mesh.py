@@ -26,8 +26,7 @@ from pipeline.io.capture_toml import CaptureConfig
 from pipeline.io.mesh import MESH_NAMES, mesh_path, read_mesh
 from pipeline.io.pose_imports import reconstruction_points
 from pipeline.io.poses import ImagePose, Poses
-from stages.poses.colmap import (IDENTITY, bundle_adjust, colmap_copies, colmap_name, poses_from_reconstruction,
-                                 run_colmap)
+from stages.poses.colmap import IDENTITY, bundle_adjust, colmap_copies, colmap_name, poses_from_reconstruction, run_colmap
 from stages.poses.photos import calibrated_camera
 from stages.poses.settings import Settings
 from stages.poses.summary import enough, finish, named, status
