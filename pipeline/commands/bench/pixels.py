@@ -110,6 +110,8 @@ def pixels_suite(quick: bool, repeat: int, output: Path = Path("bench")) -> list
             for stage in STAGES:
                 seconds, peak = measured([*sigrend, stage, str(capture), "-w", str(work)])
                 record[stage] = (seconds, peak)
+                print(f"bench pixels: {views} x {width}x{height}: {stage} {seconds:.1f} s, peak {peak / 1e6:.0f} MB",
+                      file=sys.stderr, flush=True)
                 size = f"{views} x {width}x{height} ({total / 1e6:.0f} MP)"
                 rows.append(BenchRow(f"{stage}: seconds", 0, size, round(seconds, 2), "s"))
                 rows.append(BenchRow(f"{stage}: peak memory", 0, size, round(peak / 1e6), "MB"))
