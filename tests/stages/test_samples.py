@@ -168,7 +168,7 @@ def test_grazing_threshold_against_the_analytic_cosine(sphere_run, tmp_path):
     a, meta, summary = run_samples(capture, tmp_path / "work", min_cos=min_cos)
     # mesh cosines differ from the exact sphere's by the normal error (< 1.1 deg -> < 0.02 in cos)
     slack = np.sin(max_edge_angle() / 4)
-    for image_id, key in enumerate(sorted(poses.images)):
+    for key in sorted(poses.images):
         pose, camera = poses.images[key], poses.camera_of(key)
         hit, _, cos = sphere_hits(camera, pose.R, pose.t, RADIUS)
         kept = summary["images"][key]["kept"]
