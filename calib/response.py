@@ -3,7 +3,8 @@
 Input: 8-bit photos (JPEG/PNG/TIFF) of one static scene from a tripod at several exposure times
 (EXIF ExposureTime, or --times).  cv2.createCalibrateDebevec (Debevec & Malik 1997: least squares
 for g(Z) = ln E + ln t with a smoothness term, eq. 3).  (cv2's Robertson calibration was tried and
-left out: on the synthetic gamma-1.6 test its curve was 18-27 % off, Debevec's < 2 %.)  The curve is made non-decreasing; its channels keep the balance
+left out: on the synthetic gamma-1.6 test its curve was 18-27 % off, Debevec's < 2 %.)  The curve is made
+non-decreasing; its channels keep the balance
 Debevec's solution gives them at mid codes, one common scale puts their mean at code 255 at 1
 (pipeline.io.response_json).  A PNG plot of the curve is written beside the JSON.
 """
@@ -81,8 +82,10 @@ def calibrate_response(images: list[np.ndarray], times: np.ndarray, settings: Se
     for c in range(3):  # codes never observed come back NaN (Robertson): interpolate them in log space
         ok = np.isfinite(curve[c]) & (curve[c] > 0)
         if ok.sum() < 16:
-            raise UserError("response calibration saw fewer than 16 distinct codes; use a scene with a wide "
-                            "range of brightness and a bracket spanning several stops")
+            raise UserError(
+                "response calibration saw fewer than 16 distinct codes; use a scene with a wide "
+                "range of brightness and a bracket spanning several stops"
+            )
         curve[c] = np.exp(np.interp(codes, codes[ok], np.log(curve[c, ok])))
     curve = np.maximum.accumulate(curve, axis=1)
     # One scale for all channels.  Debevec's solution fixes each channel at mid-range (g(128) = 0,
@@ -131,6 +134,5 @@ def run(*, images: Path | list[Path], output: Path, settings: Settings) -> list[
     """Calibrate from the bracket in ``images``; write response.json and response.png."""
     imgs, times, names = load_bracket(images, list(settings.times))
     inverse = calibrate_response(imgs, times, settings)
-    out = write_response_json(output, inverse, method=settings.method,
-                              exposures_s={n: float(t) for n, t in zip(names, times)})
+    out = write_response_json(output, inverse, method=settings.method, exposures_s={n: float(t) for n, t in zip(names, times)})
     return [out, plot_response(Path(output).with_suffix(".png"), inverse)]

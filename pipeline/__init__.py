@@ -6,4 +6,4 @@ Layering (DESIGN.md, "The house"): pipeline.core <- pipeline.io <- stages, calib
 
 __version__ = "0.1.0"
 
-STAGES = ("linearize", "poses", "samples", "fit", "relight")   # what `sigrend run` runs, in this order
+STAGES = ("linearize", "poses", "samples", "fit", "relight")  # what `sigrend run` runs, in this order

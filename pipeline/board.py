@@ -18,13 +18,14 @@ def make_board(spec: BoardSpec):
     import cv2
 
     if spec.pattern != "charuco":
-        raise UserError(f"a {spec.pattern} board cannot place the object: its corners have no names, so "
-                        "poses need a ChArUco board ([board] pattern = \"charuco\"); chessboards are for calib intrinsics")
+        raise UserError(
+            f"a {spec.pattern} board cannot place the object: its corners have no names, so "
+            'poses need a ChArUco board ([board] pattern = "charuco"); chessboards are for calib intrinsics'
+        )
 
     name = spec.dictionary.upper()
     if not name.startswith("DICT_") or not hasattr(cv2.aruco, name):
-        raise UserError(f"board dictionary {spec.dictionary!r} is not a cv2.aruco predefined dictionary "
-                        "(e.g. DICT_5X5_100)")
+        raise UserError(f"board dictionary {spec.dictionary!r} is not a cv2.aruco predefined dictionary (e.g. DICT_5X5_100)")
     dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
     board = cv2.aruco.CharucoBoard(spec.squares, spec.square_length, spec.marker_length, dictionary)
     n_markers = (spec.squares[0] * spec.squares[1]) // 2
@@ -93,4 +94,5 @@ def corner_detector(spec: BoardSpec):
         # the saddle-point refinement of OpenCV's calibration sample: on its left*.jpg RMS 0.26 -> 0.20 px
         corners = cv2.cornerSubPix(gray, corners, (5, 5), (-1, -1), refine)
         return grid, corners.reshape(-1, 2).astype(np.float32)
+
     return find

@@ -13,7 +13,7 @@ from pipeline.errors import UserError
 from pipeline.io.capture_toml import ChartSpec
 from pipeline.io.images import srgb_encode
 
-PATCH_INSET = 0.6     # a patch is measured over the central 60 % of the region mcc returns (its edges blur)
+PATCH_INSET = 0.6  # a patch is measured over the central 60 % of the region mcc returns (its edges blur)
 TONE_PERCENTILE = 99.5  # the 8-bit copy handed to mcc maps this percentile of the valid radiance to 0.9
 
 
@@ -34,10 +34,10 @@ def find_colorchecker(rgb: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, n
 
     detector = cv2.mcc.CCheckerDetector_create()
     image = eight_bit_bgr(rgb, valid)
-    if hasattr(detector, "setColorChartType"):      # OpenCV 5: the chart type is the detector's
+    if hasattr(detector, "setColorChartType"):  # OpenCV 5: the chart type is the detector's
         detector.setColorChartType(cv2.mcc.MCC24)
         found = detector.process(image, 1)
-    else:                                           # OpenCV 4 (contrib): process(image, chartType, nc)
+    else:  # OpenCV 4 (contrib): process(image, chartType, nc)
         found = detector.process(image, cv2.mcc.MCC24, 1)
     if not found:
         return None
@@ -81,41 +81,69 @@ def measure_chart(spec: ChartSpec, rgb: np.ndarray, valid: np.ndarray, where: st
         corners = np.array([[x0, y0], [x1 - 1, y0], [x1 - 1, y1 - 1], [x0, y1 - 1]], float)
         mean, ok, _ = region_mean(rgb, valid, corners, inset=1.0)
         if not ok:
-            raise UserError(f"{where}: the grey card's box has saturated or missing pixels; shoot it darker or "
-                            "move the box onto the card")
+            raise UserError(
+                f"{where}: the grey card's box has saturated or missing pixels; shoot it darker or move the box onto the card"
+            )
         rho = np.asarray(spec.reflectance, float)
-        patches = [{"name": "grey card", "centre": [0.5 * (x0 + x1), 0.5 * (y0 + y1)], "radiance": mean,
-                    "reflectance": rho, "valid": True}]
+        patches = [
+            {
+                "name": "grey card",
+                "centre": [0.5 * (x0 + x1), 0.5 * (y0 + y1)],
+                "radiance": mean,
+                "reflectance": rho,
+                "valid": True,
+            }
+        ]
         centre = np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1)])
         detector, cost, use, measured, reference = "capture.toml box", None, np.array([True]), mean[None], rho[None]
     else:
         found = find_colorchecker(rgb, valid)
         if found is None:
-            raise UserError(f"{where}: cv2.mcc finds no ColorChecker Classic (24 patches) in this photo; check "
-                            "that the whole chart with its dark frame is in view and in focus, or remove [chart]")
+            raise UserError(
+                f"{where}: cv2.mcc finds no ColorChecker Classic (24 patches) in this photo; check "
+                "that the whole chart with its dark frame is in view and in focus, or remove [chart]"
+            )
         regions, box, cost = found
         rows = [region_mean(rgb, valid, r) for r in regions]
         measured = np.array([r[0] for r in rows])
         use = np.array([r[1] and r[2] > 0 for r in rows])
         reference = core_chart.COLORCHECKER_REFLECTANCE
-        centres = regions.mean(axis=1) + 0.5          # OpenCV pixel -> COLMAP's (top-left corner at 0, 0)
-        patches = [{"name": n, "centre": c, "radiance": m, "reflectance": rho, "valid": bool(u)}
-                   for n, c, m, rho, u in zip(core_chart.COLORCHECKER_NAMES, centres, measured, reference, use)]
+        centres = regions.mean(axis=1) + 0.5  # OpenCV pixel -> COLMAP's (top-left corner at 0, 0)
+        patches = [
+            {"name": n, "centre": c, "radiance": m, "reflectance": rho, "valid": bool(u)}
+            for n, c, m, rho, u in zip(core_chart.COLORCHECKER_NAMES, centres, measured, reference, use)
+        ]
         centre = box.mean(axis=0) + 0.5
         detector = "cv2.mcc MCC24 (opencv-contrib " + __import__("cv2").__version__ + ")"
-        use = use & np.isin(np.arange(24), core_chart.NEUTRAL)     # the grey row sets the factor
+        use = use & np.isin(np.arange(24), core_chart.NEUTRAL)  # the grey row sets the factor
     try:
         fit = core_chart.chart_irradiance(measured, reference, use)
     except ValueError:
-        raise UserError(f"{where}: the chart's grey patches are saturated or black in every channel; shoot it "
-                        "with the grey row unclipped") from None
+        raise UserError(
+            f"{where}: the chart's grey patches are saturated or black in every channel; shoot it with the grey row unclipped"
+        ) from None
     irradiance = fit["irradiance"]
-    colour = None if spec.kind == "grey_card" else core_chart.colour_residual(
-        measured, core_chart.COLORCHECKER_REFLECTANCE, irradiance, [p["valid"] for p in patches])
-    return {"kind": spec.kind, "normal": None if spec.normal is None else list(spec.normal), "centre": centre,
-            "irradiance": irradiance, "white_balance": irradiance[1] / irradiance, "residual": fit["residual"],
-            "colour_residual": colour, "reference_patches": fit["patches"], "detector": detector, "cost": cost,
-            "reference": ("X-Rite ColorChecker Classic (2005 formulation), CIE L*a*b* D50 as OpenCV's ccm module "
-                          "carries it, to linear sRGB by Bradford D50->D65 (pipeline/core/chart.py)"
-                          if spec.kind == "colorchecker" else "capture.toml [chart] grey_card reflectance"),
-            "patches": patches}
+    colour = (
+        None
+        if spec.kind == "grey_card"
+        else core_chart.colour_residual(measured, core_chart.COLORCHECKER_REFLECTANCE, irradiance, [p["valid"] for p in patches])
+    )
+    return {
+        "kind": spec.kind,
+        "normal": None if spec.normal is None else list(spec.normal),
+        "centre": centre,
+        "irradiance": irradiance,
+        "white_balance": irradiance[1] / irradiance,
+        "residual": fit["residual"],
+        "colour_residual": colour,
+        "reference_patches": fit["patches"],
+        "detector": detector,
+        "cost": cost,
+        "reference": (
+            "X-Rite ColorChecker Classic (2005 formulation), CIE L*a*b* D50 as OpenCV's ccm module "
+            "carries it, to linear sRGB by Bradford D50->D65 (pipeline/core/chart.py)"
+            if spec.kind == "colorchecker"
+            else "capture.toml [chart] grey_card reflectance"
+        ),
+        "patches": patches,
+    }

@@ -60,15 +60,17 @@ class OneLineParser(argparse.ArgumentParser):
 
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     """The full parser; modules are imported only for ``selected`` (or all, for --help)."""
-    parser = OneLineParser(
-        prog="sigrend",
-        description="Lighting and BRDF from photos of a known shape, in frequency space.")
+    parser = OneLineParser(prog="sigrend", description="Lighting and BRDF from photos of a known shape, in frequency space.")
     from pipeline import __version__
 
     parser.add_argument("--version", action="version", version=f"sigrend {__version__}")
-    parser.add_argument("-v", "--verbose", action="store_true",
-                        help="say what is being done (each stage's settings at its start); `sigrend -v poses` "
-                             "also shows COLMAP's own log on the terminal instead of WORK/colmap/colmap.log")
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        action="store_true",
+        help="say what is being done (each stage's settings at its start); `sigrend -v poses` "
+        "also shows COLMAP's own log on the terminal instead of WORK/colmap/colmap.log",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in (*STAGE_COMMANDS, *COMMANDS):
         if selected is not None and name != selected:
@@ -95,7 +97,7 @@ def _raise_terminated(signum, frame):
     raise Terminated()
 
 
-DISK_ERRORS = {   # the machine's errors, not sigrend's -> what to do
+DISK_ERRORS = {  # the machine's errors, not sigrend's -> what to do
     errno.ENOSPC: "free some space or give -w a folder on another disk",
     errno.EDQUOT: "free some space or give -w a folder on another disk",
     errno.EROFS: "give -w a writable folder",
@@ -109,7 +111,7 @@ def _format_warning(message, category, filename, lineno, line=None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    if argv is None:      # the command line (not a caller in Python): warnings as one line each, no source line
+    if argv is None:  # the command line (not a caller in Python): warnings as one line each, no source line
         warnings.formatwarning = _format_warning
     argv = sys.argv[1:] if argv is None else list(argv)
     selected = next((a for a in argv if not a.startswith("-")), None)
@@ -137,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("sigrend: interrupted; finished outputs are kept, run again to resume", file=sys.stderr)
         return 130
-    except BrokenPipeError:   # `sigrend ... | head`: the reader left; end quietly (Python docs, "SIGPIPE")
+    except BrokenPipeError:  # `sigrend ... | head`: the reader left; end quietly (Python docs, "SIGPIPE")
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
     except OSError as exc:
@@ -146,8 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         # the machine, not sigrend: a full disk or quota, a read-only or forbidden folder (the stage's
         # transaction has rolled back, so earlier outputs are intact)
         fix = DISK_ERRORS[exc.errno]
-        print(f"sigrend: error: {exc.filename or 'writing the outputs'}: {exc.strerror}; {fix}, then run again",
-              file=sys.stderr)
+        print(f"sigrend: error: {exc.filename or 'writing the outputs'}: {exc.strerror}; {fix}, then run again", file=sys.stderr)
         return UserError.exit_code
     finally:
         if in_main_thread:

@@ -25,7 +25,7 @@ def configure(verbose: bool) -> None:
 def _is_terminal(stream) -> bool:
     try:
         return bool(stream.isatty())
-    except (AttributeError, ValueError):      # a replaced or closed stream
+    except (AttributeError, ValueError):  # a replaced or closed stream
         return False
 
 

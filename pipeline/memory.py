@@ -17,9 +17,23 @@ from pathlib import Path
 from pipeline.errors import UserError
 
 DEFAULT = "50%"
-WORKER_BASE = 160 * 2**20      # a worker process's own imports (numpy, OpenImageIO, LibRaw): measured 110-150 MB
-_UNITS = {"": 1, "B": 1, "K": 10**3, "KB": 10**3, "M": 10**6, "MB": 10**6, "G": 10**9, "GB": 10**9,
-          "T": 10**12, "TB": 10**12, "KIB": 2**10, "MIB": 2**20, "GIB": 2**30, "TIB": 2**40}
+WORKER_BASE = 160 * 2**20  # a worker process's own imports (numpy, OpenImageIO, LibRaw): measured 110-150 MB
+_UNITS = {
+    "": 1,
+    "B": 1,
+    "K": 10**3,
+    "KB": 10**3,
+    "M": 10**6,
+    "MB": 10**6,
+    "G": 10**9,
+    "GB": 10**9,
+    "T": 10**12,
+    "TB": 10**12,
+    "KIB": 2**10,
+    "MIB": 2**20,
+    "GIB": 2**30,
+    "TIB": 2**40,
+}
 
 
 def machine_memory() -> int:
@@ -93,9 +107,11 @@ class Budget:
 
     def too_small(self, need: int, what: str, reduce: str) -> UserError:
         """The one line for a capture that cannot fit: what needs how much, and what to reduce."""
-        return UserError(f"--memory-limit {self.text} ({format_size(self.limit)}): {what} needs about "
-                         f"{format_size(need)} beside the {format_size(rss_now())} sigrend holds already; "
-                         f"{reduce}, or raise --memory-limit")
+        return UserError(
+            f"--memory-limit {self.text} ({format_size(self.limit)}): {what} needs about "
+            f"{format_size(need)} beside the {format_size(rss_now())} sigrend holds already; "
+            f"{reduce}, or raise --memory-limit"
+        )
 
     def workers(self, wanted: int, per_worker: int, *, processes: bool) -> int:
         """How many of ``wanted`` workers fit: each needs ``per_worker`` bytes (plus WORKER_BASE when

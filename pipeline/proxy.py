@@ -23,9 +23,9 @@ import numpy as np
 
 from pipeline.raycast import RayMesh, ray_mesh
 
-PROXY_PIXELS = 2.0      # the proxy's edge length in photo pixels (4: the Cycles bunny relit 1.62 -> 2.25 %; 2: 1.60 %)
-PROXY_MIN_RATIO = 2.0   # a proxy only for a mesh with more than this many times the proxy's faces
-CANDIDATE_FACES = 8     # proxy faces (nearest centroids) searched for each vertex's closest point
+PROXY_PIXELS = 2.0  # the proxy's edge length in photo pixels (4: the Cycles bunny relit 1.62 -> 2.25 %; 2: 1.60 %)
+PROXY_MIN_RATIO = 2.0  # a proxy only for a mesh with more than this many times the proxy's faces
+CANDIDATE_FACES = 8  # proxy faces (nearest centroids) searched for each vertex's closest point
 
 
 @dataclass(frozen=True)
@@ -45,8 +45,7 @@ def proxy_faces(area: float, spacing: float) -> int:
     return int(np.ceil(area / (np.sqrt(3.0) / 4.0 * spacing * spacing)))
 
 
-def with_proxy(mesh, footprint_m: float, pixels: float = PROXY_PIXELS,
-               min_ratio: float = PROXY_MIN_RATIO) -> RayMesh:
+def with_proxy(mesh, footprint_m: float, pixels: float = PROXY_PIXELS, min_ratio: float = PROXY_MIN_RATIO) -> RayMesh:
     """The RayMesh of ``mesh`` with a Proxy where the mesh is much finer than the photos resolve:
     edge ``pixels`` x ``footprint_m`` (the photos' median pixel size on the surface), and only when
     the mesh has more than ``min_ratio`` times the proxy's faces (else the RayMesh as it is)."""
@@ -65,9 +64,10 @@ def build_proxy(rm: RayMesh, target_faces: int, spacing: float = 0.0) -> Proxy:
     import fast_simplification
     import trimesh
 
-    points, faces = fast_simplification.simplify(np.asarray(rm.vertices, np.float64), np.asarray(rm.faces, np.int32),
-                                                 target_count=max(4, int(target_faces)))
-    simple = trimesh.Trimesh(points, faces, process=True)       # merged duplicates, dropped degenerate faces
+    points, faces = fast_simplification.simplify(
+        np.asarray(rm.vertices, np.float64), np.asarray(rm.faces, np.int32), target_count=max(4, int(target_faces))
+    )
+    simple = trimesh.Trimesh(points, faces, process=True)  # merged duplicates, dropped degenerate faces
     proxy = ray_mesh(simple)
     tri, bary = closest_points(proxy, rm.vertices, rm.vertex_normals)
     return Proxy(proxy, tri, bary, float(spacing))
@@ -88,7 +88,7 @@ def closest_points(proxy: RayMesh, points: np.ndarray, normals: np.ndarray, chun
     out_face = np.zeros(len(points), np.int64)
     out_pt = np.zeros((len(points), 3))
     for s in range(0, len(points), chunk):
-        p, n = np.asarray(points[s:s + chunk], float), np.asarray(normals[s:s + chunk], float)
+        p, n = np.asarray(points[s : s + chunk], float), np.asarray(normals[s : s + chunk], float)
         _, cand = tree.query(p, k=k)
         cand = cand.reshape(len(p), k)
         near = closest_point(tris[cand.ravel()], np.repeat(p, k, axis=0)).reshape(len(p), k, 3)
@@ -96,8 +96,8 @@ def closest_points(proxy: RayMesh, points: np.ndarray, normals: np.ndarray, chun
         facing = np.einsum("pkc,pc->pk", np.asarray(proxy.face_normals)[cand], n) > 0
         dist = np.where(facing | ~facing.any(axis=1, keepdims=True), dist, dist + np.inf)
         best = np.argmin(dist, axis=1)
-        out_face[s:s + chunk] = cand[np.arange(len(p)), best]
-        out_pt[s:s + chunk] = near[np.arange(len(p)), best]
+        out_face[s : s + chunk] = cand[np.arange(len(p)), best]
+        out_pt[s : s + chunk] = near[np.arange(len(p)), best]
     bary = np.clip(barycentric(tris[out_face], out_pt), 0.0, 1.0)
     bary /= bary.sum(axis=1, keepdims=True)
     return np.asarray(proxy.faces)[out_face].astype(np.int64), bary

@@ -65,9 +65,16 @@ def ray_mesh(mesh) -> RayMesh:
     """The RayMesh of a trimesh mesh (its intersector built once, shared by every Renderer of it)."""
     if isinstance(mesh, RayMesh):
         return mesh
-    return RayMesh(mesh, np.asarray(mesh.vertices, float), np.asarray(mesh.faces), np.asarray(mesh.vertex_normals, float),
-                   np.asarray(mesh.face_normals, float), np.asarray(mesh.triangles, float), np.asarray(mesh.extents, float),
-                   intersector(mesh))
+    return RayMesh(
+        mesh,
+        np.asarray(mesh.vertices, float),
+        np.asarray(mesh.faces),
+        np.asarray(mesh.vertex_normals, float),
+        np.asarray(mesh.face_normals, float),
+        np.asarray(mesh.triangles, float),
+        np.asarray(mesh.extents, float),
+        intersector(mesh),
+    )
 
 
 def first_hits(mesh, rays, origins: np.ndarray, directions: np.ndarray) -> Hits:
@@ -86,8 +93,9 @@ def occluded(rays, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
     return np.asarray(rays.intersects_any(origins, directions), bool)
 
 
-def pixel_footprints(mesh, rays, camera, R: np.ndarray, t: np.ndarray, pixels: np.ndarray, n: int,
-                     normals: np.ndarray, view_dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def pixel_footprints(
+    mesh, rays, camera, R: np.ndarray, t: np.ndarray, pixels: np.ndarray, n: int, normals: np.ndarray, view_dirs: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The surface each pixel integrates: shading normals and unit view directions (P, n*n, 3) at
     the hits of an n x n grid of rays through each pixel (row, col) of ``pixels`` (P, 2) — a
     one-pixel box filter, as a sensor's pixel or a path tracer's box filter averages.  A ray that

@@ -127,11 +127,14 @@ def _json(path: Path) -> dict | None:
 
 # --------------------------------------------------------------------------------------- sections
 
+
 def _summary(capture: Path, work: Path) -> str:
     from pipeline.io.run_summary import StageResult, stage_table, summary_lines
 
-    parts = [f"<p>capture <code>{html.escape(str(Path(capture).resolve()))}</code>, "
-             f"work folder <code>{html.escape(str(Path(work).resolve()))}</code></p>"]
+    parts = [
+        f"<p>capture <code>{html.escape(str(Path(capture).resolve()))}</code>, "
+        f"work folder <code>{html.escape(str(Path(work).resolve()))}</code></p>"
+    ]
     lines = summary_lines(work)
     if lines:
         parts.append("<ul>" + "".join(f"<li>{html.escape(s)}</li>" for s in lines) + "</ul>")
@@ -148,8 +151,11 @@ def _warnings(work: Path) -> str:
     if not run or "warnings" not in run:
         return ""
     found = run["warnings"]
-    body = ("<ul class=\"warnings\">" + "".join(f"<li>{html.escape(str(w))}</li>" for w in found) + "</ul>"
-            if found else "<p>The run raised no warnings.</p>")
+    body = (
+        '<ul class="warnings">' + "".join(f"<li>{html.escape(str(w))}</li>" for w in found) + "</ul>"
+        if found
+        else "<p>The run raised no warnings.</p>"
+    )
     return _section(f"Warnings ({len(found)})", body)
 
 
@@ -172,8 +178,10 @@ def _photos(capture: Path, work: Path) -> str:
             caption += f" — {100 * (1 - valid.mean()):.3g}% masked"
         tag = _img_tag(_array_png(shown), exr.name)
         cells.append(f'<figure class="photo">{tag}<figcaption>{html.escape(caption)}</figcaption></figure>')
-    note = ("<p>Linear photos (tone-mapped for display); pixels their validity mask leaves out (saturated, "
-            "outside the image's valid area) are tinted <span class=\"swatch\"></span> red and not used.</p>")
+    note = (
+        "<p>Linear photos (tone-mapped for display); pixels their validity mask leaves out (saturated, "
+        'outside the image\'s valid area) are tinted <span class="swatch"></span> red and not used.</p>'
+    )
     return _section("Photos and masks", note + '<div class="grid">' + "".join(cells) + "</div>")
 
 
@@ -236,10 +244,12 @@ def _cameras(capture: Path, work: Path) -> str:
     summary = _json(Path(work) / "poses_summary.json") or {}
     text = f"<p>{len(poses.images)} views from <code>{html.escape(str(path))}</code>.</p>"
     if "registration_residual_fraction_of_size" in summary:  # registered to the mesh (stages/poses/mesh.py)
-        text += (f"<p>Registered to the mesh: RMS {summary['registration_residual_mm']:.3g} mm "
-                 f"({100 * summary['registration_residual_fraction_of_size']:.2g}% of its size), "
-                 f"{100 * summary['registration_points_used_fraction']:.0f}% of {summary['registration_points']} "
-                 "SfM points on it.</p>")
+        text += (
+            f"<p>Registered to the mesh: RMS {summary['registration_residual_mm']:.3g} mm "
+            f"({100 * summary['registration_residual_fraction_of_size']:.2g}% of its size), "
+            f"{100 * summary['registration_points_used_fraction']:.0f}% of {summary['registration_points']} "
+            "SfM points on it.</p>"
+        )
     if summary:
         text += "<details><summary>poses_summary.json</summary>" + _table(_flat(summary), ["entry", "value"]) + "</details>"
     return _section("Cameras", text + _img_tag(camera_plot(poses, bounds, samples_holdout(work)), "cameras"))
@@ -255,8 +265,9 @@ def _coverage(work: Path) -> str:
         for name in ("normals", "reflections"):
             cov = (summary.get("coverage") or {}).get(name)
             if cov:
-                rows.append([f"{name}: sphere covered",
-                             f"{100 * cov['fraction']:.3g}% ({cov['cells_hit']}/{cov['cells']} cells)"])
+                rows.append(
+                    [f"{name}: sphere covered", f"{100 * cov['fraction']:.3g}% ({cov['cells_hit']}/{cov['cells']} cells)"]
+                )
         if summary.get("holdout"):
             rows.append(["held out of the fit", summary["holdout"]])
         body += _table(rows, ["", "value"])
@@ -284,8 +295,10 @@ def sphere_renders(coeffs: np.ndarray, brdf: Brdf | None, size: int = 128) -> by
     normal = np.stack([x, y, z], axis=-1)[inside]
     view = np.broadcast_to([0.0, 1.0, 0.0], normal.shape)
     r = 2 * np.sum(normal * view, axis=1, keepdims=True) * normal - view
-    panels = {"mirror sphere (lighting)": sh_evaluate(coeffs, r),
-              "white Lambertian sphere": irradiance_from_sh(coeffs, normal) / np.pi}
+    panels = {
+        "mirror sphere (lighting)": sh_evaluate(coeffs, r),
+        "white Lambertian sphere": irradiance_from_sh(coeffs, normal) / np.pi,
+    }
     if brdf is not None and brdf.model == "principled":
         panels["fitted material"] = principled_sphere(coeffs, brdf, normal, np.array(view))
     elif brdf is not None:
@@ -315,9 +328,8 @@ def texture_views(vertices: np.ndarray, faces: np.ndarray, colour: np.ndarray, s
 
     sides = {"from +X": (1, 2, 0), "from +Y": (0, 2, 1), "from −X": (1, 2, 0), "from −Y": (0, 2, 1), "from above": (0, 1, 2)}
     # (image x, image y, towards the viewer) signs: from +X the image's right is +Y, from +Y it is -X
-    signs = {"from +X": (1, 1, 1), "from +Y": (-1, 1, 1), "from −X": (-1, 1, -1), "from −Y": (1, 1, -1),
-             "from above": (1, 1, 1)}
-    tri = np.asarray(vertices, float)[np.asarray(faces)]                       # (F, 3 corners, 3)
+    signs = {"from +X": (1, 1, 1), "from +Y": (-1, 1, 1), "from −X": (-1, 1, -1), "from −Y": (1, 1, -1), "from above": (1, 1, 1)}
+    tri = np.asarray(vertices, float)[np.asarray(faces)]  # (F, 3 corners, 3)
     face_rgb = np.clip(srgb_encode(np.asarray(colour, float)[np.asarray(faces)].mean(axis=1)), 0, 1)
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     plt = _figure()
@@ -325,7 +337,7 @@ def texture_views(vertices: np.ndarray, faces: np.ndarray, colour: np.ndarray, s
     for ax, (title, (a, b, depth)) in zip(axes, sides.items()):
         sa, sb, sd = signs[title]
         facing = normal[:, depth] * sd > 0
-        order = np.argsort(sd * tri[facing][:, :, depth].mean(axis=1))           # far first
+        order = np.argsort(sd * tri[facing][:, :, depth].mean(axis=1))  # far first
         xy = np.stack([sa * tri[facing][order][:, :, a], sb * tri[facing][order][:, :, b]], axis=-1)
         ax.add_collection(PolyCollection(xy, facecolors=face_rgb[facing][order], edgecolors="none"))
         ax.autoscale_view()
@@ -347,17 +359,23 @@ def _lighting(work: Path) -> str:
     parts = []
     if (fit / "lighting.exr").exists():
         env = read_image(fit / "lighting.exr")
-        parts.append("<h3>Equirect map (DESIGN.md convention, row 0 = zenith)</h3>"
-                     + _img_tag(_array_png(_tonemap(env)), "fitted lighting", 512))
+        parts.append(
+            "<h3>Equirect map (DESIGN.md convention, row 0 = zenith)</h3>"
+            + _img_tag(_array_png(_tonemap(env)), "fitted lighting", 512)
+        )
     coeffs = read_lighting_sh(sh_file)
     brdf = read_brdf(fit / "brdf.json") if (fit / "brdf.json").exists() else None
     parts.append("<h3>Spheres under the fitted lighting</h3>" + _img_tag(sphere_renders(coeffs, brdf), "spheres"))
     report = _json(fit / "report.json") or {}
     if report.get("bands"):
-        parts.append("<h3>What the data determine, band by band</h3>" + _img_tag(spectrum_plot(report["bands"]), "spectrum")
-                     + _table([[b.get("l"), b.get("label"), b.get("snr"), b.get("snr_data"), b.get("energy")]
-                               for b in report["bands"]], ["band l", "label", "snr (vs residual)", "snr (vs photo noise)",
-                                                           "energy"]))
+        parts.append(
+            "<h3>What the data determine, band by band</h3>"
+            + _img_tag(spectrum_plot(report["bands"]), "spectrum")
+            + _table(
+                [[b.get("l"), b.get("label"), b.get("snr"), b.get("snr_data"), b.get("energy")] for b in report["bands"]],
+                ["band l", "label", "snr (vs residual)", "snr (vs photo noise)", "energy"],
+            )
+        )
     if report.get("residuals_per_view"):
         parts.append("<h3>Fit residual per view</h3>" + _img_tag(residual_plot(report["residuals_per_view"]), "residuals"))
     return _section("Fitted lighting", "\n".join(parts))
@@ -378,15 +396,24 @@ def spectrum_plot(bands: list[dict]) -> bytes:
     positive = [e for e in energy if e > 0]
     floor = min(positive) / 100 if positive else 1e-6
     # ill-posed bands are zero: drawn as a short stub at the bottom of the log axis
-    ax.bar([b["l"] for b in bands], [max(e, floor * 3) for e in energy], bottom=floor,
-           color=[LABEL_COLOURS.get(b.get("label"), "tab:gray") for b in bands])
+    ax.bar(
+        [b["l"] for b in bands],
+        [max(e, floor * 3) for e in energy],
+        bottom=floor,
+        color=[LABEL_COLOURS.get(b.get("label"), "tab:gray") for b in bands],
+    )
     ax.set_yscale("log")
     ax.set_ylim(bottom=floor)
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("SH band l")
     ax.set_ylabel("energy Σ_m L_lm² (RGB sum)")
-    ax.legend(handles=[Patch(color=c, label=k + (" (zeroed)" if k == "ill-posed" else "")) for k, c in LABEL_COLOURS.items()],
-              loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    ax.legend(
+        handles=[Patch(color=c, label=k + (" (zeroed)" if k == "ill-posed" else "")) for k, c in LABEL_COLOURS.items()],
+        loc="upper left",
+        bbox_to_anchor=(1.01, 1.0),
+        fontsize=8,
+        frameon=False,
+    )
     ax.set_title("fitted lighting spectrum", fontsize=10)
     return _fig_png(fig)
 
@@ -401,11 +428,14 @@ def residual_plot(views: list[dict]) -> bytes:
     cmap = plt.get_cmap("tab10")
     for k, fold in enumerate(folds):
         idx = [i for i, v in enumerate(views) if v.get("fold") == fold]
-        ax.bar(idx, [100 * (views[i].get("relative_rmse") or 0.0) for i in idx], color=cmap(k % 10),
-               label="no fold" if fold is None else f"fold {fold}")
+        ax.bar(
+            idx,
+            [100 * (views[i].get("relative_rmse") or 0.0) for i in idx],
+            color=cmap(k % 10),
+            label="no fold" if fold is None else f"fold {fold}",
+        )
     ax.set_xticks(range(len(views)))
-    ax.set_xticklabels(names, rotation=45 if len(views) > 4 else 0, ha="right" if len(views) > 4 else "center",
-                       fontsize=8)
+    ax.set_xticklabels(names, rotation=45 if len(views) > 4 else 0, ha="right" if len(views) > 4 else "center", fontsize=8)
     ax.set_xlabel("fitted view (image)")
     ax.set_ylabel("relative RMS residual (%)")
     ax.legend(title="held out in", loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
@@ -423,8 +453,10 @@ def _brdf(capture: Path, work: Path) -> str:
     body = brdf_table(brdf, truth)
     scale = (report or {}).get("scale_convention")
     if truth is not None and isinstance(scale, dict) and scale.get("source"):
-        body += (f"<p>The base colour's level (and the lighting's) is fixed by: {html.escape(str(scale['source']))}; "
-                 "where that is a convention, a common factor in the base colour's error is that convention's.</p>")
+        body += (
+            f"<p>The base colour's level (and the lighting's) is fixed by: {html.escape(str(scale['source']))}; "
+            "where that is a convention, a common factor in the base colour's error is that convention's.</p>"
+        )
     if (fit / "albedo.ply").exists():
         import trimesh
 
@@ -434,14 +466,14 @@ def _brdf(capture: Path, work: Path) -> str:
         colour = read_vertex_albedo(fit / "albedo.ply", len(tex.vertices))
         if colour is not None:
             word = "albedo" if brdf.get("model") == "lambert" else "base colour"
-            body += (f"<h3>Textured {word} (fit/albedo.ply; the table holds its mean)</h3>"
-                     + _img_tag(texture_views(np.asarray(tex.vertices), np.asarray(tex.faces), colour), "texture"))
+            body += f"<h3>Textured {word} (fit/albedo.ply; the table holds its mean)</h3>" + _img_tag(
+                texture_views(np.asarray(tex.vertices), np.asarray(tex.faces), colour), "texture"
+            )
     if (fit / "textures" / "base_color.png").exists():
         body += _texels(fit / "textures", (report or {}).get("texels") or {})
     selection = (report or {}).get("model_selection") or {}
     if selection.get("by") == "training residual":
-        body = (f"<p><b>Not validated:</b> {html.escape(selection['why'])} (kept: {html.escape(selection['kept'])}).</p>"
-                + body)
+        body = f"<p><b>Not validated:</b> {html.escape(selection['why'])} (kept: {html.escape(selection['kept'])}).</p>" + body
     if report:
         body += fit_tables(report)
     return _section("BRDF", body)
@@ -470,16 +502,23 @@ def _texels(folder: Path, entry: dict) -> str:
         ax.set_xticks([])
         ax.set_yticks([])
     fig.tight_layout()
-    rows = [["levels kept", entry.get("choice", "?")],
-            ["texel size (mm)", _fmt(entry.get("atlas", {}).get("texel_mm"))],
-            ["texels with samples / in charts",
-             f"{entry.get('texels_with_samples', '?')} / {entry.get('texels_in_charts', '?')}"],
-            ["samples", _fmt(entry.get("samples"))]]
-    cands = [[c["name"], _fmt(c["validation_rmse"]), _fmt(c["train_rmse"])]
-             for c in entry.get("vertex_level", {}).get("candidates", []) + entry.get("texel_level", {}).get("candidates", [])]
-    return ("<h3>Base colour per texel (fit/textures/; grey texels saw no sample: their colour is the "
-            "per-vertex level's)</h3>" + _img_tag(_fig_png(fig), "base colour map and uncertainty") + _table(rows)
-            + (_table(cands, ["level", "held-out RMSE", "training RMSE"]) if cands else ""))
+    rows = [
+        ["levels kept", entry.get("choice", "?")],
+        ["texel size (mm)", _fmt(entry.get("atlas", {}).get("texel_mm"))],
+        ["texels with samples / in charts", f"{entry.get('texels_with_samples', '?')} / {entry.get('texels_in_charts', '?')}"],
+        ["samples", _fmt(entry.get("samples"))],
+    ]
+    cands = [
+        [c["name"], _fmt(c["validation_rmse"]), _fmt(c["train_rmse"])]
+        for c in entry.get("vertex_level", {}).get("candidates", []) + entry.get("texel_level", {}).get("candidates", [])
+    ]
+    return (
+        "<h3>Base colour per texel (fit/textures/; grey texels saw no sample: their colour is the "
+        "per-vertex level's)</h3>"
+        + _img_tag(_fig_png(fig), "base colour map and uncertainty")
+        + _table(rows)
+        + (_table(cands, ["level", "held-out RMSE", "training RMSE"]) if cands else "")
+    )
 
 
 def brdf_table(brdf: dict, truth: dict | None) -> str:
@@ -488,8 +527,14 @@ def brdf_table(brdf: dict, truth: dict | None) -> str:
     materials = brdf.get("materials")
     shown = {k: v for k, v in brdf.items() if k != "materials"}
     if truth is None or truth.get("model") != brdf.get("model"):
-        note = "" if truth is None else (f"<p>The capture's truth (gt/brdf.json) is a {html.escape(str(truth.get('model')))} "
-                                         "material: not compared parameter by parameter.</p>")
+        note = (
+            ""
+            if truth is None
+            else (
+                f"<p>The capture's truth (gt/brdf.json) is a {html.escape(str(truth.get('model')))} "
+                "material: not compared parameter by parameter.</p>"
+            )
+        )
         out = note + _table([[k, v] for k, v in shown.items()], ["parameter", "fitted"])
     else:
         rows = []
@@ -503,12 +548,14 @@ def brdf_table(brdf: dict, truth: dict | None) -> str:
                     rel = [f"{100 * (a - b) / abs(b):+.3g}%" if b != 0 else "—" for a, b in zip(fv, tv)]
                     err, rel = (err[0], rel[0]) if fv.size == 1 else (err, ", ".join(rel))
             rows.append([k, v, t, err, rel])
-        out = ("<p>Against the capture's truth (gt/brdf.json).</p>"
-               + _table(rows, ["parameter", "fitted", "truth", "error (fit − truth)", "relative error"]))
+        out = "<p>Against the capture's truth (gt/brdf.json).</p>" + _table(
+            rows, ["parameter", "fitted", "truth", "error (fit − truth)", "relative error"]
+        )
     if materials:
         keys = sorted({k for m in materials for k in m if k != "model"})
         out += "<h3>Materials (fit/material.ply's material_id)</h3>" + _table(
-            [[i, m.get("model")] + [m.get(k) for k in keys] for i, m in enumerate(materials)], ["id", "model", *keys])
+            [[i, m.get("model")] + [m.get(k) for k in keys] for i, m in enumerate(materials)], ["id", "model", *keys]
+        )
     return out
 
 
@@ -523,14 +570,30 @@ def fit_tables(report: dict) -> str:
     cands = report.get("candidates") or []
     if cands and isinstance(cands, list) and isinstance(cands[0], dict):
         cols = [c for c in ("name", "params", "train_rmse", "validation_rmse", "seconds") if any(c in r for r in cands)]
-        parts.append("<h3>Candidates compared (lowest validation RMSE wins, within the parsimony rule)</h3>"
-                     + _table([[r.get(c) for c in cols] for r in cands], [c.replace("_", " ") for c in cols]))
-    shown = {"mode", "forward_model", "order", "brdf_model", "model_selection", "candidates", "bands", "labels",
-             "residuals_per_view", "brdf", "schema"}
+        parts.append(
+            "<h3>Candidates compared (lowest validation RMSE wins, within the parsimony rule)</h3>"
+            + _table([[r.get(c) for c in cols] for r in cands], [c.replace("_", " ") for c in cols])
+        )
+    shown = {
+        "mode",
+        "forward_model",
+        "order",
+        "brdf_model",
+        "model_selection",
+        "candidates",
+        "bands",
+        "labels",
+        "residuals_per_view",
+        "brdf",
+        "schema",
+    }
     rest = {k: v for k, v in report.items() if k not in shown}
     if rest:
-        parts.append("<details><summary>Everything else in fit/report.json</summary>"
-                     + _table(_flat(rest), ["entry", "value"]) + "</details>")
+        parts.append(
+            "<details><summary>Everything else in fit/report.json</summary>"
+            + _table(_flat(rest), ["entry", "value"])
+            + "</details>"
+        )
     return "".join(parts)
 
 
@@ -542,25 +605,29 @@ def _relight(work: Path) -> str:
     if check is None:
         return _section("Relit vs photo", _missing("no relight comparison yet (the relight stage has not run)"))
     which = "held-out views (not used by the fit)" if check["heldout"] else "training views (no view was held out)"
-    head = (f"<p>{len(check['views'])} {which}: relative RMS error <b>{100 * check['relative_error']:.2f}%</b>"
-            + html.escape(noise_phrase(check))
-            + (f" after one global scale {check['scale']:.3g}" if check.get("scale_fitted") else "")
-            + f". Relit images made by the <b>{html.escape(method_description(check))}</b>"
-            + f"; error maps show |relit − photo| / mean photo from 0 (black) to "
-              f"{100 * check.get('error_map_range', 0.2):.0f}% (white).</p>")
+    head = (
+        f"<p>{len(check['views'])} {which}: relative RMS error <b>{100 * check['relative_error']:.2f}%</b>"
+        + html.escape(noise_phrase(check))
+        + (f" after one global scale {check['scale']:.3g}" if check.get("scale_fitted") else "")
+        + f". Relit images made by the <b>{html.escape(method_description(check))}</b>"
+        + f"; error maps show |relit − photo| / mean photo from 0 (black) to "
+        f"{100 * check.get('error_map_range', 0.2):.0f}% (white).</p>"
+    )
     cells = []
     for key, entry in check["views"].items():
         stem = Path(key).stem
-        imgs = "".join(_file_tag(folder / f"{stem}{suffix}.png", f"{stem}{suffix}", THUMB_PX)
-                       for suffix in ("_photo", "", "_error"))
-        cells.append(f"<figure class=\"photo\">{imgs}<figcaption>{html.escape(key)}: photo | relit | error — "
-                     f"{100 * entry['relative_error']:.2f}%{html.escape(noise_phrase(entry))}</figcaption></figure>")
+        imgs = "".join(
+            _file_tag(folder / f"{stem}{suffix}.png", f"{stem}{suffix}", THUMB_PX) for suffix in ("_photo", "", "_error")
+        )
+        cells.append(
+            f'<figure class="photo">{imgs}<figcaption>{html.escape(key)}: photo | relit | error — '
+            f"{100 * entry['relative_error']:.2f}%{html.escape(noise_phrase(entry))}</figcaption></figure>"
+        )
     extra = []
     for sub in sorted(p for p in (Path(work) / "relight").iterdir() if p.is_dir() and p.name != "check"):
         pngs = sorted(p for p in sub.glob("*.png") if not p.name.startswith("."))[:MAX_PHOTOS]
         if pngs:
-            extra.append(f"<h3>Relit under {html.escape(sub.name)}</h3>"
-                         + "".join(_file_tag(p, p.stem, THUMB_PX) for p in pngs))
+            extra.append(f"<h3>Relit under {html.escape(sub.name)}</h3>" + "".join(_file_tag(p, p.stem, THUMB_PX) for p in pngs))
     return _section("Relit vs photo", head + "".join(cells) + "".join(extra))
 
 
@@ -578,18 +645,23 @@ def _export(work: Path) -> str:
     """The exported asset (WORK/export, `sigrend export`'s default place): its files with their sizes
     and its previews under two bundled maps; nothing when it has not been exported there."""
     folder = Path(work) / "export"
-    manifests = sorted(folder.glob("*.export.json"), key=lambda p: p.stat().st_mtime)   # asset.glb.export.json, ...
+    manifests = sorted(folder.glob("*.export.json"), key=lambda p: p.stat().st_mtime)  # asset.glb.export.json, ...
     manifest = _json(manifests[-1]) if manifests else None
     if not manifest:
         return ""
-    rows = "".join(f"<tr><td>{html.escape(f['file'])}</td><td>{_size(int(f['bytes']))}</td></tr>"
-                   for f in manifest.get("files", []))
-    previews = "".join(f"<figure>{_file_tag(folder / name, name, THUMB_PX)}<figcaption>under the bundled "
-                       f"{html.escape(spec)} map (sigrend's renderer)</figcaption></figure>"
-                       for spec, name in manifest.get("previews", {}).items())
-    body = (f"<p>{html.escape(manifest.get('frame', ''))}; the lighting map: "
-            f"{html.escape(manifest.get('lighting_mapping', ''))} (docs/export.md).</p>"
-            f"<table>{rows}</table>{previews}")
+    rows = "".join(
+        f"<tr><td>{html.escape(f['file'])}</td><td>{_size(int(f['bytes']))}</td></tr>" for f in manifest.get("files", [])
+    )
+    previews = "".join(
+        f"<figure>{_file_tag(folder / name, name, THUMB_PX)}<figcaption>under the bundled "
+        f"{html.escape(spec)} map (sigrend's renderer)</figcaption></figure>"
+        for spec, name in manifest.get("previews", {}).items()
+    )
+    body = (
+        f"<p>{html.escape(manifest.get('frame', ''))}; the lighting map: "
+        f"{html.escape(manifest.get('lighting_mapping', ''))} (docs/export.md).</p>"
+        f"<table>{rows}</table>{previews}"
+    )
     return _section(f"Exported asset ({html.escape(str(folder))})", body)
 
 
@@ -597,8 +669,10 @@ def _settings(work: Path) -> str:
     files = sorted(Path(work).glob("*.settings.json"))
     if not files:
         return ""
-    body = "".join(f"<details><summary>{html.escape(p.name)}</summary>"
-                   f"{_table(_flat(_json(p) or {}), ['entry', 'value'])}</details>" for p in files)
+    body = "".join(
+        f"<details><summary>{html.escape(p.name)}</summary>{_table(_flat(_json(p) or {}), ['entry', 'value'])}</details>"
+        for p in files
+    )
     return _section("Settings", body)
 
 
@@ -616,12 +690,23 @@ ul.warnings li{color:#8a4b00}summary{cursor:pointer;margin:4px 0}"""
 def build_report(capture: Path, work: Path) -> str:
     """The report as one HTML string (no external references)."""
     capture, work = Path(capture), Path(work)
-    sections = [_summary(capture, work), _warnings(work), _photos(capture, work), _cameras(capture, work), _coverage(work),
-                _lighting(work), _brdf(capture, work), _relight(work), _export(work), _settings(work)]
-    return ("<!DOCTYPE html>\n<html><head><meta charset=\"utf-8\"><title>sigrend report: "
-            f"{html.escape(Path(capture).name)}</title><style>{STYLE}</style></head><body>\n"
-            f"<h1>sigrend report: {html.escape(Path(capture).resolve().name)}</h1>\n"
-            + "".join(sections) + "</body></html>\n")
+    sections = [
+        _summary(capture, work),
+        _warnings(work),
+        _photos(capture, work),
+        _cameras(capture, work),
+        _coverage(work),
+        _lighting(work),
+        _brdf(capture, work),
+        _relight(work),
+        _export(work),
+        _settings(work),
+    ]
+    return (
+        '<!DOCTYPE html>\n<html><head><meta charset="utf-8"><title>sigrend report: '
+        f"{html.escape(Path(capture).name)}</title><style>{STYLE}</style></head><body>\n"
+        f"<h1>sigrend report: {html.escape(Path(capture).resolve().name)}</h1>\n" + "".join(sections) + "</body></html>\n"
+    )
 
 
 def write_report(capture: Path, work: Path) -> Path:

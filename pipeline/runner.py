@@ -51,7 +51,6 @@ from pipeline.workdir import (
 HELP = "Run the whole pipeline on a capture folder (linearize, poses, samples, fit, relight) and write the report."
 
 
-
 def check_capture(capture: Path) -> Path:
     capture = Path(capture)
     if not capture.is_dir():
@@ -59,8 +58,7 @@ def check_capture(capture: Path) -> Path:
     return capture
 
 
-def run_stage(name: str, *, capture: Path, work: Path, settings, force: bool = False,
-              record: str | None = None) -> StageResult:
+def run_stage(name: str, *, capture: Path, work: Path, settings, force: bool = False, record: str | None = None) -> StageResult:
     """Run stage ``name`` unless its outputs are fresh (see pipeline.workdir.is_fresh).
 
     ``record``: the name its settings are recorded under (default ``name``): a stage run several
@@ -72,16 +70,19 @@ def run_stage(name: str, *, capture: Path, work: Path, settings, force: bool = F
     check_capture(capture)
     kwargs = dict(capture=capture, work=work, settings=settings)
     start = time.perf_counter()
-    with work_lock(work):   # one sigrend per work folder: the check, the clean-up and the commit are ours
-        provenance = {"capture": str(capture.resolve()), "sigrend": __version__,
-                      "inputs": fingerprints(module.inputs(**kwargs), work)}
+    with work_lock(work):  # one sigrend per work folder: the check, the clean-up and the commit are ours
+        provenance = {
+            "capture": str(capture.resolve()),
+            "sigrend": __version__,
+            "inputs": fingerprints(module.inputs(**kwargs), work),
+        }
         if not force and is_fresh(work, record, settings, module.outputs(**kwargs), provenance):
             return StageResult(record, list(module.outputs(**kwargs)), time.perf_counter() - start, True)
         remove_stale_temporaries(work)
         LOGGER.info("%s: running with %s", record, json.dumps(settings_dict(settings)))
         if force and "force" in inspect.signature(module.run).parameters:
-            kwargs["force"] = True     # a stage that reuses its own per-item outputs (linearize) redoes them
-        with transaction(invalidate=settings_path(work, record)):   # outputs and record committed together, last
+            kwargs["force"] = True  # a stage that reuses its own per-item outputs (linearize) redoes them
+        with transaction(invalidate=settings_path(work, record)):  # outputs and record committed together, last
             written = module.run(**kwargs)
             record_settings(work, record, settings, provenance, written)
     return StageResult(record, list(written), time.perf_counter() - start, False)
@@ -112,7 +113,7 @@ def stage_command(name: str) -> SimpleNamespace:
         print(f"{name}: {state}")
         for path in result.outputs:
             print(f"  {path}")
-        if not result.skipped and (Path(work) / "report.html").exists():   # a run's report shows this stage too
+        if not result.skipped and (Path(work) / "report.html").exists():  # a run's report shows this stage too
             from pipeline.report import write_report
 
             print(f"report: {write_report(args.capture, work)}")
@@ -123,6 +124,7 @@ def stage_command(name: str) -> SimpleNamespace:
 
 
 # --------------------------------------------------------------------------------------- sigrend run
+
 
 def image_keys(capture: Path, work: Path) -> list[str]:
     """Sorted image keys of the capture's posed views (WORK/poses.json, else CAPTURE/poses.json)."""
@@ -135,7 +137,7 @@ def heldout_keys(keys: list[str], every: int) -> list[str]:
     """Every ``every``-th key (the 4th, 8th, ... for every = 4); none when every = 0 or too few views."""
     if every <= 0 or len(keys) < 2 * every:
         return []
-    return keys[every - 1::every]
+    return keys[every - 1 :: every]
 
 
 def stage_settings(name: str, **values):
@@ -159,15 +161,15 @@ class RunPlan:
     force: bool
     holdout: int
     relight_envs: list[str]
-    export: str = ""          # the asset file `sigrend run --export` ends with ("": none)
-    memory_limit: str = ""    # --memory-limit for the stages that have one ("": their default)
+    export: str = ""  # the asset file `sigrend run --export` ends with ("": none)
+    memory_limit: str = ""  # --memory-limit for the stages that have one ("": their default)
 
 
 def _stage_range(first: str, last: str) -> list[str]:
     i, j = STAGES.index(first), STAGES.index(last)
     if i > j:
         raise UserError(f"--from {first} comes after --to {last}; the order is {' -> '.join(STAGES)}")
-    return list(STAGES[i:j + 1])
+    return list(STAGES[i : j + 1])
 
 
 def run_pipeline(plan: RunPlan, progress: bool = True) -> list[StageResult]:
@@ -180,7 +182,7 @@ def run_pipeline(plan: RunPlan, progress: bool = True) -> list[StageResult]:
     names = _stage_range(plan.first, plan.last)
     results: list[StageResult] = []
     common = dict(capture=plan.capture, work=plan.work)
-    limit = {"memory_limit": plan.memory_limit} if plan.memory_limit else {}   # stages without one drop it
+    limit = {"memory_limit": plan.memory_limit} if plan.memory_limit else {}  # stages without one drop it
     # no bar when stderr is not a terminal (a log file: pipeline.logs.progress); on an error the bar
     # is erased so the error stays the one line of stderr
     bar = progress_bar(names, desc="sigrend run", unit="stage", enabled=progress)
@@ -197,10 +199,9 @@ def run_pipeline(plan: RunPlan, progress: bool = True) -> list[StageResult]:
                 settings = stage_settings(name, **limit)
                 _say_if_replacing(plan.work, name, settings)
                 results.append(run_stage(name, settings=settings, force=plan.force, **common))
-        if plan.export:       # the run ends with the asset: one more row of the stage table
+        if plan.export:  # the run ends with the asset: one more row of the stage table
             bar.set_postfix_str("export")
-            results.append(run_stage("export", settings=stage_settings("export", out=plan.export), force=plan.force,
-                                     **common))
+            results.append(run_stage("export", settings=stage_settings("export", out=plan.export), force=plan.force, **common))
     except BaseException:
         bar.leave = False
         raise
@@ -215,9 +216,12 @@ def _say_if_replacing(work: Path, name: str, settings) -> None:
     changed = changed_settings(work, name, settings)
     if changed:
         was = ", ".join(f"--{k.replace('_', '-')} {old}" for k, (old, _) in sorted(changed.items()))
-        warnings.warn(f"{name} was last made with {was}; `sigrend run` ran it again with its own settings "
-                      f"(to keep a custom {name}, run the stages after it alone, e.g. `sigrend relight`)",
-                      UserWarning, stacklevel=2)
+        warnings.warn(
+            f"{name} was last made with {was}; `sigrend run` ran it again with its own settings "
+            f"(to keep a custom {name}, run the stages after it alone, e.g. `sigrend relight`)",
+            UserWarning,
+            stacklevel=2,
+        )
 
 
 def relight_argument(env: str) -> str:
@@ -247,8 +251,9 @@ def _relight_runs(plan: RunPlan) -> list[StageResult]:
     results.append(run_stage("relight", settings=settings, record="relight-check", **common))
     for env in plan.relight_envs:
         name = env_name(env)
-        settings = stage_settings("relight", env=relight_argument(env), views="capture",
-                                  out_dir=str(Path(plan.work) / "relight" / name))
+        settings = stage_settings(
+            "relight", env=relight_argument(env), views="capture", out_dir=str(Path(plan.work) / "relight" / name)
+        )
         results.append(run_stage("relight", settings=settings, record=f"relight-{name}", **common))
     return results
 
@@ -256,23 +261,41 @@ def _relight_runs(plan: RunPlan) -> list[StageResult]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("capture", type=Path, help="capture folder (images/, mesh, optional capture.toml, poses.json)")
     parser.add_argument("-w", "--work", type=Path, default=None, help="work folder (default: <capture>-work)")
-    parser.add_argument("--relight", metavar="ENV", nargs="+", default=[],
-                        help=f"also relight the capture's views under these lightings ({lighting_help()}); "
-                             "renders go to WORK/relight/<name>/ (a file's stem, or the spec)")
+    parser.add_argument(
+        "--relight",
+        metavar="ENV",
+        nargs="+",
+        default=[],
+        help=f"also relight the capture's views under these lightings ({lighting_help()}); "
+        "renders go to WORK/relight/<name>/ (a file's stem, or the spec)",
+    )
     parser.add_argument("--from", dest="first", choices=STAGES, default=STAGES[0], help="first stage to run")
     parser.add_argument("--to", dest="last", choices=STAGES, default=STAGES[-1], help="last stage to run")
     parser.add_argument("--force", action="store_true", help="run the stages even if their outputs are fresh")
-    parser.add_argument("--holdout", type=int, default=4, metavar="N",
-                        help="leave every N-th view out of the fit and report the relight error on them (0: none)")
-    parser.add_argument("--memory-limit", metavar="SIZE", default="",
-                        help="peak memory of each stage that streams photos (linearize, samples), its workers included: "
-                             "8GB, 512MB, 16GiB or a share of the RAM, 50%% (default: each stage's, 50%%); a capture "
-                             "that cannot fit stops with one line saying what to reduce")
+    parser.add_argument(
+        "--holdout",
+        type=int,
+        default=4,
+        metavar="N",
+        help="leave every N-th view out of the fit and report the relight error on them (0: none)",
+    )
+    parser.add_argument(
+        "--memory-limit",
+        metavar="SIZE",
+        default="",
+        help="peak memory of each stage that streams photos (linearize, samples), its workers included: "
+        "8GB, 512MB, 16GiB or a share of the RAM, 50%% (default: each stage's, 50%%); a capture "
+        "that cannot fit stops with one line saying what to reduce",
+    )
     parser.add_argument("--no-report", dest="report", action="store_false", help="do not write WORK/report.html")
     formats = ", ".join(importlib.import_module("stages.export").WRITERS)
-    parser.add_argument("--export", metavar="ASSET", default="",
-                        help=f"end with `sigrend export` of the fitted object to ASSET ({formats}), its lighting map, "
-                             "previews and manifest beside it (docs/export.md)")
+    parser.add_argument(
+        "--export",
+        metavar="ASSET",
+        default="",
+        help=f"end with `sigrend export` of the fitted object to ASSET ({formats}), its lighting map, "
+        "previews and manifest beside it (docs/export.md)",
+    )
 
 
 def run_capture(plan: RunPlan, report: bool = True, progress: bool = True) -> dict:
@@ -281,14 +304,19 @@ def run_capture(plan: RunPlan, report: bool = True, progress: bool = True) -> di
     ``report``, WORK/report.html.  UserError as the stages raise it."""
     started = time.perf_counter()
     with work_lock(plan.work):
-        with warnings.catch_warnings(record=True) as caught:     # kept for run.json (report.html), then passed on
+        with warnings.catch_warnings(record=True) as caught:  # kept for run.json (report.html), then passed on
             results = run_pipeline(plan, progress=progress)
         for w in caught:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-        record = {"capture": str(Path(plan.capture).resolve()), "stages": [
-            {"name": r.name, "skipped": r.skipped, "seconds": r.seconds, "outputs": [str(p) for p in r.outputs]}
-            for r in results], "total_seconds": time.perf_counter() - started,
-            "warnings": list(dict.fromkeys(str(w.message) for w in caught))}
+        record = {
+            "capture": str(Path(plan.capture).resolve()),
+            "stages": [
+                {"name": r.name, "skipped": r.skipped, "seconds": r.seconds, "outputs": [str(p) for p in r.outputs]}
+                for r in results
+            ],
+            "total_seconds": time.perf_counter() - started,
+            "warnings": list(dict.fromkeys(str(w.message) for w in caught)),
+        }
         page = plan.work / "report.html"
         if report and all(r.skipped for r in results) and page.exists() and (plan.work / "run.json").exists():
             # nothing ran: run.json and report.html still describe the run that made these outputs
@@ -309,15 +337,15 @@ def main(args: argparse.Namespace) -> int:
     work = Path(args.work or default_work(capture))
     if args.holdout < 0:
         raise UserError(f"--holdout {args.holdout}: give N >= 0 (every N-th view held out; 0 = none)")
-    relight = [relight_argument(env) for env in args.relight]     # a bad one is one line before any stage runs
+    relight = [relight_argument(env) for env in args.relight]  # a bad one is one line before any stage runs
     export = ""
     if args.export:
         if STAGES.index(args.last) < STAGES.index("fit"):
             raise UserError(f"--export needs the fit: drop --to {args.last} (or use --to fit)")
         export = str(Path(args.export).resolve())
-        stage_settings("export", out=export)     # a bad suffix is a one-line error before any stage runs
+        stage_settings("export", out=export)  # a bad suffix is a one-line error before any stage runs
     if args.memory_limit:
-        Budget.of(args.memory_limit)      # a bad size is one line before any stage runs
+        Budget.of(args.memory_limit)  # a bad size is one line before any stage runs
     plan = RunPlan(capture, work, args.first, args.last, args.force, args.holdout, relight, export, args.memory_limit)
     record = run_capture(plan, report=args.report)
     print(record["table"])

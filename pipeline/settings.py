@@ -37,7 +37,6 @@ def number(text: str) -> float:
     return value
 
 
-
 def setting(default: Any, help: str, **kwargs: Any) -> Any:
     """A dataclass field with CLI help: ``order: int = setting(8, "SH order of the lighting")``.
 
@@ -54,9 +53,12 @@ def setting(default: Any, help: str, **kwargs: Any) -> Any:
 def memory_limit_setting() -> Any:
     """The ``memory_limit`` field of every stage that streams (linearize, samples): one definition,
     parsed by pipeline.memory (a size, or a share of the machine's RAM)."""
-    return setting("50%", "peak memory of the stage, its worker processes included: a size (8GB, 512MB, 16GiB) or a "
-                          "share of the machine's RAM (50%); chunks and workers are chosen to fit, and a capture that "
-                          "cannot fit is one line saying what to reduce")
+    return setting(
+        "50%",
+        "peak memory of the stage, its worker processes included: a size (8GB, 512MB, 16GiB) or a "
+        "share of the machine's RAM (50%); chunks and workers are chosen to fit, and a capture that "
+        "cannot fit is one line saying what to reduce",
+    )
 
 
 def choices_of(cls: type, name: str) -> tuple:
@@ -93,11 +95,10 @@ def make_settings(cls: type[S], **values: Any) -> S:
         obj = cls(**values)
     except (TypeError, ValueError) as exc:
         raise UserError(f"invalid settings for {cls.__name__}: {exc}") from None
-    for f in dataclasses.fields(cls):      # a choice is a Literal: checked here, once, for every caller
+    for f in dataclasses.fields(cls):  # a choice is a Literal: checked here, once, for every caller
         choices = choices_of(cls, f.name)
         if choices and getattr(obj, f.name) not in choices:
-            raise UserError(f"--{f.name.replace('_', '-')} {getattr(obj, f.name)!r}: use one of "
-                            f"{', '.join(map(str, choices))}")
+            raise UserError(f"--{f.name.replace('_', '-')} {getattr(obj, f.name)!r}: use one of {', '.join(map(str, choices))}")
     validate = getattr(obj, "validate", None)
     if validate is not None:
         validate()
@@ -120,7 +121,7 @@ def _cli_type(tp: Any):
     if tp is Path:
         return Path, None, None
     if tp is float:
-        return number, None, None       # '1/250' as well as '0.004'
+        return number, None, None  # '1/250' as well as '0.004'
     if tp in (int, str):
         return tp, None, None
     return str, None, None
@@ -130,12 +131,18 @@ class _DeprecatedOption(argparse.Action):
     """A setting's option kept for old command lines (``setting(..., deprecated=...)``): it still
     sets the value, says what to use instead, and is hidden from ``--help``."""
 
-    def __init__(self, option_strings, dest, instead: str = "", inner: type[argparse.Action] = argparse._StoreAction,
-                 **kwargs):
+    def __init__(self, option_strings, dest, instead: str = "", inner: type[argparse.Action] = argparse._StoreAction, **kwargs):
         self.inner = inner(option_strings, dest, **kwargs)
         self.instead = instead
-        super().__init__(self.inner.option_strings, dest, nargs=self.inner.nargs, default=kwargs.get("default"),
-                         type=kwargs.get("type"), choices=kwargs.get("choices"), help=argparse.SUPPRESS)
+        super().__init__(
+            self.inner.option_strings,
+            dest,
+            nargs=self.inner.nargs,
+            default=kwargs.get("default"),
+            type=kwargs.get("type"),
+            choices=kwargs.get("choices"),
+            help=argparse.SUPPRESS,
+        )
 
     def __call__(self, parser, namespace, values, option_string=None):
         warnings.warn(f"{option_string} is deprecated; {self.instead}", FutureWarning, stacklevel=2)
@@ -156,17 +163,24 @@ def add_settings_arguments(parser: argparse.ArgumentParser, cls: type) -> None:
             continue
         tp = hints[f.name]
         flag = "--" + f.name.replace("_", "-")
-        help_text = f.metadata.get("help", "").replace("%", "%%")   # argparse expands % in help
-        default = f.default if f.default is not dataclasses.MISSING else (
-            f.default_factory() if f.default_factory is not dataclasses.MISSING else None)  # type: ignore[misc]
+        help_text = f.metadata.get("help", "").replace("%", "%%")  # argparse expands % in help
+        default = (
+            f.default
+            if f.default is not dataclasses.MISSING
+            else (f.default_factory() if f.default_factory is not dataclasses.MISSING else None)
+        )  # type: ignore[misc]
         if tp is bool:
             kwargs: dict[str, Any] = dict(action=argparse.BooleanOptionalAction)
         else:
             conv, nargs, choices = _cli_type(tp)
             kwargs = dict(type=conv, nargs=nargs, choices=choices)
         if f.metadata.get("deprecated"):
-            kwargs = dict(kwargs, action=_DeprecatedOption, instead=f.metadata["deprecated"],
-                          inner=kwargs.get("action", argparse._StoreAction))
+            kwargs = dict(
+                kwargs,
+                action=_DeprecatedOption,
+                instead=f.metadata["deprecated"],
+                inner=kwargs.get("action", argparse._StoreAction),
+            )
             if tp is bool:
                 kwargs = {k: v for k, v in kwargs.items() if k not in ("type", "nargs", "choices")}
         action = parser.add_argument(flag, dest=f.name, default=argparse.SUPPRESS, help=help_text, **kwargs)
@@ -216,6 +230,10 @@ def settings_from_args(cls: type[S], args: argparse.Namespace) -> S:
     names = {f.name for f in dataclasses.fields(cls)}
     values = {k: v for k, v in vars(args).items() if k in names}
     for f in dataclasses.fields(cls):
-        if f.name in values and isinstance(values[f.name], list) and typing.get_origin(typing.get_type_hints(cls)[f.name]) is tuple:
+        if (
+            f.name in values
+            and isinstance(values[f.name], list)
+            and typing.get_origin(typing.get_type_hints(cls)[f.name]) is tuple
+        ):
             values[f.name] = tuple(values[f.name])
     return make_settings(cls, **values)

@@ -39,7 +39,7 @@ BUILTIN_MESHES = ("sphere", "icosphere")
 BOARD_DICTIONARY = "DICT_5X5_100"
 BOARD_SQUARES = (8, 6)
 SH_ORDER = 20
-SYNTH_ISO = 100.0     # every photo's ISO (capture.toml [exposure]); the exposure time carries the level
+SYNTH_ISO = 100.0  # every photo's ISO (capture.toml [exposure]); the exposure time carries the level
 
 
 @dataclass(frozen=True)
@@ -48,8 +48,11 @@ class SynthSettings:
 
     mesh: str = setting("sphere", "mesh file (OBJ/PLY/GLB, any units) or 'sphere'/'icosphere'")
     env: str = setting("area", f"environment: {lighting_help(sh=False)}")
-    brdf: str = setting("lambert:albedo=0.6", "brdf.json path or inline spec, e.g. "
-                        "'principled:base_color=0.2,0.3,0.5,roughness=0.3' (metallic=, ior=, specular_tint= optional)")
+    brdf: str = setting(
+        "lambert:albedo=0.6",
+        "brdf.json path or inline spec, e.g. "
+        "'principled:base_color=0.2,0.3,0.5,roughness=0.3' (metallic=, ior=, specular_tint= optional)",
+    )
     views: int = setting(8, "number of camera views")
     size: tuple[int, int] = setting((256, 256), "image width and height in pixels")
     format: Literal["exr", "tiff", "jpeg", "dng"] = setting("exr", "image file format")
@@ -57,8 +60,11 @@ class SynthSettings:
     table: bool = setting(False, "a noise-textured table (3 x the board) at z = 0 around the board: texture for SfM")
     brackets: int = setting(1, "exposures per view (2 EV apart); >1 writes [brackets] in capture.toml")
     vary_exposure: float = setting(0.0, "per-view exposure offsets, uniform in +-STOPS EV (seeded), like an auto-exposing camera")
-    noise: str = setting("auto", "'none', 'auto' (on for tiff/jpeg/dng, off for exr) or "
-                         "'full_well=E,read=R' (electrons at full scale, read-noise sigma in full scale)")
+    noise: str = setting(
+        "auto",
+        "'none', 'auto' (on for tiff/jpeg/dng, off for exr) or "
+        "'full_well=E,read=R' (electrons at full scale, read-noise sigma in full scale)",
+    )
     poses: bool = setting(True, "write poses.json into the capture (always written to gt/)")
     mesh_size: float = setting(0.2, "size of the mesh's longest bounding-box side, metres")
     mesh_up: Literal["y", "z"] = setting("y", "up axis of the mesh file (scans are usually +Y up)")
@@ -66,13 +72,19 @@ class SynthSettings:
     elevation: tuple[float, float] = setting((20.0, 65.0), "min and max camera elevation, degrees (ring: the mean)")
     distance: float = setting(3.0, "camera distance in units of the framed radius")
     shadows: bool = setting(True, "shadow rays (self-shadowing, board occludes the lower hemisphere)")
-    texture: str = setting("none", "per-vertex albedo: 'none', 'stripes[:freq=6,contrast=0.6]' (high frequency), "
-                           "'smooth[:freq=1,contrast=0.5]' (low frequency), 'noise[:freq=8,contrast=0.7]' "
-                           "(multi-scale) or 'patches[:freq=8,contrast=0.7]' (sharp-edged: for feature matching); written to gt/albedo.ply")
+    texture: str = setting(
+        "none",
+        "per-vertex albedo: 'none', 'stripes[:freq=6,contrast=0.6]' (high frequency), "
+        "'smooth[:freq=1,contrast=0.5]' (low frequency), 'noise[:freq=8,contrast=0.7]' "
+        "(multi-scale) or 'patches[:freq=8,contrast=0.7]' (sharp-edged: for feature matching); written to gt/albedo.ply",
+    )
     cell_height: int = setting(16, "rows of the coarse direction grid for the dim part of the env (render.py)")
-    supersample: int = setting(1, "n > 1: highlight and shadow-edge pixels are the mean of n x n rays, as a "
-                                  "sensor's pixel averages them (the fit models each sample as its pixel: fit "
-                                  "--footprint); 1 = one ray per pixel centre")
+    supersample: int = setting(
+        1,
+        "n > 1: highlight and shadow-edge pixels are the mean of n x n rays, as a "
+        "sensor's pixel averages them (the fit models each sample as its pixel: fit "
+        "--footprint); 1 = one ray per pixel centre",
+    )
     fnumber: float = setting(8.0, "f-number written to EXIF")
     seed: int = setting(0, "random seed (noise)")
 
@@ -116,8 +128,12 @@ def parse_noise(spec: str, fmt: str) -> dict | None:
     return out
 
 
-TEXTURES = {"stripes": {"freq": 6.0, "contrast": 0.6}, "smooth": {"freq": 1.0, "contrast": 0.5},
-            "noise": {"freq": 8.0, "contrast": 0.7}, "patches": {"freq": 8.0, "contrast": 0.7}}
+TEXTURES = {
+    "stripes": {"freq": 6.0, "contrast": 0.6},
+    "smooth": {"freq": 1.0, "contrast": 0.5},
+    "noise": {"freq": 8.0, "contrast": 0.7},
+    "patches": {"freq": 8.0, "contrast": 0.7},
+}
 
 
 def parse_texture(spec: str) -> tuple[str, dict] | None:
@@ -179,6 +195,7 @@ def texture_albedo(mesh, albedo: np.ndarray, spec: str) -> np.ndarray | None:
 
 # -- inputs ---------------------------------------------------------------------------------------
 
+
 def load_mesh(spec: str, mesh_size: float, up: str = "y"):
     """Mesh in the object frame: +Z up, longest side ``mesh_size`` m, centred in x, y, lowest point z = 0."""
     import trimesh
@@ -211,8 +228,8 @@ def load_env(spec: str) -> np.ndarray:
 
 # -- board ----------------------------------------------------------------------------------------
 
-def board_plane(mesh_size: float, *, charuco: bool = True, table: bool = False, seed: int = 0,
-                texels_per_square: int = 80):
+
+def board_plane(mesh_size: float, *, charuco: bool = True, table: bool = False, seed: int = 0, texels_per_square: int = 80):
     """The z = 0 plane under the object: a ChArUco board and/or a noise-textured table around it.
 
     Board: 8 x 6 squares of 0.35 mesh_size (DICT_5X5_100, markers 0.75 of a square), centred under
@@ -244,8 +261,13 @@ def board_plane(mesh_size: float, *, charuco: bool = True, table: bool = False, 
         spec = BoardSpec(BOARD_DICTIONARY, (sx, sy), float(square), float(marker), to_object)
         image = make_board(spec).generateImage((tw, th), marginSize=0, borderBits=1)
         albedo = np.where(image > 127, 0.8, 0.04)  # white paper / black print
-        board_table = {"dictionary": BOARD_DICTIONARY, "squares": [int(sx), int(sy)], "square_length": float(square),
-                       "marker_length": float(marker), "board_to_object": to_object.tolist()}
+        board_table = {
+            "dictionary": BOARD_DICTIONARY,
+            "squares": [int(sx), int(sy)],
+            "square_length": float(square),
+            "marker_length": float(marker),
+            "board_to_object": to_object.tolist(),
+        }
     if not table:
         return BoardPlane(albedo, (w, h), to_object), board_table, (w, h)
     rng = np.random.default_rng([seed, 2])
@@ -258,13 +280,14 @@ def board_plane(mesh_size: float, *, charuco: bool = True, table: bool = False, 
     noise = (noise - noise.min()) / max(float(noise.max() - noise.min()), 1e-12)
     plane = 0.1 + 0.6 * noise.astype(float)
     margin = texels_per_square // 2
-    plane[th - margin:2 * th + margin, tw - margin:2 * tw + margin] = 0.8
-    plane[th:2 * th, tw:2 * tw] = albedo
+    plane[th - margin : 2 * th + margin, tw - margin : 2 * tw + margin] = 0.8
+    plane[th : 2 * th, tw : 2 * tw] = albedo
     plane_to_object = np.array([[1.0, 0, 0, -1.5 * w], [0, -1.0, 0, 1.5 * h], [0, 0, -1.0, 0], [0, 0, 0, 1.0]])
     return BoardPlane(plane, (3 * w, 3 * h), plane_to_object), board_table, (w, h)
 
 
 # -- views ----------------------------------------------------------------------------------------
+
 
 def view_directions(n: int, layout: str, elevation: tuple[float, float]) -> np.ndarray:
     """Unit vectors from the target towards the cameras (n, 3).
@@ -299,12 +322,12 @@ def make_views(mesh, settings: SynthSettings, board_size: tuple[float, float] | 
     half_angle = np.arcsin(min(1.0, 1.0 / settings.distance))
     focal = 0.95 * (min(w, h) / 2) / np.tan(half_angle)
     camera = Camera("PINHOLE", w, h, (focal, focal, w / 2, h / 2))
-    poses = [look_at(target + dist * d, target) for d in view_directions(settings.views, settings.layout,
-                                                                          settings.elevation)]
+    poses = [look_at(target + dist * d, target) for d in view_directions(settings.views, settings.layout, settings.elevation)]
     return camera, poses
 
 
 # -- the capture ----------------------------------------------------------------------------------
+
 
 def _capture_tables(board_table: dict | None, brackets: dict[str, list[str]], iso: float) -> dict:
     """capture.toml's tables: [exposure] (ISO), [brackets] when any, [board] when there is one."""
@@ -322,7 +345,7 @@ def _auto_exposure_time(radiance: np.ndarray, mask: np.ndarray, fnumber: float, 
 
     values = radiance[mask] if mask.any() else radiance.reshape(-1, 3)
     level = float(np.percentile(values.max(axis=1), 99.5)) if values.size else 1.0
-    t = 0.7 / (max(level, 1e-12) * Exposure(1.0, iso, fnumber).scale)     # value = radiance t (ISO/100) / N^2
+    t = 0.7 / (max(level, 1e-12) * Exposure(1.0, iso, fnumber).scale)  # value = radiance t (ISO/100) / N^2
     return float(f"{t:.3g}")
 
 
@@ -339,12 +362,20 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     brdf = parse_brdf_spec(settings.brdf)
     env = load_env(settings.env)
     mesh = load_mesh(settings.mesh, settings.mesh_size, settings.mesh_up)
-    board, board_table, board_size = board_plane(settings.mesh_size, charuco=settings.board, table=settings.table,
-                                                seed=settings.seed)
+    board, board_table, board_size = board_plane(
+        settings.mesh_size, charuco=settings.board, table=settings.table, seed=settings.seed
+    )
     camera, view_poses = make_views(mesh, settings, board_size)
     vertex_albedo = texture_albedo(mesh, brdf.diffuse_color, settings.texture)
-    renderer = Renderer(ray_mesh(mesh), env, brdf, shadows=settings.shadows, board=board,
-                        cell_height=settings.cell_height, vertex_albedo=vertex_albedo)
+    renderer = Renderer(
+        ray_mesh(mesh),
+        env,
+        brdf,
+        shadows=settings.shadows,
+        board=board,
+        cell_height=settings.cell_height,
+        vertex_albedo=vertex_albedo,
+    )
     noise = parse_noise(settings.noise, settings.format)
     rng = np.random.default_rng(settings.seed)
     exposure_rng = np.random.default_rng([settings.seed, 1])  # independent of the noise stream
@@ -358,11 +389,11 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
         try:
             result = renderer.render(camera, R, t, highlight_supersample=settings.supersample)
         except InsideMeshError:
-            raise UserError(f"view {i}: the camera is inside the mesh; increase --distance "
-                            f"(now {settings.distance}) or check the mesh") from None
+            raise UserError(
+                f"view {i}: the camera is inside the mesh; increase --distance (now {settings.distance}) or check the mesh"
+            ) from None
         if t_base is None:
-            t_base = _auto_exposure_time(result.radiance, result.object_mask | result.board_mask, settings.fnumber,
-                                         SYNTH_ISO)
+            t_base = _auto_exposure_time(result.radiance, result.object_mask | result.board_mask, settings.fnumber, SYNTH_ISO)
         stem = f"{i:04d}"
         view_stops = exposure_rng.uniform(-settings.vary_exposure, settings.vary_exposure)
         shots = _write_shots(out, stem, result.radiance, t_base, view_stops, settings, noise, rng)
@@ -370,20 +401,36 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
         poses.images.update({path.name: ImagePose("cam0", R, t) for path in shots})
         if settings.brackets > 1:
             brackets[f"view_{stem}"] = [path.name for path in shots]
-        written.append(write_image(out / "gt" / "masks" / f"{stem}.png", result.object_mask.astype(np.float32),
-                                   dtype="uint8"))
+        written.append(write_image(out / "gt" / "masks" / f"{stem}.png", result.object_mask.astype(np.float32), dtype="uint8"))
     seconds = time.perf_counter() - started
-    written += _write_capture_files(out, settings, mesh, poses, vertex_albedo, _capture_tables(board_table, brackets,
-                                                                                                 SYNTH_ISO))
-    written += _write_truth(out, env, brdf, {
-        "settings": _settings_json(settings), "exposure_time_base": t_base, "iso": SYNTH_ISO,
-        "fnumber": settings.fnumber, "radiance_from_value": "radiance = value * N^2 / (t * ISO/100)",
-        "render_seconds": round(seconds, 3), "light_directions": len(renderer.lights)})
+    written += _write_capture_files(out, settings, mesh, poses, vertex_albedo, _capture_tables(board_table, brackets, SYNTH_ISO))
+    written += _write_truth(
+        out,
+        env,
+        brdf,
+        {
+            "settings": _settings_json(settings),
+            "exposure_time_base": t_base,
+            "iso": SYNTH_ISO,
+            "fnumber": settings.fnumber,
+            "radiance_from_value": "radiance = value * N^2 / (t * ISO/100)",
+            "render_seconds": round(seconds, 3),
+            "light_directions": len(renderer.lights),
+        },
+    )
     return written
 
 
-def _write_shots(out: Path, stem: str, radiance: np.ndarray, t_base: float, view_stops: float,
-                 settings: SynthSettings, noise: dict | None, rng: np.random.Generator) -> list[Path]:
+def _write_shots(
+    out: Path,
+    stem: str,
+    radiance: np.ndarray,
+    t_base: float,
+    view_stops: float,
+    settings: SynthSettings,
+    noise: dict | None,
+    rng: np.random.Generator,
+) -> list[Path]:
     """One view's photos images/<stem>[_b<k>]: a bracket of ``settings.brackets`` exposures (times
     t_base 4^step s, the view's own offset ``view_stops`` in stops), each the sensor value of the
     rendered ``radiance`` with ``noise`` drawn from ``rng``."""
@@ -392,7 +439,7 @@ def _write_shots(out: Path, stem: str, radiance: np.ndarray, t_base: float, view
     paths = []
     for k in range(settings.brackets):
         step = k - (settings.brackets - 1) / 2 + view_stops / 2  # 4**(stops/2) = 2**stops
-        exposure = Exposure(time=float(f"{t_base * 4.0 ** step:.3g}"), iso=SYNTH_ISO, fnumber=settings.fnumber)
+        exposure = Exposure(time=float(f"{t_base * 4.0**step:.3g}"), iso=SYNTH_ISO, fnumber=settings.fnumber)
         value = sensor_value(radiance, exposure)
         if noise is not None:
             value = add_sensor_noise(value, rng, **noise)
@@ -401,8 +448,9 @@ def _write_shots(out: Path, stem: str, radiance: np.ndarray, t_base: float, view
     return paths
 
 
-def _write_capture_files(out: Path, settings: SynthSettings, mesh, poses, vertex_albedo: np.ndarray | None,
-                         tables: dict) -> list[Path]:
+def _write_capture_files(
+    out: Path, settings: SynthSettings, mesh, poses, vertex_albedo: np.ndarray | None, tables: dict
+) -> list[Path]:
     """What a user's capture holds besides the photos: mesh.ply, capture.toml (``tables``) and
     poses.json when ``settings.poses``; gt/poses.json and gt/albedo.ply (a texture's per-vertex
     linear albedo, DESIGN.md) beside the truth."""
@@ -429,10 +477,12 @@ def _write_truth(out: Path, env: np.ndarray, brdf, record: dict) -> list[Path]:
     from pipeline.io.images import write_image
     from pipeline.workdir import write_json
 
-    return [write_image(out / "gt" / "lighting.exr", env, dtype="float"),
-            write_brdf(out / "gt" / "brdf.json", brdf),
-            _write_lighting_sh(out / "gt" / "lighting_sh.json", env),
-            write_json(out / "gt" / "synth.json", record)]
+    return [
+        write_image(out / "gt" / "lighting.exr", env, dtype="float"),
+        write_brdf(out / "gt" / "brdf.json", brdf),
+        _write_lighting_sh(out / "gt" / "lighting_sh.json", env),
+        write_json(out / "gt" / "synth.json", record),
+    ]
 
 
 def _settings_json(settings: SynthSettings) -> dict:
@@ -445,21 +495,30 @@ def _write_lighting_sh(path: Path, env: np.ndarray) -> Path:
     from pipeline.core.sh import project_envmap
     from pipeline.io.lighting import write_lighting_sh
 
-    return write_lighting_sh(path, project_envmap(np.asarray(env, float), SH_ORDER),
-                             source="gt/lighting.exr projected by sigrend synth")
+    return write_lighting_sh(
+        path, project_envmap(np.asarray(env, float), SH_ORDER), source="gt/lighting.exr projected by sigrend synth"
+    )
 
 
 # -- for tests of every stage ---------------------------------------------------------------------
 
-def make_test_capture(out_dir: str | Path, *, mesh: str = "sphere", brdf: str = "lambert:albedo=0.6",
-                      env: str = "area", views: int = 6, size: tuple[int, int] = (96, 96), fmt: str = "exr",
-                      **more) -> Path:
+
+def make_test_capture(
+    out_dir: str | Path,
+    *,
+    mesh: str = "sphere",
+    brdf: str = "lambert:albedo=0.6",
+    env: str = "area",
+    views: int = 6,
+    size: tuple[int, int] = (96, 96),
+    fmt: str = "exr",
+    **more,
+) -> Path:
     """A small capture for tests (defaults: sphere, Lambert, area lights, 6 views of 96 x 96 EXR).
 
     ``more``: any other SynthSettings field (board=True, brackets=3, noise="none", poses=False, ...).
     Returns ``out_dir``.  Use it from a session-scoped fixture: rendering takes ~0.1-1 s per view.
     """
-    settings = replace(SynthSettings(), mesh=mesh, brdf=brdf, env=env, views=views, size=tuple(size),
-                       format=fmt, **more)
+    settings = replace(SynthSettings(), mesh=mesh, brdf=brdf, env=env, views=views, size=tuple(size), format=fmt, **more)
     make_capture(out_dir, settings, progress=False)
     return Path(out_dir)

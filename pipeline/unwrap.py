@@ -15,9 +15,13 @@ def unwrap(vertices: np.ndarray, faces: np.ndarray, texel_m: float, padding: int
     import xatlas  # lazily: keeps `sigrend --help` fast
 
     vertices, faces = np.asarray(vertices, np.float32), np.asarray(faces, np.uint32)
-    area = float(np.linalg.norm(np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]],
-                                         vertices[faces[:, 2]] - vertices[faces[:, 0]]), axis=1).sum() / 2)
-    texel_m = max(float(texel_m), np.sqrt(area / (0.5 * MAX_SIZE ** 2)))   # ~50 % packing efficiency
+    area = float(
+        np.linalg.norm(
+            np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]]), axis=1
+        ).sum()
+        / 2
+    )
+    texel_m = max(float(texel_m), np.sqrt(area / (0.5 * MAX_SIZE**2)))  # ~50 % packing efficiency
     atlas = xatlas.Atlas()
     atlas.add_mesh(vertices, faces)
     pack = xatlas.PackOptions()
@@ -26,6 +30,6 @@ def unwrap(vertices: np.ndarray, faces: np.ndarray, texel_m: float, padding: int
     pack.bilinear = True
     atlas.generate(xatlas.ChartOptions(), pack)
     vmapping, indices, uvs = atlas[0]
-    if not np.array_equal(vmapping[indices], faces):     # xatlas keeps the faces' order and corners
+    if not np.array_equal(vmapping[indices], faces):  # xatlas keeps the faces' order and corners
         raise RuntimeError("xatlas reordered the mesh's faces")
     return Atlas(np.asarray(uvs, float)[indices], int(atlas.height), int(atlas.width), texel_m)

@@ -29,12 +29,11 @@ from typing import Any, Iterable, Iterator
 
 from pipeline.settings import settings_dict
 
-
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
-TEMP_MARK = ".tmp"     # temporary names: .<stem>.<random>.tmp<suffix>
+TEMP_MARK = ".tmp"  # temporary names: .<stem>.<random>.tmp<suffix>
 SPOOL_MARK = ".spool"  # temporary folders of streamed writes: .<stem>.<random>.spool (pipeline.io.samples)
 _pending: contextvars.ContextVar[list | None] = contextvars.ContextVar("pending_renames", default=None)
 
@@ -159,8 +158,7 @@ def work_lock(work: str | os.PathLike) -> Iterator[None]:
         except BlockingIOError:
             handle.seek(0)
             holder = handle.read().strip() or "another process"
-            raise UserError(f"{work}: this work folder is in use by {holder}; wait for it to finish or give "
-                            "another -w") from None
+            raise UserError(f"{work}: this work folder is in use by {holder}; wait for it to finish or give another -w") from None
         handle.seek(0)
         handle.truncate()
         handle.write(f"sigrend pid {os.getpid()}")
@@ -245,7 +243,7 @@ def fingerprints(paths: Iterable[Path], work: str | os.PathLike) -> dict[str, st
         except OSError:
             out[key] = "missing"
             continue
-        if not os.path.isfile(key):   # a folder: its entries' names
+        if not os.path.isfile(key):  # a folder: its entries' names
             out[key] = "folder:" + hashlib.sha256("\n".join(sorted(os.listdir(key))).encode()).hexdigest()
             continue
         stamp = [st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns]
@@ -258,7 +256,7 @@ def fingerprints(paths: Iterable[Path], work: str | os.PathLike) -> dict[str, st
         Path(work).mkdir(parents=True, exist_ok=True)
         tmp = cache_path.with_name(f".{cache_path.name}.{os.getpid()}{TEMP_MARK}")
         tmp.write_text(json.dumps(cache))
-        os.replace(tmp, cache_path)   # the cache is not a stage output: not deferred by a transaction
+        os.replace(tmp, cache_path)  # the cache is not a stage output: not deferred by a transaction
     return out
 
 
@@ -267,13 +265,18 @@ def settings_path(work: str | os.PathLike, stage: str) -> Path:
     return Path(work) / f"{stage}.settings.json"
 
 
-def record_settings(work: str | os.PathLike, stage: str, settings: Any, provenance: dict | None = None,
-                    written: Iterable[Path] = ()) -> Path:
+def record_settings(
+    work: str | os.PathLike, stage: str, settings: Any, provenance: dict | None = None, written: Iterable[Path] = ()
+) -> Path:
     """Write the settings a stage ran with, its ``provenance`` (input fingerprints, version, e.g.
     the capture path) and the files it ``written`` (paths inside WORK relative to it) beside its
     outputs."""
-    payload = {"stage": stage, "settings": settings_dict(settings), **(provenance or {}),
-               "written": sorted({_work_relative(p, work) for p in written})}
+    payload = {
+        "stage": stage,
+        "settings": settings_dict(settings),
+        **(provenance or {}),
+        "written": sorted({_work_relative(p, work) for p in written}),
+    }
     return write_json(settings_path(work, stage), payload)
 
 
@@ -295,8 +298,7 @@ def changed_settings(work: str | os.PathLike, stage: str, settings: Any) -> dict
     return {k: (recorded.get(k), v) for k, v in new.items() if k in recorded and recorded[k] != v}
 
 
-def is_fresh(work: str | os.PathLike, stage: str, settings: Any, outputs: Iterable[Path],
-             provenance: dict | None = None) -> bool:
+def is_fresh(work: str | os.PathLike, stage: str, settings: Any, outputs: Iterable[Path], provenance: dict | None = None) -> bool:
     """True when ``stage`` need not run again (see the module docstring)."""
     outputs = [Path(p) for p in outputs]
     if not outputs or not all(p.exists() for p in outputs):
@@ -307,7 +309,7 @@ def is_fresh(work: str | os.PathLike, stage: str, settings: Any, outputs: Iterab
         written = recorded.pop("written", [])
     except (OSError, ValueError, AttributeError):
         return False
-    if not all((Path(work) / p).exists() for p in written):     # an absolute p stays itself
+    if not all((Path(work) / p).exists() for p in written):  # an absolute p stays itself
         return False
     wanted = {"stage": stage, "settings": settings_dict(settings), **(provenance or {})}
     return json.loads(json.dumps(wanted)) == recorded

@@ -61,14 +61,19 @@ from pipeline.settings import setting
 from pipeline.workdir import atomic_path, make_folder, write_json, written_size
 
 EXPORTABLE = ("lambert", "principled")
-WRITERS = {**{suffix: gltf.write_gltf for suffix in gltf.FORMATS}, **{suffix: usd.write_usd for suffix in usd.FORMATS},
-           **{suffix: mitsuba.write_mitsuba for suffix in mitsuba.FORMATS}}
+WRITERS = {
+    **{suffix: gltf.write_gltf for suffix in gltf.FORMATS},
+    **{suffix: usd.write_usd for suffix in usd.FORMATS},
+    **{suffix: mitsuba.write_mitsuba for suffix in mitsuba.FORMATS},
+}
 
 
 @dataclass(frozen=True)
 class Settings:
-    out: str = setting("", "the asset file: .glb or .gltf (glTF 2.0), .usda, .usdc or .usd (USD), .xml (Mitsuba 3); "
-                           "empty = WORK/export/asset.glb")
+    out: str = setting(
+        "",
+        "the asset file: .glb or .gltf (glTF 2.0), .usda, .usdc or .usd (USD), .xml (Mitsuba 3); empty = WORK/export/asset.glb",
+    )
     env_height: int = setting(512, "height of the exported lighting map (width = 2 x height)")
 
     def validate(self) -> None:
@@ -82,8 +87,7 @@ def add_arguments(parser) -> None:
     """``-o`` = ``--out`` (see pipeline.runner.stage_command)."""
     import argparse
 
-    parser.add_argument("-o", dest="out", metavar="ASSET", default=argparse.SUPPRESS,
-                        help="the asset file (same as --out)")
+    parser.add_argument("-o", dest="out", metavar="ASSET", default=argparse.SUPPRESS, help="the asset file (same as --out)")
 
 
 def asset_path(work: Path, settings: Settings) -> Path:
@@ -98,27 +102,35 @@ def companion(asset: Path, extra: str) -> Path:
 
 def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     fit = Path(work) / "fit"
-    paths = [fit / "brdf.json", fit / "albedo.ply", fit / "material.ply", fit / "lighting_sh.json",
-             *(fit / TEXTURES / name for name in ("atlas.npz", "base_color.exr", "base_color.png",
-                                                  "metallic_roughness.png"))]
+    paths = [
+        fit / "brdf.json",
+        fit / "albedo.ply",
+        fit / "material.ply",
+        fit / "lighting_sh.json",
+        *(fit / TEXTURES / name for name in ("atlas.npz", "base_color.exr", "base_color.png", "metallic_roughness.png")),
+    ]
     try:
         paths.append(mesh_path(capture))
     except UserError:
         pass
     if asset_path(work, settings).suffix.lower() in mitsuba.FORMATS:
-        paths.append(capture_poses_path(capture, work))     # the Mitsuba scene's sensor
+        paths.append(capture_poses_path(capture, work))  # the Mitsuba scene's sensor
     return paths
 
 
-PREVIEWS = {"sunsky": "sun+sky", "room": "room"}   # preview file tag -> bundled map (pipeline.core.procedural_envmaps)
+PREVIEWS = {"sunsky": "sun+sky", "room": "room"}  # preview file tag -> bundled map (pipeline.core.procedural_envmaps)
 PREVIEW_PX = 256
 
 
 def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     asset = asset_path(work, settings)
     scene_mesh = [mitsuba.mesh_file(asset)] if asset.suffix.lower() in mitsuba.FORMATS else []
-    return ([asset, companion(asset, "lighting.exr")] + [companion(asset, f"preview_{tag}.png") for tag in PREVIEWS]
-            + scene_mesh + [companion(asset, "export.json")])
+    return (
+        [asset, companion(asset, "lighting.exr")]
+        + [companion(asset, f"preview_{tag}.png") for tag in PREVIEWS]
+        + scene_mesh
+        + [companion(asset, "export.json")]
+    )
 
 
 @dataclass(frozen=True)
@@ -140,25 +152,30 @@ def asset_material(fit: Path, mesh) -> AssetMaterial:
     """The fit's material for the asset (AssetMaterial): brdf.json, albedo.ply, fit/textures/ — or
     brdf.json's materials with material.ply and the textures the fit made of them."""
     brdf = read_brdf(fit / "brdf.json")
-    texture = read_base_color_texture(fit / TEXTURES, len(mesh.faces))    # None: no map for this mesh
+    texture = read_base_color_texture(fit / TEXTURES, len(mesh.faces))  # None: no map for this mesh
     png = fit / TEXTURES / "base_color.png"
     if texture is not None and not png.exists():
         raise UserError(f"{png}: missing beside {fit / TEXTURES / 'atlas.npz'}; rerun `sigrend fit --texels auto`")
     surface = read_material_map(fit / "brdf.json", mesh)
     if surface is None:
         if brdf.model not in EXPORTABLE:
-            raise UserError(f"{fit / 'brdf.json'}: a {brdf.model} material has no glTF or USD equivalent; refit with "
-                            "--brdf principled (or lambert)")
+            raise UserError(
+                f"{fit / 'brdf.json'}: a {brdf.model} material has no glTF or USD equivalent; refit with "
+                "--brdf principled (or lambert)"
+            )
         return AssetMaterial(brdf, read_vertex_albedo(fit / "albedo.ply", len(mesh.vertices)), texture)
     materials, base, face_material = surface
     packed = fit / TEXTURES / "metallic_roughness.png"
     if texture is None or not packed.exists():
-        raise UserError(f"{fit / TEXTURES}: no roughness/metallic maps of the {len(materials)} materials in "
-                        f"{fit / 'brdf.json'} for this mesh; rerun `sigrend fit --materials auto --force`")
+        raise UserError(
+            f"{fit / TEXTURES}: no roughness/metallic maps of the {len(materials)} materials in "
+            f"{fit / 'brdf.json'} for this mesh; rerun `sigrend fit --materials auto --force`"
+        )
     principled = [m for m in materials if m.model == "principled"]
     exported = (principled or materials)[0].with_diffuse_color(np.clip(base.mean(axis=0), 0.0, 1.0))
-    return AssetMaterial(exported, base, texture, packed if principled else None,
-                         [(m, face_material == k) for k, m in enumerate(materials)])
+    return AssetMaterial(
+        exported, base, texture, packed if principled else None, [(m, face_material == k) for k, m in enumerate(materials)]
+    )
 
 
 def preview(mesh, material: AssetMaterial, env_spec: str) -> tuple[np.ndarray, np.ndarray]:
@@ -223,64 +240,89 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     brdf, colors, texture, png = material.brdf, material.colors, material.texture, fit / TEXTURES / "base_color.png"
     asset = asset_path(work, settings)
     if material.parts is not None and asset.suffix.lower() in mitsuba.FORMATS:
-        raise UserError(f"{asset}: the Mitsuba scene carries one material and {fit / 'brdf.json'} lists "
-                        f"{len(material.parts)}; export .glb or .usda (their roughness/metallic maps carry them)")
+        raise UserError(
+            f"{asset}: the Mitsuba scene carries one material and {fit / 'brdf.json'} lists "
+            f"{len(material.parts)}; export .glb or .usda (their roughness/metallic maps carry them)"
+        )
     env, clamped = lighting_map(fit / "lighting_sh.json", settings.env_height)
     make_folder(asset.parent, "-o")
     write = WRITERS[asset.suffix.lower()]
     lighting = write_image(companion(asset, "lighting.exr"), blender_columns(env).astype(np.float32), dtype="float")
-    extra = {"dome_light": lighting.name} if write is usd.write_usd else {}   # the USD's DomeLight reads the map
-    if write is mitsuba.write_mitsuba:   # the scene's envmap reads the map; its sensor is the capture's first view
+    extra = {"dome_light": lighting.name} if write is usd.write_usd else {}  # the USD's DomeLight reads the map
+    if write is mitsuba.write_mitsuba:  # the scene's envmap reads the map; its sensor is the capture's first view
         extra = {"envmap": lighting.name, "view": mitsuba.capture_view(capture_poses_path(capture, work))}
     sidecars = []
-    if texture is not None and write is mitsuba.write_mitsuba:    # the map (linear) as an EXR beside the scene
+    if texture is not None and write is mitsuba.write_mitsuba:  # the map (linear) as an EXR beside the scene
         extra.update(face_uv=texture[0].face_uv, base_color_map=texture[1])
         sidecars.append(mitsuba.texture_file(asset))
     elif texture is not None:
         extra["face_uv"] = texture[0].face_uv
         maps = {"base_color_texture": png, "metallic_roughness_texture": material.metallic_roughness}
         for key, path in maps.items():
-            if path is not None and write is usd.write_usd:    # USD references the PNGs beside the asset; glTF embeds them
+            if path is not None and write is usd.write_usd:  # USD references the PNGs beside the asset; glTF embeds them
                 sidecars.append(copy_file(path, companion(asset, path.name)))
                 extra[key] = sidecars[-1].name
             elif path is not None:
                 extra[key] = path
-    written = [write(asset, mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, colors,
-                     generator=f"sigrend {__version__}", **extra), lighting]
+    written = [
+        write(asset, mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, colors, generator=f"sigrend {__version__}", **extra),
+        lighting,
+    ]
     for tag, spec in PREVIEWS.items():
         rgb, mask = preview(mesh, material, spec)
         written.append(write_preview(companion(asset, f"preview_{tag}.png"), rgb, preview_exposure(rgb, mask)))
     if write is mitsuba.write_mitsuba:
-        written.append(mitsuba.mesh_file(asset))     # the scene's PLY, beside it
+        written.append(mitsuba.mesh_file(asset))  # the scene's PLY, beside it
     written.extend(sidecars)
     manifest = {
-        "asset": asset.name, "lighting": written[1].name,
+        "asset": asset.name,
+        "lighting": written[1].name,
         "previews": {spec: p.name for spec, p in zip(PREVIEWS.values(), written[2:])},
         "files": [{"file": p.name, "bytes": written_size(p)} for p in written],
-        "material": brdf.to_dict(), "per_vertex_base_color": colors is not None and texture is None,
-        "materials": None if material.parts is None else {
-            "count": len(material.parts), "source": str(fit / "brdf.json"),
-            "metallic_roughness_texture": None if material.metallic_roughness is None else
-            "G = roughness, B = metallic, linear; a Lambert material's texels are a dielectric of roughness 1 "
-            "(glTF and UsdPreviewSurface keep a specular layer)"},
-        "base_color_texture": None if texture is None else {
-            "file": sidecars[0].name if sidecars else f"embedded ({png.name})", "height": texture[0].height,
-            "width": texture[0].width, "uv": ("TEXCOORD_0, glTF's (0, 0) top-left, v down; the mesh split at seams"
-                                              if write is gltf.write_gltf else
-                                              "primvars:st faceVarying, st = (u, 1 - v): (0, 0) the image's lower left")},
-        "frame": ("glTF +Y up, metres: (x, y, z)_object -> (x, z, -y)_glTF (Blender's importer turns it back)"
-                  if write is gltf.write_gltf else "USD stage upAxis Z, metersPerUnit 1: the object frame as it is"
-                  if write is usd.write_usd else "Mitsuba 3 world = the object frame (+Z up), metres"),
+        "material": brdf.to_dict(),
+        "per_vertex_base_color": colors is not None and texture is None,
+        "materials": None
+        if material.parts is None
+        else {
+            "count": len(material.parts),
+            "source": str(fit / "brdf.json"),
+            "metallic_roughness_texture": None
+            if material.metallic_roughness is None
+            else "G = roughness, B = metallic, linear; a Lambert material's texels are a dielectric of roughness 1 "
+            "(glTF and UsdPreviewSurface keep a specular layer)",
+        },
+        "base_color_texture": None
+        if texture is None
+        else {
+            "file": sidecars[0].name if sidecars else f"embedded ({png.name})",
+            "height": texture[0].height,
+            "width": texture[0].width,
+            "uv": (
+                "TEXCOORD_0, glTF's (0, 0) top-left, v down; the mesh split at seams"
+                if write is gltf.write_gltf
+                else "primvars:st faceVarying, st = (u, 1 - v): (0, 0) the image's lower left"
+            ),
+        },
+        "frame": (
+            "glTF +Y up, metres: (x, y, z)_object -> (x, z, -y)_glTF (Blender's importer turns it back)"
+            if write is gltf.write_gltf
+            else "USD stage upAxis Z, metersPerUnit 1: the object frame as it is"
+            if write is usd.write_usd
+            else "Mitsuba 3 world = the object frame (+Z up), metres"
+        ),
         "lighting_mapping": "equirect, Blender Environment Texture default mapping / three.js equirectangular: "
-                            "u = 0.5 - atan2(y, x) / 2pi in the object frame, v = acos(z) / pi from the top",
+        "u = 0.5 - atan2(y, x) / 2pi in the object frame, v = acos(z) / pi from the top",
         "lighting_clamped_fraction": clamped,
-        "lighting_in_asset": ("UsdLux.DomeLight /lighting, texture:format latlong, rotated so that the map's pole is "
-                              "the object's +Z (docs/export.md)" if write is usd.write_usd else
-                              "Mitsuba envmap emitter of the map above, to_world = "
-                              "pipeline.core.envmap.MITSUBA_ENVMAP_TO_OBJECT (docs/export.md)"
-                              if write is mitsuba.write_mitsuba else
-                              "none (glTF has no environment light): the map is the sidecar above; docs/export.md's "
-                              "script sets it as Blender's World"),
+        "lighting_in_asset": (
+            "UsdLux.DomeLight /lighting, texture:format latlong, rotated so that the map's pole is "
+            "the object's +Z (docs/export.md)"
+            if write is usd.write_usd
+            else "Mitsuba envmap emitter of the map above, to_world = "
+            "pipeline.core.envmap.MITSUBA_ENVMAP_TO_OBJECT (docs/export.md)"
+            if write is mitsuba.write_mitsuba
+            else "none (glTF has no environment light): the map is the sidecar above; docs/export.md's "
+            "script sets it as Blender's World"
+        ),
         "source": {"brdf": str(fit / "brdf.json"), "lighting": str(fit / "lighting_sh.json")},
     }
     written.append(write_json(companion(asset, "export.json"), manifest))

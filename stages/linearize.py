@@ -72,15 +72,22 @@ HEADER_KEY = "sigrend:linearize"  # EXR attribute holding the recipe digest and 
 
 @dataclass(frozen=True)
 class Settings:
-    wb: str = setting("capture", "white balance applied to every image: 'capture' (capture.toml [white_balance], "
-                      "else 'camera'), 'camera' (as-shot WB of the first RAW image), 'r,g,b' multipliers, "
-                      "or 'gray:x0,y0,x1,y1' (gray card patch in the first image, pixels)")
-    saturation: float = setting(0.98, "fraction of the white level (RAW) or full scale (8/16-bit files) "
-                                "from which a pixel counts as saturated and is masked")
-    bracket_size: int = setting(0, "merge every N consecutive images (sorted by name) into one HDR bracket; "
-                                "0 = only the [brackets] of capture.toml")
-    workers: int = setting(0, "worker processes (0 = one per CPU core, 1 = serial); fewer when --memory-limit "
-                              "leaves room for fewer")
+    wb: str = setting(
+        "capture",
+        "white balance applied to every image: 'capture' (capture.toml [white_balance], "
+        "else 'camera'), 'camera' (as-shot WB of the first RAW image), 'r,g,b' multipliers, "
+        "or 'gray:x0,y0,x1,y1' (gray card patch in the first image, pixels)",
+    )
+    saturation: float = setting(
+        0.98,
+        "fraction of the white level (RAW) or full scale (8/16-bit files) from which a pixel counts as saturated and is masked",
+    )
+    bracket_size: int = setting(
+        0, "merge every N consecutive images (sorted by name) into one HDR bracket; 0 = only the [brackets] of capture.toml"
+    )
+    workers: int = setting(
+        0, "worker processes (0 = one per CPU core, 1 = serial); fewer when --memory-limit leaves room for fewer"
+    )
     memory_limit: str = memory_limit_setting()
 
     def validate(self) -> None:
@@ -109,8 +116,10 @@ def parse_wb(text: str) -> tuple[str, tuple]:
                 return "multipliers", mult
     except ValueError:
         pass
-    raise UserError(f"--wb {text!r}: use 'capture', 'camera', three positive multipliers 'r,g,b', "
-                    "or 'gray:x0,y0,x1,y1' with x1 > x0 and y1 > y0")
+    raise UserError(
+        f"--wb {text!r}: use 'capture', 'camera', three positive multipliers 'r,g,b', "
+        "or 'gray:x0,y0,x1,y1' with x1 > x0 and y1 > y0"
+    )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -134,9 +143,11 @@ def plan_groups(files: list[Path], config: CaptureConfig, bracket_size: int) -> 
     rest = [p for p in files if p.name not in used]
     if bracket_size >= 2:
         if len(rest) % bracket_size:
-            raise UserError(f"{len(rest)} images outside capture.toml brackets do not split into brackets of "
-                            f"{bracket_size}; fix --bracket-size or list the brackets in capture.toml")
-        chunks = [rest[i:i + bracket_size] for i in range(0, len(rest), bracket_size)]
+            raise UserError(
+                f"{len(rest)} images outside capture.toml brackets do not split into brackets of "
+                f"{bracket_size}; fix --bracket-size or list the brackets in capture.toml"
+            )
+        chunks = [rest[i : i + bracket_size] for i in range(0, len(rest), bracket_size)]
     else:
         chunks = [[p] for p in rest]
     for chunk in chunks:
@@ -161,8 +172,12 @@ def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     config = read_capture_config(capture)
     keys = plan_groups(capture_photos(capture), config, settings.bracket_size)
     folder = linear_dir(work)
-    return ([folder / f"{k}.exr" for k in keys] + [folder / "masks" / f"{k}.png" for k in keys]
-            + [manifest_path(work)] + ([chart_path(work)] if config.chart is not None else []))
+    return (
+        [folder / f"{k}.exr" for k in keys]
+        + [folder / "masks" / f"{k}.png" for k in keys]
+        + [manifest_path(work)]
+        + ([chart_path(work)] if config.chart is not None else [])
+    )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -178,32 +193,39 @@ def exposure_scales(probes: list[Probe], config: CaptureConfig) -> dict[str, dic
     names = {pr.path.name for pr in probes}
     unmatched = sorted(set(config.exposure) - names - {"default"})
     if unmatched:
-        raise UserError(f"{config.source}: [exposure] names no image of the capture: "
-                        + ", ".join(f"{n!r}{did_you_mean(n, names)}" for n in unmatched)
-                        + " (keys are image file names, or \"default\" for all)")
+        raise UserError(
+            f"{config.source}: [exposure] names no image of the capture: "
+            + ", ".join(f"{n!r}{did_you_mean(n, names)}" for n in unmatched)
+            + ' (keys are image file names, or "default" for all)'
+        )
     resolved = {}
     for pr in probes:
         over = config.exposure_for(pr.path.name)
         vals = {k: getattr(over, k) if getattr(over, k) is not None else pr.exif[k] for k in ("time", "iso", "fnumber")}
         for k, v in vals.items():
             if v is not None and not (np.isfinite(v) and v > 0):
-                raise UserError(f"{pr.path}: EXIF {k} is {v}; give the true value in capture.toml "
-                                f'[exposure] "{pr.path.name}" = {{{k} = ...}}')
+                raise UserError(
+                    f'{pr.path}: EXIF {k} is {v}; give the true value in capture.toml [exposure] "{pr.path.name}" = {{{k} = ...}}'
+                )
         resolved[pr.path.name] = vals
     labels = {"time": "exposure time", "iso": "ISO", "fnumber": "f-number"}
     for k, label in labels.items():
         missing = [pr.path for pr in probes if resolved[pr.path.name][k] is None]
         if missing and len(missing) < len(probes):
-            raise UserError(f"{missing[0]}: no {label} in EXIF while other images have one; give it in capture.toml "
-                            f'[exposure] "{missing[0].name}" = {{{k} = ...}} (or a default for all)')
+            raise UserError(
+                f"{missing[0]}: no {label} in EXIF while other images have one; give it in capture.toml "
+                f'[exposure] "{missing[0].name}" = {{{k} = ...}} (or a default for all)'
+            )
         if missing:
-            warnings.warn(f"no {label} in any image's EXIF or capture.toml: assuming it is the same for every "
-                          "image", UserWarning, stacklevel=2)
+            warnings.warn(
+                f"no {label} in any image's EXIF or capture.toml: assuming it is the same for every image",
+                UserWarning,
+                stacklevel=2,
+            )
     out = {}
     for name, v in resolved.items():
         shot = Exposure(v["time"] or 1.0, v["iso"] or 100.0, v["fnumber"] or 1.0)
-        out[name] = {"exposure_time_s": v["time"], "iso": v["iso"], "f_number": v["fnumber"],
-                     "scale": 1.0 / shot.scale}
+        out[name] = {"exposure_time_s": v["time"], "iso": v["iso"], "f_number": v["fnumber"], "scale": 1.0 / shot.scale}
     return out
 
 
@@ -260,19 +282,29 @@ def linearize_job(job: dict, rows: int | None = None) -> dict:
         rows = min(rows or height, height)
         bands = [(y, min(y + rows, height)) for y in range(0, height, rows)]
         kept = None
-        for y0, y1 in bands:          # the first pass: counts (and the one band, when it is the image)
+        for y0, y1 in bands:  # the first pass: counts (and the one band, when it is the image)
             merged, valid = sources.band(y0, y1, count=True)
             kept = (merged, valid) if len(bands) == 1 else None
         valid_fraction = sources.valid_count / (height * width)
-        entry = {"exr": f"{key}.exr", "mask": f"masks/{key}.png", "width": int(width),
-                 "height": int(height), "sources": sources.entries(), "white_balance": job["white_balance"],
-                 "saturated_fraction": round(1.0 - valid_fraction, 6), "valid_fraction": round(valid_fraction, 6),
-                 "vignetting": job["vignetting"], "response": job["response"] or job["response_curve"]}
+        entry = {
+            "exr": f"{key}.exr",
+            "mask": f"masks/{key}.png",
+            "width": int(width),
+            "height": int(height),
+            "sources": sources.entries(),
+            "white_balance": job["white_balance"],
+            "saturated_fraction": round(1.0 - valid_fraction, 6),
+            "valid_fraction": round(valid_fraction, 6),
+            "vignetting": job["vignetting"],
+            "response": job["response"] or job["response_curve"],
+        }
         header = json.dumps({"recipe": _digest(job), "entry": entry})
         if kept is None:
             sources.rewind()
-        with ImageRowWriter(job["mask"], width, height, 1, dtype="uint8") as mask, \
-                ImageRowWriter(job["exr"], width, height, 3, dtype="float", attributes={HEADER_KEY: header}) as exr:
+        with (
+            ImageRowWriter(job["mask"], width, height, 1, dtype="uint8") as mask,
+            ImageRowWriter(job["exr"], width, height, 3, dtype="float", attributes={HEADER_KEY: header}) as exr,
+        ):
             for y0, y1 in bands:
                 merged, valid = kept if kept is not None else sources.band(y0, y1)
                 mask.write(valid.astype(np.float32))
@@ -299,8 +331,8 @@ def job_bytes(job: dict) -> tuple[int, float]:
     return int(fixed), float(per_pixel * job["size"][0])
 
 
-BAND_BYTES_PER_PIXEL = 64     # radiance, valid, weights, bracket sums, merged, the mask's float copy
-BAND_CAP = 256 * 10**6        # bytes of a band beyond which a band is not worth a second decode
+BAND_BYTES_PER_PIXEL = 64  # radiance, valid, weights, bracket sums, merged, the mask's float copy
+BAND_CAP = 256 * 10**6  # bytes of a band beyond which a band is not worth a second decode
 
 
 class JobSources:
@@ -340,8 +372,10 @@ class JobSources:
             self._gain = ImageRowReader(job["vignetting"])
             if (self._gain.width, self._gain.height) != (self.width, self.height):
                 name = Path(job["sources"][0]["path"]).name
-                raise UserError(f"{job['vignetting']}: vignetting map is {self._gain.width}x{self._gain.height} but "
-                                f"{name} is {self.width}x{self.height}; calibrate vignetting with this camera's images")
+                raise UserError(
+                    f"{job['vignetting']}: vignetting map is {self._gain.width}x{self._gain.height} but "
+                    f"{name} is {self.width}x{self.height}; calibrate vignetting with this camera's images"
+                )
 
     def rewind(self) -> None:
         """Back to the first row (OpenImageIO readers reopened; RAW decodes kept)."""
@@ -397,11 +431,11 @@ class JobSources:
             level = rgb.max(axis=2) if want_level else None
             self.seen[i] = {"alpha": True, "black": all_black}
         else:
-            rgb, valid, level, info, seen = decode_other_rows(self._readers[i], y0, y1, src["kind"], self.inverse,
-                                                              self.job["saturation"])
+            rgb, valid, level, info, seen = decode_other_rows(
+                self._readers[i], y0, y1, src["kind"], self.inverse, self.job["saturation"]
+            )
             self.infos[i] = info
-            self.seen[i] = {"alpha": self.seen[i]["alpha"] or seen["alpha"],
-                            "black": self.seen[i]["black"] and seen["black"]}
+            self.seen[i] = {"alpha": self.seen[i]["alpha"] or seen["alpha"], "black": self.seen[i]["black"] and seen["black"]}
             rgb_gains = np.asarray(self.job["rgb_gains"], dtype=np.float32)
             if np.any(rgb_gains != 1):
                 rgb = rgb * rgb_gains
@@ -426,11 +460,19 @@ class JobSources:
         out = []
         for i, src in enumerate(self.job["sources"]):
             info = self.infos[i]
-            out.append({"file": Path(src["path"]).name, "format": src["format"],
-                        "exposure_time_s": src["exposure_time_s"], "iso": src["iso"], "f_number": src["f_number"],
-                        "scale": src["scale"], "black_level": info.get("black_level"),
-                        "white_level": info.get("white_level"),
-                        "saturated_fraction": round(1.0 - self.counts[i] / (self.height * self.width), 6)})
+            out.append(
+                {
+                    "file": Path(src["path"]).name,
+                    "format": src["format"],
+                    "exposure_time_s": src["exposure_time_s"],
+                    "iso": src["iso"],
+                    "f_number": src["f_number"],
+                    "scale": src["scale"],
+                    "black_level": info.get("black_level"),
+                    "white_level": info.get("white_level"),
+                    "saturated_fraction": round(1.0 - self.counts[i] / (self.height * self.width), 6),
+                }
+            )
         return out
 
 
@@ -447,8 +489,9 @@ def _bracket_weight(valid: np.ndarray, level: np.ndarray | None, saturation: flo
 # White balance policy: one set of gains for the whole capture
 
 
-def resolve_white_balance(settings: Settings, config: CaptureConfig, probes: list[Probe], inverse: np.ndarray,
-                          saturation: float) -> tuple[list[float], list[float], dict]:
+def resolve_white_balance(
+    settings: Settings, config: CaptureConfig, probes: list[Probe], inverse: np.ndarray, saturation: float
+) -> tuple[list[float], list[float], dict]:
     """(raw-channel multipliers R,G,B,G2 for RAW files, RGB gains for decoded files, record for the manifest)."""
     kind, values = parse_wb(settings.wb)
     if kind == "capture":
@@ -466,14 +509,17 @@ def resolve_white_balance(settings: Settings, config: CaptureConfig, probes: lis
         wb = list(raws[0].camera_wb) if raws else [1.0, 1.0, 1.0, 1.0]
         if len(wb) == 4 and wb[3] == 0:
             wb[3] = wb[1]
-        record = {"policy": "camera", "from": raws[0].path.name if raws else None, "raw_multipliers": wb,
-                  "decoded_files": "as encoded"}
+        record = {
+            "policy": "camera",
+            "from": raws[0].path.name if raws else None,
+            "raw_multipliers": wb,
+            "decoded_files": "as encoded",
+        }
         return wb, [1.0, 1.0, 1.0], record
     # gray card in the first image
     first = probes[0]
     if any((p.kind == "raw") != (first.kind == "raw") for p in probes):
-        raise UserError(f"{first.path}: gray-card white balance needs all images RAW or all decoded; "
-                        "give --wb r,g,b instead")
+        raise UserError(f"{first.path}: gray-card white balance needs all images RAW or all decoded; give --wb r,g,b instead")
     x0, y0, x1, y1 = values
     if x1 > first.width or y1 > first.height:
         raise UserError(f"{first.path}: gray patch {values} lies outside the {first.width}x{first.height} image")
@@ -503,8 +549,10 @@ def _check_sizes(probes: list[Probe], config: CaptureConfig) -> None:
         source = "most images"
     for p in probes:
         if (p.width, p.height) != expected:
-            raise UserError(f"{p.path}: image is {p.width}x{p.height} but {source} {expected[0]}x{expected[1]}; "
-                            "all images of a capture must come from one camera at one size (remove or re-export it)")
+            raise UserError(
+                f"{p.path}: image is {p.width}x{p.height} but {source} {expected[0]}x{expected[1]}; "
+                "all images of a capture must come from one camera at one size (remove or re-export it)"
+            )
 
 
 def build_jobs(capture: Path, work: Path, settings: Settings) -> list[dict]:
@@ -519,7 +567,7 @@ def build_jobs(capture: Path, work: Path, settings: Settings) -> list[dict]:
     inverse = inverse_table(config.response, config.response_curve)
     raw_wb, rgb_gains, wb_record = resolve_white_balance(settings, config, probes, inverse, settings.saturation)
     extra = [str(p) for p in _capture_files(capture, config)]
-    content = fingerprints(files + [Path(p) for p in extra], work)   # in each job's recipe: a replaced file redoes it
+    content = fingerprints(files + [Path(p) for p in extra], work)  # in each job's recipe: a replaced file redoes it
     folder = linear_dir(work)
     jobs = []
     for key, members in groups.items():
@@ -529,16 +577,27 @@ def build_jobs(capture: Path, work: Path, settings: Settings) -> list[dict]:
             fmt = "raw" if pr.kind == "raw" else m.suffix.lower().lstrip(".") + ("" if pr.kind == "float" else f"-{pr.kind}")
             sources.append({"path": str(m), "kind": pr.kind, "format": fmt, **exposure[m.name]})
         size = (by_name[members[0].name].width, by_name[members[0].name].height)
-        jobs.append({"key": key, "sources": sources, "exr": str(folder / f"{key}.exr"), "size": size,
-                     "mask": str(folder / "masks" / f"{key}.png"), "saturation": settings.saturation,
-                     "raw_wb": raw_wb, "rgb_gains": rgb_gains, "white_balance": wb_record,
-                     "response": str(config.response) if config.response else None,
-                     "response_curve": config.response_curve,
-                     "vignetting": str(config.vignetting) if config.vignetting else None,
-                     "settings": {k: v for k, v in settings_dict(settings).items()
-                                  if k not in ("workers", "memory_limit")},     # how, not what
-                     "orientation": "as stored",   # in the recipe: RAW outputs made when LibRaw turned them are redone
-                     "content": {p: content[str(Path(p).resolve())] for p in [str(m) for m in members] + extra}})
+        jobs.append(
+            {
+                "key": key,
+                "sources": sources,
+                "exr": str(folder / f"{key}.exr"),
+                "size": size,
+                "mask": str(folder / "masks" / f"{key}.png"),
+                "saturation": settings.saturation,
+                "raw_wb": raw_wb,
+                "rgb_gains": rgb_gains,
+                "white_balance": wb_record,
+                "response": str(config.response) if config.response else None,
+                "response_curve": config.response_curve,
+                "vignetting": str(config.vignetting) if config.vignetting else None,
+                "settings": {
+                    k: v for k, v in settings_dict(settings).items() if k not in ("workers", "memory_limit")
+                },  # how, not what
+                "orientation": "as stored",  # in the recipe: RAW outputs made when LibRaw turned them are redone
+                "content": {p: content[str(Path(p).resolve())] for p in [str(m) for m in members] + extra},
+            }
+        )
     return jobs
 
 
@@ -565,7 +624,7 @@ def exit_with(stage_pid: int, every_s: float = 0.5) -> None:
                 os.kill(stage_pid, 0)
             except ProcessLookupError:
                 os._exit(1)
-            except PermissionError:     # the pid now belongs to another user's process: ours is gone
+            except PermissionError:  # the pid now belongs to another user's process: ours is gone
                 os._exit(1)
 
     threading.Thread(target=watch, daemon=True, name="exit-with-stage").start()
@@ -584,7 +643,7 @@ def run_jobs(jobs: list[dict], workers: int, force: bool = False, budget: Budget
             todo.append(job)
     workers = workers or os.cpu_count() or 1
     if multiprocessing.current_process().daemon:
-        workers = 1   # a daemonic process (a Dask worker of `sigrend batch`) may not start children
+        workers = 1  # a daemonic process (a Dask worker of `sigrend batch`) may not start children
     workers, rows = plan_memory(todo, min(workers, max(len(todo), 1)), budget or Budget.of(DEFAULT_LIMIT))
     bar = progress(total=len(todo), desc="linearize", unit="img")
     try:
@@ -595,13 +654,14 @@ def run_jobs(jobs: list[dict], workers: int, force: bool = False, budget: Budget
         else:
             # forkserver, not fork: OpenImageIO's thread pool in this process would deadlock forked children
             context = multiprocessing.get_context("forkserver")
-            with cf.ProcessPoolExecutor(max_workers=workers, mp_context=context,
-                                        initializer=exit_with, initargs=(os.getpid(),)) as pool:
+            with cf.ProcessPoolExecutor(
+                max_workers=workers, mp_context=context, initializer=exit_with, initargs=(os.getpid(),)
+            ) as pool:
                 futures = {pool.submit(_linearize_job_collected, job, rows): job["key"] for job in todo}
                 try:
                     for fut in cf.as_completed(futures):
                         entries[futures[fut]], written = fut.result()
-                        commit_writes(written)      # into the stage's transaction (pipeline.workdir)
+                        commit_writes(written)  # into the stage's transaction (pipeline.workdir)
                         bar.update()
                 except BaseException:
                     pool.shutdown(wait=True, cancel_futures=True)
@@ -625,10 +685,16 @@ def plan_memory(todo: list[dict], workers: int, budget: Budget) -> tuple[int, in
     need = fixed + least * per_row
     if need > free:
         raws = [Path(s["path"]).name for s in job["sources"] if s["kind"] == "raw"]
-        what = (f"{Path(job['sources'][0]['path']).name}: linearizing {'a bracket of ' if len(job['sources']) > 1 else ''}"
-                f"{len(job['sources'])} photo(s) of {width * height / 1e6:.0f} MP")
-        reduce = ("RAW photos are decoded whole by LibRaw: use smaller photos or fewer brackets per image (or "
-                  "JPEG/TIFF files, read by rows)" if raws else "use smaller photos")
+        what = (
+            f"{Path(job['sources'][0]['path']).name}: linearizing {'a bracket of ' if len(job['sources']) > 1 else ''}"
+            f"{len(job['sources'])} photo(s) of {width * height / 1e6:.0f} MP"
+        )
+        reduce = (
+            "RAW photos are decoded whole by LibRaw: use smaller photos or fewer brackets per image (or "
+            "JPEG/TIFF files, read by rows)"
+            if raws
+            else "use smaller photos"
+        )
         raise budget.too_small(need, what, reduce)
     band = min(BAND_CAP, height * per_row)
     workers = budget.workers(workers, fixed + int(band), processes=workers > 1)
@@ -644,8 +710,12 @@ def response_note(jobs: list[dict]) -> str | None:
     if not eight_bit:
         return None
     curve = jobs[0]["response_curve"]
-    why = ("no [response] in capture.toml; a linear machine-vision camera needs [response] curve = \"linear\", "
-           "a calibrated one path = \"response.json\"" if curve == "srgb" else "[response] curve in capture.toml")
+    why = (
+        'no [response] in capture.toml; a linear machine-vision camera needs [response] curve = "linear", '
+        'a calibrated one path = "response.json"'
+        if curve == "srgb"
+        else "[response] curve in capture.toml"
+    )
     return f"linearize: {len(eight_bit)} 8-bit file(s) linearized with the {curve} curve ({why})"
 
 
@@ -654,7 +724,7 @@ def run(*, capture: Path, work: Path, settings: Settings, force: bool = False) -
     recipe); returns the written EXRs, masks and manifest.json."""
     jobs = build_jobs(Path(capture), Path(work), settings)
     config = read_capture_config(capture)
-    chart = None if config.chart is None else measure_capture_chart(config, jobs, work)   # before the long part
+    chart = None if config.chart is None else measure_capture_chart(config, jobs, work)  # before the long part
     entries = run_jobs(jobs, settings.workers, force, Budget.of(settings.memory_limit))
     manifest = write_manifest(work, entries)
     if (note := response_note(jobs)) is not None:
@@ -663,9 +733,9 @@ def run(*, capture: Path, work: Path, settings: Settings, force: bool = False) -
     folder = linear_dir(work)
     previous = [p for p in [*folder.glob("*.exr"), *(folder / "masks").glob("*.png")] if not p.name.startswith(".")]
     for stale in set(previous) - set(written):
-        stale.unlink()        # a photo removed from the capture leaves no linear image behind
+        stale.unlink()  # a photo removed from the capture leaves no linear image behind
     if chart is None:
-        chart_path(work).unlink(missing_ok=True)     # a [chart] removed from capture.toml leaves none behind
+        chart_path(work).unlink(missing_ok=True)  # a [chart] removed from capture.toml leaves none behind
         return written + [manifest]
     return written + [manifest, chart]
 
@@ -683,6 +753,5 @@ def measure_capture_chart(config: CaptureConfig, jobs: list[dict], work: Path) -
     rgb, valid, _ = job_radiance(job)
     record = measure_chart(spec, rgb, valid, where)
     summary = ", ".join(f"{v:.4g}" for v in record["irradiance"])
-    print(f"linearize: {spec.kind} in {spec.image}: irradiance on its plane ({summary}) in the photos' units",
-          file=sys.stderr)
+    print(f"linearize: {spec.kind} in {spec.image}: irradiance on its plane ({summary}) in the photos' units", file=sys.stderr)
     return write_chart(work, {**record, "image": spec.image, "key": job["key"]})

@@ -65,18 +65,23 @@ DROP_REASONS = ("background", "silhouette_edge", "hidden", "grazing", "masked", 
 class Settings:
     min_cos: float = setting(0.15, "drop grazing views: keep a pixel only if n·v >= this (cosine of the view angle)")
     edge_px: int = setting(1, "drop pixels within this many pixels of the silhouette or an occlusion edge (0: keep)")
-    depth_jump: float = setting(20.0, "a neighbour whose depth differs by more than this many pixel footprints "
-                                      "(depth/focal) marks an occlusion edge")
+    depth_jump: float = setting(
+        20.0, "a neighbour whose depth differs by more than this many pixel footprints (depth/focal) marks an occlusion edge"
+    )
     visibility_rays: int = setting(64, "hemisphere directions cast per mesh vertex for the visibility fraction")
     min_visibility: float = setting(0.9, "recommended visibility threshold recorded for the fit (samples are kept)")
     stride: int = setting(1, "use every stride-th pixel in rows and columns (1: every pixel)")
     max_samples: int = setting(0, "keep at most this many samples, drawn uniformly per image (0: no limit)")
     chunk_pixels: int = setting(262144, "pixels ray cast at a time (bounds memory)")
     seed: int = setting(0, "random seed of the max_samples subsampling (image i draws from the seed and i)")
-    holdout: tuple[str, ...] = setting((), "image keys left out of the samples (held out to validate the fit; "
-                                           "listed in the meta as 'holdout')")
-    workers: int = setting(0, "images sampled at once, in threads (0 = one per CPU core; never more than the cores); "
-                              "fewer when --memory-limit leaves room for fewer")
+    holdout: tuple[str, ...] = setting(
+        (), "image keys left out of the samples (held out to validate the fit; listed in the meta as 'holdout')"
+    )
+    workers: int = setting(
+        0,
+        "images sampled at once, in threads (0 = one per CPU core; never more than the cores); "
+        "fewer when --memory-limit leaves room for fewer",
+    )
     memory_limit: str = memory_limit_setting()
 
     def validate(self) -> None:
@@ -115,13 +120,15 @@ def exif_radiance_scales(capture: Path, keys: list[str]) -> dict[str, float]:
     for factor in ("time", "iso", "fnumber"):
         missing = [k for k in keys if exifs[k].get(factor) is None]
         if missing and len(missing) < len(keys):
-            raise UserError(f"{Path(capture) / 'images' / missing[0]}: no EXIF {factor} while other images have "
-                            "one, so their radiometric scales differ; run `sigrend linearize` (capture.toml "
-                            "[exposure] can give the value)")
+            raise UserError(
+                f"{Path(capture) / 'images' / missing[0]}: no EXIF {factor} while other images have "
+                "one, so their radiometric scales differ; run `sigrend linearize` (capture.toml "
+                "[exposure] can give the value)"
+            )
     scales = {}
     for key, exif in exifs.items():
         shot = Exposure(exif.get("time") or 1.0, exif.get("iso") or 100.0, exif.get("fnumber") or 1.0)
-        scales[key] = 1.0 / shot.scale     # radiance per unit value, N^2 / (t ISO/100)
+        scales[key] = 1.0 / shot.scale  # radiance per unit value, N^2 / (t ISO/100)
     return scales
 
 
@@ -180,8 +187,9 @@ def vertex_visibility(mesh, rays: int, chunk: int = 262144) -> np.ndarray:
     per = max(1, chunk // rays)
     for start in progress(range(0, len(normals), per), desc="visibility", unit="chunk", leave=False):
         sl = slice(start, start + per)
-        dirs = (local[None, :, 0:1] * t1[sl, None] + local[None, :, 1:2] * t2[sl, None]
-                + local[None, :, 2:3] * normals[sl, None]).reshape(-1, 3)
+        dirs = (
+            local[None, :, 0:1] * t1[sl, None] + local[None, :, 1:2] * t2[sl, None] + local[None, :, 2:3] * normals[sl, None]
+        ).reshape(-1, 3)
         orig = np.repeat(origins[sl], rays, axis=0)
         blocked = occluded(mesh.ray, orig, dirs).reshape(-1, rays)
         visible[sl] = 1.0 - blocked.mean(axis=1)
@@ -197,27 +205,32 @@ def _units_hint(mesh, poses: Poses, totals: dict) -> str:
     # the scale of the camera rig from the cameras alone (their spread about their centroid): measured
     # from the mesh's centre instead, a mesh 1000x too large puts the cameras inside it at ~its radius
     distance = float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1)))
-    if not distance > 0:      # one camera (or all at one point): its distance to the mesh
+    if not distance > 0:  # one camera (or all at one point): its distance to the mesh
         distance = float(np.median(np.linalg.norm(centres - centre, axis=1)))
     ratio = size / max(distance, 1e-300)
     sizes = f"(bounding box {size:.3g} across, cameras {distance:.3g} from their centre)"
     if ratio > 20:  # an object is normally about as large as (or smaller than) its distance to the camera
         unit = "millimetres" if ratio >= 100 else "centimetres"
-        return (f"the mesh is {ratio:.0f}x larger than the camera distances {sizes}: is it in {unit}? "
-                "convert it to metres")
+        return f"the mesh is {ratio:.0f}x larger than the camera distances {sizes}: is it in {unit}? convert it to metres"
     if ratio < 1e-3:
-        return (f"the mesh is {1 / ratio:.0f}x smaller than the camera distances {sizes}: "
-                "is it in kilometres, or are the poses scaled?")
+        return (
+            f"the mesh is {1 / ratio:.0f}x smaller than the camera distances {sizes}: "
+            "is it in kilometres, or are the poses scaled?"
+        )
     in_view = 0
     for key, pose in poses.images.items():
         cam = poses.camera_of(key)
         uv, z = project(cam, pose.R, pose.t, centre[None])
         in_view += bool(z[0] > 0 and 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height)
     if in_view == 0 or totals["hidden"] == 0:
-        return (f"the mesh centre is in view of {in_view} of {len(poses.images)} cameras: the mesh and poses.json "
-                "are probably in different frames (poses must be in the mesh's object frame, DESIGN.md)")
-    return ("every hit is on a back face: the cameras are inside the mesh or its faces are wound inwards "
-            "(normals pointing in); check the poses or fix the winding (e.g. trimesh.repair.fix_normals)")
+        return (
+            f"the mesh centre is in view of {in_view} of {len(poses.images)} cameras: the mesh and poses.json "
+            "are probably in different frames (poses must be in the mesh's object frame, DESIGN.md)"
+        )
+    return (
+        "every hit is on a back face: the cameras are inside the mesh or its faces are wound inwards "
+        "(normals pointing in); check the poses or fix the winding (e.g. trimesh.repair.fix_normals)"
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -251,8 +264,17 @@ def _edge_mask(hit: np.ndarray, depth: np.ndarray, footprint: np.ndarray, settin
     return hit & (_dilate(~hit, settings.edge_px) | _dilate(jump, settings.edge_px - 1) | jump)
 
 
-def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, image, image_id: int, settings: Settings,
-                 visibility: np.ndarray, progress=None):
+def sample_image(
+    mesh,
+    camera: Camera,
+    R: np.ndarray,
+    t: np.ndarray,
+    image,
+    image_id: int,
+    settings: Settings,
+    visibility: np.ndarray,
+    progress=None,
+):
     """Samples of one image, chunk by chunk.
 
     ``image``: the photo's rows, read as needed (``image.rows(y0, y1)`` -> (rgb, weight), e.g.
@@ -264,7 +286,7 @@ def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, image, imag
     rows, cols = np.arange(0, camera.height, s), np.arange(0, camera.width, s)
     fx, fy, _, _ = camera.focal_principal()
     focal = float(np.sqrt(fx * fy)) / s  # focal length in units of the strided pixel grid
-    halo = settings.edge_px + 1          # rows beyond the chunk that its silhouette test looks at
+    halo = settings.edge_px + 1  # rows beyond the chunk that its silhouette test looks at
     centre = camera_center(R, t)
     per = max(1, settings.chunk_pixels // len(cols))
     for start in range(0, len(rows), per):
@@ -277,7 +299,7 @@ def sample_image(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, image, imag
         cand = np.arange(hit.size).reshape(hit.shape)[inner].ravel()[hit_in & ~edge_in]
         pixels = np.stack([rows[lo:hi][cand // len(cols)], cols[cand % len(cols)]], axis=1)
         first = int(rows[start])
-        rgb, weight = image.rows(first, int(rows[stop - 1]) + 1)   # this chunk's rows of the photo only
+        rgb, weight = image.rows(first, int(rows[stop - 1]) + 1)  # this chunk's rows of the photo only
         band = (rgb[::s, ::s], weight[::s, ::s], first)
         arrays, dropped = _pixel_samples(mesh, hits, at[cand], pixels, centre, band, image_id, settings, visibility)
         if progress is not None:
@@ -304,7 +326,7 @@ def _grid_hits(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, grid_rows: np
     uv[:, 0] = cols[(uv[:, 0] - 0.5).astype(int)] + 0.5
     uv[:, 1] = grid_rows[(uv[:, 1] - 0.5).astype(int)] + 0.5
     origins, dirs = pixel_rays(camera, R, t, uv)
-    h = first_hits(mesh, mesh.ray, origins, dirs)      # mesh.ray: trimesh's cached (Embree) intersector
+    h = first_hits(mesh, mesh.ray, origins, dirs)  # mesh.ray: trimesh's cached (Embree) intersector
     shape = (len(grid_rows), len(cols))
     hit = np.zeros(shape[0] * shape[1], bool)
     hit[h.ray] = True
@@ -315,8 +337,17 @@ def _grid_hits(mesh, camera: Camera, R: np.ndarray, t: np.ndarray, grid_rows: np
     return h, hit.reshape(shape), depth.reshape(shape), at
 
 
-def _pixel_samples(mesh, hits, row: np.ndarray, pixels: np.ndarray, centre: np.ndarray, band: tuple,
-                   image_id: int, settings: Settings, visibility: np.ndarray) -> tuple[dict, dict]:
+def _pixel_samples(
+    mesh,
+    hits,
+    row: np.ndarray,
+    pixels: np.ndarray,
+    centre: np.ndarray,
+    band: tuple,
+    image_id: int,
+    settings: Settings,
+    visibility: np.ndarray,
+) -> tuple[dict, dict]:
     """The samples of the pixels (P, 2) (row, column) whose rays hit the mesh at ``hits``' rows
     ``row`` (P,), left out where the surface faces away (hidden), is seen at n.v < min_cos (grazing)
     or the pixel's weight is 0 (masked) -> (SAMPLE_FIELDS arrays of the kept ones, drop counts).
@@ -335,12 +366,21 @@ def _pixel_samples(mesh, hits, row: np.ndarray, pixels: np.ndarray, centre: np.n
     k = ~(hidden | grazing | masked)
     vis = np.einsum("nk,nk->n", bary[k], visibility[np.asarray(mesh.faces)[f[k]]])
     arrays = {
-        "point": p[k], "normal": normal[k], "view_dir": view[k], "radiance": rgb[band_r[k], band_c[k]],
-        "image_id": np.full(int(k.sum()), image_id), "pixel": np.stack([pix_r[k], pix_c[k]], axis=1),
-        "face": f[k], "bary": bary[k], "weight": w[k], "visibility": vis,
+        "point": p[k],
+        "normal": normal[k],
+        "view_dir": view[k],
+        "radiance": rgb[band_r[k], band_c[k]],
+        "image_id": np.full(int(k.sum()), image_id),
+        "pixel": np.stack([pix_r[k], pix_c[k]], axis=1),
+        "face": f[k],
+        "bary": bary[k],
+        "weight": w[k],
+        "visibility": vis,
     }
-    return ({name: np.asarray(arrays[name], dtype=SAMPLE_FIELDS[name][0]) for name in SAMPLE_FIELDS},
-            {"hidden": int(hidden.sum()), "grazing": int(grazing.sum()), "masked": int(masked.sum())})
+    return (
+        {name: np.asarray(arrays[name], dtype=SAMPLE_FIELDS[name][0]) for name in SAMPLE_FIELDS},
+        {"hidden": int(hidden.sum()), "grazing": int(grazing.sum()), "masked": int(masked.sum())},
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -388,8 +428,8 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         warnings.warn(line, UserWarning, stacklevel=2)
     visibility = vertex_visibility(mesh, settings.visibility_rays, settings.chunk_pixels)
     workers = sampling_workers(budget, poses, keys, settings)
-    for cached in ("triangles", "vertex_normals", "face_normals", "ray"):   # trimesh's lazy caches, made before
-        getattr(mesh, cached)                                              # any thread reads them
+    for cached in ("triangles", "vertex_normals", "face_normals", "ray"):  # trimesh's lazy caches, made before
+        getattr(mesh, cached)  # any thread reads them
     tally = Tally(settings.min_visibility)
     cap = -(-settings.max_samples // len(keys)) if settings.max_samples else 0
     out_npz = work / "samples.npz"
@@ -399,8 +439,10 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         camera = poses.camera_of(key)
         if (image.height, image.width) != (camera.height, camera.width):
             image.close()
-            raise UserError(f"{image.name}: image is {image.width}x{image.height} but its camera "
-                            f"{poses.images[key].camera!r} in {pose_file} is {camera.width}x{camera.height}")
+            raise UserError(
+                f"{image.name}: image is {image.width}x{image.height} but its camera "
+                f"{poses.images[key].camera!r} in {pose_file} is {camera.width}x{camera.height}"
+            )
         return image
 
     def sample(image_id: int, key: str, sink, stop: threading.Event | None = None) -> tuple[dict, int]:
@@ -417,24 +459,32 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         else:
             _sample_in_threads(work, keys, workers, sample, record, tally, scales)
         if not tally.sees_outside:
-            raise UserError(f"{mesh_file}: no pixel of any image sees the outside of the mesh: "
-                            f"{_units_hint(mesh, poses, tally.drops)}")
+            raise UserError(
+                f"{mesh_file}: no pixel of any image sees the outside of the mesh: {_units_hint(mesh, poses, tally.drops)}"
+            )
         if writer.count == 0:
-            raise UserError("no samples left: every pixel that hits the mesh was dropped "
-                            f"({', '.join(f'{r} {c}' for r, c in tally.drops.items() if c)}); check the masks and "
-                            "--min-cos / --edge-px")
-        summary = {**tally.summary(writer.count, settings), "holdout": sorted(settings.holdout), "mesh": str(mesh_file),
-                   "mesh_quality": quality, "poses": str(pose_file), "images": tally.images,
-                   "settings": settings_dict(settings)}
+            raise UserError(
+                "no samples left: every pixel that hits the mesh was dropped "
+                f"({', '.join(f'{r} {c}' for r, c in tally.drops.items() if c)}); check the masks and "
+                "--min-cos / --edge-px"
+            )
+        summary = {
+            **tally.summary(writer.count, settings),
+            "holdout": sorted(settings.holdout),
+            "mesh": str(mesh_file),
+            "mesh_quality": quality,
+            "poses": str(pose_file),
+            "images": tally.images,
+            "settings": settings_dict(settings),
+        }
         writer.finish(keys, {**summary, "min_visibility": settings.min_visibility})
     summary["seconds"] = time.perf_counter() - started
     summary_path = write_json(work / "samples_summary.json", summary)
-    png = plot_coverage(work / "samples_coverage.png", tally.grid, tally.normal_hist, tally.reflect_hist,
-                        summary["coverage"])
+    png = plot_coverage(work / "samples_coverage.png", tally.grid, tally.normal_hist, tally.reflect_hist, summary["coverage"])
     return [out_npz, summary_path, png]
 
 
-RAY_BYTES = 600     # per ray of a chunk: origins, directions, hits, depth, masks, the kept samples (tracemalloc: 380-650)
+RAY_BYTES = 600  # per ray of a chunk: origins, directions, hits, depth, masks, the kept samples (tracemalloc: 380-650)
 
 
 def image_bytes(width: int, settings: Settings) -> int:
@@ -451,10 +501,13 @@ def sampling_workers(budget: Budget, poses: Poses, keys: list[str], settings: Se
     height = max(poses.camera_of(k).height for k in keys)
     each = image_bytes(width, settings)
     if each > budget.free():
-        raise budget.too_small(each, f"sampling {width}x{height} photos {settings.chunk_pixels} pixels at a time",
-                               "lower --chunk-pixels (or sample every 2nd pixel, --stride 2; or simplify the mesh)")
+        raise budget.too_small(
+            each,
+            f"sampling {width}x{height} photos {settings.chunk_pixels} pixels at a time",
+            "lower --chunk-pixels (or sample every 2nd pixel, --stride 2; or simplify the mesh)",
+        )
     cores = os.cpu_count() or 1
-    wanted = min(settings.workers or cores, cores)      # threads beyond the cores only contend
+    wanted = min(settings.workers or cores, cores)  # threads beyond the cores only contend
     return int(min(len(keys), budget.workers(wanted, each, processes=False)))
 
 
@@ -465,7 +518,7 @@ def _sample_in_threads(work: Path, keys: list[str], workers: int, sample, record
     run's to the bit."""
     folder = Path(tempfile.mkdtemp(prefix=".samples.", suffix=SPOOL_MARK, dir=work))
     try:
-        stop = threading.Event()      # set when the stage fails or is interrupted: the threads end at their next chunk
+        stop = threading.Event()  # set when the stage fails or is interrupted: the threads end at their next chunk
 
         def job(image_id: int, key: str):
             spool = _Spool(folder / f"{image_id}")
@@ -529,8 +582,12 @@ class _Spool:
         files = {f: open(self.folder / f"{f}.bin", "rb") for f in SAMPLE_FIELDS}
         try:
             for n in self.lengths:
-                record({f: np.fromfile(files[f], dtype=dtype, count=n * int(np.prod(tail, dtype=int))).reshape(n, *tail)
-                        for f, (dtype, tail) in SAMPLE_FIELDS.items()})
+                record(
+                    {
+                        f: np.fromfile(files[f], dtype=dtype, count=n * int(np.prod(tail, dtype=int))).reshape(n, *tail)
+                        for f, (dtype, tail) in SAMPLE_FIELDS.items()
+                    }
+                )
         finally:
             for f in files.values():
                 f.close()
@@ -544,8 +601,7 @@ def sampled_keys(poses: Poses, pose_file: Path, holdout) -> list[str]:
         raise UserError(f"--holdout names image(s) not in {pose_file}: {', '.join(unknown)}")
     keys = sorted(set(poses.images) - set(holdout))
     if not keys:
-        raise UserError(f"{pose_file}: no images left to sample{' after --holdout' if holdout else ''}; "
-                        "nothing to sample")
+        raise UserError(f"{pose_file}: no images left to sample{' after --holdout' if holdout else ''}; nothing to sample")
     return keys
 
 
@@ -554,8 +610,10 @@ def capture_exposure_scales(capture: Path, keys: list[str], pose_file: Path) -> 
     scaled by their EXIF exposures (exif_radiance_scales)."""
     for key in keys:
         if not (capture / "images" / key).exists():
-            raise UserError(f"{capture / 'images' / key}: image listed in {pose_file} is missing from the "
-                            "capture; restore it or remove it from poses.json")
+            raise UserError(
+                f"{capture / 'images' / key}: image listed in {pose_file} is missing from the "
+                "capture; restore it or remove it from poses.json"
+            )
         if Path(key).suffix.lower() not in LINEAR_SUFFIXES:
             raise UserError(f"{capture / 'images' / key}: not a linear image; run `sigrend linearize` first")
     return exif_radiance_scales(capture, keys)
@@ -598,27 +656,45 @@ class Tally:
         self.images[key] = {"pixels": considered, "kept": kept, "drops": drops, "exposure_scale": exposure_scale}
 
     def summary(self, count: int, settings: Settings) -> dict:
-        return {"count": count, "pixels": sum(v["pixels"] for v in self.images.values()), "drops": self.drops,
-                "coverage": {"grid": {"type": "equal-area z-phi", "n_bands": self.grid.n_bands,
-                                      "n_azimuth": self.grid.n_azimuth},
-                             "normals": coverage_stats(self.normal_hist),
-                             "reflections": coverage_stats(self.reflect_hist)},
-                "visibility": {"convention": "cosine-weighted unblocked fraction of the hemisphere about the normal",
-                               "rays_per_vertex": settings.visibility_rays, "mean": self.visibility_sum / count,
-                               "min_visibility": settings.min_visibility, "below_min_visibility": self.visibility_low}}
+        return {
+            "count": count,
+            "pixels": sum(v["pixels"] for v in self.images.values()),
+            "drops": self.drops,
+            "coverage": {
+                "grid": {"type": "equal-area z-phi", "n_bands": self.grid.n_bands, "n_azimuth": self.grid.n_azimuth},
+                "normals": coverage_stats(self.normal_hist),
+                "reflections": coverage_stats(self.reflect_hist),
+            },
+            "visibility": {
+                "convention": "cosine-weighted unblocked fraction of the hemisphere about the normal",
+                "rays_per_vertex": settings.visibility_rays,
+                "mean": self.visibility_sum / count,
+                "min_visibility": settings.min_visibility,
+                "below_min_visibility": self.visibility_low,
+            },
+        }
 
 
-def sample_view(sink, mesh, poses: Poses, key: str, image_id: int, image, visibility: np.ndarray, settings: Settings,
-                reservoir: "_Reservoir | None") -> tuple[dict, int]:
+def sample_view(
+    sink,
+    mesh,
+    poses: Poses,
+    key: str,
+    image_id: int,
+    image,
+    visibility: np.ndarray,
+    settings: Settings,
+    reservoir: "_Reservoir | None",
+) -> tuple[dict, int]:
     """One view's samples (sample_image) handed to ``sink`` chunk by chunk (through ``reservoir``
     when --max-samples caps them) -> (drops per reason, samples kept)."""
     pose, camera = poses.images[key], poses.camera_of(key)
     drops = dict.fromkeys(DROP_REASONS, 0)
     kept = 0
-    with progress(total=len(range(0, camera.height, settings.stride)), desc=f"samples {key}", unit="row",
-                  leave=False) as bar:
-        for arrays, chunk_drops in sample_image(mesh, camera, pose.R, pose.t, image, image_id, settings,
-                                                visibility, progress=bar):
+    with progress(total=len(range(0, camera.height, settings.stride)), desc=f"samples {key}", unit="row", leave=False) as bar:
+        for arrays, chunk_drops in sample_image(
+            mesh, camera, pose.R, pose.t, image, image_id, settings, visibility, progress=bar
+        ):
             for reason, count in chunk_drops.items():
                 drops[reason] += count
             if reservoir is not None:
@@ -631,8 +707,7 @@ def sample_view(sink, mesh, poses: Poses, key: str, image_id: int, image, visibi
     return drops, kept
 
 
-def plot_coverage(path: Path, grid: EqualAreaGrid, normal_hist: np.ndarray, reflect_hist: np.ndarray,
-                  coverage: dict) -> Path:
+def plot_coverage(path: Path, grid: EqualAreaGrid, normal_hist: np.ndarray, reflect_hist: np.ndarray, coverage: dict) -> Path:
     """PNG: equirect (θ down, φ across) histograms of sample normals and reflection directions."""
     import matplotlib
 
@@ -649,8 +724,10 @@ def plot_coverage(path: Path, grid: EqualAreaGrid, normal_hist: np.ndarray, refl
         ax.set_xlim(0, 360)
         ax.set_xlabel("azimuth φ (deg, from +X towards +Y)")
         ax.set_ylabel("polar angle θ (deg, from +Z)")
-        ax.set_title(f"{name}: {100 * coverage[name]['fraction']:.1f}% of the sphere "
-                     f"({coverage[name]['cells_hit']}/{coverage[name]['cells']} equal-area cells)")
+        ax.set_title(
+            f"{name}: {100 * coverage[name]['fraction']:.1f}% of the sphere "
+            f"({coverage[name]['cells_hit']}/{coverage[name]['cells']} equal-area cells)"
+        )
         fig.colorbar(mesh, ax=ax, label="log10 samples per cell")
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=100, format="png")

@@ -49,8 +49,7 @@ def sphere_views(rng: np.random.Generator, views: int, per_view: int, min_cos: f
     return np.concatenate(normals), np.concatenate(dirs), np.concatenate(ids)
 
 
-def integrate_radiance(env: np.ndarray, brdf: Brdf, normal: np.ndarray, view_dir: np.ndarray,
-                       chunk: int = 256) -> np.ndarray:
+def integrate_radiance(env: np.ndarray, brdf: Brdf, normal: np.ndarray, view_dir: np.ndarray, chunk: int = 256) -> np.ndarray:
     """B = sum over env pixels of L(w) f(w, v) max(0, n.w) Omega_pixel (midpoint rule), (N, 3)."""
     h = env.shape[0]
     dirs = equirect_directions(h).reshape(-1, 3)
@@ -59,21 +58,30 @@ def integrate_radiance(env: np.ndarray, brdf: Brdf, normal: np.ndarray, view_dir
     out = np.empty((len(normal), 3))
     p = len(dirs)
     for s in range(0, len(normal), chunk):
-        n = normal[s:s + chunk]
-        v = view_dir[s:s + chunk]
+        n = normal[s : s + chunk]
+        v = view_dir[s : s + chunk]
         m = len(n)
         t = cosine_weighted_brdf(brdf, np.repeat(n, p, axis=0), np.tile(dirs, (m, 1)), np.repeat(v, p, axis=0))
-        out[s:s + chunk] = np.einsum("mpc,pc->mc", t.reshape(m, p, 3), radiance)
+        out[s : s + chunk] = np.einsum("mpc,pc->mc", t.reshape(m, p, 3), radiance)
     return out
 
 
 def write_scene(work: Path, normal, view_dir, image_id, radiance, visibility=None) -> Path:
     """WORK/samples.npz in the samples schema (pipeline.io.samples) from arrays."""
     n = len(normal)
-    arrays = {"point": normal, "normal": normal, "view_dir": view_dir, "radiance": radiance,
-              "image_id": image_id, "pixel": np.zeros((n, 2)), "face": np.zeros(n), "bary": np.zeros((n, 3)),
-              "weight": np.ones(n), "visibility": np.ones(n) if visibility is None else visibility,
-              "image_keys": [f"{i:04d}.exr" for i in range(int(image_id.max()) + 1)]}
+    arrays = {
+        "point": normal,
+        "normal": normal,
+        "view_dir": view_dir,
+        "radiance": radiance,
+        "image_id": image_id,
+        "pixel": np.zeros((n, 2)),
+        "face": np.zeros(n),
+        "bary": np.zeros((n, 3)),
+        "weight": np.ones(n),
+        "visibility": np.ones(n) if visibility is None else visibility,
+        "image_keys": [f"{i:04d}.exr" for i in range(int(image_id.max()) + 1)],
+    }
     return write_samples(Path(work) / "samples.npz", arrays, {"source": "tests/fit_scenes.py"})
 
 

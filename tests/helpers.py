@@ -12,13 +12,21 @@ import numpy as np
 DATA = Path(__file__).parent / "data"
 CYCLES = DATA / "cycles"
 # the relight world of each tests/data/cycles scene: Blender's HDRI (tests/data/hdri) and its rotation about +Z
-RELIGHT_WORLDS = {"bunny_sunrise_diffuse": ("city", 123.046875),
-                  "teapot_city_glossy": ("sunrise", 144.140625),
-                  "sphere_night_glossy": ("city", 14.0625)}
+RELIGHT_WORLDS = {
+    "bunny_sunrise_diffuse": ("city", 123.046875),
+    "teapot_city_glossy": ("sunrise", 144.140625),
+    "sphere_night_glossy": ("city", 14.0625),
+}
 
 
-def assert_one_line_error(result: str | subprocess.CompletedProcess, *fragments: str, code: int | None = None,
-                          expected: int = 2, prefix: str = "sigrend", progress: bool = False) -> str:
+def assert_one_line_error(
+    result: str | subprocess.CompletedProcess,
+    *fragments: str,
+    code: int | None = None,
+    expected: int = 2,
+    prefix: str = "sigrend",
+    progress: bool = False,
+) -> str:
     """The house's contract for a user error: one line on stderr (``sigrend: error: ...`` or
     argparse's ``sigrend CMD: error: ...``), no traceback, every fragment in it; with ``code``,
     that exit code is ``expected`` (2). ``result`` is stderr, or a finished subprocess (its stderr

@@ -17,8 +17,7 @@ import pytest
 
 from pipeline.batch import run_one
 
-pytestmark = [pytest.mark.slow,
-              pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning")]
+pytestmark = [pytest.mark.slow, pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning")]
 
 
 def _children(pid: int) -> list[int]:
@@ -58,8 +57,7 @@ def test_batch_isolates_a_broken_capture_survives_a_killed_worker_and_resumes(ti
     (broken / "images").mkdir(parents=True)
     (broken / "mesh.ply").write_bytes((captures[0] / "mesh.ply").read_bytes())
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "pipeline.cli", "batch", *map(str, captures), str(broken), "-o", str(out),
-           "--workers", "2"]
+    cmd = [sys.executable, "-m", "pipeline.cli", "batch", *map(str, captures), str(broken), "-o", str(out), "--workers", "2"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     # kill one worker (SIGKILL, as the OOM killer would) once a task is past its samples stage
     killed, deadline = None, time.time() + 300
@@ -73,7 +71,7 @@ def test_batch_isolates_a_broken_capture_survives_a_killed_worker_and_resumes(ti
     assert killed is not None, "no worker was running a task to kill"
     while proc.poll() is None and killed in _worker_pids(proc.pid):
         time.sleep(0.1)
-    replaced = False   # the nanny starts a new worker in its place while the batch goes on
+    replaced = False  # the nanny starts a new worker in its place while the batch goes on
     while proc.poll() is None and not replaced:
         replaced = len([p for p in _worker_pids(proc.pid) if p != killed]) == 2
         time.sleep(0.1)

@@ -45,9 +45,9 @@ def _mtime(path: Path) -> int:
 class Run:
     capture: Path
     work: Path
-    early: dict[str, int]      # mtimes of linearize/poses/samples outputs after the interrupted run
-    resumed: dict[str, int]    # the same after the resumed run
-    out: str                   # stdout of the resumed run
+    early: dict[str, int]  # mtimes of linearize/poses/samples outputs after the interrupted run
+    resumed: dict[str, int]  # the same after the resumed run
+    out: str  # stdout of the resumed run
 
 
 @pytest.fixture(scope="module")
@@ -81,8 +81,7 @@ def test_photos_to_relit_held_out_views_within_5_percent(interrupted_and_resumed
     # the interrupted run resumed without redoing linearize, poses or samples
     assert run.resumed == run.early
     table = {line.split()[0]: line.split()[1] for line in run.out.splitlines()[1:6]}
-    assert table == {"linearize": "skipped", "poses": "skipped", "samples": "skipped", "fit": "ran",
-                     "relight-check": "ran"}
+    assert table == {"linearize": "skipped", "poses": "skipped", "samples": "skipped", "fit": "ran", "relight-check": "ran"}
     check = relight_check(run.work)
     assert check is not None and check["heldout"], "the run must hold views out of the fit"
     assert len(check["views"]) >= 2
@@ -124,8 +123,9 @@ def test_one_photo_under_a_known_camera(tiny_capture, tmp_path, capsys):
     material choice was not validated (nothing to hold out) on stderr, in report.json and the report."""
     import json
 
-    source = tiny_capture(brdf="principled:base_color=0.5,0.4,0.3,roughness=0.4", env="sun+sky:elev=40",
-                          size=(128, 128), fmt="jpeg")
+    source = tiny_capture(
+        brdf="principled:base_color=0.5,0.4,0.3,roughness=0.4", env="sun+sky:elev=40", size=(128, 128), fmt="jpeg"
+    )
     capture = tmp_path / "one"
     (capture / "images").mkdir(parents=True)
     shutil.copyfile(source / "images" / "0000.jpg", capture / "images" / "0000.jpg")
@@ -137,7 +137,7 @@ def test_one_photo_under_a_known_camera(tiny_capture, tmp_path, capsys):
     work = tmp_path / "work"
     assert cli.main(["run", str(capture), "-w", str(work)]) == 0
     err = capsys.readouterr().err
-    assert "all in one fold" in err and "nothing held out validates the choice" in err   # outputs.one_view_line
+    assert "all in one fold" in err and "nothing held out validates the choice" in err  # outputs.one_view_line
     assert "no held-out views: not validated" in err or "fit: lambert" in err
     report = json.loads((work / "fit" / "report.json").read_text())
     assert report["model_selection"]["by"] == "training residual"

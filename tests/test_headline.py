@@ -26,11 +26,10 @@ from pipeline.io.run_summary import relight_check, summary_lines
 
 # linear EXR renders carry no EXIF: linearize warns and assumes equal exposure
 # slow: two captures rendered, run and relit (~15 s): end to end, out of the inner loop (README)
-pytestmark = [pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning"),
-              pytest.mark.slow]
+pytestmark = [pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning"), pytest.mark.slow]
 
 SCENE = dict(mesh="sphere", brdf="lambert:albedo=0.6", env="area", views=6, size=(96, 96))
-NOISE = "full_well=400,read=0.002"     # about 7 % per pixel at the sphere's mean level
+NOISE = "full_well=400,read=0.002"  # about 7 % per pixel at the sphere's mean level
 
 
 def _checked(capture: Path, work: Path) -> dict:
@@ -40,8 +39,24 @@ def _checked(capture: Path, work: Path) -> dict:
         assert cli.main(["run", str(capture), "-w", str(work), "--to", "poses", "--no-report"]) == 0
         (work / "fit").mkdir()
         shutil.copy(capture / "gt" / "brdf.json", work / "fit" / "brdf.json")
-        assert cli.main(["relight", str(capture), "-w", str(work), "--env", str(capture / "gt" / "lighting.exr"),
-                         "--views", "capture", "--compare", "-o", str(work / "relight" / "check")]) == 0
+        assert (
+            cli.main(
+                [
+                    "relight",
+                    str(capture),
+                    "-w",
+                    str(work),
+                    "--env",
+                    str(capture / "gt" / "lighting.exr"),
+                    "--views",
+                    "capture",
+                    "--compare",
+                    "-o",
+                    str(work / "relight" / "check"),
+                ]
+            )
+            == 0
+        )
     return relight_check(work)
 
 
@@ -49,8 +64,14 @@ def _checked(capture: Path, work: Path) -> dict:
 def clean_and_noisy(tiny_capture, tmp_path_factory):
     base = tmp_path_factory.mktemp("headline")
     clean_capture, noisy_capture = tiny_capture(**SCENE, noise="none"), tiny_capture(**SCENE, noise=NOISE)
-    return (clean_capture, base / "clean", _checked(clean_capture, base / "clean"),
-            noisy_capture, base / "noisy", _checked(noisy_capture, base / "noisy"))
+    return (
+        clean_capture,
+        base / "clean",
+        _checked(clean_capture, base / "clean"),
+        noisy_capture,
+        base / "noisy",
+        _checked(noisy_capture, base / "noisy"),
+    )
 
 
 def _added_noise(clean_work: Path, noisy_work: Path, views: list[str]) -> tuple[float, float]:
@@ -80,7 +101,7 @@ def test_the_block_figure_barely_moves_with_photo_noise_while_the_per_pixel_one_
     _, clean_work, clean, _, noisy_work, noisy = clean_and_noisy
     assert set(clean["views"]) == set(noisy["views"]) and len(noisy["views"]) == SCENE["views"]
     true_floor, true_block_floor = _added_noise(clean_work, noisy_work, list(noisy["views"]))
-    assert 0.03 < true_floor < 0.10, true_floor          # the scene is as noisy as meant
+    assert 0.03 < true_floor < 0.10, true_floor  # the scene is as noisy as meant
     # clean photos: nothing but the renderers' own difference, and no noise to speak of
     assert clean["relative_error"] < 0.02 and clean["noise_floor"] < 0.1 * true_floor, clean
     # noisy photos: the per-pixel error is the clean one plus the noise, in quadrature
@@ -103,5 +124,7 @@ def test_the_headline_line_and_relight_json_carry_the_three_figures(clean_and_no
     doc = json.loads((noisy_work / "relight" / "check" / "relight.json").read_text())["compare"]
     assert doc["block"] == 4 and doc["blocks"] > 0 and doc["pixels"] > 16 * doc["blocks"] * 0.5
     line = next(line for line in summary_lines(noisy_work) if line.startswith("relight error"))
-    assert (f": {100 * doc['relative_error']:.2f}% per pixel (the photos' noise alone: "
-            f"{100 * doc['noise_floor']:.2f}%), {100 * doc['block_relative_error']:.2f}% on 4x4 block means") in line
+    assert (
+        f": {100 * doc['relative_error']:.2f}% per pixel (the photos' noise alone: "
+        f"{100 * doc['noise_floor']:.2f}%), {100 * doc['block_relative_error']:.2f}% on 4x4 block means"
+    ) in line

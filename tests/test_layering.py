@@ -24,15 +24,25 @@ ROOT = Path(__file__).parents[1]
 PACKAGES = ("pipeline", "stages", "calib")
 CORE_LIBRARIES = {"numpy", "scipy"}
 
-KNOWN_BREAKS: set[tuple[str, str]] = set()   # none left: the report's previews use core.prefilter, not the relight stage
+KNOWN_BREAKS: set[tuple[str, str]] = set()  # none left: the report's previews use core.prefilter, not the relight stage
 
 
 def layer(module: str) -> float | None:
     """The module's rank in the arrows above (0 = core), None for a module outside the project."""
     if module == "pipeline.core" or module.startswith("pipeline.core."):
         return 0
-    ranks = {"pipeline.errors": 0.5, "pipeline.settings": 0.5, "stages": 2, "calib": 2, "pipeline.synth": 2,
-             "pipeline.report": 3, "pipeline.runner": 4, "pipeline.batch": 5, "pipeline.commands": 5, "pipeline.cli": 6}
+    ranks = {
+        "pipeline.errors": 0.5,
+        "pipeline.settings": 0.5,
+        "stages": 2,
+        "calib": 2,
+        "pipeline.synth": 2,
+        "pipeline.report": 3,
+        "pipeline.runner": 4,
+        "pipeline.batch": 5,
+        "pipeline.commands": 5,
+        "pipeline.cli": 6,
+    }
     for prefix, rank in ranks.items():
         if module == prefix or module.startswith(prefix + "."):
             return rank
@@ -63,7 +73,7 @@ def imports(path: Path, root: Path = ROOT) -> set[str]:
         if isinstance(node, ast.Import):
             found.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
-            base = package[:len(package) - node.level + 1] if node.level else []
+            base = package[: len(package) - node.level + 1] if node.level else []
             module = ".".join(base + ([node.module] if node.module else []))
             found.add(module)
             found.update(f"{module}.{a.name}" for a in node.names if f"{module}.{a.name}" in MODULES)
@@ -85,11 +95,11 @@ def edges() -> set[tuple[str, str]]:
                 continue
             rank = layer(imported)
             if low == 0 and rank is None and imported.split(".")[0] not in CORE_LIBRARIES | set(sys.stdlib_module_names):
-                breaks.add((importer, imported))          # core imports a library
+                breaks.add((importer, imported))  # core imports a library
             elif rank is not None and (rank > low or (rank == low and low in (2, 5) and unit(imported) != unit(importer))):
-                breaks.add((importer, imported))          # up, or sideways
+                breaks.add((importer, imported))  # up, or sideways
             elif importer == "pipeline.report" and imported.split(".")[0] == "stages":
-                breaks.add((importer, imported))          # the report reads files, not stages
+                breaks.add((importer, imported))  # the report reads files, not stages
     return breaks
 
 
@@ -157,8 +167,5 @@ def test_the_checker_sees_imports_inside_functions_and_relative_ones(tmp_path):
     """The checker itself: an import inside a function and a relative one are found."""
     probe = tmp_path / "pipeline" / "core" / "probe.py"
     probe.parent.mkdir(parents=True)
-    probe.write_text("from . import sh\n"
-                     "def f():\n"
-                     "    from pipeline.io.images import read_image\n"
-                     "    import trimesh\n")
+    probe.write_text("from . import sh\ndef f():\n    from pipeline.io.images import read_image\n    import trimesh\n")
     assert imports(probe, tmp_path) == {"pipeline.core", "pipeline.core.sh", "pipeline.io.images", "trimesh"}

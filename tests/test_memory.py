@@ -22,11 +22,13 @@ from pipeline.io.images import write_image
 from pipeline.io.poses import ImagePose, Poses, write_poses
 from pipeline.memory import Budget, band_rows, machine_memory, parse_size
 
-WIDTH, HEIGHT = 6000, 4000          # 24 MP
+WIDTH, HEIGHT = 6000, 4000  # 24 MP
 LIMIT = "600MB"
 # the parent: runs the command and prints the largest RSS of its children (the stage, serial) in bytes
-PEAK = ("import resource, subprocess, sys; code = subprocess.run(sys.argv[1:]).returncode; "
-        "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024, code)")
+PEAK = (
+    "import resource, subprocess, sys; code = subprocess.run(sys.argv[1:]).returncode; "
+    "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024, code)"
+)
 
 
 def test_sizes_are_parsed_as_people_type_them():
@@ -58,17 +60,21 @@ def large_capture(tmp_path_factory):
         R, t = look_at(centre, (0.0, 0.0, 0.0))
         poses.images[f"{i}.jpg"] = ImagePose("cam0", R, t)
         value = np.where(r2 < 1, 0.8 * np.sqrt(np.clip(1 - r2, 0, 1)), 0.1 + 0.2 * x / WIDTH).astype(np.float32)
-        write_image(root / "images" / f"{i}.jpg", np.repeat(value[:, :, None], 3, axis=2) * [1.0, 0.8, 0.6],
-                    dtype="uint8", attributes={"ExposureTime": 0.01, "FNumber": 4.0, "Exif:PhotographicSensitivity": 100,
-                                               "Compression": "jpeg:90"})
+        write_image(
+            root / "images" / f"{i}.jpg",
+            np.repeat(value[:, :, None], 3, axis=2) * [1.0, 0.8, 0.6],
+            dtype="uint8",
+            attributes={"ExposureTime": 0.01, "FNumber": 4.0, "Exif:PhotographicSensitivity": 100, "Compression": "jpeg:90"},
+        )
     write_poses(root / "poses.json", poses)
     return root
 
 
 def peak_rss(*args: str) -> tuple[int, int]:
     """(peak RSS in bytes, exit code) of `sigrend ARGS` run by a fresh parent process."""
-    out = subprocess.run([sys.executable, "-c", PEAK, sys.executable, "-m", "pipeline.cli", *args],
-                         capture_output=True, text=True, check=True).stdout.split()
+    out = subprocess.run(
+        [sys.executable, "-c", PEAK, sys.executable, "-m", "pipeline.cli", *args], capture_output=True, text=True, check=True
+    ).stdout.split()
     return int(out[-2]), int(out[-1])
 
 
@@ -87,7 +93,7 @@ def test_large_photos_are_linearized_and_sampled_within_the_budget(large_capture
     of rows, linearize (serial, in the stage's own process) and samples (its threads as the budget
     allows) each peak below it, and the outputs cover every pixel."""
     limit = parse_size(LIMIT)
-    assert 2 * WIDTH * HEIGHT * 3 * 4 > 0.9 * limit      # the capture is made to exceed the budget whole
+    assert 2 * WIDTH * HEIGHT * 3 * 4 > 0.9 * limit  # the capture is made to exceed the budget whole
     work, peak = linearized
     assert peak < limit, peak
     manifest = json.loads((work / "linear" / "manifest.json").read_text())
@@ -107,14 +113,30 @@ def test_a_budget_that_cannot_be_met_is_one_line(large_capture, linearized, tmp_
     shutil.copytree(linearized[0], tmp_path / "work")
     work = tmp_path / "work"
     sigrend = [sys.executable, "-m", "pipeline.cli"]
-    subprocess.run([*sigrend, "samples", str(large_capture), "-w", str(work), "--stride", "8"], check=True,
-                   capture_output=True)
-    digests = {p: hashlib.md5(p.read_bytes()).hexdigest() for p in [work / "samples.npz", *work.glob("linear/*")]
-               if p.is_file()}
-    result = subprocess.run([*sigrend, "samples", str(large_capture), "-w", str(work), "--stride", "8",
-                             "--memory-limit", "2GB", "--chunk-pixels", "24000000"], capture_output=True, text=True)
+    subprocess.run([*sigrend, "samples", str(large_capture), "-w", str(work), "--stride", "8"], check=True, capture_output=True)
+    digests = {p: hashlib.md5(p.read_bytes()).hexdigest() for p in [work / "samples.npz", *work.glob("linear/*")] if p.is_file()}
+    result = subprocess.run(
+        [
+            *sigrend,
+            "samples",
+            str(large_capture),
+            "-w",
+            str(work),
+            "--stride",
+            "8",
+            "--memory-limit",
+            "2GB",
+            "--chunk-pixels",
+            "24000000",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert_one_line_error(result, "--memory-limit 2GB", "lower --chunk-pixels", progress=True)
-    result = subprocess.run([*sigrend, "linearize", str(large_capture), "-w", str(work), "--force",
-                             "--memory-limit", "50MB"], capture_output=True, text=True)
+    result = subprocess.run(
+        [*sigrend, "linearize", str(large_capture), "-w", str(work), "--force", "--memory-limit", "50MB"],
+        capture_output=True,
+        text=True,
+    )
     assert_one_line_error(result, "--memory-limit 50MB", "0.jpg", "24 MP", "use smaller photos", progress=True)
     assert {p: hashlib.md5(p.read_bytes()).hexdigest() for p in digests} == digests

@@ -19,9 +19,12 @@ SIGREND = [sys.executable, "-m", "pipeline.cli"]
 
 def test_every_progress_bar_is_the_one_helper():
     """No module draws its own tqdm: the rule (terminal only) lives in one place."""
-    own = [str(path.relative_to(ROOT)) for package in ("pipeline", "stages", "calib")
-           for path in (ROOT / package).rglob("*.py")
-           if path != ROOT / "pipeline" / "logs.py" and ("tqdm(" in path.read_text() or "import tqdm" in path.read_text())]
+    own = [
+        str(path.relative_to(ROOT))
+        for package in ("pipeline", "stages", "calib")
+        for path in (ROOT / package).rglob("*.py")
+        if path != ROOT / "pipeline" / "logs.py" and ("tqdm(" in path.read_text() or "import tqdm" in path.read_text())
+    ]
     assert not own, own
 
 
@@ -44,7 +47,7 @@ def test_the_bar_is_drawn_on_a_terminal_only(monkeypatch):
     assert sys.stderr.getvalue() == ""
 
 
-@pytest.mark.slow     # four sigrend processes over a synthetic capture: ~30-45 s
+@pytest.mark.slow  # four sigrend processes over a synthetic capture: ~30-45 s
 def test_piped_output_has_no_progress_frames(tiny_capture, tmp_path):
     """The stages with bars (linearize, samples, relight, synth, the run's own) with stdout and
     stderr piped, as into a log file: no '\\r' anywhere, and the stage table on lines of its own."""
@@ -60,7 +63,7 @@ def test_piped_output_has_no_progress_frames(tiny_capture, tmp_path):
 
     lines = sigrend("-v", "run", str(capture), "-w", str(work), "--to", "samples").splitlines()
     header = next(i for i, line in enumerate(lines) if line.startswith("stage ") and "status" in line)
-    assert [line.split()[0] for line in lines[header + 1:header + 5]] == ["linearize", "poses", "samples", "total"]
+    assert [line.split()[0] for line in lines[header + 1 : header + 5]] == ["linearize", "poses", "samples", "total"]
     sigrend("fit", str(capture), "-w", str(work), "--forward", "convex", "--brdf", "lambert", "--order", "2")
     sigrend("relight", str(capture), "-w", str(work), "--size", "48x48", "--bounces", "0", "--supersample", "1")
     sigrend("synth", "-o", str(tmp_path / "synth"), "--views", "2", "--size", "32x32")

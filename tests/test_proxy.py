@@ -13,7 +13,7 @@ from pipeline.raycast import ray_mesh
 
 MESH = Path(__file__).resolve().parents[1] / "sample_data" / "capture" / "mesh.ply"
 SKY = np.zeros((25, 3))
-SKY[0], SKY[2], SKY[3] = 1.0, 0.8, 0.3        # SH lighting brighter above, a little from +x
+SKY[0], SKY[2], SKY[3] = 1.0, 0.8, 0.3  # SH lighting brighter above, a little from +x
 
 
 def _points(mesh, n: int, seed: int = 1):
@@ -62,6 +62,6 @@ def test_a_proxy_gives_the_full_meshs_interreflection_within_its_monte_carlo_noi
     p_direct, p_indirect = _radiance(proxied, *pts)
     assert np.array_equal(p_direct, direct)
     scale = np.sqrt(np.mean((direct + indirect) ** 2))
-    assert 0.03 < indirect.mean() / direct.mean() < 0.15           # there is interreflection to get right
+    assert 0.03 < indirect.mean() / direct.mean() < 0.15  # there is interreflection to get right
     assert np.sqrt(np.mean((p_indirect - indirect) ** 2)) / scale < 0.04
     assert abs(p_indirect.mean() / indirect.mean() - 1.0) < 0.10

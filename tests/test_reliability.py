@@ -54,14 +54,18 @@ def kill_at(target: str, count: int, *argv: str, sig: str = "SIGKILL") -> subpro
     """Run ``sigrend ARGV`` in a subprocess that sends itself ``sig`` after its ``count``-th write
     of a file named ``target`` (returncode -9 when SIGKILL happened)."""
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    return subprocess.run([sys.executable, "-c", KILLER, target, str(count), sig, *map(str, argv)], env=env,
-                          capture_output=True, text=True)
+    return subprocess.run(
+        [sys.executable, "-c", KILLER, target, str(count), sig, *map(str, argv)], env=env, capture_output=True, text=True
+    )
 
 
 def digest(folder: Path) -> dict[str, str]:
     """sha256 of every file in ``folder`` but the lock (it names its last holder's pid)."""
-    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(folder.rglob("*")) if p.is_file() and p.name != LOCK_NAME}
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != LOCK_NAME
+    }
 
 
 @pytest.fixture
@@ -90,7 +94,7 @@ def test_a_killed_rerun_with_other_settings_leaves_the_outputs_byte_identical(li
     assert "fresh, skipped" in capsys.readouterr().out
     assert cli.main(["linearize", str(capture), "-w", str(work), "--saturation", "0.6"]) == 0
     assert "fresh, skipped" not in capsys.readouterr().out
-    assert not [p for p in work.rglob("*") if ".tmp" in p.name]      # stale temporaries removed at the start
+    assert not [p for p in work.rglob("*") if ".tmp" in p.name]  # stale temporaries removed at the start
     assert digest(work) != before
 
 
@@ -99,8 +103,10 @@ def test_worker_processes_commit_with_the_stage(linearized):
     manifest (the parent's last write, when every worker has finished), nothing has changed."""
     capture, work = linearized
     before = digest(work)
-    assert kill_at("manifest.json", 1, "linearize", capture, "-w", work, "--saturation", "0.6",
-                   "--workers", "2").returncode == -signal.SIGKILL
+    assert (
+        kill_at("manifest.json", 1, "linearize", capture, "-w", work, "--saturation", "0.6", "--workers", "2").returncode
+        == -signal.SIGKILL
+    )
     assert {k: v for k, v in digest(work).items() if ".tmp" not in k} == before
 
 
@@ -120,7 +126,7 @@ def _process_states() -> dict[int, tuple[str, int]]:
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
             fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:        # ended while we read
+        except OSError:  # ended while we read
             continue
         out[int(stat.parent.name)] = (fields[0], int(fields[1]))
     return out
@@ -156,11 +162,24 @@ def test_worker_processes_die_with_a_killed_stage(tmp_path):
     for i in range(60):
         cv2.imwrite(str(images / f"{i:03d}.jpg"), np.roll(photo, i, axis=1))
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "linearize", str(tmp_path / "capture"), "-w",
-                             str(tmp_path / "work"), "--workers", "2"], env=env, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "pipeline.cli",
+            "linearize",
+            str(tmp_path / "capture"),
+            "-w",
+            str(tmp_path / "work"),
+            "--workers",
+            "2",
+        ],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     started, deadline = set(), time.monotonic() + 60
-    while len(started) < 3 and proc.poll() is None and time.monotonic() < deadline:   # forkserver + 2 workers
+    while len(started) < 3 and proc.poll() is None and time.monotonic() < deadline:  # forkserver + 2 workers
         started = _descendants(proc.pid)
         time.sleep(0.05)
     assert len(started) >= 3 and proc.poll() is None, "the stage ended before its workers could be seen"
@@ -177,8 +196,7 @@ def test_sigterm_is_handled_as_an_interrupt(linearized):
     """SIGTERM mid-stage: one line, exit 128 + 15, the transaction rolled back (no temporaries)."""
     capture, work = linearized
     before = digest(work)
-    result = kill_at("0002.png", 1, "linearize", capture, "-w", work, "--saturation", "0.6", "--workers", "1",
-                     sig="SIGTERM")
+    result = kill_at("0002.png", 1, "linearize", capture, "-w", work, "--saturation", "0.6", "--workers", "1", sig="SIGTERM")
     assert result.returncode == 128 + signal.SIGTERM, result.stderr
     lines = [line for line in result.stderr.strip().splitlines() if line.startswith("sigrend:")]
     assert lines == ["sigrend: terminated; finished outputs are kept, run again to resume"], result.stderr
@@ -193,8 +211,13 @@ def test_a_closed_stdout_ends_quietly(linearized):
     read, write = os.pipe()
     os.close(read)
     try:
-        result = subprocess.run([sys.executable, "-m", "pipeline.cli", "linearize", str(capture), "-w", str(work)],
-                                stdout=write, stderr=subprocess.PIPE, text=True, env=env)
+        result = subprocess.run(
+            [sys.executable, "-m", "pipeline.cli", "linearize", str(capture), "-w", str(work)],
+            stdout=write,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
     finally:
         os.close(write)
     assert result.returncode == 0 and result.stderr == "", result.stderr
@@ -202,20 +225,25 @@ def test_a_closed_stdout_ends_quietly(linearized):
 
 def _user_error(path):
     from pipeline.errors import UserError
+
     return UserError("injected failure after two images")
 
 
 def _disk_full(path):
     import errno
+
     return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
 
 
 # a stage failing half-way: a user error, or the machine's (a full disk: one line naming the file, no
 # traceback) -> a fragment of the one-line message; either way nothing of the stage is committed
-@pytest.mark.parametrize("fault, fragment", [
-    (_user_error, "injected failure after two images"),
-    (_disk_full, "No space left on device; free some space or give -w a folder on another disk"),
-])
+@pytest.mark.parametrize(
+    "fault, fragment",
+    [
+        (_user_error, "injected failure after two images"),
+        (_disk_full, "No space left on device; free some space or give -w a folder on another disk"),
+    ],
+)
 def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch, capsys, fault, fragment):
     """A stage failing at its third image (a user error, or a full disk) is one line with the expected message,
     and the two images it wrote before are not committed: the work folder is byte-identical."""
@@ -223,7 +251,7 @@ def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch, ca
 
     capture, work = linearized
     before = digest(work)
-    real = linearize.ImageRowWriter      # each photo's mask and EXR are written through one of these
+    real = linearize.ImageRowWriter  # each photo's mask and EXR are written through one of these
     calls = []
 
     def failing(path, *args, **kwargs):
@@ -237,7 +265,7 @@ def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch, ca
     assert cli.main(["linearize", str(capture), "-w", str(work), "--saturation", "0.6", "--workers", "1"]) == 2
     assert len(calls) == 3
     assert_one_line_error(capsys.readouterr().err, fragment)
-    assert digest(work) == before           # the two images written before the failure were not committed
+    assert digest(work) == before  # the two images written before the failure were not committed
 
 
 def test_freshness_is_by_content_not_file_times(tiny_capture, tmp_path, capsys):
@@ -264,9 +292,9 @@ def test_freshness_is_by_content_not_file_times(tiny_capture, tmp_path, capsys):
     assert cli.main(["linearize", str(capture), "-w", str(work)]) == 0
     assert "fresh, skipped" not in capsys.readouterr().out
     after = digest(work / "linear")
-    assert after["0000.exr"] == before["0000.exr"]        # the others were not redone
+    assert after["0000.exr"] == before["0000.exr"]  # the others were not redone
     assert after["0001.exr"] != before["0001.exr"] and after["0002.exr"] != before["0002.exr"]
-    assert np.array_equal(read_image(work / "linear" / "0001.exr"), pixels_2)   # the swapped content
+    assert np.array_equal(read_image(work / "linear" / "0001.exr"), pixels_2)  # the swapped content
     # a removed photo changes the stage's input set
     (capture / "images" / "0005.exr").unlink()
     assert cli.main(["linearize", str(capture), "-w", str(work)]) == 0
@@ -282,11 +310,15 @@ BAD_CAPTURE_TOML = {
     "misspelt key": ("[white_balance]\nmultiplier = [2, 1, 1.5]\n", "[white_balance] multiplier (did you mean 'multipliers'?)"),
     "top-level value": ('white_balance = "daylight"\n', "white_balance = ... must be a [white_balance] table"),
     "section glued": ("[whitebalance]\nmultipliers = [2, 1, 1.5]\n", "(did you mean 'white_balance'?)"),
-    "exposure of no file": ('[exposure]\n"0001.ex" = {iso = 200}\n"IMG_9.jpg" = {iso = 200}\n',
-                            "[exposure] names no image of the capture: '0001.ex' (did you mean '0001.exr'?), 'IMG_9.jpg'"),
-    "board transform as a word": ('[board]\ndictionary = "DICT_5X5_100"\nsquares = [8, 6]\nsquare_length = 0.07\n'
-                                  'marker_length = 0.0525\nboard_to_object = "identity"\n',
-                                  "board_to_object must be a finite 4x4 matrix of numbers"),
+    "exposure of no file": (
+        '[exposure]\n"0001.ex" = {iso = 200}\n"IMG_9.jpg" = {iso = 200}\n',
+        "[exposure] names no image of the capture: '0001.ex' (did you mean '0001.exr'?), 'IMG_9.jpg'",
+    ),
+    "board transform as a word": (
+        '[board]\ndictionary = "DICT_5X5_100"\nsquares = [8, 6]\nsquare_length = 0.07\n'
+        'marker_length = 0.0525\nboard_to_object = "identity"\n',
+        "board_to_object must be a finite 4x4 matrix of numbers",
+    ),
 }
 
 
@@ -322,7 +354,7 @@ def test_a_truncated_jpeg_is_an_error_not_grey_pixels(tmp_path):
     image = (np.random.default_rng(0).random((128, 128, 3)) * 255).astype(np.uint8)
     cv2.imwrite(str(tmp_path / "full.jpg"), image)
     data = (tmp_path / "full.jpg").read_bytes()
-    (tmp_path / "cut.jpg").write_bytes(data[:len(data) // 2])
+    (tmp_path / "cut.jpg").write_bytes(data[: len(data) // 2])
     assert read_image(tmp_path / "full.jpg").shape == (128, 128, 3)
     with pytest.raises(UserError, match="cut.jpg: the decoder reported .*Premature end of JPEG file"):
         read_image(tmp_path / "cut.jpg")
@@ -338,10 +370,13 @@ def _with_mesh(tiny_capture, tmp_path, edit) -> Path:
     return capture
 
 
-@pytest.mark.parametrize("edit, fragment", [
-    (lambda f: np.concatenate([f[:40, ::-1], f[40:]]), "edges join faces wound in opposite directions"),
-    (lambda f: f[:, ::-1], "the mesh is inside out"),
-])
+@pytest.mark.parametrize(
+    "edit, fragment",
+    [
+        (lambda f: np.concatenate([f[:40, ::-1], f[40:]]), "edges join faces wound in opposite directions"),
+        (lambda f: f[:, ::-1], "the mesh is inside out"),
+    ],
+)
 def test_a_mesh_with_flipped_faces_is_an_error_naming_the_fix(tiny_capture, tmp_path, capsys, edit, fragment):
     """A mesh with flipped faces or inside out is one line naming the fault and Blender's fix (Recalculate
     Outside), and no samples are written."""
@@ -367,9 +402,18 @@ def test_a_second_run_on_a_busy_work_folder_says_so(linearized, capsys):
     temporaries: the second one is refused while the first holds WORK/.sigrend.lock (flock: a
     killed holder releases it, so it is never stale)."""
     capture, work = linearized
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from pipeline.workdir import work_lock\n"
-                               "with work_lock(sys.argv[1]):\n    print('held', flush=True); time.sleep(60)", str(work)],
-                              stdout=subprocess.PIPE, text=True, cwd=ROOT)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time; from pipeline.workdir import work_lock\n"
+            "with work_lock(sys.argv[1]):\n    print('held', flush=True); time.sleep(60)",
+            str(work),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
     try:
         assert holder.stdout.readline().strip() == "held"
         capsys.readouterr()
@@ -379,7 +423,7 @@ def test_a_second_run_on_a_busy_work_folder_says_so(linearized, capsys):
         holder.kill()
         holder.wait()
         holder.stdout.close()
-    assert cli.main(["linearize", str(capture), "-w", str(work), "--force"]) == 0   # released with its holder
+    assert cli.main(["linearize", str(capture), "-w", str(work), "--force"]) == 0  # released with its holder
 
 
 def _poses_cameras_as_list(doc):
@@ -391,10 +435,13 @@ def _poses_camera_as_list(doc):
     doc["images"][first]["camera"] = [doc["images"][first]["camera"]]
 
 
-@pytest.mark.parametrize("edit, fragment", [
-    (_poses_cameras_as_list, "'cameras' must be an object mapping camera name"),
-    (_poses_camera_as_list, "names unknown camera ['cam0']"),
-])
+@pytest.mark.parametrize(
+    "edit, fragment",
+    [
+        (_poses_cameras_as_list, "'cameras' must be an object mapping camera name"),
+        (_poses_camera_as_list, "names unknown camera ['cam0']"),
+    ],
+)
 def test_malformed_poses_json_is_one_line(tiny_capture, tmp_path, capsys, edit, fragment):
     """Each malformed poses.json value is one line naming it."""
     capture = shutil.copytree(tiny_capture(views=6, size=(48, 48)), tmp_path / "capture")
@@ -406,18 +453,21 @@ def test_malformed_poses_json_is_one_line(tiny_capture, tmp_path, capsys, edit, 
     assert_one_line_error(capsys.readouterr().err, fragment)
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["linearize", "{capture}", "-w", "{file}"], "this is a file, not a folder; give -w a folder path"),
-    (["run", "{capture}", "-w", "{file}/work", "--no-report"], "cannot create this folder (Not a directory)"),
-    (["relight", "{capture}", "-w", "{work}", "-o", "{file}"], "give -o a folder path"),
-])
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["linearize", "{capture}", "-w", "{file}"], "this is a file, not a folder; give -w a folder path"),
+        (["run", "{capture}", "-w", "{file}/work", "--no-report"], "cannot create this folder (Not a directory)"),
+        (["relight", "{capture}", "-w", "{work}", "-o", "{file}"], "give -o a folder path"),
+    ],
+)
 def test_an_output_path_that_is_a_file_is_one_line(linearized, tmp_path, capsys, args, fragment):
     """A -w or -o that is an existing file (or under one) is one line saying to give a folder, and the file is kept."""
     from pipeline.io.brdf import write_brdf
     from pipeline.io.lighting import write_lighting_sh
 
     capture, work = linearized
-    write_brdf(work / "fit" / "brdf.json", Brdf("lambert", albedo=[0.5, 0.5, 0.5]))   # what relight reads
+    write_brdf(work / "fit" / "brdf.json", Brdf("lambert", albedo=[0.5, 0.5, 0.5]))  # what relight reads
     write_lighting_sh(work / "fit" / "lighting_sh.json", np.ones((1, 3)))
     (tmp_path / "afile").write_text("not a folder")
     argv = [a.format(capture=capture, work=work, file=tmp_path / "afile") for a in args]
@@ -437,6 +487,7 @@ def _set(*path_and_value):
         for key in path[:-1]:
             target = target[key] if not callable(key) else key(target)
         target[path[-1]] = value
+
     return edit
 
 
@@ -445,23 +496,41 @@ def _first_image(doc):
 
 
 BAD_JSON_VALUES = {
-    "camera width as a string": ("poses.json", _set("cameras", "cam0", "width", "48"),
-                                 "width and height must be positive whole numbers of pixels, got '48'"),
-    "camera width infinite": ("poses.json", _set("cameras", "cam0", "width", float("inf")),
-                              "width and height must be positive whole numbers"),
+    "camera width as a string": (
+        "poses.json",
+        _set("cameras", "cam0", "width", "48"),
+        "width and height must be positive whole numbers of pixels, got '48'",
+    ),
+    "camera width infinite": (
+        "poses.json",
+        _set("cameras", "cam0", "width", float("inf")),
+        "width and height must be positive whole numbers",
+    ),
     "camera model as a list": ("poses.json", _set("cameras", "cam0", "model", []), "has unsupported model []"),
-    "camera params as numbers in strings": ("poses.json", _set("cameras", "cam0", "params", ["64", "64", "24", "24"]),
-                                            "(PINHOLE) needs params: a list of 4 numbers"),
-    "negative focal length": ("poses.json", _set("cameras", "cam0", "params", [-64.0, 64.0, 24.0, 24.0]),
-                              "the focal length must be positive"),
+    "camera params as numbers in strings": (
+        "poses.json",
+        _set("cameras", "cam0", "params", ["64", "64", "24", "24"]),
+        "(PINHOLE) needs params: a list of 4 numbers",
+    ),
+    "negative focal length": (
+        "poses.json",
+        _set("cameras", "cam0", "params", [-64.0, 64.0, 24.0, 24.0]),
+        "the focal length must be positive",
+    ),
     "rotation of strings": ("poses.json", _set(_first_image, "R", "identity"), "needs camera, R (3x3), t (3)"),
     "brdf albedo as a word": ("fit/brdf.json", _set("albedo", "grey"), "albedo must be one or three non-negative numbers"),
-    "brdf albedo as booleans": ("fit/brdf.json", _set("albedo", [True, True, True]),
-                                "albedo must be one or three non-negative numbers"),
+    "brdf albedo as booleans": (
+        "fit/brdf.json",
+        _set("albedo", [True, True, True]),
+        "albedo must be one or three non-negative numbers",
+    ),
     "brdf model as a list": ("fit/brdf.json", _set("model", ["lambert"]), "unknown BRDF model ['lambert']"),
     "lighting order infinite": ("fit/lighting_sh.json", _set("order", float("inf")), "'order' must be a whole number"),
-    "lighting coefficients ragged": ("fit/lighting_sh.json", _set("coeffs", [[1, 1, 1], [1]]),
-                                     "'coeffs' must be (order+1)^2 rows of [r, g, b] numbers"),
+    "lighting coefficients ragged": (
+        "fit/lighting_sh.json",
+        _set("coeffs", [[1, 1, 1], [1]]),
+        "'coeffs' must be (order+1)^2 rows of [r, g, b] numbers",
+    ),
 }
 
 
@@ -481,8 +550,11 @@ def test_a_wrong_type_in_a_json_file_is_one_line(linearized, tmp_path, capsys, c
     doc = json.loads(path.read_text())
     edit(doc)
     path.write_text(json.dumps(doc))
-    argv = (["samples", str(capture), "-w", str(work)] if rel == "poses.json" else
-            ["relight", str(capture), "-w", str(work), "-o", str(tmp_path / "out")])
+    argv = (
+        ["samples", str(capture), "-w", str(work)]
+        if rel == "poses.json"
+        else ["relight", str(capture), "-w", str(work), "-o", str(tmp_path / "out")]
+    )
     capsys.readouterr()
     assert cli.main(argv) == 2
     assert_one_line_error(capsys.readouterr().err, fragment)
@@ -504,7 +576,7 @@ def test_warnings_wait_until_the_command_succeeds(tiny_capture, tmp_path, capsys
         warnings.simplefilter("always")
         assert cli.main(["linearize", str(capture), "-w", str(tmp_path / "work")]) == 2
     assert_one_line_error(capsys.readouterr().err, "lies outside the 48x48 image")
-    assert not shown     # held back, then dropped with the failed command
+    assert not shown  # held back, then dropped with the failed command
 
 
 def test_force_redoes_every_linear_image(linearized):

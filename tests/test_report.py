@@ -35,7 +35,7 @@ def test_an_empty_work_folder_says_what_has_not_run(tmp_path):
     assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
     for missing in ("no fitted lighting yet", "no fitted BRDF yet", "no relight comparison yet"):
         assert missing in page
-    assert "http://" not in page and "https://" not in page     # self-contained: no external references
+    assert "http://" not in page and "https://" not in page  # self-contained: no external references
 
 
 def test_a_finished_run_shows_its_numbers_inline(tmp_path):
@@ -43,8 +43,9 @@ def test_a_finished_run_shows_its_numbers_inline(tmp_path):
     the lighting pictures are in the page as data URIs."""
     work = tmp_path / "work"
     (work / "fit").mkdir(parents=True)
-    (work / "fit" / "brdf.json").write_text('{"model": "principled", "base_color": [0.45, 0.3, 0.2], '
-                                            '"roughness": 0.35, "metallic": 0.0, "ior": 1.5}')
+    (work / "fit" / "brdf.json").write_text(
+        '{"model": "principled", "base_color": [0.45, 0.3, 0.2], "roughness": 0.35, "metallic": 0.0, "ior": 1.5}'
+    )
     coeffs = np.zeros((9, 3))
     coeffs[0] = 1.0
     from pipeline.io.lighting import write_lighting_sh
@@ -61,11 +62,12 @@ def test_texture_views_put_each_side_where_it_is(tmp_path):
     colour = np.where(mesh.vertices[:, :1] > 0, [[0.8, 0.05, 0.05]], [[0.0, 0.0, 0.0]])
     (tmp_path / "t.png").write_bytes(texture_views(np.asarray(mesh.vertices), np.asarray(mesh.faces), colour))
     img = read_image(tmp_path / "t.png")[..., :3]
-    panels = np.array_split(img, 5, axis=1)         # from +X, +Y, -X, -Y, above
-    centre = [p[p.shape[0] // 2 - 3:p.shape[0] // 2 + 3, p.shape[1] // 2 - 3:p.shape[1] // 2 + 3].mean(axis=(0, 1))
-              for p in panels]
-    assert centre[0][0] > 0.6 and centre[0][1] < 0.4      # +X: red (sRGB)
-    assert centre[2].max() < 0.15                          # -X: black
+    panels = np.array_split(img, 5, axis=1)  # from +X, +Y, -X, -Y, above
+    centre = [
+        p[p.shape[0] // 2 - 3 : p.shape[0] // 2 + 3, p.shape[1] // 2 - 3 : p.shape[1] // 2 + 3].mean(axis=(0, 1)) for p in panels
+    ]
+    assert centre[0][0] > 0.6 and centre[0][1] < 0.4  # +X: red (sRGB)
+    assert centre[2].max() < 0.15  # -X: black
 
 
 def test_the_truth_stands_beside_the_fit_with_each_parameter_error(tmp_path):
@@ -75,10 +77,12 @@ def test_the_truth_stands_beside_the_fit_with_each_parameter_error(tmp_path):
     capture, work = tmp_path / "cap", tmp_path / "work"
     (capture / "gt").mkdir(parents=True)
     (work / "fit").mkdir(parents=True)
-    (capture / "gt" / "brdf.json").write_text('{"model": "principled", "base_color": [0.45, 0.3, 0.2], '
-                                              '"roughness": 0.35, "metallic": 0.0, "ior": 1.5}')
-    (work / "fit" / "brdf.json").write_text('{"model": "principled", "base_color": [0.44212345, 0.289, 0.194], '
-                                            '"roughness": 0.32412345, "metallic": 0.0, "ior": 1.5}')
+    (capture / "gt" / "brdf.json").write_text(
+        '{"model": "principled", "base_color": [0.45, 0.3, 0.2], "roughness": 0.35, "metallic": 0.0, "ior": 1.5}'
+    )
+    (work / "fit" / "brdf.json").write_text(
+        '{"model": "principled", "base_color": [0.44212345, 0.289, 0.194], "roughness": 0.32412345, "metallic": 0.0, "ior": 1.5}'
+    )
     page = build_report(capture, work)
     cells = [re.findall(r"<td>(.*?)</td>", row) for row in re.findall(r"<tr>(.*?)</tr>", page)]
     rows = {c[0]: c[1:] for c in cells if c}
@@ -103,8 +107,8 @@ def test_the_runs_warnings_are_recorded_and_get_a_section(tiny_capture, tmp_path
     found = json.loads((work / "run.json").read_text())["warnings"]
     assert any(w.startswith("no exposure time in any image") for w in found), found
     page = (work / "report.html").read_text()
-    section = page[page.index(f"<h2>Warnings ({len(found)})</h2>"):]
-    section = section[:section.index("</section>")]
+    section = page[page.index(f"<h2>Warnings ({len(found)})</h2>") :]
+    section = section[: section.index("</section>")]
     assert all(html.escape(w) in section for w in found)
 
 
@@ -142,8 +146,14 @@ window.addEventListener("load", () => {
 });
 """
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-BROWSER = ["--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars", "--window-size=1024,768",
-           "--virtual-time-budget=10000"]
+BROWSER = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--hide-scrollbars",
+    "--window-size=1024,768",
+    "--virtual-time-budget=10000",
+]
 
 
 @pytest.mark.slow
@@ -160,14 +170,13 @@ def test_the_report_in_a_browser_has_no_blank_picture_and_no_text_out_of_its_box
     with contextlib.redirect_stdout(io.StringIO()):
         assert cli.main(["run", str(capture), "-w", str(work)]) == 0
     page = (work / "report.html").read_text()
-    assert "<script" not in page and "http://" not in page and "https://" not in page   # self-contained, inert
+    assert "<script" not in page and "http://" not in page and "https://" not in page  # self-contained, inert
     for title in ("Warnings", "Photos and masks", "Sample coverage", "Fitted lighting", "BRDF", "Relit vs photo"):
         assert f"<h2>{title}" in page, title
     assert "<th>truth</th>" in page
     probe = tmp_path / "probe.html"
     probe.write_text(page.replace("</body>", f"<script>{MEASURE_JS}</script></body>"))
-    dom = subprocess.run([CHROMIUM, *BROWSER, "--dump-dom", probe.as_uri()], capture_output=True, text=True,
-                         timeout=300).stdout
+    dom = subprocess.run([CHROMIUM, *BROWSER, "--dump-dom", probe.as_uri()], capture_output=True, text=True, timeout=300).stdout
     found = re.search(r'<pre id="sigrend-measurements">(.*?)</pre>', dom, re.S)
     assert found, dom[-2000:]
     measured = json.loads(html.unescape(found.group(1)))
@@ -178,8 +187,11 @@ def test_the_report_in_a_browser_has_no_blank_picture_and_no_text_out_of_its_box
     assert not wide, (measured["width"], wide)
     assert not measured["overflow"], measured["overflow"]
     shot = tmp_path / "report.png"
-    subprocess.run([CHROMIUM, *BROWSER[:-2], "--window-size=1024,4000", f"--screenshot={shot}", (work / "report.html").as_uri()],
-                   capture_output=True, timeout=300)
+    subprocess.run(
+        [CHROMIUM, *BROWSER[:-2], "--window-size=1024,4000", f"--screenshot={shot}", (work / "report.html").as_uri()],
+        capture_output=True,
+        timeout=300,
+    )
     pixels = read_image(shot)[..., :3]
     assert pixels.shape[1] == 1024 and pixels.std() > 0.05, pixels.std()
 
@@ -193,15 +205,15 @@ def test_the_sphere_preview_is_the_material_of_the_core_shading_path():
     brdf = Brdf("principled", base_color=(0.6, 0.35, 0.2), roughness=0.4, metallic=0.3, ior=1.5)
     rng = np.random.default_rng(3)
     coeffs = 0.2 * rng.standard_normal((25, 3))
-    coeffs[0] = 2.0                                        # a positive lighting, order 4
+    coeffs[0] = 2.0  # a positive lighting, order 4
     xz = np.array([[0.0, 0.0], [0.3, 0.2], [-0.5, 0.4], [0.6, -0.55], [-0.1, -0.8]])
-    normal = np.column_stack([xz[:, 0], np.sqrt(1 - (xz ** 2).sum(axis=1)), xz[:, 1]])
+    normal = np.column_stack([xz[:, 0], np.sqrt(1 - (xz**2).sum(axis=1)), xz[:, 1]])
     view = np.tile([0.0, 1.0, 0.0], (len(normal), 1))
     preview = principled_sphere(coeffs, brdf, normal, view)
 
     material = material_from_brdf(brdf)
     mu_out = normal[:, 1]
-    kd = material.diffuse_weight(mu_out)                   # base colour x the diffuse layer
+    kd = material.diffuse_weight(mu_out)  # base colour x the diffuse layer
     lobe = specular_samples(material, normal, view, 64, np.random.default_rng(0))
     s = lobe.directions.shape[1]
     w_in = lobe.directions.reshape(-1, 3)
@@ -211,5 +223,5 @@ def test_the_sphere_preview_is_the_material_of_the_core_shading_path():
     seen = np.maximum(sh_evaluate(coeffs, w_in), 0.0)
     lobe_sum = (spec * lobe.solid_angle.reshape(-1, 1) * seen).reshape(len(normal), s, 3).sum(axis=1)
     expected = kd / np.pi * irradiance_from_sh(coeffs, normal) + lobe_sum
-    assert (lobe_sum > 0.1 * expected).all()               # the lobe is a real part of each pixel
+    assert (lobe_sum > 0.1 * expected).all()  # the lobe is a real part of each pixel
     np.testing.assert_allclose(preview, expected, rtol=1e-10, atol=0)

@@ -99,13 +99,13 @@ def test_a_changed_input_reruns_the_stages_that_depend_on_it(capture, tmp_path):
     assert _run(capture, "-w", work, "--to", "poses") == 0
     before = _mtimes(work, ["linear/manifest.json", "poses.json"])
     pose_file = capture / "poses.json"
-    pose_file.write_text(pose_file.read_text())         # newer, same content: nothing reruns
+    pose_file.write_text(pose_file.read_text())  # newer, same content: nothing reruns
     assert _run(capture, "-w", work, "--to", "poses") == 0
     assert _mtimes(work, ["linear/manifest.json", "poses.json"]) == before
-    pose_file.write_text(json.dumps(json.loads(pose_file.read_text()), indent=3))   # other bytes
+    pose_file.write_text(json.dumps(json.loads(pose_file.read_text()), indent=3))  # other bytes
     assert _run(capture, "-w", work, "--to", "poses") == 0
     after = _mtimes(work, ["linear/manifest.json", "poses.json"])
-    assert after["linear/manifest.json"] == before["linear/manifest.json"]   # linearize does not read it
+    assert after["linear/manifest.json"] == before["linear/manifest.json"]  # linearize does not read it
     assert after["poses.json"] > before["poses.json"]
 
 
@@ -123,7 +123,8 @@ def test_a_missing_file_the_last_run_wrote_makes_the_stage_stale(tmp_path):
         path.write_text("x")
     record_settings(work, "fit", settings, {"sigrend": "test"}, [named, optional, outside])
     assert json.loads((work / "fit.settings.json").read_text())["written"] == sorted(
-        ["fit/albedo.ply", "fit/brdf.json", str(outside)])
+        ["fit/albedo.ply", "fit/brdf.json", str(outside)]
+    )
     assert is_fresh(work, "fit", settings, [named], {"sigrend": "test"})
     outside.unlink()
     assert not is_fresh(work, "fit", settings, [named], {"sigrend": "test"})
@@ -146,7 +147,7 @@ def test_run_says_when_it_replaces_a_stage_made_with_other_settings(capture, tmp
     assert len(said) == 1 and said[0].startswith("linearize was last made with --saturation 0.9"), said
     with warnings.catch_warnings(record=True) as shown:
         warnings.simplefilter("always")
-        assert _run(capture, "-w", work, "--to", "linearize") == 0     # now run's own: nothing to say
+        assert _run(capture, "-w", work, "--to", "linearize") == 0  # now run's own: nothing to say
     assert not [w for w in shown if "was last made with" in str(w.message)]
 
 
@@ -217,7 +218,7 @@ def test_verbose_logs_each_stage_settings_at_its_start(tmp_path):
     assert quiet.returncode == 0 and "running with" not in quiet.stderr
 
 
-@pytest.mark.slow     # a whole run and a relight of 8 views: ~18 s
+@pytest.mark.slow  # a whole run and a relight of 8 views: ~18 s
 def test_relight_takes_a_procedural_lighting(capture, tmp_path, capsys):
     """`sigrend run --relight sun+sky` relights the capture's views under the procedural map (the same
     specs as synth and `sigrend relight --env`), into WORK/relight/sun+sky/, a row of its own in

@@ -51,7 +51,7 @@ def test_sample_capture_relights_held_out_views_within_5_percent(bundled_run):
     # "ill-conditioned", which told the user nothing
     assert [report["labels"][str(l)] for l in (0, 1)] == ["recoverable"] * 2, report["labels"]
     refit = report["lighting_refit"]
-    assert refit["validation_rmse"] < 0.6 * refit["validation_rmse_before"]   # measured 0.0060 from 0.0124
+    assert refit["validation_rmse"] < 0.6 * refit["validation_rmse_before"]  # measured 0.0060 from 0.0124
 
 
 def rotation_deg(a: np.ndarray, b: np.ndarray) -> float:

@@ -31,14 +31,18 @@ class MakeSettings:
     """`sigrend env make`: the options' one source of --help (pipeline.settings.setting)."""
 
     spec: str = setting("", f"the map: {spec_help()}")
-    output: Path = setting(Path("envmap.exr"), "EXR file to write: linear float RGB, DESIGN.md's equirect "
-                                               "(width 2 x height, row 0 = +Z); what relight --env, synth --env read")
+    output: Path = setting(
+        Path("envmap.exr"),
+        "EXR file to write: linear float RGB, DESIGN.md's equirect "
+        "(width 2 x height, row 0 = +Z); what relight --env, synth --env read",
+    )
 
 
 def _make_help(name: str) -> str:
     return {f.name: f.metadata["help"] for f in dataclasses.fields(MakeSettings)}[name].replace("%", "%%")
 
-MAX_ORDER = 200     # beyond this the projection is pointless for any real map (and slow)
+
+MAX_ORDER = 200  # beyond this the projection is pointless for any real map (and slow)
 MAX_HEIGHT = 16384
 
 
@@ -48,25 +52,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("project", help="project an equirect environment map (EXR/HDR, width = 2*height) into SH")
     p.add_argument("envmap", type=Path, help="equirectangular map, linear RGB, row 0 = zenith (+Z)")
     p.add_argument("--order", default="8", help=f"SH order L (0..{MAX_ORDER}, at most height/2)")
-    p.add_argument("-o", "--output", type=Path, default=Path("lighting_sh.json"),
-                   help="lighting_sh.json to write ((L+1)^2 rows of RGB)")
+    p.add_argument(
+        "-o", "--output", type=Path, default=Path("lighting_sh.json"), help="lighting_sh.json to write ((L+1)^2 rows of RGB)"
+    )
 
     r = sub.add_parser("render", help="render SH lighting as an equirect EXR map")
     r.add_argument("lighting", type=Path, help="lighting_sh.json")
     r.add_argument("--height", default="256", help="height H of the output map (width 2H)")
-    r.add_argument("--keep-negative", action="store_true",
-                   help="keep the negative radiance of truncated SH (ringing) instead of clamping it to 0")
+    r.add_argument(
+        "--keep-negative",
+        action="store_true",
+        help="keep the negative radiance of truncated SH (ringing) instead of clamping it to 0",
+    )
     r.add_argument("-o", "--output", type=Path, default=Path("lighting.exr"), help="EXR file to write")
 
     i = sub.add_parser("irradiance", help="irradiance environment map: each pixel = E(n) for a normal pointing that way")
     i.add_argument("envmap", type=Path, help="equirectangular map, linear RGB, row 0 = zenith (+Z)")
-    i.add_argument("--order", default="2",
-                   help="SH order of the lighting; 2 = R&H's 9-term formula (99%% of the clamped-cosine energy)")
+    i.add_argument(
+        "--order", default="2", help="SH order of the lighting; 2 = R&H's 9-term formula (99%% of the clamped-cosine energy)"
+    )
     i.add_argument("--height", default=None, help="height of the output map (default: the input's)")
     i.add_argument("-o", "--output", type=Path, default=Path("irradiance.exr"), help="EXR file to write")
 
-    m = sub.add_parser("make", help="write a procedural environment map (the ones relight --env and synth --env "
-                                    "accept by name) as an EXR")
+    m = sub.add_parser(
+        "make", help="write a procedural environment map (the ones relight --env and synth --env accept by name) as an EXR"
+    )
     m.add_argument("spec", help=_make_help("spec"))
     m.add_argument("-o", "--output", type=Path, default=MakeSettings.output, help=_make_help("output"))
 
@@ -84,8 +94,10 @@ def _positive_int(text: str, option: str, low: int, high: int, hint: str) -> int
 def _order_for_map(text: str, height: int) -> int:
     order = _positive_int(text, "--order", 0, MAX_ORDER, "give an SH order such as 2, 8 or 20")
     if order > height // 2:
-        raise UserError(f"--order {order} is more than a {2 * height}x{height} map can resolve "
-                        f"(at most height/2 = {height // 2}); lower --order or use a larger map")
+        raise UserError(
+            f"--order {order} is more than a {2 * height}x{height} map can resolve "
+            f"(at most height/2 = {height // 2}); lower --order or use a larger map"
+        )
     return order
 
 
@@ -110,8 +122,10 @@ def _project(args: argparse.Namespace) -> int:
     coeffs = project_envmap(env, order)
     write_lighting_sh(output, coeffs, source=str(args.envmap), source_size=[env.shape[1], env.shape[0]])
     energy = band_energy(coeffs)
-    print(f"env project: {args.envmap} ({env.shape[1]}x{env.shape[0]}) -> {output} (order {order}, "
-          f"{coeffs.shape[0]} coefficients; {100 * energy[:3].sum() / energy.sum():.1f}% of the energy in l <= 2)")
+    print(
+        f"env project: {args.envmap} ({env.shape[1]}x{env.shape[0]}) -> {output} (order {order}, "
+        f"{coeffs.shape[0]} coefficients; {100 * energy[:3].sum() / energy.sum():.1f}% of the energy in l <= 2)"
+    )
     return 0
 
 
@@ -144,8 +158,11 @@ def _irradiance(args: argparse.Namespace) -> int:
     order = _order_for_map(args.order, env.shape[0])
     if order < 2:
         raise UserError(f"--order {order} is too low for irradiance; use 2 (the 9-term formula) or more")
-    height = env.shape[0] if args.height is None else _positive_int(
-        args.height, "--height", 1, MAX_HEIGHT, "give the output height in pixels, e.g. 64")
+    height = (
+        env.shape[0]
+        if args.height is None
+        else _positive_int(args.height, "--height", 1, MAX_HEIGHT, "give the output height in pixels, e.g. 64")
+    )
     coeffs = project_envmap(env, order)
     irradiance = irradiance_envmap(coeffs, height, nine_term=(order == 2))
     write_image(output, irradiance, dtype="float")
@@ -167,6 +184,8 @@ def _make(args: argparse.Namespace) -> int:
     write_image(output, env, dtype="float")
     row, col = np.unravel_index(np.argmax(env.sum(axis=-1)), env.shape[:2])
     d = equirect_directions(env.shape[0])[row, col]
-    print(f"env make: {args.spec} -> {output} ({env.shape[1]}x{env.shape[0]}; brightest texel at elevation "
-          f"{np.degrees(np.arcsin(d[2])):.1f}, azimuth {np.degrees(np.arctan2(d[1], d[0])) % 360:.1f} degrees)")
+    print(
+        f"env make: {args.spec} -> {output} ({env.shape[1]}x{env.shape[0]}; brightest texel at elevation "
+        f"{np.degrees(np.arcsin(d[2])):.1f}, azimuth {np.degrees(np.arctan2(d[1], d[0])) % 360:.1f} degrees)"
+    )
     return 0

@@ -17,8 +17,7 @@ from pipeline.workdir import atomic_path
 
 HELP = "planar (2D) light-field theory: reproduce the seed paper's figures"
 
-FIGURES = ("lambert_filter.png", "lobe_spectra.png", "inverse_lighting.png",
-           "brdf_estimation.png", "factorization.png")
+FIGURES = ("lambert_filter.png", "lobe_spectra.png", "inverse_lighting.png", "brdf_estimation.png", "factorization.png")
 LABEL_COLORS = {pl.WELL: "tab:green", pl.ILL_CONDITIONED: "tab:orange", pl.ILL_POSED: "tab:red"}
 
 
@@ -26,8 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="planar_command", metavar="ACTION", required=True)
     fig = sub.add_parser("figures", help="write the seed paper's plots as PNG files")
     fig.add_argument("-o", "--output", required=True, type=Path, help="folder for the PNG files")
-    fig.add_argument("--noise", type=float, default=1e-3,
-                     help="noise std on each light-field coefficient, relative to the largest one")
+    fig.add_argument(
+        "--noise", type=float, default=1e-3, help="noise std on each light-field coefficient, relative to the largest one"
+    )
     fig.add_argument("--seed", type=int, default=2001, help="random seed of the noise")
     fig.add_argument("--dpi", type=int, default=110, help="resolution of the PNG files")
 
@@ -52,8 +52,7 @@ def main(args: argparse.Namespace) -> int:
 def sample_lighting(band: int) -> np.ndarray:
     """Two von Mises lights on a dim ambient, truncated to ``band`` (the figures' "true" lighting)."""
     theta = pl.circle_grid(256)
-    radiance = (0.2 + np.exp(20.0 * (np.cos(theta - 1.0) - 1.0))
-                + 0.6 * np.exp(60.0 * (np.cos(theta + 2.0) - 1.0)))
+    radiance = 0.2 + np.exp(20.0 * (np.cos(theta - 1.0) - 1.0)) + 0.6 * np.exp(60.0 * (np.cos(theta + 2.0) - 1.0))
     return pl.fourier_coefficients(radiance, band)
 
 
@@ -102,17 +101,19 @@ def _fig_lambert(plt, rng, noise):
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     axes[0].stem(p, closed, basefmt="k-")
     axes[0].plot(p, numeric, "x", color="tab:red", label="quadrature")
-    axes[0].set(xlabel="frequency p", ylabel=r"$\hat\rho_p$",
-                title="Lambertian filter (closed form, stems)")
+    axes[0].set(xlabel="frequency p", ylabel=r"$\hat\rho_p$", title="Lambertian filter (closed form, stems)")
     axes[0].legend()
     axes[1].semilogy(p[closed != 0], np.abs(closed[closed != 0]), "o-", label=r"$|\hat\rho_p|$, even p and ±1")
     pp = np.arange(2, band + 1, 2)
     axes[1].semilogy(pp, 1.0 / (2 * np.pi * pp**2), "--", label=r"$1/(2\pi p^2)$")
-    axes[1].set(xlabel="frequency p", ylabel="magnitude",
-                title=f"odd p > 1 exactly 0; |p| ≤ 2 holds {100 * energy:.2f}% of the energy")
+    axes[1].set(
+        xlabel="frequency p", ylabel="magnitude", title=f"odd p > 1 exactly 0; |p| ≤ 2 holds {100 * energy:.2f}% of the energy"
+    )
     axes[1].legend()
-    fig.suptitle(r"2D Lambertian transfer $\hat\rho=\frac{1}{2}\max(\cos\theta_i',0)$: "
-                 r"$\hat\rho_{2k}=(-1)^{k+1}/(2\pi(4k^2-1))$, $\hat\rho_{\pm1}=1/8$")
+    fig.suptitle(
+        r"2D Lambertian transfer $\hat\rho=\frac{1}{2}\max(\cos\theta_i',0)$: "
+        r"$\hat\rho_{2k}=(-1)^{k+1}/(2\pi(4k^2-1))$, $\hat\rho_{\pm1}=1/8$"
+    )
     fig.tight_layout()
     return fig
 
@@ -123,16 +124,19 @@ def _fig_lobes(plt, rng, noise):
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     for s in (4, 16, 64, 256):
         exact = pl.reflected_angle_spectrum(pl.Phong(s), band)[band:]
-        line, = axes[0].semilogy(p, np.maximum(np.abs(exact), 1e-12), label=f"s = {s}")
-        axes[0].semilogy(p, np.exp(-p**2 / (2.0 * s)), "--", color=line.get_color())
+        (line,) = axes[0].semilogy(p, np.maximum(np.abs(exact), 1e-12), label=f"s = {s}")
+        axes[0].semilogy(p, np.exp(-(p**2) / (2.0 * s)), "--", color=line.get_color())
     for sigma in (0.4, 0.2, 0.1, 0.05):
         exact = pl.reflected_angle_spectrum(pl.Microfacet(sigma), band)[band:]
-        line, = axes[1].semilogy(p, np.maximum(np.abs(exact), 1e-12), label=f"σ = {sigma}")
-        axes[1].semilogy(p, np.exp(-(sigma * p) ** 2), "--", color=line.get_color())
-    axes[0].set(title=r"Phong $\cos^s$ lobe (dashed: $e^{-p^2/2s}$)", xlabel="frequency p",
-                ylabel=r"normalized $|\rho_p|$ of the lobe in $\theta_i'+\theta_o'$", ylim=(1e-6, 2))
-    axes[1].set(title=r"microfacet, roughness σ (dashed: $e^{-(\sigma p)^2}$)", xlabel="frequency p",
-                ylim=(1e-6, 2))
+        (line,) = axes[1].semilogy(p, np.maximum(np.abs(exact), 1e-12), label=f"σ = {sigma}")
+        axes[1].semilogy(p, np.exp(-((sigma * p) ** 2)), "--", color=line.get_color())
+    axes[0].set(
+        title=r"Phong $\cos^s$ lobe (dashed: $e^{-p^2/2s}$)",
+        xlabel="frequency p",
+        ylabel=r"normalized $|\rho_p|$ of the lobe in $\theta_i'+\theta_o'$",
+        ylim=(1e-6, 2),
+    )
+    axes[1].set(title=r"microfacet, roughness σ (dashed: $e^{-(\sigma p)^2}$)", xlabel="frequency p", ylim=(1e-6, 2))
     for ax in axes:
         ax.legend()
     fig.suptitle("Specular lobes are low-pass filters whose width shrinks as the lobe sharpens")
@@ -154,15 +158,24 @@ def _fig_inverse_lighting(plt, rng, noise):
         labels = pl.lighting_conditioning(rho, sigma, signal)
         axes[0].semilogy(p, np.maximum(gain, 1e-18), ":", color="gray")
         _label_scatter(axes[0], p, gain, labels, marker=marker, s=28)
-        axes[0].annotate(name, (p[band + 4], gain[band + 4]), textcoords="offset points",
-                         xytext=(8, 8 if name == "mirror" else -14), fontsize=9)
+        axes[0].annotate(
+            name,
+            (p[band + 4], gain[band + 4]),
+            textcoords="offset points",
+            xytext=(8, 8 if name == "mirror" else -14),
+            fontsize=9,
+        )
         recovered = pl.inverse_lighting(field, rho, noise=sigma, signal=signal)
         axes[1].plot(theta, pl.fourier_synthesis(recovered, theta), label=f"from {name} (regularized)")
     handles, names = axes[0].get_legend_handles_labels()
     unique = dict(zip(names, handles))
     axes[0].legend(unique.values(), unique.keys(), loc="center left", framealpha=0.95)
-    axes[0].set(xlabel="frequency p", ylabel=r"gain $2\pi(\sum_q|\hat\rho_{-p,q}|^2)^{1/2}$",
-                title=f"inverse-lighting conditioning, noise {noise:g} of max |B|", ylim=(1e-19, 10))
+    axes[0].set(
+        xlabel="frequency p",
+        ylabel=r"gain $2\pi(\sum_q|\hat\rho_{-p,q}|^2)^{1/2}$",
+        title=f"inverse-lighting conditioning, noise {noise:g} of max |B|",
+        ylim=(1e-19, 10),
+    )
     axes[1].set(xlabel="θ (rad)", ylabel="L(θ)", title="lighting recovered from noisy light fields")
     axes[1].legend(fontsize=8)
     return fig
@@ -178,7 +191,7 @@ def _fig_brdf_estimation(plt, rng, noise):
     truth = pl.light_field_synthesis(rho, theta_i, [theta_o])[:, 0]
     sources = {
         "directional source": np.full(2 * band + 1, 1.0 / (2 * np.pi), complex),
-        "area source (width 0.5 rad)": np.exp(-p**2 * 0.25 / 2.0) / (2 * np.pi) + 0j,
+        "area source (width 0.5 rad)": np.exp(-(p**2) * 0.25 / 2.0) / (2 * np.pi) + 0j,
     }
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
     axes[1].plot(theta_i, truth, "k", lw=2.5, label=f"true Phong s=32 (band {band})")
@@ -189,17 +202,23 @@ def _fig_brdf_estimation(plt, rng, noise):
         labels = pl.brdf_conditioning(lighting, sigma, signal)
         axes[0].semilogy(p, np.maximum(gain, 1e-18), ":", color="gray")
         _label_scatter(axes[0], p, gain, labels, marker=marker, s=28)
-        axes[0].annotate(name, (p[band + 6], gain[band + 6]), textcoords="offset points",
-                         xytext=(10, 6), fontsize=9)
+        axes[0].annotate(name, (p[band + 6], gain[band + 6]), textcoords="offset points", xytext=(10, 6), fontsize=9)
         estimate = pl.estimate_brdf(field, lighting, noise=sigma, signal=signal)
         axes[1].plot(theta_i, pl.light_field_synthesis(estimate, theta_i, [theta_o])[:, 0], label=f"under {name}")
     handles, names = axes[0].get_legend_handles_labels()
     unique = dict(zip(names, handles))
     axes[0].legend(unique.values(), unique.keys(), loc="lower center", framealpha=0.95)
-    axes[0].set(xlabel="frequency p", ylabel=r"gain $2\pi|L_p|$",
-                title=f"BRDF-estimation conditioning, noise {noise:g} of max |B|", ylim=(1e-26, 10))
-    axes[1].set(xlabel=r"$\theta_i'$ (rad)", ylabel=rf"$\hat\rho(\theta_i', \theta_o'={theta_o})$",
-                title="transfer slice recovered (Wiener-regularized)")
+    axes[0].set(
+        xlabel="frequency p",
+        ylabel=r"gain $2\pi|L_p|$",
+        title=f"BRDF-estimation conditioning, noise {noise:g} of max |B|",
+        ylim=(1e-26, 10),
+    )
+    axes[1].set(
+        xlabel=r"$\theta_i'$ (rad)",
+        ylabel=rf"$\hat\rho(\theta_i', \theta_o'={theta_o})$",
+        title="transfer slice recovered (Wiener-regularized)",
+    )
     axes[1].legend(fontsize=8)
     return fig
 
@@ -211,7 +230,7 @@ def _fig_factorization(plt, rng, noise):
     kernel = pl.transfer_coefficients(brdf, band, band_q, cosine_outgoing=True)
     field, sigma = _noisy(rng, pl.reflect(lighting, kernel), noise)
     result = pl.factorize(field)
-    scale = lighting[band].real                   # factorize fixes L_0 = 1: undo for display
+    scale = lighting[band].real  # factorize fixes L_0 = 1: undo for display
     rec_l, rec_k = result.lighting * scale, result.kernel / scale
     alpha = np.linspace(0, 2 * np.pi, 181)
     theta_o = np.linspace(-np.pi / 2, np.pi / 2, 91)
@@ -223,27 +242,35 @@ def _fig_factorization(plt, rng, noise):
     fig, axes = plt.subplots(2, 2, figsize=(11, 8))
     extent = (theta_o[0], theta_o[-1], alpha[-1], alpha[0])
     vmax = true_img.max()
-    for ax, img, title in ((axes[0, 0], true_img, "observed (noisy) light field"),
-                           (axes[0, 1], rec_img, "rebuilt from recovered L and K")):
+    for ax, img, title in (
+        (axes[0, 0], true_img, "observed (noisy) light field"),
+        (axes[0, 1], rec_img, "rebuilt from recovered L and K"),
+    ):
         im = ax.imshow(img, extent=extent, aspect="auto", vmin=0, vmax=vmax, cmap="magma")
-        ax.set(xlabel=r"$\theta_o'$ (rad)", ylabel="α (rad)",
-               title=title + r": $\tilde B(\alpha,\theta_o')=B\cos\theta_o'$")
+        ax.set(xlabel=r"$\theta_o'$ (rad)", ylabel="α (rad)", title=title + r": $\tilde B(\alpha,\theta_o')=B\cos\theta_o'$")
         fig.colorbar(im, ax=ax)
     axes[1, 0].plot(theta, pl.fourier_synthesis(lighting, theta), "k", lw=2.5, label="true")
     axes[1, 0].plot(theta, pl.fourier_synthesis(rec_l, theta), "--", color="tab:orange", label="recovered")
     axes[1, 0].set(xlabel="θ (rad)", ylabel="L(θ)", title=f"lighting (band {band}), scale fixed by the mean")
     for theta_fixed, color in ((0.0, "tab:blue"), (0.6, "tab:green")):
-        axes[1, 1].plot(theta_i, pl.light_field_synthesis(kernel, theta_i, [theta_fixed])[:, 0], color=color,
-                        lw=2.5, label=rf"true, $\theta_o'={theta_fixed}$")
-        axes[1, 1].plot(theta_i, pl.light_field_synthesis(rec_k, theta_i, [theta_fixed])[:, 0], "--",
-                        color="tab:orange")
-    axes[1, 1].set(xlabel=r"$\theta_i'$ (rad)", ylabel=r"$K=\rho\cos\theta_i'\cos\theta_o'$",
-                   title="BRDF kernel slices (dashed: recovered)")
+        axes[1, 1].plot(
+            theta_i,
+            pl.light_field_synthesis(kernel, theta_i, [theta_fixed])[:, 0],
+            color=color,
+            lw=2.5,
+            label=rf"true, $\theta_o'={theta_fixed}$",
+        )
+        axes[1, 1].plot(theta_i, pl.light_field_synthesis(rec_k, theta_i, [theta_fixed])[:, 0], "--", color="tab:orange")
+    axes[1, 1].set(
+        xlabel=r"$\theta_i'$ (rad)", ylabel=r"$K=\rho\cos\theta_i'\cos\theta_o'$", title="BRDF kernel slices (dashed: recovered)"
+    )
     for ax in axes[1]:
         ax.legend(fontsize=8)
     err_l = np.linalg.norm(rec_l - lighting) / np.linalg.norm(lighting)
     err_k = np.linalg.norm(rec_k - kernel) / np.linalg.norm(kernel)
-    fig.suptitle(f"Factorization of a Phong (s=24) light field, noise {noise:g}: relative error "
-                 f"L {err_l:.2g}, K {err_k:.2g} (up to one global scale)")
+    fig.suptitle(
+        f"Factorization of a Phong (s=24) light field, noise {noise:g}: relative error "
+        f"L {err_l:.2g}, K {err_k:.2g} (up to one global scale)"
+    )
     fig.tight_layout()
     return fig

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-MAX_SIZE = 4096          # texels per side at most: a finer footprint is clamped (and said in the report)
+MAX_SIZE = 4096  # texels per side at most: a finer footprint is clamped (and said in the report)
 
 
 @dataclass(frozen=True)
@@ -44,10 +44,11 @@ class Atlas:
     def lookup(self, image: np.ndarray, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Bilinear value (P, C) of the map ``image`` (H, W, C) at points (edge texels repeated)."""
         uv = self.uv_at(faces, bary)
-        coords = [uv[:, 1] * self.height - 0.5, uv[:, 0] * self.width - 0.5]     # texel centres at +0.5
+        coords = [uv[:, 1] * self.height - 0.5, uv[:, 0] * self.width - 0.5]  # texel centres at +0.5
         image = np.asarray(image, float)
-        return np.stack([ndimage.map_coordinates(image[:, :, c], coords, order=1, mode="nearest")
-                         for c in range(image.shape[2])], axis=1)
+        return np.stack(
+            [ndimage.map_coordinates(image[:, :, c], coords, order=1, mode="nearest") for c in range(image.shape[2])], axis=1
+        )
 
     def at_vertices(self, image: np.ndarray, faces: np.ndarray, n_vertices: int) -> np.ndarray:
         """The map at the mesh's vertices (V, C): the mean over each vertex's face corners (a vertex on
@@ -57,8 +58,7 @@ class Atlas:
         bary = np.tile(np.eye(3), (len(faces), 1))
         values = self.lookup(image, f, bary)
         count = np.bincount(faces.ravel(), minlength=n_vertices).astype(float)
-        out = np.stack([np.bincount(faces.ravel(), values[:, c], minlength=n_vertices)
-                        for c in range(values.shape[1])], axis=1)
+        out = np.stack([np.bincount(faces.ravel(), values[:, c], minlength=n_vertices) for c in range(values.shape[1])], axis=1)
         return out / np.maximum(count, 1.0)[:, None]
 
 
@@ -83,7 +83,7 @@ def texel_points(atlas: Atlas, chunk: int = 1 << 20) -> tuple[np.ndarray, np.nda
     barycentrics (M, 3)), a texel taken by the first face whose UV triangle holds its centre
     (charts do not overlap; ``chunk`` candidate texel-face pairs at a time)."""
     size = np.array([atlas.width, atlas.height], float)
-    corners = atlas.face_uv * size - 0.5                       # in texel-centre coordinates
+    corners = atlas.face_uv * size - 0.5  # in texel-centre coordinates
     lo = np.maximum(np.floor(corners.min(axis=1)).astype(np.int64), 0)
     hi = np.minimum(np.ceil(corners.max(axis=1)).astype(np.int64), [atlas.width - 1, atlas.height - 1])
     span = np.maximum(hi - lo + 1, 0)

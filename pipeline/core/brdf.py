@@ -39,10 +39,10 @@ BRDF_PARAMS: dict[str, tuple[str, ...]] = {
     "phong": ("albedo", "specular", "exponent"),
     "microfacet": ("albedo", "specular", "roughness"),
 }
-PARAM_DEFAULTS = {"metallic": 0.0, "ior": 1.5, "specular_tint": (1.0, 1.0, 1.0)}   # principled's optional ones
+PARAM_DEFAULTS = {"metallic": 0.0, "ior": 1.5, "specular_tint": (1.0, 1.0, 1.0)}  # principled's optional ones
 RGB_PARAMS = ("albedo", "specular", "base_color", "specular_tint")
-LOBE_MODELS = ("phong", "microfacet")   # the seed's models with R&H's reflection-space lobe
-WIDTH_PARAM = {"phong": "exponent", "microfacet": "roughness"}   # the lobe's width parameter
+LOBE_MODELS = ("phong", "microfacet")  # the seed's models with R&H's reflection-space lobe
+WIDTH_PARAM = {"phong": "exponent", "microfacet": "roughness"}  # the lobe's width parameter
 
 
 @dataclass(frozen=True)
@@ -108,7 +108,7 @@ class Brdf:
 
     @property
     def _diffuse_param(self) -> str:
-        return BRDF_PARAMS[self.model][0]     # every model's first parameter is its diffuse colour
+        return BRDF_PARAMS[self.model][0]  # every model's first parameter is its diffuse colour
 
     @property
     def has_lobe(self) -> bool:

@@ -48,7 +48,7 @@ class Camera:
         fx, fy, cx, cy = self.focal_principal()
         k = self.distortion()
         model = "FULL_OPENCV" if any(k[4:]) else "OPENCV"
-        return Camera(model, width, height, (fx * sx, fy * sy, cx * sx, cy * sy, *k[:MODELS[model] - 4]))
+        return Camera(model, width, height, (fx * sx, fy * sy, cx * sx, cy * sy, *k[: MODELS[model] - 4]))
 
     def K(self) -> np.ndarray:
         """3x3 intrinsic matrix in COLMAP's pixel convention (subtract 0.5 from cx, cy for OpenCV)."""
@@ -164,8 +164,9 @@ def framing_distance(radius: float, fov_deg: float = 40.0) -> float:
     return 1.15 * radius / np.sin(np.radians(fov_deg) / 2)
 
 
-def framing_focal(points: np.ndarray, poses: list[tuple[np.ndarray, np.ndarray]], width: int, height: int,
-                  margin: float = 1.05) -> float:
+def framing_focal(
+    points: np.ndarray, poses: list[tuple[np.ndarray, np.ndarray]], width: int, height: int, margin: float = 1.05
+) -> float:
     """The focal length (pixels) of a PINHOLE camera with its principal point at the image centre at
     which every one of ``points`` (N, 3), seen from every world-to-camera pose (R, t) of ``poses``,
     lands inside the width x height image with ``margin`` to spare (1.05: 5 % of each half side): the
@@ -183,8 +184,16 @@ def framing_focal(points: np.ndarray, poses: list[tuple[np.ndarray, np.ndarray]]
     return min(limits) if limits else 0.5 * min(width, height)
 
 
-def orbit_poses(centre: np.ndarray, radius: float, n: int, width: int, height: int, distance: float | None = None,
-                elevation_deg: float = 20.0, fov_deg: float = 40.0) -> tuple[Camera, list[tuple[np.ndarray, np.ndarray]]]:
+def orbit_poses(
+    centre: np.ndarray,
+    radius: float,
+    n: int,
+    width: int,
+    height: int,
+    distance: float | None = None,
+    elevation_deg: float = 20.0,
+    fov_deg: float = 40.0,
+) -> tuple[Camera, list[tuple[np.ndarray, np.ndarray]]]:
     """A PINHOLE camera of ``fov_deg`` (across the shorter side) and ``n`` world-to-camera poses (R, t)
     on a ring ``elevation_deg`` above ``centre``, looking at it, the first at azimuth 0 (+X); by
     default at framing_distance(radius, fov_deg)."""
@@ -198,7 +207,6 @@ def orbit_poses(centre: np.ndarray, radius: float, n: int, width: int, height: i
     poses = []
     for i in range(n):
         phi = 2 * np.pi * i / n
-        eye = centre + distance * np.array([np.cos(elevation) * np.cos(phi), np.cos(elevation) * np.sin(phi),
-                                            np.sin(elevation)])
+        eye = centre + distance * np.array([np.cos(elevation) * np.cos(phi), np.cos(elevation) * np.sin(phi), np.sin(elevation)])
         poses.append(look_at(eye, centre))
     return camera, poses

@@ -27,23 +27,31 @@ class Observations:
     fold: np.ndarray
 
 
-def per_unit_base_channel(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray | None,
-                           spec: prt.SpecularTransfer | None, k: int, c: int, out: np.ndarray | None = None) -> np.ndarray:
+def per_unit_base_channel(
+    geo: prt.Geometry,
+    layer: np.ndarray,
+    indirect: np.ndarray | None,
+    spec: prt.SpecularTransfer | None,
+    k: int,
+    c: int,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
     """Channel c's (N, k) of the transfer that the base colour multiplies: the diffuse layer's
     kd / pi (D + I), plus a metal's specular per unit F0 (``indirect`` None: without the
     interreflection I)."""
     kd = (layer[:, c] / np.pi)[:, None]
     out = np.multiply(geo.direct[:, :k], kd, out=out)
     if indirect is not None:
-        ki = min(k, indirect.shape[1])      # the interreflection's bands (prt.INDIRECT_ORDER)
+        ki = min(k, indirect.shape[1])  # the interreflection's bands (prt.INDIRECT_ORDER)
         out[:, :ki] += indirect[:, :ki, c] * kd
     if spec is not None and spec.scaled is not None:
         out += spec.scaled[:, :k, c]
     return out
 
 
-def design(geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, spec: prt.SpecularTransfer | None,
-            base: np.ndarray, order: int) -> np.ndarray:
+def design(
+    geo: prt.Geometry, layer: np.ndarray, indirect: np.ndarray, spec: prt.SpecularTransfer | None, base: np.ndarray, order: int
+) -> np.ndarray:
     """A_c (3, N, K') truncated to ``order``: base_c (per-unit-base part) + the fixed specular,
     channel first (each channel's (N, K') contiguous, as BLAS takes it); a channel per thread."""
     k = num_coeffs(order)
@@ -84,16 +92,14 @@ class ShSystem:
 
     def held_out_rmse(self, target: np.ndarray) -> float:
         """Leave-one-fold-out RMSE of the SH lighting fitted to ``target``."""
-        return float(solve.cross_validate_orders(self.equations(target), [self.order], None, **self.kw)[0]
-                     ["validation_rmse"])
+        return float(solve.cross_validate_orders(self.equations(target), [self.order], None, **self.kw)[0]["validation_rmse"])
 
     def predict(self, coeffs: np.ndarray) -> np.ndarray:
         """Radiance (N, 3) of SH lighting ``coeffs`` (K, 3)."""
         return np.einsum("cpk,kc->pc", self.a, coeffs)
 
 
-def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: prt.SpecularTransfer, obs: Observations,
-                order: int) -> np.ndarray:
+def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: prt.SpecularTransfer, obs: Observations, order: int) -> np.ndarray:
     """Base colour (3,) from one linear solve for (X_c = rho_c L_c, L_c): radiance =
     kd / pi D X_c + S_c L_c, rho_c = <X_c, L_c> / <L_c, L_c> over bands 0-2 (what the diffuse
     part determines); interreflection is left to the alternation."""
@@ -101,13 +107,13 @@ def joint_start(geo: prt.Geometry, layer: np.ndarray, spec: prt.SpecularTransfer
     sw = np.sqrt(obs.weight)[:, None]
 
     def channel(c: int) -> float:
-        a = np.concatenate([geo.direct[:, :low] * (layer[:, c:c + 1] / np.pi), spec.fixed[:, :k, c]], axis=1) * sw
+        a = np.concatenate([geo.direct[:, :low] * (layer[:, c : c + 1] / np.pi), spec.fixed[:, :k, c]], axis=1) * sw
         g = a.T @ a
         z = np.linalg.solve(g + 1e-9 * np.trace(g) / len(g) * np.eye(len(g)), a.T @ (obs.radiance[:, c] * sw[:, 0]))
-        x, y = z[:low], z[low:low + low]
+        x, y = z[:low], z[low : low + low]
         return float(x @ y) / max(float(y @ y), 1e-300)
 
-    return np.clip(np.array(thread_map(channel, range(3))), 1e-3, 1.0)     # a channel per thread
+    return np.clip(np.array(thread_map(channel, range(3))), 1e-3, 1.0)  # a channel per thread
 
 
 @dataclass(frozen=True)
@@ -126,8 +132,8 @@ class Candidate:
     folds: int
     kw: dict
     max_bounces: int
-    _last: dict = field(default_factory=dict, repr=False, compare=False)     # system()'s last answer
-    _blocks: dict = field(default_factory=dict, repr=False, compare=False)   # base_blocks() per channel
+    _last: dict = field(default_factory=dict, repr=False, compare=False)  # system()'s last answer
+    _blocks: dict = field(default_factory=dict, repr=False, compare=False)  # base_blocks() per channel
 
     def indirect(self, base: np.ndarray, vertex_direct: np.ndarray | None = None) -> np.ndarray:
         """prt.indirect_transfer at base colour ``base`` (of the SH lighting, or of ``vertex_direct``'s columns)."""
@@ -140,10 +146,10 @@ class Candidate:
         key = (np.asarray(base, float).tobytes(), order)
         if key not in self._last:
             self._last.clear()
-            self._last[key] = ShSystem(design(self.geo, self.layer, self.indirect(base), self.spec, base, order),
-                                       self.obs, order, self.folds, self.kw)
+            self._last[key] = ShSystem(
+                design(self.geo, self.layer, self.indirect(base), self.spec, base, order), self.obs, order, self.folds, self.kw
+            )
         return self._last[key]
-
 
     def base_blocks(self, c: int) -> "BaseBlocks":
         """Channel c's parts of the design that do not depend on the base colour (BaseBlocks),
@@ -151,9 +157,13 @@ class Candidate:
         diffuse layer) share one."""
         if c not in self._blocks:
             k = num_coeffs(self.order)
-            same = (d for d in self._blocks if self.spec.scaled is None
-                    and np.array_equal(self.layer[:, c], self.layer[:, d])
-                    and np.array_equal(self.spec.fixed[:, :k, c], self.spec.fixed[:, :k, d]))
+            same = (
+                d
+                for d in self._blocks
+                if self.spec.scaled is None
+                and np.array_equal(self.layer[:, c], self.layer[:, d])
+                and np.array_equal(self.spec.fixed[:, :k, c], self.spec.fixed[:, :k, d])
+            )
             d = next(same, None)
             if d is not None:
                 self._blocks[c] = self._blocks[d]
@@ -181,8 +191,17 @@ class BaseBlocks:
     ss: np.ndarray
 
 
-def gram_with_columns(lr: np.ndarray, left: np.ndarray, right: np.ndarray, w: np.ndarray, n: int,
-                       x_left: np.ndarray, at_left: np.ndarray, x_right: np.ndarray, at_right: np.ndarray) -> np.ndarray:
+def gram_with_columns(
+    lr: np.ndarray,
+    left: np.ndarray,
+    right: np.ndarray,
+    w: np.ndarray,
+    n: int,
+    x_left: np.ndarray,
+    at_left: np.ndarray,
+    x_right: np.ndarray,
+    at_right: np.ndarray,
+) -> np.ndarray:
     """(L + X_l)^T W (R + X_r) (n, n) from ``lr`` = L^T W R (K, K) of L, R (N, K) (zero-padded to n
     columns) and columns X_l (N, m) added at column indices ``at_left`` (m,), X_r likewise: the
     full gram's cost is paid once, each update costs N K m."""

@@ -22,32 +22,73 @@ import numpy as np
 # formulation as OpenCV's mcc/ccm module carries it (ColorChecker2005_LAB_D50_2 in
 # opencv/modules/photo ccm colorspace data, "from https://www.imatest.com/wp-content/uploads/2011/
 # 11/Lab-data-Iluminate-D65-D50-spectro.xls").
-COLORCHECKER_LAB_D50 = np.array([
-    [37.986, 13.555, 14.059], [65.711, 18.13, 17.81], [49.927, -4.88, -21.925],
-    [43.139, -13.095, 21.905], [55.112, 8.844, -25.399], [70.719, -33.397, -0.199],
-    [62.661, 36.067, 57.096], [40.02, 10.41, -45.964], [51.124, 48.239, 16.248],
-    [30.325, 22.976, -21.587], [72.532, -23.709, 57.255], [71.941, 19.363, 67.857],
-    [28.778, 14.179, -50.297], [55.261, -38.342, 31.37], [42.101, 53.378, 28.19],
-    [81.733, 4.039, 79.819], [51.935, 49.986, -14.574], [51.038, -28.631, -28.638],
-    [96.539, -0.425, 1.186], [81.257, -0.638, -0.335], [66.766, -0.734, -0.504],
-    [50.867, -0.153, -0.27], [35.656, -0.421, -1.231], [20.461, -0.079, -0.973]])
+COLORCHECKER_LAB_D50 = np.array(
+    [
+        [37.986, 13.555, 14.059],
+        [65.711, 18.13, 17.81],
+        [49.927, -4.88, -21.925],
+        [43.139, -13.095, 21.905],
+        [55.112, 8.844, -25.399],
+        [70.719, -33.397, -0.199],
+        [62.661, 36.067, 57.096],
+        [40.02, 10.41, -45.964],
+        [51.124, 48.239, 16.248],
+        [30.325, 22.976, -21.587],
+        [72.532, -23.709, 57.255],
+        [71.941, 19.363, 67.857],
+        [28.778, 14.179, -50.297],
+        [55.261, -38.342, 31.37],
+        [42.101, 53.378, 28.19],
+        [81.733, 4.039, 79.819],
+        [51.935, 49.986, -14.574],
+        [51.038, -28.631, -28.638],
+        [96.539, -0.425, 1.186],
+        [81.257, -0.638, -0.335],
+        [66.766, -0.734, -0.504],
+        [50.867, -0.153, -0.27],
+        [35.656, -0.421, -1.231],
+        [20.461, -0.079, -0.973],
+    ]
+)
 
-COLORCHECKER_NAMES = ("dark skin", "light skin", "blue sky", "foliage", "blue flower", "bluish green",
-                      "orange", "purplish blue", "moderate red", "purple", "yellow green", "orange yellow",
-                      "blue", "green", "red", "yellow", "magenta", "cyan",
-                      "white 9.5", "neutral 8", "neutral 6.5", "neutral 5", "neutral 3.5", "black 2")
+COLORCHECKER_NAMES = (
+    "dark skin",
+    "light skin",
+    "blue sky",
+    "foliage",
+    "blue flower",
+    "bluish green",
+    "orange",
+    "purplish blue",
+    "moderate red",
+    "purple",
+    "yellow green",
+    "orange yellow",
+    "blue",
+    "green",
+    "red",
+    "yellow",
+    "magenta",
+    "cyan",
+    "white 9.5",
+    "neutral 8",
+    "neutral 6.5",
+    "neutral 5",
+    "neutral 3.5",
+    "black 2",
+)
 
-NEUTRAL = np.arange(18, 24)        # the grey row: what sets the per-channel factor (white balance and level)
+NEUTRAL = np.arange(18, 24)  # the grey row: what sets the per-channel factor (white balance and level)
 
 # CIE 15 / IEC 61966-2-1 constants
 WHITE_D50 = np.array([0.96422, 1.0, 0.82521])
 # Bradford chromatic adaptation D50 -> D65 (Lindbloom's matrix, the one ICC v4 and OpenCV's ccm use)
-BRADFORD_D50_TO_D65 = np.array([[0.9555766, -0.0230393, 0.0631636],
-                                [-0.0282895, 1.0099416, 0.0210077],
-                                [0.0122982, -0.0204830, 1.3299098]])
-XYZ_TO_LINEAR_SRGB = np.array([[3.2404542, -1.5371385, -0.4985314],
-                               [-0.9692660, 1.8760108, 0.0415560],
-                               [0.0556434, -0.2040259, 1.0572252]])
+BRADFORD_D50_TO_D65 = np.array(
+    [[0.9555766, -0.0230393, 0.0631636], [-0.0282895, 1.0099416, 0.0210077], [0.0122982, -0.0204830, 1.3299098]]
+)
+XYZ_TO_LINEAR_SRGB = np.array(
+    [[3.2404542, -1.5371385, -0.4985314], [-0.9692660, 1.8760108, 0.0415560], [0.0556434, -0.2040259, 1.0572252]]
+)
 
 
 def lab_to_xyz(lab: np.ndarray, white: np.ndarray = WHITE_D50) -> np.ndarray:
@@ -56,7 +97,7 @@ def lab_to_xyz(lab: np.ndarray, white: np.ndarray = WHITE_D50) -> np.ndarray:
     fy = (lab[:, 0] + 16.0) / 116.0
     f = np.stack([fy + lab[:, 1] / 500.0, fy, fy - lab[:, 2] / 200.0], axis=1)
     eps = 6.0 / 29.0
-    return np.where(f > eps, f ** 3, 3 * eps ** 2 * (f - 4.0 / 29.0)) * np.asarray(white, float)
+    return np.where(f > eps, f**3, 3 * eps**2 * (f - 4.0 / 29.0)) * np.asarray(white, float)
 
 
 def lab_d50_to_linear_srgb(lab: np.ndarray) -> np.ndarray:
@@ -82,16 +123,17 @@ def chart_irradiance(measured: np.ndarray, reflectance: np.ndarray, valid: np.nd
     if not use.any():
         raise ValueError("no usable patch")
     b, rho = b[use], rho[use]
-    slope = (b * rho).sum(axis=0) / (rho ** 2).sum(axis=0)
+    slope = (b * rho).sum(axis=0) / (rho**2).sum(axis=0)
     if not np.all(np.isfinite(slope)) or np.any(slope <= 0):
         raise ValueError("the patches' radiance is not positive in every channel")
     fit = rho * slope
-    residual = np.sqrt(((b - fit) ** 2).mean(axis=0)) / np.sqrt((b ** 2).mean(axis=0))
+    residual = np.sqrt(((b - fit) ** 2).mean(axis=0)) / np.sqrt((b**2).mean(axis=0))
     return {"irradiance": np.pi * slope, "residual": residual, "patches": int(use.sum())}
 
 
-def colour_residual(measured: np.ndarray, reflectance: np.ndarray, irradiance: np.ndarray,
-                    valid: np.ndarray | None = None) -> float:
+def colour_residual(
+    measured: np.ndarray, reflectance: np.ndarray, irradiance: np.ndarray, valid: np.ndarray | None = None
+) -> float:
     """Relative RMS difference of the patches' radiance ``measured`` (K, 3) from what
     ``irradiance`` (3,) predicts for their ``reflectance``: how well the photo's colours are linear
     sRGB (a camera's colour matrix; 0 for an exact render)."""
@@ -101,8 +143,9 @@ def colour_residual(measured: np.ndarray, reflectance: np.ndarray, irradiance: n
     return float(np.sqrt(((b[use] - pred) ** 2).mean()) / np.sqrt((b[use] ** 2).mean()))
 
 
-def lighting_irradiance(coeffs: np.ndarray, normal: np.ndarray, source_directions: np.ndarray | None = None,
-                        source_power: np.ndarray | None = None) -> np.ndarray:
+def lighting_irradiance(
+    coeffs: np.ndarray, normal: np.ndarray, source_directions: np.ndarray | None = None, source_power: np.ndarray | None = None
+) -> np.ndarray:
     """A fitted lighting's irradiance (3,) on a plane of unit ``normal`` (3,): its SH part through
     the clamped cosine (transfer.irradiance_from_sh) plus its directional sources (directions
     (J, 3), intensity = irradiance at normal incidence (J, 3)) times max(0, n . d).  A plane in the

@@ -82,7 +82,7 @@ def blender_columns(env: np.ndarray, rotation_texels: int = 0) -> np.ndarray:
 # (1, 1, 1)): the light's +Y (its pole) to the object's +Z, +Z to +X, +X to +Y; as USD's xformOp
 # rotateXYZ (X first, then Y, then Z: Rz(90) Rx(90)), the angles below.  A stage whose upAxis is Z
 # changes nothing: UsdLux.DomeLight's pole is its own +Y whatever the stage's up axis.
-USD_DOME_TO_OBJECT = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])   # d_object = M @ d_light
+USD_DOME_TO_OBJECT = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # d_object = M @ d_light
 USD_DOME_ROTATE_XYZ_DEG = (90.0, 0.0, 90.0)
 
 # The same map as the radiance of a Mitsuba 3 ``envmap`` emitter (src/emitters/envmap.cpp; checked on
@@ -96,7 +96,7 @@ USD_DOME_ROTATE_XYZ_DEG = (90.0, 0.0, 90.0)
 # the emitter's ``to_world`` (a map in our own column order would need a mirror: det -1).  Rows: Mitsuba
 # puts row y at theta = pi y / (H - 1), we at pi (y + 0.5) / H; they agree at the equator and differ by
 # up to half a texel towards the poles (0.18 degrees for export's default 512 rows).
-MITSUBA_ENVMAP_TO_OBJECT = USD_DOME_TO_OBJECT   # d_object = M @ d_emitter
+MITSUBA_ENVMAP_TO_OBJECT = USD_DOME_TO_OBJECT  # d_object = M @ d_emitter
 
 
 def add_sources(env: np.ndarray, directions: np.ndarray, intensity: np.ndarray) -> np.ndarray:
@@ -130,7 +130,7 @@ def bilinear_lookup(env: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     d = np.asarray(dirs, float)
     theta = np.arccos(np.clip(d[:, 2], -1, 1))
     phi = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi)
-    y = np.clip(theta / np.pi * h - 0.5, 0, h - 1)      # pixel centres at (i + 0.5)
+    y = np.clip(theta / np.pi * h - 0.5, 0, h - 1)  # pixel centres at (i + 0.5)
     x = phi / (2 * np.pi) * w - 0.5
     y0 = np.minimum(np.floor(y).astype(int), h - 2) if h > 1 else np.zeros(len(y), int)
     fy = (y - y0)[:, None]
@@ -139,5 +139,4 @@ def bilinear_lookup(env: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     x0 %= w
     x1 = (x0 + 1) % w
     y1 = np.minimum(y0 + 1, h - 1)
-    return ((1 - fy) * ((1 - fx) * env[y0, x0] + fx * env[y0, x1])
-            + fy * ((1 - fx) * env[y1, x0] + fx * env[y1, x1]))
+    return (1 - fy) * ((1 - fx) * env[y0, x0] + fx * env[y0, x1]) + fy * ((1 - fx) * env[y1, x0] + fx * env[y1, x1])

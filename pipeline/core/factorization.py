@@ -26,8 +26,8 @@ from pipeline.core.selection import fold_of, parsimonious_choice
 from pipeline.core.sh import band_of_index, num_coeffs, order_of, sh_evaluate
 from pipeline.core.transfer import lambert_filter
 
-JOINT_WIDTHS = 9      # lobe widths tried by the joint linear initialization (log grid over the bounds)
-COVERAGE_GRID = EqualAreaGrid(24, 48)   # 1152 equal-area cells (~0.011 sr each): how many coefficients data carry
+JOINT_WIDTHS = 9  # lobe widths tried by the joint linear initialization (log grid over the bounds)
+COVERAGE_GRID = EqualAreaGrid(24, 48)  # 1152 equal-area cells (~0.011 sr each): how many coefficients data carry
 
 
 @dataclass(frozen=True)
@@ -72,18 +72,18 @@ def equations_from_arrays(data: dict, opts: ConvexOptions, brdf: Brdf, order: in
     eqs = solve.NormalEquations(order, opts.folds, shared=not brdf.has_lobe)
     n = len(data["weight"])
     for s in range(0, n, opts.chunk):
-        add_designs(eqs, {k: v[s:s + opts.chunk] for k, v in data.items()}, brdf, order, opts.folds)
+        add_designs(eqs, {k: v[s : s + opts.chunk] for k, v in data.items()}, brdf, order, opts.folds)
     return eqs
 
 
-def choose_order(eqs: solve.NormalEquations, brdf: Brdf, opts: ConvexOptions, max_carried: int,
-                 explicit: int | None, views: int) -> tuple[solve.LightingFit, list[dict], int]:
+def choose_order(
+    eqs: solve.NormalEquations, brdf: Brdf, opts: ConvexOptions, max_carried: int, explicit: int | None, views: int
+) -> tuple[solve.LightingFit, list[dict], int]:
     """Fit every candidate order (or the given one) and, with ``explicit`` None, every prior scale of
     ``band_priors``; choose by validation + parsimony (equal parameter counts: lower error).
     -> (the chosen fit, every candidate {order, band_prior, fit, errors}, the chosen order)."""
     scale = np.asarray(brdf.albedo, float) if eqs.shared else None
-    kw = dict(noise_floor=opts.noise_floor, min_snr=opts.min_snr, band_prior=opts.band_prior,
-              independent_groups=views)
+    kw = dict(noise_floor=opts.noise_floor, min_snr=opts.min_snr, band_prior=opts.band_prior, independent_groups=views)
     if explicit is not None:
         orders, priors = [explicit], [opts.band_prior]
     else:
@@ -104,11 +104,20 @@ def brdf_data(data: dict, coeffs: np.ndarray, fold_count: int) -> solve.BrdfData
     a_hat = lambert_filter(order)[band_of_index(order)] / np.pi
     diffuse = sh_evaluate(coeffs * a_hat[:, None], data["normal"])
     refl = reflect(data["view_dir"], data["normal"])
-    bands = np.concatenate([forward.band_projections(coeffs, refl[s:s + 65536])
-                            for s in range(0, len(refl), 65536)]) if len(refl) else np.zeros((0, order + 1, 3))
-    return solve.BrdfData(diffuse, bands, forward.fresnel_grazing(data["normal"], data["view_dir"]),
-                          data["radiance"], data["weight"], fold_of(data["image_id"], fold_count),
-                          np.einsum("ij,ij->i", data["normal"], data["view_dir"]))
+    bands = (
+        np.concatenate([forward.band_projections(coeffs, refl[s : s + 65536]) for s in range(0, len(refl), 65536)])
+        if len(refl)
+        else np.zeros((0, order + 1, 3))
+    )
+    return solve.BrdfData(
+        diffuse,
+        bands,
+        forward.fresnel_grazing(data["normal"], data["view_dir"]),
+        data["radiance"],
+        data["weight"],
+        fold_of(data["image_id"], fold_count),
+        np.einsum("ij,ij->i", data["normal"], data["view_dir"]),
+    )
 
 
 def lobe_filters(order: int):
@@ -132,10 +141,16 @@ def fit_brdf_models(bd: solve.BrdfData, models: list[str], opts: ConvexOptions, 
             val_se += solve.brdf_mse(bd.subset(test), fitted.brdf, fn) * wv
             val_w += wv
         full = solve.fit_brdf(bd, model, fn, noise_floor=opts.noise_floor)
-        out.append({"name": model, "params": 3 + (4 if model != "lambert" else 0),
-                    "train_rmse": float(np.sqrt(full.mse)),
-                    "validation_rmse": float(np.sqrt(val_se / val_w)) if val_w else float("nan"),
-                    "seconds": time.perf_counter() - t0, "fit": full})
+        out.append(
+            {
+                "name": model,
+                "params": 3 + (4 if model != "lambert" else 0),
+                "train_rmse": float(np.sqrt(full.mse)),
+                "validation_rmse": float(np.sqrt(val_se / val_w)) if val_w else float("nan"),
+                "seconds": time.perf_counter() - t0,
+                "fit": full,
+            }
+        )
     return out
 
 
@@ -144,9 +159,19 @@ def lighting_step(data: dict, brdf: Brdf, order: int, opts: ConvexOptions, label
     eqs = equations_from_arrays(data, opts, brdf, order)
     scale = np.asarray(brdf.albedo, float) if eqs.shared else None
     g, h, btb, w = eqs.channel_system(slice(None), scale)
-    return solve.solve_lighting(g, h, btb, w, int(eqs.count.sum()), order, noise_floor=opts.noise_floor,
-                                min_snr=opts.min_snr, band_prior=opts.band_prior, labels=labels,
-                                independent_groups=len(np.unique(data["image_id"])))
+    return solve.solve_lighting(
+        g,
+        h,
+        btb,
+        w,
+        int(eqs.count.sum()),
+        order,
+        noise_floor=opts.noise_floor,
+        min_snr=opts.min_snr,
+        band_prior=opts.band_prior,
+        labels=labels,
+        independent_groups=len(np.unique(data["image_id"])),
+    )
 
 
 def joint_initialization(data: dict, model: str, order: int, opts: ConvexOptions) -> tuple[np.ndarray, Brdf]:
@@ -175,13 +200,12 @@ def joint_initialization(data: dict, model: str, order: int, opts: ConvexOptions
             gram += a.T @ a
             rhs += a.T @ (data["radiance"][sl] * sw[sl, None])
         ridge = 1e-8 * np.trace(gram) / len(gram)
-        z = np.linalg.solve(gram + ridge * np.eye(len(gram)), rhs)            # (low + K, 3)
+        z = np.linalg.solve(gram + ridge * np.eye(len(gram)), rhs)  # (low + K, 3)
         x, y = z[:low], z[low:]
         ratio = np.maximum((x * y[:low]).sum(axis=0) / np.maximum((y[:low] ** 2).sum(axis=0), 1e-300), 0.0)
         constrained = np.concatenate([ratio[None, :] * y[:low], y])
         btb = (data["radiance"] ** 2 * data["weight"][:, None]).sum(axis=0)
-        rss = float((btb - 2 * (constrained * rhs).sum(axis=0)
-                     + np.einsum("ic,ij,jc->c", constrained, gram, constrained)).sum())
+        rss = float((btb - 2 * (constrained * rhs).sum(axis=0) + np.einsum("ic,ij,jc->c", constrained, gram, constrained)).sum())
         if best is None or rss < best[0]:
             best = (rss, width, ratio, y)
     _, width, ratio, y = best

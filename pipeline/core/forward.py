@@ -73,7 +73,7 @@ def design_terms(normal: np.ndarray, view_dir: np.ndarray, order: int, with_lobe
     cos_view = np.einsum("ij,ij->i", normal, view_dir)
     # the mirror direction: core.brdf.reflect, with n.v reused
     reflected = sh_basis(2.0 * cos_view[:, None] * normal - view_dir, order) if with_lobe else None
-    grazing = (1.0 - np.clip(cos_view, 0.0, 1.0)) ** 5                                               # fresnel_grazing
+    grazing = (1.0 - np.clip(cos_view, 0.0, 1.0)) ** 5  # fresnel_grazing
     return DesignTerms(diffuse, reflected, grazing, cos_view)
 
 
@@ -94,14 +94,13 @@ def channel_designs(terms: DesignTerms, brdf: Brdf, order: int) -> np.ndarray:
     designs = albedo[:, None, None] * terms.diffuse[None]
     if brdf.has_lobe:
         filt = sample_lobe_filters(brdf.model, brdf.lobe_width, order, terms.cos_view)
-        k = lobe_factor(brdf, terms.grazing)                     # (N, 3)
+        k = lobe_factor(brdf, terms.grazing)  # (N, 3)
         lobe = terms.reflected * filt[:, band_of_index(order)]
         designs = designs + k.T[:, :, None] * lobe[None]
     return designs
 
 
-def render_samples(coeffs: np.ndarray, brdf: Brdf, normal: np.ndarray, view_dir: np.ndarray,
-                   chunk: int = 65536) -> np.ndarray:
+def render_samples(coeffs: np.ndarray, brdf: Brdf, normal: np.ndarray, view_dir: np.ndarray, chunk: int = 65536) -> np.ndarray:
     """Forward model: radiance (N, 3) of samples lit by SH lighting ``coeffs`` ((L+1)^2, 3)."""
     coeffs = np.asarray(coeffs, dtype=float)
     order = int(round(np.sqrt(coeffs.shape[0]))) - 1
@@ -110,9 +109,9 @@ def render_samples(coeffs: np.ndarray, brdf: Brdf, normal: np.ndarray, view_dir:
     out = np.empty((n.shape[0], 3))
     with_lobe = brdf.has_lobe
     for s in range(0, n.shape[0], chunk):
-        terms = design_terms(n[s:s + chunk], v[s:s + chunk], order, with_lobe)
+        terms = design_terms(n[s : s + chunk], v[s : s + chunk], order, with_lobe)
         designs = channel_designs(terms, brdf, order)
-        out[s:s + chunk] = np.einsum("cnk,kc->nc", designs, coeffs)
+        out[s : s + chunk] = np.einsum("cnk,kc->nc", designs, coeffs)
     return out
 
 
@@ -123,11 +122,11 @@ def band_projections(coeffs: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """
     coeffs = np.asarray(coeffs, dtype=float)
     order = int(round(np.sqrt(coeffs.shape[0]))) - 1
-    basis = sh_basis(dirs, order)                                   # (N, K)
-    prod = basis[:, :, None] * coeffs[None, :, :]                   # (N, K, 3)
+    basis = sh_basis(dirs, order)  # (N, K)
+    prod = basis[:, :, None] * coeffs[None, :, :]  # (N, K, 3)
     out = np.zeros((basis.shape[0], order + 1, coeffs.shape[1]))
     for l in range(order + 1):
-        out[:, l] = prod[:, l * l:(l + 1) ** 2].sum(axis=1)
+        out[:, l] = prod[:, l * l : (l + 1) ** 2].sum(axis=1)
     return out
 
 
@@ -148,10 +147,10 @@ _AZIMUTHS = 24
 def _microfacet_profile_about_r(cos_view: float, roughness: float):
     """p(cos alpha): the microfacet transfer (F = 1) at angle alpha from r, averaged over the
     azimuth around r, for a view at cos(theta_o) = cos_view (normal = +Z)."""
-    s = np.sqrt(max(0.0, 1.0 - cos_view ** 2))
+    s = np.sqrt(max(0.0, 1.0 - cos_view**2))
     v = np.array([s, 0.0, cos_view])
     r = np.array([-s, 0.0, cos_view])
-    e1 = np.array([cos_view, 0.0, s])           # orthonormal frame (e1, e2, r)
+    e1 = np.array([cos_view, 0.0, s])  # orthonormal frame (e1, e2, r)
     e2 = np.array([0.0, 1.0, 0.0])
     beta = 2.0 * np.pi * (np.arange(_AZIMUTHS) + 0.5) / _AZIMUTHS
     brdf = Brdf("microfacet", albedo=(0.0, 0.0, 0.0), specular=(1.0, 1.0, 1.0), roughness=roughness)
@@ -159,8 +158,9 @@ def _microfacet_profile_about_r(cos_view: float, roughness: float):
     def profile(t: np.ndarray) -> np.ndarray:
         t = np.asarray(t, dtype=float).reshape(-1)
         st = np.sqrt(np.maximum(0.0, 1.0 - t * t))
-        w = (t[:, None, None] * r + st[:, None, None] * (np.cos(beta)[None, :, None] * e1
-                                                        + np.sin(beta)[None, :, None] * e2)).reshape(-1, 3)
+        w = (
+            t[:, None, None] * r + st[:, None, None] * (np.cos(beta)[None, :, None] * e1 + np.sin(beta)[None, :, None] * e2)
+        ).reshape(-1, 3)
         m = w.shape[0]
         val = cosine_weighted_brdf(brdf, np.broadcast_to([0.0, 0.0, 1.0], (m, 3)), w, np.broadcast_to(v, (m, 3)))[:, 0]
         return val.reshape(len(t), _AZIMUTHS).mean(axis=1)
@@ -176,8 +176,7 @@ def microfacet_filter_table(roughness: float, order: int) -> np.ndarray:
     widths = [2.0 * np.arctan(k * sigma) for k in (1.0, 3.0, 6.0)] + [np.pi / 3]
     breaks = [0.0, np.pi / 2, np.pi] + [float(min(a, np.pi / 2)) for a in widths]
     # 24 Gauss–Legendre nodes per panel: the panels sit at the lobe's scales (|error| < 2e-4 vs 96)
-    table = np.stack([transfer.lobe_filter(_microfacet_profile_about_r(c, sigma), order, 24, breaks)
-                      for c in VIEW_COS_GRID])
+    table = np.stack([transfer.lobe_filter(_microfacet_profile_about_r(c, sigma), order, 24, breaks) for c in VIEW_COS_GRID])
     table.flags.writeable = False
     return table
 

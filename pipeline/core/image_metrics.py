@@ -38,8 +38,9 @@ class RelightError:
     blocks: int
 
 
-def block_relative_rmse(predictions: list[np.ndarray], references: list[np.ndarray],
-                        masks: list[np.ndarray] | None = None, fit_scale: bool = True) -> RelightError:
+def block_relative_rmse(
+    predictions: list[np.ndarray], references: list[np.ndarray], masks: list[np.ndarray] | None = None, fit_scale: bool = True
+) -> RelightError:
     """score_relight.py's metric over views: predictions (H, W, >=3), references RGBA (H, W, 4);
     ``masks`` (H, W) bool replace the references' alpha > 0.999 (e.g. when the background is visible)."""
     pred, ref, rim = [], [], []
@@ -61,6 +62,7 @@ def block_relative_rmse(predictions: list[np.ndarray], references: list[np.ndarr
 
 
 # -------------------------------------------------------------- the relight check's figures (relight --compare)
+
 
 def interior_pixels(alpha: np.ndarray) -> np.ndarray:
     """Pixels fully covered by the object (alpha >= 0.999) whose 4-neighbours are covered too (no silhouette
@@ -100,29 +102,42 @@ class ErrorSums:
         """Relative RMS figures: ``relative_error`` sqrt(err / ref) per pixel, ``noise_floor``
         sqrt(noise / ref) (what the photos' noise alone gives with an exact model), and their block-mean
         counterparts ``block_relative_error``, ``block_noise_floor`` (NaN where there is nothing)."""
+
         def ratio(a: float, b: float) -> float:
             return float(np.sqrt(a / b)) if b > 0 and np.isfinite(a) else float("nan")
 
-        return {"relative_error": ratio(self.err, self.ref), "noise_floor": ratio(self.noise, self.ref),
-                "block_relative_error": ratio(self.block_err, self.block_ref),
-                "block_noise_floor": ratio(self.block_noise, self.block_ref), "pixels": self.pixels,
-                "blocks": self.blocks}
+        return {
+            "relative_error": ratio(self.err, self.ref),
+            "noise_floor": ratio(self.noise, self.ref),
+            "block_relative_error": ratio(self.block_err, self.block_ref),
+            "block_noise_floor": ratio(self.block_noise, self.block_ref),
+            "pixels": self.pixels,
+            "blocks": self.blocks,
+        }
 
 
-def error_sums(prediction: np.ndarray, photo: np.ndarray, mask: np.ndarray, noise_a: float, noise_b: float,
-               block: int = BLOCK) -> ErrorSums:
+def error_sums(
+    prediction: np.ndarray, photo: np.ndarray, mask: np.ndarray, noise_a: float, noise_b: float, block: int = BLOCK
+) -> ErrorSums:
     """ErrorSums of ``prediction`` (H, W, >=3; already scaled) against ``photo`` (H, W, 3) on ``mask``
     (H, W) bool, with the photo's noise variance per channel a + b B (B the pixel's channel-mean
     photo value, clipped at 0; pipeline.core.noise.noise_level_function's model; NaN a: unknown)."""
     m = np.asarray(mask, bool)
     p, g = np.asarray(prediction, float)[..., :3], np.asarray(photo, float)[..., :3]
-    var = noise_a + noise_b * np.maximum(g.mean(axis=-1), 0.0)               # (H, W), per channel
+    var = noise_a + noise_b * np.maximum(g.mean(axis=-1), 0.0)  # (H, W), per channel
     full = full_blocks(m, block)
     pb, gb = block_means(np.where(m[..., None], p, 0.0), block)[full], block_means(np.where(m[..., None], g, 0.0), block)[full]
-    vb = block_means(np.where(m, var, 0.0)[..., None], block)[..., 0][full] / block ** 2
-    return ErrorSums(err=float(((p[m] - g[m]) ** 2).sum()), ref=float((g[m] ** 2).sum()), noise=3.0 * float(var[m].sum()),
-                     block_err=float(((pb - gb) ** 2).sum()), block_ref=float((gb ** 2).sum()),
-                     block_noise=3.0 * float(vb.sum()), pixels=int(m.sum()), blocks=int(full.sum()))
+    vb = block_means(np.where(m, var, 0.0)[..., None], block)[..., 0][full] / block**2
+    return ErrorSums(
+        err=float(((p[m] - g[m]) ** 2).sum()),
+        ref=float((g[m] ** 2).sum()),
+        noise=3.0 * float(var[m].sum()),
+        block_err=float(((pb - gb) ** 2).sum()),
+        block_ref=float((gb**2).sum()),
+        block_noise=3.0 * float(vb.sum()),
+        pixels=int(m.sum()),
+        blocks=int(full.sum()),
+    )
 
 
 def total_figures(sums: list[ErrorSums]) -> dict:

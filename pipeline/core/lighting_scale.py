@@ -36,16 +36,18 @@ from pipeline.core.material_search import END_PROBE, LOCATE_ROUGHNESS, ROUGHNESS
 from pipeline.core.selection import descend_grid, parabola_minimum, refine_bracket
 from pipeline.core.sources import Sources
 
-SCALE_STEP = 0.02       # the profile's scales: exp(k SCALE_STEP), 2 % apart ...
-SCALE_RANGE = 1e4       # ... from 1/SCALE_RANGE to SCALE_RANGE (an end reached: unbounded that way)
-SCALES = np.exp(SCALE_STEP * np.arange(-int(round(np.log(SCALE_RANGE) / SCALE_STEP)),
-                                       int(round(np.log(SCALE_RANGE) / SCALE_STEP)) + 1))
-ONE = int(np.argmin(np.abs(np.log(SCALES))))     # SCALES[ONE] == 1.0 exactly
-CHUNK = 128             # scales evaluated at once
+SCALE_STEP = 0.02  # the profile's scales: exp(k SCALE_STEP), 2 % apart ...
+SCALE_RANGE = 1e4  # ... from 1/SCALE_RANGE to SCALE_RANGE (an end reached: unbounded that way)
+SCALES = np.exp(
+    SCALE_STEP * np.arange(-int(round(np.log(SCALE_RANGE) / SCALE_STEP)), int(round(np.log(SCALE_RANGE) / SCALE_STEP)) + 1)
+)
+ONE = int(np.argmin(np.abs(np.log(SCALES))))  # SCALES[ONE] == 1.0 exactly
+CHUNK = 128  # scales evaluated at once
 
 
-def level_errors(shade: np.ndarray, specular: np.ndarray, obs: Observations, scales: np.ndarray = SCALES,
-                 trim: float = TRIM_FRACTION) -> np.ndarray:
+def level_errors(
+    shade: np.ndarray, specular: np.ndarray, obs: Observations, scales: np.ndarray = SCALES, trim: float = TRIM_FRACTION
+) -> np.ndarray:
     """The error (S,) of radiance = s (rho shade + specular) at each of ``scales`` (S,), scored as the
     fit scores a candidate under a known map (material_fit.fit_to_map): rho (3,) the weighted least
     squares clipped to [0, 1] (closed form per scale: the sums over samples taken once; the fit's
@@ -57,13 +59,12 @@ def level_errors(shade: np.ndarray, specular: np.ndarray, obs: Observations, sca
     qq, qb, qr = ((w[:, None] * shade * x).sum(0) for x in (shade, b, specular))
     s = np.asarray(scales, float)
     rho = np.clip((qb / s[:, None] - qr) / np.maximum(qq, 1e-300), 0.0, 1.0)
-    keep_n = int(np.floor((w.size - 1) * (1.0 - trim))) + 1     # trimmed_rmse's: e <= its (1 - trim) quantile
+    keep_n = int(np.floor((w.size - 1) * (1.0 - trim))) + 1  # trimmed_rmse's: e <= its (1 - trim) quantile
     out = np.empty(s.size)
     for a in range(0, s.size, CHUNK):
         sl = slice(a, a + CHUNK)
         e = ((b[None] - s[sl, None, None] * (rho[sl, None, :] * shade[None] + specular[None])) ** 2).sum(axis=2)
-        keep = (e <= np.partition(e, keep_n - 1, axis=1)[:, keep_n - 1:keep_n]) if keep_n < w.size else \
-            np.ones_like(e, bool)
+        keep = (e <= np.partition(e, keep_n - 1, axis=1)[:, keep_n - 1 : keep_n]) if keep_n < w.size else np.ones_like(e, bool)
         out[sl] = np.sqrt((w * e * keep).sum(axis=1) / (3 * (w * keep).sum(axis=1)))
     return out
 
@@ -77,7 +78,7 @@ class ScaleProfile:
     given); ``candidates`` the table: per candidate its best s, least error and error at s = 1."""
 
     errors: np.ndarray
-    best: float          # between the grid's scales: the parabola's vertex through the least and its neighbours
+    best: float  # between the grid's scales: the parabola's vertex through the least and its neighbours
     limit: float
     accepted: tuple[float | None, float | None]
     at_one: float
@@ -88,9 +89,15 @@ class ScaleProfile:
         """The profile of ``errors`` (S,) over SCALES, its limit = least (1 + ``tolerance``) + ``noise``."""
         best = int(np.argmin(errors))
         limit = float(errors[best] * (1.0 + tolerance) + noise)
-        near = slice(max(best - 1, 0), best + 2)      # the least between the grid's scales: a parabola's vertex
-        return cls(errors, parabola_minimum(SCALES[near], errors[near]), limit, _accepted_run(errors, best, limit),
-                   float(errors[ONE]), candidates or [])
+        near = slice(max(best - 1, 0), best + 2)  # the least between the grid's scales: a parabola's vertex
+        return cls(
+            errors,
+            parabola_minimum(SCALES[near], errors[near]),
+            limit,
+            _accepted_run(errors, best, limit),
+            float(errors[ONE]),
+            candidates or [],
+        )
 
     @property
     def accepts_one(self) -> bool:
@@ -124,8 +131,16 @@ def _accepted_run(errors: np.ndarray, best: int, limit: float) -> tuple[float | 
     return (None if lo == 0 else float(SCALES[lo]), None if hi == len(errors) - 1 else float(SCALES[hi]))
 
 
-def scale_profile(shading: Callable[[Principled | None], tuple[np.ndarray, np.ndarray]], obs: Observations,
-                  roughness_grid, *, ior: float, tolerance: float, noise: float, refinements: int) -> ScaleProfile:
+def scale_profile(
+    shading: Callable[[Principled | None], tuple[np.ndarray, np.ndarray]],
+    obs: Observations,
+    roughness_grid,
+    *,
+    ior: float,
+    tolerance: float,
+    noise: float,
+    refinements: int,
+) -> ScaleProfile:
     """The scale profile (module docstring) of the samples ``obs`` from ``shading(material)`` ->
     (Q, R) at the map as given (None: Lambert): Lambert; a dielectric over ``roughness_grid``
     (descended from its point nearest LOCATE_ROUGHNESS to the bracket of its least error, as the
@@ -153,8 +168,16 @@ def scale_profile(shading: Callable[[Principled | None], tuple[np.ndarray, np.nd
     def refine(metallic: float, score) -> None:
         fits = families[metallic]
         if len(fits) > 1:
-            refine_bracket(fits, lambda r: fit_at(metallic, r), score, refinements,
-                           low_end=MIN_ROUGHNESS, high_end=1.0, xtol=ROUGHNESS_XTOL, end_probe=END_PROBE)
+            refine_bracket(
+                fits,
+                lambda r: fit_at(metallic, r),
+                score,
+                refinements,
+                low_end=MIN_ROUGHNESS,
+                high_end=1.0,
+                xtol=ROUGHNESS_XTOL,
+                end_probe=END_PROBE,
+            )
             # and the parabola's vertex through the best three: the reading moves with the roughness (a
             # highlight's level trades with its width: 4 % of roughness, 6 % of scale at 0.3)
             rs = np.array(sorted(fits))
@@ -172,19 +195,25 @@ def scale_profile(shading: Callable[[Principled | None], tuple[np.ndarray, np.nd
     refine(0.0, least)
     start = min(families[0.0], key=lambda r: least(families[0.0][r]))
     metals = [1.0] if least(fit_at(1.0, start)) < least(families[0.0][start]) else []
-    if metals:         # a metal only where it does better at the dielectric's best roughness (as select_material)
+    if metals:  # a metal only where it does better at the dielectric's best roughness (as select_material)
         grid_start = min(grid, key=lambda r: abs(np.log(r / start)))
         descend_grid(grid, lambda r: least(fit_at(1.0, r)), grid.index(grid_start))
         refine(1.0, least)
     errors = profile()
-    if errors[ONE] > errors.min() * (1.0 + tolerance) + noise:     # the map as given: its best roughness too
+    if errors[ONE] > errors.min() * (1.0 + tolerance) + noise:  # the map as given: its best roughness too
         for metallic in (0.0, *metals):
             refine(metallic, at_one)
         errors = profile()
-    rows = [{"name": "lambert" if m is None else f"{'metal' if m else 'dielectric'} roughness {r:.3f}",
-             "best_scale": float(SCALES[int(np.argmin(e))]), "least_rmse": float(e.min()),
-             "rmse_at_given": float(e[ONE])}
-            for m, fits in families.items() for r, e in sorted(fits.items())]
+    rows = [
+        {
+            "name": "lambert" if m is None else f"{'metal' if m else 'dielectric'} roughness {r:.3f}",
+            "best_scale": float(SCALES[int(np.argmin(e))]),
+            "least_rmse": float(e.min()),
+            "rmse_at_given": float(e[ONE]),
+        }
+        for m, fits in families.items()
+        for r, e in sorted(fits.items())
+    ]
     return ScaleProfile.of(errors, tolerance, noise, rows)
 
 
@@ -201,18 +230,28 @@ def map_shading(scene, direct, geo: prt.Geometry, base: np.ndarray, scale: float
             r = scene.with_brdf(brdf_from_material(material, np.asarray(b, float)))
             d, s = r.shade_parts(geo.faces, geo.bary, geo.view_dirs, direct, geo.footprint)
             return d * scale, s * scale
+
         if material is not None and material.metallic > 0:
             zero, one = parts(np.zeros(3))[1], parts(np.ones(3))[1]
             return one - zero, zero
         return parts(base)
+
     return shading
 
 
-def sh_shading(geo: prt.Geometry, coeffs: np.ndarray, directions: np.ndarray, intensity: np.ndarray,
-               base: np.ndarray, lobe_samples: int, seed: int) -> Callable:
+def sh_shading(
+    geo: prt.Geometry,
+    coeffs: np.ndarray,
+    directions: np.ndarray,
+    intensity: np.ndarray,
+    base: np.ndarray,
+    lobe_samples: int,
+    seed: int,
+) -> Callable:
     """shading(material) -> (Q, R) at the samples of ``geo`` under a lighting given as SH ``coeffs`` +
     directional sources (``directions``, ``intensity``; the transfer of pipeline.core.prt, as
     material_fit.shading_parts), the interreflection at the grey ``base``."""
+
     def shading(material: Principled | None) -> tuple[np.ndarray, np.ndarray]:
         spec = None if material is None else prt.specular_transfer(geo, material, lobe_samples, seed)
         sources = None
@@ -220,6 +259,7 @@ def sh_shading(geo: prt.Geometry, coeffs: np.ndarray, directions: np.ndarray, in
             sources = Sources(prt.source_transfer(geo, material, directions), intensity)
         fit = material_fit.MaterialFit(material, np.asarray(base, float), coeffs, None, [], 0.0, 0.0, sources)
         return material_fit.shading_parts(geo, fit, spec)
+
     return shading
 
 

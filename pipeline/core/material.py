@@ -39,11 +39,12 @@ from pipeline.core.quadrature import gauss_legendre
 
 _EPS = 1e-12
 MIN_ROUGHNESS = 0.02  # alpha 4e-4: below this the lobe is narrower than any map's pixels
-_ALBEDO_NODES = 48    # Gauss-Legendre nodes in mu of the directional albedo tables
-_VNDF_GRID = 48       # (n x n) Gauss-Legendre rule on the VNDF's unit square per node
+_ALBEDO_NODES = 48  # Gauss-Legendre nodes in mu of the directional albedo tables
+_VNDF_GRID = 48  # (n x n) Gauss-Legendre rule on the VNDF's unit square per node
 
 
 # --------------------------------------------------------------------------------------- GGX pieces
+
 
 def ggx_distribution(cos_h: np.ndarray, alpha: float) -> np.ndarray:
     """GGX D(h) for cos_h = n.h; int D(h) (n.h) dω_h = 1 over the hemisphere."""
@@ -104,9 +105,11 @@ def sample_ggx_vndf(w_out: np.ndarray, alpha: float, u1: np.ndarray, u2: np.ndar
     vh = vh / np.linalg.norm(vh, axis=-1, keepdims=True)
     lensq = vh[..., 0] ** 2 + vh[..., 1] ** 2
     safe = np.sqrt(np.maximum(lensq, _EPS))
-    t1 = np.where((lensq > 1e-12)[..., None],
-                  np.stack([-vh[..., 1], vh[..., 0], np.zeros_like(lensq)], axis=-1) / safe[..., None],
-                  np.array([1.0, 0.0, 0.0]))
+    t1 = np.where(
+        (lensq > 1e-12)[..., None],
+        np.stack([-vh[..., 1], vh[..., 0], np.zeros_like(lensq)], axis=-1) / safe[..., None],
+        np.array([1.0, 0.0, 0.0]),
+    )
     t2 = np.cross(vh, t1)
     r = np.sqrt(u1)
     phi = 2.0 * np.pi * u2
@@ -127,13 +130,13 @@ def ggx_lobe_cos(normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray, alpha:
     mu_out = np.einsum("ij,ij->i", n, wo)
     h = wi + wo
     h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), _EPS)
-    lobe = ggx_distribution(np.einsum("ij,ij->i", n, h), alpha) * smith_g2(mu_in, mu_out, alpha) / (
-        4.0 * np.maximum(mu_out, _EPS))
+    lobe = (
+        ggx_distribution(np.einsum("ij,ij->i", n, h), alpha) * smith_g2(mu_in, mu_out, alpha) / (4.0 * np.maximum(mu_out, _EPS))
+    )
     return np.where((mu_in > 0) & (mu_out > 0), lobe, 0.0), np.einsum("ij,ij->i", wo, h)
 
 
-def microfacet_reflection(normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray, alpha: float,
-                          ior: float) -> np.ndarray:
+def microfacet_reflection(normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray, alpha: float, ior: float) -> np.ndarray:
     """Single-scattering GGX reflection F D G2 / (4 mu_in mu_out) (N,) with the exact dielectric
     Fresnel F(w_in . h): the reciprocal core of the specular lobe (no multiple-scattering factor)."""
     lobe, cos_oh = ggx_lobe_cos(normal, w_in, w_out, alpha)
@@ -149,6 +152,7 @@ def unit_square_rule(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 # ------------------------------------------------------------------------------ directional albedo
+
 
 @functools.lru_cache(maxsize=1)
 def _mu_nodes() -> tuple[np.ndarray, np.ndarray]:
@@ -170,13 +174,12 @@ def albedo_table(alpha: float, ior: float) -> np.ndarray:
     mu, _ = _mu_nodes()
     u1, u2, w = unit_square_rule(_VNDF_GRID)
     s = np.sqrt(1.0 - mu * mu)
-    wo = np.stack([s, np.zeros_like(mu), mu], axis=-1)[:, None, :]          # (n, 1, 3)
-    h = sample_ggx_vndf(wo, alpha, u1[None, :], u2[None, :])                # (n, m, 3)
-    c = np.einsum("nmk,nk->nm", h, wo[:, 0])                               # w_out . h
+    wo = np.stack([s, np.zeros_like(mu), mu], axis=-1)[:, None, :]  # (n, 1, 3)
+    h = sample_ggx_vndf(wo, alpha, u1[None, :], u2[None, :])  # (n, m, 3)
+    c = np.einsum("nmk,nk->nm", h, wo[:, 0])  # w_out . h
     mu_in = 2.0 * c * h[..., 2] - mu[:, None]
     weight = smith_g2(mu_in, mu[:, None], alpha) / smith_g1(mu, alpha)[:, None] * w[None, :]
-    table = np.stack([weight.sum(1), (weight * schlick_weight(c)).sum(1),
-                      (weight * fresnel_dielectric(c, ior)).sum(1)])
+    table = np.stack([weight.sum(1), (weight * schlick_weight(c)).sum(1), (weight * fresnel_dielectric(c, ior)).sum(1)])
     table.flags.writeable = False
     return table
 
@@ -188,7 +191,7 @@ def interpolate_mu(values: np.ndarray, mu: np.ndarray) -> np.ndarray:
     x = np.clip(mu, 0.0, 1.0)
     if values.ndim == 1:
         return np.interp(x, nodes, values)
-    if (values == values[:, :1]).all():      # grey (a dielectric's untinted tables): one interpolation
+    if (values == values[:, :1]).all():  # grey (a dielectric's untinted tables): one interpolation
         return np.repeat(np.interp(x, nodes, values[:, 0])[:, None], values.shape[1], axis=1)
     return np.stack([np.interp(x, nodes, values[:, c]) for c in range(values.shape[1])], axis=-1)
 
@@ -209,6 +212,7 @@ def energy_compensation(e_single: np.ndarray, e_avg: float, fss: np.ndarray) -> 
 
 
 # ------------------------------------------------------------------------------------ the material
+
 
 @dataclass(frozen=True)
 class Principled:
@@ -235,16 +239,24 @@ class Principled:
         # tinted dielectric F = F0t + (1 - F0t) (F_real - F0) / (1 - F0): linear in F_real
         scale = (1.0 - f0t) / (1.0 - f0)
         offset = f0t - scale * f0
-        e_diel = offset[None, :] * e1[:, None] + scale[None, :] * ed[:, None]        # (n, 3)
+        e_diel = offset[None, :] * e1[:, None] + scale[None, :] * ed[:, None]  # (n, 3)
         e_avg = hemispherical_average(e1)
         mu, _ = _mu_nodes()
         fss_diel = offset + scale * hemispherical_average(fresnel_dielectric(mu, float(self.ior)))
         comp_diel = energy_compensation(e1, e_avg, fss_diel)
-        object.__setattr__(self, "_tables", {
-            "e1": e1, "e5": e5, "e_avg": e_avg, "offset": offset, "scale": scale,
-            "spec_albedo": comp_diel * e_diel,                                         # (n, 3)
-            "comp_diel": comp_diel,
-        })
+        object.__setattr__(
+            self,
+            "_tables",
+            {
+                "e1": e1,
+                "e5": e5,
+                "e_avg": e_avg,
+                "offset": offset,
+                "scale": scale,
+                "spec_albedo": comp_diel * e_diel,  # (n, 3)
+                "comp_diel": comp_diel,
+            },
+        )
 
     @property
     def alpha(self) -> float:
@@ -271,15 +283,14 @@ class Principled:
         e1 = interpolate_mu(self._tables["e1"], mu_out)
         return energy_compensation(e1, self._tables["e_avg"], fss)
 
-    def specular_fresnel(self, cos_oh: np.ndarray, mu_out: np.ndarray,
-                         base_color: np.ndarray | None = None) -> np.ndarray:
+    def specular_fresnel(self, cos_oh: np.ndarray, mu_out: np.ndarray, base_color: np.ndarray | None = None) -> np.ndarray:
         """F times the multiple-scattering factor and the metallic mix, per pair (N, 3):
         the specular f = this * D G2 / (4 mu_in mu_out).  ``cos_oh`` (N,) with ``mu_out`` (N,) and
         ``base_color`` (N, 3) per pair, or (N, S) for S pairs per point with them per point (N,),
         (N, 3) -> (N, S, 3): the per-point factors are computed once, not per pair."""
         cos_oh = np.asarray(cos_oh, float)
         n = cos_oh.shape[0]
-        per = (slice(None),) + (None,) * (cos_oh.ndim - 1)    # a point's factor over its pairs
+        per = (slice(None),) + (None,) * (cos_oh.ndim - 1)  # a point's factor over its pairs
         t = self._tables
         f_real = fresnel_dielectric(cos_oh, float(self.ior))
         f_diel = t["offset"] + t["scale"] * f_real[..., None]
@@ -302,12 +313,16 @@ class Principled:
     def albedo(self, mu_out: np.ndarray, base_color: np.ndarray | None = None) -> np.ndarray:
         """Total directional albedo (N, 3) of the material seen from mu_out (white furnace)."""
         mu_out = np.asarray(mu_out, float)
-        return ((1.0 - self.metallic) * self.specular_albedo(mu_out) + self.diffuse_weight(mu_out, base_color)
-                + self.metallic * self.metal_albedo(mu_out, base_color))
+        return (
+            (1.0 - self.metallic) * self.specular_albedo(mu_out)
+            + self.diffuse_weight(mu_out, base_color)
+            + self.metallic * self.metal_albedo(mu_out, base_color)
+        )
 
     # -- pointwise evaluation ---------------------------------------------------------------
-    def eval_cos(self, normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray,
-                 base_color: np.ndarray | None = None) -> np.ndarray:
+    def eval_cos(
+        self, normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarray, base_color: np.ndarray | None = None
+    ) -> np.ndarray:
         """f(w_in, w_out) max(0, n.w_in) per row (N, 3): what the reflection equation integrates."""
         n, wi, wo = (np.atleast_2d(np.asarray(a, float)) for a in (normal, w_in, w_out))
         mu_in = np.einsum("ij,ij->i", n, wi)
@@ -324,8 +339,14 @@ def brdf_from_material(material: "Principled | None", base_color) -> Brdf:
     """The Brdf of a material (None: Lambert) with a uniform base colour (3,)."""
     if material is None:
         return Brdf("lambert", albedo=base_color)
-    return Brdf("principled", base_color=base_color, roughness=material.roughness, metallic=material.metallic,
-                ior=material.ior, specular_tint=material.specular_tint)
+    return Brdf(
+        "principled",
+        base_color=base_color,
+        roughness=material.roughness,
+        metallic=material.metallic,
+        ior=material.ior,
+        specular_tint=material.specular_tint,
+    )
 
 
 def material_from_brdf(brdf: Brdf) -> Principled | None:
@@ -333,5 +354,10 @@ def material_from_brdf(brdf: Brdf) -> Principled | None:
     seed's lobes are evaluated by their callers): brdf_from_material's inverse."""
     if brdf.model != "principled":
         return None
-    return Principled(base_color=brdf.base_color, roughness=brdf.roughness, metallic=brdf.metallic,
-                      ior=brdf.ior, specular_tint=brdf.specular_tint)
+    return Principled(
+        base_color=brdf.base_color,
+        roughness=brdf.roughness,
+        metallic=brdf.metallic,
+        ior=brdf.ior,
+        specular_tint=brdf.specular_tint,
+    )

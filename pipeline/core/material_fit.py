@@ -59,18 +59,33 @@ class MaterialFit:
     validation_rmse: float
     train_rmse: float
     sources: "Sources | None" = None
-    parts: tuple[np.ndarray, np.ndarray] | None = None   # (diffuse per unit base, specular) (N, 3) each, when
-                                                          # the fit ran on a renderer's own shading (fit_to_map)
+    parts: tuple[np.ndarray, np.ndarray] | None = None  # (diffuse per unit base, specular) (N, 3) each, when
+    # the fit ran on a renderer's own shading (fit_to_map)
     detail: "Detail | None" = None
 
 
-def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observations, *, order: int,
-                 folds: int, base0: np.ndarray, spec: prt.SpecularTransfer | None = None, fix_base: bool = False,
-                 orders: list[int] | None = None, lighting_kw: dict | None = None, max_bounces: int = 8,
-                 max_sources: int = 0, source_gain: float = 0.02, source_peaks: int = 0,
-                 source_directions: np.ndarray | None = None,
-                 known_coeffs: np.ndarray | None = None, known_sources: np.ndarray | None = None,
-                 base_grid: int = 25, detail: "DetailSetup | None" = None) -> MaterialFit:
+def fit_material(
+    geo: prt.Geometry,
+    material: Principled | None,
+    obs: Observations,
+    *,
+    order: int,
+    folds: int,
+    base0: np.ndarray,
+    spec: prt.SpecularTransfer | None = None,
+    fix_base: bool = False,
+    orders: list[int] | None = None,
+    lighting_kw: dict | None = None,
+    max_bounces: int = 8,
+    max_sources: int = 0,
+    source_gain: float = 0.02,
+    source_peaks: int = 0,
+    source_directions: np.ndarray | None = None,
+    known_coeffs: np.ndarray | None = None,
+    known_sources: np.ndarray | None = None,
+    base_grid: int = 25,
+    detail: "DetailSetup | None" = None,
+) -> MaterialFit:
     """Lighting and base colour for one material candidate (roughness, ior, metallic fixed).
 
     ``spec``: its specular transfer (prt.specular_transfer; None for Lambert).  ``base0``: the
@@ -101,12 +116,14 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
         base = joint_start(geo, layer, spec, obs, order)
     sources: Sources | None = None
     if source_directions is not None and len(source_directions):
-        sources = Sources(prt.source_transfer(geo, material, source_directions),
-                          np.zeros((len(source_directions), 3)) if known_sources is None else np.asarray(known_sources))
+        sources = Sources(
+            prt.source_transfer(geo, material, source_directions),
+            np.zeros((len(source_directions), 3)) if known_sources is None else np.asarray(known_sources),
+        )
 
     cand = Candidate(geo, obs, material, layer, spec, order, folds, kw, max_bounces)
 
-    if max_sources > 0 and known is None:      # (with source_directions: the pursuit continued from them)
+    if max_sources > 0 and known is None:  # (with source_directions: the pursuit continued from them)
         sources = add_sources(cand, base, max_sources, source_gain, source_peaks, sources)
     if not fix_base:
         base = _fit_base_colour(cand, base, float(np.mean(base0)), sources, known, base_grid)
@@ -125,20 +142,40 @@ def fit_material(geo: prt.Geometry, material: Principled | None, obs: Observatio
     cands = solve.cross_validate_orders(system.equations(target), orders or [order], None, **kw)
     best = min(range(len(cands)), key=lambda i: cands[i]["validation_rmse"])
     fit = cands[best]["fit"]
-    out = MaterialFit(material, base, fit.coeffs, fit, [{k: v for k, v in c.items() if k != "fit"} for c in cands],
-                      float(cands[best]["validation_rmse"]), float(cands[best]["train_rmse"]), sources)
+    out = MaterialFit(
+        material,
+        base,
+        fit.coeffs,
+        fit,
+        [{k: v for k, v in c.items() if k != "fit"} for c in cands],
+        float(cands[best]["validation_rmse"]),
+        float(cands[best]["train_rmse"]),
+        sources,
+    )
     if not tries_detail(detail, material, fix_base, obs):
         return out
-    refit = with_detail(geo, out, spec, obs, detail, order=order, folds=folds, orders=orders, lighting_kw=kw,
-                        max_bounces=max_bounces, base_grid=base_grid)
+    refit = with_detail(
+        geo,
+        out,
+        spec,
+        obs,
+        detail,
+        order=order,
+        folds=folds,
+        orders=orders,
+        lighting_kw=kw,
+        max_bounces=max_bounces,
+        base_grid=base_grid,
+    )
     return refit if refit.validation_rmse < out.validation_rmse * (1.0 - source_gain) else out
 
 
 def tries_detail(detail: "DetailSetup | None", material: Principled | None, fix_base: bool, obs: Observations) -> bool:
     """Whether fit_material tries the lighting's detail part (with_detail): asked for, a
     dielectric's lobe, the base colour free and views to hold out."""
-    return detail is not None and not fix_base and material is not None and material.metallic == 0 \
-        and len(np.unique(obs.fold)) > 1
+    return (
+        detail is not None and not fix_base and material is not None and material.metallic == 0 and len(np.unique(obs.fold)) > 1
+    )
 
 
 @dataclass(frozen=True)
@@ -164,8 +201,9 @@ class Detail:
     validation_rmse_without: float
 
 
-def fit_detail_map(transfer, residual: np.ndarray, weight: np.ndarray, order: int, height: int,
-                   iterations: int = 5) -> np.ndarray:
+def fit_detail_map(
+    transfer, residual: np.ndarray, weight: np.ndarray, order: int, height: int, iterations: int = 5
+) -> np.ndarray:
     """A detail map (H * 2H, 3) through detail transfer ``transfer`` (N, H * 2H; prt.detail_transfer)
     from the residual (N, 3) of the SH + sources fit: SIRT (Gilbert 1972: x += T^T W (r - T x) /
     (T^T W T 1)) projected after every step onto maps without SH bands <= ``order`` (those are the
@@ -176,7 +214,7 @@ def fit_detail_map(transfer, residual: np.ndarray, weight: np.ndarray, order: in
     and 0.383)."""
     w = np.asarray(weight, float)
     norm = np.asarray(transfer.T @ (w * np.asarray(transfer.sum(axis=1)).ravel())).ravel()
-    norm = norm + 1e-3 * max(float(norm.max()), 1e-300)       # cells no sample sees stay 0
+    norm = norm + 1e-3 * max(float(norm.max()), 1e-300)  # cells no sample sees stay 0
     detail = np.zeros((transfer.shape[1], residual.shape[1]))
     for _ in range(iterations):
         detail += (transfer.T @ (w[:, None] * (residual - transfer @ detail))) / norm[:, None]
@@ -185,8 +223,9 @@ def fit_detail_map(transfer, residual: np.ndarray, weight: np.ndarray, order: in
     return detail
 
 
-def _fit_base_colour(cand: Candidate, base: np.ndarray, level: float, sources: Sources | None,
-                     known: np.ndarray | None, grid: int) -> np.ndarray:
+def _fit_base_colour(
+    cand: Candidate, base: np.ndarray, level: float, sources: Sources | None, known: np.ndarray | None, grid: int
+) -> np.ndarray:
     """fit_material's base colour (3,) from the start ``base``: with the lighting known or no
     specular layer, least squares in rho given the lighting, alternated with the interreflection
     (Lambert with the lighting unknown: the chromaticity only, its mean kept at ``level``, the
@@ -206,25 +245,38 @@ def _fit_base_colour(cand: Candidate, base: np.ndarray, level: float, sources: S
     # the ridge is (sigma / (band_prior |L_0|))^2 W / views (pipeline.core.solve): scaled with the
     # lighting's DC as rho changes, so that no rho is favoured by a relatively weaker prior
     ridge_dc2 = start.ridge * float(np.mean(start.coeffs[0] ** 2))
-    for _ in range(2 if cand.geo.interreflects else 1):    # the second with the interreflection of the first's rho
+    for _ in range(2 if cand.geo.interreflects else 1):  # the second with the interreflection of the first's rho
         base = _base_search(cand, base, sources, ridge_dc2, grid)
     return base
 
 
-def held_out_detail(transfer, residual: np.ndarray, obs: Observations, order: int, height: int,
-                    iterations: int = 5) -> np.ndarray:
+def held_out_detail(
+    transfer, residual: np.ndarray, obs: Observations, order: int, height: int, iterations: int = 5
+) -> np.ndarray:
     """Each sample's detail radiance (N, 3) through the map fitted (fit_detail_map) on the other folds."""
     out = np.zeros_like(residual)
     for k in np.unique(obs.fold):
         train, test = obs.fold != k, obs.fold == k
-        out[test] = transfer[test] @ fit_detail_map(transfer[train], residual[train], obs.weight[train], order,
-                                                    height, iterations)
+        out[test] = transfer[test] @ fit_detail_map(
+            transfer[train], residual[train], obs.weight[train], order, height, iterations
+        )
     return out
 
 
-def with_detail(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer, obs: Observations,
-                setup: DetailSetup, *, order: int, folds: int, orders: list[int] | None, lighting_kw: dict,
-                max_bounces: int = 8, base_grid: int = 25) -> MaterialFit:
+def with_detail(
+    geo: prt.Geometry,
+    fit: MaterialFit,
+    spec: prt.SpecularTransfer,
+    obs: Observations,
+    setup: DetailSetup,
+    *,
+    order: int,
+    folds: int,
+    orders: list[int] | None,
+    lighting_kw: dict,
+    max_bounces: int = 8,
+    base_grid: int = 25,
+) -> MaterialFit:
     """A dielectric candidate refitted beside the lighting's detail part (Detail): the map is fitted
     to the candidate's residual fold by fold, then base colour and SH refitted (the sources where
     the candidate found them) to the radiance less each sample's held-out detail.  A sharp lobe
@@ -235,16 +287,34 @@ def with_detail(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer,
     height = prt.detail_height(fit.material)
     transfer = prt.detail_transfer(geo, fit.material, height, setup.lobe_samples, setup.seed)
     radiance = held_out_detail(transfer, obs.radiance - predict(geo, fit, spec), obs, order, height, setup.iterations)
-    refit = fit_material(geo, fit.material, Observations(obs.radiance - radiance, obs.weight, obs.fold), order=order,
-                         folds=folds, base0=fit.base, spec=spec, orders=orders, lighting_kw=lighting_kw,
-                         max_bounces=max_bounces, base_grid=base_grid,
-                         source_directions=None if fit.sources is None else fit.sources.directions)
+    refit = fit_material(
+        geo,
+        fit.material,
+        Observations(obs.radiance - radiance, obs.weight, obs.fold),
+        order=order,
+        folds=folds,
+        base0=fit.base,
+        spec=spec,
+        orders=orders,
+        lighting_kw=lighting_kw,
+        max_bounces=max_bounces,
+        base_grid=base_grid,
+        source_directions=None if fit.sources is None else fit.sources.directions,
+    )
     refit.detail = Detail(height, radiance, fit.validation_rmse)
     return refit
 
 
-def lambert_held_out(geo: prt.Geometry, obs: Observations, base: np.ndarray, fit: MaterialFit, *, folds: int,
-                     lighting_kw: dict, max_bounces: int = 8) -> np.ndarray:
+def lambert_held_out(
+    geo: prt.Geometry,
+    obs: Observations,
+    base: np.ndarray,
+    fit: MaterialFit,
+    *,
+    folds: int,
+    lighting_kw: dict,
+    max_bounces: int = 8,
+) -> np.ndarray:
     """Held-out RMSE per channel (3,) of a Lambertian albedo ``base`` (3,), the lighting refitted
     around it in the form of the Lambertian ``fit`` (its SH order, its sources' directions; their
     intensities start from the fit's scaled by fit.base / base, which keeps the direct light),
@@ -258,18 +328,19 @@ def lambert_held_out(geo: prt.Geometry, obs: Observations, base: np.ndarray, fit
     cand = Candidate(geo, obs, None, layer, None, order, folds, lighting_kw, max_bounces)
     _, _, system, src_cols = _lighting_given_base(cand, base, sources, 4, None)
     target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
-    return np.asarray(solve.cross_validate_orders(system.equations(target), [order], None, **lighting_kw)[0]
-                      ["validation_rmse_per_channel"])
+    return np.asarray(
+        solve.cross_validate_orders(system.equations(target), [order], None, **lighting_kw)[0]["validation_rmse_per_channel"]
+    )
 
 
-LEVEL_RANGE = (0.03, 1.0)   # albedo levels searched (the brightest channel at most 1)
+LEVEL_RANGE = (0.03, 1.0)  # albedo levels searched (the brightest channel at most 1)
 
 
-LEVEL_EVIDENCE = 0.02       # the level counts as determined when both ends of the range fit the held-out views
-                            # worse than the best by more than this (relative); a convex object's curve is flat
+LEVEL_EVIDENCE = 0.02  # the level counts as determined when both ends of the range fit the held-out views
+# worse than the best by more than this (relative); a convex object's curve is flat
 
 
-LEVEL_XTOL = 0.01           # the search stops within 1% of the level
+LEVEL_XTOL = 0.01  # the search stops within 1% of the level
 
 
 def albedo_level(score, chroma: np.ndarray) -> tuple[float, bool, list]:
@@ -287,23 +358,33 @@ def albedo_level(score, chroma: np.ndarray) -> tuple[float, bool, list]:
 
     def held_out(log_s: float) -> float:
         e = score(chroma * np.exp(log_s))
-        curve[float(np.exp(log_s))] = float(np.sqrt(np.mean(e ** 2)))
+        curve[float(np.exp(log_s))] = float(np.sqrt(np.mean(e**2)))
         return curve[float(np.exp(log_s))]
 
     lo, hi = np.log(np.array(LEVEL_RANGE) / chroma.max())
     ends = held_out(lo), held_out(hi)
     middle = held_out(0.5 * (lo + hi))
     if max(ends + (middle,)) < min(ends + (middle,)) * (1.0 + 0.1 * LEVEL_EVIDENCE):
-        return 1.0, False, sorted(curve.items())      # flat: no bounced light to measure the level by
+        return 1.0, False, sorted(curve.items())  # flat: no bounced light to measure the level by
     found = minimize_scalar(held_out, bounds=(lo, hi), method="bounded", options={"xatol": LEVEL_XTOL})
     determined = min(ends) > float(found.fun) * (1.0 + LEVEL_EVIDENCE)
     return float(np.exp(found.x)), bool(determined), sorted(curve.items())
 
 
-def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | None, obs: Observations, *,
-                    order: int, folds: int, lighting_kw: dict, priors: list[float],
-                    max_bounces: int = 8, refit_base: bool = False,
-                    base_grid: int = 25) -> tuple[MaterialFit, list[dict]]:
+def refine_lighting(
+    geo: prt.Geometry,
+    fit: MaterialFit,
+    spec: prt.SpecularTransfer | None,
+    obs: Observations,
+    *,
+    order: int,
+    folds: int,
+    lighting_kw: dict,
+    priors: list[float],
+    max_bounces: int = 8,
+    refit_base: bool = False,
+    base_grid: int = 25,
+) -> tuple[MaterialFit, list[dict]]:
     """The lighting of a chosen material refitted richer: SH orders 0..``order`` (``spec``: its
     specular transfer to that order) and the ill-conditioned bands' prior scale from ``priors``
     chosen together by held-out views, the sources kept where the fit put them (their intensities
@@ -324,8 +405,9 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
     system = cand.system(fit.base)
     src_cols = None
     if fit.sources is not None:
-        src_cols = source_columns(geo, layer, fit.sources.transfer,
-                                   cand.indirect(fit.base, fit.sources.transfer.vertex_direct), fit.base)
+        src_cols = source_columns(
+            geo, layer, fit.sources.transfer, cand.indirect(fit.base, fit.sources.transfer.vertex_direct), fit.base
+        )
     keep = list(range(0 if fit.sources is None else len(fit.sources.power)))
     table: list[dict] = []
     best = _lighting_search(system, obs, fit.sources, src_cols, keep, list(range(order + 1)), priors, lighting_kw, table)
@@ -333,27 +415,39 @@ def refine_lighting(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTrans
     # dropped while that lowers the held-out error (the pursuit kept it against the cheaper lighting)
     kept = keep
     while keep:
-        drops = {j: _lighting_search(system, obs, fit.sources, src_cols, [k for k in keep if k != j], [best.order],
-                                     [best.prior], lighting_kw, table) for j in keep}
+        drops = {
+            j: _lighting_search(
+                system, obs, fit.sources, src_cols, [k for k in keep if k != j], [best.order], [best.prior], lighting_kw, table
+            )
+            for j in keep
+        }
         j = min(drops, key=lambda j: drops[j].validation_rmse)
         if not drops[j].validation_rmse < best.validation_rmse:
             break
         best, keep = drops[j], [k for k in keep if k != j]
-    if keep != kept:     # the order and prior chosen again for the sources left
-        best = _lighting_search(system, obs, fit.sources, src_cols, keep, list(range(order + 1)), priors,
-                                lighting_kw, table)
+    if keep != kept:  # the order and prior chosen again for the sources left
+        best = _lighting_search(system, obs, fit.sources, src_cols, keep, list(range(order + 1)), priors, lighting_kw, table)
     base = fit.base
     if refit_base and spec is not None:
         base, best = _refit_base(cand, fit, best, keep, base_grid, table)
     if not best.validation_rmse < fit.validation_rmse:
         return fit, table
-    return MaterialFit(fit.material, base, best.fit.coeffs, best.fit,
-                       [{k: v for k, v in c.items() if k != "fit"} for c in best.orders], float(best.validation_rmse),
-                       float(best.fit.residual_rms), best.sources, detail=fit.detail), table
+    return MaterialFit(
+        fit.material,
+        base,
+        best.fit.coeffs,
+        best.fit,
+        [{k: v for k, v in c.items() if k != "fit"} for c in best.orders],
+        float(best.validation_rmse),
+        float(best.fit.residual_rms),
+        best.sources,
+        detail=fit.detail,
+    ), table
 
 
-def _refit_base(cand: Candidate, fit: MaterialFit, best: "_LightingChoice", keep: list[int], grid: int,
-                table: list) -> tuple[np.ndarray, "_LightingChoice"]:
+def _refit_base(
+    cand: Candidate, fit: MaterialFit, best: "_LightingChoice", keep: list[int], grid: int, table: list
+) -> tuple[np.ndarray, "_LightingChoice"]:
     """refine_lighting's base colour chromaticity: the base colour search (_base_search) again at
     the chosen lighting's order and prior with its sources ``keep`` (indices into fit.sources), the
     level (sum_c s_c rho_c, s_c the channel's weighted radiance) kept at the fit's, the SH and the
@@ -368,18 +462,18 @@ def _refit_base(cand: Candidate, fit: MaterialFit, best: "_LightingChoice", keep
     sources = None if best.sources is None else Sources(best.sources.transfer, best.sources.power.copy())
     ridge_dc2 = best.fit.ridge * float(np.mean(best.fit.coeffs[0] ** 2))
     base = fit.base
-    for _ in range(2 if cand.geo.interreflects else 1):    # the second with the interreflection of the first's rho
+    for _ in range(2 if cand.geo.interreflects else 1):  # the second with the interreflection of the first's rho
         base = _base_search(at, base, sources, ridge_dc2, grid)
     share = (cand.obs.weight[:, None] * cand.obs.radiance).sum(axis=0)
     base = base * float(share @ fit.base) / float(share @ base)
     base = np.clip(base, 1e-3, 1.0)
     src_cols = None
     if fit.sources is not None:
-        src_cols = source_columns(cand.geo, cand.layer, fit.sources.transfer,
-                                   cand.indirect(base, fit.sources.transfer.vertex_direct), base)
+        src_cols = source_columns(
+            cand.geo, cand.layer, fit.sources.transfer, cand.indirect(base, fit.sources.transfer.vertex_direct), base
+        )
     rows = len(table)
-    again = _lighting_search(cand.system(base), cand.obs, fit.sources, src_cols, keep, [best.order], [best.prior],
-                             cand.kw, table)
+    again = _lighting_search(cand.system(base), cand.obs, fit.sources, src_cols, keep, [best.order], [best.prior], cand.kw, table)
     for row in table[rows:]:
         row["base_color"] = [float(x) for x in base]
     return (base, again) if again.validation_rmse < best.validation_rmse else (fit.base, best)
@@ -399,9 +493,17 @@ class _LightingChoice(NamedTuple):
         return order_of(self.fit.coeffs.shape[0])
 
 
-def _lighting_search(system: "ShSystem", obs: Observations, sources: Sources | None, src_cols: np.ndarray | None,
-                     keep: list[int], orders: list[int], priors: list[float], lighting_kw: dict,
-                     table: list) -> _LightingChoice:
+def _lighting_search(
+    system: "ShSystem",
+    obs: Observations,
+    sources: Sources | None,
+    src_cols: np.ndarray | None,
+    keep: list[int],
+    orders: list[int],
+    priors: list[float],
+    lighting_kw: dict,
+    table: list,
+) -> _LightingChoice:
     """refine_lighting's search with the sources ``keep`` (indices) of ``sources`` (their columns
     ``src_cols`` (3, N, J)): SH ``orders`` x ``priors`` by held-out views, the sources' intensities
     refitted once around the best SH; a row per prior and source update added to ``table``."""
@@ -413,18 +515,30 @@ def _lighting_search(system: "ShSystem", obs: Observations, sources: Sources | N
         src_cols = src_cols[..., keep]
     best = None
     for update in range(2 if sources is not None else 1):
-        if update:        # the sources' intensities around the best SH, then the SH again
-            sources = Sources(sources.transfer, source_intensities(
-                src_cols, obs.radiance - np.einsum("cpk,kc->pc", a[:, :, :best.fit.coeffs.shape[0]], best.fit.coeffs),
-                obs.weight))
+        if update:  # the sources' intensities around the best SH, then the SH again
+            sources = Sources(
+                sources.transfer,
+                source_intensities(
+                    src_cols,
+                    obs.radiance - np.einsum("cpk,kc->pc", a[:, :, : best.fit.coeffs.shape[0]], best.fit.coeffs),
+                    obs.weight,
+                ),
+            )
         target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
         eqs = system.equations(target)
         for prior in priors:
             cands = solve.cross_validate_orders(eqs, orders, None, **{**lighting_kw, "band_prior": prior})
             i = min(range(len(cands)), key=lambda j: cands[j]["validation_rmse"])
-            table.append({"band_prior": prior, "order": cands[i]["order"], "sources_refitted": bool(update),
-                          "sources": len(keep), "validation_rmse": cands[i]["validation_rmse"],
-                          "train_rmse": cands[i]["train_rmse"]})
+            table.append(
+                {
+                    "band_prior": prior,
+                    "order": cands[i]["order"],
+                    "sources_refitted": bool(update),
+                    "sources": len(keep),
+                    "validation_rmse": cands[i]["validation_rmse"],
+                    "train_rmse": cands[i]["train_rmse"],
+                }
+            )
             if best is None or cands[i]["validation_rmse"] < best.validation_rmse:
                 best = _LightingChoice(cands[i]["validation_rmse"], cands[i]["fit"], cands, sources, prior)
     return best
@@ -433,8 +547,7 @@ def _lighting_search(system: "ShSystem", obs: Observations, sources: Sources | N
 BASE_FREE_ORDER = 2
 
 
-def _base_search(cand: Candidate, base: np.ndarray, sources: Sources | None, ridge_dc2: np.ndarray,
-                 grid: int) -> np.ndarray:
+def _base_search(cand: Candidate, base: np.ndarray, sources: Sources | None, ridge_dc2: np.ndarray, grid: int) -> np.ndarray:
     """rho (3,): per channel the value on a log grid of ``grid`` points in [0.02, 1] (refined by a
     parabola) whose training RSS is least with the lighting — SH and source intensities jointly,
     with the SH ridge ``ridge_dc2`` (K,) / L_0^2 (the DC of an unregularized solve at that rho) above
@@ -447,19 +560,19 @@ def _base_search(cand: Candidate, base: np.ndarray, sources: Sources | None, rid
     k = num_coeffs(cand.order)
     w = obs.weight
     indirect = cand.indirect(base)
-    ki = min(k, indirect.shape[1])          # the interreflection's bands (prt.INDIRECT_ORDER)
+    ki = min(k, indirect.shape[1])  # the interreflection's bands (prt.INDIRECT_ORDER)
     n_src = 0 if sources is None else sources.directions.shape[0]
     n = k + n_src
     if sources is not None:
         st = sources.transfer
         src_scaled = source_per_unit_base(layer, st, cand.indirect(base, st.vertex_direct))
         src_spec = st.specular if st.specular is not None else np.zeros_like(src_scaled)
-    at_p = np.concatenate([np.arange(ki), np.arange(k, n)])   # P's base-dependent columns
-    at_s = np.arange(k, n)                                    # S's (the sources' specular)
+    at_p = np.concatenate([np.arange(ki), np.arange(k, n)])  # P's base-dependent columns
+    at_s = np.arange(k, n)  # S's (the sources' specular)
     reg = np.concatenate([np.asarray(ridge_dc2, float)[:k], np.zeros(n_src)])
-    reg[:num_coeffs(BASE_FREE_ORDER)] = 0.0
+    reg[: num_coeffs(BASE_FREE_ORDER)] = 0.0
     betas = np.geomspace(0.02, 1.0, grid)
-    for c in range(3):       # before the threads: base_blocks fills a cache the channels share
+    for c in range(3):  # before the threads: base_blocks fills a cache the channels share
         cand.base_blocks(c)
 
     def channel(c: int) -> float:
@@ -489,11 +602,12 @@ def _base_search(cand: Candidate, base: np.ndarray, sources: Sources | None, rid
 
         return parabola_minimum(betas, np.array([rss(bt) for bt in betas]))
 
-    return np.array(thread_map(channel, range(3)))      # a channel per thread
+    return np.array(thread_map(channel, range(3)))  # a channel per thread
 
 
-def _lighting_given_base(cand: Candidate, base: np.ndarray, sources: Sources | None, inner: int,
-                         known: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, ShSystem, np.ndarray | None]:
+def _lighting_given_base(
+    cand: Candidate, base: np.ndarray, sources: Sources | None, inner: int, known: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, ShSystem, np.ndarray | None]:
     """SH lighting (K, 3) for a fixed base colour (``known``: that lighting), alternating with the
     sources' intensities (updated in ``sources``) ``inner`` times; the weighted training RSS per
     channel (3,); the SH system of the design (3, N, K) and the sources' columns (3, N, J) or None
@@ -509,8 +623,7 @@ def _lighting_given_base(cand: Candidate, base: np.ndarray, sources: Sources | N
     def sh_fit():
         if known is not None:
             return known
-        return system.solve(obs.radiance - (0.0 if sources is None else np.einsum("cpj,jc->pc", src_cols,
-                                                                                 sources.power))).coeffs
+        return system.solve(obs.radiance - (0.0 if sources is None else np.einsum("cpj,jc->pc", src_cols, sources.power))).coeffs
 
     coeffs = sh_fit()
     if sources is not None and known is None:
@@ -531,8 +644,9 @@ def _base_least_squares(cand: Candidate, base: np.ndarray, sources: Sources | No
     return _base_from_parts(shade, specular, cand.obs, np.ones(cand.obs.weight.size, bool))
 
 
-def shading_parts(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | None,
-                  max_bounces: int = 8) -> tuple[np.ndarray, np.ndarray]:
+def shading_parts(
+    geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | None, max_bounces: int = 8
+) -> tuple[np.ndarray, np.ndarray]:
     """(diffuse radiance per unit base colour (N, 3), specular radiance (N, 3)) of a fitted
     candidate at the samples, its lighting (SH + sources) and interreflection included."""
     if fit.parts is not None:
@@ -563,8 +677,17 @@ def predict(geo: prt.Geometry, fit: MaterialFit, spec: prt.SpecularTransfer | No
     return fit.base * shade + specular
 
 
-def fit_to_map(geo: prt.Geometry, scene, material: Principled | None, obs: Observations, *, base0: np.ndarray,
-               fix_base: bool = False, scale: float = 1.0, direct: tuple | None = None) -> MaterialFit:
+def fit_to_map(
+    geo: prt.Geometry,
+    scene,
+    material: Principled | None,
+    obs: Observations,
+    *,
+    base0: np.ndarray,
+    fix_base: bool = False,
+    scale: float = 1.0,
+    direct: tuple | None = None,
+) -> MaterialFit:
     """Base colour of one material candidate (None: Lambert) under a known equirect map, on the
     renderer's own model of every sample: ``scene`` is a pipeline.core.render.Renderer of the map
     (times ``scale``) on the samples' mesh, and radiance = rho * diffuse + specular
@@ -612,8 +735,8 @@ def fit_to_map(geo: prt.Geometry, scene, material: Principled | None, obs: Obser
     return MaterialFit(material, base, np.zeros((0, 3)), None, [], held, train, None, (diffuse, specular))
 
 
-TRIM_FRACTION = 0.005   # the samples with the largest residuals left out of a known map's score: the peaks of
-                        # highlights of sources smaller than the map's pixels, whose shape the map does not hold
+TRIM_FRACTION = 0.005  # the samples with the largest residuals left out of a known map's score: the peaks of
+# highlights of sources smaller than the map's pixels, whose shape the map does not hold
 
 
 def trimmed_rmse(residual: np.ndarray, weight: np.ndarray, fraction: float = TRIM_FRACTION) -> float:

@@ -22,9 +22,9 @@ from pipeline.core.candidate import Observations
 from pipeline.core.material import MIN_ROUGHNESS, Principled
 from pipeline.core.selection import descend_grid, interval_within, parabola_minimum, parsimonious_choice, refine_bracket
 
-LOCATE_ROUGHNESS = 0.3   # directional sources are located through a lobe this rough (a sharper one misses them)
-ROUGHNESS_XTOL = 0.01    # the search stops within 1% of roughness (a highlight's peak: 4%)
-END_PROBE = 0.05         # refine_bracket's probe inside roughness 1, in log roughness (5 %)
+LOCATE_ROUGHNESS = 0.3  # directional sources are located through a lobe this rough (a sharper one misses them)
+ROUGHNESS_XTOL = 0.01  # the search stops within 1% of roughness (a highlight's peak: 4%)
+END_PROBE = 0.05  # refine_bracket's probe inside roughness 1, in log roughness (5 %)
 
 
 @dataclass(frozen=True)
@@ -86,16 +86,18 @@ def select_material(candidate: "CandidateFit", models: list[str], grey: np.ndarr
         if kind not in classes or held_out_score(f) < held_out_score(classes[kind]):
             classes[kind] = f
     finalists = list(classes.values())
-    rms = float(np.sqrt((obs.weight[:, None] * obs.radiance ** 2).sum() / (3 * obs.weight.sum())))
+    rms = float(np.sqrt((obs.weight[:, None] * obs.radiance**2).sum() / (3 * obs.weight.sum())))
     key = "validation_rmse" if len(np.unique(obs.fold)) > 1 else "train_rmse"
-    best = finalists[parsimonious_choice([candidate_row(f) for f in finalists], opts.parsimony, key=key,
-                                         noise=opts.noise_floor * rms)]
+    best = finalists[
+        parsimonious_choice([candidate_row(f) for f in finalists], opts.parsimony, key=key, noise=opts.noise_floor * rms)
+    ]
     anchor = min((f for f in fits if f.material is not None), key=held_out_score, default=None)
     return best, table, (None if best.material is None else interval), anchor
 
 
-def search_roughness(candidate: "CandidateFit", grey: np.ndarray, metallic: float, directions=None,
-                     fits: dict | None = None, refine: bool = True) -> tuple[dict, np.ndarray]:
+def search_roughness(
+    candidate: "CandidateFit", grey: np.ndarray, metallic: float, directions=None, fits: dict | None = None, refine: bool = True
+) -> tuple[dict, np.ndarray]:
     """({roughness: fit}, source directions) of principled candidates of one ``metallic``: the
     roughness grid, descended from the point nearest 0.3 to the bracket of its best
     (descend_grid; the directional sources located at that start point unless given, then again
@@ -124,7 +126,7 @@ def search_roughness(candidate: "CandidateFit", grey: np.ndarray, metallic: floa
         again = fit_at(rs[i], None)
         if held_out_score(again) < held_out_score(fits[rs[i]]):
             directions = source_directions(again)
-            for r in rs[max(i - 1, 0):i + 2]:
+            for r in rs[max(i - 1, 0) : i + 2]:
                 fits[float(r)] = again if r == rs[i] else fit_at(r, directions)
     if refine:
         refine_roughness(fits, lambda r: fit_at(r, directions), opts)
@@ -140,9 +142,17 @@ def refine_roughness(fits: dict, fit_at, opts: "SearchOptions") -> None:
     highlight's peak goes as roughness^-4).  ``refinements`` candidates at most; 0 = one candidate
     at the parabola through the best and its neighbours."""
     rs = np.array(sorted(fits))
-    if opts.refinements and len(rs) > 1:    # (one roughness given: that one)
-        refine_bracket(fits, fit_at, held_out_score, opts.refinements, low_end=MIN_ROUGHNESS, high_end=1.0,
-                       xtol=ROUGHNESS_XTOL, end_probe=END_PROBE)
+    if opts.refinements and len(rs) > 1:  # (one roughness given: that one)
+        refine_bracket(
+            fits,
+            fit_at,
+            held_out_score,
+            opts.refinements,
+            low_end=MIN_ROUGHNESS,
+            high_end=1.0,
+            xtol=ROUGHNESS_XTOL,
+            end_probe=END_PROBE,
+        )
         return
     refined = parabola_minimum(rs, np.array([held_out_score(fits[r]) for r in rs]))
     if not np.any(np.isclose(rs, refined)):
@@ -176,7 +186,7 @@ def search_with_detail(candidate: "CandidateFit", grey: np.ndarray, fits: dict, 
     best = float(rs[np.argmin(errors)])
     again = fit_at(best) if sharp_lobe(parabola_minimum(rs, errors), opts.order) else None
     if again is None or again.detail is None or not held_out_score(again) < held_out_score(fits[best]):
-        refine_roughness(fits, plain, opts)      # the detail part lost (to the grid's own fit there)
+        refine_roughness(fits, plain, opts)  # the detail part lost (to the grid's own fit there)
         return fits
     searched = {**fits, best: again}
     refine_roughness(searched, fit_at, opts)
@@ -200,7 +210,8 @@ class CandidateFit:
     """Fits one material candidate (material or None for Lambert, base colour start, whether the
     base colour is fixed, source directions or None to find them, whether to try the lighting's
     detail part, whether the sources' pursuit goes on from the given directions with --source-peaks
-    mirror-peak candidates a step: more_sources) on the fit's shared samples: under a known map on the renderer's own model of each
+    mirror-peak candidates a step: more_sources) on the fit's shared samples: under a known map on the
+    renderer's own model of each
     sample (material_fit.fit_to_map), else on the transfer (material_fit.fit_material) with the
     lighting unknown or given as SH + sources."""
 
@@ -213,34 +224,59 @@ class CandidateFit:
     known: "KnownLighting | None"
     detail: material_fit.DetailSetup | None
 
-    def __call__(self, material: Principled | None, base0, fix_base: bool, directions,
-                 with_detail: bool = False, more_sources: bool = False) -> material_fit.MaterialFit:
+    def __call__(
+        self,
+        material: Principled | None,
+        base0,
+        fix_base: bool,
+        directions,
+        with_detail: bool = False,
+        more_sources: bool = False,
+    ) -> material_fit.MaterialFit:
         known, opts = self.known, self.opts
         if known is not None and known.scene is not None:
-            return material_fit.fit_to_map(self.geo, known.scene, material, self.obs, base0=base0, fix_base=fix_base,
-                                           scale=known.scale, direct=known.direct)
+            return material_fit.fit_to_map(
+                self.geo, known.scene, material, self.obs, base0=base0, fix_base=fix_base, scale=known.scale, direct=known.direct
+            )
         if known is not None:
             directions = known.directions
         detail = self.detail if with_detail else None
         together = material_fit.tries_detail(detail, material, fix_base, self.obs)
-        spec = None if material is None else prt.specular_transfer(   # with the detail part's transfer in one pass
-            self.geo, material, opts.lobe_samples, opts.seed, order=self.order,
-            detail_height=prt.detail_height(material) if together else None)
-        return material_fit.fit_material(self.geo, material, self.obs, order=self.order, folds=opts.folds,
-                                         base0=base0, spec=spec, fix_base=fix_base, orders=self.orders,
-                                         lighting_kw=self.kw,
-                                         max_sources=opts.max_sources if directions is None or more_sources else 0,
-                                         source_peaks=opts.source_peaks if more_sources else 0,
-                                         source_directions=directions,
-                                         known_coeffs=None if known is None else known.coeffs,
-                                         known_sources=None if known is None else known.intensity,
-                                         detail=detail)
+        spec = (
+            None
+            if material is None
+            else prt.specular_transfer(  # with the detail part's transfer in one pass
+                self.geo,
+                material,
+                opts.lobe_samples,
+                opts.seed,
+                order=self.order,
+                detail_height=prt.detail_height(material) if together else None,
+            )
+        )
+        return material_fit.fit_material(
+            self.geo,
+            material,
+            self.obs,
+            order=self.order,
+            folds=opts.folds,
+            base0=base0,
+            spec=spec,
+            fix_base=fix_base,
+            orders=self.orders,
+            lighting_kw=self.kw,
+            max_sources=opts.max_sources if directions is None or more_sources else 0,
+            source_peaks=opts.source_peaks if more_sources else 0,
+            source_directions=directions,
+            known_coeffs=None if known is None else known.coeffs,
+            known_sources=None if known is None else known.intensity,
+            detail=detail,
+        )
 
     def rescaled(self, factor: float) -> "CandidateFit":
         """The same with the known lighting scaled by ``factor``."""
         k = self.known
-        return replace(self, known=replace(k, coeffs=k.coeffs * factor, intensity=k.intensity * factor,
-                                           scale=k.scale * factor))
+        return replace(self, known=replace(k, coeffs=k.coeffs * factor, intensity=k.intensity * factor, scale=k.scale * factor))
 
     def without_map(self) -> "CandidateFit":
         """The same with a known map taken in its SH + sources form."""
@@ -257,8 +293,12 @@ def more_sources(candidate: CandidateFit, best: material_fit.MaterialFit, fix_ba
     relight 13 %); the peaks at the chosen 0.152 find its 5 brightest lamps (docs/fit.md)."""
     opts = candidate.opts
     found = None if best.sources is None else best.sources.directions
-    if best.material is None or not opts.source_peaks or opts.peak_sources <= (0 if found is None else len(found)) \
-            or not sharp_lobe(best.material.roughness, opts.order):
+    if (
+        best.material is None
+        or not opts.source_peaks
+        or opts.peak_sources <= (0 if found is None else len(found))
+        or not sharp_lobe(best.material.roughness, opts.order)
+    ):
         return best
     pursuit = replace(candidate, opts=replace(opts, max_sources=opts.peak_sources))
     again = pursuit(best.material, best.base, fix_base, found, best.detail is not None, more_sources=True)
@@ -272,16 +312,19 @@ def known_material_fit(candidate: CandidateFit, material: Principled | None, bas
     the unknown-material fit's), so they are located through that rougher lobe first (as the
     roughness search does) and kept there unless the material's own pursuit does better."""
     own = candidate(material, base, True, None)
-    if material is None or material.roughness >= LOCATE_ROUGHNESS or candidate.opts.max_sources == 0 \
-            or candidate.known is not None:
+    if (
+        material is None
+        or material.roughness >= LOCATE_ROUGHNESS
+        or candidate.opts.max_sources == 0
+        or candidate.known is not None
+    ):
         return own
     broad = candidate(replace(material, roughness=LOCATE_ROUGHNESS), base, True, None)
     located = candidate(material, base, True, source_directions(broad))
     return located if held_out_score(located) <= held_out_score(own) else own
 
 
-def final_lighting(candidate: "CandidateFit", best: material_fit.MaterialFit, top: int,
-                   free_material: bool = False) -> tuple:
+def final_lighting(candidate: "CandidateFit", best: material_fit.MaterialFit, top: int, free_material: bool = False) -> tuple:
     """(the chosen candidate with its lighting refitted to SH orders 0-``top`` and the prior scales
     of --band-prior-choices (material_fit.refine_lighting), report.json's lighting_refit, its
     specular transfer to ``top`` or None).  ``free_material`` (the material was fitted): a
@@ -290,16 +333,31 @@ def final_lighting(candidate: "CandidateFit", best: material_fit.MaterialFit, to
     sample_data's base moved < 1 % for 2.4 s)."""
     t0 = time.perf_counter()
     geo, opts = candidate.geo, candidate.opts
-    spec = None if best.material is None else prt.specular_transfer(geo, best.material, opts.lobe_samples,
-                                                                    opts.seed, order=top)
+    spec = None if best.material is None else prt.specular_transfer(geo, best.material, opts.lobe_samples, opts.seed, order=top)
     before = best.validation_rmse
-    best, tried = material_fit.refine_lighting(geo, best, spec, candidate.obs, order=top, folds=opts.folds,
-                                               lighting_kw=candidate.kw, priors=list(opts.band_priors),
-                                               refit_base=free_material and best.material is not None
-                                               and sharp_lobe(best.material.roughness, opts.order))
-    return best, {"orders": f"0-{top}", "priors": list(opts.band_priors), "validation_rmse_before": before,
-                  "validation_rmse": best.validation_rmse, "tried": tried, "seconds": time.perf_counter() - t0}, spec
-
+    best, tried = material_fit.refine_lighting(
+        geo,
+        best,
+        spec,
+        candidate.obs,
+        order=top,
+        folds=opts.folds,
+        lighting_kw=candidate.kw,
+        priors=list(opts.band_priors),
+        refit_base=free_material and best.material is not None and sharp_lobe(best.material.roughness, opts.order),
+    )
+    return (
+        best,
+        {
+            "orders": f"0-{top}",
+            "priors": list(opts.band_priors),
+            "validation_rmse_before": before,
+            "validation_rmse": best.validation_rmse,
+            "tried": tried,
+            "seconds": time.perf_counter() - t0,
+        },
+        spec,
+    )
 
 
 @dataclass(frozen=True)
@@ -319,12 +377,10 @@ class KnownLighting:
     per_image: tuple | None
 
 
-
 def source_directions(fit: material_fit.MaterialFit) -> np.ndarray:
     """The directions (J, 3) of a fit's sources, (0, 3) when its pursuit found none (so later
     candidates take them as located rather than run the pursuit again)."""
     return np.zeros((0, 3)) if fit.sources is None else fit.sources.directions
-
 
 
 def search_albedo_level(candidate: "CandidateFit", fit: material_fit.MaterialFit) -> tuple:
@@ -332,13 +388,18 @@ def search_albedo_level(candidate: "CandidateFit", fit: material_fit.MaterialFit
     (material_fit.albedo_level, the SH order, the sources' directions and the chromaticity of ``fit``
     kept), refitted; ``fit`` itself where the held-out curve is flat (a convex object).
     -> (fit, note for report.json)."""
+
     def score(base: np.ndarray) -> np.ndarray:
-        return material_fit.lambert_held_out(candidate.geo, candidate.obs, base, fit, folds=candidate.opts.folds,
-                                             lighting_kw=candidate.kw)
+        return material_fit.lambert_held_out(
+            candidate.geo, candidate.obs, base, fit, folds=candidate.opts.folds, lighting_kw=candidate.kw
+        )
 
     s, determined, curve = material_fit.albedo_level(score, fit.base)
-    note = {"determined": determined, "tolerance": material_fit.LEVEL_EVIDENCE,
-            "curve": [{"mean_albedo": float(fit.base.mean() * k), "validation_rmse": e} for k, e in curve]}
+    note = {
+        "determined": determined,
+        "tolerance": material_fit.LEVEL_EVIDENCE,
+        "curve": [{"mean_albedo": float(fit.base.mean() * k), "validation_rmse": e} for k, e in curve],
+    }
     if not determined:
         return fit, note
     note["mean_albedo"] = float(fit.base.mean() * s)
@@ -347,15 +408,24 @@ def search_albedo_level(candidate: "CandidateFit", fit: material_fit.MaterialFit
 
 def candidate_row(fit: material_fit.MaterialFit) -> dict:
     if fit.material is None:
-        return {"name": "lambert", "roughness": 0.0, "base_color": [float(x) for x in fit.base],
-                "params": 3 + 3 * fit.coeffs.shape[0], "validation_rmse": fit.validation_rmse,
-                "train_rmse": fit.train_rmse, "sources": 0 if fit.sources is None else len(fit.sources.power)}
-    kind = "metal" if fit.material.metallic > 0 else "dielectric"
-    return {"name": f"principled {kind} roughness {fit.material.roughness:.3f}", "roughness": float(fit.material.roughness),
-            "metallic": float(fit.material.metallic), "base_color": [float(x) for x in fit.base],
-            "params": 3 + 1 + 3 * fit.coeffs.shape[0],
-            "validation_rmse": fit.validation_rmse, "train_rmse": fit.train_rmse,
+        return {
+            "name": "lambert",
+            "roughness": 0.0,
+            "base_color": [float(x) for x in fit.base],
+            "params": 3 + 3 * fit.coeffs.shape[0],
+            "validation_rmse": fit.validation_rmse,
+            "train_rmse": fit.train_rmse,
             "sources": 0 if fit.sources is None else len(fit.sources.power),
-            "detail_rows": None if fit.detail is None else fit.detail.height}
-
-
+        }
+    kind = "metal" if fit.material.metallic > 0 else "dielectric"
+    return {
+        "name": f"principled {kind} roughness {fit.material.roughness:.3f}",
+        "roughness": float(fit.material.roughness),
+        "metallic": float(fit.material.metallic),
+        "base_color": [float(x) for x in fit.base],
+        "params": 3 + 1 + 3 * fit.coeffs.shape[0],
+        "validation_rmse": fit.validation_rmse,
+        "train_rmse": fit.train_rmse,
+        "sources": 0 if fit.sources is None else len(fit.sources.power),
+        "detail_rows": None if fit.detail is None else fit.detail.height,
+    }

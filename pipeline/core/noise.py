@@ -13,11 +13,12 @@ from __future__ import annotations
 
 import numpy as np
 
-MAD_TO_SIGMA = 1.4826          # sigma / MAD of a normal distribution
+MAD_TO_SIGMA = 1.4826  # sigma / MAD of a normal distribution
 
 
-def _second_differences(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray,
-                        lag: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def _second_differences(
+    radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray, lag: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
     """Second differences (M, 3) of the samples whose left and right (or upper and lower)
     neighbours ``lag`` pixels away are samples too, and the radiance level (M,) (channel mean) of their centres."""
     radiance = np.asarray(radiance, float)
@@ -28,12 +29,12 @@ def _second_differences(radiance: np.ndarray, image_id: np.ndarray, pixel: np.nd
     order = np.argsort(key)
     keys = key[order]
 
-    def at(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:    # (sample index, found) of each key
+    def at(k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # (sample index, found) of each key
         i = np.clip(np.searchsorted(keys, k), 0, len(keys) - 1)
         return order[i], keys[i] == k
 
     second, level = [], []
-    for step in (lag, lag * span):               # along rows, along columns
+    for step in (lag, lag * span):  # along rows, along columns
         left, has_left = at(key - step)
         right, has_right = at(key + step)
         both = has_left & has_right
@@ -59,12 +60,11 @@ def pixel_noise_sigma(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndar
     return float(np.sqrt(np.mean(_mad_variance(d2))))
 
 
-NLF_BINS = 10            # radiance-level bins (equal counts) of the noise level function
+NLF_BINS = 10  # radiance-level bins (equal counts) of the noise level function
 NLF_TOP_QUANTILE = 0.99  # levels above this are left out: there a highlight's curvature is signal, not noise
 
 
-def noise_level_function(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray,
-                         lag: int = 1) -> tuple[float, float]:
+def noise_level_function(radiance: np.ndarray, image_id: np.ndarray, pixel: np.ndarray, lag: int = 1) -> tuple[float, float]:
     """(a, b) of the Poisson-Gaussian noise model sigma^2(B) = a + b B (Foi et al. 2008, "Practical
     Poissonian-Gaussian noise modeling"; B the channel-mean radiance, a, b >= 0): the MAD variance
     of second differences in NLF_BINS bins of equal counts below the NLF_TOP_QUANTILE level,
@@ -110,7 +110,7 @@ def weighted_noise_sigma(weight: np.ndarray, radiance: np.ndarray, a: float, b: 
     return float(np.sqrt(np.sum(w * (a + b * level)) / max(np.sum(w), 1e-300)))
 
 
-IMAGE_NOISE_LAG = 2   # image_noise_level's pixel step: demosaicing correlates a pixel's noise with its neighbours'
+IMAGE_NOISE_LAG = 2  # image_noise_level's pixel step: demosaicing correlates a pixel's noise with its neighbours'
 
 
 def image_noise_level(images: list[np.ndarray], masks: list[np.ndarray], lag: int = IMAGE_NOISE_LAG) -> tuple[float, float]:
@@ -135,4 +135,4 @@ def image_noise_level(images: list[np.ndarray], masks: list[np.ndarray], lag: in
     if np.isfinite(a) and np.isfinite(b):
         return a, b
     sigma = pixel_noise_sigma(radiance, image_id, pixel, lag)
-    return (sigma ** 2, 0.0) if np.isfinite(sigma) else (float("nan"), float("nan"))
+    return (sigma**2, 0.0) if np.isfinite(sigma) else (float("nan"), float("nan"))

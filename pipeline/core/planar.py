@@ -150,8 +150,9 @@ def visible_quadrature(n_nodes: int) -> tuple[np.ndarray, np.ndarray]:
     return gauss_legendre(n_nodes, (-0.5 * np.pi, 0.5 * np.pi))
 
 
-def observed_coefficients(samples: np.ndarray, theta_o: np.ndarray, weights: np.ndarray,
-                          band_p: int, band_q: int, *, cosine_weighted: bool = True) -> np.ndarray:
+def observed_coefficients(
+    samples: np.ndarray, theta_o: np.ndarray, weights: np.ndarray, band_p: int, band_q: int, *, cosine_weighted: bool = True
+) -> np.ndarray:
     """Coefficients of a light field observed only on the visible half of θ'_o.
 
     samples: (n_α, n_θ) values B(α_j, θ'_o,k) with α on ``circle_grid(n_α)`` and θ'_o, weights the
@@ -256,8 +257,7 @@ def _mirror_coefficients(brdf: Mirror, band_p: int, band_q: int, cosine_outgoing
     return (brdf.reflectance / (4.0 * np.pi**2) * integral).astype(complex)
 
 
-def transfer_coefficients(brdf, band_p: int, band_q: int, *, cosine_outgoing: bool = False,
-                          n_quad: int = 512) -> np.ndarray:
+def transfer_coefficients(brdf, band_p: int, band_q: int, *, cosine_outgoing: bool = False, n_quad: int = 512) -> np.ndarray:
     """ρ̂_pq, |p| <= band_p, |q| <= band_q, by 2D quadrature (closed form for the mirror).
 
     ρ̂_pq = 1/(4π²) ∬ ρ̂(θ'_i, θ'_o) e^{−ipθ'_i} e^{−iqθ'_o}: Gauss–Legendre with ``n_quad`` nodes on
@@ -289,7 +289,7 @@ def reflected_angle_spectrum(brdf, band: int, n_quad: int = 2048) -> np.ndarray:
     """
     if not isinstance(brdf, (Phong, Microfacet)):
         raise ValueError("reflected_angle_spectrum is defined for Phong and Microfacet lobes")
-    theta = circle_grid(n_quad)   # fourier_coefficients expects samples starting at θ = 0
+    theta = circle_grid(n_quad)  # fourier_coefficients expects samples starting at θ = 0
     coeffs = fourier_coefficients(brdf.brdf(theta, 0.0), band).real  # even lobe: real spectrum
     return coeffs / coeffs[band]
 
@@ -306,8 +306,7 @@ def reflect(lighting: np.ndarray, rho: np.ndarray) -> np.ndarray:
     return 2.0 * np.pi * lighting[:, None] * rho[::-1, :]
 
 
-def reflect_brute_force(lighting, brdf, alpha: np.ndarray, theta_o: np.ndarray, *,
-                        n_quad: int = 400) -> np.ndarray:
+def reflect_brute_force(lighting, brdf, alpha: np.ndarray, theta_o: np.ndarray, *, n_quad: int = 400) -> np.ndarray:
     """B(α, θ'_o) = ∫ L(α + θ'_i) ρ̂(θ'_i, θ'_o) dθ'_i by Gauss–Legendre quadrature in angle space.
 
     lighting: a callable L(θ) (vectorized, radians).  alpha (n_α,), theta_o (n_θ,) → (n_α, n_θ).
@@ -319,19 +318,20 @@ def reflect_brute_force(lighting, brdf, alpha: np.ndarray, theta_o: np.ndarray, 
         visible = np.cos(theta_o) > 0.0
         return brdf.reflectance * np.where(visible, lighting(alpha - theta_o), 0.0)
     theta_i, w_i = visible_quadrature(n_quad)
-    kernel = transfer(brdf, theta_i, theta_o[..., None]) * w_i          # (1, n_θ, n)
+    kernel = transfer(brdf, theta_i, theta_o[..., None]) * w_i  # (1, n_θ, n)
     out = np.empty((alpha.shape[0], theta_o.shape[1]))
-    for start in range(0, alpha.shape[0], 64):                            # chunk: 64 α at a time
-        radiance = lighting(alpha[start:start + 64, :, None] + theta_i)   # (≤64, 1, n)
-        out[start:start + 64] = np.sum(radiance * kernel, axis=-1)
+    for start in range(0, alpha.shape[0], 64):  # chunk: 64 α at a time
+        radiance = lighting(alpha[start : start + 64, :, None] + theta_i)  # (≤64, 1, n)
+        out[start : start + 64] = np.sum(radiance * kernel, axis=-1)
     return out
 
 
 # ----------------------------------------------------------------------------- conditioning
 
 
-def classify_frequencies(gain: np.ndarray, noise: float, signal: float, *, tolerance: float = 1.0,
-                         zero_tol: float = 1e-9) -> np.ndarray:
+def classify_frequencies(
+    gain: np.ndarray, noise: float, signal: float, *, tolerance: float = 1.0, zero_tol: float = 1e-9
+) -> np.ndarray:
     """Label each frequency "ill-posed", "ill-conditioned" or "well-conditioned".
 
     gain: |forward gain| per frequency (>= 0); noise: std of the noise on each measured
@@ -376,8 +376,9 @@ def _wiener(noise: float, signal: float) -> float:
     return (noise / signal) ** 2
 
 
-def inverse_lighting(light_field: np.ndarray, rho: np.ndarray, *, noise: float = 0.0,
-                     signal: float = 1.0, zero_tol: float = 1e-9) -> np.ndarray:
+def inverse_lighting(
+    light_field: np.ndarray, rho: np.ndarray, *, noise: float = 0.0, signal: float = 1.0, zero_tol: float = 1e-9
+) -> np.ndarray:
     """L_p from B_pq and known ρ̂: least squares over all q, Wiener-regularized.
 
     L_p = Σ_q conj(h_pq) B_pq / (Σ_q |h_pq|² + (noise/signal)²),  h_pq = 2π ρ̂_{−p,q}
@@ -396,8 +397,9 @@ def inverse_lighting(light_field: np.ndarray, rho: np.ndarray, *, noise: float =
     return np.where(posed, numer / np.where(posed, denom, 1.0), 0.0)
 
 
-def estimate_brdf(light_field: np.ndarray, lighting: np.ndarray, *, noise: float = 0.0,
-                  signal: float = 1.0, zero_tol: float = 1e-9) -> np.ndarray:
+def estimate_brdf(
+    light_field: np.ndarray, lighting: np.ndarray, *, noise: float = 0.0, signal: float = 1.0, zero_tol: float = 1e-9
+) -> np.ndarray:
     """ρ̂_pq from B_pq and known lighting: ρ̂_{−p,q} = B_pq / (2π L_p), Wiener-regularized.
 
     ρ̂_{−p,q} = conj(g_p) B_pq / (|g_p|² + (noise/signal)²), g_p = 2π L_p.  Rows whose lighting
@@ -423,8 +425,7 @@ class Factorization:
     singular_gap: float
 
 
-def factorize(weighted_field: np.ndarray, *, noise: float = 0.0, signal: float = 1.0,
-              zero_tol: float = 1e-9) -> Factorization:
+def factorize(weighted_field: np.ndarray, *, noise: float = 0.0, signal: float = 1.0, zero_tol: float = 1e-9) -> Factorization:
     """Factor a cosine-weighted light field B̃_pq into lighting and BRDF kernel, up to one scale.
 
     Uses reciprocity K_pq = K_qp (R&H 2001, 2D): B̃_pq L_{−q} = B̃_{−q,−p} L_p for all |p|, |q| <= P,
@@ -444,12 +445,12 @@ def factorize(weighted_field: np.ndarray, *, noise: float = 0.0, signal: float =
     if band_q < band_p:
         raise ValueError("factorize needs band_q >= band_p (the reciprocity pairs need q = −p)")
     n = 2 * band_p + 1
-    sq = b[:, band_q - band_p: band_q + band_p + 1]          # B̃_pq for |p|, |q| <= P
+    sq = b[:, band_q - band_p : band_q + band_p + 1]  # B̃_pq for |p|, |q| <= P
     # equation (p, q): B̃_{−q,−p} L_p − B̃_pq L_{−q} = 0; index of −q is (n−1) − (q+P)
     ip, iq = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     i_mq = n - 1 - iq
     i_mp = n - 1 - ip
-    keep = (i_mq != ip).ravel()                              # (p, −p) equations are trivially 0
+    keep = (i_mq != ip).ravel()  # (p, −p) equations are trivially 0
     rows = np.zeros((n * n, n), dtype=complex)
     eq = np.arange(n * n)
     rows[eq, ip.ravel()] += sq[i_mq, i_mp].ravel()
@@ -464,16 +465,15 @@ def factorize(weighted_field: np.ndarray, *, noise: float = 0.0, signal: float =
     lighting[determined] = null
     if not determined[band_p]:
         raise ValueError("factorize: the light field has no mean (p = 0) component to fix the scale")
-    lighting = lighting / lighting[band_p]                   # L_0 = 1 (real, positive)
-    lighting = 0.5 * (lighting + np.conj(lighting[::-1]))     # real lighting: L_{−p} = conj(L_p)
+    lighting = lighting / lighting[band_p]  # L_0 = 1 (real, positive)
+    lighting = 0.5 * (lighting + np.conj(lighting[::-1]))  # real lighting: L_{−p} = conj(L_p)
     # K_{−p,q}: least squares over the (one or two) equations that contain it
     g = 2.0 * np.pi * lighting
     numer = np.conj(g)[:, None] * b
     denom = np.abs(g)[:, None] ** 2 * np.ones(b.shape) + _wiener(noise, signal)
-    q_in = np.arange(band_q - band_p, band_q + band_p + 1)   # columns with |q| <= P
-    numer[:, q_in] += (np.conj(g[i_mq]) * sq[i_mq, i_mp])
+    q_in = np.arange(band_q - band_p, band_q + band_p + 1)  # columns with |q| <= P
+    numer[:, q_in] += np.conj(g[i_mq]) * sq[i_mq, i_mp]
     denom[:, q_in] += np.abs(g[i_mq]) ** 2
     posed = denom > (zero_tol**2) * denom.max()
-    kernel_rows = np.where(posed, numer / np.where(posed, denom, 1.0), 0.0)   # row p holds K_{−p,·}
-    return Factorization(lighting=lighting, kernel=kernel_rows[::-1, :], determined=determined,
-                         singular_gap=gap)
+    kernel_rows = np.where(posed, numer / np.where(posed, denom, 1.0), 0.0)  # row p holds K_{−p,·}
+    return Factorization(lighting=lighting, kernel=kernel_rows[::-1, :], determined=determined, singular_gap=gap)

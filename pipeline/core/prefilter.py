@@ -18,9 +18,9 @@ from pipeline.core.envmap import bilinear_lookup, downsample, equirect_angles, e
 from pipeline.core.sh import num_coeffs, order_of, project_envmap
 from pipeline.core.transfer import irradiance_from_sh
 
-DIFFUSE_ORDER = 16         # |Â_l| beyond l = 16 is < 0.15% of Â_0: irradiance of an env map to that level
-LOBE_CUTOFF = 1e-3         # a lobe "needs" band l while |A_l| > LOBE_CUTOFF * A_0
-MAX_LOBE_ORDER = 400       # the filter is examined up to this band
+DIFFUSE_ORDER = 16  # |Â_l| beyond l = 16 is < 0.15% of Â_0: irradiance of an env map to that level
+LOBE_CUTOFF = 1e-3  # a lobe "needs" band l while |A_l| > LOBE_CUTOFF * A_0
+MAX_LOBE_ORDER = 400  # the filter is examined up to this band
 
 
 def brdf_lobe_filter(brdf: Brdf, order: int) -> np.ndarray:
@@ -67,12 +67,12 @@ def prefilter_envmap(env: np.ndarray, filt: np.ndarray, height: int) -> np.ndarr
     dphi = phi - phi[0]
     st, ct = np.sin(theta), np.cos(theta)
     out = np.empty((h, w, 3))
-    spectrum = np.fft.rfft(env * omega[:, None, None], axis=1)            # (h, F, 3)
+    spectrum = np.fft.rfft(env * omega[:, None, None], axis=1)  # (h, F, 3)
     for i in range(h):
-        cos_gamma = ct[i] * ct[:, None] + st[i] * st[:, None] * np.cos(dphi)[None, :]   # (h', W)
+        cos_gamma = ct[i] * ct[:, None] + st[i] * st[:, None] * np.cos(dphi)[None, :]  # (h', W)
         kern = np.interp(np.arccos(np.clip(cos_gamma, -1, 1)), gamma_table, k_table)
         norm = float((kern * omega[:, None]).sum())
-        kern_f = np.fft.rfft(kern, axis=1)                                 # (h', F)
+        kern_f = np.fft.rfft(kern, axis=1)  # (h', F)
         row = np.fft.irfft(np.einsum("if,ifc->fc", kern_f, spectrum), n=w, axis=0)
         out[i] = row * (filt[0] / norm if norm > 0 else 0.0)
     return out
@@ -89,8 +89,16 @@ class Lighting:
     view-dependent lobes get one prefiltered map per grid entry, interpolated like the filters.
     """
 
-    def __init__(self, brdf: Brdf, *, coeffs: np.ndarray | None = None, env: np.ndarray | None = None,
-                 lobe_sh_order: int = 24, prefilter_height: int = 128, source: str = ""):
+    def __init__(
+        self,
+        brdf: Brdf,
+        *,
+        coeffs: np.ndarray | None = None,
+        env: np.ndarray | None = None,
+        lobe_sh_order: int = 24,
+        prefilter_height: int = 128,
+        source: str = "",
+    ):
         self.source = source
         self.brdf = brdf
         lobe_order = needed_order(brdf_lobe_filter(brdf, MAX_LOBE_ORDER))
@@ -104,12 +112,11 @@ class Lighting:
             order = max(DIFFUSE_ORDER, 0 if sharp else lobe_order)
             coeffs = project_envmap(env, order)
             if sharp:
-                self.prefiltered = [prefilter_envmap(env, filt, prefilter_height)
-                                    for filt in self._grid_filters(lobe_order)]
+                self.prefiltered = [prefilter_envmap(env, filt, prefilter_height) for filt in self._grid_filters(lobe_order)]
             self.kind = "envmap"
         self.order = order
         d_order = min(order, DIFFUSE_ORDER) if self.kind == "envmap" else order
-        self.diffuse_lighting = coeffs[:num_coeffs(d_order)]
+        self.diffuse_lighting = coeffs[: num_coeffs(d_order)]
         self.lobe_lighting = coeffs if lobe_order > 0 and self.prefiltered is None else None
         self.lobe_order = lobe_order
 
@@ -124,9 +131,13 @@ class Lighting:
         return np.asarray(forward.sample_lobe_filters(model, width, order, forward.VIEW_COS_GRID), float)
 
     def describe(self) -> dict:
-        return {"path": self.source, "kind": self.kind, "sh_order": self.order, "lobe_bands": self.lobe_order,
-                "lobe": "none" if self.lobe_order == 0 else
-                ("prefiltered map" if self.prefiltered is not None else "sh")}
+        return {
+            "path": self.source,
+            "kind": self.kind,
+            "sh_order": self.order,
+            "lobe_bands": self.lobe_order,
+            "lobe": "none" if self.lobe_order == 0 else ("prefiltered map" if self.prefiltered is not None else "sh"),
+        }
 
     def _filtered_lobe(self, r: np.ndarray, cos_view: np.ndarray, chunk: int = 8192) -> np.ndarray:
         """sum_l A_l(n.v) sum_m L_lm Y_lm(r) per sample (N, 3)."""
@@ -141,15 +152,16 @@ class Lighting:
             out = np.zeros((len(r), 3))
             for j in np.unique(i):
                 sel = i == j
-                out[sel] = ((1 - frac[sel]) * bilinear_lookup(self.prefiltered[j], r[sel])
-                            + frac[sel] * bilinear_lookup(self.prefiltered[j + 1], r[sel]))
+                out[sel] = (1 - frac[sel]) * bilinear_lookup(self.prefiltered[j], r[sel]) + frac[sel] * bilinear_lookup(
+                    self.prefiltered[j + 1], r[sel]
+                )
             return out
         model, width = self._width()
         out = np.empty((len(r), 3))
         for s in range(0, len(r), chunk):
-            bands = forward.band_projections(self.lobe_lighting, r[s:s + chunk])               # (n, L+1, 3)
-            filt = forward.sample_lobe_filters(model, width, self.order, cos_view[s:s + chunk])  # (n, L+1)
-            out[s:s + chunk] = np.einsum("nl,nlc->nc", filt, bands)
+            bands = forward.band_projections(self.lobe_lighting, r[s : s + chunk])  # (n, L+1, 3)
+            filt = forward.sample_lobe_filters(model, width, self.order, cos_view[s : s + chunk])  # (n, L+1)
+            out[s : s + chunk] = np.einsum("nl,nlc->nc", filt, bands)
         return out
 
     def prepare(self) -> "Lighting":
@@ -171,7 +183,8 @@ class Lighting:
             out = out + np.where((cos_view > 0)[:, None], k * self._filtered_lobe(r, cos_view), 0.0)
         return np.maximum(out, 0.0)
 
-    def shade_hits(self, tri: np.ndarray, bary: np.ndarray, normal: np.ndarray, view_dir: np.ndarray,
-                   albedo: np.ndarray) -> np.ndarray:
+    def shade_hits(
+        self, tri: np.ndarray, bary: np.ndarray, normal: np.ndarray, view_dir: np.ndarray, albedo: np.ndarray
+    ) -> np.ndarray:
         """Radiance (N, 3) at ray hits (face ids, barycentrics, interpolated normals, view directions, albedo)."""
         return self.radiance(normal, view_dir, albedo)

@@ -57,8 +57,7 @@ def _solid_angle_map(height: int) -> np.ndarray:
     return np.broadcast_to(equirect_solid_angles(height)[:, None], (height, 2 * height))
 
 
-def _add_disk(env: np.ndarray, dirs: np.ndarray, centre: np.ndarray, diameter_deg: float,
-              irradiance: np.ndarray) -> None:
+def _add_disk(env: np.ndarray, dirs: np.ndarray, centre: np.ndarray, diameter_deg: float, irradiance: np.ndarray) -> None:
     """Add a uniform disk of angular diameter ``diameter_deg`` whose power sum(L dω) = ``irradiance`` (RGB)."""
     cos_r = np.cos(np.radians(diameter_deg) / 2.0)
     inside = dirs @ centre >= cos_r
@@ -76,8 +75,9 @@ def _tangent_frame(c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, np.cross(c, u)
 
 
-def _add_rectangle(env: np.ndarray, dirs: np.ndarray, centre: np.ndarray, width_deg: float,
-                   height_deg: float, radiance: np.ndarray) -> None:
+def _add_rectangle(
+    env: np.ndarray, dirs: np.ndarray, centre: np.ndarray, width_deg: float, height_deg: float, radiance: np.ndarray
+) -> None:
     """Add a rectangular light: |atan(d.u / d.c)| < w/2 and |atan(d.v / d.c)| < h/2 around ``centre``."""
     u, v = _tangent_frame(centre)
     dc = dirs @ centre
@@ -150,24 +150,28 @@ def make_envmap(name: str, height: int = DEFAULT_HEIGHT, **params: float) -> np.
     elif name == "overcast":
         z = dirs[..., 2]
         sky = float(p["zenith"]) * (1 + 2 * np.clip(z, 0, 1)) / 3
-        env = np.where((z > 0)[..., None], sky[..., None] * np.array([0.95, 0.97, 1.0]),
-                       float(p["ground"]) * float(p["zenith"]) * np.array([0.9, 0.85, 0.8]))
+        env = np.where(
+            (z > 0)[..., None],
+            sky[..., None] * np.array([0.95, 0.97, 1.0]),
+            float(p["ground"]) * float(p["zenith"]) * np.array([0.9, 0.85, 0.8]),
+        )
     elif name == "area":
         env = _dim_room(dirs)
         n = int(p["n"])
         rng = np.random.default_rng(int(p["seed"]))
-        tints = [np.array([1.0, 0.95, 0.9]), np.array([0.85, 0.9, 1.0]), np.array([1.0, 0.85, 0.7]),
-                 np.array([0.9, 1.0, 0.9])]
+        tints = [np.array([1.0, 0.95, 0.9]), np.array([0.85, 0.9, 1.0]), np.array([1.0, 0.85, 0.7]), np.array([0.9, 1.0, 0.9])]
         for k in range(n):
             elev = float(p["elev"]) + rng.uniform(-15, 15)
             az = 360.0 * k / max(n, 1) + rng.uniform(0, 40)
             w = float(p["size"]) * rng.uniform(0.7, 1.3)
-            _add_rectangle(env, dirs, direction_from_angles(elev, az), w, float(p["size"]),
-                           float(p["radiance"]) * tints[k % len(tints)])
+            _add_rectangle(
+                env, dirs, direction_from_angles(elev, az), w, float(p["size"]), float(p["radiance"]) * tints[k % len(tints)]
+            )
     elif name == "point":
         env = _dim_room(dirs)
-        _add_disk(env, dirs, direction_from_angles(p["elev"], p["az"]), float(p["size"]),
-                  float(p["power"]) * np.array([1.0, 1.0, 1.0]))
+        _add_disk(
+            env, dirs, direction_from_angles(p["elev"], p["az"]), float(p["size"]), float(p["power"]) * np.array([1.0, 1.0, 1.0])
+        )
     elif name == "room":
         z = dirs[..., 2]
         phi = np.mod(np.arctan2(dirs[..., 1], dirs[..., 0]), 2 * np.pi)
@@ -202,8 +206,7 @@ def parse_env_spec(spec: str) -> tuple[str, int, dict[str, float]]:
             if height < 2:
                 raise ValueError(f"environment spec {spec!r}: height must be >= 2")
         elif key not in ENV_PARAMS[name]:
-            raise ValueError(f"environment {name!r} has no parameter {key!r}; known: "
-                             f"{', '.join(['height', *ENV_PARAMS[name]])}")
+            raise ValueError(f"environment {name!r} has no parameter {key!r}; known: {', '.join(['height', *ENV_PARAMS[name]])}")
         else:
             params[key] = number
     return name, height, params
@@ -212,8 +215,10 @@ def parse_env_spec(spec: str) -> tuple[str, int, dict[str, float]]:
 def spec_help() -> str:
     """The procedural maps in one phrase, for every option that takes one (relight --env, synth --env,
     env make): the names from ENV_PARAMS, the one list."""
-    return (f"a procedural map NAME[:key=value,...], NAME one of {', '.join(ENV_PARAMS)} (e.g. 'sun+sky:elev=40,az=30'; "
-            f"height=H rows, default {DEFAULT_HEIGHT}; every key in docs/synth.md)")
+    return (
+        f"a procedural map NAME[:key=value,...], NAME one of {', '.join(ENV_PARAMS)} (e.g. 'sun+sky:elev=40,az=30'; "
+        f"height=H rows, default {DEFAULT_HEIGHT}; every key in docs/synth.md)"
+    )
 
 
 def envmap_from_spec(spec: str) -> np.ndarray:

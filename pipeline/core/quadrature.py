@@ -33,9 +33,9 @@ def sphere_product_rule(n_z: int, n_phi: int) -> tuple[np.ndarray, np.ndarray]:
     z, wz = gauss_legendre(n_z)
     phi = 2.0 * np.pi * (np.arange(n_phi) + 0.5) / n_phi
     s = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    dirs = np.stack([s[:, None] * np.cos(phi)[None, :],
-                     s[:, None] * np.sin(phi)[None, :],
-                     np.broadcast_to(z[:, None], (n_z, n_phi))], axis=-1).reshape(-1, 3)
+    dirs = np.stack(
+        [s[:, None] * np.cos(phi)[None, :], s[:, None] * np.sin(phi)[None, :], np.broadcast_to(z[:, None], (n_z, n_phi))], axis=-1
+    ).reshape(-1, 3)
     weights = (wz[:, None] * np.full(n_phi, 2.0 * np.pi / n_phi)[None, :]).reshape(-1)
     return dirs, weights
 

@@ -91,8 +91,9 @@ def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
-def _trimmed_icp(x: np.ndarray, tree: cKDTree, surface: np.ndarray, start: Similarity, iterations: int,
-                 keep: float) -> tuple[Similarity, float]:
+def _trimmed_icp(
+    x: np.ndarray, tree: cKDTree, surface: np.ndarray, start: Similarity, iterations: int, keep: float
+) -> tuple[Similarity, float]:
     """Point-to-point ICP keeping the ``keep`` fraction of nearest pairs; (similarity, score in source units)."""
     sim = start
     count = max(3, int(keep * len(x)))
@@ -105,12 +106,20 @@ def _trimmed_icp(x: np.ndarray, tree: cKDTree, surface: np.ndarray, start: Simil
             return sim, np.inf
     distance, _ = tree.query(sim.apply(x))
     trimmed = np.partition(distance, count - 1)[:count]
-    return sim, float(np.sqrt(np.mean(trimmed ** 2)) / sim.scale)
+    return sim, float(np.sqrt(np.mean(trimmed**2)) / sim.scale)
 
 
-def point_to_plane_icp(x: np.ndarray, tree: cKDTree, surface: np.ndarray, normals: np.ndarray,
-                       start: Similarity, *, iterations: int = 40, cut_sigmas: float = 3.0,
-                       tolerance: float = 1e-7) -> tuple[Similarity, np.ndarray, np.ndarray]:
+def point_to_plane_icp(
+    x: np.ndarray,
+    tree: cKDTree,
+    surface: np.ndarray,
+    normals: np.ndarray,
+    start: Similarity,
+    *,
+    iterations: int = 40,
+    cut_sigmas: float = 3.0,
+    tolerance: float = 1e-7,
+) -> tuple[Similarity, np.ndarray, np.ndarray]:
     """Robust similarity point-to-plane ICP (Chen & Medioni 1992, with a scale term).
 
     Each step linearises rᵢ = nᵢ·(pᵢ' − yᵢ) for pᵢ' = (1 + ds)(I + [w]×)(pᵢ − c) + c + dt about the
@@ -158,12 +167,23 @@ def truncated_costs(distances: list[np.ndarray], cut_sigmas: float = 3.0) -> np.
     return np.array([float(np.mean(np.minimum(d, tau) ** 2)) for d in distances])
 
 
-def register_to_surface(points: np.ndarray, surface_points: np.ndarray, surface_normals: np.ndarray, *,
-                        center: np.ndarray, scale: float, rotations: int = 128,
-                        scale_factors: tuple[float, ...] = (0.5, 0.7, 1.0, 1.4, 2.0), search_points: int = 600,
-                        search_surface: int = 4000,
-                        keep: float = 0.5, refine_best: int = 16, ambiguity_deg: float = 5.0,
-                        ambiguity_ratio: float = 1.25, seed: int = 0) -> SurfaceRegistration:
+def register_to_surface(
+    points: np.ndarray,
+    surface_points: np.ndarray,
+    surface_normals: np.ndarray,
+    *,
+    center: np.ndarray,
+    scale: float,
+    rotations: int = 128,
+    scale_factors: tuple[float, ...] = (0.5, 0.7, 1.0, 1.4, 2.0),
+    search_points: int = 600,
+    search_surface: int = 4000,
+    keep: float = 0.5,
+    refine_best: int = 16,
+    ambiguity_deg: float = 5.0,
+    ambiguity_ratio: float = 1.25,
+    seed: int = 0,
+) -> SurfaceRegistration:
     """Similarity mapping ``points`` (N, 3, source frame) onto the surface, without a rotation guess.
 
     ``center``: the object's middle in the source frame (``viewing_center``); ``scale``: initial s
@@ -186,13 +206,15 @@ def register_to_surface(points: np.ndarray, surface_points: np.ndarray, surface_
     coarse = surface[rng.choice(len(surface), min(search_surface, len(surface)), replace=False)]
     coarse_tree = cKDTree(coarse)
     target_center = surface.mean(axis=0)
-    starts = [Similarity(scale * f, R0, target_center - scale * f * R0 @ center)
-              for R0 in rotation_starts(rotations, seed) for f in scale_factors]
+    starts = [
+        Similarity(scale * f, R0, target_center - scale * f * R0 @ center)
+        for R0 in rotation_starts(rotations, seed)
+        for f in scale_factors
+    ]
     # successive halving: every start gets 4 ICP steps, the best fifth 8 more
     candidates = sorted((_trimmed_icp(subset, coarse_tree, coarse, s, 4, keep) for s in starts), key=lambda c: c[1])
-    survivors = candidates[:max(2 * refine_best, len(candidates) // 5)]
-    candidates = sorted((_trimmed_icp(subset, coarse_tree, coarse, s, 8, keep) for s, _ in survivors),
-                        key=lambda c: c[1])
+    survivors = candidates[: max(2 * refine_best, len(candidates) // 5)]
+    candidates = sorted((_trimmed_icp(subset, coarse_tree, coarse, s, 8, keep) for s, _ in survivors), key=lambda c: c[1])
     refined: list[tuple[Similarity, np.ndarray]] = []  # point-to-plane on the subset, distances in source units
     tried: list[Similarity] = []
     for sim, _ in candidates:
@@ -217,8 +239,9 @@ def register_to_surface(points: np.ndarray, surface_points: np.ndarray, surface_
     return SurfaceRegistration(best, rms, inliers, ambiguous, len(starts))
 
 
-def project_to_surface(points: np.ndarray, surface_points: np.ndarray, surface_normals: np.ndarray, *,
-                       cut_sigmas: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+def project_to_surface(
+    points: np.ndarray, surface_points: np.ndarray, surface_normals: np.ndarray, *, cut_sigmas: float = 3.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Each point moved along the normal of its nearest surface sample onto that sample's tangent plane.
 
     Returns (projected (N, 3), inliers (N,) bool: |distance| < cut_sigmas · σ, σ from the MAD).  The

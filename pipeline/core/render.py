@@ -94,8 +94,9 @@ class LightSet:
         return self.directions.shape[0]
 
 
-def light_set(env: np.ndarray, cell_height: int = 16, max_bright: int = 1024,
-              bright_ratio: float = 4.0, bright_block: int = 1) -> LightSet:
+def light_set(
+    env: np.ndarray, cell_height: int = 16, max_bright: int = 1024, bright_ratio: float = 4.0, bright_block: int = 1
+) -> LightSet:
     """Split an (H, 2H, 3) equirect map into full-resolution bright pixels + a coarse remainder.
 
     See the module docstring.  The powers sum exactly to the map's sum(L dω) per channel.  A signed
@@ -135,12 +136,12 @@ def light_set(env: np.ndarray, cell_height: int = 16, max_bright: int = 1024,
     c_dirs = equirect_directions(ch).reshape(-1, 3)
     c_power = (coarse * equirect_solid_angles(ch)[:, None, None]).reshape(-1, 3)
     nonzero = np.abs(c_power).max(axis=1) > 0
-    return LightSet(np.concatenate([c_dirs[nonzero], b_dirs]), np.concatenate([c_power[nonzero], b_power]), idx,
-                    len(b_dirs))
+    return LightSet(np.concatenate([c_dirs[nonzero], b_dirs]), np.concatenate([c_power[nonzero], b_power]), idx, len(b_dirs))
 
 
-def _bright_directions(dirs: np.ndarray, power: np.ndarray, idx: np.ndarray, alone: np.ndarray, width: int,
-                       block: int) -> tuple[np.ndarray, np.ndarray]:
+def _bright_directions(
+    dirs: np.ndarray, power: np.ndarray, idx: np.ndarray, alone: np.ndarray, width: int, block: int
+) -> tuple[np.ndarray, np.ndarray]:
     """(directions, power) of the bright pixels ``idx`` (flat indices into a map ``width`` wide,
     its pixels' directions and powers (H W, 3)): those with ``alone`` one by one, the others merged
     per ``block`` x ``block`` block (power-weighted mean direction, summed power)."""
@@ -217,16 +218,18 @@ class BounceRays:
         """Sum of per-ray values (R, C) over each vertex's occluded rays -> (V, C)."""
         import scipy.sparse as sp
 
-        m = sp.csr_matrix((np.ones(self.owner.size), (self.owner, np.arange(self.owner.size))),
-                          shape=(n_vertices, self.owner.size))
+        m = sp.csr_matrix(
+            (np.ones(self.owner.size), (self.owner, np.arange(self.owner.size))), shape=(n_vertices, self.owner.size)
+        )
         return np.asarray(m @ values)
 
 
-BOUNCE_TOLERANCE = 5e-3   # the bounce series stops after a bounce adding less than this of max |E_d|
+BOUNCE_TOLERANCE = 5e-3  # the bounce series stops after a bounce adding less than this of max |E_d|
 
 
-def bounce_series(bounce: list, base: np.ndarray, direct: np.ndarray, max_bounces: int,
-                  tolerance: float = BOUNCE_TOLERANCE) -> np.ndarray:
+def bounce_series(
+    bounce: list, base: np.ndarray, direct: np.ndarray, max_bounces: int, tolerance: float = BOUNCE_TOLERANCE
+) -> np.ndarray:
     """Interreflected irradiance of E = E_d + M_c (rho_c E), by iterating bounces until one adds
     < ``tolerance`` of max |E_d| (at most ``max_bounces``).
 
@@ -237,7 +240,7 @@ def bounce_series(bounce: list, base: np.ndarray, direct: np.ndarray, max_bounce
     e_ind = np.zeros_like(d)
     scale = max(float(np.abs(d).max()), 1e-12)
     for _ in range(max_bounces):
-        new = np.stack([bounce[c] @ (base[:, c:c + 1] * (d[..., c] + e_ind[..., c])) for c in range(3)], axis=-1)
+        new = np.stack([bounce[c] @ (base[:, c : c + 1] * (d[..., c] + e_ind[..., c])) for c in range(3)], axis=-1)
         step = np.abs(new - e_ind).max() / scale
         e_ind = new
         if step < tolerance:
@@ -262,7 +265,7 @@ def bounce_terms_needed(peaks: np.ndarray, scale: float, rho_max: float, toleran
     adding < ``tolerance`` of ``scale`` (max |E_d|); term i adds rho^i M^i E_d, whose largest
     entry is ``rho_max``^i ``peaks``[i-1] (peaks: max |M^i E_d| per term)."""
     for i, peak in enumerate(peaks, 1):
-        if rho_max ** i * peak / max(scale, 1e-12) < tolerance:
+        if rho_max**i * peak / max(scale, 1e-12) < tolerance:
             return i
     return len(peaks)
 
@@ -284,7 +287,7 @@ class Renderer:
     this mesh's points.  Without one (the default) both are this renderer's own.
     """
 
-    mesh: object           # pipeline.raycast.RayMesh (ray_mesh(trimesh mesh))
+    mesh: object  # pipeline.raycast.RayMesh (ray_mesh(trimesh mesh))
     env: np.ndarray
     brdf: Brdf
     shadows: bool = True
@@ -293,7 +296,7 @@ class Renderer:
     board: BoardPlane | None = None
     cell_height: int = 16
     max_bright: int = 1024
-    bright_block: int = 1          # light_set's: the broad bright pixels merged per b x b block
+    bright_block: int = 1  # light_set's: the broad bright pixels merged per b x b block
     board_supersample: int = 4
     chunk_pairs: int = 1 << 21
     interreflection: bool = True
@@ -326,17 +329,27 @@ class Renderer:
         self._proxy = None
         proxy = getattr(self.mesh, "proxy", None)
         if proxy is not None and self.shadows:
-            self._proxy = Renderer(proxy.mesh, self.env, self.brdf, shadows=True, board=self.board,
-                                   cell_height=self.cell_height, max_bright=self.max_bright,
-                                   bright_block=self.bright_block, chunk_pairs=self.chunk_pairs,
-                                   interreflection=self.interreflection, bounce_samples=self.bounce_samples,
-                                   lobe_samples=self.lobe_samples, max_bounces=self.max_bounces, seed=self.seed)
+            self._proxy = Renderer(
+                proxy.mesh,
+                self.env,
+                self.brdf,
+                shadows=True,
+                board=self.board,
+                cell_height=self.cell_height,
+                max_bright=self.max_bright,
+                bright_block=self.bright_block,
+                chunk_pairs=self.chunk_pairs,
+                interreflection=self.interreflection,
+                bounce_samples=self.bounce_samples,
+                lobe_samples=self.lobe_samples,
+                max_bounces=self.max_bounces,
+                seed=self.seed,
+            )
         if self.material is not None:
             self._remainder = self._remainder_pyramid()
             self._spec_cut_cos = lobe_support_cos(self.material.alpha)
         if self.shadows:
-            self._shadow_rays = (self.mesh.rays if self.board is None
-                                 else self.mesh.with_occluder(self.board.corners_object()))
+            self._shadow_rays = self.mesh.rays if self.board is None else self.mesh.with_occluder(self.board.corners_object())
         if self.board is not None:
             h = self.env.shape[0]
             d = equirect_directions(h)
@@ -379,16 +392,19 @@ class Renderer:
         total = np.zeros((nv,) + values.shape[1:])
         weight = np.zeros(nv)
         np.add.at(weight, proxy.tri.ravel(), proxy.bary.ravel())
-        np.add.at(total, proxy.tri.ravel(), proxy.bary.reshape(-1, *([1] * (values.ndim - 1)))
-                  * np.repeat(values, 3, axis=0))
-        return np.where((weight > 0).reshape(-1, *([1] * (values.ndim - 1))),
-                        total / np.maximum(weight, 1e-300).reshape(-1, *([1] * (values.ndim - 1))), values.mean(axis=0))
+        np.add.at(total, proxy.tri.ravel(), proxy.bary.reshape(-1, *([1] * (values.ndim - 1))) * np.repeat(values, 3, axis=0))
+        return np.where(
+            (weight > 0).reshape(-1, *([1] * (values.ndim - 1))),
+            total / np.maximum(weight, 1e-300).reshape(-1, *([1] * (values.ndim - 1))),
+            values.mean(axis=0),
+        )
 
     def _points_rng(self, faces: np.ndarray, bary: np.ndarray) -> np.random.Generator:
         """A generator seeded by this renderer's seed and the points themselves: the same points get
         the same samples whichever thread shades them, in whatever order (reproducible images)."""
-        digest = hashlib.blake2b(np.ascontiguousarray(faces).tobytes() + np.ascontiguousarray(bary).tobytes(),
-                                 digest_size=8).digest()
+        digest = hashlib.blake2b(
+            np.ascontiguousarray(faces).tobytes() + np.ascontiguousarray(bary).tobytes(), digest_size=8
+        ).digest()
         return np.random.default_rng([self.seed, *np.frombuffer(digest, np.uint32).tolist()])
 
     def _remainder_pyramid(self) -> EnvPyramid:
@@ -422,8 +438,9 @@ class Renderer:
         thread_map(chunk, range(0, todo.size, per_chunk))
         self._vis_done[todo] = True
 
-    def _point_visibility(self, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray,
-                          needed: np.ndarray | None = None) -> np.ndarray:
+    def _point_visibility(
+        self, faces: np.ndarray, tri: np.ndarray, bary: np.ndarray, needed: np.ndarray | None = None
+    ) -> np.ndarray:
         """Visibility (P, D) bool of the light set at points: the vertices' visibility where all three
         of the point's vertices agree, an exact shadow ray from the point where they do not
         (shadow edges crossing the triangle), so shadows are sharp at any mesh resolution.
@@ -434,8 +451,7 @@ class Renderer:
         disagree = (v0 | v1 | v2) & ~lit  # bool planes: 8x less memory traffic than weights
         pi, di = np.nonzero(disagree if needed is None else disagree & needed)
         if pi.size:
-            lit[pi, di] = ~self._shadow_rays.intersects_any(self._points_above(faces[pi], bary[pi]),
-                                                            self.lights.directions[di])
+            lit[pi, di] = ~self._shadow_rays.intersects_any(self._points_above(faces[pi], bary[pi]), self.lights.directions[di])
         return lit
 
     # -- shading ----------------------------------------------------------------------------
@@ -505,11 +521,12 @@ class Renderer:
         origins, directions = np.repeat(self.vertices_above(), n_s, axis=0), w.reshape(-1, 3)
 
         def cast(part: np.ndarray) -> tuple:
-            face, ray, loc = self._shadow_rays.intersects_id(origins[part], directions[part], multiple_hits=False,
-                                                             return_locations=True)
+            face, ray, loc = self._shadow_rays.intersects_id(
+                origins[part], directions[part], multiple_hits=False, return_locations=True
+            )
             return np.asarray(face), part[np.asarray(ray, np.int64)], np.asarray(loc, float).reshape(-1, 3)
 
-        parts = thread_map(cast, np.array_split(np.arange(len(origins)), os.cpu_count() or 1))   # in ray order
+        parts = thread_map(cast, np.array_split(np.arange(len(origins)), os.cpu_count() or 1))  # in ray order
         hit_face, ray_id, loc = (np.concatenate(x) for x in zip(*parts))
         on_mesh = hit_face < len(self.mesh.faces)  # the board (when present) is not a bounce source
         hf = hit_face[on_mesh]
@@ -517,8 +534,9 @@ class Renderer:
         bary = barycentric(self.mesh.triangles[hf], loc[on_mesh])
         w_hit = w.reshape(-1, 3)[ray_id]
         mu_hit = np.clip(-np.einsum("pc,pc->p", self._normals_at(hf, bary), w_hit[on_mesh]), 0.0, 1.0)
-        self._bounce_rays = BounceRays(n_s, ray_id // n_s, w_hit, np.maximum(local.reshape(-1, 3)[ray_id, 2], 1e-3),
-                                       on_mesh, tri, bary, mu_hit)
+        self._bounce_rays = BounceRays(
+            n_s, ray_id // n_s, w_hit, np.maximum(local.reshape(-1, 3)[ray_id, 2], 1e-3), on_mesh, tri, bary, mu_hit
+        )
         return self._bounce_rays
 
     def bounce_matrices(self, layer: np.ndarray | None = None) -> list:
@@ -532,8 +550,10 @@ class Renderer:
         if layer is None:  # (1 - m)(1 - A_s) per channel
             layer = self._diffuse_albedo(rays.mu_hit, np.ones((rays.mu_hit.size, 3)))
         rows, cols = np.repeat(rays.owner[rays.on_mesh], 3), rays.tri.ravel()
-        return [sp.csr_matrix(((rays.bary * layer[:, c:c + 1]).ravel() / rays.per_vertex, (rows, cols)),
-                              shape=(nv, nv)) for c in range(3)]
+        return [
+            sp.csr_matrix(((rays.bary * layer[:, c : c + 1]).ravel() / rays.per_vertex, (rows, cols)), shape=(nv, nv))
+            for c in range(3)
+        ]
 
     def vertex_irradiance(self) -> tuple[np.ndarray, np.ndarray]:
         """Per-vertex irradiance (V, 3) with self-shadowing and diffuse interreflection, and the
@@ -548,7 +568,7 @@ class Renderer:
         """
         if self._vertex_irradiance is not None:
             return self._vertex_irradiance
-        if self._proxy is not None:     # at the proxy's vertices, with this mesh's base colour there
+        if self._proxy is not None:  # at the proxy's vertices, with this mesh's base colour there
             self._proxy.vertex_albedo = self.to_vertex_scene(self._vertex_base()) if self._varying_base else None
             self._vertex_irradiance = self._proxy.vertex_irradiance()
             return self._vertex_irradiance
@@ -557,8 +577,9 @@ class Renderer:
             self._vertex_irradiance = (e_open, np.zeros_like(e_open))
             return self._vertex_irradiance
         rays = self.bounce_rays()
-        blocked = EnvPyramid.build(self.env).lookup(rays.directions, np.pi / (rays.per_vertex * rays.cos)) \
-            * (np.pi / rays.per_vertex)
+        blocked = EnvPyramid.build(self.env).lookup(rays.directions, np.pi / (rays.per_vertex * rays.cos)) * (
+            np.pi / rays.per_vertex
+        )
         e_direct = e_open - rays.per_owner(blocked, len(e_open))
         if self.env.min() >= 0:  # the occluded rays' estimate may overshoot; a signed map's E may be < 0
             e_direct = np.maximum(e_direct, 0.0)
@@ -574,7 +595,7 @@ class Renderer:
         out = np.zeros((normals.shape[0], power.shape[1]))
         per_chunk = max(1, self.chunk_pairs // len(power))
         for s in range(0, normals.shape[0], per_chunk):
-            out[s:s + per_chunk] = np.maximum(normals[s:s + per_chunk] @ self.lights.directions.T, 0.0) @ power
+            out[s : s + per_chunk] = np.maximum(normals[s : s + per_chunk] @ self.lights.directions.T, 0.0) @ power
         return out
 
     def _indirect_at(self, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
@@ -597,18 +618,26 @@ class Renderer:
         normals = self._normals_at(faces, bary)
         cos_out = np.einsum("pc,pc->p", normals, w_toward)
         mu = np.clip(cos_out, 0.0, 1.0)
-        e_total = np.einsum("pk,pkc->pc", bary, self.vertex_irradiance()[0][tri]) if self._proxy is None \
+        e_total = (
+            np.einsum("pk,pkc->pc", bary, self.vertex_irradiance()[0][tri])
+            if self._proxy is None
             else self.at_points(self.vertex_irradiance()[0], tri, bary)
+        )
         base = self._base(faces, tri, bary)
         out = self._diffuse_albedo(mu, base) / np.pi * e_total
         front = np.flatnonzero(cos_out > 0)
         if self.material is None or not front.size:
             return out
         whole = self._whole_map_pyramid()
-        out[front] += sampled_lobe(self.material, normals[front], w_toward[front], HIT_LOBE_SAMPLES,
-                                   self._points_rng(faces[front], bary[front]),
-                                   lambda dirs, solid_angle, ids: whole.lookup(dirs, solid_angle),
-                                   None if not self._varying_base else base[front])
+        out[front] += sampled_lobe(
+            self.material,
+            normals[front],
+            w_toward[front],
+            HIT_LOBE_SAMPLES,
+            self._points_rng(faces[front], bary[front]),
+            lambda dirs, solid_angle, ids: whole.lookup(dirs, solid_angle),
+            None if not self._varying_base else base[front],
+        )
         return out
 
     def _whole_map_pyramid(self) -> EnvPyramid:
@@ -632,16 +661,23 @@ class Renderer:
                 if self.shadows:
                     pts = self._points_above(faces[sl], bary[sl])
                     hit_face, ray_id, loc = self._shadow_rays.intersects_id(
-                        pts[points], dirs, multiple_hits=False, return_locations=True)
+                        pts[points], dirs, multiple_hits=False, return_locations=True
+                    )
                     on_mesh = hit_face < len(self.mesh.faces)
                     radiance[ray_id] = 0.0
                     if self.interreflection and on_mesh.any():
-                        radiance[ray_id[on_mesh]] = self._object_radiance(hit_face[on_mesh], loc[on_mesh],
-                                                                          -dirs[ray_id[on_mesh]])
+                        radiance[ray_id[on_mesh]] = self._object_radiance(hit_face[on_mesh], loc[on_mesh], -dirs[ray_id[on_mesh]])
                 return radiance
 
-            out[sl] = sampled_lobe(self.material, normals[sl], view_dirs[sl], self.lobe_samples, rng, seen,
-                                   None if not self._varying_base else base[sl])
+            out[sl] = sampled_lobe(
+                self.material,
+                normals[sl],
+                view_dirs[sl],
+                self.lobe_samples,
+                rng,
+                seen,
+                None if not self._varying_base else base[sl],
+            )
         return out
 
     def shade(self, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray) -> np.ndarray:
@@ -693,13 +729,18 @@ class Renderer:
             if self.shadows:
                 vis = self._point_visibility(faces[sl], tri[sl], bary[sl], cos > 0)
                 cos = cos * vis
-                bright_vis[sl] = vis[:, len(dirs) - nb:]
+                bright_vis[sl] = vis[:, len(dirs) - nb :]
             irradiance[sl] = cos @ power
         return irradiance, bright_vis
 
-    def shade_parts(self, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray,
-                    direct: tuple[np.ndarray, np.ndarray] | None = None,
-                    footprint: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def shade_parts(
+        self,
+        faces: np.ndarray,
+        bary: np.ndarray,
+        view_dirs: np.ndarray,
+        direct: tuple[np.ndarray, np.ndarray] | None = None,
+        footprint: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """shade() of a Lambert or principled material as (diffuse radiance per unit base colour
         (P, 3), specular radiance (P, 3)): radiance = base colour * diffuse + specular.  Diffuse:
         kd(mu_o) / pi (direct over the light set + interreflection); specular: exactly over the
@@ -722,16 +763,20 @@ class Renderer:
         per_chunk = max(1, self.chunk_pairs // max(nb, 1))
         for s in range(0, faces.shape[0] if nb else 0, per_chunk):
             sl = slice(s, s + per_chunk)
-            args = (self.lights.directions[-nb:], self.lights.power[-nb:], bright_vis[sl] if self.shadows else None,
-                    self._spec_cut_cos, None if not self._varying_base else base[sl])
+            args = (
+                self.lights.directions[-nb:],
+                self.lights.power[-nb:],
+                bright_vis[sl] if self.shadows else None,
+                self._spec_cut_cos,
+                None if not self._varying_base else base[sl],
+            )
             if footprint is None:
                 specular[sl] = specular_over_directions(self.material, normals[sl], view_dirs[sl], *args)
             else:
                 specular[sl] = specular_over_footprint(self.material, footprint[0][sl], footprint[1][sl], *args)
         front = mu_out > 0
         if front.any():
-            specular[front] += self._specular_sampled(faces[front], bary[front], normals[front], view_dirs[front],
-                                                      base[front])
+            specular[front] += self._specular_sampled(faces[front], bary[front], normals[front], view_dirs[front], base[front])
         return diffuse, specular
 
     def with_brdf(self, brdf: Brdf) -> "Renderer":
@@ -788,8 +833,9 @@ class Renderer:
         return specular[None, :] * s1 + (1.0 - specular[None, :]) * s2
 
     # -- views ------------------------------------------------------------------------------
-    def render(self, camera: Camera, R: np.ndarray, t: np.ndarray, highlight_supersample: int = 1,
-               contrast: float = 2.0) -> RenderResult:
+    def render(
+        self, camera: Camera, R: np.ndarray, t: np.ndarray, highlight_supersample: int = 1, contrast: float = 2.0
+    ) -> RenderResult:
         """Render one view: radiance (H, W, 3), object and board masks.
 
         One ray per pixel centre; with ``highlight_supersample`` n > 1 the object's pixels whose
@@ -801,8 +847,7 @@ class Renderer:
         w, h = camera.width, camera.height
         uv = pixel_centers(w, h)
         origins, dirs = pixel_rays(camera, R, t, uv)
-        tri_ids, ray_ids, locations = self._camera_rays.intersects_id(
-            origins, dirs, multiple_hits=False, return_locations=True)
+        tri_ids, ray_ids, locations = self._camera_rays.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
         if tri_ids.size:
             back = np.einsum("pc,pc->p", np.asarray(self.mesh.face_normals)[tri_ids], dirs[ray_ids]) > 0
             if back.mean() > 0.5:
@@ -818,8 +863,7 @@ class Renderer:
             radiance[ray_ids] = self.shade(tri_ids, bary, -dirs[ray_ids])
             if highlight_supersample > 1:
                 self._supersample_highlights(camera, R, t, radiance, object_mask, highlight_supersample, contrast)
-        return RenderResult(radiance.reshape(h, w, 3).astype(np.float32), object_mask.reshape(h, w),
-                            board_mask.reshape(h, w))
+        return RenderResult(radiance.reshape(h, w, 3).astype(np.float32), object_mask.reshape(h, w), board_mask.reshape(h, w))
 
     def _supersample_highlights(self, camera, R, t, radiance, object_mask, n: int, contrast: float) -> None:
         """render()'s second pass, in place on radiance (H*W, 3): the contrasted object pixels as
@@ -840,11 +884,11 @@ class Renderer:
                 uv = centres + np.array([ox, oy])
                 origins, dirs = pixel_rays(camera, R, t, uv)
                 tri_ids, ray_ids, locations = self._camera_rays.intersects_id(
-                    origins, dirs, multiple_hits=False, return_locations=True)
+                    origins, dirs, multiple_hits=False, return_locations=True
+                )
                 sub = lookup(self.env, dirs).astype(float)
                 if tri_ids.size:
-                    sub[ray_ids] = self.shade(tri_ids, barycentric(self.mesh.triangles[tri_ids], locations),
-                                              -dirs[ray_ids])
+                    sub[ray_ids] = self.shade(tri_ids, barycentric(self.mesh.triangles[tri_ids], locations), -dirs[ray_ids])
                 total += sub
         radiance[pixels] = total / (n * n)
 
@@ -925,8 +969,7 @@ class SceneGroups:
         diffuse, specular = np.zeros((len(faces), 3)), np.zeros((len(faces), 3))
         for g, (s, i) in enumerate(zip(self.scenes, self._rows())):
             part = None if footprint is None else (footprint[0][i], footprint[1][i])
-            diffuse[i], specular[i] = s.shade_parts(faces[i], bary[i], view_dirs[i],
-                                                    None if direct is None else direct[g], part)
+            diffuse[i], specular[i] = s.shade_parts(faces[i], bary[i], view_dirs[i], None if direct is None else direct[g], part)
         return diffuse, specular
 
     def _indirect_at(self, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:

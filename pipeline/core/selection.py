@@ -24,8 +24,7 @@ def fold_of(image_id: np.ndarray, folds: int) -> np.ndarray:
     return (np.asarray(image_id) % folds).astype(np.int64)
 
 
-def parsimonious_choice(candidates: list[dict], tolerance: float, key: str = "validation_rmse",
-                        noise: float = 0.0) -> int:
+def parsimonious_choice(candidates: list[dict], tolerance: float, key: str = "validation_rmse", noise: float = 0.0) -> int:
     """Index of the candidate with the fewest parameters whose ``key`` is within noise of the
     best: error <= best (1 + tolerance) + noise (the "model no more than the scene needs" rule;
     ``noise``: the error level below which differences mean nothing, e.g. the noise floor)."""
@@ -53,8 +52,17 @@ def descend_grid(grid: list[float], score_at: Callable[[float], float], start: i
             scores[j] = score_at(grid[j])
 
 
-def refine_bracket(fits: dict, fit_at: Callable, score: Callable, refinements: int, *, low_end: float,
-                   high_end: float, xtol: float, end_probe: float) -> None:
+def refine_bracket(
+    fits: dict,
+    fit_at: Callable,
+    score: Callable,
+    refinements: int,
+    *,
+    low_end: float,
+    high_end: float,
+    xtol: float,
+    end_probe: float,
+) -> None:
     """Add to ``fits`` ({x: fit}) Brent's bounded search in log x between the best fit's
     neighbours, or between the range's end (``low_end``, ``high_end``) and the neighbour when the
     best is at an end (a mirror-like object below a roughness grid's 0.1 must not stop there).
@@ -74,15 +82,16 @@ def refine_bracket(fits: dict, fit_at: Callable, score: Callable, refinements: i
     def held_out(log_x: float) -> float:
         x = float(np.exp(log_x))
         near = [y for y in fits if abs(np.log(y / x)) < xtol / 2]
-        if near:      # Brent's last steps land within its tolerance of a fitted point: that fit
+        if near:  # Brent's last steps land within its tolerance of a fitted point: that fit
             return score(fits[near[0]])
         fits[x] = fit_at(x)
         return score(fits[x])
 
     low = xs[i - 1] if i > 0 else low_end
     high = xs[i + 1] if i < len(xs) - 1 else high_end
-    minimize_scalar(held_out, bounds=(np.log(low), np.log(high)), method="bounded",
-                    options={"maxiter": refinements, "xatol": xtol})
+    minimize_scalar(
+        held_out, bounds=(np.log(low), np.log(high)), method="bounded", options={"maxiter": refinements, "xatol": xtol}
+    )
 
 
 def parabola_minimum(x: np.ndarray, y: np.ndarray) -> float:
@@ -91,8 +100,8 @@ def parabola_minimum(x: np.ndarray, y: np.ndarray) -> float:
     i = int(np.argmin(y))
     if i == 0 or i == len(x) - 1:
         return float(x[i])
-    lx = np.log(x[i - 1:i + 2])
-    c = np.polyfit(lx, y[i - 1:i + 2], 2)
+    lx = np.log(x[i - 1 : i + 2])
+    c = np.polyfit(lx, y[i - 1 : i + 2], 2)
     if c[0] <= 0:
         return float(x[i])
     return float(np.exp(np.clip(-c[1] / (2 * c[0]), lx[0], lx[2])))
@@ -115,4 +124,3 @@ def interval_within(x: np.ndarray, errors: np.ndarray, tolerance: float) -> tupl
             continue
         ends.append(r[i] + (r[j] - r[i]) * (limit - e[i]) / (e[j] - e[i]))
     return float(np.exp(ends[0])), float(np.exp(ends[1]))
-

@@ -44,7 +44,7 @@ def _legendre_bands(z: np.ndarray, s: np.ndarray, order: int):
     """
     n = z.shape[0]
     prev2 = np.zeros((order + 1, n))  # P̄_{l-2, m}
-    prev = np.zeros((order + 1, n))   # P̄_{l-1, m}
+    prev = np.zeros((order + 1, n))  # P̄_{l-1, m}
     cur = np.zeros((order + 1, n))
     for l in range(order + 1):
         if l == 0:
@@ -56,8 +56,8 @@ def _legendre_bands(z: np.ndarray, s: np.ndarray, order: int):
                 m = np.arange(l - 1)
                 a = np.sqrt((4.0 * l * l - 1.0) / (l * l - m * m))[:, None]
                 b = np.sqrt(((l - 1.0) ** 2 - m * m) / (4.0 * (l - 1.0) ** 2 - 1.0))[:, None]
-                cur[:l - 1] = a * (z * prev[:l - 1] - b * prev2[:l - 1])
-        yield l, cur[:l + 1]
+                cur[: l - 1] = a * (z * prev[: l - 1] - b * prev2[: l - 1])
+        yield l, cur[: l + 1]
         prev2, prev, cur = prev, cur, prev2
 
 
@@ -74,11 +74,11 @@ def legendre_table(z: np.ndarray, order: int, s: np.ndarray | None = None) -> np
     sqrt(1 - z^2) (near the poles).
     """
     z, s = _z_and_sin(z, s)
-    out = np.empty((num_coeffs(order), z.shape[0]))   # k-major: contiguous in N
+    out = np.empty((num_coeffs(order), z.shape[0]))  # k-major: contiguous in N
     for l, p in _legendre_bands(z, s, order):
         centre = l * l + l
-        out[centre:centre + l + 1] = p
-        out[l * l:centre] = p[l:0:-1]
+        out[centre : centre + l + 1] = p
+        out[l * l : centre] = p[l:0:-1]
     return out.T
 
 
@@ -87,8 +87,7 @@ def trig_table(phi: np.ndarray, order: int) -> np.ndarray:
     phi = np.asarray(phi, dtype=float).reshape(-1)
     m = np.arange(1, order + 1)
     mphi = phi[:, None] * m[None, :]
-    return np.concatenate([np.sqrt(2.0) * np.sin(mphi)[:, ::-1], np.ones((phi.shape[0], 1)),
-                           np.sqrt(2.0) * np.cos(mphi)], axis=1)
+    return np.concatenate([np.sqrt(2.0) * np.sin(mphi)[:, ::-1], np.ones((phi.shape[0], 1)), np.sqrt(2.0) * np.cos(mphi)], axis=1)
 
 
 def _azimuth_rows(x: np.ndarray, y: np.ndarray, order: int) -> np.ndarray:
@@ -107,17 +106,17 @@ def _azimuth_rows(x: np.ndarray, y: np.ndarray, order: int) -> np.ndarray:
     if order == 0:
         return out
     root2 = np.sqrt(2.0)
-    np.multiply(np.where(pole, 1.0, x * inv), root2, out=out[order + 1])     # sqrt2 cos(phi)
-    np.multiply(y * inv, root2, out=out[order - 1])                           # sqrt2 sin(phi)
+    np.multiply(np.where(pole, 1.0, x * inv), root2, out=out[order + 1])  # sqrt2 cos(phi)
+    np.multiply(y * inv, root2, out=out[order - 1])  # sqrt2 sin(phi)
     two_cos = np.where(pole, 2.0, 2.0 * x * inv)
     for m in range(2, order + 1):
         np.multiply(two_cos, out[order + m - 1], out=out[order + m])
         np.multiply(two_cos, out[order - m + 1], out=out[order - m])
         if m == 2:
-            out[order + m] -= root2                                           # sqrt2 cos(0)
+            out[order + m] -= root2  # sqrt2 cos(0)
         else:
             out[order + m] -= out[order + m - 2]
-            out[order - m] -= out[order - m + 2]                              # sin(0) = 0 at m = 2
+            out[order - m] -= out[order - m + 2]  # sin(0) = 0 at m = 2
     return out
 
 
@@ -139,12 +138,12 @@ def sh_basis(dirs: np.ndarray, order: int) -> np.ndarray:
         raise ValueError("order must be >= 0")
     d = np.asarray(dirs, dtype=float).reshape(-1, 3)
     z, s = _z_and_sin(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
-    trig = _azimuth_rows(d[:, 0], d[:, 1], order)                  # (2L+1, N), row m + L
+    trig = _azimuth_rows(d[:, 0], d[:, 1], order)  # (2L+1, N), row m + L
     out = np.empty((num_coeffs(order), d.shape[0]))
     for l, p in _legendre_bands(z, s, order):
         centre = l * l + l
-        np.multiply(p, trig[order:order + l + 1], out=out[centre:centre + l + 1])
-        np.multiply(p[l:0:-1], trig[order - l:order], out=out[l * l:centre])
+        np.multiply(p, trig[order : order + l + 1], out=out[centre : centre + l + 1])
+        np.multiply(p[l:0:-1], trig[order - l : order], out=out[l * l : centre])
     return out.T
 
 
@@ -159,7 +158,7 @@ def sh_evaluate(coeffs: np.ndarray, dirs: np.ndarray, chunk: int | None = None) 
     chunk = max(1, (1 << 22) // coeffs.shape[0]) if chunk is None else int(chunk)
     out = np.empty((d.shape[0],) + coeffs.shape[1:])
     for start in range(0, d.shape[0], chunk):
-        out[start:start + chunk] = sh_basis(d[start:start + chunk], order) @ coeffs
+        out[start : start + chunk] = sh_basis(d[start : start + chunk], order) @ coeffs
     return out
 
 
@@ -174,7 +173,7 @@ def band_energy(coeffs: np.ndarray) -> np.ndarray:
     """Energy per band, sum_m c_lm^2 (summed over channels too): (K[, C]) -> (L+1,)."""
     c = np.asarray(coeffs, dtype=float)
     order = order_of(c.shape[0])
-    sq = (c ** 2).reshape(c.shape[0], -1).sum(axis=1)
+    sq = (c**2).reshape(c.shape[0], -1).sum(axis=1)
     return np.bincount(band_of_index(order), weights=sq, minlength=order + 1)
 
 
@@ -214,17 +213,17 @@ def project_envmap(env: np.ndarray, order: int, rows_per_chunk: int = 64) -> np.
         raise ValueError("order must be >= 0")
     theta, phi = equirect_angles(h)
     omega = equirect_solid_angles(h)
-    trig = trig_table(phi, order).T                       # (2L+1, W)
+    trig = trig_table(phi, order).T  # (2L+1, W)
     m_col = m_of_index(order) + order
     coeffs = np.zeros((num_coeffs(order), c))
     for start in range(0, h, rows_per_chunk):
         rows = slice(start, min(h, start + rows_per_chunk))
-        block = np.asarray(env[rows], dtype=float)          # (r, W, C)
+        block = np.asarray(env[rows], dtype=float)  # (r, W, C)
         r = block.shape[0]
         # azimuthal sums: (2L+1, W) @ (W, r*C) -> (2L+1, r, C)
         fourier = (trig @ block.transpose(1, 0, 2).reshape(w, r * c)).reshape(2 * order + 1, r, c)
-        legendre = legendre_table(np.cos(theta[rows]), order, s=np.sin(theta[rows]))   # (r, K)
-        weighted = legendre * omega[rows, None]                # (r, K)
+        legendre = legendre_table(np.cos(theta[rows]), order, s=np.sin(theta[rows]))  # (r, K)
+        weighted = legendre * omega[rows, None]  # (r, K)
         coeffs += np.einsum("rk,krc->kc", weighted, fourier[m_col])
     return coeffs[:, 0] if squeeze else coeffs
 
@@ -239,14 +238,14 @@ def envmap_from_sh(coeffs: np.ndarray, height: int) -> np.ndarray:
         coeffs = coeffs[:, None]
     order = order_of(coeffs.shape[0])
     theta, phi = equirect_angles(height)
-    legendre = legendre_table(np.cos(theta), order, s=np.sin(theta))    # (H, K)
+    legendre = legendre_table(np.cos(theta), order, s=np.sin(theta))  # (H, K)
     m_of_k = m_of_index(order)
     # per row and m: G[i, m, c] = sum_{l >= |m|} c_lm P̄_l|m|(z_i)
     per_m = np.zeros((height, 2 * order + 1, coeffs.shape[1]))
     for m in range(-order, order + 1):
         ks = np.nonzero(m_of_k == m)[0]
         per_m[:, m + order] = legendre[:, ks] @ coeffs[ks]
-    trig = trig_table(phi, order)                                        # (W, 2L+1)
+    trig = trig_table(phi, order)  # (W, 2L+1)
     env = np.matmul(per_m.transpose(0, 2, 1), trig.T).transpose(0, 2, 1)  # (H, C, W) -> (H, W, C)
     return env[:, :, 0] if squeeze else np.ascontiguousarray(env)
 
@@ -299,14 +298,19 @@ def sh_rotation_matrices(rotation: np.ndarray, order: int) -> list[np.ndarray]:
         d1 = (mm == 1).astype(float)
         dm1 = (mm == -1).astype(float)
         big_v = np.where(
-            mm == 0, p_term(1, np.ones_like(mm), nn) + p_term(-1, -np.ones_like(mm), nn),
-            np.where(mm > 0,
-                     p_term(1, mm - 1, nn) * np.sqrt(1 + d1) - p_term(-1, -mm + 1, nn) * (1 - d1),
-                     p_term(1, mm + 1, nn) * (1 - dm1) + p_term(-1, -mm - 1, nn) * np.sqrt(1 + dm1)))
+            mm == 0,
+            p_term(1, np.ones_like(mm), nn) + p_term(-1, -np.ones_like(mm), nn),
+            np.where(
+                mm > 0,
+                p_term(1, mm - 1, nn) * np.sqrt(1 + d1) - p_term(-1, -mm + 1, nn) * (1 - d1),
+                p_term(1, mm + 1, nn) * (1 - dm1) + p_term(-1, -mm - 1, nn) * np.sqrt(1 + dm1),
+            ),
+        )
         big_w = np.where(
-            mm == 0, 0.0,
-            np.where(mm > 0, p_term(1, mm + 1, nn) + p_term(-1, -mm - 1, nn),
-                     p_term(1, mm - 1, nn) - p_term(-1, -mm + 1, nn)))
+            mm == 0,
+            0.0,
+            np.where(mm > 0, p_term(1, mm + 1, nn) + p_term(-1, -mm - 1, nn), p_term(1, mm - 1, nn) - p_term(-1, -mm + 1, nn)),
+        )
         mats.append(u * big_u + v * big_v + w * big_w)
     return mats
 

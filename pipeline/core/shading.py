@@ -85,8 +85,7 @@ class EnvPyramid:
         r1 = np.clip(y0.astype(np.int64) + 1, 0, h - 1)
         c0 = np.mod(x0.astype(np.int64), w)
         c1 = np.mod(c0 + 1, w)
-        return ((1 - fy) * ((1 - fx) * env[r0, c0] + fx * env[r0, c1])
-                + fy * ((1 - fx) * env[r1, c0] + fx * env[r1, c1]))
+        return (1 - fy) * ((1 - fx) * env[r0, c0] + fx * env[r0, c1]) + fy * ((1 - fx) * env[r1, c0] + fx * env[r1, c1])
 
     def lookup(self, dirs: np.ndarray, solid_angle: np.ndarray) -> np.ndarray:
         """Radiance (N, 3) in directions (N, 3) averaged over about ``solid_angle`` (N,) sr
@@ -119,8 +118,14 @@ class LobeSamples:
     solid_angle: np.ndarray
 
 
-def specular_samples(material: Principled, normal: np.ndarray, view_dir: np.ndarray, n_samples: int,
-                     rng: np.random.Generator, base_color: np.ndarray | None = None) -> LobeSamples:
+def specular_samples(
+    material: Principled,
+    normal: np.ndarray,
+    view_dir: np.ndarray,
+    n_samples: int,
+    rng: np.random.Generator,
+    base_color: np.ndarray | None = None,
+) -> LobeSamples:
     """GGX VNDF samples of the principled specular lobe at points with unit normals and view
     directions (P, 3), on a stratified pattern (stratified_unit_square)."""
     n = np.asarray(normal, float)
@@ -132,7 +137,7 @@ def specular_samples(material: Principled, normal: np.ndarray, view_dir: np.ndar
     v_local = np.stack([np.einsum("pk,pk->p", t, v), np.einsum("pk,pk->p", b, v), mu_out], axis=1)
     v_local /= np.linalg.norm(v_local, axis=1, keepdims=True)
     alpha = material.alpha
-    h = sample_ggx_vndf(v_local[:, None, :], alpha, u[..., 0], u[..., 1])          # (P, S, 3)
+    h = sample_ggx_vndf(v_local[:, None, :], alpha, u[..., 0], u[..., 1])  # (P, S, 3)
     c = np.einsum("psk,pk->ps", h, v_local)
     w_local = 2.0 * c[..., None] * h - v_local[:, None, :]
     mu_in = w_local[..., 2]
@@ -153,8 +158,15 @@ def diffuse_layer(material: Principled | None, mu_out: np.ndarray) -> np.ndarray
     return material.diffuse_weight(np.clip(mu_out, 0.0, 1.0), np.ones((np.asarray(mu_out).shape[0], 3)))
 
 
-def sampled_lobe(material: Principled, normal: np.ndarray, view_dir: np.ndarray, n_samples: int,
-                 rng: np.random.Generator, seen, base_color: np.ndarray | None = None) -> np.ndarray:
+def sampled_lobe(
+    material: Principled,
+    normal: np.ndarray,
+    view_dir: np.ndarray,
+    n_samples: int,
+    rng: np.random.Generator,
+    seen,
+    base_color: np.ndarray | None = None,
+) -> np.ndarray:
     """The specular lobe by importance sampling (P, 3): sum_s w_s L_s over specular_samples' S
     samples per point (S is ``n_samples`` rounded to a square), where ``seen(directions (M, 3),
     solid_angles (M,), points (M,))`` gives the radiance L (M, 3) arriving along the M samples of
@@ -168,8 +180,15 @@ def sampled_lobe(material: Principled, normal: np.ndarray, view_dir: np.ndarray,
     return np.einsum("psc,psc->pc", samples.weight, radiance.reshape(q, ns, 3))
 
 
-def sphere_radiance(material: Principled | None, coeffs: np.ndarray, normal: np.ndarray, view_dir: np.ndarray,
-                    base_color: np.ndarray, n_samples: int = 64, seed: int = 0) -> np.ndarray:
+def sphere_radiance(
+    material: Principled | None,
+    coeffs: np.ndarray,
+    normal: np.ndarray,
+    view_dir: np.ndarray,
+    base_color: np.ndarray,
+    n_samples: int = 64,
+    seed: int = 0,
+) -> np.ndarray:
     """Radiance (P, 3) of a convex object (a sphere: no shadows, no interreflection) under SH lighting
     ``coeffs`` at unit normals and view directions (P, 3), with the renderer's shading
     (Renderer.shade_parts): base colour x diffuse_layer / pi x the irradiance (exact, from the SH) plus
@@ -188,9 +207,16 @@ def sphere_radiance(material: Principled | None, coeffs: np.ndarray, normal: np.
     return out + sampled_lobe(material, n, v, n_samples, np.random.default_rng(seed), seen)
 
 
-def specular_over_directions(material: Principled, normal: np.ndarray, view_dir: np.ndarray, dirs: np.ndarray,
-                             power: np.ndarray, visibility: np.ndarray | None, cut_cos: float,
-                             base_color: np.ndarray | None = None) -> np.ndarray:
+def specular_over_directions(
+    material: Principled,
+    normal: np.ndarray,
+    view_dir: np.ndarray,
+    dirs: np.ndarray,
+    power: np.ndarray,
+    visibility: np.ndarray | None,
+    cut_cos: float,
+    base_color: np.ndarray | None = None,
+) -> np.ndarray:
     """Specular radiance (P, 3) from discrete directions (D, 3) of power L dω (D, 3):
     sum_j power_j V_pj f_spec(w_j, w_o) max(0, n.w_j), evaluated only on the pairs whose w_j is
     within the lobe's support (cos to the mirror direction > ``cut_cos``)."""
@@ -200,13 +226,20 @@ def specular_over_directions(material: Principled, normal: np.ndarray, view_dir:
     return _lobe_sum(material, n, v, dirs, power, pi, di, vis, base_color)
 
 
-FOOTPRINT_SHARPNESS = 0.25   # a footprint whose mirror directions spread less than this x alpha (rad) is shaded
-                             # at its mean: a box of width s over a lobe of width w changes it by ~ s^2 / 24 w^2
+FOOTPRINT_SHARPNESS = 0.25  # a footprint whose mirror directions spread less than this x alpha (rad) is shaded
+# at its mean: a box of width s over a lobe of width w changes it by ~ s^2 / 24 w^2
 
 
-def specular_over_footprint(material: Principled, normals: np.ndarray, view_dirs: np.ndarray, dirs: np.ndarray,
-                            power: np.ndarray, visibility: np.ndarray | None, cut_cos: float,
-                            base_color: np.ndarray | None = None) -> np.ndarray:
+def specular_over_footprint(
+    material: Principled,
+    normals: np.ndarray,
+    view_dirs: np.ndarray,
+    dirs: np.ndarray,
+    power: np.ndarray,
+    visibility: np.ndarray | None,
+    cut_cos: float,
+    base_color: np.ndarray | None = None,
+) -> np.ndarray:
     """specular_over_directions (P, 3) averaged over each point's pixel footprint: ``normals`` and
     ``view_dirs`` (P, K, 3) at K points of the surface one pixel sees (pipeline.raycast
     .pixel_footprints), ``visibility`` (P, D) shared by them.  A highlight of a small source a few
@@ -219,10 +252,10 @@ def specular_over_footprint(material: Principled, normals: np.ndarray, view_dirs
     n = np.asarray(normals, float)
     v = np.asarray(view_dirs, float)
     k = n.shape[1]
-    mirror = 2.0 * np.einsum("pkc,pkc->pk", n, v)[..., None] * n - v                  # (P, K, 3)
+    mirror = 2.0 * np.einsum("pkc,pkc->pk", n, v)[..., None] * n - v  # (P, K, 3)
     mean = mirror.sum(axis=1)
     mean /= np.maximum(np.linalg.norm(mean, axis=1, keepdims=True), 1e-12)
-    spread = np.arccos(np.clip(np.einsum("pkc,pc->pk", mirror, mean).min(axis=1), -1.0, 1.0))    # (P,)
+    spread = np.arccos(np.clip(np.einsum("pkc,pc->pk", mirror, mean).min(axis=1), -1.0, 1.0))  # (P,)
     out = np.zeros((n.shape[0], 3))
     front = np.einsum("pkc,pkc->pk", n, v) > 0
     small = (spread <= FOOTPRINT_SHARPNESS * material.alpha) & (front.all(axis=1) | ~front.any(axis=1))
@@ -230,9 +263,16 @@ def specular_over_footprint(material: Principled, normals: np.ndarray, view_dirs
     if narrow.size:
         n0, v0 = (a[narrow].sum(axis=1) for a in (n, v))
         n0, v0 = (a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12) for a in (n0, v0))
-        out[narrow] = specular_over_directions(material, n0, v0, dirs, power,
-                                               None if visibility is None else visibility[narrow], cut_cos,
-                                               None if base_color is None else np.asarray(base_color)[narrow])
+        out[narrow] = specular_over_directions(
+            material,
+            n0,
+            v0,
+            dirs,
+            power,
+            None if visibility is None else visibility[narrow],
+            cut_cos,
+            None if base_color is None else np.asarray(base_color)[narrow],
+        )
     wide = np.flatnonzero(~small)
     if wide.size == 0:
         return out
@@ -256,8 +296,9 @@ def _mirror(n: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return mu_out, 2.0 * mu_out[:, None] * n - v
 
 
-def _support_pairs(n: np.ndarray, mu_out: np.ndarray, r: np.ndarray, dirs: np.ndarray,
-                   cut_cos: float) -> tuple[np.ndarray, np.ndarray]:
+def _support_pairs(
+    n: np.ndarray, mu_out: np.ndarray, r: np.ndarray, dirs: np.ndarray, cut_cos: float
+) -> tuple[np.ndarray, np.ndarray]:
     """(point ids, direction ids) of the pairs within the lobe's support (_mirror's mu_out and r)."""
     return np.nonzero((r @ dirs.T > cut_cos) & (n @ dirs.T > 0) & (mu_out[:, None] > 0))
 
@@ -272,8 +313,17 @@ def _visible_pairs(pi: np.ndarray, di: np.ndarray, visibility: np.ndarray | None
     return pi[keep], di[keep], vis[keep]
 
 
-def _lobe_sum(material: Principled, n: np.ndarray, v: np.ndarray, dirs: np.ndarray, power: np.ndarray,
-              pi: np.ndarray, di: np.ndarray, vis: np.ndarray | None, base_color: np.ndarray | None) -> np.ndarray:
+def _lobe_sum(
+    material: Principled,
+    n: np.ndarray,
+    v: np.ndarray,
+    dirs: np.ndarray,
+    power: np.ndarray,
+    pi: np.ndarray,
+    di: np.ndarray,
+    vis: np.ndarray | None,
+    base_color: np.ndarray | None,
+) -> np.ndarray:
     """sum over the pairs (pi, di) of power V f_spec max(0, n.w) per point (P, 3); pairs with
     either direction below the surface give 0 (ggx_lobe_cos)."""
     out = np.zeros((n.shape[0], 3))
@@ -285,8 +335,17 @@ def _lobe_sum(material: Principled, n: np.ndarray, v: np.ndarray, dirs: np.ndarr
     return out
 
 
-def _pair_radiance(material: Principled, n: np.ndarray, v: np.ndarray, dirs: np.ndarray, power: np.ndarray,
-                   pi: np.ndarray, di: np.ndarray, vis: np.ndarray | None, base_color: np.ndarray | None) -> np.ndarray:
+def _pair_radiance(
+    material: Principled,
+    n: np.ndarray,
+    v: np.ndarray,
+    dirs: np.ndarray,
+    power: np.ndarray,
+    pi: np.ndarray,
+    di: np.ndarray,
+    vis: np.ndarray | None,
+    base_color: np.ndarray | None,
+) -> np.ndarray:
     """power V f_spec max(0, n.w) of each pair (pi, di) (pairs, 3) (_lobe_sum's terms)."""
     mu_out = np.clip(np.einsum("pk,pk->p", n[pi], v[pi]), 0.0, 1.0)
     lobe, cos_oh = ggx_lobe_cos(n[pi], dirs[di], v[pi], material.alpha)
@@ -296,8 +355,15 @@ def _pair_radiance(material: Principled, n: np.ndarray, v: np.ndarray, dirs: np.
     return fres * (lobe[:, None] * power[di])
 
 
-def specular_columns(material: Principled, normal: np.ndarray, view_dir: np.ndarray, dirs: np.ndarray,
-                     visibility: np.ndarray | None, cut_cos: float, base_color: np.ndarray | None = None) -> np.ndarray:
+def specular_columns(
+    material: Principled,
+    normal: np.ndarray,
+    view_dir: np.ndarray,
+    dirs: np.ndarray,
+    visibility: np.ndarray | None,
+    cut_cos: float,
+    base_color: np.ndarray | None = None,
+) -> np.ndarray:
     """specular_over_directions of each direction (D, 3) alone at unit power (P, D, 3), with
     ``visibility`` (P, D): each direction's pairs found as that function finds them (so the
     columns are its answers to the bit), all pairs evaluated in one pass."""
@@ -306,8 +372,8 @@ def specular_columns(material: Principled, normal: np.ndarray, view_dir: np.ndar
     mu_out, r = _mirror(n, v)
     found = []
     for j in range(dirs.shape[0]):
-        pi, _ = _support_pairs(n, mu_out, r, dirs[j:j + 1], cut_cos)
-        pi, _, vis = _visible_pairs(pi, np.zeros_like(pi), None if visibility is None else visibility[:, j:j + 1])
+        pi, _ = _support_pairs(n, mu_out, r, dirs[j : j + 1], cut_cos)
+        pi, _, vis = _visible_pairs(pi, np.zeros_like(pi), None if visibility is None else visibility[:, j : j + 1])
         found.append((pi, np.full(pi.size, j), vis))
     pi, di = (np.concatenate([f[k] for f in found]) for k in (0, 1))
     vis = None if visibility is None else np.concatenate([f[2] for f in found])
@@ -315,10 +381,9 @@ def specular_columns(material: Principled, normal: np.ndarray, view_dir: np.ndar
     power = np.ones((dirs.shape[0], 3))
 
     def part(s: slice) -> None:
-        out[pi[s], di[s]] = _pair_radiance(material, n, v, dirs, power, pi[s], di[s], None if vis is None else vis[s],
-                                           base_color)
+        out[pi[s], di[s]] = _pair_radiance(material, n, v, dirs, power, pi[s], di[s], None if vis is None else vis[s], base_color)
 
-    step = max(1 << 16, -(-pi.size // (os.cpu_count() or 1)))     # the pairs in a part per core
+    step = max(1 << 16, -(-pi.size // (os.cpu_count() or 1)))  # the pairs in a part per core
     thread_map(part, [slice(a, a + step) for a in range(0, pi.size, step)])
     return out
 
@@ -327,6 +392,6 @@ def lobe_support_cos(alpha: float, fraction: float = 1e-4) -> float:
     """cos of the angle from the mirror direction beyond which the GGX lobe is below ``fraction``
     of its peak: D(h) / D(n) < fraction when tan^2 theta_h > alpha^2 (fraction^-1/2 - 1); the
     reflected direction moves by twice theta_h (plus margin for the off-specular stretch)."""
-    tan2 = alpha * alpha * (fraction ** -0.5 - 1.0)
+    tan2 = alpha * alpha * (fraction**-0.5 - 1.0)
     theta_h = np.arctan(np.sqrt(tan2))
     return float(np.cos(min(np.pi, 2.5 * theta_h)))

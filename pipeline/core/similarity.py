@@ -66,9 +66,16 @@ class RansacResult:
     residuals: np.ndarray  # (N,) distance ‖target − T(source)‖ for every point, target units
 
 
-def ransac_similarity(source: np.ndarray, target: np.ndarray, threshold: float, *,
-                      rng: np.random.Generator, max_trials: int = 2000, confidence: float = 0.9999,
-                      min_inliers: int = 3) -> RansacResult:
+def ransac_similarity(
+    source: np.ndarray,
+    target: np.ndarray,
+    threshold: float,
+    *,
+    rng: np.random.Generator,
+    max_trials: int = 2000,
+    confidence: float = 0.9999,
+    min_inliers: int = 3,
+) -> RansacResult:
     """Robust similarity: RANSAC on minimal 3-point samples, then Umeyama on all inliers.
 
     ``threshold``: inlier distance in target units.  The number of trials adapts to the inlier

@@ -64,8 +64,7 @@ class NormalEquations:
         self.weight = np.zeros(self.folds)
         self.count = np.zeros(self.folds, dtype=np.int64)
 
-    def add(self, designs: np.ndarray, radiance: np.ndarray, weight: np.ndarray, fold: np.ndarray, *,
-            gram: bool = True) -> None:
+    def add(self, designs: np.ndarray, radiance: np.ndarray, weight: np.ndarray, fold: np.ndarray, *, gram: bool = True) -> None:
         """Add one chunk: designs (Cd, N, K) with Cd = 1 (shared) or 3, radiance (N, 3),
         weight (N,), fold (N,) ints in [0, folds).  ``gram`` False: all but the gram (the
         designs' gram is in already: retargeted).
@@ -77,13 +76,13 @@ class NormalEquations:
         fold = np.asarray(fold)
         unit = bool(np.all(weight == 1.0))
         starts = np.concatenate([[0], np.flatnonzero(np.diff(fold)) + 1])
-        if len(starts) > 8 * self.folds:                      # shuffled: permute once
+        if len(starts) > 8 * self.folds:  # shuffled: permute once
             order = np.argsort(fold, kind="stable")
             designs, radiance, weight, fold = designs[:, order], radiance[order], weight[order], fold[order]
             starts = np.concatenate([[0], np.flatnonzero(np.diff(fold)) + 1])
         stops = np.append(starts[1:], len(fold))
         sw = None if unit else np.sqrt(weight)
-        runs: dict[int, list[tuple[int, int, np.ndarray]]] = {}   # fold -> its runs (lo, hi, weighted radiance)
+        runs: dict[int, list[tuple[int, int, np.ndarray]]] = {}  # fold -> its runs (lo, hi, weighted radiance)
         for lo, hi in zip(starts, stops):
             f = int(fold[lo])
             b = radiance[lo:hi] if unit else radiance[lo:hi] * sw[lo:hi, None]
@@ -92,9 +91,9 @@ class NormalEquations:
             self.weight[f] += weight[lo:hi].sum()
             self.count[f] += hi - lo
 
-        def accumulate(f: int, c: int) -> None:     # one (fold, channel) block: no two tasks share one
+        def accumulate(f: int, c: int) -> None:  # one (fold, channel) block: no two tasks share one
             for lo, hi, b in runs[f]:
-                if not gram:       # A'W b as A' (sqrt(W) b): no weighted copy of the design
+                if not gram:  # A'W b as A' (sqrt(W) b): no weighted copy of the design
                     bw = b if unit else b * sw[lo:hi, None]
                     self.rhs[f, c] += designs[c, lo:hi].T @ bw[:, c]
                     continue
@@ -110,8 +109,7 @@ class NormalEquations:
         # the (fold, channel) blocks by one thread per core: BLAS products release the GIL
         thread_map(lambda fc: accumulate(*fc), [(f, c) for f in runs for c in range(designs.shape[0])])
 
-    def retargeted(self, designs: np.ndarray, radiance: np.ndarray, weight: np.ndarray,
-                   fold: np.ndarray) -> "NormalEquations":
+    def retargeted(self, designs: np.ndarray, radiance: np.ndarray, weight: np.ndarray, fold: np.ndarray) -> "NormalEquations":
         """The equations of the same ``designs``, weights and folds as the one chunk added to
         these, for another ``radiance``: the gram shared (the expensive part, N K^2 per channel),
         right-hand sides and btb accumulated anew (N K)."""
@@ -124,11 +122,11 @@ class NormalEquations:
         """Summed (over ``folds``) per-channel (G (3,K',K'), h (3,K'), btb (3,), W) truncated to
         ``order``; ``scale`` (3,) multiplies a shared design per channel (rho_c)."""
         k = num_coeffs(self.order if order is None else order)
-        g = self.gram[folds, :, :k, :k].sum(axis=0)       # truncated before the sum: an order's blocks only
+        g = self.gram[folds, :, :k, :k].sum(axis=0)  # truncated before the sum: an order's blocks only
         h = self.rhs[folds, :, :k].sum(axis=0)
         if self.shared:
             s = np.ones(3) if scale is None else np.asarray(scale, dtype=float)
-            g = (s ** 2)[:, None, None] * g[0][None]
+            g = (s**2)[:, None, None] * g[0][None]
             h = s[:, None] * h
         return g, h, self.btb[folds].sum(axis=0), float(self.weight[folds].sum())
 
@@ -140,12 +138,12 @@ def residual_sum(g: np.ndarray, h: np.ndarray, btb: np.ndarray, x: np.ndarray) -
 
 @dataclass
 class LightingFit:
-    coeffs: np.ndarray                # ((L+1)^2, 3)
-    labels: list[str]                 # per band
-    bands: list[dict]                 # per band diagnostics
-    noise_sigma: float                # per-sample noise used for labels (radiance units)
-    residual_rms: float               # weighted training RMS residual
-    ridge: np.ndarray                 # (K,) diagonal regularization added
+    coeffs: np.ndarray  # ((L+1)^2, 3)
+    labels: list[str]  # per band
+    bands: list[dict]  # per band diagnostics
+    noise_sigma: float  # per-sample noise used for labels (radiance units)
+    residual_rms: float  # weighted training RMS residual
+    ridge: np.ndarray  # (K,) diagonal regularization added
 
 
 def band_gains(g_mean: np.ndarray, weight: float, order: int) -> tuple[np.ndarray, np.ndarray]:
@@ -166,7 +164,7 @@ def _solve_ridge(g: np.ndarray, h: np.ndarray, ridge: np.ndarray, keep: np.ndarr
     if idx.size == 0:
         return x
     a = (g if idx.size == k else g[:, idx[:, None], idx[None, :]]) + np.diag(ridge[idx])
-    try:       # the three channels in one batched LAPACK call
+    try:  # the three channels in one batched LAPACK call
         x[idx] = np.linalg.solve(a, h[:, idx, None])[..., 0].T
     except np.linalg.LinAlgError:
         for c in range(3):
@@ -174,11 +172,22 @@ def _solve_ridge(g: np.ndarray, h: np.ndarray, ridge: np.ndarray, keep: np.ndarr
     return x
 
 
-def solve_lighting(g: np.ndarray, h: np.ndarray, btb: np.ndarray, weight: float, count: int,
-                   order: int, *, noise_floor: float = 0.005, min_snr: float = 10.0,
-                   band_prior: float = 0.3, labels: list[str] | None = None,
-                   noise_sigma: float | None = None, independent_groups: int = 1,
-                   posed_ratio: float = 1e-6) -> LightingFit:
+def solve_lighting(
+    g: np.ndarray,
+    h: np.ndarray,
+    btb: np.ndarray,
+    weight: float,
+    count: int,
+    order: int,
+    *,
+    noise_floor: float = 0.005,
+    min_snr: float = 10.0,
+    band_prior: float = 0.3,
+    labels: list[str] | None = None,
+    noise_sigma: float | None = None,
+    independent_groups: int = 1,
+    posed_ratio: float = 1e-6,
+) -> LightingFit:
     """Regularized lighting from per-channel normal equations (see the module docstring).
 
     ``labels`` / ``noise_sigma`` given: reuse them (held-out refits use the full-data labels).
@@ -204,24 +213,37 @@ def solve_lighting(g: np.ndarray, h: np.ndarray, btb: np.ndarray, weight: float,
     dc = float(np.sqrt(np.mean(x0[0] ** 2))) or 1.0
     snr = gmin * dc / noise_sigma
     if labels is None:
-        labels = [("ill-posed" if not posed[l] else "ill-conditioned" if snr[l] < min_snr else "recoverable")
-                  for l in range(order + 1)]
-    labels = list(labels[:order + 1])
+        labels = [
+            ("ill-posed" if not posed[l] else "ill-conditioned" if snr[l] < min_snr else "recoverable") for l in range(order + 1)
+        ]
+    labels = list(labels[: order + 1])
     tau = band_prior * dc
     # G sums N samples, but calibration and model errors are correlated within a view: the noise
     # is taken as independent only between ``independent_groups`` groups (views), so the ridge is
     # (W / groups) sigma^2 / tau^2 and the shrinkage of a band, G/(G + ridge) ~
     # groups snr'^2 / (groups snr'^2 + 1) with snr' = g_l tau / sigma, does not vanish as N grows.
-    band_ridge = np.array([weight / max(independent_groups, 1) * noise_sigma ** 2 / tau ** 2 if lab == "ill-conditioned" else eps for lab in labels])
+    band_ridge = np.array(
+        [weight / max(independent_groups, 1) * noise_sigma**2 / tau**2 if lab == "ill-conditioned" else eps for lab in labels]
+    )
     keep = np.array([lab != "ill-posed" for lab in labels])[bands]
     ridge = band_ridge[bands]
     x = _solve_ridge(g, h, ridge, keep)
     rss = residual_sum(g, h, btb, x)
-    info = [{"l": l, "label": labels[l], "gain_min": float(gmin[l]), "gain_max": float(gmax[l]),
-             "snr": float(snr[l]), "ridge": float(band_ridge[l]) if labels[l] == "ill-conditioned" else 0.0,
-             "energy": float((x[l * l:(l + 1) ** 2] ** 2).sum())} for l in range(order + 1)]
-    return LightingFit(x, labels, info, float(noise_sigma),
-                       float(np.sqrt(max(rss.sum(), 0.0) / (3 * max(weight, 1e-300)))), ridge)
+    info = [
+        {
+            "l": l,
+            "label": labels[l],
+            "gain_min": float(gmin[l]),
+            "gain_max": float(gmax[l]),
+            "snr": float(snr[l]),
+            "ridge": float(band_ridge[l]) if labels[l] == "ill-conditioned" else 0.0,
+            "energy": float((x[l * l : (l + 1) ** 2] ** 2).sum()),
+        }
+        for l in range(order + 1)
+    ]
+    return LightingFit(
+        x, labels, info, float(noise_sigma), float(np.sqrt(max(rss.sum(), 0.0) / (3 * max(weight, 1e-300)))), ridge
+    )
 
 
 def data_labels(bands: list[dict], noise_sigma: float, data_sigma: float, min_snr: float = 10.0) -> list[dict]:
@@ -235,14 +257,14 @@ def data_labels(bands: list[dict], noise_sigma: float, data_sigma: float, min_sn
     out = []
     for b in bands:
         snr_data = b["snr"] * noise_sigma / data_sigma if usable else None
-        label = b["label"] if not usable or b["label"] == "ill-posed" else \
-            "recoverable" if snr_data >= min_snr else "ill-conditioned"
+        label = (
+            b["label"] if not usable or b["label"] == "ill-posed" else "recoverable" if snr_data >= min_snr else "ill-conditioned"
+        )
         out.append({**b, "label": label, "snr_data": snr_data, "regularized": b["label"] == "ill-conditioned"})
     return out
 
 
-def cross_validate_orders(eqs: NormalEquations, orders: list[int], scale: np.ndarray | None = None,
-                          **solve_kwargs) -> list[dict]:
+def cross_validate_orders(eqs: NormalEquations, orders: list[int], scale: np.ndarray | None = None, **solve_kwargs) -> list[dict]:
     """Leave-one-fold-out errors of every candidate order from one set of per-fold normal equations.
 
     Per order: the full-data fit fixes the band labels and the noise; each fold is refit without
@@ -255,8 +277,10 @@ def cross_validate_orders(eqs: NormalEquations, orders: list[int], scale: np.nda
         # one noise level for every candidate: the residual of the richest model
         top = max(orders)
         g, h, btb, w = eqs.channel_system(all_folds, scale, top)
-        solve_kwargs = {**solve_kwargs,
-                        "noise_sigma": solve_lighting(g, h, btb, w, int(eqs.count.sum()), top, **solve_kwargs).noise_sigma}
+        solve_kwargs = {
+            **solve_kwargs,
+            "noise_sigma": solve_lighting(g, h, btb, w, int(eqs.count.sum()), top, **solve_kwargs).noise_sigma,
+        }
     for order in orders:
         t0 = time.perf_counter()
         g, h, btb, w = eqs.channel_system(all_folds, scale, order)
@@ -269,21 +293,29 @@ def cross_validate_orders(eqs: NormalEquations, orders: list[int], scale: np.nda
             if eqs.count[train].sum() == 0:
                 continue
             gt, ht, bt, wt = eqs.channel_system(train, scale, order)
-            fit = solve_lighting(gt, ht, bt, wt, int(eqs.count[train].sum()), order,
-                                 **{**solve_kwargs, "labels": full.labels})
+            fit = solve_lighting(gt, ht, bt, wt, int(eqs.count[train].sum()), order, **{**solve_kwargs, "labels": full.labels})
             gv, hv, bv, wv = eqs.channel_system(np.array([f]), scale, order)
             val_rss += residual_sum(gv, hv, bv, fit.coeffs)
             val_w += wv
         per_channel = np.sqrt(np.maximum(val_rss, 0.0) / val_w) if val_w else np.full(3, np.nan)
-        out.append({"order": order, "params": 3 * num_coeffs(order), "train_rmse": full.residual_rms,
-                    "validation_rmse": float(np.sqrt(max(val_rss.sum(), 0.0) / (3 * val_w))) if val_w else float("nan"),
-                    "validation_rmse_per_channel": [float(x) for x in per_channel], "seconds": time.perf_counter() - t0, "fit": full})
+        out.append(
+            {
+                "order": order,
+                "params": 3 * num_coeffs(order),
+                "train_rmse": full.residual_rms,
+                "validation_rmse": float(np.sqrt(max(val_rss.sum(), 0.0) / (3 * val_w))) if val_w else float("nan"),
+                "validation_rmse_per_channel": [float(x) for x in per_channel],
+                "seconds": time.perf_counter() - t0,
+                "fit": full,
+            }
+        )
     return out
 
 
 # ---------------------------------------------------------------------------------------------
 # BRDF from known lighting: variable projection over the lobe width
 # ---------------------------------------------------------------------------------------------
+
 
 @dataclass
 class BrdfData:
@@ -301,8 +333,9 @@ class BrdfData:
     cos_view: np.ndarray
 
     def subset(self, rows: np.ndarray) -> "BrdfData":
-        return BrdfData(*(getattr(self, f)[rows] for f in
-                          ("diffuse", "bands", "grazing", "radiance", "weight", "fold", "cos_view")))
+        return BrdfData(
+            *(getattr(self, f)[rows] for f in ("diffuse", "bands", "grazing", "radiance", "weight", "fold", "cos_view"))
+        )
 
 
 def _nnls_2(g: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -334,7 +367,7 @@ def linear_brdf(data: BrdfData, model: str, filt: np.ndarray | None) -> tuple[np
     Returns albedo (3,), specular (3,) and the weighted RSS (all channels)."""
     w = data.weight
     albedo, spec, rss = np.zeros(3), np.zeros(3), 0.0
-    lobe = None if model == "lambert" else np.einsum("nlc,nl->nc", data.bands, filt)   # (N, 3)
+    lobe = None if model == "lambert" else np.einsum("nlc,nl->nc", data.bands, filt)  # (N, 3)
     for c in range(3):
         cols = [data.diffuse[:, c]]
         target = data.radiance[:, c]
@@ -350,7 +383,7 @@ def linear_brdf(data: BrdfData, model: str, filt: np.ndarray | None) -> tuple[np
         albedo[c] = x[0]
         if len(x) > 1:
             spec[c] = x[1]
-        rss += float(target ** 2 @ w - 2.0 * h @ x + x @ g @ x)
+        rss += float(target**2 @ w - 2.0 * h @ x + x @ g @ x)
     return albedo, spec, max(rss, 0.0)
 
 
@@ -383,8 +416,9 @@ class BrdfFit:
         return out
 
 
-def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.005, grid: int = 13,
-             max_evals: int = 25) -> BrdfFit:
+def fit_brdf(
+    data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.005, grid: int = 13, max_evals: int = 25
+) -> BrdfFit:
     """Variable projection: Brent's bounded search (in log width, between the best grid point's
     neighbours) over the lobe width; for each
     width :func:`linear_brdf` gives the linear parameters.  ``filter_fn(model, width)`` -> A_l.
@@ -397,7 +431,7 @@ def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.00
     from scipy.optimize import minimize_scalar
 
     wsum = float(data.weight.sum())
-    rms_signal = float(np.sqrt((data.radiance ** 2 * data.weight[:, None]).sum() / (3 * wsum)))
+    rms_signal = float(np.sqrt((data.radiance**2 * data.weight[:, None]).sum() / (3 * wsum)))
     if model == "lambert":
         albedo, spec, rss = linear_brdf(data, model, None)
         return BrdfFit(Brdf("lambert", albedo=albedo), rss / (3 * wsum))
@@ -412,8 +446,12 @@ def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.00
     start = float(log_grid[int(np.argmin(profile))])
     step = float(log_grid[1] - log_grid[0])
     # Brent's bounded search between the best grid point's neighbours (the bracket of its minimum)
-    found = minimize_scalar(mse_at, bounds=(max(start - step, np.log(lo)), min(start + step, np.log(hi))),
-                            method="bounded", options={"xatol": 1e-3, "maxiter": max_evals})
+    found = minimize_scalar(
+        mse_at,
+        bounds=(max(start - step, np.log(lo)), min(start + step, np.log(hi))),
+        method="bounded",
+        options={"xatol": 1e-3, "maxiter": max_evals},
+    )
     best_log = float(found.x) if np.isfinite(found.fun) else start
     if mse_at(best_log) > profile.min():
         best_log = start
@@ -425,9 +463,14 @@ def fit_brdf(data: BrdfData, model: str, filter_fn, *, noise_floor: float = 0.00
     ang = sorted(angular_width(model, x) for x in accepted) if accepted.size else [angular_width(model, width)]
     spread = ang[-1] / max(ang[0], 1e-300)
     recoverable = bool(spread <= 3.0 and np.max(spec) > 0)
-    return BrdfFit(Brdf(model, albedo=albedo, specular=spec, **{param: width}), mse, width,
-                   [{param: float(np.exp(x)), "mse": float(m)} for x, m in zip(log_grid, profile)], recoverable,
-                   [float(accepted.min()), float(accepted.max())] if accepted.size else [width, width])
+    return BrdfFit(
+        Brdf(model, albedo=albedo, specular=spec, **{param: width}),
+        mse,
+        width,
+        [{param: float(np.exp(x)), "mse": float(m)} for x, m in zip(log_grid, profile)],
+        recoverable,
+        [float(accepted.min()), float(accepted.max())] if accepted.size else [width, width],
+    )
 
 
 def brdf_mse(data: BrdfData, brdf: Brdf, filter_fn) -> float:
@@ -441,4 +484,4 @@ def brdf_mse(data: BrdfData, brdf: Brdf, filter_fn) -> float:
         k = spec if model == "phong" else spec * (1.0 - data.grazing[:, None]) + data.grazing[:, None]
         pred = pred + k * lobe
     r = data.radiance - pred
-    return float((r ** 2 * data.weight[:, None]).sum() / (3 * data.weight.sum()))
+    return float((r**2 * data.weight[:, None]).sum() / (3 * data.weight.sum()))

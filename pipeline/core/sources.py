@@ -21,10 +21,10 @@ from pipeline.core.sh import band_of_index, order_of
 from pipeline.core.shading import front_cos
 from pipeline.core.threads import thread_map
 
-MIN_SOURCE_COS = float(np.cos(np.radians(10.0)))   # sources closer than 10 deg are one (extended) light
+MIN_SOURCE_COS = float(np.cos(np.radians(10.0)))  # sources closer than 10 deg are one (extended) light
 
 
-BACKFIT_STEP = float(np.radians(2.0))   # relocation's first local grid half-width (2.5x finer x 4 rounds: 0.06 deg)
+BACKFIT_STEP = float(np.radians(2.0))  # relocation's first local grid half-width (2.5x finer x 4 rounds: 0.06 deg)
 
 
 @dataclass
@@ -40,8 +40,9 @@ class Sources:
         return self.transfer.directions
 
 
-def source_columns(geo: prt.Geometry, layer: np.ndarray, st: prt.SourceTransfer, indirect: np.ndarray | None,
-                    base: np.ndarray) -> np.ndarray:
+def source_columns(
+    geo: prt.Geometry, layer: np.ndarray, st: prt.SourceTransfer, indirect: np.ndarray | None, base: np.ndarray
+) -> np.ndarray:
     """Radiance (3, N, J) of each source at unit intensity."""
     cols = source_per_unit_base(layer, st, indirect) * base
     if st.specular is not None:
@@ -83,8 +84,14 @@ class SourceScan:
     energy: np.ndarray
 
 
-def source_scan(geo: prt.Geometry, material: Principled | None, base: np.ndarray, weight: np.ndarray,
-                scan_samples: int = 8000, chunk: int = 1024) -> SourceScan:
+def source_scan(
+    geo: prt.Geometry,
+    material: Principled | None,
+    base: np.ndarray,
+    weight: np.ndarray,
+    scan_samples: int = 8000,
+    chunk: int = 1024,
+) -> SourceScan:
     """SourceScan on every k-th sample (a source lights thousands of them), about ``scan_samples``,
     for the samples' weights ``weight`` (N,); the chunks by one thread per core."""
     r = geo.renderer
@@ -95,29 +102,39 @@ def source_scan(geo: prt.Geometry, material: Principled | None, base: np.ndarray
     columns = np.zeros((coarse.size, len(dirs), 3), np.float32)
 
     def one(s: int) -> None:
-        sl = coarse[s:s + chunk]
+        sl = coarse[s : s + chunk]
         cos = front_cos(geo.normals[sl], geo.mu_out[sl], dirs)
         vis = r._point_visibility(geo.faces[sl], geo.tri[sl], geo.bary[sl], cos > 0)
         cos = cos * vis
         col = cos[..., None] * kd[sl, None, :]
         if material is not None:
             p, d = cos.shape
-            lobe, cos_oh = ggx_lobe_cos(np.repeat(geo.normals[sl], d, 0), np.tile(dirs, (p, 1)),
-                                        np.repeat(geo.view_dirs[sl], d, 0), material.alpha)
+            lobe, cos_oh = ggx_lobe_cos(
+                np.repeat(geo.normals[sl], d, 0), np.tile(dirs, (p, 1)), np.repeat(geo.view_dirs[sl], d, 0), material.alpha
+            )
             fres = material.specular_fresnel(cos_oh, np.repeat(np.clip(geo.mu_out[sl], 1e-4, 1), d))
             col += (fres * (lobe * vis.reshape(-1))[:, None]).reshape(p, d, 3)
-        columns[s:s + sl.size] = col
+        columns[s : s + sl.size] = col
 
     thread_map(one, range(0, coarse.size, chunk))
     return SourceScan(coarse, columns, weight, np.einsum("p,pdc->dc", weight[coarse], columns * columns))
 
 
-MIRROR_HEIGHT = 90        # mirror_peaks' map: 90 x 180 cells of 2 deg
+MIRROR_HEIGHT = 90  # mirror_peaks' map: 90 x 180 cells of 2 deg
 
 
-def source_candidates(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
-                      weight: np.ndarray, scan: SourceScan, rounds: int = 3,
-                      exclude: list | None = None, peaks: int = 0, finalists: int = 2) -> list[tuple[np.ndarray, float]]:
+def source_candidates(
+    geo: prt.Geometry,
+    material: Principled | None,
+    base: np.ndarray,
+    residual: np.ndarray,
+    weight: np.ndarray,
+    scan: SourceScan,
+    rounds: int = 3,
+    exclude: list | None = None,
+    peaks: int = 0,
+    finalists: int = 2,
+) -> list[tuple[np.ndarray, float]]:
     """Directions (3,) of directional sources that may explain ``residual`` (N, 3), each with the
     weighted residual power it explains: matching pursuit's best over the renderer's direction set
     on the coarse ``scan`` (source_scan) outside 10 deg of ``exclude``, then ``rounds`` of 5 x 5
@@ -139,29 +156,27 @@ def source_candidates(geo: prt.Geometry, material: Principled | None, base: np.n
     exclude = list(exclude or [])
     sl = scan.samples
     num = np.einsum("p,pdc,pc->dc", weight[sl], scan.columns, residual[sl])
-    score = explained_power(num, scan.energy if weight is scan.weight else
-                             np.einsum("p,pdc->dc", weight[sl], scan.columns * scan.columns))
+    score = explained_power(
+        num, scan.energy if weight is scan.weight else np.einsum("p,pdc->dc", weight[sl], scan.columns * scan.columns)
+    )
     for f in exclude:
         score[dirs @ f > MIN_SOURCE_COS] = -np.inf
-    starts = []     # (direction, the first grid's half-width, what it keeps away from)
+    starts = []  # (direction, the first grid's half-width, what it keeps away from)
     if np.isfinite(score.max()):
-        starts.append((dirs[int(np.argmax(score))], np.pi / len(dirs) ** 0.5 * 1.5, None))   # about one cell
+        starts.append((dirs[int(np.argmax(score))], np.pi / len(dirs) ** 0.5 * 1.5, None))  # about one cell
     if material is not None and peaks > 0:
         starts += [(d, BACKFIT_STEP, exclude) for d in mirror_peaks(geo, residual, weight, peaks, exclude)]
     if len(starts) <= finalists:
         out = [refine_direction(geo, material, base, residual, weight, d, step, rounds, far) for d, step, far in starts]
         return [o for o in out if o[1] > 0]
-    first = [(*refine_direction(geo, material, base, residual, weight, d, step, 1, far), step, far)
-             for d, step, far in starts]
+    first = [(*refine_direction(geo, material, base, residual, weight, d, step, 1, far), step, far) for d, step, far in starts]
     first = [f for f in first if f[1] > 0 and not any(float(f[0] @ e) > MIN_SOURCE_COS for e in exclude)]
     first = sorted(first, key=lambda f: -f[1])[:finalists]
-    out = [refine_direction(geo, material, base, residual, weight, d, step / 2.5, rounds - 1, far)
-           for d, _, step, far in first]
+    out = [refine_direction(geo, material, base, residual, weight, d, step / 2.5, rounds - 1, far) for d, _, step, far in first]
     return [o for o in out if o[1] > 0]
 
 
-def mirror_peaks(geo: prt.Geometry, residual: np.ndarray, weight: np.ndarray, count: int,
-                 exclude: list) -> list[np.ndarray]:
+def mirror_peaks(geo: prt.Geometry, residual: np.ndarray, weight: np.ndarray, count: int, exclude: list) -> list[np.ndarray]:
     """Up to ``count`` directions (3,), 10 deg apart and from ``exclude``, where the positive
     residual (channel mean) averaged over the samples whose mirror direction falls there peaks:
     a MIRROR_HEIGHT x 2 MIRROR_HEIGHT equirect map of weighted sums, both sums blurred by one
@@ -173,8 +188,9 @@ def mirror_peaks(geo: prt.Geometry, residual: np.ndarray, weight: np.ndarray, co
     row, col = direction_to_pixel(reflect(geo.view_dirs, geo.normals), h)
     cell = row * 2 * h + col
     value = np.maximum(residual.mean(axis=1), 0.0) * weight
-    sums = [gaussian_filter(np.bincount(cell, x, 2 * h * h).reshape(h, 2 * h), 1.0, mode=("nearest", "wrap"))
-            for x in (value, weight)]
+    sums = [
+        gaussian_filter(np.bincount(cell, x, 2 * h * h).reshape(h, 2 * h), 1.0, mode=("nearest", "wrap")) for x in (value, weight)
+    ]
     score = (sums[0] / (sums[1] + 0.05 * sums[1].max())).ravel()
     dirs = equirect_directions(h).reshape(-1, 3)
     out = []
@@ -189,10 +205,18 @@ def mirror_peaks(geo: prt.Geometry, residual: np.ndarray, weight: np.ndarray, co
     return out
 
 
-def refine_direction(geo: prt.Geometry, material: Principled | None, base: np.ndarray, residual: np.ndarray,
-                     weight: np.ndarray, start: np.ndarray, step: float, rounds: int,
-                     exclude: list | None = None,
-                     project: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, float]:
+def refine_direction(
+    geo: prt.Geometry,
+    material: Principled | None,
+    base: np.ndarray,
+    residual: np.ndarray,
+    weight: np.ndarray,
+    start: np.ndarray,
+    step: float,
+    rounds: int,
+    exclude: list | None = None,
+    project: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> tuple[np.ndarray, float]:
     """(direction (3,), explained power) of the source that best explains ``residual`` near
     ``start``: ``rounds`` of 5 x 5 local grids of half-width ``step`` (radians), each 2.5x finer,
     on all samples with exact shadow rays (prt.source_transfer), the centre included.
@@ -215,7 +239,7 @@ def refine_direction(geo: prt.Geometry, material: Principled | None, base: np.nd
         st = prt.source_transfer(centre, material, cand, vertices=False, visibility=vis)
         cols = source_columns(geo, layer, st, None, base)
         sc = _source_score(cols if project is None else project(cols), residual, weight)
-        for f in exclude or []:      # not onto a source already found (two within 10 deg are one light)
+        for f in exclude or []:  # not onto a source already found (two within 10 deg are one light)
             sc[cand @ f > MIN_SOURCE_COS] = -np.inf
         if sc.max() > best_score:
             best, best_score = cand[int(np.argmax(sc))], float(sc.max())
@@ -238,19 +262,21 @@ def sh_complement(a: np.ndarray, weight: np.ndarray, fit: solve.LightingFit) -> 
     representation: the angular part holds what the SH cannot)."""
     keep = np.flatnonzero(np.array([lab != "ill-posed" for lab in fit.labels])[band_of_index(order_of(a.shape[2]))])
     ak = a[:, :, keep]
-    akw_t = (ak * weight[None, :, None]).transpose(0, 2, 1)      # matmul: BLAS, not einsum
+    akw_t = (ak * weight[None, :, None]).transpose(0, 2, 1)  # matmul: BLAS, not einsum
     gram = np.stack(thread_map(lambda c: akw_t[c] @ ak[c], range(3))) + np.diag(fit.ridge[keep])[None]
 
     def project(cols: np.ndarray) -> np.ndarray:
         def channel(c: int) -> np.ndarray:
             return cols[c] - ak[c] @ np.linalg.solve(gram[c], akw_t[c] @ cols[c])
+
         return np.stack(thread_map(channel, range(3)))
 
     return project
 
 
-def add_sources(cand: Candidate, base: np.ndarray, max_sources: int, gain: float, peaks: int = 0,
-                 seed: Sources | None = None) -> Sources | None:
+def add_sources(
+    cand: Candidate, base: np.ndarray, max_sources: int, gain: float, peaks: int = 0, seed: Sources | None = None
+) -> Sources | None:
     """Greedy matching pursuit of directional sources on the residual of the candidate's SH fit
     at base colour ``base``: each new source is kept only if the held-out views' RMSE (SH refitted
     around the sources) drops by more than ``gain`` (relative); intensities are fitted on all views
@@ -270,9 +296,11 @@ def add_sources(cand: Candidate, base: np.ndarray, max_sources: int, gain: float
     scan = source_scan(geo, material, base, w) if max_sources > len(found) else None
     for _ in range(max_sources - len(found)):
         # each candidate scored as the step would leave it (the held-out views' RMSE): the best kept
-        trials = [_with_source(cand, base, system, found, kept, residual, d)
-                  for d, _ in source_candidates(geo, material, base, residual, w, scan=scan, exclude=found, peaks=peaks)
-                  if not any(float(d @ f) > MIN_SOURCE_COS for f in found)]
+        trials = [
+            _with_source(cand, base, system, found, kept, residual, d)
+            for d, _ in source_candidates(geo, material, base, residual, w, scan=scan, exclude=found, peaks=peaks)
+            if not any(float(d @ f) > MIN_SOURCE_COS for f in found)
+        ]
         if not trials:
             break
         score, d, st, cols, power, target = min(trials, key=lambda t: t[0])
@@ -284,25 +312,28 @@ def add_sources(cand: Candidate, base: np.ndarray, max_sources: int, gain: float
     if kept is None or len(found) == seeded:
         return seed
     moved, score = _relocate_sources(cand, base, system, found, kept[1], kept[2], seeded)
-    return moved if score < best * (1.0 - gain) else Sources(kept[0], kept[2])   # as a new source must
+    return moved if score < best * (1.0 - gain) else Sources(kept[0], kept[2])  # as a new source must
 
 
-def _with_source(cand: Candidate, base: np.ndarray, system: ShSystem, found: list, kept: tuple | None,
-                 residual: np.ndarray, d: np.ndarray) -> tuple:
+def _with_source(
+    cand: Candidate, base: np.ndarray, system: ShSystem, found: list, kept: tuple | None, residual: np.ndarray, d: np.ndarray
+) -> tuple:
     """The pursuit's step with source ``d`` added to ``found`` (``kept``: their (transfer, columns,
     intensities) or None; ``residual``: of the SH fit around them) -> (held-out RMSE, d, transfer,
     columns, intensities, the radiance left to the SH)."""
     st = prt.source_transfer(cand.geo, cand.material, np.asarray(d)[None])
     st = st if kept is None else kept[0].joined(st)
     cols = source_columns(cand.geo, cand.layer, st, None, base)
-    power = source_intensities(cols, residual + (0.0 if kept is None else np.einsum("cpj,jc->pc", kept[1], kept[2])),
-                                system.obs.weight)
+    power = source_intensities(
+        cols, residual + (0.0 if kept is None else np.einsum("cpj,jc->pc", kept[1], kept[2])), system.obs.weight
+    )
     target = system.obs.radiance - np.einsum("cpj,jc->pc", cols, power)
     return system.held_out_rmse(target), d, st, cols, power, target
 
 
-def _relocate_sources(cand: Candidate, base: np.ndarray, system: ShSystem, found: list, cols: np.ndarray,
-                      power: np.ndarray, start: int = 0) -> tuple[Sources, float]:
+def _relocate_sources(
+    cand: Candidate, base: np.ndarray, system: ShSystem, found: list, cols: np.ndarray, power: np.ndarray, start: int = 0
+) -> tuple[Sources, float]:
     """One more pass over the pursuit's sources (directions ``found``, columns (3, N, J),
     intensities (J, 3); ``system``: the SH at ``base``): each direction refined (BACKFIT_STEP, 4 rounds)
     against the SH refitted around the others and scored by its part the SH cannot carry
@@ -319,9 +350,13 @@ def _relocate_sources(cand: Candidate, base: np.ndarray, system: ShSystem, found
     fit = system.solve(target)
     sh_part = system.predict(fit.coeffs)
     project = sh_complement(system.a, w, fit)
-    own = project(cols) * power.T[:, None, :]                 # (3, N, J): each source's part the SH cannot carry
-    found = [d if j < start else refine_direction(geo, material, base, target - sh_part + own[:, :, j].T, w, d,
-                                                  BACKFIT_STEP, 4, project=project)[0] for j, d in enumerate(found)]
+    own = project(cols) * power.T[:, None, :]  # (3, N, J): each source's part the SH cannot carry
+    found = [
+        d
+        if j < start
+        else refine_direction(geo, material, base, target - sh_part + own[:, :, j].T, w, d, BACKFIT_STEP, 4, project=project)[0]
+        for j, d in enumerate(found)
+    ]
     st = prt.source_transfer(geo, material, np.array(found))
     cols = source_columns(geo, layer, st, None, base)
     power = source_intensities(cols, radiance - sh_part, w)

@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
-DEGENERATE_NORMAL = 1e-6   # interpolated vertex normals shorter than this fall back to the face normal
-POINT_LIFT = 1e-5          # ray origins on a face: lifted along the face normal by this x the mesh's diagonal
-VERTEX_LIFT = 1e-4         # ray origins at a vertex: lifted along the vertex normal by this x the diagonal
+DEGENERATE_NORMAL = 1e-6  # interpolated vertex normals shorter than this fall back to the face normal
+POINT_LIFT = 1e-5  # ray origins on a face: lifted along the face normal by this x the mesh's diagonal
+VERTEX_LIFT = 1e-4  # ray origins at a vertex: lifted along the vertex normal by this x the diagonal
 
 
 def lifted(points: np.ndarray, normals: np.ndarray, diagonal: float, lift: float) -> np.ndarray:
@@ -47,12 +47,12 @@ def barycentric(triangles: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.where((ok & (total[:, 0] > 0))[:, None], bary, 1.0 / 3.0)
 
 
-def interpolated_normals(vertex_normals: np.ndarray, face_normals: np.ndarray, faces: np.ndarray,
-                         face_ids: np.ndarray, bary: np.ndarray) -> np.ndarray:
+def interpolated_normals(
+    vertex_normals: np.ndarray, face_normals: np.ndarray, faces: np.ndarray, face_ids: np.ndarray, bary: np.ndarray
+) -> np.ndarray:
     """Unit shading normals (N, 3) at points given by face ids (N,) and barycentrics (N, 3) on a mesh
     with vertex normals (V, 3), face normals (F, 3) and faces (F, 3) vertex ids, by the rule above."""
     face_ids = np.asarray(face_ids, np.int64)
     n = np.einsum("pk,pkc->pc", bary, np.asarray(vertex_normals, float)[np.asarray(faces)[face_ids]])
     length = np.linalg.norm(n, axis=1, keepdims=True)
-    return np.where(length > DEGENERATE_NORMAL, n / np.maximum(length, 1e-300),
-                    np.asarray(face_normals, float)[face_ids])
+    return np.where(length > DEGENERATE_NORMAL, n / np.maximum(length, 1e-300), np.asarray(face_normals, float)[face_ids])

@@ -27,8 +27,8 @@ import scipy.sparse as sp
 from pipeline.core import texture
 from pipeline.core.material import Principled
 
-MIN_SHARE = 0.02      # a candidate that wins less of the observed surface (by sample weight) is dropped
-SMOOTHING = 0.5       # s of the error smoothing, relative to the mean sample weight of an observed vertex
+MIN_SHARE = 0.02  # a candidate that wins less of the observed surface (by sample weight) is dropped
+SMOOTHING = 0.5  # s of the error smoothing, relative to the mean sample weight of an observed vertex
 
 
 @dataclass(frozen=True)
@@ -90,23 +90,31 @@ def _row_argmax(m: sp.csr_matrix) -> np.ndarray:
     return cols[np.arange(len(cols)), np.argmax(data, axis=1)]
 
 
-def candidate_fits(interp: sp.csr_matrix, laplacian: sp.csr_matrix, shadings: list[CandidateShading],
-                   radiance: np.ndarray, weight: np.ndarray, smoothness: float) -> tuple[np.ndarray, np.ndarray, list]:
+def candidate_fits(
+    interp: sp.csr_matrix,
+    laplacian: sp.csr_matrix,
+    shadings: list[CandidateShading],
+    radiance: np.ndarray,
+    weight: np.ndarray,
+    smoothness: float,
+) -> tuple[np.ndarray, np.ndarray, list]:
     """Each candidate's per-vertex base colour and error: -> (weighted squared error summed per
     vertex (V, M), sample weight per vertex (V,), base colours [(V, 3)] per candidate)."""
     vertex_weight = interp.T @ weight
     errors, bases = [], []
     for cand in shadings:
-        rho = np.clip(texture.fit_vertex_albedo(interp, cand.shade, radiance - cand.specular, weight, laplacian,
-                                                smoothness), 0.0, 1.0)
+        rho = np.clip(
+            texture.fit_vertex_albedo(interp, cand.shade, radiance - cand.specular, weight, laplacian, smoothness), 0.0, 1.0
+        )
         residual = radiance - (interp @ rho) * cand.shade - cand.specular
-        errors.append(interp.T @ (weight * (residual ** 2).sum(axis=1)))
+        errors.append(interp.T @ (weight * (residual**2).sum(axis=1)))
         bases.append(rho)
     return np.stack(errors, axis=1), vertex_weight, bases
 
 
-def smooth_errors(errors: np.ndarray, vertex_weight: np.ndarray, laplacian: sp.csr_matrix,
-                  strength: float = SMOOTHING) -> np.ndarray:
+def smooth_errors(
+    errors: np.ndarray, vertex_weight: np.ndarray, laplacian: sp.csr_matrix, strength: float = SMOOTHING
+) -> np.ndarray:
     """The log of each vertex's mean error (V, M) smoothed over the mesh: (W + s L) x = W log(e / W),
     W = diag(the vertices' sample weights), s = strength x their mean over observed vertices; in the
     log a region's huge errors under a wrong candidate do not flood its neighbours, and vertices no
@@ -118,8 +126,13 @@ def smooth_errors(errors: np.ndarray, vertex_weight: np.ndarray, laplacian: sp.c
     log_mean = np.where(seen[:, None], np.log(np.maximum(mean, floor)), 0.0)
     lhs = (sp.diags(vertex_weight) + s * laplacian + 1e-9 * s * sp.identity(len(vertex_weight))).tocsr()
     start = log_mean[seen].mean(axis=0) if seen.any() else np.zeros(errors.shape[1])
-    return np.stack([texture.solve_spd(lhs, vertex_weight * log_mean[:, m], np.full(len(vertex_weight), start[m]))
-                     for m in range(errors.shape[1])], axis=1)
+    return np.stack(
+        [
+            texture.solve_spd(lhs, vertex_weight * log_mean[:, m], np.full(len(vertex_weight), start[m]))
+            for m in range(errors.shape[1])
+        ],
+        axis=1,
+    )
 
 
 def assign(errors: np.ndarray, vertex_weight: np.ndarray, laplacian: sp.csr_matrix) -> np.ndarray:
@@ -136,13 +149,19 @@ def assign(errors: np.ndarray, vertex_weight: np.ndarray, laplacian: sp.csr_matr
         alive[np.flatnonzero(weak)[np.argmin(share[weak])]] = False
 
 
-def material_map(interp: sp.csr_matrix, laplacian: sp.csr_matrix, shadings: list[CandidateShading],
-                 radiance: np.ndarray, weight: np.ndarray, smoothness: float) -> MaterialMap:
+def material_map(
+    interp: sp.csr_matrix,
+    laplacian: sp.csr_matrix,
+    shadings: list[CandidateShading],
+    radiance: np.ndarray,
+    weight: np.ndarray,
+    smoothness: float,
+) -> MaterialMap:
     """The materials and per-vertex base colour (module docstring) from the candidates' shadings."""
     errors, vertex_weight, bases = candidate_fits(interp, laplacian, shadings, radiance, weight, smoothness)
     labels = assign(errors, vertex_weight, laplacian)
     used, count = np.unique(labels, return_counts=True)
-    used = used[np.argsort(-count, kind="stable")]        # the material most vertices have first
+    used = used[np.argsort(-count, kind="stable")]  # the material most vertices have first
     remap = np.full(len(shadings), -1)
     remap[used] = np.arange(len(used))
     base = np.stack([bases[m] for m in range(len(shadings))], axis=0)[labels, np.arange(len(labels))]
@@ -150,8 +169,15 @@ def material_map(interp: sp.csr_matrix, laplacian: sp.csr_matrix, shadings: list
     return MaterialMap([shadings[m].material for m in used], used, remap[labels], base, std, vertex_weight > 0)
 
 
-def held_out_rmse(interp: sp.csr_matrix, laplacian: sp.csr_matrix, shadings: list[CandidateShading],
-                  radiance: np.ndarray, weight: np.ndarray, fold: np.ndarray, smoothness: float) -> float:
+def held_out_rmse(
+    interp: sp.csr_matrix,
+    laplacian: sp.csr_matrix,
+    shadings: list[CandidateShading],
+    radiance: np.ndarray,
+    weight: np.ndarray,
+    fold: np.ndarray,
+    smoothness: float,
+) -> float:
     """Leave-one-fold-out RMSE (radiance units) of material_map: fitted on the other folds' samples
     (assignment and base colours), predicted on the fold's."""
     se, wsum = 0.0, 0.0
@@ -159,32 +185,34 @@ def held_out_rmse(interp: sp.csr_matrix, laplacian: sp.csr_matrix, shadings: lis
         tr, va = fold != f, fold == f
         if not tr.any() or not va.any():
             continue
-        fitted = material_map(interp[tr], laplacian, [c.rows(tr) for c in shadings], radiance[tr], weight[tr],
-                              smoothness)
+        fitted = material_map(interp[tr], laplacian, [c.rows(tr) for c in shadings], radiance[tr], weight[tr], smoothness)
         pred = predict(interp[va], [shadings[m].rows(va) for m in fitted.chosen], fitted.labels, fitted.base)
         se += float((weight[va, None] * (radiance[va] - pred) ** 2).sum())
         wsum += float(weight[va].sum())
     return float(np.sqrt(se / (3 * wsum))) if wsum else float("nan")
 
 
-def sample_shading(interp: sp.csr_matrix, shadings: list[CandidateShading],
-                   labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def sample_shading(interp: sp.csr_matrix, shadings: list[CandidateShading], labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(shade, specular) (N, 3) each: every sample through its material's shading (sample_labels)."""
     per_sample, rows = sample_labels(interp, labels), np.arange(interp.shape[0])
-    return (np.stack([c.shade for c in shadings])[per_sample, rows],
-            np.stack([c.specular for c in shadings])[per_sample, rows])
+    return (np.stack([c.shade for c in shadings])[per_sample, rows], np.stack([c.specular for c in shadings])[per_sample, rows])
 
 
-def predict(interp: sp.csr_matrix, shadings: list[CandidateShading], labels: np.ndarray,
-            base: np.ndarray) -> np.ndarray:
+def predict(interp: sp.csr_matrix, shadings: list[CandidateShading], labels: np.ndarray, base: np.ndarray) -> np.ndarray:
     """Radiance (N, 3) of the samples under a material map: each sample through its material's
     shading (sample_shading), with the base colour interpolated from the vertices."""
     shade, specular = sample_shading(interp, shadings, labels)
     return (interp @ base) * shade + specular
 
 
-def base_std(interp: sp.csr_matrix, shadings: list[CandidateShading], labels: np.ndarray, base: np.ndarray,
-             radiance: np.ndarray, weight: np.ndarray) -> np.ndarray:
+def base_std(
+    interp: sp.csr_matrix,
+    shadings: list[CandidateShading],
+    labels: np.ndarray,
+    base: np.ndarray,
+    radiance: np.ndarray,
+    weight: np.ndarray,
+) -> np.ndarray:
     """(V, 3) standard deviation of each vertex's base colour from its own samples' normal equation,
     sigma_c^2 / sum_p w_p (P_pv Q_pc)^2, sigma_c^2 the weighted residual variance of the map's fit
     (the photos' noise and model error); inf where no sample sees the vertex (its value comes from
@@ -192,7 +220,7 @@ def base_std(interp: sp.csr_matrix, shadings: list[CandidateShading], labels: np
     shade, specular = sample_shading(interp, shadings, labels)
     pred = (interp @ base) * shade + specular
     sigma2 = (weight[:, None] * (radiance - pred) ** 2).sum(axis=0) / max(float(weight.sum()), 1e-300)
-    info = (interp.multiply(interp)).T @ (weight[:, None] * shade ** 2)        # (V, 3)
+    info = (interp.multiply(interp)).T @ (weight[:, None] * shade**2)  # (V, 3)
     with np.errstate(divide="ignore"):
         return np.where(info > 0, np.sqrt(sigma2[None, :] / np.maximum(info, 1e-300)), np.inf)
 
@@ -216,8 +244,9 @@ def voxel_patches(vertices: np.ndarray, n_patches: int) -> np.ndarray:
     return np.unique(q[:, 0] * (1 << 40) + q[:, 1] * (1 << 20) + q[:, 2], return_inverse=True)[1].ravel()
 
 
-def view_spread(patch: np.ndarray, image_id: np.ndarray, radiance: np.ndarray, n_patches: int,
-                min_samples: int = 3) -> np.ndarray:
+def view_spread(
+    patch: np.ndarray, image_id: np.ndarray, radiance: np.ndarray, n_patches: int, min_samples: int = 3
+) -> np.ndarray:
     """(P,) per patch the spread across views of the views' mean radiance over it (std / mean of the
     channel-mean radiance, over the views with >= ``min_samples`` samples in it); NaN where fewer
     than two views qualify.  ``patch``, ``image_id`` (N,) per sample, ``radiance`` (N, 3)."""

@@ -40,10 +40,9 @@ def graph_laplacian(faces: np.ndarray, n_vertices: int) -> sp.csr_matrix:
 
 def interpolation_matrix(faces: np.ndarray, face: np.ndarray, bary: np.ndarray, n_vertices: int) -> sp.csr_matrix:
     """(N x V) sparse matrix: row i holds sample i's barycentric weights at its face's vertices."""
-    verts = np.asarray(faces, np.int64)[np.asarray(face, np.int64)]          # (N, 3)
+    verts = np.asarray(faces, np.int64)[np.asarray(face, np.int64)]  # (N, 3)
     rows = np.repeat(np.arange(len(face)), 3)
-    return sp.csr_matrix((np.asarray(bary, float).ravel(), (rows, verts.ravel())),
-                         shape=(len(face), n_vertices))
+    return sp.csr_matrix((np.asarray(bary, float).ravel(), (rows, verts.ravel())), shape=(len(face), n_vertices))
 
 
 def heaviest_vertex(faces: np.ndarray, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
@@ -59,8 +58,9 @@ def uniform_albedo(shade: np.ndarray, target: np.ndarray, weight: np.ndarray) ->
     return num / den
 
 
-def fit_vertex_albedo(interp: sp.csr_matrix, shade: np.ndarray, target: np.ndarray, weight: np.ndarray,
-                      laplacian: sp.csr_matrix, smoothness: float) -> np.ndarray:
+def fit_vertex_albedo(
+    interp: sp.csr_matrix, shade: np.ndarray, target: np.ndarray, weight: np.ndarray, laplacian: sp.csr_matrix, smoothness: float
+) -> np.ndarray:
     """Per-vertex albedo (V, 3) minimizing the objective of the module docstring.
 
     interp (N x V), shade (N, 3) = E/pi per channel, target (N, 3) = radiance - specular,
@@ -82,15 +82,13 @@ def fit_vertex_albedo(interp: sp.csr_matrix, shade: np.ndarray, target: np.ndarr
     return out
 
 
-def solve_spd(lhs: sp.csr_matrix, rhs: np.ndarray, x0: np.ndarray, rtol: float = 1e-10,
-              maxiter: int = 1000) -> np.ndarray:
+def solve_spd(lhs: sp.csr_matrix, rhs: np.ndarray, x0: np.ndarray, rtol: float = 1e-10, maxiter: int = 1000) -> np.ndarray:
     """x of the symmetric positive definite system lhs x = rhs: conjugate gradients with a Jacobi
     preconditioner from ``x0`` to a relative residual ``rtol``; if that does not converge within
     ``maxiter`` iterations, SuperLU with a symmetric ordering.  On the 35k-vertex bunny CG takes
     0.08 s where SuperLU takes 0.8 s (1.8 s with its default column ordering), the albedos equal
     to 3e-8."""
-    x, info = spla.cg(lhs, rhs, x0=x0, rtol=rtol, maxiter=maxiter,
-                      M=sp.diags(1.0 / np.maximum(lhs.diagonal(), 1e-300)))
+    x, info = spla.cg(lhs, rhs, x0=x0, rtol=rtol, maxiter=maxiter, M=sp.diags(1.0 / np.maximum(lhs.diagonal(), 1e-300)))
     if info == 0:
         return x
     lu = spla.splu(lhs.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
@@ -110,9 +108,17 @@ def weighted_rmse(pred: np.ndarray, target: np.ndarray, weight: np.ndarray) -> f
     return float(np.sqrt(((pred - target) ** 2 * w[:, None]).sum() / (3 * max(w.sum(), 1e-300))))
 
 
-def vertex_fold_fits(faces: np.ndarray, n_vertices: int, face: np.ndarray, bary: np.ndarray, fold: np.ndarray,
-                     weight: np.ndarray, shade: np.ndarray, target: np.ndarray,
-                     smoothness: float) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+def vertex_fold_fits(
+    faces: np.ndarray,
+    n_vertices: int,
+    face: np.ndarray,
+    bary: np.ndarray,
+    fold: np.ndarray,
+    weight: np.ndarray,
+    shade: np.ndarray,
+    target: np.ndarray,
+    smoothness: float,
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """Per fold f with other folds: (the uniform albedo (3,), the per-vertex albedo (V, 3)) fitted on
     the samples of the other folds (arguments as :func:`choose_vertex_albedo`'s)."""
     w = np.asarray(weight, float)
@@ -122,15 +128,28 @@ def vertex_fold_fits(faces: np.ndarray, n_vertices: int, face: np.ndarray, bary:
     for f in np.unique(fold):
         tr = fold != f
         if tr.any():
-            fits[int(f)] = (uniform_albedo(shade[tr], target[tr], w[tr]),
-                            fit_vertex_albedo(interp[tr], shade[tr], target[tr], w[tr], lap, smoothness))
+            fits[int(f)] = (
+                uniform_albedo(shade[tr], target[tr], w[tr]),
+                fit_vertex_albedo(interp[tr], shade[tr], target[tr], w[tr], lap, smoothness),
+            )
     return fits
 
 
-def choose_vertex_albedo(faces: np.ndarray, n_vertices: int, face: np.ndarray, bary: np.ndarray,
-                         fold: np.ndarray, weight: np.ndarray, shade: np.ndarray, target: np.ndarray, *,
-                         smoothness: float, parsimony: float, noise: float,
-                         fits: dict | None = None) -> tuple[list[dict], str, np.ndarray, int]:
+def choose_vertex_albedo(
+    faces: np.ndarray,
+    n_vertices: int,
+    face: np.ndarray,
+    bary: np.ndarray,
+    fold: np.ndarray,
+    weight: np.ndarray,
+    shade: np.ndarray,
+    target: np.ndarray,
+    *,
+    smoothness: float,
+    parsimony: float,
+    noise: float,
+    fits: dict | None = None,
+) -> tuple[list[dict], str, np.ndarray, int]:
     """Textured vs uniform albedo by held-out views: each fold's views held out of a uniform and a
     per-vertex fit (:func:`fit_vertex_albedo`, Laplacian weight ``smoothness``) of the samples'
     radiance less the specular part ``target`` (N, 3) from their shading per unit albedo ``shade``
@@ -145,7 +164,7 @@ def choose_vertex_albedo(faces: np.ndarray, n_vertices: int, face: np.ndarray, b
     lap = graph_laplacian(faces, n_vertices)
     if fits is None:
         fits = vertex_fold_fits(faces, n_vertices, face, bary, fold, weight, shade, target, smoothness)
-    sse = {"uniform": [0.0, 0.0], "textured": [0.0, 0.0]}       # validation, training (weighted SSE)
+    sse = {"uniform": [0.0, 0.0], "textured": [0.0, 0.0]}  # validation, training (weighted SSE)
     wsum = [0.0, 0.0]
     for f, (rho_u, rho_t) in fits.items():
         tr, va = fold != f, fold == f
@@ -156,9 +175,10 @@ def choose_vertex_albedo(faces: np.ndarray, n_vertices: int, face: np.ndarray, b
         wsum[0] += float(w[va].sum())
         wsum[1] += float(w[tr].sum())
     rmse = {name: [float(np.sqrt(v[k] / (3 * max(wsum[k], 1e-300)))) for k in (0, 1)] for name, v in sse.items()}
-    cands = [{"name": "uniform", "params": 3, "validation_rmse": rmse["uniform"][0], "train_rmse": rmse["uniform"][1]},
-             {"name": "textured", "params": 3 * n_vertices, "validation_rmse": rmse["textured"][0],
-              "train_rmse": rmse["textured"][1]}]
+    cands = [
+        {"name": "uniform", "params": 3, "validation_rmse": rmse["uniform"][0], "train_rmse": rmse["uniform"][1]},
+        {"name": "textured", "params": 3 * n_vertices, "validation_rmse": rmse["textured"][0], "train_rmse": rmse["textured"][1]},
+    ]
     auto = cands[parsimonious_choice(cands, parsimony, noise=noise)]["name"]
     rho = fit_vertex_albedo(interp, shade, target, w, lap, smoothness)
     cands[0]["albedo"] = uniform_albedo(shade, target, w).tolist()
@@ -182,8 +202,9 @@ def choose_vertex_albedo(faces: np.ndarray, n_vertices: int, face: np.ndarray, b
 # the weights' units) d_t's standard deviation is sigma / sqrt(sum w s^2 + lam m).
 
 
-def texel_sums(texel: np.ndarray, weight: np.ndarray, shade: np.ndarray, residual: np.ndarray,
-               n_texels: int) -> tuple[np.ndarray, np.ndarray]:
+def texel_sums(
+    texel: np.ndarray, weight: np.ndarray, shade: np.ndarray, residual: np.ndarray, n_texels: int
+) -> tuple[np.ndarray, np.ndarray]:
     """(sum w s^2, sum w s r) per texel and channel, (T, 3) each, of samples in texels ``texel`` (N,)
     with weights (N,), shading per unit base colour ``shade`` (N, 3) and residual radiance (N, 3)."""
     w = np.asarray(weight, float)[:, None]
@@ -197,10 +218,20 @@ def texel_detail(den: np.ndarray, num: np.ndarray, ridge: np.ndarray) -> np.ndar
     return num / (den + np.asarray(ridge, float)[None, :])
 
 
-def choose_texel_detail(texel: np.ndarray, fold: np.ndarray, weight: np.ndarray, shade: np.ndarray,
-                        target: np.ndarray, coarse: np.ndarray, coarse_per_fold: dict[int, np.ndarray],
-                        n_texels: int, ridges: tuple[float, ...], *, parsimony: float,
-                        noise: float) -> tuple[list[dict], int, np.ndarray, np.ndarray]:
+def choose_texel_detail(
+    texel: np.ndarray,
+    fold: np.ndarray,
+    weight: np.ndarray,
+    shade: np.ndarray,
+    target: np.ndarray,
+    coarse: np.ndarray,
+    coarse_per_fold: dict[int, np.ndarray],
+    n_texels: int,
+    ridges: tuple[float, ...],
+    *,
+    parsimony: float,
+    noise: float,
+) -> tuple[list[dict], int, np.ndarray, np.ndarray]:
     """The per-texel detail (section comment) with each ridge of ``ridges`` (dimensionless lam) and
     without (the coarser level alone), scored on held-out folds: for each fold f, the coarser level
     fitted without f (``coarse_per_fold[f]``: its base colour at every sample (N, 3)) and the texels'
@@ -220,16 +251,30 @@ def choose_texel_detail(texel: np.ndarray, fold: np.ndarray, weight: np.ndarray,
             d = np.zeros((n_texels, 3)) if lam is None else texel_detail(den, num, lam * scale)
             for k, m in ((0, va), (1, ~va)):
                 err = residual[m] - shade[m] * d[texel[m]]
-                sse[j, k] += float((err ** 2 * w[m, None]).sum())
+                sse[j, k] += float((err**2 * w[m, None]).sum())
         wsum += [w[va].sum(), w[~va].sum()]
     rmse = np.sqrt(sse / (3 * np.maximum(wsum, 1e-300)))
     den, num = texel_sums(texel, w, shade, target - shade * coarse, n_texels)
     observed = int((den.max(axis=1) > 0).sum())
-    cands = [{"name": "coarser level", "ridge": None, "params": 0,
-              "validation_rmse": float(rmse[0, 0]), "train_rmse": float(rmse[0, 1])}]
-    cands += [{"name": f"texels, ridge {lam:g}", "ridge": float(lam), "params": 3 * observed,
-               "validation_rmse": float(rmse[j, 0]), "train_rmse": float(rmse[j, 1])}
-              for j, lam in enumerate(ridges, start=1)]
+    cands = [
+        {
+            "name": "coarser level",
+            "ridge": None,
+            "params": 0,
+            "validation_rmse": float(rmse[0, 0]),
+            "train_rmse": float(rmse[0, 1]),
+        }
+    ]
+    cands += [
+        {
+            "name": f"texels, ridge {lam:g}",
+            "ridge": float(lam),
+            "params": 3 * observed,
+            "validation_rmse": float(rmse[j, 0]),
+            "train_rmse": float(rmse[j, 1]),
+        }
+        for j, lam in enumerate(ridges, start=1)
+    ]
     best = min(range(1, len(cands)), key=lambda j: cands[j]["validation_rmse"])
     choice = best if parsimonious_choice([cands[0], cands[best]], parsimony, noise=noise) == 1 else 0
     if choice == 0:

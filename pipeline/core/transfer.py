@@ -46,6 +46,7 @@ def lambert_filter(order: int) -> np.ndarray:
 # with P_l the ordinary Legendre polynomial (P_l(1) = 1).  For the clamped cosine p = max(0, t)
 # this is Â_l (irradiance E = Â_l L_lm; Lambertian radiance B = rho_d / pi * E).
 
+
 def legendre_polynomials(t: np.ndarray, order: int) -> np.ndarray:
     """P_l(t) for l = 0..order at points t (N,): (order+1, N), by Bonnet's recurrence
     (l+1) P_{l+1} = (2l+1) t P_l - l P_{l-1}, stable for |t| <= 1."""
@@ -59,8 +60,7 @@ def legendre_polynomials(t: np.ndarray, order: int) -> np.ndarray:
     return out
 
 
-def lobe_filter(profile, order: int, n_nodes: int | None = None,
-                breakpoints_rad=(0.0, np.pi / 2, np.pi)) -> np.ndarray:
+def lobe_filter(profile, order: int, n_nodes: int | None = None, breakpoints_rad=(0.0, np.pi / 2, np.pi)) -> np.ndarray:
     """A_l = 2 pi * integral p(cos alpha) P_l(cos alpha) sin(alpha) d alpha for l = 0..order.
 
     ``profile``: vectorized p(cos alpha) of a lobe symmetric about its axis (1/sr).
@@ -112,7 +112,7 @@ def phong_filter(exponent: float, order: int, n_nodes: int | None = None) -> np.
 def phong_filter_approx(exponent: float, order: int) -> np.ndarray:
     """R&H 2001's Gaussian approximation of the Phong filter: A_l ~ exp(-l^2 / 2s)."""
     l = np.arange(order + 1)
-    return np.exp(-(l ** 2) / (2.0 * float(exponent)))
+    return np.exp(-(l**2) / (2.0 * float(exponent)))
 
 
 def microfacet_lobe_normal_view(cos_in: np.ndarray, roughness: float) -> np.ndarray:
@@ -143,19 +143,19 @@ def microfacet_filter(roughness: float, order: int, n_nodes: int | None = None) 
     # theta_h = alpha/2 and D ~ exp(-tan^2 theta_h / sigma^2): panels at tan(alpha/2) = k sigma;
     # the V-cavity G has a kink at cos alpha = 1/2.
     widths = [2.0 * np.arctan(k * sigma) for k in (1.0, 3.0, 6.0)] + [np.pi / 3]
-    return lobe_filter(lambda t: microfacet_lobe_normal_view(t, sigma), order, n_nodes,
-                       _peak_breakpoints(widths))
+    return lobe_filter(lambda t: microfacet_lobe_normal_view(t, sigma), order, n_nodes, _peak_breakpoints(widths))
 
 
 def microfacet_filter_approx(roughness: float, order: int) -> np.ndarray:
     """R&H 2001's Gaussian approximation of the microfacet filter: A_l ~ exp(-(sigma l)^2)."""
     l = np.arange(order + 1)
-    return np.exp(-(float(roughness) * l) ** 2)
+    return np.exp(-((float(roughness) * l) ** 2))
 
 
 # ---------------------------------------------------------------------------------------------
 # Irradiance
 # ---------------------------------------------------------------------------------------------
+
 
 def irradiance_from_sh(coeffs: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """E(n) = sum_lm Â_l L_lm Y_lm(n) (R&H 2001 irradiance paper, eq. 7-8) for unit normals (N, 3).
@@ -189,9 +189,14 @@ def irradiance_9term(coeffs: np.ndarray, normals: np.ndarray) -> np.ndarray:
     n = np.asarray(normals, dtype=float).reshape(-1, 3)
     x, y, z = (n[:, i].reshape((-1,) + (1,) * (c.ndim - 1)) for i in range(3))
     l00, l1m1, l10, l11, l2m2, l2m1, l20, l21, l22 = c[:9]
-    return (_C1 * l22 * (x * x - y * y) + _C3 * l20 * z * z + _C4 * l00 - _C5 * l20
-            + 2 * _C1 * (l2m2 * x * y + l21 * x * z + l2m1 * y * z)
-            + 2 * _C2 * (l11 * x + l1m1 * y + l10 * z))
+    return (
+        _C1 * l22 * (x * x - y * y)
+        + _C3 * l20 * z * z
+        + _C4 * l00
+        - _C5 * l20
+        + 2 * _C1 * (l2m2 * x * y + l21 * x * z + l2m1 * y * z)
+        + 2 * _C2 * (l11 * x + l1m1 * y + l10 * z)
+    )
 
 
 def irradiance_envmap(coeffs: np.ndarray, height: int, nine_term: bool = False) -> np.ndarray:

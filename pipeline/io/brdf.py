@@ -35,8 +35,10 @@ def _principled_ranges(name: str, doc: dict) -> None:
     if not 0.0 < r <= 1.0:
         raise UserError(f"{name}: roughness {r:g} is outside (0, 1] (perceptual roughness; GGX alpha = roughness^2)")
     if doc["ior"] < 1.0:
-        raise UserError(f"{name}: ior {doc['ior']:g} is below 1; a dielectric's index of refraction is >= 1 (1.5 for "
-                        "most plastics and paints)")
+        raise UserError(
+            f"{name}: ior {doc['ior']:g} is below 1; a dielectric's index of refraction is >= 1 (1.5 for "
+            "most plastics and paints)"
+        )
 
 
 def validate_brdf(doc: dict, name: str = "brdf") -> Brdf:
@@ -47,18 +49,21 @@ def validate_brdf(doc: dict, name: str = "brdf") -> Brdf:
     model = doc.get("model")
     ours = LEGACY_MODELS.get(model.split(" ")[0]) if isinstance(model, str) else None
     if ours is not None and _blender_node(doc) is not None:
-        return blender_node_material(_blender_node(doc), name)      # a Blender node's inputs, as Blender means them
+        return blender_node_material(_blender_node(doc), name)  # a Blender node's inputs, as Blender means them
     if ours is not None:
-        raise UserError(f"{name}: model {model!r} is not a sigrend model; write \"{ours}\" "
-                        f"with its parameters ({', '.join(_required(ours))})")
+        raise UserError(
+            f'{name}: model {model!r} is not a sigrend model; write "{ours}" with its parameters ({", ".join(_required(ours))})'
+        )
     if not isinstance(model, str) or model not in BRDF_PARAMS:
         raise UserError(f"{name}: unknown BRDF model {model!r}; use one of {', '.join(BRDF_PARAMS)}")
     out = dict(doc)
     if model == "principled":
         unknown = sorted(set(doc) - set(BRDF_PARAMS[model]) - set(FREE_KEYS))
         if unknown:
-            raise UserError(f"{name}: unknown key {unknown[0]!r} for model 'principled'; valid keys: base_color, "
-                            "roughness (0, 1], metallic [0, 1], ior >= 1, specular_tint [0, 1]")
+            raise UserError(
+                f"{name}: unknown key {unknown[0]!r} for model 'principled'; valid keys: base_color, "
+                "roughness (0, 1], metallic [0, 1], ior >= 1, specular_tint [0, 1]"
+            )
     for key in BRDF_PARAMS[model]:
         default = PARAM_DEFAULTS.get(key)
         out.setdefault(key, list(default) if isinstance(default, tuple) else default)
@@ -72,8 +77,9 @@ def validate_brdf(doc: dict, name: str = "brdf") -> Brdf:
             if arr.shape != (3,) or not np.all(np.isfinite(arr)) or np.any(arr < 0):
                 raise UserError(f"{name}: {key} must be one or three non-negative numbers, got {value!r}")
             if key in UNIT_PARAMS and np.any(arr > 1):
-                raise UserError(f"{name}: {key} {arr.tolist()} is outside [0, 1] (a surface cannot reflect more than "
-                                "it receives)")
+                raise UserError(
+                    f"{name}: {key} {arr.tolist()} is outside [0, 1] (a surface cannot reflect more than it receives)"
+                )
             out[key] = arr.tolist()
         else:
             if not is_number(value):
@@ -135,8 +141,7 @@ def write_brdf(path: str | os.PathLike, brdf: Brdf, notes: dict | None = None) -
     return write_json(path, {**validate_brdf(brdf.to_dict()).to_dict(), **_free(notes)})
 
 
-def write_materials_brdf(path: str | os.PathLike, materials: list[Brdf], material_map: str,
-                         notes: dict | None = None) -> Path:
+def write_materials_brdf(path: str | os.PathLike, materials: list[Brdf], material_map: str, notes: dict | None = None) -> Path:
     """brdf.json of a surface of several materials: the first (the one most of the surface has) at
     the top level, as one-material readers take it, and every one under "materials" (index =
     material.ply's material_id), with the map's file name; ``notes`` as write_brdf's."""
@@ -191,16 +196,31 @@ def material_from_blender(doc: dict) -> Brdf:
         return blender_node_material(_blender_node(doc))
     if "roughness" not in doc:
         return validate_brdf({"model": "lambert", "albedo": doc["albedo"]})
-    return validate_brdf({"model": "principled", "base_color": doc["base_color"], "roughness": doc["roughness"],
-                          "metallic": doc.get("metallic", 0.0), "ior": doc.get("ior", 1.5),
-                          "specular_tint": doc.get("specular_tint", [1.0, 1.0, 1.0])})
+    return validate_brdf(
+        {
+            "model": "principled",
+            "base_color": doc["base_color"],
+            "roughness": doc["roughness"],
+            "metallic": doc.get("metallic", 0.0),
+            "ior": doc.get("ior", 1.5),
+            "specular_tint": doc.get("specular_tint", [1.0, 1.0, 1.0]),
+        }
+    )
 
 
 # Principled BSDF inputs sigrend's principled model does not have, at the values that switch them off
 # (Blender 4.x names); a node with any other value is refused rather than silently approximated
-_PRINCIPLED_OFF = {"Specular IOR Level": 0.5, "Alpha": 1.0, "Anisotropic": 0.0, "Transmission Weight": 0.0,
-                   "Coat Weight": 0.0, "Sheen Weight": 0.0, "Subsurface Weight": 0.0, "Emission Strength": 0.0,
-                   "Diffuse Roughness": 0.0}
+_PRINCIPLED_OFF = {
+    "Specular IOR Level": 0.5,
+    "Alpha": 1.0,
+    "Anisotropic": 0.0,
+    "Transmission Weight": 0.0,
+    "Coat Weight": 0.0,
+    "Sheen Weight": 0.0,
+    "Subsurface Weight": 0.0,
+    "Emission Strength": 0.0,
+    "Diffuse Roughness": 0.0,
+}
 
 
 def _blender_node(doc: dict) -> dict | None:
@@ -220,14 +240,25 @@ def blender_node_material(node: dict, name: str = "brdf") -> Brdf:
     if kind == "ShaderNodeBsdfDiffuse" and float(node.get("Roughness", 0.0)) == 0.0:
         return validate_brdf({"model": "lambert", "albedo": list(node["Color"])[:3]}, name)
     if kind != "ShaderNodeBsdfPrincipled":
-        raise UserError(f"{name}: Blender node {kind!r} is not one sigrend models; give a Principled BSDF, a Diffuse "
-                        "BSDF of roughness 0, or write the material as \"principled\" with its parameters")
-    dark = not np.any(np.asarray(node.get("Emission Color", [1.0]), float)[:3] > 0)   # no emission at any strength
+        raise UserError(
+            f"{name}: Blender node {kind!r} is not one sigrend models; give a Principled BSDF, a Diffuse "
+            'BSDF of roughness 0, or write the material as "principled" with its parameters'
+        )
+    dark = not np.any(np.asarray(node.get("Emission Color", [1.0]), float)[:3] > 0)  # no emission at any strength
     for key, off in _PRINCIPLED_OFF.items():
         if key in node and not np.isclose(float(node[key]), off) and not (key == "Emission Strength" and dark):
-            raise UserError(f"{name}: the Principled BSDF's {key!r} is {float(node[key]):g}; sigrend models it only at "
-                            f"{off:g} — set it there in Blender or write the material as \"principled\" yourself")
-    return validate_brdf({"model": "principled", "base_color": list(node["Base Color"])[:3],
-                          "roughness": node["Roughness"], "metallic": node.get("Metallic", 0.0),
-                          "ior": node.get("IOR", 1.5), "specular_tint": list(node.get("Specular Tint", [1, 1, 1, 1]))[:3]},
-                         name)
+            raise UserError(
+                f"{name}: the Principled BSDF's {key!r} is {float(node[key]):g}; sigrend models it only at "
+                f'{off:g} — set it there in Blender or write the material as "principled" yourself'
+            )
+    return validate_brdf(
+        {
+            "model": "principled",
+            "base_color": list(node["Base Color"])[:3],
+            "roughness": node["Roughness"],
+            "metallic": node.get("Metallic", 0.0),
+            "ior": node.get("IOR", 1.5),
+            "specular_tint": list(node.get("Specular Tint", [1, 1, 1, 1]))[:3],
+        },
+        name,
+    )

@@ -20,7 +20,8 @@ from pipeline.io.images import ImageRowReader, open_image_input
 
 RAW_EXTENSIONS = frozenset(
     ".dng .cr2 .cr3 .crw .nef .nrw .arw .srf .sr2 .orf .rw2 .raf .pef .srw .x3f .3fr .iiq .erf .kdc .dcr "
-    ".mrw .mef .mos .rwl .raw .gpr".split())
+    ".mrw .mef .mos .rwl .raw .gpr".split()
+)
 DECODED_EXTENSIONS = frozenset(".exr .hdr .tif .tiff .png .jpg .jpeg".split())
 DEMOSAIC_RADIUS = 2  # AHD interpolates from a 5x5 neighbourhood: a clipped photosite taints pixels 2 away
 
@@ -40,8 +41,10 @@ def _open_raw(path: Path):
     try:
         return rawpy.imread(str(path))
     except (rawpy.LibRawError, rawpy.NotSupportedError, OSError) as exc:
-        raise UserError(f"{path}: LibRaw cannot read this RAW file ({type(exc).__name__}: {exc}); "
-                        "the file may be truncated or corrupt: copy it again from the card or remove it") from None
+        raise UserError(
+            f"{path}: LibRaw cannot read this RAW file ({type(exc).__name__}: {exc}); "
+            "the file may be truncated or corrupt: copy it again from the card or remove it"
+        ) from None
 
 
 def _raw_output_size(raw) -> tuple[int, int]:
@@ -80,10 +83,11 @@ def probe(path: Path) -> Probe:
                 if not any(wb):
                     wb = tuple(float(v) for v in raw.daylight_whitebalance)
             except (rawpy.LibRawError, rawpy.NotSupportedError) as exc:
-                raise UserError(f"{path}: LibRaw cannot read this RAW file ({type(exc).__name__}: {exc}); the file "
-                                "may be truncated or corrupt: copy it again from the card or remove it") from None
-            exif = {"time": other.shutter_speed or None, "iso": other.iso_speed or None,
-                    "fnumber": other.aperture or None}
+                raise UserError(
+                    f"{path}: LibRaw cannot read this RAW file ({type(exc).__name__}: {exc}); the file "
+                    "may be truncated or corrupt: copy it again from the card or remove it"
+                ) from None
+            exif = {"time": other.shutter_speed or None, "iso": other.iso_speed or None, "fnumber": other.aperture or None}
             return Probe(path, "raw", w, h, exif, wb)
     import OpenImageIO as oiio
 
@@ -94,11 +98,12 @@ def probe(path: Path) -> Probe:
     finally:
         inp.close()
     base = spec.format.basetype
-    kind = ("uint8" if base in (oiio.UINT8, oiio.INT8) else
-            "uint16" if base in (oiio.UINT16, oiio.INT16) else "float")
-    exif = {"time": _first(meta, "ExposureTime"),
-            "iso": _first(meta, "Exif:PhotographicSensitivity", "Exif:ISOSpeedRatings"),
-            "fnumber": _first(meta, "FNumber")}
+    kind = "uint8" if base in (oiio.UINT8, oiio.INT8) else "uint16" if base in (oiio.UINT16, oiio.INT16) else "float"
+    exif = {
+        "time": _first(meta, "ExposureTime"),
+        "iso": _first(meta, "Exif:PhotographicSensitivity", "Exif:ISOSpeedRatings"),
+        "fnumber": _first(meta, "FNumber"),
+    }
     return Probe(path, kind, spec.width, spec.height, exif)
 
 
@@ -106,8 +111,9 @@ def probe(path: Path) -> Probe:
 # Decoding one file -> (linear RGB before exposure scaling, valid mask, level for bracket weights, info)
 
 
-def decode_raw(path: Path, wb_multipliers: tuple[float, ...], saturation: float, *, camera_space: bool = False,
-               want_level: bool = True):
+def decode_raw(
+    path: Path, wb_multipliers: tuple[float, ...], saturation: float, *, camera_space: bool = False, want_level: bool = True
+):
     """LibRaw linear decode: (rgb float32 in [0, ~1], valid mask, level (H, W) in [0, 1], info dict).
 
     ``wb_multipliers``: 3 or 4 raw-channel gains (dcraw/LibRaw order R, G, B, G2).
@@ -124,8 +130,8 @@ def raw_rows_to_float(rgb16: np.ndarray) -> np.ndarray:
     return np.multiply(rgb16, np.float32(1 / 65535.0), dtype=np.float32)
 
 
-RAW_DECODE_BYTES_PER_PIXEL = 22   # LibRaw's raw (2) + its 4-channel image (8) + the 16-bit output (6) + masks (~6)
-RAW_HELD_BYTES_PER_PIXEL = 7      # what decode_raw16 returns: the 16-bit RGB (6) and the valid mask (1)
+RAW_DECODE_BYTES_PER_PIXEL = 22  # LibRaw's raw (2) + its 4-channel image (8) + the 16-bit output (6) + masks (~6)
+RAW_HELD_BYTES_PER_PIXEL = 7  # what decode_raw16 returns: the 16-bit RGB (6) and the valid mask (1)
 
 
 def decode_raw16(path: Path, wb_multipliers: tuple[float, ...], saturation: float, *, camera_space: bool = False):
@@ -141,12 +147,21 @@ def decode_raw16(path: Path, wb_multipliers: tuple[float, ...], saturation: floa
             black = [int(b) for b in raw.black_level_per_channel]
             white_level = int(raw.white_level)
             rgb16 = raw.postprocess(
-                gamma=(1, 1), no_auto_bright=True, output_bps=16, use_camera_wb=False, user_wb=wb,
-                highlight_mode=rawpy.HighlightMode.Clip, adjust_maximum_thr=0.0, user_flip=0,   # as stored:
-                output_color=rawpy.ColorSpace.raw if camera_space else rawpy.ColorSpace.sRGB)  # COLMAP's rule
+                gamma=(1, 1),
+                no_auto_bright=True,
+                output_bps=16,
+                use_camera_wb=False,
+                user_wb=wb,
+                highlight_mode=rawpy.HighlightMode.Clip,
+                adjust_maximum_thr=0.0,
+                user_flip=0,  # as stored:
+                output_color=rawpy.ColorSpace.raw if camera_space else rawpy.ColorSpace.sRGB,
+            )  # COLMAP's rule
         except (rawpy.LibRawError, rawpy.NotSupportedError) as exc:
-            raise UserError(f"{path}: LibRaw cannot decode this RAW file ({type(exc).__name__}: {exc}); "
-                            "the file may be truncated or corrupt: copy it again or remove it") from None
+            raise UserError(
+                f"{path}: LibRaw cannot decode this RAW file ({type(exc).__name__}: {exc}); "
+                "the file may be truncated or corrupt: copy it again or remove it"
+            ) from None
         # Saturation before demosaicing, per photosite against its channel's white level.
         levels = np.asarray(white if white is not None and any(white) else [white_level] * 4, dtype=float)
         clipped = visible >= saturation * levels[colors]
@@ -174,8 +189,10 @@ def decode_other(path: Path, kind: str, inverse_response: np.ndarray, saturation
 
 
 def no_alpha_error(path: Path) -> UserError:
-    return UserError(f"{path}: every pixel is transparent (alpha = 0), so nothing in it can be measured; "
-                     "export it again with the object covered (alpha = coverage) or remove it")
+    return UserError(
+        f"{path}: every pixel is transparent (alpha = 0), so nothing in it can be measured; "
+        "export it again with the object covered (alpha = coverage) or remove it"
+    )
 
 
 @functools.lru_cache(maxsize=1)
@@ -188,11 +205,10 @@ def _oiio_uint8_floats() -> np.ndarray:
     return np.asarray(buf.get_pixels("float"), np.float32).ravel()
 
 
-OTHER_BYTES_PER_PIXEL = 48   # decode_other_rows' arrays per pixel of a band: read, codes, linear RGB, masks, level
+OTHER_BYTES_PER_PIXEL = 48  # decode_other_rows' arrays per pixel of a band: read, codes, linear RGB, masks, level
 
 
-def decode_other_rows(image: ImageRowReader, y0: int, y1: int, kind: str, inverse_response: np.ndarray,
-                      saturation: float):
+def decode_other_rows(image: ImageRowReader, y0: int, y1: int, kind: str, inverse_response: np.ndarray, saturation: float):
     """Rows y0:y1 of an OpenImageIO file decoded as decode_other does the whole image (the same
     values: every operation is per pixel) -> (rgb, valid, level or None, info, seen) where ``seen``
     says whether these rows hold an alpha above 0 ("alpha", True without alpha) and whether they are
@@ -203,16 +219,16 @@ def decode_other_rows(image: ImageRowReader, y0: int, y1: int, kind: str, invers
         codes = image.rows(y0, y1, "uint8")
         alpha = codes[:, :, -1] if has_alpha else None
         codes = np.repeat(codes[:, :, :1], 3, axis=2) if codes.shape[2] < 3 else codes[:, :, :3]
-        table = np.asarray(inverse_response).astype(np.float32)     # float64 table entries cast, as before
+        table = np.asarray(inverse_response).astype(np.float32)  # float64 table entries cast, as before
         lin = np.empty(codes.shape, np.float32)
         for c in range(3):
             np.take(table[c], codes[:, :, c], out=lin[:, :, c])
-        top = np.maximum(np.maximum(codes[:, :, 0], codes[:, :, 1]), codes[:, :, 2])   # codes.max(axis=2), faster
-        valid = top < math.ceil(saturation * 255.0)      # code < saturation x 255 for a whole code (saturation <= 1)
+        top = np.maximum(np.maximum(codes[:, :, 0], codes[:, :, 1]), codes[:, :, 2])  # codes.max(axis=2), faster
+        valid = top < math.ceil(saturation * 255.0)  # code < saturation x 255 for a whole code (saturation <= 1)
         if alpha is not None:
-            valid &= alpha == 255       # >= 254.5 / 255
+            valid &= alpha == 255  # >= 254.5 / 255
         info = {"black_level": 0, "white_level": 255}
-        level = _oiio_uint8_floats()[top]       # rgb.max(axis=2): the float OpenImageIO gives each code
+        level = _oiio_uint8_floats()[top]  # rgb.max(axis=2): the float OpenImageIO gives each code
         seen = {"alpha": alpha is None or bool(np.any(alpha > 0)), "black": int(top.max(initial=0)) == 0}
         return lin, valid, level, info, seen
     img = image.rows(y0, y1)
@@ -231,6 +247,5 @@ def decode_other_rows(image: ImageRowReader, y0: int, y1: int, kind: str, invers
         level = None
     if alpha is not None:
         valid &= alpha >= 65534.5 / 65535.0 if kind == "uint16" else alpha > 0
-    seen = {"alpha": alpha is None or bool(np.any(alpha > 0)),
-            "black": not np.any(np.where(valid[:, :, None], rgb, 0) > 0)}
+    seen = {"alpha": alpha is None or bool(np.any(alpha > 0)), "black": not np.any(np.where(valid[:, :, None], rgb, 0) > 0)}
     return np.ascontiguousarray(rgb, dtype=np.float32), valid, level, info, seen

@@ -28,8 +28,9 @@ from pipeline.io.images import srgb_encode, write_image  # noqa: F401  (srgb_enc
 from pipeline.workdir import atomic_path
 
 # XYZ (D65) -> linear sRGB: as DNG ColorMatrix1 it makes the camera space linear sRGB
-XYZ_TO_SRGB = np.array([[3.2404542, -1.5371385, -0.4985314], [-0.9692660, 1.8760108, 0.0415560],
-                        [0.0556434, -0.2040259, 1.0572252]])
+XYZ_TO_SRGB = np.array(
+    [[3.2404542, -1.5371385, -0.4985314], [-0.9692660, 1.8760108, 0.0415560], [0.0556434, -0.2040259, 1.0572252]]
+)
 DNG_BLACK = 512
 DNG_WHITE = 16383  # 14-bit sensor
 
@@ -48,8 +49,11 @@ class Exposure:
         return self.time * (self.iso / 100.0) / self.fnumber**2
 
     def exif(self) -> dict:
-        return {"ExposureTime": float(self.time), "FNumber": float(self.fnumber),
-                "Exif:PhotographicSensitivity": int(round(self.iso))}
+        return {
+            "ExposureTime": float(self.time),
+            "FNumber": float(self.fnumber),
+            "Exif:PhotographicSensitivity": int(round(self.iso)),
+        }
 
 
 def sensor_value(radiance: np.ndarray, exposure: Exposure) -> np.ndarray:
@@ -57,8 +61,9 @@ def sensor_value(radiance: np.ndarray, exposure: Exposure) -> np.ndarray:
     return np.asarray(radiance, float) * exposure.scale
 
 
-def add_sensor_noise(value: np.ndarray, rng: np.random.Generator, *, full_well: float = 20000.0,
-                     read_noise: float = 0.0005) -> np.ndarray:
+def add_sensor_noise(
+    value: np.ndarray, rng: np.random.Generator, *, full_well: float = 20000.0, read_noise: float = 0.0005
+) -> np.ndarray:
     """Shot noise (Poisson, ``full_well`` electrons at value 1) + Gaussian read noise (sigma in full scale)."""
     electrons = np.clip(np.asarray(value, float), 0.0, None) * full_well
     shot = rng.poisson(electrons) / full_well
@@ -95,8 +100,15 @@ def _rational(values, den: int) -> tuple[int, ...]:
     return tuple(int(v) for x in values for v in (round(float(x) * den), den))
 
 
-def write_dng(path: str | os.PathLike, value: np.ndarray, exposure: Exposure, *,
-              black: int = DNG_BLACK, white: int = DNG_WHITE, orientation: int = 1) -> Path:
+def write_dng(
+    path: str | os.PathLike,
+    value: np.ndarray,
+    exposure: Exposure,
+    *,
+    black: int = DNG_BLACK,
+    white: int = DNG_WHITE,
+    orientation: int = 1,
+) -> Path:
     """Bayer (RGGB) DNG of an (H, W, 3) linear value image (1 = white level), via tifffile.
 
     Raw counts = round(black + value * (white - black)), clipped to [0, white] (noise, if any,
@@ -134,8 +146,12 @@ def write_dng(path: str | os.PathLike, value: np.ndarray, exposure: Exposure, *,
     return path
 
 
-FORMATS = {"exr": (".exr", write_exr), "tiff": (".tif", write_tiff16), "jpeg": (".jpg", write_jpeg_srgb),
-           "dng": (".dng", write_dng)}
+FORMATS = {
+    "exr": (".exr", write_exr),
+    "tiff": (".tif", write_tiff16),
+    "jpeg": (".jpg", write_jpeg_srgb),
+    "dng": (".dng", write_dng),
+}
 
 
 def write_camera_file(path_stem: str | os.PathLike, fmt: str, value: np.ndarray, exposure: Exposure) -> Path:

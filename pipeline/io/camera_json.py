@@ -57,6 +57,12 @@ def read_camera_json(path: str | os.PathLike) -> Camera:
 
 def write_camera_json(path: str | os.PathLike, camera: Camera, **evidence) -> Path:
     """Write camera.json atomically; ``evidence`` (rms_px, per-image errors, ...) is stored beside it."""
-    doc = {"model": camera.model, "width": int(camera.width), "height": int(camera.height),
-           "params": [float(v) for v in camera.params], "pixel_convention": "colmap", **evidence}
+    doc = {
+        "model": camera.model,
+        "width": int(camera.width),
+        "height": int(camera.height),
+        "params": [float(v) for v in camera.params],
+        "pixel_convention": "colmap",
+        **evidence,
+    }
     return write_json(path, doc)

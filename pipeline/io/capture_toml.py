@@ -137,8 +137,9 @@ class CaptureConfig:
         """Override for image ``name``: its own entry field by field over ``default``."""
         own = self.exposure.get(name, ExposureOverride())
         base = self.exposure.get("default", ExposureOverride())
-        return ExposureOverride(*(a if a is not None else b for a, b in
-                                  zip((own.time, own.iso, own.fnumber), (base.time, base.iso, base.fnumber))))
+        return ExposureOverride(
+            *(a if a is not None else b for a, b in zip((own.time, own.iso, own.fnumber), (base.time, base.iso, base.fnumber)))
+        )
 
     def lighting_for(self, name: str) -> KnownLight | None:
         """[lighting] of image ``name``: its entry, or the entry of the same file stem (a linear
@@ -155,8 +156,10 @@ class CaptureConfig:
         if missing and not self.lighting:
             raise UserError("capture.toml has no [lighting]: name each photo's lighting there (or a default)")
         if missing:
-            raise UserError(f"{self.source}: [lighting] gives no lighting for {', '.join(missing[:3])}: name each "
-                            "photo's lighting there (or a default)")
+            raise UserError(
+                f"{self.source}: [lighting] gives no lighting for {', '.join(missing[:3])}: name each "
+                "photo's lighting there (or a default)"
+            )
         return lights
 
 
@@ -173,8 +176,13 @@ def read_toml(path: Path) -> dict:
 
 # capture.toml's sections and their keys (None: any key, e.g. image file names)
 SECTIONS: dict[str, set[str] | None] = {
-    "camera": {"path"}, "response": {"path", "curve"}, "vignetting": {"path"},
-    "white_balance": {"multipliers", "gray_patch"}, "exposure": None, "brackets": None, "lighting": None,
+    "camera": {"path"},
+    "response": {"path", "curve"},
+    "vignetting": {"path"},
+    "white_balance": {"multipliers", "gray_patch"},
+    "exposure": None,
+    "brackets": None,
+    "lighting": None,
     "board": {"pattern", "dictionary", "squares", "square_length", "marker_length", "board_to_object"},
     "fit": {"known_albedo"},
     "chart": {"colorchecker", "grey_card", "normal"},
@@ -198,8 +206,9 @@ def check_sections(path: Path, doc: dict) -> None:
         elif not isinstance(value, dict):
             problems.append(f"{section} = ... must be a [{section}] table")
         elif SECTIONS[section] is not None:
-            problems += [f"[{section}] {key}{did_you_mean(key, SECTIONS[section])}"
-                         for key in value if key not in SECTIONS[section]]
+            problems += [
+                f"[{section}] {key}{did_you_mean(key, SECTIONS[section])}" for key in value if key not in SECTIONS[section]
+            ]
     if problems:
         raise UserError(f"{path}: unknown " + "; ".join(problems) + f" — known sections: {', '.join(SECTIONS)}")
 
@@ -241,8 +250,10 @@ def _response_entry(path: Path, doc: dict) -> tuple[Path | None, str]:
         if "path" in table:
             raise UserError(f"{path}: [response] has both path and curve; keep one")
         if table["curve"] not in RESPONSE_CURVES:
-            raise UserError(f"{path}: [response] curve = {table['curve']!r}; use one of {', '.join(RESPONSE_CURVES)} "
-                            'or path = "response.json"')
+            raise UserError(
+                f"{path}: [response] curve = {table['curve']!r}; use one of {', '.join(RESPONSE_CURVES)} "
+                'or path = "response.json"'
+            )
         return None, table["curve"]
     return _path_entry(path, doc, "response"), "srgb"
 
@@ -259,12 +270,17 @@ def parse_board(path: Path, table: dict) -> BoardSpec:
         square = _positive(path, "[board] square_length", table["square_length"])
         marker = 0.0 if chessboard else _positive(path, "[board] marker_length", table["marker_length"])
     except (KeyError, TypeError, ValueError) as exc:
-        needs = "squares = [x, y] and square_length" if chessboard else \
-            "dictionary, squares = [x, y], square_length and marker_length"
+        needs = (
+            "squares = [x, y] and square_length"
+            if chessboard
+            else "dictionary, squares = [x, y], square_length and marker_length"
+        )
         raise UserError(f"{path}: [board] needs {needs} (metres); problem with {exc}") from None
     if chessboard and min(squares, default=0) < 3:
-        raise UserError(f"{path}: [board] a chessboard needs squares >= [3, 3] (squares, not inner corners: "
-                        f"OpenCV's 9 x 6-corner board is [10, 7]), got {table['squares']!r}")
+        raise UserError(
+            f"{path}: [board] a chessboard needs squares >= [3, 3] (squares, not inner corners: "
+            f"OpenCV's 9 x 6-corner board is [10, 7]), got {table['squares']!r}"
+        )
     if len(squares) != 2 or min(squares) < 2:
         raise UserError(f"{path}: [board] squares must be two integers >= 2, got {table['squares']!r}")
     if marker >= square and not chessboard:
@@ -274,8 +290,10 @@ def parse_board(path: Path, table: dict) -> BoardSpec:
     except (TypeError, ValueError):
         m = np.zeros(0)
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-        raise UserError(f"{path}: [board] board_to_object must be a finite 4x4 matrix of numbers (rows of the "
-                        f"board -> object transform), got {table.get('board_to_object')!r}")
+        raise UserError(
+            f"{path}: [board] board_to_object must be a finite 4x4 matrix of numbers (rows of the "
+            f"board -> object transform), got {table.get('board_to_object')!r}"
+        )
     return BoardSpec(dictionary, (squares[0], squares[1]), square, marker, m, pattern)
 
 
@@ -298,12 +316,17 @@ def parse_lighting(path: Path, table: dict) -> dict[str, KnownLight]:
             out[name] = KnownLight(path=target)
             continue
         if not isinstance(entry, dict) or set(entry) != {"direction", "intensity"}:
-            raise UserError(f'{where} must be a map file name ("light.exr") or {{direction = [x, y, z], '
-                            "intensity = [r, g, b]}")
+            raise UserError(f'{where} must be a map file name ("light.exr") or {{direction = [x, y, z], intensity = [r, g, b]}}')
         d, i = entry["direction"], entry["intensity"]
         i = [i] * 3 if is_number(i) else i
-        if (not isinstance(d, list) or len(d) != 3 or not all(is_number(v) for v in d)
-                or not isinstance(i, list) or len(i) != 3 or not all(is_number(v) and v >= 0 for v in i)):
+        if (
+            not isinstance(d, list)
+            or len(d) != 3
+            or not all(is_number(v) for v in d)
+            or not isinstance(i, list)
+            or len(i) != 3
+            or not all(is_number(v) and v >= 0 for v in i)
+        ):
             raise UserError(f"{where}: direction must be three numbers and intensity one or three numbers >= 0")
         norm = float(np.linalg.norm(np.asarray(d, float)))
         if not np.isfinite(norm) or norm == 0 or not np.all(np.isfinite(i)):
@@ -316,8 +339,10 @@ def parse_chart(path: Path, table: dict) -> ChartSpec:
     """[chart] -> ChartSpec (UserError naming ``path`` and the key)."""
     where = f"{path}: [chart]"
     if ("colorchecker" in table) == ("grey_card" in table):
-        raise UserError(f'{where} needs one of colorchecker = "photo file name" or grey_card = {{image = "...", '
-                        "box = [x0, y0, x1, y1], reflectance = 0.18}")
+        raise UserError(
+            f'{where} needs one of colorchecker = "photo file name" or grey_card = {{image = "...", '
+            "box = [x0, y0, x1, y1], reflectance = 0.18}"
+        )
     normal = table.get("normal", "camera")
     unit = None
     if normal != "camera":
@@ -332,19 +357,23 @@ def parse_chart(path: Path, table: dict) -> ChartSpec:
         return ChartSpec("colorchecker", table["colorchecker"], normal=unit)
     card = table["grey_card"]
     if not isinstance(card, dict) or set(card) - {"image", "box", "reflectance"} or not isinstance(card.get("image"), str):
-        raise UserError(f'{where} grey_card must be {{image = "photo file name", box = [x0, y0, x1, y1], '
-                        "reflectance = 0.18}")
+        raise UserError(f'{where} grey_card must be {{image = "photo file name", box = [x0, y0, x1, y1], reflectance = 0.18}}')
     box = card.get("box")
-    if (not isinstance(box, list) or len(box) != 4 or not all(isinstance(v, int) for v in box)
-            or min(box) < 0 or box[2] <= box[0] or box[3] <= box[1]):
-        raise UserError(f"{where} grey_card box must be [x0, y0, x1, y1] integer pixels with x1 > x0 >= 0, "
-                        f"y1 > y0 >= 0, got {box!r}")
+    if (
+        not isinstance(box, list)
+        or len(box) != 4
+        or not all(isinstance(v, int) for v in box)
+        or min(box) < 0
+        or box[2] <= box[0]
+        or box[3] <= box[1]
+    ):
+        raise UserError(
+            f"{where} grey_card box must be [x0, y0, x1, y1] integer pixels with x1 > x0 >= 0, y1 > y0 >= 0, got {box!r}"
+        )
     rho = card.get("reflectance", 0.18)
     rho = [rho] * 3 if is_number(rho) else rho
-    if (not isinstance(rho, list) or len(rho) != 3 or not all(is_number(v) and np.isfinite(v) and 0 < v <= 1
-                                                                for v in rho)):
-        raise UserError(f"{where} grey_card reflectance must be one or three numbers in (0, 1], got "
-                        f"{card.get('reflectance')!r}")
+    if not isinstance(rho, list) or len(rho) != 3 or not all(is_number(v) and np.isfinite(v) and 0 < v <= 1 for v in rho):
+        raise UserError(f"{where} grey_card reflectance must be one or three numbers in (0, 1], got {card.get('reflectance')!r}")
     return ChartSpec("grey_card", card["image"], tuple(box), tuple(float(v) for v in rho), unit)
 
 
@@ -375,8 +404,14 @@ def read_capture_config(capture: str | os.PathLike) -> CaptureConfig:
         mult = tuple(_positive(path, "[white_balance] multipliers", v) for v in vals)
     if "gray_patch" in wb:
         vals = wb["gray_patch"]
-        if (not isinstance(vals, list) or len(vals) != 4 or not all(isinstance(v, int) for v in vals)
-                or vals[2] <= vals[0] or vals[3] <= vals[1] or min(vals) < 0):
+        if (
+            not isinstance(vals, list)
+            or len(vals) != 4
+            or not all(isinstance(v, int) for v in vals)
+            or vals[2] <= vals[0]
+            or vals[3] <= vals[1]
+            or min(vals) < 0
+        ):
             raise UserError(f"{path}: [white_balance] gray_patch must be [x0, y0, x1, y1] integer pixels with x1 > x0, y1 > y0")
         gray = tuple(vals)
     if mult and gray:
@@ -387,7 +422,8 @@ def read_capture_config(capture: str | os.PathLike) -> CaptureConfig:
         if not isinstance(entry, dict) or set(entry) - {"time", "iso", "fnumber"}:
             raise UserError(f"{path}: [exposure] {name!r} must be a table with time, iso and/or fnumber")
         exposure[name] = ExposureOverride(
-            **{k: _positive(path, f"[exposure] {name}.{k}", _fraction(v)) for k, v in entry.items()})
+            **{k: _positive(path, f"[exposure] {name}.{k}", _fraction(v)) for k, v in entry.items()}
+        )
 
     brackets = {}
     for name, members in doc.get("brackets", {}).items():
@@ -397,8 +433,17 @@ def read_capture_config(capture: str | os.PathLike) -> CaptureConfig:
 
     board = parse_board(path, doc["board"]) if "board" in doc else None
     response, curve = _response_entry(path, doc)
-    return CaptureConfig(camera=_path_entry(path, doc, "camera"), response=response, response_curve=curve,
-                         vignetting=_path_entry(path, doc, "vignetting"), wb_multipliers=mult, wb_gray_patch=gray,
-                         exposure=exposure, brackets=brackets, board=board,
-                         lighting=parse_lighting(path, doc.get("lighting", {})),
-                         chart=parse_chart(path, doc["chart"]) if "chart" in doc else None, source=path)
+    return CaptureConfig(
+        camera=_path_entry(path, doc, "camera"),
+        response=response,
+        response_curve=curve,
+        vignetting=_path_entry(path, doc, "vignetting"),
+        wb_multipliers=mult,
+        wb_gray_patch=gray,
+        exposure=exposure,
+        brackets=brackets,
+        board=board,
+        lighting=parse_lighting(path, doc.get("lighting", {})),
+        chart=parse_chart(path, doc["chart"]) if "chart" in doc else None,
+        source=path,
+    )

@@ -32,6 +32,7 @@ def chart_path(work: str | os.PathLike) -> Path:
 
 def write_chart(work: str | os.PathLike, record: dict) -> Path:
     """WORK/linear/chart.json from the linearize stage's ``record`` (the keys above, NumPy allowed)."""
+
     def plain(v):
         if isinstance(v, dict):
             return {k: plain(x) for k, x in v.items()}
@@ -57,8 +58,13 @@ def read_chart(work: str | os.PathLike) -> dict | None:
         irradiance = np.asarray(doc["irradiance"], float)
         normal = None if doc.get("normal") is None else np.asarray(doc["normal"], float)
         centre = np.asarray(doc["centre"], float)
-        ok = (irradiance.shape == (3,) and np.all(irradiance > 0) and centre.shape == (2,)
-              and (normal is None or normal.shape == (3,)) and isinstance(doc["image"], str))
+        ok = (
+            irradiance.shape == (3,)
+            and np.all(irradiance > 0)
+            and centre.shape == (2,)
+            and (normal is None or normal.shape == (3,))
+            and isinstance(doc["image"], str)
+        )
     except (KeyError, TypeError, ValueError):
         ok = False
     if not ok:

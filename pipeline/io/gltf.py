@@ -42,9 +42,11 @@ def gltf_material(brdf: Brdf, vertex_colors: bool, metallic_roughness_map: bool 
     lambert = brdf.model == "lambert"
     color = [1.0, 1.0, 1.0] if vertex_colors else brdf.diffuse_color.tolist()
     mapped = metallic_roughness_map and not lambert
-    pbr = {"baseColorFactor": [*color, 1.0],
-           "metallicFactor": 0.0 if lambert else 1.0 if mapped else brdf.metallic,
-           "roughnessFactor": 1.0 if lambert or mapped else brdf.roughness}
+    pbr = {
+        "baseColorFactor": [*color, 1.0],
+        "metallicFactor": 0.0 if lambert else 1.0 if mapped else brdf.metallic,
+        "roughnessFactor": 1.0 if lambert or mapped else brdf.roughness,
+    }
     extensions = {}
     if lambert:
         extensions["KHR_materials_specular"] = {"specularFactor": 0.0}
@@ -69,10 +71,18 @@ def split_at_seams(faces: np.ndarray, face_uv: np.ndarray) -> tuple[np.ndarray, 
     return corners[first], uv[first], inverse.reshape(-1, 3)
 
 
-def write_gltf(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
-               brdf: Brdf, vertex_colors: np.ndarray | None = None, generator: str = "sigrend",
-               face_uv: np.ndarray | None = None, base_color_texture: str | os.PathLike | None = None,
-               metallic_roughness_texture: str | os.PathLike | None = None) -> Path:
+def write_gltf(
+    path: str | os.PathLike,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    normals: np.ndarray,
+    brdf: Brdf,
+    vertex_colors: np.ndarray | None = None,
+    generator: str = "sigrend",
+    face_uv: np.ndarray | None = None,
+    base_color_texture: str | os.PathLike | None = None,
+    metallic_roughness_texture: str | os.PathLike | None = None,
+) -> Path:
     """Write one mesh (object frame: vertices (V, 3) metres, faces (F, 3), unit vertex normals
     (V, 3)) with the material of ``brdf`` and optional per-vertex linear base colour (V, 3) as a
     .glb or a .gltf with its buffer embedded (by the suffix), atomically.  Textured: ``face_uv``
@@ -103,18 +113,19 @@ def write_gltf(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
         names.append("TEXCOORD_0")
     indices = faces.astype(np.uint32).reshape(-1)
     blob, views, accessors = b"", [], []
-    for data, target, ctype in [*((a, gl.ARRAY_BUFFER, gl.FLOAT) for a in arrays),
-                                (indices, gl.ELEMENT_ARRAY_BUFFER, gl.UNSIGNED_INT)]:
+    for data, target, ctype in [
+        *((a, gl.ARRAY_BUFFER, gl.FLOAT) for a in arrays),
+        (indices, gl.ELEMENT_ARRAY_BUFFER, gl.UNSIGNED_INT),
+    ]:
         raw = np.ascontiguousarray(data).tobytes()
         views.append(gl.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(raw), target=target))
         bounds = {"min": data.min(axis=0).tolist(), "max": data.max(axis=0).tolist()} if data is arrays[0] else {}
         kind = gl.SCALAR if data.ndim == 1 else {2: gl.VEC2, 3: gl.VEC3}[data.shape[1]]
-        accessors.append(gl.Accessor(bufferView=len(views) - 1, componentType=ctype, count=len(data), type=kind,
-                                     **bounds))
-        blob += raw + b"\0" * (-len(raw) % 4)   # 4-byte alignment of the next view (glTF 2.0, 3.6.2.4)
+        accessors.append(gl.Accessor(bufferView=len(views) - 1, componentType=ctype, count=len(data), type=kind, **bounds))
+        blob += raw + b"\0" * (-len(raw) % 4)  # 4-byte alignment of the next view (glTF 2.0, 3.6.2.4)
     images, textures = [], []
     for png in (base_color_texture, metallic_roughness_texture):
-        if png is not None:       # embedded in the buffer (a .gltf's buffer is a data URI: one file either way)
+        if png is not None:  # embedded in the buffer (a .gltf's buffer is a data URI: one file either way)
             raw = Path(png).read_bytes()
             views.append(gl.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(raw)))
             images.append(gl.Image(bufferView=len(views) - 1, mimeType="image/png", name=Path(png).name))
@@ -126,16 +137,33 @@ def write_gltf(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray,
         pbr.baseColorTexture = gl.TextureInfo(index=0, texCoord=0)
     if metallic_roughness_texture is not None:
         pbr.metallicRoughnessTexture = gl.TextureInfo(index=1, texCoord=0)
-    samplers = [gl.Sampler(magFilter=gl.LINEAR, minFilter=gl.LINEAR_MIPMAP_LINEAR, wrapS=gl.CLAMP_TO_EDGE,
-                           wrapT=gl.CLAMP_TO_EDGE)] if textured else []
+    samplers = (
+        [gl.Sampler(magFilter=gl.LINEAR, minFilter=gl.LINEAR_MIPMAP_LINEAR, wrapS=gl.CLAMP_TO_EDGE, wrapT=gl.CLAMP_TO_EDGE)]
+        if textured
+        else []
+    )
     doc = gl.GLTF2(
         asset=gl.Asset(generator=generator, version="2.0"),
-        scene=0, scenes=[gl.Scene(nodes=[0])], nodes=[gl.Node(mesh=0, name="object")],
-        meshes=[gl.Mesh(name="object", primitives=[gl.Primitive(
-            attributes=gl.Attributes(**{n: i for i, n in enumerate(names)}), indices=len(names), material=0)])],
+        scene=0,
+        scenes=[gl.Scene(nodes=[0])],
+        nodes=[gl.Node(mesh=0, name="object")],
+        meshes=[
+            gl.Mesh(
+                name="object",
+                primitives=[
+                    gl.Primitive(attributes=gl.Attributes(**{n: i for i, n in enumerate(names)}), indices=len(names), material=0)
+                ],
+            )
+        ],
         materials=[gl.Material(name=material["name"], pbrMetallicRoughness=pbr, extensions=material["extensions"])],
-        extensionsUsed=sorted(material["extensions"]), images=images, textures=textures, samplers=samplers,
-        accessors=accessors, bufferViews=views, buffers=[gl.Buffer(byteLength=len(blob))])
+        extensionsUsed=sorted(material["extensions"]),
+        images=images,
+        textures=textures,
+        samplers=samplers,
+        accessors=accessors,
+        bufferViews=views,
+        buffers=[gl.Buffer(byteLength=len(blob))],
+    )
     doc.set_binary_blob(blob)
     with atomic_path(path) as tmp:
         if path.suffix.lower() == ".glb":

@@ -31,7 +31,7 @@ def open_image_input(path: str | os.PathLike):
         raise UserError(f"{path}: file not found")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        why = " ".join(oiio.geterror().split()) or "unknown format"      # OIIO's message spans lines: one line
+        why = " ".join(oiio.geterror().split()) or "unknown format"  # OIIO's message spans lines: one line
         raise UserError(f"{path}: cannot read this image ({why}); check the file is complete and in a supported format")
     return inp
 
@@ -50,9 +50,11 @@ def read_image(path: str | os.PathLike, *, with_metadata: bool = False):
         pixels = inp.read_image(0, 0, 0, spec.nchannels, "float")
         if pixels is None:
             raise UserError(f"{path}: image data is unreadable ({inp.geterror().strip()}); the file may be truncated")
-        if inp.has_error:   # decoded, but with an error (a truncated JPEG's missing rows come back grey)
-            raise UserError(f"{path}: the decoder reported {inp.geterror().strip()!r}; the file is damaged or "
-                            "truncated: copy it again or remove it")
+        if inp.has_error:  # decoded, but with an error (a truncated JPEG's missing rows come back grey)
+            raise UserError(
+                f"{path}: the decoder reported {inp.geterror().strip()!r}; the file is damaged or "
+                "truncated: copy it again or remove it"
+            )
         meta = {a.name: a.value for a in spec.extra_attribs} if with_metadata else None
     finally:
         inp.close()
@@ -76,8 +78,7 @@ def _output_spec(width: int, height: int, channels: int, dtype: str, suffix: str
     return spec
 
 
-def write_image(path: str | os.PathLike, image: np.ndarray, *, dtype: str = "half",
-                attributes: dict | None = None) -> Path:
+def write_image(path: str | os.PathLike, image: np.ndarray, *, dtype: str = "half", attributes: dict | None = None) -> Path:
     """Write (H, W, C) or (H, W) ``image`` atomically; format from the extension.
 
     ``dtype``: "half" or "float" for EXR, "uint16"/"uint8" for TIFF/PNG (values in [0, 1]).
@@ -126,18 +127,31 @@ class ImageRowReader:
         t0, t1 = y0 // th * th, min(-(-y1 // th) * th, self.height)
         cached = getattr(self, "_tiles", None)
         if cached is None or cached[0] > y0 or cached[1] < y1 or cached[2] != fmt:
-            pixels = self._inp.read_tiles(0, 0, spec.x, spec.x + self.width, spec.y + t0, spec.y + t1, spec.z,
-                                          spec.z + max(spec.depth, 1), 0, self.channels, fmt)
+            pixels = self._inp.read_tiles(
+                0,
+                0,
+                spec.x,
+                spec.x + self.width,
+                spec.y + t0,
+                spec.y + t1,
+                spec.z,
+                spec.z + max(spec.depth, 1),
+                0,
+                self.channels,
+                fmt,
+            )
             cached = self._tiles = (t0, t1, fmt, self._checked(pixels, t1 - t0, fmt))
-        return cached[3][y0 - cached[0]:y1 - cached[0]]
+        return cached[3][y0 - cached[0] : y1 - cached[0]]
 
     def _checked(self, pixels, rows: int, fmt: str) -> np.ndarray:
         inp = self._inp
         if pixels is None:
             raise UserError(f"{self.path}: image data is unreadable ({inp.geterror().strip()}); the file may be truncated")
-        if inp.has_error:   # decoded, but with an error (a truncated JPEG's missing rows come back grey)
-            raise UserError(f"{self.path}: the decoder reported {inp.geterror().strip()!r}; the file is damaged or "
-                            "truncated: copy it again or remove it")
+        if inp.has_error:  # decoded, but with an error (a truncated JPEG's missing rows come back grey)
+            raise UserError(
+                f"{self.path}: the decoder reported {inp.geterror().strip()!r}; the file is damaged or "
+                "truncated: copy it again or remove it"
+            )
         dtype = np.float32 if fmt == "float" else None
         return np.asarray(pixels, dtype=dtype).reshape(rows, self.width, self.channels)
 
@@ -158,8 +172,16 @@ class ImageRowWriter:
     file): ``with ImageRowWriter(path, width, height, channels, dtype=..., attributes=...) as out:
     out.write(rows)`` for consecutive bands of (rows, W, C) or (rows, W); every row must be written."""
 
-    def __init__(self, path: str | os.PathLike, width: int, height: int, channels: int, *, dtype: str = "half",
-                 attributes: dict | None = None):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        width: int,
+        height: int,
+        channels: int,
+        *,
+        dtype: str = "half",
+        attributes: dict | None = None,
+    ):
         self.path, self.width, self.height, self.channels = Path(path), width, height, channels
         self.spec = _output_spec(width, height, channels, dtype, self.path.suffix, attributes)
         self.next_row = 0
@@ -210,16 +232,18 @@ def validate_envmap(env: np.ndarray, name: str | os.PathLike = "environment map"
         raise UserError(f"{name}: environment map must be RGB (H, W, 3), got shape {env.shape}")
     h, w = env.shape[:2]
     if w != 2 * h:
-        raise UserError(f"{name}: environment map is {w}x{h}; an equirectangular map needs width = 2*height "
-                        "(resample it, e.g. oiiotool --resize)")
+        raise UserError(
+            f"{name}: environment map is {w}x{h}; an equirectangular map needs width = 2*height "
+            "(resample it, e.g. oiiotool --resize)"
+        )
     if not np.all(np.isfinite(env)):
-        raise UserError(f"{name}: environment map has {int((~np.isfinite(env)).sum())} NaN/Inf values; "
-                        "clean or re-export it")
+        raise UserError(f"{name}: environment map has {int((~np.isfinite(env)).sum())} NaN/Inf values; clean or re-export it")
     # Resampling filters leave tiny negative ringing in real HDRIs: clamp that, reject real negatives.
     if np.any(env < 0):
         if env.min() < -0.01 * max(float(env.mean()), 1e-12):
-            raise UserError(f"{name}: environment map has negative radiance (min {env.min():.3g}); "
-                            "it must be linear, non-negative RGB")
+            raise UserError(
+                f"{name}: environment map has negative radiance (min {env.min():.3g}); it must be linear, non-negative RGB"
+            )
         env = np.maximum(env, 0.0)
     return env
 

@@ -29,8 +29,7 @@ def read_lighting_sh(path: str | os.PathLike) -> np.ndarray:
     order = whole_number(doc["order"], f"{path}: 'order'", "a whole number >= 0")
     coeffs = number_array(doc["coeffs"], f"{path}: 'coeffs'", "(order+1)^2 rows of [r, g, b] numbers")
     if order < 0 or coeffs.shape != ((order + 1) ** 2, 3) or not np.all(np.isfinite(coeffs)):
-        raise UserError(f"{path}: order {order} needs {(order + 1) ** 2} finite rows of [r, g, b], "
-                        f"got shape {coeffs.shape}")
+        raise UserError(f"{path}: order {order} needs {(order + 1) ** 2} finite rows of [r, g, b], got shape {coeffs.shape}")
     return coeffs
 
 
@@ -71,7 +70,7 @@ def read_lighting_parts(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray
     return coeffs, dirs, power
 
 
-KNOWN_LIGHT_HEIGHT = 256   # a directional light of capture.toml [lighting] is drawn into a map this tall
+KNOWN_LIGHT_HEIGHT = 256  # a directional light of capture.toml [lighting] is drawn into a map this tall
 
 
 def known_light_map(light, height: int = KNOWN_LIGHT_HEIGHT) -> np.ndarray:
@@ -111,8 +110,10 @@ class LightingArgument:
         from pipeline.io.images import read_envmap
 
         if not self.path.is_file():
-            raise UserError(f"{self.path}: lighting not found; give an existing file or a procedural map "
-                            "(`sigrend env make --help` lists them)")
+            raise UserError(
+                f"{self.path}: lighting not found; give an existing file or a procedural map "
+                "(`sigrend env make --help` lists them)"
+            )
         return read_envmap(self.path)
 
 
@@ -120,8 +121,9 @@ def lighting_help(sh: bool = True) -> str:
     """What a lighting argument may be, for --help (``sh``: a lighting_sh.json too)."""
     from pipeline.core.procedural_envmaps import spec_help
 
-    files = "a lighting_sh.json, an equirect EXR/HDR (DESIGN.md convention)" if sh else \
-        "an equirect EXR/HDR (DESIGN.md convention)"
+    files = (
+        "a lighting_sh.json, an equirect EXR/HDR (DESIGN.md convention)" if sh else "an equirect EXR/HDR (DESIGN.md convention)"
+    )
     return f"{files} or {spec_help()}"
 
 
@@ -136,8 +138,7 @@ def lighting_argument(text: str, option: str = "--env", sh: bool = True) -> Ligh
     suffix = path.suffix.lower()
     if suffix in SH_SUFFIXES:
         if not sh:
-            raise UserError(f"{option} {text}: an SH lighting_sh.json is not a map here; give "
-                            f"{lighting_help(sh=False)}")
+            raise UserError(f"{option} {text}: an SH lighting_sh.json is not a map here; give {lighting_help(sh=False)}")
         return LightingArgument(text, "sh", path)
     if suffix in MAP_SUFFIXES or path.is_file():
         return LightingArgument(text, "map", path)

@@ -31,7 +31,7 @@ from pipeline.workdir import read_json, write_json
 LINEAR_DIR = "linear"
 MANIFEST = "manifest.json"
 EXPOSURE_CONVENTION = "radiance = linear pixel value * N^2 / (t_seconds * ISO/100)"
-LINEAR_SUFFIXES = (".exr", ".hdr", ".tif", ".tiff")   # capture images read without linearize
+LINEAR_SUFFIXES = (".exr", ".hdr", ".tif", ".tiff")  # capture images read without linearize
 
 
 def linear_dir(work: str | os.PathLike) -> Path:
@@ -45,8 +45,9 @@ def manifest_path(work: str | os.PathLike) -> Path:
 def read_manifest(work: str | os.PathLike) -> dict:
     """The manifest as a dict; UserError if linearize has not run."""
     path = manifest_path(work)
-    doc = read_json(path, missing=f"run `sigrend linearize CAPTURE -w {work}` first",
-                    unreadable="run `sigrend linearize --force`")
+    doc = read_json(
+        path, missing=f"run `sigrend linearize CAPTURE -w {work}` first", unreadable="run `sigrend linearize --force`"
+    )
     if not isinstance(doc, dict) or "images" not in doc:
         raise UserError(f"{path}: not a linearize manifest; run `sigrend linearize --force`")
     return doc
@@ -54,8 +55,7 @@ def read_manifest(work: str | os.PathLike) -> dict:
 
 def write_manifest(work: str | os.PathLike, images: dict[str, dict]) -> Path:
     """Write manifest.json atomically, entries sorted by key."""
-    doc = {"version": 1, "exposure_convention": EXPOSURE_CONVENTION,
-           "images": {k: images[k] for k in sorted(images)}}
+    doc = {"version": 1, "exposure_convention": EXPOSURE_CONVENTION, "images": {k: images[k] for k in sorted(images)}}
     return write_json(manifest_path(work), doc)
 
 
@@ -67,8 +67,10 @@ def resolve_key(manifest: dict, key: str) -> str:
     for k, entry in images.items():
         if key == entry.get("exr") or key in (s.get("file") for s in entry.get("sources", [])):
             return k
-    raise UserError(f"image {key!r} is not in linear/manifest.json (known: {', '.join(sorted(images)[:8])}...); "
-                    "run linearize again or check the image name")
+    raise UserError(
+        f"image {key!r} is not in linear/manifest.json (known: {', '.join(sorted(images)[:8])}...); "
+        "run linearize again or check the image name"
+    )
 
 
 def read_linear_image(work: str | os.PathLike, key: str, manifest: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -99,8 +101,9 @@ def image_source(capture: Path, work: Path, key: str, manifest: dict | None) -> 
     return Path(capture) / "images" / key
 
 
-def load_linear_image(capture: Path, work: Path, key: str, manifest: dict | None,
-                      scale: float = 1.0) -> tuple[np.ndarray, np.ndarray, Path]:
+def load_linear_image(
+    capture: Path, work: Path, key: str, manifest: dict | None, scale: float = 1.0
+) -> tuple[np.ndarray, np.ndarray, Path]:
     """Linear RGB (H, W, 3) float32, pixel weight (H, W) float32 in [0, 1] (0 = masked) and the file read.
 
     With linearize's ``manifest``: its EXR and valid mask (pipeline.io.linear_manifest).  Without:
@@ -114,8 +117,9 @@ def load_linear_image(capture: Path, work: Path, key: str, manifest: dict | None
         weight = np.asarray(valid, dtype=np.float32)
     else:
         if not name.exists():
-            raise UserError(f"{name}: image listed in poses.json is missing from the capture; "
-                            "restore it or remove it from poses.json")
+            raise UserError(
+                f"{name}: image listed in poses.json is missing from the capture; restore it or remove it from poses.json"
+            )
         if name.suffix.lower() not in LINEAR_SUFFIXES:
             raise UserError(f"{name}: not a linear image ({name.suffix}); run `sigrend linearize` first")
         img = read_image(name)
@@ -126,8 +130,9 @@ def load_linear_image(capture: Path, work: Path, key: str, manifest: dict | None
     rgb = np.asarray(rgb, dtype=np.float32)
     bad = ~np.all(np.isfinite(rgb), axis=2) & (weight > 0)
     if bad.any():
-        raise UserError(f"{name}: {int(bad.sum())} pixels are NaN or Inf; re-export the image "
-                        "(or mask those pixels) and run again")
+        raise UserError(
+            f"{name}: {int(bad.sum())} pixels are NaN or Inf; re-export the image (or mask those pixels) and run again"
+        )
     return rgb, weight, name
 
 
@@ -138,7 +143,7 @@ class LinearImageRows:
     The same errors: a missing or non-linear capture image at opening, NaN or Inf in an unmasked
     pixel when its band is read (the count is the whole image's)."""
 
-    BYTES_PER_PIXEL = 40     # the rows read (RGB(A) float32), weight, mask, the finite test's booleans
+    BYTES_PER_PIXEL = 40  # the rows read (RGB(A) float32), weight, mask, the finite test's booleans
 
     def __init__(self, capture: Path, work: Path, key: str, manifest: dict | None, scale: float = 1.0):
         from pipeline.io.images import ImageRowReader
@@ -156,8 +161,10 @@ class LinearImageRows:
                 raise UserError(f"{folder / entry['mask']}: mask size differs from its image; run linearize --force")
         else:
             if not self.name.exists():
-                raise UserError(f"{self.name}: image listed in poses.json is missing from the capture; "
-                                "restore it or remove it from poses.json")
+                raise UserError(
+                    f"{self.name}: image listed in poses.json is missing from the capture; "
+                    "restore it or remove it from poses.json"
+                )
             if self.name.suffix.lower() not in LINEAR_SUFFIXES:
                 raise UserError(f"{self.name}: not a linear image ({self.name.suffix}); run `sigrend linearize` first")
             self._image = ImageRowReader(self.name)
@@ -168,8 +175,9 @@ class LinearImageRows:
         bad = ~np.all(np.isfinite(rgb), axis=2) & (weight > 0)
         if bad.any():
             count = int(bad.sum()) + sum(self._bad(y, min(y + 256, self.height)) for y in range(y1, self.height, 256))
-            raise UserError(f"{self.name}: {count} pixels are NaN or Inf; re-export the image "
-                            "(or mask those pixels) and run again")
+            raise UserError(
+                f"{self.name}: {count} pixels are NaN or Inf; re-export the image (or mask those pixels) and run again"
+            )
         return rgb, weight
 
     def _bad(self, y0: int, y1: int) -> int:

@@ -17,8 +17,10 @@ def mesh_path(capture: str | os.PathLike) -> Path:
     or more than one (which one is the object would be a guess)."""
     found = [Path(capture) / name for name in MESH_NAMES if (Path(capture) / name).exists()]
     if len(found) > 1:
-        raise UserError(f"{capture}: {' and '.join(p.name for p in found)} are both there; keep the object's mesh "
-                        "and move the other out of the capture folder")
+        raise UserError(
+            f"{capture}: {' and '.join(p.name for p in found)} are both there; keep the object's mesh "
+            "and move the other out of the capture folder"
+        )
     if not found:
         raise UserError(f"{capture}: no mesh found; put the object's mesh in the capture as {' or '.join(MESH_NAMES)}")
     return found[0]
@@ -91,7 +93,7 @@ def write_material_ply(path: str | os.PathLike, mesh, values: dict[str, np.ndarr
     if missing:
         raise ValueError(f"material.ply needs {missing}")
     out = mesh.copy()
-    out.visual = type(out.visual)()       # the properties are the material; no colours beside them
+    out.visual = type(out.visual)()  # the properties are the material; no colours beside them
     for name, column in values.items():
         out.vertex_attributes[name] = np.asarray(column, np.float32)
     path = Path(path)
@@ -132,22 +134,29 @@ def mesh_quality(mesh) -> dict:
 
     mesh = trimesh.Trimesh(np.asarray(mesh.vertices), np.asarray(mesh.faces), process=False)
     mesh.merge_vertices(merge_tex=True, merge_norm=True)
-    _, per_edge = np.unique(mesh.edges_sorted, axis=0, return_counts=True)   # faces per edge
+    _, per_edge = np.unique(mesh.edges_sorted, axis=0, return_counts=True)  # faces per edge
     area = mesh.area_faces
     degenerate = int(np.sum(area <= 1e-12 * max(float(area.max(initial=0.0)), 1e-300)))
     # a manifold edge is consistently wound when its two faces traverse it in opposite directions
     adjacency, shared = mesh.face_adjacency, mesh.face_adjacency_edges
+
     def traverses(face_ids):
         f = mesh.faces[face_ids]
         a, b = shared[:, 0:1], shared[:, 1:2]
         nxt = np.roll(f, -1, axis=1)
         return np.any((f == a) & (nxt == b), axis=1)
+
     flipped_pairs = traverses(adjacency[:, 0]) == traverses(adjacency[:, 1])
     watertight = bool(len(per_edge) and np.all(per_edge == 2))
     inside_out = bool(watertight and not flipped_pairs.any() and mesh.volume < 0)
-    return {"faces": int(len(mesh.faces)), "boundary_edges": int(np.sum(per_edge == 1)),
-            "non_manifold_edges": int(np.sum(per_edge > 2)), "degenerate_faces": degenerate,
-            "inconsistent_edges": int(flipped_pairs.sum()), "inside_out": inside_out}
+    return {
+        "faces": int(len(mesh.faces)),
+        "boundary_edges": int(np.sum(per_edge == 1)),
+        "non_manifold_edges": int(np.sum(per_edge > 2)),
+        "degenerate_faces": degenerate,
+        "inconsistent_edges": int(flipped_pairs.sum()),
+        "inside_out": inside_out,
+    }
 
 
 def check_mesh_quality(path: str | os.PathLike, mesh) -> tuple[dict, list[str]]:
@@ -159,13 +168,17 @@ def check_mesh_quality(path: str | os.PathLike, mesh) -> tuple[dict, list[str]]:
     if quality["inside_out"]:
         raise UserError(f"{path}: the mesh is inside out (closed, negative volume: every normal points inwards); {fix}")
     if quality["inconsistent_edges"]:
-        raise UserError(f"{path}: {quality['inconsistent_edges']} edges join faces wound in opposite directions "
-                        f"(flipped faces: their normals point inwards); {fix}")
+        raise UserError(
+            f"{path}: {quality['inconsistent_edges']} edges join faces wound in opposite directions "
+            f"(flipped faces: their normals point inwards); {fix}"
+        )
     warnings = []
     if quality["boundary_edges"]:
-        warnings.append(f"{quality['boundary_edges']} boundary edges (holes, an open scan): shadow and view rays "
-                        "pass through them, so where the real object is closed its shadows and interreflection "
-                        "there are missing")
+        warnings.append(
+            f"{quality['boundary_edges']} boundary edges (holes, an open scan): shadow and view rays "
+            "pass through them, so where the real object is closed its shadows and interreflection "
+            "there are missing"
+        )
     if quality["non_manifold_edges"]:
         warnings.append(f"{quality['non_manifold_edges']} non-manifold edges (shared by more than two faces)")
     if quality["degenerate_faces"]:

@@ -57,7 +57,7 @@ from pipeline.io.images import write_image
 from pipeline.workdir import atomic_path
 
 FORMATS = (".xml",)
-SAMPLES_PER_PIXEL = 256    # the sensor's sample_count (a user overrides it: mitsuba.render(scene, spp=...))
+SAMPLES_PER_PIXEL = 256  # the sensor's sample_count (a user overrides it: mitsuba.render(scene, spp=...))
 
 
 @dataclass(frozen=True)
@@ -111,11 +111,15 @@ def bsdf_element(brdf: Brdf, vertex_colors: bool, bitmap: str | None = None) -> 
     color_name = "reflectance" if brdf.model == "lambert" else "base_color"
     factor = diffuse_compensation(brdf)
     if bitmap is not None:
-        color = (f'<texture type="bitmap" name="{color_name}"><string name="filename" value={quoteattr(bitmap)}/>'
-                 '<string name="filter_type" value="bilinear"/><string name="wrap_mode" value="clamp"/></texture>')
+        color = (
+            f'<texture type="bitmap" name="{color_name}"><string name="filename" value={quoteattr(bitmap)}/>'
+            '<string name="filter_type" value="bilinear"/><string name="wrap_mode" value="clamp"/></texture>'
+        )
     elif vertex_colors:
-        color = (f'<texture type="mesh_attribute" name="{color_name}"><string name="name" value="vertex_color"/>'
-                 f'{_float("scale", factor)}</texture>')
+        color = (
+            f'<texture type="mesh_attribute" name="{color_name}"><string name="name" value="vertex_color"/>'
+            f"{_float('scale', factor)}</texture>"
+        )
     else:
         color = _rgb(color_name, factor * brdf.diffuse_color)
     if brdf.model == "lambert":
@@ -123,15 +127,17 @@ def bsdf_element(brdf: Brdf, vertex_colors: bool, bitmap: str | None = None) -> 
     if brdf.model != "principled":
         raise UserError(f"brdf.json: a {brdf.model} material has no Mitsuba equivalent; refit with --brdf principled")
     if brdf.specular_tint != (1.0, 1.0, 1.0):
-        raise UserError("brdf.json: Mitsuba's principled spec_tint is a fraction towards the base colour, not an RGB "
-                        "specular tint; export this material as glTF (KHR_materials_specular) instead")
+        raise UserError(
+            "brdf.json: Mitsuba's principled spec_tint is a fraction towards the base colour, not an RGB "
+            "specular tint; export this material as glTF (KHR_materials_specular) instead"
+        )
     lines = [color, _float("roughness", brdf.roughness), _float("metallic", brdf.metallic), _float("eta", brdf.ior)]
     return '<bsdf type="principled">\n      ' + "\n      ".join(lines) + "\n    </bsdf>"
 
 
 def _matrix(m: np.ndarray) -> str:
     m4 = np.eye(4)
-    m4[:m.shape[0], :m.shape[1]] = m
+    m4[: m.shape[0], : m.shape[1]] = m
     return '<transform name="to_world"><matrix value="' + " ".join(f"{v:.12g}" for v in m4.reshape(-1)) + '"/></transform>'
 
 
@@ -147,20 +153,31 @@ def sensor_element(view: SensorView, vertices: np.ndarray, spp: int = SAMPLES_PE
     depth = np.asarray(vertices, float) @ np.asarray(view.R, float)[2] + float(np.asarray(view.t, float)[2])
     near = max(1e-4, 0.5 * float(depth.min())) if depth.min() > 0 else 1e-3
     far = max(2.0 * float(depth.max()), 10.0 * near)
-    lines = [_float("fov", fov_x), '<string name="fov_axis" value="x"/>',
-             _float("principal_point_offset_x", (cx - cam.width / 2) / cam.width),
-             _float("principal_point_offset_y", (cy - cam.height / 2) / cam.height),
-             _float("near_clip", near), _float("far_clip", far),
-             _matrix(mitsuba_sensor_to_world(view.R, view.t)),
-             f'<sampler type="independent"><integer name="sample_count" value="{int(spp)}"/></sampler>',
-             '<film type="hdrfilm">' f'<integer name="width" value="{cam.width}"/>'
-             f'<integer name="height" value="{cam.height}"/><string name="pixel_format" value="rgba"/>'
-             '<rfilter type="box"/></film>']
+    lines = [
+        _float("fov", fov_x),
+        '<string name="fov_axis" value="x"/>',
+        _float("principal_point_offset_x", (cx - cam.width / 2) / cam.width),
+        _float("principal_point_offset_y", (cy - cam.height / 2) / cam.height),
+        _float("near_clip", near),
+        _float("far_clip", far),
+        _matrix(mitsuba_sensor_to_world(view.R, view.t)),
+        f'<sampler type="independent"><integer name="sample_count" value="{int(spp)}"/></sampler>',
+        '<film type="hdrfilm">'
+        f'<integer name="width" value="{cam.width}"/>'
+        f'<integer name="height" value="{cam.height}"/><string name="pixel_format" value="rgba"/>'
+        '<rfilter type="box"/></film>',
+    ]
     return '<sensor type="perspective">\n    ' + "\n    ".join(lines) + "\n  </sensor>"
 
 
-def write_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
-              vertex_colors: np.ndarray | None = None, uv: np.ndarray | None = None) -> Path:
+def write_ply(
+    path: str | os.PathLike,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    normals: np.ndarray,
+    vertex_colors: np.ndarray | None = None,
+    uv: np.ndarray | None = None,
+) -> Path:
     """A binary little-endian PLY: float x y z nx ny nz [r g b] [u v] per vertex, triangles as uchar-int
     lists (Mitsuba's PLY loader takes u, v as the texture coordinates)."""
     v = np.asarray(vertices, float)
@@ -180,19 +197,31 @@ def write_ply(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, 
         data["u"], data["v"] = np.asarray(uv, float)[:, 0], np.asarray(uv, float)[:, 1]
     tri = np.zeros(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     tri["n"], tri["i"] = 3, np.asarray(faces, np.int64)
-    header = ("ply\nformat binary_little_endian 1.0\ncomment written by sigrend\n"
-              f"element vertex {len(v)}\n" + "".join(f"property float {name}\n" for name, _ in props)
-              + f"element face {len(tri)}\nproperty list uchar int vertex_indices\nend_header\n")
+    header = (
+        "ply\nformat binary_little_endian 1.0\ncomment written by sigrend\n"
+        f"element vertex {len(v)}\n"
+        + "".join(f"property float {name}\n" for name, _ in props)
+        + f"element face {len(tri)}\nproperty list uchar int vertex_indices\nend_header\n"
+    )
     path = Path(path)
     with atomic_path(path) as tmp:
         Path(tmp).write_bytes(header.encode("ascii") + data.tobytes() + tri.tobytes())
     return path
 
 
-def write_mitsuba(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
-                  brdf: Brdf, vertex_colors: np.ndarray | None = None, generator: str = "sigrend",
-                  envmap: str | None = None, view: SensorView | None = None, face_uv: np.ndarray | None = None,
-                  base_color_map: np.ndarray | None = None) -> Path:
+def write_mitsuba(
+    path: str | os.PathLike,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    normals: np.ndarray,
+    brdf: Brdf,
+    vertex_colors: np.ndarray | None = None,
+    generator: str = "sigrend",
+    envmap: str | None = None,
+    view: SensorView | None = None,
+    face_uv: np.ndarray | None = None,
+    base_color_map: np.ndarray | None = None,
+) -> Path:
     """Write the scene (module docstring) and its PLY (:func:`mesh_file`) atomically.  ``envmap``: the
     lighting map's file name beside the scene (Blender's column order); ``view``: the sensor's view
     (none: the scene has no sensor; Mitsuba then adds its default one).  Textured: ``face_uv`` (F, 3,
@@ -212,15 +241,21 @@ def write_mitsuba(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarr
         bitmap = write_image(texture_file(path), scaled.astype(np.float32), dtype="float").name
     bsdf = bsdf_element(brdf, colors is not None, bitmap)
     ply = write_ply(mesh_file(path), vertices, faces, normals, colors, uv)
-    parts = [f"<!-- written by {generator}: object frame (+Z up), metres; docs/export.md -->",
-             '<integrator type="path"><integer name="max_depth" value="-1"/></integrator>']
+    parts = [
+        f"<!-- written by {generator}: object frame (+Z up), metres; docs/export.md -->",
+        '<integrator type="path"><integer name="max_depth" value="-1"/></integrator>',
+    ]
     if view is not None:
         parts.append(sensor_element(view, vertices))
     if envmap is not None:
-        parts.append(f'<emitter type="envmap">\n    <string name="filename" value={quoteattr(envmap)}/>\n    '
-                     f'{_float("scale", 1.0)}\n    {_matrix(MITSUBA_ENVMAP_TO_OBJECT)}\n  </emitter>')
-    parts.append(f'<shape type="ply">\n    <string name="filename" value={quoteattr(ply.name)}/>\n    '
-                 f'<boolean name="face_normals" value="false"/>\n    {bsdf}\n  </shape>')
+        parts.append(
+            f'<emitter type="envmap">\n    <string name="filename" value={quoteattr(envmap)}/>\n    '
+            f"{_float('scale', 1.0)}\n    {_matrix(MITSUBA_ENVMAP_TO_OBJECT)}\n  </emitter>"
+        )
+    parts.append(
+        f'<shape type="ply">\n    <string name="filename" value={quoteattr(ply.name)}/>\n    '
+        f'<boolean name="face_normals" value="false"/>\n    {bsdf}\n  </shape>'
+    )
     text = '<?xml version="1.0" encoding="utf-8"?>\n<scene version="3.0.0">\n  ' + "\n  ".join(parts) + "\n</scene>\n"
     with atomic_path(path) as tmp:
         Path(tmp).write_text(text, encoding="utf-8")

@@ -24,8 +24,10 @@ def capture_photos(capture: Path, others: Literal["refuse", "skip"] = "refuse") 
         return [p for p in files if p.suffix.lower() in RAW_EXTENSIONS | DECODED_EXTENSIONS]
     for p in files:
         if p.suffix.lower() not in RAW_EXTENSIONS | DECODED_EXTENSIONS:
-            raise UserError(f"{p}: unknown image type {p.suffix!r}; linearize reads RAW (DNG, CR2, NEF, ARW, ...), "
-                            "EXR, HDR, TIFF, PNG and JPEG: convert or remove the file")
+            raise UserError(
+                f"{p}: unknown image type {p.suffix!r}; linearize reads RAW (DNG, CR2, NEF, ARW, ...), "
+                "EXR, HDR, TIFF, PNG and JPEG: convert or remove the file"
+            )
     if not files:
         raise UserError(f"{folder}: no images; put the photos (RAW, EXR, TIFF, PNG or JPEG) in this folder")
     return files

@@ -36,8 +36,7 @@ def is_colmap_model(folder: str | os.PathLike) -> bool:
     return any((Path(folder) / name).is_file() for name in COLMAP_MODEL_FILES)
 
 
-def read_colmap_model(folder: str | os.PathLike, *, min_track_length: int = 2,
-                      max_error_px: float = 2.0) -> ImportedPoses:
+def read_colmap_model(folder: str | os.PathLike, *, min_track_length: int = 2, max_error_px: float = 2.0) -> ImportedPoses:
     """A COLMAP model (``sparse/0``: cameras/images/points3D as .bin or .txt) via pycolmap.Reconstruction.
 
     COLMAP's images already hold world-to-camera poses and its cameras DESIGN.md's models and pixel
@@ -49,8 +48,7 @@ def read_colmap_model(folder: str | os.PathLike, *, min_track_length: int = 2,
 
     folder = Path(folder)
     if not is_colmap_model(folder):
-        raise UserError(f"{folder}: not a COLMAP model (no cameras.bin or cameras.txt); point at the model "
-                        "folder, e.g. sparse/0")
+        raise UserError(f"{folder}: not a COLMAP model (no cameras.bin or cameras.txt); point at the model folder, e.g. sparse/0")
     try:
         reconstruction = pycolmap.Reconstruction(str(folder))
     except Exception as exc:  # pycolmap raises RuntimeError / ValueError for broken models
@@ -59,24 +57,28 @@ def read_colmap_model(folder: str | os.PathLike, *, min_track_length: int = 2,
     for camera_id, cam in reconstruction.cameras.items():
         model = cam.model.name
         if model not in SUPPORTED_MODELS:
-            raise UserError(f"{folder}: camera {camera_id} uses COLMAP's {model} model; sigrend reads "
-                            f"{', '.join(SUPPORTED_MODELS)} — undistort the images (colmap image_undistorter) "
-                            "or re-run COLMAP with one of these")
-        poses.cameras[f"cam{camera_id}"] = Camera(model, int(cam.width), int(cam.height),
-                                                  tuple(float(v) for v in cam.params))
+            raise UserError(
+                f"{folder}: camera {camera_id} uses COLMAP's {model} model; sigrend reads "
+                f"{', '.join(SUPPORTED_MODELS)} — undistort the images (colmap image_undistorter) "
+                "or re-run COLMAP with one of these"
+            )
+        poses.cameras[f"cam{camera_id}"] = Camera(model, int(cam.width), int(cam.height), tuple(float(v) for v in cam.params))
     for image in reconstruction.images.values():
         if image.has_pose:
             pose = image.cam_from_world()
-            poses.images[image.name] = ImagePose(f"cam{image.camera_id}", pose.rotation.matrix(),
-                                                 np.asarray(pose.translation, float))
+            poses.images[image.name] = ImagePose(
+                f"cam{image.camera_id}", pose.rotation.matrix(), np.asarray(pose.translation, float)
+            )
     return ImportedPoses(poses, reconstruction_points(reconstruction, min_track_length, max_error_px), reconstruction)
 
 
 def reconstruction_points(reconstruction, min_track_length: int = 2, max_error_px: float = 2.0) -> np.ndarray:
     """(N, 3) points of a pycolmap.Reconstruction seen in >= ``min_track_length`` images with a mean
     reprojection error < ``max_error_px``: the ones trusted for registration."""
-    return np.array([p.xyz for p in reconstruction.points3D.values()
-                     if p.track.length() >= min_track_length and p.error < max_error_px], float).reshape(-1, 3)
+    return np.array(
+        [p.xyz for p in reconstruction.points3D.values() if p.track.length() >= min_track_length and p.error < max_error_px],
+        float,
+    ).reshape(-1, 3)
 
 
 # nerfstudio / instant-ngp ------------------------------------------------------------------------
@@ -94,13 +96,16 @@ def _intrinsics(doc: dict, frame: dict, where: str) -> Camera:
     leaves cx, cy at the image centre.  nerfstudio's pixel centres sit at +0.5 like COLMAP's and its cx,
     cy are copied from COLMAP's, so they are taken as they are.
     """
+
     def get(name, default=None):
         return frame.get(name, doc.get(name, default))
 
     model = str(get("camera_model", "OPENCV"))
     if model != "OPENCV":
-        raise UserError(f"{where}: camera_model {model!r} is not supported (sigrend reads OPENCV pinhole cameras "
-                        "with k1, k2, p1, p2); undistort the images first")
+        raise UserError(
+            f"{where}: camera_model {model!r} is not supported (sigrend reads OPENCV pinhole cameras "
+            "with k1, k2, p1, p2); undistort the images first"
+        )
     try:
         w, h = int(get("w")), int(get("h"))
         if get("fl_x") is not None:
@@ -114,8 +119,10 @@ def _intrinsics(doc: dict, frame: dict, where: str) -> Camera:
     except (TypeError, ValueError, OverflowError):
         raise UserError(f"{where}: needs w, h and fl_x (or camera_angle_x) as numbers") from None
     if higher:
-        raise UserError(f"{where}: radial terms {', '.join(higher)} are not in sigrend's OPENCV model (k1, k2, p1, p2); "
-                        "undistort the images or re-run COLMAP with the OPENCV model")
+        raise UserError(
+            f"{where}: radial terms {', '.join(higher)} are not in sigrend's OPENCV model (k1, k2, p1, p2); "
+            "undistort the images or re-run COLMAP with the OPENCV model"
+        )
     if not (min(w, h, fx, fy) > 0 and np.all(np.isfinite([fx, fy, cx, cy, k1, k2, p1, p2]))):
         raise UserError(f"{where}: non-positive image size or focal length, or a value that is not finite")
     if k1 == k2 == p1 == p2 == 0.0:

@@ -35,8 +35,10 @@ def poses_path(capture: Path, work: Path) -> Path:
     for path in (Path(work) / "poses.json", Path(capture) / "poses.json"):
         if path.exists():
             return path
-    raise UserError(f"no poses: neither {Path(work) / 'poses.json'} nor {Path(capture) / 'poses.json'} exists; "
-                    "run `sigrend poses` first or add poses.json to the capture")
+    raise UserError(
+        f"no poses: neither {Path(work) / 'poses.json'} nor {Path(capture) / 'poses.json'} exists; "
+        "run `sigrend poses` first or add poses.json to the capture"
+    )
 
 
 def capture_poses_path(capture: Path, work: Path) -> Path:
@@ -54,10 +56,10 @@ def read_poses(path: str | os.PathLike) -> Poses:
     if not isinstance(doc, dict) or "cameras" not in doc or "images" not in doc:
         raise UserError(f"{path}: poses.json needs 'cameras' and 'images' (see DESIGN.md)")
     if doc.get("frame", "object") != "object" or doc.get("units", "meters") != "meters":
-        raise UserError(f"{path}: poses must be in the object frame in meters, got frame={doc.get('frame')!r} "
-                        f"units={doc.get('units')!r}")
-    for part, what in (("cameras", "camera name -> {model, width, height, params}"),
-                       ("images", "image key -> {camera, R, t}")):
+        raise UserError(
+            f"{path}: poses must be in the object frame in meters, got frame={doc.get('frame')!r} units={doc.get('units')!r}"
+        )
+    for part, what in (("cameras", "camera name -> {model, width, height, params}"), ("images", "image key -> {camera, R, t}")):
         if not isinstance(doc[part], dict):
             raise UserError(f"{path}: '{part}' must be an object mapping {what}, not a {type(doc[part]).__name__}")
     poses = Poses()
@@ -85,9 +87,13 @@ def write_poses(path: str | os.PathLike, poses: Poses) -> Path:
     doc = {
         "frame": "object",
         "units": "meters",
-        "cameras": {n: {"model": c.model, "width": c.width, "height": c.height, "params": list(c.params)}
-                    for n, c in poses.cameras.items()},
-        "images": {k: {"camera": p.camera, "R": np.asarray(p.R).tolist(), "t": np.asarray(p.t).tolist()}
-                   for k, p in sorted(poses.images.items())},
+        "cameras": {
+            n: {"model": c.model, "width": c.width, "height": c.height, "params": list(c.params)}
+            for n, c in poses.cameras.items()
+        },
+        "images": {
+            k: {"camera": p.camera, "R": np.asarray(p.R).tolist(), "t": np.asarray(p.t).tolist()}
+            for k, p in sorted(poses.images.items())
+        },
     }
     return write_json(path, doc)

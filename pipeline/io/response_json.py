@@ -49,15 +49,22 @@ def read_response_json(path: str | os.PathLike) -> np.ndarray:
     except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
         raise UserError(f"{path}: not a response.json ({exc}); write it with `sigrend calib response`") from None
     if table.shape != (3, 256) or not np.all(np.isfinite(table)) or np.any(np.diff(table, axis=1) < 0):
-        raise UserError(f"{path}: inverse response must be 3 non-decreasing rows of 256 finite values; "
-                        "recalibrate with `sigrend calib response`")
+        raise UserError(
+            f"{path}: inverse response must be 3 non-decreasing rows of 256 finite values; "
+            "recalibrate with `sigrend calib response`"
+        )
     return table
 
 
 def write_response_json(path: str | os.PathLike, inverse: np.ndarray, **info) -> Path:
     """Write a (3, 256) inverse response table atomically (``info``: method, exposures, ...)."""
     inverse = np.asarray(inverse, dtype=float)
-    doc = {"kind": "inverse_response", "codes": 256, "channels": ["R", "G", "B"],
-           "inverse": [[round(float(v), 8) for v in row] for row in inverse],
-           "normalization": "channels balanced at mid codes; their mean at code 255 ~ 1", **info}
+    doc = {
+        "kind": "inverse_response",
+        "codes": 256,
+        "channels": ["R", "G", "B"],
+        "inverse": [[round(float(v), 8) for v in row] for row in inverse],
+        "normalization": "channels balanced at mid codes; their mean at code 255 ~ 1",
+        **info,
+    }
     return write_json(path, doc)

@@ -29,12 +29,17 @@ def model_limits_line(limits: dict, min_visibility: float) -> str:
     """One line: how far the forward model is from the data where it is used, and on the
     self-shadowed samples it leaves out ('' when there is nothing to say)."""
     shadow = limits.get("shadowed", {})
-    parts = [f"{100 * g['relative_rmse']:.1f}% on the {100 * g['fraction']:.0f}% visible with {name[9:]}"
-             for name, g in limits.items() if name.startswith("visible") and g["relative_rmse"] is not None]
+    parts = [
+        f"{100 * g['relative_rmse']:.1f}% on the {100 * g['fraction']:.0f}% visible with {name[9:]}"
+        for name, g in limits.items()
+        if name.startswith("visible") and g["relative_rmse"] is not None
+    ]
     parts[:1] = ["fit: relative RMS residual " + p for p in parts[:1]]
     if shadow.get("samples") and shadow.get("relative_rmse") is not None:
-        parts.append(f"{100 * shadow['relative_rmse']:.1f}% on the {100 * shadow['fraction']:.0f}% self-shadowed ones "
-                     f"(visibility < {min_visibility}; the forward model has no shadows, they are left out)")
+        parts.append(
+            f"{100 * shadow['relative_rmse']:.1f}% on the {100 * shadow['fraction']:.0f}% self-shadowed ones "
+            f"(visibility < {min_visibility}; the forward model has no shadows, they are left out)"
+        )
     return "; ".join(parts)
 
 
@@ -54,8 +59,9 @@ def relight_check(work: Path) -> dict | None:
     doc = json.loads(path.read_text())
     check = doc.get("compare")
     if check is not None:
-        check = dict(check, heldout=bool(samples_holdout(work)), method=doc.get("method", "frequency"),
-                     lighting=doc.get("lighting", {}))
+        check = dict(
+            check, heldout=bool(samples_holdout(work)), method=doc.get("method", "frequency"), lighting=doc.get("lighting", {})
+        )
     return check
 
 
@@ -98,8 +104,10 @@ def summary_lines(work: Path) -> list[str]:
     if check is not None:
         which = "held-out views" if check["heldout"] else "training views (nothing held out)"
         scale = f" after one global scale {check['scale']:.3g}" if check.get("scale_fitted") else ""
-        lines.append(f"relight error on {len(check['views'])} {which}: {100 * check['relative_error']:.2f}%"
-                     f"{noise_phrase(check)} (relative RMS{scale}; {method_description(check)})")
+        lines.append(
+            f"relight error on {len(check['views'])} {which}: {100 * check['relative_error']:.2f}%"
+            f"{noise_phrase(check)} (relative RMS{scale}; {method_description(check)})"
+        )
     return lines
 
 
@@ -107,6 +115,7 @@ def noise_phrase(check: dict) -> str:
     """What the photos' own noise makes of the relight check's per-pixel error (relight.json's
     compare: noise_floor, block_relative_error): ' per pixel (the photos' noise alone: F%), B% on
     4x4 block means'; '' for a check written before these figures (or without them)."""
+
     def percent(key: str) -> str | None:
         value = check.get(key)
         return f"{100 * value:.2f}%" if isinstance(value, (int, float)) and math.isfinite(value) else None

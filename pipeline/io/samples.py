@@ -133,8 +133,11 @@ class SamplesWriter:
             with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
                 for field, (dtype, tail) in SAMPLE_FIELDS.items():
                     with zf.open(f"{field}.npy", "w", force_zip64=True) as member:
-                        header = {"descr": np.lib.format.dtype_to_descr(dtype), "fortran_order": False,
-                                  "shape": (self.count, *tail)}
+                        header = {
+                            "descr": np.lib.format.dtype_to_descr(dtype),
+                            "fortran_order": False,
+                            "shape": (self.count, *tail),
+                        }
                         np.lib.format.write_array_header_2_0(member, header)
                         with open(self._spool / f"{field}.bin", "rb") as src:
                             shutil.copyfileobj(src, member, _COPY_BLOCK)
@@ -174,8 +177,10 @@ def _open_npz(path: Path):
     missing = [f for f in (*SAMPLE_FIELDS, "image_keys", "meta") if f not in npz.files]
     if missing:
         npz.close()
-        raise UserError(f"{path}: samples file lacks field(s) {', '.join(missing)}; "
-                        "it was not written by `sigrend samples` (run it again with --force)")
+        raise UserError(
+            f"{path}: samples file lacks field(s) {', '.join(missing)}; "
+            "it was not written by `sigrend samples` (run it again with --force)"
+        )
     return npz
 
 
@@ -228,8 +233,9 @@ def _member_memmap(path: Path, info: zipfile.ZipInfo) -> np.ndarray | None:
     return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
 
 
-def iter_sample_chunks(path: str | os.PathLike, chunk: int = 1_000_000,
-                       fields: Iterable[str] | None = None) -> Iterator[dict[str, np.ndarray]]:
+def iter_sample_chunks(
+    path: str | os.PathLike, chunk: int = 1_000_000, fields: Iterable[str] | None = None
+) -> Iterator[dict[str, np.ndarray]]:
     """Yield consecutive row chunks of the samples (dict field -> array of <= ``chunk`` rows).
 
     Members are memory-mapped, so memory is O(chunk x fields); each yielded array is an
@@ -249,4 +255,4 @@ def iter_sample_chunks(path: str | os.PathLike, chunk: int = 1_000_000,
             sources[f] = mapped if mapped is not None else npz[f]
     n = len(next(iter(sources.values()))) if sources else 0
     for start in range(0, n, chunk):
-        yield {f: np.array(src[start:start + chunk]) for f, src in sources.items()}
+        yield {f: np.array(src[start : start + chunk]) for f, src in sources.items()}

@@ -41,19 +41,39 @@ def preview_surface_inputs(brdf: Brdf) -> dict:
     """UsdPreviewSurface input values of a Brdf (lambert or principled)."""
     color = brdf.diffuse_color.tolist()
     if brdf.model == "lambert":
-        return {"diffuseColor": color, "useSpecularWorkflow": 1,
-                "specularColor": [0.0, 0.0, 0.0], "roughness": 1.0, "metallic": 0.0}
+        return {
+            "diffuseColor": color,
+            "useSpecularWorkflow": 1,
+            "specularColor": [0.0, 0.0, 0.0],
+            "roughness": 1.0,
+            "metallic": 0.0,
+        }
     if brdf.specular_tint != (1.0, 1.0, 1.0):
-        raise UserError("brdf.json: UsdPreviewSurface has no specular tint; export this material as glTF "
-                        "(KHR_materials_specular) instead")
-    return {"diffuseColor": color, "useSpecularWorkflow": 0,
-            "roughness": brdf.roughness, "metallic": brdf.metallic, "ior": brdf.ior}
+        raise UserError(
+            "brdf.json: UsdPreviewSurface has no specular tint; export this material as glTF (KHR_materials_specular) instead"
+        )
+    return {
+        "diffuseColor": color,
+        "useSpecularWorkflow": 0,
+        "roughness": brdf.roughness,
+        "metallic": brdf.metallic,
+        "ior": brdf.ior,
+    }
 
 
-def write_usd(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, normals: np.ndarray,
-              brdf: Brdf, vertex_colors: np.ndarray | None = None, generator: str = "sigrend",
-              dome_light: str | None = None, face_uv: np.ndarray | None = None,
-              base_color_texture: str | None = None, metallic_roughness_texture: str | None = None) -> Path:
+def write_usd(
+    path: str | os.PathLike,
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    normals: np.ndarray,
+    brdf: Brdf,
+    vertex_colors: np.ndarray | None = None,
+    generator: str = "sigrend",
+    dome_light: str | None = None,
+    face_uv: np.ndarray | None = None,
+    base_color_texture: str | None = None,
+    metallic_roughness_texture: str | None = None,
+) -> Path:
     """Write one mesh (object frame, metres; faces (F, 3); unit vertex normals (V, 3)) with the
     material of ``brdf`` and optional per-vertex linear base colour (V, 3), atomically; the
     format (text .usda, binary .usdc/.usd) from the suffix.  ``dome_light``: the lighting map's
@@ -101,8 +121,9 @@ def write_usd(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, 
                 shader.CreateInput(name, Sdf.ValueTypeNames.Float).Set(value)
         if vertex_colors is not None:
             colors = np.clip(np.asarray(vertex_colors, float)[:, :3], 0.0, 1.0).astype(np.float32)
-            UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("displayColor", Sdf.ValueTypeNames.Color3fArray,
-                                                    UsdGeom.Tokens.vertex).Set(Vt.Vec3fArray.FromNumpy(colors))
+            UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("displayColor", Sdf.ValueTypeNames.Color3fArray, UsdGeom.Tokens.vertex).Set(
+                Vt.Vec3fArray.FromNumpy(colors)
+            )
             reader = UsdShade.Shader.Define(stage, "/object/material/base_color")
             reader.CreateIdAttr("UsdPrimvarReader_float3")
             reader.CreateInput("varname", Sdf.ValueTypeNames.Token).Set("displayColor")
@@ -118,8 +139,9 @@ def write_usd(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray, 
     return path
 
 
-def add_uv_textures(stage, mesh, surface, face_uv: np.ndarray, base_color: str, metallic_roughness: str | None,
-                    material: str = "/object/material"):
+def add_uv_textures(
+    stage, mesh, surface, face_uv: np.ndarray, base_color: str, metallic_roughness: str | None, material: str = "/object/material"
+):
     """The mesh's ``primvars:st`` (faceVarying, st = (u, 1 - v) of the atlas's glTF-convention UVs) and
     UsdUVTextures reading it: the base colour PNG (sRGB) into the UsdPreviewSurface ``surface``'s
     diffuseColor; a packed roughness (G) / metallic (B) PNG (raw) into roughness and metallic."""
@@ -127,16 +149,23 @@ def add_uv_textures(stage, mesh, surface, face_uv: np.ndarray, base_color: str, 
 
     uv = np.asarray(face_uv, np.float32).reshape(-1, 2)
     st = np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1).astype(np.float32)
-    UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
-                                            UsdGeom.Tokens.faceVarying).Set(Vt.Vec2fArray.FromNumpy(st))
+    UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying).Set(
+        Vt.Vec2fArray.FromNumpy(st)
+    )
     reader = UsdShade.Shader.Define(stage, f"{material}/st")
     reader.CreateIdAttr("UsdPrimvarReader_float2")
     reader.CreateInput("varname", Sdf.ValueTypeNames.String).Set("st")
     reader.CreateOutput("result", Sdf.ValueTypeNames.Float2)
     maps = [("base_color", base_color, "sRGB", {"diffuseColor": ("rgb", Sdf.ValueTypeNames.Float3)})]
     if metallic_roughness is not None:
-        maps.append(("metallic_roughness", metallic_roughness, "raw",
-                     {"roughness": ("g", Sdf.ValueTypeNames.Float), "metallic": ("b", Sdf.ValueTypeNames.Float)}))
+        maps.append(
+            (
+                "metallic_roughness",
+                metallic_roughness,
+                "raw",
+                {"roughness": ("g", Sdf.ValueTypeNames.Float), "metallic": ("b", Sdf.ValueTypeNames.Float)},
+            )
+        )
     for name, file, space, targets in maps:
         texture = UsdShade.Shader.Define(stage, f"{material}/{name}_texture")
         texture.CreateIdAttr("UsdUVTexture")

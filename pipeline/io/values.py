@@ -19,13 +19,14 @@ def is_number(value: Any) -> bool:
 def number_array(value: Any, where: str, what: str) -> np.ndarray:
     """A number or a (nested, rectangular) list of numbers as a float array; anything else ->
     UserError "{where} must be {what}, got {value!r}"."""
+
     def numbers_only(v) -> bool:
         return all(numbers_only(x) for x in v) if isinstance(v, list) else is_number(v)
 
     if numbers_only(value):
         try:
             return np.asarray(value, dtype=float)
-        except ValueError:       # ragged lists
+        except ValueError:  # ragged lists
             pass
     shown = repr(value) if len(repr(value)) <= 80 else repr(value)[:77] + "..."
     raise UserError(f"{where} must be {what}, got {shown}")

@@ -53,14 +53,14 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
             paths.append(Path(spec))
     if (Path(capture) / "capture.toml").exists():
         paths.append(Path(capture) / "capture.toml")
-        try:     # the maps of a lighting per photo
+        try:  # the maps of a lighting per photo
             paths += [light.path for light in read_capture_config(capture).lighting.values() if light.path]
         except UserError:
-            pass      # a malformed capture.toml is reported when the stage runs
+            pass  # a malformed capture.toml is reported when the stage runs
     # the mesh (the physical forward model, textured albedo) and the poses (the samples' pixel footprints)
     paths += [Path(capture) / n for n in MESH_NAMES if (Path(capture) / n).exists()][:1]
     paths += [p for p in (Path(work) / "poses.json", Path(capture) / "poses.json") if p.exists()][:1]
-    paths += [p for p in [chart_path(work)] if p.exists()]       # a colour chart (linearize, capture.toml [chart])
+    paths += [p for p in [chart_path(work)] if p.exists()]  # a colour chart (linearize, capture.toml [chart])
     return paths
 
 
@@ -84,14 +84,35 @@ def _run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     choice = parse_brdf_setting(settings.brdf)
     fit_model, known_brdf = choice.fit_model, choice.known
     has_mesh = any((capture / n).exists() for n in MESH_NAMES)
-    if settings.forward == "physical" and has_mesh and (fit_model in (None, "lambert", "principled")
-                                                        and (known_brdf is None or known_brdf.model in ("lambert", "principled"))):
+    if (
+        settings.forward == "physical"
+        and has_mesh
+        and (
+            fit_model in (None, "lambert", "principled") and (known_brdf is None or known_brdf.model in ("lambert", "principled"))
+        )
+    ):
         models = [fit_model] if fit_model else ["lambert", "principled"]
-        return fit_physical(capture=capture, work=work, settings=settings, keys=keys, known_brdf=known_brdf,
-                            models=models, hint=known_albedo_hint(capture))
+        return fit_physical(
+            capture=capture,
+            work=work,
+            settings=settings,
+            keys=keys,
+            known_brdf=known_brdf,
+            models=models,
+            hint=known_albedo_hint(capture),
+        )
     if read_capture_config(capture).lighting:
-        raise UserError(f"{capture / 'capture.toml'}: [lighting] (a lighting per photo) is fitted on the physical "
-                        "forward model only: the capture needs a mesh, and --forward physical with --brdf auto, "
-                        "lambert or principled")
-    return fit_convex(capture=capture, work=work, settings=settings, keys=keys, fit_model=fit_model,
-                      known_brdf=known_brdf, total=int(meta.get("count", 0)))
+        raise UserError(
+            f"{capture / 'capture.toml'}: [lighting] (a lighting per photo) is fitted on the physical "
+            "forward model only: the capture needs a mesh, and --forward physical with --brdf auto, "
+            "lambert or principled"
+        )
+    return fit_convex(
+        capture=capture,
+        work=work,
+        settings=settings,
+        keys=keys,
+        fit_model=fit_model,
+        known_brdf=known_brdf,
+        total=int(meta.get("count", 0)),
+    )

@@ -13,7 +13,7 @@ from pipeline.errors import UserError
 from pipeline.io.samples import iter_sample_chunks
 from stages.fit.settings import Settings
 
-FIELDS = ("normal", "view_dir", "radiance", "image_id", "weight", "visibility")          # the convex model's
+FIELDS = ("normal", "view_dir", "radiance", "image_id", "weight", "visibility")  # the convex model's
 PHYSICAL_FIELDS = ("face", "bary", "view_dir", "radiance", "image_id", "weight", "normal", "pixel")
 
 
@@ -75,9 +75,13 @@ def load_physical(path: Path, settings: Settings, n_faces: int) -> tuple[dict, d
         if np.isfinite(a) and np.isfinite(b):
             a = max(a, (settings.noise_floor * float(np.sqrt(np.mean(data["radiance"].astype(float) ** 2)))) ** 2)
             data["weight"] = data["weight"] * inverse_variance_weights(data["radiance"], a, b).astype(np.float32)
-            noise.update(a=a, b=b, unit_sigma=weighted_noise_sigma(data["weight"], data["radiance"], a, b),
-                         weighting="1 / (a + b B), B the sample's channel-mean radiance, normalized at the "
-                                   "median; a floored at (noise_floor x RMS radiance)^2")
+            noise.update(
+                a=a,
+                b=b,
+                unit_sigma=weighted_noise_sigma(data["weight"], data["radiance"], a, b),
+                weighting="1 / (a + b B), B the sample's channel-mean radiance, normalized at the "
+                "median; a floored at (noise_floor x RMS radiance)^2",
+            )
         else:
             noise["weighting"] = "uniform (the noise level could not be measured: too few neighbouring samples)"
     everything = data
@@ -85,4 +89,3 @@ def load_physical(path: Path, settings: Settings, n_faces: int) -> tuple[dict, d
         keep = np.sort(np.random.default_rng(settings.seed).choice(n, settings.physical_samples, replace=False))
         data = {k: v[keep] for k, v in data.items()}
     return data, noise, everything
-

@@ -20,34 +20,39 @@ from pipeline.core.sh import order_of
 from pipeline.core.sources import Sources
 from stages.fit.settings import Settings
 
-DIELECTRIC_ROUGHNESS = (0.25, 0.5)   # the other dielectrics tried beside the chosen material
-METAL_ROUGHNESS = (0.15, 0.35)       # the metals tried (F0 = base colour)
+DIELECTRIC_ROUGHNESS = (0.25, 0.5)  # the other dielectrics tried beside the chosen material
+METAL_ROUGHNESS = (0.15, 0.35)  # the metals tried (F0 = base colour)
 
 
 def candidate_materials(chosen: Principled | None, ior: float) -> list[Principled | None]:
     """The chosen material first, then the other candidates (module docstring), without repeats."""
-    cands = [chosen, None] + [Principled(roughness=r, ior=ior) for r in DIELECTRIC_ROUGHNESS] + \
-        [Principled(roughness=r, metallic=1.0, ior=ior) for r in METAL_ROUGHNESS]
+    cands = (
+        [chosen, None]
+        + [Principled(roughness=r, ior=ior) for r in DIELECTRIC_ROUGHNESS]
+        + [Principled(roughness=r, metallic=1.0, ior=ior) for r in METAL_ROUGHNESS]
+    )
     return list(dict.fromkeys(cands))
 
 
-def candidate_shading(geo: prt.Geometry, best: material_fit.MaterialFit, material: Principled | None,
-                      lobe_samples: int, seed: int) -> svbrdf.CandidateShading:
+def candidate_shading(
+    geo: prt.Geometry, best: material_fit.MaterialFit, material: Principled | None, lobe_samples: int, seed: int
+) -> svbrdf.CandidateShading:
     """``material``'s shading at the samples under ``best``'s lighting (SH to its order and its
     sources; the lighting's detail part belongs to the chosen lobe and is left out); the lobe by
     ``lobe_samples`` GGX samples drawn with ``seed`` (prt.specular_transfer)."""
     order = order_of(best.coeffs.shape[0])
     spec = None if material is None else prt.specular_transfer(geo, material, lobe_samples, seed, order=order)
-    sources = None if best.sources is None else Sources(prt.source_transfer(geo, material, best.sources.directions),
-                                                        best.sources.power)
+    sources = (
+        None if best.sources is None else Sources(prt.source_transfer(geo, material, best.sources.directions), best.sources.power)
+    )
     fit = material_fit.MaterialFit(material, best.base, best.coeffs, None, [], 0.0, 0.0, sources)
     shade, specular = material_fit.shading_parts(geo, fit, spec)
     return svbrdf.CandidateShading(material, shade, specular)
 
 
-SEED_PATCHES = 5000      # patches of the lighting-free seed (svbrdf.voxel_patches)
-SEED_SPREAD = 0.2        # view spread above which a patch is seeded as view-dependent (metal-like):
-                         # teapot_two_materials' copper 0.52, glazed body 0.04-0.07 (medians, docs/fit.md)
+SEED_PATCHES = 5000  # patches of the lighting-free seed (svbrdf.voxel_patches)
+SEED_SPREAD = 0.2  # view spread above which a patch is seeded as view-dependent (metal-like):
+# teapot_two_materials' copper 0.52, glazed body 0.04-0.07 (medians, docs/fit.md)
 
 
 def view_dependent_seed(mesh, data: dict) -> np.ndarray | None:
@@ -64,8 +69,15 @@ def view_dependent_seed(mesh, data: dict) -> np.ndarray | None:
     return seeded if svbrdf.MIN_SHARE <= share <= 1 - svbrdf.MIN_SHARE else None
 
 
-def fit_materials(mesh, data: dict, geo: prt.Geometry, best: material_fit.MaterialFit, settings: Settings,
-                  opts: SearchOptions, lit: material_fit.MaterialFit | None = None) -> tuple[dict, svbrdf.MaterialMap | None]:
+def fit_materials(
+    mesh,
+    data: dict,
+    geo: prt.Geometry,
+    best: material_fit.MaterialFit,
+    settings: Settings,
+    opts: SearchOptions,
+    lit: material_fit.MaterialFit | None = None,
+) -> tuple[dict, svbrdf.MaterialMap | None]:
     """(report.json's "materials" entry, the material map or None when one material is kept) from
     every sample ``data`` (load_physical's everything: face, bary, view_dir, radiance, weight,
     image_id), each candidate shaded in chunks on ``geo``'s mesh part (prt.over_chunks) under the
@@ -73,8 +85,7 @@ def fit_materials(mesh, data: dict, geo: prt.Geometry, best: material_fit.Materi
     ``best``; the one-material baseline is ``best`` under its own lighting."""
     t0 = time.perf_counter()
     nv = len(mesh.vertices)
-    obs = Observations(data["radiance"].astype(float), data["weight"].astype(float),
-                       fold_of(data["image_id"], settings.folds))
+    obs = Observations(data["radiance"].astype(float), data["weight"].astype(float), fold_of(data["image_id"], settings.folds))
     interp = texture.interpolation_matrix(mesh.faces, data["face"], data["bary"].astype(float), nv)
     lap = texture.graph_laplacian(mesh.faces, nv)
     lighting = best if lit is None else lit
@@ -94,15 +105,20 @@ def fit_materials(mesh, data: dict, geo: prt.Geometry, best: material_fit.Materi
     many = svbrdf.held_out_rmse(interp, lap, shadings, obs.radiance, obs.weight, obs.fold, smooth)
     found = svbrdf.material_map(interp, lap, shadings, obs.radiance, obs.weight, smooth)
     k = len(found.materials)
-    rms = float(np.sqrt((obs.weight[:, None] * obs.radiance ** 2).sum() / (3 * obs.weight.sum())))
-    table = [{"name": "one material, base colour per vertex", "params": 3 * nv + 1, "validation_rmse": one},
-             {"name": f"{k} materials, base colour per vertex", "params": 3 * nv + 2 * k + 1, "validation_rmse": many}]
+    rms = float(np.sqrt((obs.weight[:, None] * obs.radiance**2).sum() / (3 * obs.weight.sum())))
+    table = [
+        {"name": "one material, base colour per vertex", "params": 3 * nv + 1, "validation_rmse": one},
+        {"name": f"{k} materials, base colour per vertex", "params": 3 * nv + 2 * k + 1, "validation_rmse": many},
+    ]
     pick = parsimonious_choice(table, settings.parsimony, noise=settings.noise_floor * rms) if k > 1 else 0
-    entry = {"setting": settings.materials, "candidates": table, "choice": table[pick]["name"],
-             "tried": [_describe(s.material) for s in shadings],
-             "found": [{**_describe(m), "vertex_share": float(np.mean(found.labels == i))}
-                       for i, m in enumerate(found.materials)],
-             "seconds": time.perf_counter() - t0}
+    entry = {
+        "setting": settings.materials,
+        "candidates": table,
+        "choice": table[pick]["name"],
+        "tried": [_describe(s.material) for s in shadings],
+        "found": [{**_describe(m), "vertex_share": float(np.mean(found.labels == i))} for i, m in enumerate(found.materials)],
+        "seconds": time.perf_counter() - t0,
+    }
     return entry, (found if pick == 1 else None)
 
 

@@ -14,90 +14,144 @@ from pipeline.errors import UserError
 from pipeline.proxy import PROXY_PIXELS
 from pipeline.settings import setting
 
-DEFAULT_ALBEDO = 0.5        # the scale convention of a Lambertian fit under unknown lighting when no hint is given
+DEFAULT_ALBEDO = 0.5  # the scale convention of a Lambertian fit under unknown lighting when no hint is given
 
 
 @dataclass(frozen=True)
 class Settings:
     lighting: str = setting("unknown", "'unknown', or the known lighting: an equirect EXR/HDR (DESIGN.md) or a lighting_sh.json")
-    brdf: str = setting("auto", "'auto': the material chosen by the held-out views, with a mesh (--forward physical) "
-                                "among lambert and principled (a dielectric, or a metal where it does better), "
-                                "without one (or --forward convex) among lambert, phong and microfacet; a model "
-                                "name (lambert, principled, phong, microfacet), its parameters fitted; or a known "
-                                "BRDF: brdf.json path or inline spec 'model:key=v,...'")
+    brdf: str = setting(
+        "auto",
+        "'auto': the material chosen by the held-out views, with a mesh (--forward physical) "
+        "among lambert and principled (a dielectric, or a metal where it does better), "
+        "without one (or --forward convex) among lambert, phong and microfacet; a model "
+        "name (lambert, principled, phong, microfacet), its parameters fitted; or a known "
+        "BRDF: brdf.json path or inline spec 'model:key=v,...'",
+    )
     order: str = setting("auto", "SH order of the fitted lighting: 'auto' (leave-views-out validation) or an integer")
-    max_order: int = setting(16, "largest SH order tried by --order auto for the final lighting, with the prior "
-                                 "scales of --band-prior-choices (sharp lights seen through a glossy lobe carry "
-                                 "energy to order > 8)")
-    factor_order: int = setting(8, "SH order of the lighting while the material is chosen (the final lighting is then "
-                                   "chosen up to --max-order for it)")
+    max_order: int = setting(
+        16,
+        "largest SH order tried by --order auto for the final lighting, with the prior "
+        "scales of --band-prior-choices (sharp lights seen through a glossy lobe carry "
+        "energy to order > 8)",
+    )
+    factor_order: int = setting(
+        8, "SH order of the lighting while the material is chosen (the final lighting is then chosen up to --max-order for it)"
+    )
     env_order: int = setting(16, "SH order to which a known EXR lighting is projected")
-    lobe_min_cos: float = setting(0.3, "with a specular lobe in the model, use only samples with n.v >= this: the R&H "
-                                       "reflection-space lobe is accurate near normal view (docs/fit.md)")
+    lobe_min_cos: float = setting(
+        0.3,
+        "with a specular lobe in the model, use only samples with n.v >= this: the R&H "
+        "reflection-space lobe is accurate near normal view (docs/fit.md)",
+    )
     min_visibility: float = setting(0.9, "leave out samples whose unblocked hemisphere fraction is below this")
     folds: int = setting(4, "validation folds; views go to fold image_id mod folds")
     parsimony: float = setting(0.05, "choose the smallest model whose validation RMSE is within this fraction of the best")
     noise_floor: float = setting(0.005, "noise assumed at least this fraction of the RMS radiance (calibration, model error)")
     min_snr: float = setting(10.0, "a band is recoverable when its SNR (docs/fit.md) reaches this")
     band_prior: float = setting(0.3, "Tikhonov prior scale of ill-conditioned bands, as a fraction of the DC lighting")
-    band_prior_choices: str = setting("1,3", "further prior scales tried with --order auto; order and prior are "
-                                             "chosen together by leave-views-out validation (sharp lights put "
-                                             "more energy in high bands than the default prior allows)")
+    band_prior_choices: str = setting(
+        "1,3",
+        "further prior scales tried with --order auto; order and prior are "
+        "chosen together by leave-views-out validation (sharp lights put "
+        "more energy in high bands than the default prior allows)",
+    )
     iterations: int = setting(3, "alternations lighting <-> BRDF in the factorization after the joint linear start")
     max_samples: int = setting(400000, "samples held in memory for BRDF and factorization fits (random subset)")
     chunk: int = setting(262144, "samples per chunk when streaming the normal equations")
     env_height: int = setting(64, "height of fit/lighting.exr (width = 2 x height)")
     seed: int = setting(0, "random seed of the sample subset")
-    albedo: Literal["auto", "uniform", "textured"] = setting("auto", "diffuse albedo: 'uniform', 'textured' (per vertex, fit/albedo.ply) or 'auto' "
-                                  "(textured only if it beats uniform on the held-out views by more than --parsimony)")
-    albedo_smoothness: float = setting(0.001, "weight of the mesh-Laplacian smoothness term of the per-vertex albedo "
-                                             "(relative to the mean data weight per vertex)")
-    texels: Literal["off", "auto"] = setting("off", "physical fit: a base colour per texel of a UV atlas at the photos' footprint "
-                                             "(the mesh's own UVs, else an xatlas unwrap) from every sample, over the per-vertex "
-                                             "albedo refitted on every sample; 'auto' keeps each level where the held-out views "
-                                             "improve (fit/textures/)")
-    materials: Literal["one", "auto"] = setting("one", "physical fit, material unknown: 'one' material over the surface, or "
-                                                "'auto' (experimental, slow on large meshes): candidate materials shaded under "
-                                                "the fitted lighting, each vertex taking the one that explains its samples "
-                                                "(fit/material.ply, brdf.json 'materials'), kept where the held-out views "
-                                                "prefer them to one material")
-    forward: Literal["physical", "convex"] = setting("physical", "forward model of the fit: 'physical' (the renderer's: shadows, "
-                                       "interreflection, principled GGX, directional sources; lambert and principled) "
-                                       "or 'convex' (R&H closed forms; the only one for phong and microfacet)")
-    lighting_scale: str = setting("1", "factor applied to a known --lighting (a number), or 'fit': one global "
-                                        "factor fitted to the photos (stated in the report)")
-    roughness_candidates: str = setting("0.1,0.2,0.3,0.45,0.65,1.0", "principled fit: the roughness grid "
-                                        "compared on held-out views (the best is then refined)")
-    roughness_refinements: int = setting(4, "principled fit: most candidates of a bounded Brent search in log "
-                                            "roughness between the best grid point's neighbours; 0 = one candidate at "
-                                            "the parabola through the three")
+    albedo: Literal["auto", "uniform", "textured"] = setting(
+        "auto",
+        "diffuse albedo: 'uniform', 'textured' (per vertex, fit/albedo.ply) or 'auto' "
+        "(textured only if it beats uniform on the held-out views by more than --parsimony)",
+    )
+    albedo_smoothness: float = setting(
+        0.001,
+        "weight of the mesh-Laplacian smoothness term of the per-vertex albedo (relative to the mean data weight per vertex)",
+    )
+    texels: Literal["off", "auto"] = setting(
+        "off",
+        "physical fit: a base colour per texel of a UV atlas at the photos' footprint "
+        "(the mesh's own UVs, else an xatlas unwrap) from every sample, over the per-vertex "
+        "albedo refitted on every sample; 'auto' keeps each level where the held-out views "
+        "improve (fit/textures/)",
+    )
+    materials: Literal["one", "auto"] = setting(
+        "one",
+        "physical fit, material unknown: 'one' material over the surface, or "
+        "'auto' (experimental, slow on large meshes): candidate materials shaded under "
+        "the fitted lighting, each vertex taking the one that explains its samples "
+        "(fit/material.ply, brdf.json 'materials'), kept where the held-out views "
+        "prefer them to one material",
+    )
+    forward: Literal["physical", "convex"] = setting(
+        "physical",
+        "forward model of the fit: 'physical' (the renderer's: shadows, "
+        "interreflection, principled GGX, directional sources; lambert and principled) "
+        "or 'convex' (R&H closed forms; the only one for phong and microfacet)",
+    )
+    lighting_scale: str = setting(
+        "1",
+        "factor applied to a known --lighting (a number), or 'fit': one global "
+        "factor fitted to the photos (stated in the report)",
+    )
+    roughness_candidates: str = setting(
+        "0.1,0.2,0.3,0.45,0.65,1.0", "principled fit: the roughness grid compared on held-out views (the best is then refined)"
+    )
+    roughness_refinements: int = setting(
+        4,
+        "principled fit: most candidates of a bounded Brent search in log "
+        "roughness between the best grid point's neighbours; 0 = one candidate at "
+        "the parabola through the three",
+    )
     ior: float = setting(1.5, "principled fit: index of refraction of the dielectric specular layer")
-    max_sources: int = setting(3, "principled fit: directional sources (the lighting's dual angular part) tried "
-                                  "on top of the SH lighting, each kept only if it lowers the held-out views' error by 2%")
-    source_peaks: int = setting(3, "principled fit, a sharp lobe (roughness below ~0.31): once the material is "
-                                   "chosen, its sources' pursuit is continued with this many candidates a step from "
-                                   "the peaks of the residual at the samples' mirror directions (lamps the direction "
-                                   "set's scan falls between), kept where the held-out views prefer it; 0 = off")
+    max_sources: int = setting(
+        3,
+        "principled fit: directional sources (the lighting's dual angular part) tried "
+        "on top of the SH lighting, each kept only if it lowers the held-out views' error by 2%",
+    )
+    source_peaks: int = setting(
+        3,
+        "principled fit, a sharp lobe (roughness below ~0.31): once the material is "
+        "chosen, its sources' pursuit is continued with this many candidates a step from "
+        "the peaks of the residual at the samples' mirror directions (lamps the direction "
+        "set's scan falls between), kept where the held-out views prefer it; 0 = off",
+    )
     peak_sources: int = setting(6, "most directional sources of that continued pursuit")
     lighting_detail: Literal["auto", "off"] = setting(
-        "auto", "principled fit, lighting unknown: 'auto' tries the lighting's detail part (a map of what the SH "
-                "bands cannot hold, seen through the specular lobe only) at the best dielectric when its lobe is sharp "
-                "enough, and keeps it, searching the roughness again with it, where it lowers the held-out views' "
-                "error by 2%; 'off'")
+        "auto",
+        "principled fit, lighting unknown: 'auto' tries the lighting's detail part (a map of what the SH "
+        "bands cannot hold, seen through the specular lobe only) at the best dielectric when its lobe is sharp "
+        "enough, and keeps it, searching the roughness again with it, where it lowers the held-out views' "
+        "error by 2%; 'off'",
+    )
     physical_samples: int = setting(30000, "principled fit: samples used (random subset)")
     lobe_samples: int = setting(32, "principled fit: GGX lobe samples per sample in the specular transfer")
     bounce_samples: int = setting(64, "principled fit: occlusion / bounce rays per vertex (shadows, interreflection)")
-    proxy_pixels: float = setting(PROXY_PIXELS, "principled fit: a mesh much finer than the photos resolve (more than twice the "
-                                       "faces of edges this many photo pixels long) gets a simplified proxy of such "
-                                       "edges for its interreflection (pipeline/proxy.py); 0: never")
-    noise_model: Literal["measured", "uniform"] = setting("measured", "principled fit: 'measured' (samples weighted by 1 / sigma^2 of the "
-                                           "Poisson-Gaussian noise level measured on the photos: bright pixels are "
-                                           "noisier) or 'uniform' (equal weights)")
-    footprint: int = setting(2, "principled fit: n x n rays per sample's pixel; the specular of sharp lights "
-                                "(directional sources, a known map's bright pixels) is averaged over the surface "
-                                "they hit, as the pixel averages it (1: the pixel centre only)")
-    blas_threads: int = setting(1, "BLAS threads during the fit (0 = library default); the fit's many small "
-                                   "products ran 7x slower with multithreaded OpenBLAS on a shared 2-core machine")
+    proxy_pixels: float = setting(
+        PROXY_PIXELS,
+        "principled fit: a mesh much finer than the photos resolve (more than twice the "
+        "faces of edges this many photo pixels long) gets a simplified proxy of such "
+        "edges for its interreflection (pipeline/proxy.py); 0: never",
+    )
+    noise_model: Literal["measured", "uniform"] = setting(
+        "measured",
+        "principled fit: 'measured' (samples weighted by 1 / sigma^2 of the "
+        "Poisson-Gaussian noise level measured on the photos: bright pixels are "
+        "noisier) or 'uniform' (equal weights)",
+    )
+    footprint: int = setting(
+        2,
+        "principled fit: n x n rays per sample's pixel; the specular of sharp lights "
+        "(directional sources, a known map's bright pixels) is averaged over the surface "
+        "they hit, as the pixel averages it (1: the pixel centre only)",
+    )
+    blas_threads: int = setting(
+        1,
+        "BLAS threads during the fit (0 = library default); the fit's many small "
+        "products ran 7x slower with multithreaded OpenBLAS on a shared 2-core machine",
+    )
 
     @property
     def known_lighting_file(self) -> Path | None:
@@ -106,8 +160,9 @@ class Settings:
             return None
         path = Path(self.lighting)
         if not path.is_file():
-            raise UserError(f"--lighting {self.lighting!r}: no such file; give 'unknown', an equirect EXR/HDR or a "
-                            "lighting_sh.json")
+            raise UserError(
+                f"--lighting {self.lighting!r}: no such file; give 'unknown', an equirect EXR/HDR or a lighting_sh.json"
+            )
         return path
 
     @property
@@ -129,8 +184,10 @@ class Settings:
         except ValueError:
             values = []
         if not values or values[0] < MIN_ROUGHNESS or values[-1] > 1.0:
-            raise UserError(f"--roughness-candidates must be comma-separated numbers in [{MIN_ROUGHNESS}, 1], "
-                            f"got {self.roughness_candidates!r}")
+            raise UserError(
+                f"--roughness-candidates must be comma-separated numbers in [{MIN_ROUGHNESS}, 1], "
+                f"got {self.roughness_candidates!r}"
+            )
         return tuple(values)
 
     @property
@@ -140,9 +197,15 @@ class Settings:
 
     def convex_options(self) -> ConvexOptions:
         """The convex solvers' numbers (pipeline.core.factorization)."""
-        return ConvexOptions(folds=self.folds, noise_floor=self.noise_floor, min_snr=self.min_snr,
-                             band_priors=self.band_priors, parsimony=self.parsimony, iterations=self.iterations,
-                             chunk=self.chunk)
+        return ConvexOptions(
+            folds=self.folds,
+            noise_floor=self.noise_floor,
+            min_snr=self.min_snr,
+            band_priors=self.band_priors,
+            parsimony=self.parsimony,
+            iterations=self.iterations,
+            chunk=self.chunk,
+        )
 
     def validate(self) -> None:
         if self.order != "auto":
@@ -157,8 +220,9 @@ class Settings:
             if any(p <= 0 for p in self.band_priors):
                 raise ValueError
         except ValueError:
-            raise UserError(f"--band-prior-choices must be comma-separated positive numbers, got "
-                            f"{self.band_prior_choices!r}") from None
+            raise UserError(
+                f"--band-prior-choices must be comma-separated positive numbers, got {self.band_prior_choices!r}"
+            ) from None
         if self.albedo_smoothness < 0:
             raise UserError(f"--albedo-smoothness must be >= 0, got {self.albedo_smoothness}")
         if self.folds < 2:
@@ -173,7 +237,7 @@ class Settings:
                     raise ValueError
             except ValueError:
                 raise UserError(f"--lighting-scale must be a positive number or 'fit', got {self.lighting_scale!r}") from None
-        self.roughness_grid    # a user error for a malformed grid
+        _ = self.roughness_grid  # a user error for a malformed grid
         if self.roughness_refinements < 0:
             raise UserError(f"--roughness-refinements must be >= 0, got {self.roughness_refinements}")
         if not 0 <= self.source_peaks <= 10:
@@ -181,8 +245,7 @@ class Settings:
         if self.peak_sources < 0:
             raise UserError(f"--peak-sources must be >= 0, got {self.peak_sources}")
         if self.max_sources < 0 or self.physical_samples < 100 or self.lobe_samples < 1 or self.bounce_samples < 1:
-            raise UserError("--max-sources must be >= 0, --physical-samples >= 100, --lobe-samples and "
-                            "--bounce-samples >= 1")
+            raise UserError("--max-sources must be >= 0, --physical-samples >= 100, --lobe-samples and --bounce-samples >= 1")
         if not self.proxy_pixels >= 0:
             raise UserError(f"--proxy-pixels must be >= 0 (0: no proxy), got {self.proxy_pixels}")
         if not 1 <= self.footprint <= 8:

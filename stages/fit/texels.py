@@ -25,9 +25,9 @@ from pipeline.unwrap import unwrap
 from stages.fit.materials import candidate_shading
 from stages.fit.settings import Settings
 
-RIDGES = (0.5, 2.0, 8.0)     # the per-texel ridge's candidates (core.texture: typical samples' worth)
-CHUNK = 20000                # samples per chunk of the shading pass
-FILL_RINGS = 2               # texels a detail spreads into unseen texels of its chart
+RIDGES = (0.5, 2.0, 8.0)  # the per-texel ridge's candidates (core.texture: typical samples' worth)
+CHUNK = 20000  # samples per chunk of the shading pass
+FILL_RINGS = 2  # texels a detail spreads into unseen texels of its chart
 
 
 @dataclass(frozen=True)
@@ -49,6 +49,7 @@ def shading_at_all(geo: prt.Geometry, best: material_fit.MaterialFit, data: dict
     """(shade per unit base colour (N, 3), specular (N, 3)) of ``best`` at every sample of ``data``
     (face, bary, view_dir), in chunks on ``geo``'s mesh part (prt.over_chunks; each chunk through
     materials.candidate_shading, the materials step's own)."""
+
     def shade(g: prt.Geometry) -> tuple[np.ndarray, np.ndarray]:
         shaded = candidate_shading(g, best, best.material, settings.lobe_samples, settings.seed)
         return shaded.shade, shaded.specular
@@ -70,15 +71,26 @@ def make_atlas(mesh, data: dict, poses: Poses, keys: list[str]) -> atlas_mod.Atl
     return unwrap(mesh.vertices, mesh.faces, footprint)
 
 
-def fit_texels(mesh, geo: prt.Geometry, best: material_fit.MaterialFit, data: dict, noise: dict,
-               poses: Poses, keys: list[str], settings: Settings) -> tuple[dict, TexelFit | None]:
+def fit_texels(
+    mesh,
+    geo: prt.Geometry,
+    best: material_fit.MaterialFit,
+    data: dict,
+    noise: dict,
+    poses: Poses,
+    keys: list[str],
+    settings: Settings,
+) -> tuple[dict, TexelFit | None]:
     """The per-vertex and per-texel base colour of the module docstring from all samples ``data``
     (load_physical's everything; ``noise`` its measured pixel noise) under the chosen fit ``best``.
     -> (report.json's "texels" entry, the TexelFit or None when neither level beats the uniform
     base colour)."""
     if best.parts is not None or best.detail is not None:
-        return {"choice": "uniform", "note": "no per-texel fit: the chosen lighting is a known map's or has a "
-                                             "detail part, whose shading at every sample is not computed"}, None
+        return {
+            "choice": "uniform",
+            "note": "no per-texel fit: the chosen lighting is a known map's or has a "
+            "detail part, whose shading at every sample is not computed",
+        }, None
     shade, specular = shading_at_all(geo, best, data, settings)
     target = data["radiance"].astype(float) - specular
     weight = data["weight"].astype(float)
@@ -88,25 +100,46 @@ def fit_texels(mesh, geo: prt.Geometry, best: material_fit.MaterialFit, data: di
     nv = len(mesh.vertices)
     fits = texture.vertex_fold_fits(mesh.faces, nv, face, bary, fold, weight, shade, target, settings.albedo_smoothness)
     vertex_cands, vertex_choice, vertex_rho, observed = texture.choose_vertex_albedo(
-        mesh.faces, nv, face, bary, fold, weight, shade, target, smoothness=settings.albedo_smoothness,
-        parsimony=settings.parsimony, noise=floor, fits=fits)
+        mesh.faces,
+        nv,
+        face,
+        bary,
+        fold,
+        weight,
+        shade,
+        target,
+        smoothness=settings.albedo_smoothness,
+        parsimony=settings.parsimony,
+        noise=floor,
+        fits=fits,
+    )
     textured = vertex_choice == "textured"
     if not textured:
         vertex_rho = np.broadcast_to(vertex_cands[0]["albedo"], (nv, 3)).copy()
     interp = texture.interpolation_matrix(mesh.faces, face, bary, nv)
-    per_fold = {f: interp @ rho_t if textured else np.broadcast_to(rho_u, (len(face), 3))
-                for f, (rho_u, rho_t) in fits.items()}
+    per_fold = {f: interp @ rho_t if textured else np.broadcast_to(rho_u, (len(face), 3)) for f, (rho_u, rho_t) in fits.items()}
     atlas = make_atlas(mesh, data, poses, keys)
     n_texels = atlas.height * atlas.width
     texel = atlas.texel_of(face, bary)
     texel_cands, choice, detail, ridge = texture.choose_texel_detail(
-        texel, fold, weight, shade, target, interp @ vertex_rho, per_fold, n_texels, RIDGES,
-        parsimony=settings.parsimony, noise=floor)
-    entry = {"samples": int(len(weight)), "vertex_level": {"choice": vertex_choice, "candidates": vertex_cands,
-                                                           "vertices_with_samples": observed},
-             "texel_level": {"candidates": texel_cands, "ridges": list(RIDGES)},
-             "atlas": {"height": atlas.height, "width": atlas.width, "texel_mm": 1e3 * atlas.texel_m,
-                       "own_uvs": atlas.texel_m == 0.0}}
+        texel,
+        fold,
+        weight,
+        shade,
+        target,
+        interp @ vertex_rho,
+        per_fold,
+        n_texels,
+        RIDGES,
+        parsimony=settings.parsimony,
+        noise=floor,
+    )
+    entry = {
+        "samples": int(len(weight)),
+        "vertex_level": {"choice": vertex_choice, "candidates": vertex_cands, "vertices_with_samples": observed},
+        "texel_level": {"candidates": texel_cands, "ridges": list(RIDGES)},
+        "atlas": {"height": atlas.height, "width": atlas.width, "texel_mm": 1e3 * atlas.texel_m, "own_uvs": atlas.texel_m == 0.0},
+    }
     if choice == 0 and vertex_choice != "textured":
         return {**entry, "choice": "uniform"}, None
     entry["choice"] = "texels" if choice else "vertices"
@@ -143,5 +176,11 @@ def material_textures(mesh, found: svbrdf.MaterialMap, atlas: atlas_mod.Atlas) -
     metallic = np.array([0.0 if m is None else m.metallic for m in found.materials])[material]
     base = np.clip(interpolated(found.base), 0.0, 1.0)
     std = interpolated(np.where(np.isfinite(found.base_std), found.base_std, np.nan), fill=np.nan)
-    return TexelFit(atlas, base, std, found.base, atlas_mod.paint(atlas, tex_id, roughness)[:, :, 0],
-                    atlas_mod.paint(atlas, tex_id, metallic)[:, :, 0])
+    return TexelFit(
+        atlas,
+        base,
+        std,
+        found.base,
+        atlas_mod.paint(atlas, tex_id, roughness)[:, :, 0],
+        atlas_mod.paint(atlas, tex_id, metallic)[:, :, 0],
+    )

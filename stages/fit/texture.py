@@ -20,8 +20,9 @@ from stages.fit.data import FIELDS, filter_rows
 from stages.fit.settings import Settings
 
 
-def choose_albedo(capture: Path, samples_path: Path, settings: Settings, coeffs: np.ndarray,
-                  brdf: Brdf) -> tuple[dict, np.ndarray | None, object]:
+def choose_albedo(
+    capture: Path, samples_path: Path, settings: Settings, coeffs: np.ndarray, brdf: Brdf
+) -> tuple[dict, np.ndarray | None, object]:
     """Fit a per-vertex diffuse albedo with the fitted lighting and specular part fixed, and choose
     textured vs uniform by the held-out views (folds = image_id mod folds): textured only when its
     validation RMSE is below uniform's by more than ``parsimony``.  Returns (report entry,
@@ -50,18 +51,22 @@ def choose_albedo(capture: Path, samples_path: Path, settings: Settings, coeffs:
         n = settings.max_samples
     if n == 0 or np.abs(data["bary"].sum(axis=1) - 1).max() > 1e-3:
         if settings.albedo == "textured":
-            raise UserError(f"{samples_path}: the samples carry no face/barycentrics on the mesh; "
-                            "--albedo textured needs them (run the samples stage)")
+            raise UserError(
+                f"{samples_path}: the samples carry no face/barycentrics on the mesh; "
+                "--albedo textured needs them (run the samples stage)"
+            )
         return {**entry, "choice": "uniform", "note": "no per-vertex fit: the samples carry no face/barycentrics"}, None, None
     normal, view = data["normal"].astype(float), data["view_dir"].astype(float)
     shade = forward.render_samples(coeffs, Brdf("lambert", albedo=(1.0, 1.0, 1.0)), normal, view)
-    spec = (forward.render_samples(coeffs, replace(brdf, albedo=(0.0, 0.0, 0.0)), normal, view) if with_lobe
-            else np.zeros_like(shade))
+    spec = (
+        forward.render_samples(coeffs, replace(brdf, albedo=(0.0, 0.0, 0.0)), normal, view) if with_lobe else np.zeros_like(shade)
+    )
     return albedo_from_shading(mesh, data, shade, data["radiance"].astype(float) - spec, settings, entry)
 
 
-def albedo_from_shading(mesh, data: dict, shade: np.ndarray, target: np.ndarray, settings: Settings,
-                        entry: dict) -> tuple[dict, np.ndarray | None, object]:
+def albedo_from_shading(
+    mesh, data: dict, shade: np.ndarray, target: np.ndarray, settings: Settings, entry: dict
+) -> tuple[dict, np.ndarray | None, object]:
     """Textured vs uniform albedo from the samples' shading per unit albedo ``shade`` (N, 3) and
     their radiance less the specular part ``target`` (N, 3) (``data``: face, bary, weight,
     image_id of the same samples): the choice of :func:`choose_albedo`, for either forward model
@@ -70,15 +75,31 @@ def albedo_from_shading(mesh, data: dict, shade: np.ndarray, target: np.ndarray,
     nv = len(mesh.vertices)
     noise = settings.noise_floor * rms_radiance(data)
     cands, auto, rho, observed = texture.choose_vertex_albedo(
-        mesh.faces, nv, data["face"], data["bary"].astype(float), fold_of(data["image_id"], settings.folds),
-        data["weight"].astype(float), shade, target, smoothness=settings.albedo_smoothness,
-        parsimony=settings.parsimony, noise=noise)
+        mesh.faces,
+        nv,
+        data["face"],
+        data["bary"].astype(float),
+        fold_of(data["image_id"], settings.folds),
+        data["weight"].astype(float),
+        shade,
+        target,
+        smoothness=settings.albedo_smoothness,
+        parsimony=settings.parsimony,
+        noise=noise,
+    )
     choice = "textured" if settings.albedo == "textured" else auto
-    entry.update(choice=choice, candidates=cands, vertices=nv, vertices_with_samples=observed, samples=int(len(shade)),
-                 auto_choice=auto, noise=noise,
-                 rule=f"the fit's parsimony rule: textured only if uniform's validation RMSE > textured's x "
-                      f"(1 + parsimony {settings.parsimony}) + noise floor x RMS radiance ({noise:.3g})",
-                 folds=settings.folds)
+    entry.update(
+        choice=choice,
+        candidates=cands,
+        vertices=nv,
+        vertices_with_samples=observed,
+        samples=int(len(shade)),
+        auto_choice=auto,
+        noise=noise,
+        rule=f"the fit's parsimony rule: textured only if uniform's validation RMSE > textured's x "
+        f"(1 + parsimony {settings.parsimony}) + noise floor x RMS radiance ({noise:.3g})",
+        folds=settings.folds,
+    )
     if choice != "textured":
         return entry, None, mesh
     return entry, np.clip(rho, 0.0, None), mesh

@@ -55,7 +55,8 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     elif kind == "transforms":
         paths += transforms_files(source)
     uses_mesh = (kind in ("colmap", "transforms") and settings.frame == "register") or (
-        kind == "sfm" and read_capture_config(capture).board is None)
+        kind == "sfm" and read_capture_config(capture).board is None
+    )
     if uses_mesh:
         with contextlib.suppress(UserError):  # no mesh: run() says so
             paths.append(mesh_path(capture))
@@ -77,8 +78,10 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     if kind != "sfm":
         return import_poses(capture, work, keys, kind, source, settings)
     if len(keys) < 3:
-        raise UserError(f"{capture / 'images'}: {len(keys)} photo(s) found; COLMAP needs at least 3 overlapping "
-                        "photos — with fewer, bring their poses (poses.json, transforms.json or a COLMAP model)")
+        raise UserError(
+            f"{capture / 'images'}: {len(keys)} photo(s) found; COLMAP needs at least 3 overlapping "
+            "photos — with fewer, bring their poses (poses.json, transforms.json or a COLMAP model)"
+        )
     config = read_capture_config(capture)
     if config.board is None:
         return sfm_on_mesh(capture, work, keys, config, settings)

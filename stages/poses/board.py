@@ -38,8 +38,7 @@ from stages.poses.settings import MIN_BOARD_CORNERS, Settings
 from stages.poses.summary import enough, finish, named, status
 
 
-def sfm_with_board(capture: Path, work: Path, keys: list[str], config: CaptureConfig,
-                   settings: Settings) -> list[Path]:
+def sfm_with_board(capture: Path, work: Path, keys: list[str], config: CaptureConfig, settings: Settings) -> list[Path]:
     """COLMAP here registered to the object frame by the ChArUco board (PnP fallback)."""
     spec = config.board
     fixed = calibrated_camera(config)
@@ -47,9 +46,11 @@ def sfm_with_board(capture: Path, work: Path, keys: list[str], config: CaptureCo
     timings: dict[str, float] = {}
     colmap_dir, groups, name_to_key, detections, sizes = colmap_copies(capture, work, keys, fixed, spec, timings)
     if not detections:
-        raise UserError(f"the ChArUco board of capture.toml ({spec.dictionary}, {spec.squares[0]}x{spec.squares[1]} "
-                        f"squares) was not detected in any of the {len(keys)} photos; check [board] dictionary, "
-                        "squares and lengths against the printed board")
+        raise UserError(
+            f"the ChArUco board of capture.toml ({spec.dictionary}, {spec.squares[0]}x{spec.squares[1]} "
+            f"squares) was not detected in any of the {len(keys)} photos; check [board] dictionary, "
+            "squares and lengths against the printed board"
+        )
     status(f"board detected in {len(detections)} of {len(keys)} photos")
 
     summary: dict = {"images": len(keys), "board_detected_in": len(detections)}
@@ -64,41 +65,61 @@ def sfm_with_board(capture: Path, work: Path, keys: list[str], config: CaptureCo
         unregistered = [k for k in keys if k not in registered]
         if enough(len(registered), keys, settings):
             start = time.perf_counter()
-            poses, registered, entries = _register_by_board(reconstruction, registered, groups, name_to_key,
-                                                            detections, spec, fixed, settings, colmap_dir)
+            poses, registered, entries = _register_by_board(
+                reconstruction, registered, groups, name_to_key, detections, spec, fixed, settings, colmap_dir
+            )
             timings["registration"] = time.perf_counter() - start
             summary.update({**entries, "unregistered": [k for k in keys if k not in registered]})
         elif settings.method == "colmap" or not enough(len(detections), keys, settings):
-            why = ("its photos do not overlap (no image pair shares enough features)" if reconstruction is None
-                   else f"it registered only {len(registered)} of {len(keys)} photos")
-            raise UserError(f"COLMAP could not build the capture: {why} (unregistered: {named(unregistered)}), and the board is "
-                            f"visible in only {len(detections)} photos; take overlapping photos with texture, "
-                            f"see {colmap_dir / 'colmap.log'}")
+            why = (
+                "its photos do not overlap (no image pair shares enough features)"
+                if reconstruction is None
+                else f"it registered only {len(registered)} of {len(keys)} photos"
+            )
+            raise UserError(
+                f"COLMAP could not build the capture: {why} (unregistered: {named(unregistered)}), and the board is "
+                f"visible in only {len(detections)} photos; take overlapping photos with texture, "
+                f"see {colmap_dir / 'colmap.log'}"
+            )
         else:
-            summary["fallback_reason"] = (f"SfM registered {len(registered)} of {len(keys)} photos "
-                                          f"(< {settings.min_registered:.0%})")
+            summary["fallback_reason"] = (
+                f"SfM registered {len(registered)} of {len(keys)} photos (< {settings.min_registered:.0%})"
+            )
             status(f"{summary['fallback_reason']}: falling back to per-image board PnP")
     if poses is None:
         start = time.perf_counter()
         poses, errors = pnp_poses(keys, groups, detections, spec, fixed, sizes)
         timings["registration"] = time.perf_counter() - start
         if len(poses.images) < 3:
-            raise UserError(f"board PnP posed only {len(poses.images)} photos; the board must be visible "
-                            f"(>= {MIN_BOARD_CORNERS} corners) in at least 3")
-        summary.update({
-            "method": "board PnP per image" + (" (fallback)" if settings.method != "pnp" else ""),
-            "registered": len(poses.images), "unregistered": [k for k in keys if k not in poses.images],
-            "mean_reprojection_error_px": float(np.mean(list(errors.values()))),
-            "registration_residual_mm": None,
-            "per_image_pnp_px": errors,
-        })
+            raise UserError(
+                f"board PnP posed only {len(poses.images)} photos; the board must be visible "
+                f"(>= {MIN_BOARD_CORNERS} corners) in at least 3"
+            )
+        summary.update(
+            {
+                "method": "board PnP per image" + (" (fallback)" if settings.method != "pnp" else ""),
+                "registered": len(poses.images),
+                "unregistered": [k for k in keys if k not in poses.images],
+                "mean_reprojection_error_px": float(np.mean(list(errors.values()))),
+                "registration_residual_mm": None,
+                "per_image_pnp_px": errors,
+            }
+        )
     summary["board_reprojection_rms_px"] = board_reprojection_px(poses, detections, spec)
-    return finish(work, poses, summary, timings, "calibrated (fixed)" if fixed is not None else "estimated",
-                  [colmap_dir])
+    return finish(work, poses, summary, timings, "calibrated (fixed)" if fixed is not None else "estimated", [colmap_dir])
 
 
-def _register_by_board(reconstruction, registered: set, groups: dict, name_to_key: dict, detections: dict, spec,
-                       fixed, settings: Settings, colmap_dir: Path) -> tuple[Poses, set, dict]:
+def _register_by_board(
+    reconstruction,
+    registered: set,
+    groups: dict,
+    name_to_key: dict,
+    detections: dict,
+    spec,
+    fixed,
+    settings: Settings,
+    colmap_dir: Path,
+) -> tuple[Poses, set, dict]:
     """COLMAP's reconstruction in the object frame: the similarity from the board's triangulated
     corners (register_to_object), SfM poses that contradict the board by more than
     --max-board-disagreement-deg dropped, then (--board-bundle-adjustment) a bundle adjustment with
@@ -115,8 +136,10 @@ def _register_by_board(reconstruction, registered: set, groups: dict, name_to_ke
         if image.name in rejected:
             reconstruction.deregister_frame(image.frame_id)
     if rejected:
-        status(f"dropped {len(rejected)} SfM pose(s) that contradict the board: "
-               + ", ".join(f"{name_to_key[n]} ({d}°)" for n, d in rejected.items()))
+        status(
+            f"dropped {len(rejected)} SfM pose(s) that contradict the board: "
+            + ", ".join(f"{name_to_key[n]} ({d}°)" for n, d in rejected.items())
+        )
         registered = registered - {name_to_key[n] for n in rejected}
     if settings.board_bundle_adjustment:
         status("bundle adjustment with the board as known points")
@@ -125,20 +148,26 @@ def _register_by_board(reconstruction, registered: set, groups: dict, name_to_ke
         similarity = IDENTITY  # already in the object frame
     poses = poses_from_reconstruction(reconstruction, similarity, name_to_key, camera_names)
     reconstruction.write(colmap_dir / "sparse")  # the model that was used, at sparse/ top level
-    return poses, registered, {
-        "method": "colmap + board registration" + (" + board bundle adjustment"
-                                                   if settings.board_bundle_adjustment else ""),
-        "registered": len(registered),
-        "rejected_contradicting_board_deg": {name_to_key[n]: d for n, d in rejected.items()},
-        "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
-        "points3D": int(reconstruction.num_points3D()),
-        "registration_residual_mm": residual_mm,
-        "board_corners_used": int(inliers.sum()), "board_corners_triangulated": int(len(inliers)),
-        "board_bundle_adjustment": settings.board_bundle_adjustment}
+    return (
+        poses,
+        registered,
+        {
+            "method": "colmap + board registration" + (" + board bundle adjustment" if settings.board_bundle_adjustment else ""),
+            "registered": len(registered),
+            "rejected_contradicting_board_deg": {name_to_key[n]: d for n, d in rejected.items()},
+            "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
+            "points3D": int(reconstruction.num_points3D()),
+            "registration_residual_mm": residual_mm,
+            "board_corners_used": int(inliers.sum()),
+            "board_corners_triangulated": int(len(inliers)),
+            "board_bundle_adjustment": settings.board_bundle_adjustment,
+        },
+    )
 
 
-def triangulate_board(reconstruction, detections: dict[str, tuple[np.ndarray, np.ndarray]],
-                      pixel_threshold: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+def triangulate_board(
+    reconstruction, detections: dict[str, tuple[np.ndarray, np.ndarray]], pixel_threshold: float = 4.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Triangulate board corners seen in >= 2 registered images: ids (M,), COLMAP-frame points (M, 3).
 
     ``detections``: COLMAP image name -> (ids, COLMAP pixels).  pycolmap's LO-RANSAC triangulation
@@ -160,8 +189,9 @@ def triangulate_board(reconstruction, detections: dict[str, tuple[np.ndarray, np
             continue
         focal = float(np.mean([o[2].mean_focal_length() for o in obs]))
         options.ransac.max_error = pixel_threshold / focal
-        result = pycolmap.estimate_triangulation(np.array([o[0] for o in obs], float), [o[1] for o in obs],
-                                                 [o[2] for o in obs], options)
+        result = pycolmap.estimate_triangulation(
+            np.array([o[0] for o in obs], float), [o[1] for o in obs], [o[2] for o in obs], options
+        )
         if result is None or int(np.sum(result["inliers"])) < 2:
             continue
         out_ids.append(cid)
@@ -173,21 +203,25 @@ def register_to_object(reconstruction, detections, spec: BoardSpec, settings: Se
     """Similarity COLMAP -> object from triangulated board corners; (Similarity, inliers, residual_mm)."""
     ids, points = triangulate_board(reconstruction, detections)
     if len(ids) < 4:
-        raise UserError(f"the board was triangulated at only {len(ids)} corners (it must be seen in at least two "
-                        "registered photos); take more photos showing the board or pass --method pnp")
+        raise UserError(
+            f"the board was triangulated at only {len(ids)} corners (it must be seen in at least two "
+            "registered photos); take more photos showing the board or pass --method pnp"
+        )
     target = board_corners_object(spec)[ids]
     try:
-        result = ransac_similarity(points, target, settings.board_threshold_mm / 1000.0,
-                                   rng=np.random.default_rng(settings.seed), min_inliers=4)
+        result = ransac_similarity(
+            points, target, settings.board_threshold_mm / 1000.0, rng=np.random.default_rng(settings.seed), min_inliers=4
+        )
     except ValueError:
-        raise UserError(f"the {len(ids)} triangulated board corners do not fit the board of capture.toml within "
-                        f"{settings.board_threshold_mm} mm; check [board] squares, lengths and board_to_object") from None
+        raise UserError(
+            f"the {len(ids)} triangulated board corners do not fit the board of capture.toml within "
+            f"{settings.board_threshold_mm} mm; check [board] squares, lengths and board_to_object"
+        ) from None
     residual_mm = float(np.sqrt(np.mean(result.residuals[result.inliers] ** 2)) * 1000.0)
     return result.similarity, result.inliers, residual_mm
 
 
-def board_disagreement_deg(reconstruction, similarity: Similarity, detections: dict,
-                           spec: BoardSpec) -> dict[str, float]:
+def board_disagreement_deg(reconstruction, similarity: Similarity, detections: dict, spec: BoardSpec) -> dict[str, float]:
     """Per registered image with the board in view: angle (degrees) between its SfM rotation (carried
     into the object frame) and the rotation board PnP gives with the same intrinsics.
 
@@ -210,8 +244,7 @@ def board_disagreement_deg(reconstruction, similarity: Similarity, detections: d
     return out
 
 
-def refine_with_board(reconstruction, similarity: Similarity, detections: dict, spec: BoardSpec,
-                      fixed_intrinsics: bool):
+def refine_with_board(reconstruction, similarity: Similarity, detections: dict, spec: BoardSpec, fixed_intrinsics: bool):
     """Bundle adjustment in the object frame with the board's corners as known, constant 3D points.
 
     The registered model is carried into the object frame (``similarity``) and rebuilt with each
@@ -241,9 +274,10 @@ def refine_with_board(reconstruction, similarity: Similarity, detections: dict, 
         first_board_index[image_id] = len(keypoints)
         uv = detections.get(image.name, (None, np.zeros((0, 2))))[1]
         keypoints = np.array(keypoints + list(uv), float).reshape(-1, 2)
-        new.add_image_with_trivial_frame(pycolmap.Image(name=image.name, keypoints=keypoints,
-                                                        camera_id=image.camera_id, image_id=image_id),
-                                         image.cam_from_world())
+        new.add_image_with_trivial_frame(
+            pycolmap.Image(name=image.name, keypoints=keypoints, camera_id=image.camera_id, image_id=image_id),
+            image.cam_from_world(),
+        )
     for point in old.points3D.values():
         pid = new.add_point3D(point.xyz, pycolmap.Track(), point.color)
         for el in point.track.elements:
@@ -283,8 +317,7 @@ def board_reprojection_px(poses: Poses, detections_by_key: dict, spec: BoardSpec
     return float(np.sqrt(np.mean(np.concatenate(errors) ** 2))) if errors else float("nan")
 
 
-def _calibrate_from_board(detections: list[tuple[np.ndarray, np.ndarray]], spec: BoardSpec,
-                          size: tuple[int, int]) -> Camera:
+def _calibrate_from_board(detections: list[tuple[np.ndarray, np.ndarray]], spec: BoardSpec, size: tuple[int, int]) -> Camera:
     """SIMPLE_RADIAL intrinsics from the board seen in several views (Zhang's method, cv2)."""
     import cv2  # lazily: keeps `sigrend --help` fast
 
@@ -295,15 +328,22 @@ def _calibrate_from_board(detections: list[tuple[np.ndarray, np.ndarray]], spec:
             obj.append(board_pts[ids])
             img.append((uv - 0.5).astype(np.float32))  # COLMAP -> OpenCV pixel convention
     if len(obj) < 3:
-        raise UserError(f"the board is detected (>= {MIN_BOARD_CORNERS} corners) in only {len(obj)} photos; "
-                        "PnP without a calibrated camera needs 3 or more (or name a camera.json in capture.toml)")
+        raise UserError(
+            f"the board is detected (>= {MIN_BOARD_CORNERS} corners) in only {len(obj)} photos; "
+            "PnP without a calibrated camera needs 3 or more (or name a camera.json in capture.toml)"
+        )
     w, h = size
     K0 = np.array([[1.2 * max(w, h), 0, w / 2 - 0.5], [0, 1.2 * max(w, h), h / 2 - 0.5], [0, 0, 1]])
-    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_PRINCIPAL_POINT | cv2.CALIB_FIX_ASPECT_RATIO
-             | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3)
+    flags = (
+        cv2.CALIB_USE_INTRINSIC_GUESS
+        | cv2.CALIB_FIX_PRINCIPAL_POINT
+        | cv2.CALIB_FIX_ASPECT_RATIO
+        | cv2.CALIB_ZERO_TANGENT_DIST
+        | cv2.CALIB_FIX_K2
+        | cv2.CALIB_FIX_K3
+    )
     _, K, dist, _, _ = cv2.calibrateCamera(obj, img, (w, h), K0, np.zeros(5), flags=flags)
-    return Camera("SIMPLE_RADIAL", w, h, (float(K[0, 0]), float(K[0, 2]) + 0.5, float(K[1, 2]) + 0.5,
-                                          float(dist.ravel()[0])))
+    return Camera("SIMPLE_RADIAL", w, h, (float(K[0, 0]), float(K[0, 2]) + 0.5, float(K[1, 2]) + 0.5, float(dist.ravel()[0])))
 
 
 def pnp_pose(camera: Camera, ids: np.ndarray, uv: np.ndarray, spec: BoardSpec) -> tuple[np.ndarray, np.ndarray, float]:
@@ -328,14 +368,21 @@ def pnp_pose(camera: Camera, ids: np.ndarray, uv: np.ndarray, spec: BoardSpec) -
     return R, t, float(np.sqrt(np.mean(np.sum((proj - uv) ** 2, axis=1))))
 
 
-def pnp_poses(keys: list[str], groups: dict[str, str], detections_by_key: dict, spec: BoardSpec,
-              fixed: Camera | None, sizes: dict[str, tuple[int, int]]) -> tuple[Poses, dict]:
+def pnp_poses(
+    keys: list[str],
+    groups: dict[str, str],
+    detections_by_key: dict,
+    spec: BoardSpec,
+    fixed: Camera | None,
+    sizes: dict[str, tuple[int, int]],
+) -> tuple[Poses, dict]:
     """Per-image board PnP for every photo with enough corners; (Poses, per-image RMS px)."""
     poses, errors = Poses(), {}
     for group in sorted(set(groups.values())):
         members = [k for k in keys if groups[k] == group]
-        camera = fixed or _calibrate_from_board([detections_by_key[k] for k in members if k in detections_by_key],
-                                                spec, sizes[members[0]])
+        camera = fixed or _calibrate_from_board(
+            [detections_by_key[k] for k in members if k in detections_by_key], spec, sizes[members[0]]
+        )
         poses.cameras[group] = camera
         for key in members:
             ids, uv = detections_by_key.get(key, (np.zeros(0, int), None))

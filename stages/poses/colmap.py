@@ -46,8 +46,11 @@ def _camera_group_key(path: Path) -> tuple:
             with tifffile.TiffFile(path) as tif:
                 tags = {t.name: t.value for t in tif.pages[0].tags}
                 exif = tags.get("ExifTag", {}) or {}
-                return (str(tags.get("Make", "")), str(tags.get("Model", "")),
-                        str(exif.get("FocalLength", tags.get("FocalLength", ""))))
+                return (
+                    str(tags.get("Make", "")),
+                    str(tags.get("Model", "")),
+                    str(exif.get("FocalLength", tags.get("FocalLength", ""))),
+                )
         except Exception:  # not TIFF-based or unreadable tags: group by size only
             return ("raw",)
     import OpenImageIO as oiio  # lazily: keeps `sigrend --help` fast
@@ -57,8 +60,13 @@ def _camera_group_key(path: Path) -> tuple:
         raise UserError(f"{path}: cannot read this image ({oiio.geterror().strip()})")
     spec = inp.spec()
     inp.close()
-    return (str(spec.getattribute("Make") or ""), str(spec.getattribute("Model") or ""),
-            str(spec.getattribute("Exif:FocalLength") or ""), spec.width, spec.height)
+    return (
+        str(spec.getattribute("Make") or ""),
+        str(spec.getattribute("Model") or ""),
+        str(spec.getattribute("Exif:FocalLength") or ""),
+        spec.width,
+        spec.height,
+    )
 
 
 def tone_map(linear: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
@@ -88,8 +96,7 @@ def load_8bit(path: Path) -> np.ndarray:
 
         try:
             with rawpy.imread(str(path)) as raw:
-                rgb = raw.postprocess(use_camera_wb=True, output_bps=16, gamma=(1, 1),
-                                      no_auto_bright=True, user_flip=0)
+                rgb = raw.postprocess(use_camera_wb=True, output_bps=16, gamma=(1, 1), no_auto_bright=True, user_flip=0)
         except (rawpy.LibRawError, OSError) as exc:
             raise UserError(f"{path}: cannot decode this RAW file ({exc})") from None
         return tone_map(rgb.astype(np.float32) / 65535.0)
@@ -121,8 +128,9 @@ def colmap_name(group: str, key: str) -> str:
     return f"{group}/{key}.png"
 
 
-def colmap_copies(capture: Path, work: Path, keys: list[str], fixed: Camera | None, spec: BoardSpec | None,
-                  timings: dict) -> tuple[Path, dict, dict, dict, dict]:
+def colmap_copies(
+    capture: Path, work: Path, keys: list[str], fixed: Camera | None, spec: BoardSpec | None, timings: dict
+) -> tuple[Path, dict, dict, dict, dict]:
     """8-bit copies in WORK/colmap/images, one folder per physical camera, and the board detected on the
     same pixels when ``spec`` is given.  Returns (colmap folder, key -> camera group, COLMAP name -> key,
     key -> detection, key -> (width, height))."""
@@ -134,8 +142,7 @@ def colmap_copies(capture: Path, work: Path, keys: list[str], fixed: Camera | No
         shutil.rmtree(images_dir)
     images_dir.mkdir(parents=True)
     start = time.perf_counter()
-    group_of_key = {key: ("calibrated",) if fixed is not None else _camera_group_key(capture / "images" / key)
-                    for key in keys}
+    group_of_key = {key: ("calibrated",) if fixed is not None else _camera_group_key(capture / "images" / key) for key in keys}
     group_names = {g: f"cam{i}" for i, g in enumerate(dict.fromkeys(group_of_key.values()))}
     groups = {k: group_names[g] for k, g in group_of_key.items()}
     name_to_key, detections, sizes = {}, {}, {}
@@ -144,8 +151,10 @@ def colmap_copies(capture: Path, work: Path, keys: list[str], fixed: Camera | No
         rgb = load_8bit_for_colmap(capture, work, key)
         sizes[key] = (rgb.shape[1], rgb.shape[0])
         if fixed is not None and sizes[key] != (fixed.width, fixed.height):
-            raise UserError(f"{key}: photo is {sizes[key][0]}x{sizes[key][1]} but the calibrated camera is "
-                            f"{fixed.width}x{fixed.height}; use photos at the calibration resolution")
+            raise UserError(
+                f"{key}: photo is {sizes[key][0]}x{sizes[key][1]} but the calibrated camera is "
+                f"{fixed.width}x{fixed.height}; use photos at the calibration resolution"
+            )
         name = colmap_name(groups[key], key)
         (images_dir / name).parent.mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(images_dir / name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
@@ -185,8 +194,7 @@ def camera_from_pycolmap(cam) -> Camera:
     return Camera(cam.model.name, int(cam.width), int(cam.height), tuple(float(v) for v in cam.params))
 
 
-def run_colmap(colmap_dir: Path, names: list[str], settings: Settings, fixed: Camera | None,
-               timings: dict) -> object | None:
+def run_colmap(colmap_dir: Path, names: list[str], settings: Settings, fixed: Camera | None, timings: dict) -> object | None:
     """Features, matching and incremental mapping (hloc's steps, each timed into ``timings``);
     returns the largest pycolmap.Reconstruction or None."""
     import pycolmap  # lazily: keeps `sigrend --help` fast
@@ -198,8 +206,7 @@ def run_colmap(colmap_dir: Path, names: list[str], settings: Settings, fixed: Ca
     with colmap_output(log, settings.verbose):
         _extract_features(database, colmap_dir / "images", names, settings, fixed)
     timings["extraction"] = time.perf_counter() - start
-    exhaustive = settings.matcher == "exhaustive" or (settings.matcher == "auto"
-                                                       and len(names) <= settings.exhaustive_limit)
+    exhaustive = settings.matcher == "exhaustive" or (settings.matcher == "auto" and len(names) <= settings.exhaustive_limit)
     status(f"matching ({'exhaustive' if exhaustive else 'sequential'})")
     start = time.perf_counter()
     with colmap_output(log, settings.verbose):
@@ -213,8 +220,7 @@ def run_colmap(colmap_dir: Path, names: list[str], settings: Settings, fixed: Ca
     status("incremental mapping")
     start = time.perf_counter()
     with colmap_output(log, settings.verbose):
-        models = pycolmap.incremental_mapping(database, colmap_dir / "images", sparse,
-                                              options=_mapping_options(settings, fixed))
+        models = pycolmap.incremental_mapping(database, colmap_dir / "images", sparse, options=_mapping_options(settings, fixed))
     timings["mapping"] = time.perf_counter() - start
     if not models:
         return None
@@ -225,7 +231,7 @@ def run_colmap(colmap_dir: Path, names: list[str], settings: Settings, fixed: Ca
 def _fresh_colmap_folder(colmap_dir: Path) -> tuple[Path, Path, Path]:
     """An earlier run's database, sparse models and log removed -> (database.db, sparse/, colmap.log)."""
     database, sparse, log = colmap_dir / "database.db", colmap_dir / "sparse", colmap_dir / "colmap.log"
-    for stale in (database, Path(f"{database}-shm"), Path(f"{database}-wal"), log):   # this run's log only
+    for stale in (database, Path(f"{database}-shm"), Path(f"{database}-wal"), log):  # this run's log only
         stale.unlink(missing_ok=True)
     if sparse.exists():
         shutil.rmtree(sparse)
@@ -233,8 +239,7 @@ def _fresh_colmap_folder(colmap_dir: Path) -> tuple[Path, Path, Path]:
     return database, sparse, log
 
 
-def _extract_features(database: Path, image_dir: Path, names: list[str], settings: Settings,
-                      fixed: Camera | None) -> None:
+def _extract_features(database: Path, image_dir: Path, names: list[str], settings: Settings, fixed: Camera | None) -> None:
     """SIFT features into ``database``: one camera with the ``fixed`` intrinsics, else one per
     folder (EXIF group) of model ``settings.camera_model``."""
     import pycolmap  # lazily: keeps `sigrend --help` fast
@@ -253,8 +258,15 @@ def _extract_features(database: Path, image_dir: Path, names: list[str], setting
     # several extraction threads write the images into the database in the order they finish, so the image
     # ids -- and with them the mapper's choices -- change from run to run: one thread when runs must repeat
     extraction.num_threads = 1 if settings.mapper_threads == 1 else -1
-    pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=mode, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    pycolmap.extract_features(
+        database,
+        image_dir,
+        image_names=names,
+        camera_mode=mode,
+        reader_options=reader,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )
 
 
 def _match_features(database: Path, exhaustive: bool, seed: int) -> None:
@@ -319,8 +331,9 @@ def bundle_adjust(reconstruction, config, threads: int = 1) -> None:
     reconstruction.update_point_3d_errors()
 
 
-def poses_from_reconstruction(reconstruction, similarity: Similarity, name_to_key: dict[str, str],
-                              camera_names: dict[int, str]) -> Poses:
+def poses_from_reconstruction(
+    reconstruction, similarity: Similarity, name_to_key: dict[str, str], camera_names: dict[int, str]
+) -> Poses:
     """COLMAP's registered images with a photo (``name_to_key``), carried into the object frame, as DESIGN.md Poses."""
     poses = Poses()
     for cam_id, cam in reconstruction.cameras.items():

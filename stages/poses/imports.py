@@ -40,8 +40,10 @@ def pose_source(capture: Path, settings: Settings) -> tuple[str, Path | None]:
             return "colmap", path
         if path.is_file() and path.suffix.lower() == ".json":
             return ("poses.json", path) if path == capture_poses(capture) else ("transforms", path)
-        raise UserError(f"--poses-from {settings.poses_from}: {path} is neither a COLMAP model folder (with "
-                        "cameras.bin or cameras.txt) nor a transforms.json")
+        raise UserError(
+            f"--poses-from {settings.poses_from}: {path} is neither a COLMAP model folder (with "
+            "cameras.bin or cameras.txt) nor a transforms.json"
+        )
     if capture_poses(capture).exists():
         return "poses.json", capture_poses(capture)
     if (capture / "transforms.json").is_file():
@@ -90,22 +92,32 @@ def pass_through(capture: Path, work: Path, keys: list[str]) -> list[Path]:
     missing = [k for k in keys if k not in poses.images]
     if missing:
         shown = ", ".join(missing[:5]) + (f" and {len(missing) - 5} more" if len(missing) > 5 else "")
-        raise UserError(f"{source}: no pose for {len(missing)} of {len(keys)} photos ({shown}); add them or "
-                        "delete poses.json to estimate poses with COLMAP")
+        raise UserError(
+            f"{source}: no pose for {len(missing)} of {len(keys)} photos ({shown}); add them or "
+            "delete poses.json to estimate poses with COLMAP"
+        )
     extra = sorted(set(poses.images) - set(photo_names(capture)))
     if extra:
-        raise UserError(f"{source}: poses for photos that are not in images/ ({', '.join(extra[:5])}); "
-                        "fix the image keys (file names relative to images/)")
+        raise UserError(
+            f"{source}: poses for photos that are not in images/ ({', '.join(extra[:5])}); "
+            "fix the image keys (file names relative to images/)"
+        )
     for name, cam in poses.cameras.items():
         fx, fy, cx, cy = cam.focal_principal()
         if not (0 < cx < cam.width and 0 < cy < cam.height) or fy <= 0:
-            raise UserError(f"{source}: camera {name!r} has its principal point outside the image or a "
-                            "non-positive focal length; check the params order (COLMAP's)")
+            raise UserError(
+                f"{source}: camera {name!r} has its principal point outside the image or a "
+                "non-positive focal length; check the params order (COLMAP's)"
+            )
     out = Path(work) / "poses.json"
     with atomic_path(out) as tmp:
         shutil.copyfile(source, tmp)
-    summary = {"method": "capture poses.json (validated, copied unchanged)", "images": len(keys),
-               "registered": len(poses.images), "unregistered": []}
+    summary = {
+        "method": "capture poses.json (validated, copied unchanged)",
+        "images": len(keys),
+        "registered": len(poses.images),
+        "unregistered": [],
+    }
     return [out, write_summary(work, summary)]
 
 
@@ -117,15 +129,22 @@ def import_poses(capture: Path, work: Path, keys: list[str], kind: str, source: 
     unregistered = [k for k in keys if k not in posed]
     label = "COLMAP model" if kind == "colmap" else "transforms.json"
     if not enough(len(posed), keys, settings, minimum=1):
-        raise UserError(f"{source}: the {label} poses {len(posed)} of the {len(keys)} photos in images/ "
-                        f"(no pose: {named(unregistered)}); its image names must be the photos' file names")
-    summary: dict = {"method": f"imported {label} ({source.relative_to(capture)})", "images": len(keys),
-                     "registered": len(posed), "unregistered": unregistered,
-                     "imported_poses_without_photo": sorted(set(imported.poses.images) - set(name_to_key))}
+        raise UserError(
+            f"{source}: the {label} poses {len(posed)} of the {len(keys)} photos in images/ "
+            f"(no pose: {named(unregistered)}); its image names must be the photos' file names"
+        )
+    summary: dict = {
+        "method": f"imported {label} ({source.relative_to(capture)})",
+        "images": len(keys),
+        "registered": len(posed),
+        "unregistered": unregistered,
+        "imported_poses_without_photo": sorted(set(imported.poses.images) - set(name_to_key)),
+    }
     timings: dict[str, float] = {}
     start = time.perf_counter()
-    poses = Poses(cameras=dict(imported.poses.cameras),
-                  images={key: imported.poses.images[name] for name, key in name_to_key.items()})
+    poses = Poses(
+        cameras=dict(imported.poses.cameras), images={key: imported.poses.images[name] for name, key in name_to_key.items()}
+    )
     extra: list[Path] = []
     if settings.frame == "object":
         summary["frame"] = "taken as the object frame (--frame object)"
@@ -136,9 +155,17 @@ def import_poses(capture: Path, work: Path, keys: list[str], kind: str, source: 
         what = f"the {label}"
         if imported.reconstruction is not None:
             reconstruction = imported.reconstruction
-            summary.update(register_reconstruction(
-                reconstruction, surface, max_residual=settings.max_registration_residual, seed=settings.seed,
-                refine=settings.mesh_bundle_adjustment, fixed_intrinsics=False, what=what))
+            summary.update(
+                register_reconstruction(
+                    reconstruction,
+                    surface,
+                    max_residual=settings.max_registration_residual,
+                    seed=settings.seed,
+                    refine=settings.mesh_bundle_adjustment,
+                    fixed_intrinsics=False,
+                    what=what,
+                )
+            )
             camera_names = {cid: f"cam{cid}" for cid in reconstruction.cameras}
             poses = poses_from_reconstruction(reconstruction, IDENTITY, name_to_key, camera_names)
             (work / "colmap" / "sparse").mkdir(parents=True, exist_ok=True)
@@ -146,12 +173,14 @@ def import_poses(capture: Path, work: Path, keys: list[str], kind: str, source: 
             extra.append(work / "colmap")
         elif imported.points is not None:
             poses, registration = register_poses(
-                poses, imported.points, surface, max_residual=settings.max_registration_residual,
-                seed=settings.seed, what=what)
+                poses, imported.points, surface, max_residual=settings.max_registration_residual, seed=settings.seed, what=what
+            )
             summary.update(registration)
         else:
-            raise UserError(f"{source}: no 3D points to register these poses to the mesh (nerfstudio writes them as "
-                            "ply_file_path); pass --frame object if they are already in the mesh's frame and units")
+            raise UserError(
+                f"{source}: no 3D points to register these poses to the mesh (nerfstudio writes them as "
+                "ply_file_path); pass --frame object if they are already in the mesh's frame and units"
+            )
         summary["frame"] = "registered to the mesh"
     timings["import_and_registration"] = time.perf_counter() - start
     return finish(work, poses, summary, timings, f"from the {label}", extra)

@@ -53,12 +53,14 @@ def mesh_surface(mesh, count: int = SURFACE_SAMPLES, seed: int = 0) -> Surface:
     import trimesh  # lazily: keeps `sigrend --help` fast
 
     points, faces = trimesh.sample.sample_surface(mesh, count, seed=seed)
-    return Surface(np.asarray(points, float), np.asarray(mesh.face_normals[faces], float),
-                   float(np.linalg.norm(mesh.extents)), mesh)
+    return Surface(
+        np.asarray(points, float), np.asarray(mesh.face_normals[faces], float), float(np.linalg.norm(mesh.extents)), mesh
+    )
 
 
-def register_points(points: np.ndarray, centers: np.ndarray, axes: np.ndarray, surface: Surface, *,
-                    max_residual: float, seed: int, what: str) -> tuple[Similarity, dict]:
+def register_points(
+    points: np.ndarray, centers: np.ndarray, axes: np.ndarray, surface: Surface, *, max_residual: float, seed: int, what: str
+) -> tuple[Similarity, dict]:
     """Similarity from a reconstruction's frame to the mesh's, from its points and its cameras.
 
     ``points`` (N, 3) SfM points; ``centers``, ``axes`` (K, 3) camera centres and optical axes, all in
@@ -67,8 +69,10 @@ def register_points(points: np.ndarray, centers: np.ndarray, axes: np.ndarray, s
     Returns (similarity, summary entries).
     """
     if len(points) < 20:
-        raise UserError(f"{what} has only {len(points)} 3D points, too few to register it to the mesh; "
-                        "photograph a textured object with more overlap, or add a board ([board]) or poses")
+        raise UserError(
+            f"{what} has only {len(points)} 3D points, too few to register it to the mesh; "
+            "photograph a textured object with more overlap, or add a board ([board]) or poses"
+        )
     center = viewing_center(centers, axes)
     reach = NEAR_FRACTION * float(np.median(np.linalg.norm(centers - center, axis=1)))
     near = np.linalg.norm(points - center, axis=1) < reach
@@ -76,12 +80,16 @@ def register_points(points: np.ndarray, centers: np.ndarray, axes: np.ndarray, s
     try:
         result = register_to_surface(points, surface.points, surface.normals, center=center, scale=guess, seed=seed)
     except ValueError:
-        raise UserError(f"{what}'s points match the mesh at no scale or rotation tried; check that the mesh is this "
-                        "object, or add a board ([board]) or poses") from None
+        raise UserError(
+            f"{what}'s points match the mesh at no scale or rotation tried; check that the mesh is this "
+            "object, or add a board ([board]) or poses"
+        ) from None
     if result.ambiguous_deg > 0:
-        raise UserError(f"the mesh's shape does not fix the cameras' rotation: poses {result.ambiguous_deg:.0f}° "
-                        "apart fit the SfM points equally well (a sphere, a cylinder or a symmetric object); "
-                        "add a ChArUco board ([board] in capture.toml) or the capture's poses.json")
+        raise UserError(
+            f"the mesh's shape does not fix the cameras' rotation: poses {result.ambiguous_deg:.0f}° "
+            "apart fit the SfM points equally well (a sphere, a cylinder or a symmetric object); "
+            "add a ChArUco board ([board] in capture.toml) or the capture's poses.json"
+        )
     relative = result.rms / surface.size
     summary = {
         "registration": "SfM points to the mesh (global rotation search + robust point-to-plane ICP)",
@@ -94,12 +102,16 @@ def register_points(points: np.ndarray, centers: np.ndarray, axes: np.ndarray, s
         "mesh_size": surface.size,
     }
     if relative > max_residual:
-        raise UserError(f"{what}'s points do not fit the mesh: RMS {1000 * result.rms:.3g} mm = "
-                        f"{100 * relative:.2g}% of its size (limit --max-registration-residual {max_residual:g}); "
-                        "check that the mesh is this object, or add a board or poses")
+        raise UserError(
+            f"{what}'s points do not fit the mesh: RMS {1000 * result.rms:.3g} mm = "
+            f"{100 * relative:.2g}% of its size (limit --max-registration-residual {max_residual:g}); "
+            "check that the mesh is this object, or add a board or poses"
+        )
     if result.inliers.mean() < 0.3:
-        raise UserError(f"only {result.inliers.mean():.0%} of {what}'s points lie on the mesh; the photos show "
-                        "mostly something else (the table, the room): frame the object, or add a board or poses")
+        raise UserError(
+            f"only {result.inliers.mean():.0%} of {what}'s points lie on the mesh; the photos show "
+            "mostly something else (the table, the room): frame the object, or add a board or poses"
+        )
     return result.similarity, summary
 
 
@@ -115,8 +127,17 @@ def reconstruction_geometry(reconstruction) -> tuple[np.ndarray, np.ndarray, np.
     return reconstruction_points(reconstruction), np.array(centers).reshape(-1, 3), np.array(axes).reshape(-1, 3)
 
 
-def register_reconstruction(reconstruction, surface: Surface, *, max_residual: float, seed: int, refine: bool,
-                            fixed_intrinsics: bool, what: str, names: dict[str, str] | None = None) -> dict:
+def register_reconstruction(
+    reconstruction,
+    surface: Surface,
+    *,
+    max_residual: float,
+    seed: int,
+    refine: bool,
+    fixed_intrinsics: bool,
+    what: str,
+    names: dict[str, str] | None = None,
+) -> dict:
     """Carry a pycolmap.Reconstruction into the mesh's frame in place; drop the cameras that cannot see
     their own points on the mesh (``drop_hidden_cameras``, before and after the refinement); with
     ``refine``, bundle-adjust it with its points on the mesh held fixed.  ``names``: COLMAP image name ->
@@ -124,8 +145,7 @@ def register_reconstruction(reconstruction, surface: Surface, *, max_residual: f
     import pycolmap  # lazily: keeps `sigrend --help` fast
 
     points, centers, axes = reconstruction_geometry(reconstruction)
-    similarity, summary = register_points(points, centers, axes, surface, max_residual=max_residual, seed=seed,
-                                          what=what)
+    similarity, summary = register_points(points, centers, axes, surface, max_residual=max_residual, seed=seed, what=what)
     reconstruction.transform(pycolmap.Sim3d(similarity.scale, pycolmap.Rotation3d(similarity.R), similarity.t))
     tolerance = VISIBILITY_TOLERANCE * surface.size
     dropped = drop_hidden_cameras(reconstruction, surface, tolerance, names or {})
@@ -186,8 +206,10 @@ def drop_hidden_cameras(reconstruction, surface: Surface, tolerance: float, name
             dropped[names.get(image.name, image.name)] = round(fraction, 3)
             reconstruction.deregister_frame(image.frame_id)
     if dropped:
-        status(f"dropped {len(dropped)} camera(s) that do not see their own SfM points on the mesh (registered in a "
-               "wrong place): " + ", ".join(f"{n} ({100 * f:.0f}% visible)" for n, f in dropped.items()))
+        status(
+            f"dropped {len(dropped)} camera(s) that do not see their own SfM points on the mesh (registered in a "
+            "wrong place): " + ", ".join(f"{n} ({100 * f:.0f}% visible)" for n, f in dropped.items())
+        )
     return dropped
 
 
@@ -221,8 +243,7 @@ def register_poses(poses, points: np.ndarray, surface: Surface, *, max_residual:
     """Poses (DESIGN.md Poses, any frame) and their frame's points -> the same poses in the mesh's frame."""
     centers = np.array([camera_center(p.R, p.t) for p in poses.images.values()])
     axes = np.array([p.R[2] for p in poses.images.values()])
-    similarity, summary = register_points(points, centers, axes, surface, max_residual=max_residual, seed=seed,
-                                          what=what)
+    similarity, summary = register_points(points, centers, axes, surface, max_residual=max_residual, seed=seed, what=what)
     out = Poses(cameras=dict(poses.cameras))
     for key, pose in poses.images.items():
         R, t = transform_pose(similarity, pose.R, pose.t)
@@ -233,60 +254,81 @@ def register_poses(poses, points: np.ndarray, surface: Surface, *, max_residual:
 def units_note(surface: Surface) -> str | None:
     """A status line when the mesh's size suggests it is not in metres (DESIGN.md's unit)."""
     if surface.size < 0.01:
-        return (f"the mesh is {1000 * surface.size:.3g} mm across: poses come out in the mesh's units; "
-                "if it is not in metres (DESIGN.md), scale it to metres")
+        return (
+            f"the mesh is {1000 * surface.size:.3g} mm across: poses come out in the mesh's units; "
+            "if it is not in metres (DESIGN.md), scale it to metres"
+        )
     if surface.size > 100:
-        return (f"the mesh is {surface.size:.3g} m across: if it is in millimetres or centimetres, "
-                "scale it to metres (x 0.001 or x 0.01)")
+        return (
+            f"the mesh is {surface.size:.3g} m across: if it is in millimetres or centimetres, "
+            "scale it to metres (x 0.001 or x 0.01)"
+        )
     return None
 
 
 def sfm_on_mesh(capture: Path, work: Path, keys: list[str], config: CaptureConfig, settings: Settings) -> list[Path]:
     """No board: COLMAP here, its frame registered to the capture's mesh (register_reconstruction above)."""
     if not any((capture / name).exists() for name in MESH_NAMES):  # before COLMAP: fail at once
-        raise UserError(f"{capture}: no poses (poses.json, transforms.json, a COLMAP model), no [board] in capture.toml "
-                        "and no mesh to register COLMAP's reconstruction to; put the object's mesh in the capture "
-                        f"({' or '.join(MESH_NAMES)}) or add the ChArUco board's [board] section")
+        raise UserError(
+            f"{capture}: no poses (poses.json, transforms.json, a COLMAP model), no [board] in capture.toml "
+            "and no mesh to register COLMAP's reconstruction to; put the object's mesh in the capture "
+            f"({' or '.join(MESH_NAMES)}) or add the ChArUco board's [board] section"
+        )
     mesh_file = mesh_path(capture)
     fixed = calibrated_camera(config)
     work.mkdir(parents=True, exist_ok=True)
     timings: dict[str, float] = {}
     colmap_dir, groups, name_to_key, _, _ = colmap_copies(capture, work, keys, fixed, None, timings)
     reconstruction = run_colmap(colmap_dir, [colmap_name(groups[k], k) for k in keys], settings, fixed, timings)
-    registered = set() if reconstruction is None else {
-        name_to_key[im.name] for im in reconstruction.images.values() if im.has_pose}
+    registered = (
+        set() if reconstruction is None else {name_to_key[im.name] for im in reconstruction.images.values() if im.has_pose}
+    )
     unregistered = [k for k in keys if k not in registered]
     if not enough(len(registered), keys, settings):
-        why = ("its photos do not overlap (no image pair shares enough features)" if reconstruction is None
-               else f"it registered only {len(registered)} of {len(keys)} photos (unregistered: {named(unregistered)})")
-        raise UserError(f"COLMAP could not build the capture: {why}; without a board every pose comes from SfM: take "
-                        "overlapping photos of a textured object, or add a board ([board]) or poses.json; see "
-                        f"{colmap_dir / 'colmap.log'}")
+        why = (
+            "its photos do not overlap (no image pair shares enough features)"
+            if reconstruction is None
+            else f"it registered only {len(registered)} of {len(keys)} photos (unregistered: {named(unregistered)})"
+        )
+        raise UserError(
+            f"COLMAP could not build the capture: {why}; without a board every pose comes from SfM: take "
+            "overlapping photos of a textured object, or add a board ([board]) or poses.json; see "
+            f"{colmap_dir / 'colmap.log'}"
+        )
     start = time.perf_counter()
     surface = mesh_surface(read_mesh(mesh_file), seed=settings.seed)
     if (note := units_note(surface)) is not None:
         status(note)
     status(f"registering {reconstruction.num_points3D()} SfM points to the mesh")
     registration = register_reconstruction(
-        reconstruction, surface, max_residual=settings.max_registration_residual, seed=settings.seed,
-        refine=settings.mesh_bundle_adjustment, fixed_intrinsics=fixed is not None, what="the COLMAP reconstruction",
-        names=name_to_key)
+        reconstruction,
+        surface,
+        max_residual=settings.max_registration_residual,
+        seed=settings.seed,
+        refine=settings.mesh_bundle_adjustment,
+        fixed_intrinsics=fixed is not None,
+        what="the COLMAP reconstruction",
+        names=name_to_key,
+    )
     registered = {name_to_key[im.name] for im in reconstruction.images.values() if im.has_pose}
     unregistered = [k for k in keys if k not in registered]
     if not enough(len(registered), keys, settings):
-        raise UserError(f"only {len(registered)} of {len(keys)} photos keep a pose that agrees with the mesh "
-                        f"(dropped: {named(list(registration['dropped_cameras_visible_fraction']))}); take overlapping "
-                        "photos of a textured object, or add a board ([board]) or poses.json")
+        raise UserError(
+            f"only {len(registered)} of {len(keys)} photos keep a pose that agrees with the mesh "
+            f"(dropped: {named(list(registration['dropped_cameras_visible_fraction']))}); take overlapping "
+            "photos of a textured object, or add a board ([board]) or poses.json"
+        )
     camera_names = {im.camera_id: groups[name_to_key[im.name]] for im in reconstruction.images.values()}
     poses = poses_from_reconstruction(reconstruction, IDENTITY, name_to_key, camera_names)
     timings["registration"] = time.perf_counter() - start
     reconstruction.write(colmap_dir / "sparse")  # the model that was used, in the object frame
     summary = {
-        "method": "colmap + registration to the mesh" + (" + mesh bundle adjustment"
-                                                         if settings.mesh_bundle_adjustment else ""),
-        "images": len(keys), "registered": len(registered), "unregistered": unregistered,
+        "method": "colmap + registration to the mesh" + (" + mesh bundle adjustment" if settings.mesh_bundle_adjustment else ""),
+        "images": len(keys),
+        "registered": len(registered),
+        "unregistered": unregistered,
         "mean_reprojection_error_px": float(reconstruction.compute_mean_reprojection_error()),
-        "points3D": int(reconstruction.num_points3D()), **registration,
+        "points3D": int(reconstruction.num_points3D()),
+        **registration,
     }
-    return finish(work, poses, summary, timings, "calibrated (fixed)" if fixed is not None else "estimated",
-                  [colmap_dir])
+    return finish(work, poses, summary, timings, "calibrated (fixed)" if fixed is not None else "estimated", [colmap_dir])

@@ -24,8 +24,7 @@ def pose_keys(capture: Path, work: Path) -> list[str]:
     says which files were merged when it exists, else capture.toml's [brackets]."""
     files = photo_names(capture)
     if manifest_path(work).exists():
-        firsts = {entry["sources"][0]["file"] for entry in read_manifest(work)["images"].values()
-                  if entry.get("sources")}
+        firsts = {entry["sources"][0]["file"] for entry in read_manifest(work)["images"].values() if entry.get("sources")}
         members = {s["file"] for entry in read_manifest(work)["images"].values() for s in entry.get("sources", [])}
         return [f for f in files if f in firsts or f not in members]
     skipped = {m for group in read_capture_config(capture).brackets.values() for m in group[1:]}

@@ -35,8 +35,9 @@ def write_summary(work: Path, summary: dict) -> Path:
 
 def finish(work: Path, poses: Poses, summary: dict, timings: dict, intrinsics: str, extra: list[Path]) -> list[Path]:
     """Write poses.json and poses_summary.json (cameras, intrinsics, seconds added); the stage's outputs."""
-    summary["cameras"] = {n: {"model": c.model, "width": c.width, "height": c.height, "params": list(c.params)}
-                          for n, c in poses.cameras.items()}
+    summary["cameras"] = {
+        n: {"model": c.model, "width": c.width, "height": c.height, "params": list(c.params)} for n, c in poses.cameras.items()
+    }
     summary["intrinsics"] = intrinsics
     summary["seconds"] = {k: round(v, 3) for k, v in timings.items()}
     out = write_poses(work / "poses.json", poses)

@@ -17,9 +17,10 @@ renderer's machinery (pipeline.core.render.Renderer.shade): the lighting as an e
 SH lighting is synthesized to a map, pipeline.core.sh.envmap_from_sh, its negative lobes kept as
 negative radiance), split into directions with exact solid angles, the full BRDF (a principled
 material's GGX lobe by bright-pixel pairs and filtered importance sampling, pipeline.core.material;
-the seed's models by pipeline.core.brdf), interreflection, and per-vertex shadow rays (self-shadowing; under a given --env, from the capture's own views, also the capture's
-board from capture.toml as an occluder, as in the photos; new views leave it out unless --board on).  Lobes sharper than the direction cells are
-taken from the frequency path (AngularLighting):
+the seed's models by pipeline.core.brdf), interreflection, and per-vertex shadow rays
+(self-shadowing; under a given --env, from the capture's own views, also the capture's board from
+capture.toml as an occluder, as in the photos; new views leave it out unless --board on).  Lobes
+sharper than the direction cells are taken from the frequency path (AngularLighting):
   B(x, w_o) = sum_j L_j dω_j V(x, w_j) f_r(w_j, w_o) max(0, n . w_j)
 
 ``frequency``: the frequency-space forward model (R&H 2001) of the fit, fast, no shadows:
@@ -74,16 +75,27 @@ from stages.relight.views import (
     view_stem,
 )
 
-__all__ = ["AngularLighting", "Settings", "View", "ViewChoice", "add_arguments", "inputs", "outputs", "parse_views",
-           "prepare_lighting", "resolve_views", "run", "vertex_albedo"]
+__all__ = [
+    "AngularLighting",
+    "Settings",
+    "View",
+    "ViewChoice",
+    "add_arguments",
+    "inputs",
+    "outputs",
+    "parse_views",
+    "prepare_lighting",
+    "resolve_views",
+    "run",
+    "vertex_albedo",
+]
 
 
 def add_arguments(parser) -> None:
     """Extra CLI option for ``sigrend relight`` (see pipeline.runner.stage_command): ``-o`` = ``--out-dir``."""
     import argparse
 
-    parser.add_argument("-o", dest="out_dir", metavar="DIR", default=argparse.SUPPRESS,
-                        help="output folder (same as --out-dir)")
+    parser.add_argument("-o", dest="out_dir", metavar="DIR", default=argparse.SUPPRESS, help="output folder (same as --out-dir)")
 
 
 def _view_outputs(folder: Path, key: str, compare: bool) -> list[Path]:
@@ -95,7 +107,7 @@ def _view_outputs(folder: Path, key: str, compare: bool) -> list[Path]:
 
 
 def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
-    light = lighting_of(work, settings).path        # None: a procedural map (its spec is in the settings)
+    light = lighting_of(work, settings).path  # None: a procedural map (its spec is in the settings)
     paths = [*([light] if light else []), Path(work) / "fit" / "brdf.json", Path(work) / "fit" / "albedo.ply"]
     if board_occludes(work, settings):
         paths.append(Path(capture) / "capture.toml")  # the board occluder
@@ -107,7 +119,7 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     try:
         source, source_work = photo_source(capture, work, settings)
     except UserError:
-        return paths     # --compare-with not ready: run() says so
+        return paths  # --compare-with not ready: run() says so
     if settings.compare_with and not settings.env:
         try:
             paths += [light.path for light in read_capture_config(source).lighting.values() if light.path]
@@ -122,8 +134,11 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         if compares(settings):
             try:
                 manifest = linear_manifest(source_work)
-                paths += [image_source(source, source_work, v.key, manifest)
-                          for v in resolve_views(capture=source, work=source_work, settings=settings) if v.has_photo]
+                paths += [
+                    image_source(source, source_work, v.key, manifest)
+                    for v in resolve_views(capture=source, work=source_work, settings=settings)
+                    if v.has_photo
+                ]
             except (UserError, KeyError):
                 pass
     return paths
@@ -148,8 +163,10 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     if not brdf_path.exists():
         raise UserError(f"{brdf_path}: no fitted BRDF; run `sigrend fit` first")
     if light_path.path is not None and not light_path.path.exists():
-        raise UserError(f"{light_path.path}: lighting not found; give --env NEW.exr|lighting_sh.json|sun+sky (a "
-                        "procedural map: `sigrend env make --help`) or run `sigrend fit`")
+        raise UserError(
+            f"{light_path.path}: lighting not found; give --env NEW.exr|lighting_sh.json|sun+sky (a "
+            "procedural map: `sigrend env make --help`) or run `sigrend fit`"
+        )
     brdf = read_brdf(brdf_path)
     mesh = read_mesh(mesh_path(capture))
     views = resolve_views(capture=source, work=source_work, settings=settings, mesh=mesh)
@@ -157,12 +174,21 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     vertex_colors = vertex_albedo(work, mesh) if materials is None else materials[1]
     texture = albedo_texture(work, mesh) if materials is None else None
     lights = view_lights(source, views) if settings.compare_with and not settings.env else {}
-    scene_mesh = ray_mesh(mesh)     # one intersector for the camera rays and every lighting's renderer
+    scene_mesh = ray_mesh(mesh)  # one intersector for the camera rays and every lighting's renderer
 
     def lighting_for(light):
         def prepared(material: Brdf):
-            return prepare_lighting(light, material, scene_mesh, settings, capture=source, vertex_colors=vertex_colors,
-                                    albedo_texture=texture, with_board=board_occludes(work, settings))
+            return prepare_lighting(
+                light,
+                material,
+                scene_mesh,
+                settings,
+                capture=source,
+                vertex_colors=vertex_colors,
+                albedo_texture=texture,
+                with_board=board_occludes(work, settings),
+            )
+
         if materials is None:
             return prepared(brdf)
         return MaterialLightings([prepared(m) for m in materials[0]], materials[2])
@@ -171,19 +197,36 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     folder = out_folder(work, settings)
     make_folder(folder, "-o")
     photos = PhotoSource(source, source_work, linear_manifest(source_work)) if compares(settings) else None
-    written, shot = render_views(views, mesh, scene_mesh.rays, {v.key: lightings[lights.get(v.key, light_path)]
-                                                               for v in views}, brdf.diffuse_color, vertex_colors,
-                                 settings, folder, photos)
+    written, shot = render_views(
+        views,
+        mesh,
+        scene_mesh.rays,
+        {v.key: lightings[lights.get(v.key, light_path)] for v in views},
+        brdf.diffuse_color,
+        vertex_colors,
+        settings,
+        folder,
+        photos,
+    )
     described = [lighting.describe() for lighting in lightings.values()]
-    summary = {"views": [v.key for v in views], "method": settings.method,
-               "lighting": described[0] if len(described) == 1 else described, "brdf": brdf.to_dict(),
-               "size": settings.size or "native", "out_dir": str(folder)}
+    summary = {
+        "views": [v.key for v in views],
+        "method": settings.method,
+        "lighting": described[0] if len(described) == 1 else described,
+        "brdf": brdf.to_dict(),
+        "size": settings.size or "native",
+        "out_dir": str(folder),
+    }
     if settings.compare_with:
-        summary["compare_with"] = {"capture": str(source), "work": str(source_work),
-                                   "lighting": "--env" if settings.env else f"{source / 'capture.toml'} [lighting]"}
+        summary["compare_with"] = {
+            "capture": str(source),
+            "work": str(source_work),
+            "lighting": "--env" if settings.env else f"{source / 'capture.toml'} [lighting]",
+        }
     if shot.renders:
-        summary["compare"] = compare_views(shot.renders, shot.photos, shot.masks,
-                                           uses_fitted_lighting(work, settings) and not settings.compare_with)
+        summary["compare"] = compare_views(
+            shot.renders, shot.photos, shot.masks, uses_fitted_lighting(work, settings) and not settings.compare_with
+        )
         written += write_error_maps(folder, shot, summary["compare"])
     written.append(write_json(folder / "relight.json", summary))
     return written

@@ -11,7 +11,7 @@ from pipeline.io.images import write_image, write_preview
 from stages.relight.render import Shot
 from stages.relight.views import view_stem
 
-ERROR_MAP_RANGE = 0.2      # error maps: relative error 0 .. 20% spans the colour map
+ERROR_MAP_RANGE = 0.2  # error maps: relative error 0 .. 20% spans the colour map
 
 
 def error_map_image(rel_error: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -22,8 +22,9 @@ def error_map_image(rel_error: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.where(mask[..., None], colours, 0.0)
 
 
-def compare_views(rendered: dict[str, np.ndarray], photos: dict[str, np.ndarray], masks: dict[str, np.ndarray],
-                  fit_scale: bool) -> dict:
+def compare_views(
+    rendered: dict[str, np.ndarray], photos: dict[str, np.ndarray], masks: dict[str, np.ndarray], fit_scale: bool
+) -> dict:
     """Relative RMS errors ||s R - P|| / ||P|| per view and over all, on interior object pixels, and
     beside them what the photos' own noise makes of it (pipeline.core.image_metrics.ErrorSums):
     the noise floor (the error an exact model would show, from the noise level measured on these
@@ -43,13 +44,22 @@ def compare_views(rendered: dict[str, np.ndarray], photos: dict[str, np.ndarray]
     scale = num / den if fit_scale and den > 0 else 1.0
     a, b = image_noise_level([photos[k] for k in rendered], [masks[k] for k in rendered])
     sums = {key: error_sums(scale * img[..., :3], photos[key], masks[key], a, b) for key, img in rendered.items()}
-    return {"scale": scale, "scale_fitted": bool(fit_scale), **total_figures(list(sums.values())),
-            "views": {key: s.figures() for key, s in sums.items()}, "block": BLOCK,
-            "photo_noise": {"a": a, "b": b, "model": "sigma^2 = a + b B per channel, B the pixel's channel-mean value, "
-                                                    "measured on the compared pixels (pipeline.core.noise)"},
-            "metric": "relative RMS error sqrt(sum |s R - P|^2 / sum |P|^2) over interior object pixels; noise_floor: "
-                      "sqrt(sum sigma^2 / sum |P|^2), what the photos' noise alone gives; block_*: the same on "
-                      f"{BLOCK} x {BLOCK} block means of the blocks fully inside (noise variance / {BLOCK * BLOCK})"}
+    return {
+        "scale": scale,
+        "scale_fitted": bool(fit_scale),
+        **total_figures(list(sums.values())),
+        "views": {key: s.figures() for key, s in sums.items()},
+        "block": BLOCK,
+        "photo_noise": {
+            "a": a,
+            "b": b,
+            "model": "sigma^2 = a + b B per channel, B the pixel's channel-mean value, "
+            "measured on the compared pixels (pipeline.core.noise)",
+        },
+        "metric": "relative RMS error sqrt(sum |s R - P|^2 / sum |P|^2) over interior object pixels; noise_floor: "
+        "sqrt(sum sigma^2 / sum |P|^2), what the photos' noise alone gives; block_*: the same on "
+        f"{BLOCK} x {BLOCK} block means of the blocks fully inside (noise variance / {BLOCK * BLOCK})",
+    }
 
 
 def write_error_maps(folder: Path, shot: Shot, result: dict) -> list[Path]:

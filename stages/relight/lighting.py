@@ -57,11 +57,28 @@ class AngularLighting:
     are the easy case) without its shadows, and the renderer does the diffuse part with shadows.
     """
 
-    def __init__(self, brdf: Brdf, mesh, *, coeffs: np.ndarray | None = None, env: np.ndarray | None = None,
-                 env_height: int = 64, cell_height: int = 32, shadows: bool = True, vertex_albedo=None,
-                 albedo_texture=None, board=None, source: str = "", lobe_sh_order: int = 24, prefilter_height: int = 128,
-                 clamp_sh: bool = False, bounces: int = 8, bounce_samples: int = 64, lobe_samples: int = 64,
-                 sources: tuple | None = None):
+    def __init__(
+        self,
+        brdf: Brdf,
+        mesh,
+        *,
+        coeffs: np.ndarray | None = None,
+        env: np.ndarray | None = None,
+        env_height: int = 64,
+        cell_height: int = 32,
+        shadows: bool = True,
+        vertex_albedo=None,
+        albedo_texture=None,
+        board=None,
+        source: str = "",
+        lobe_sh_order: int = 24,
+        prefilter_height: int = 128,
+        clamp_sh: bool = False,
+        bounces: int = 8,
+        bounce_samples: int = 64,
+        lobe_samples: int = 64,
+        sources: tuple | None = None,
+    ):
         from pipeline.core.render import Renderer
 
         self.source = source
@@ -69,8 +86,14 @@ class AngularLighting:
         self.sharp_lobe = self.lobe_order > cell_height
         self.lobe: Lighting | None = None
         if self.sharp_lobe:
-            self.lobe = Lighting(replace(brdf, albedo=(0.0, 0.0, 0.0)), coeffs=coeffs, env=env,
-                                 lobe_sh_order=lobe_sh_order, prefilter_height=prefilter_height, source=source)
+            self.lobe = Lighting(
+                replace(brdf, albedo=(0.0, 0.0, 0.0)),
+                coeffs=coeffs,
+                env=env,
+                lobe_sh_order=lobe_sh_order,
+                prefilter_height=prefilter_height,
+                source=source,
+            )
             brdf = Brdf("lambert", albedo=brdf.albedo)
         if coeffs is not None:
             env = envmap_from_sh(np.asarray(coeffs, float), env_height)
@@ -84,10 +107,18 @@ class AngularLighting:
             self.kind, self.order, self.signed = "envmap", None, False
         self.shadows = bool(shadows)
         self.board = board is not None and self.shadows
-        options = dict(shadows=self.shadows, vertex_albedo=vertex_albedo, albedo_texture=albedo_texture, board=board if self.shadows else None,
-                       cell_height=cell_height, interreflection=bounces > 0, max_bounces=max(bounces, 1),
-                       bounce_samples=bounce_samples, lobe_samples=lobe_samples,
-                       bright_block=bright_block(brdf, env.shape[0], cell_height))
+        options = dict(
+            shadows=self.shadows,
+            vertex_albedo=vertex_albedo,
+            albedo_texture=albedo_texture,
+            board=board if self.shadows else None,
+            cell_height=cell_height,
+            interreflection=bounces > 0,
+            max_bounces=max(bounces, 1),
+            bounce_samples=bounce_samples,
+            lobe_samples=lobe_samples,
+            bright_block=bright_block(brdf, env.shape[0], cell_height),
+        )
         mesh = ray_mesh(mesh)
         self.renderer = Renderer(mesh, env, brdf, **options)
 
@@ -95,15 +126,20 @@ class AngularLighting:
     def from_argument(cls, light: LightingArgument, brdf: Brdf, mesh, **kwargs) -> "AngularLighting":
         """A lighting_sh.json, an equirect map file or a procedural map (pipeline.io.lighting)."""
         if light.kind == "sh":
-            coeffs, dirs, power = read_lighting_parts(light.path)   # the sources' SH projection taken out
+            coeffs, dirs, power = read_lighting_parts(light.path)  # the sources' SH projection taken out
             return cls(brdf, mesh, coeffs=coeffs, sources=(dirs, power), source=light.text, **kwargs)
         return cls(brdf, mesh, env=light.envmap(), source=light.text, **kwargs)
 
     @classmethod
     def from_directional_light(cls, light: KnownLight, brdf: Brdf, mesh, **kwargs) -> "AngularLighting":
         """A directional light of capture.toml [lighting], drawn into a map (io.lighting.known_light_map)."""
-        return cls(brdf, mesh, env=known_light_map(light), source=f"directional light {light.direction} "
-                   f"intensity {light.intensity}", **kwargs)
+        return cls(
+            brdf,
+            mesh,
+            env=known_light_map(light),
+            source=f"directional light {light.direction} intensity {light.intensity}",
+            **kwargs,
+        )
 
     def prepare(self) -> "AngularLighting":
         """Shared caches computed up front, so that shade_hits may run in threads (Renderer.prepare)."""
@@ -111,12 +147,20 @@ class AngularLighting:
         return self
 
     def describe(self) -> dict:
-        return {"path": self.source, "kind": self.kind, "sh_order": self.order, "method": "angular",
-                "map_height": int(self.renderer.env.shape[0]), "directions": len(self.renderer.lights),
-                "shadows": self.shadows, "board_occludes": self.board, "lobe_bands": self.lobe_order,
-                "interreflection": self.renderer.interreflection and self.shadows,
-                "negative_lobes": "kept (signed map)" if self.signed else "clamped",
-                "lobe": self._lobe_method()}
+        return {
+            "path": self.source,
+            "kind": self.kind,
+            "sh_order": self.order,
+            "method": "angular",
+            "map_height": int(self.renderer.env.shape[0]),
+            "directions": len(self.renderer.lights),
+            "shadows": self.shadows,
+            "board_occludes": self.board,
+            "lobe_bands": self.lobe_order,
+            "interreflection": self.renderer.interreflection and self.shadows,
+            "negative_lobes": "kept (signed map)" if self.signed else "clamped",
+            "lobe": self._lobe_method(),
+        }
 
     def _lobe_method(self) -> str:
         if self.renderer.material is not None:
@@ -125,8 +169,9 @@ class AngularLighting:
             return "none"
         return "frequency path (sharper than the cells), unshadowed" if self.sharp_lobe else "angular"
 
-    def shade_hits(self, tri: np.ndarray, bary: np.ndarray, normal: np.ndarray, view_dir: np.ndarray,
-                   albedo: np.ndarray) -> np.ndarray:
+    def shade_hits(
+        self, tri: np.ndarray, bary: np.ndarray, normal: np.ndarray, view_dir: np.ndarray, albedo: np.ndarray
+    ) -> np.ndarray:
         """Radiance (N, 3) at ray hits; the renderer interpolates normals and albedo itself."""
         out = self.renderer.shade(tri, bary, view_dir)
         if self.lobe is not None:
@@ -151,8 +196,9 @@ class MaterialLightings:
     def describe(self) -> dict:
         return {**self.lightings[0].describe(), "materials": len(self.lightings)}
 
-    def shade_hits(self, tri: np.ndarray, bary: np.ndarray, normal: np.ndarray, view_dir: np.ndarray,
-                   albedo: np.ndarray) -> np.ndarray:
+    def shade_hits(
+        self, tri: np.ndarray, bary: np.ndarray, normal: np.ndarray, view_dir: np.ndarray, albedo: np.ndarray
+    ) -> np.ndarray:
         out = np.zeros((len(tri), 3))
         material = self.face_material[tri]
         for k, lighting in enumerate(self.lightings):
@@ -170,7 +216,7 @@ def bright_block(brdf: Brdf, env_height: int, cell_height: int) -> int:
     cells; 1 (none merged) for other models."""
     if brdf.model != "principled":
         return 1
-    alpha = brdf.roughness ** 2
+    alpha = brdf.roughness**2
     return int(np.clip(2.0 * alpha / (2.0 * np.pi / env_height), 1, max(1, env_height // max(cell_height, 1))))
 
 
@@ -201,28 +247,50 @@ def board_occludes(work: Path, settings: Settings) -> bool:
     return settings.view_choice.kind not in ("orbit", "poses") and not uses_fitted_lighting(work, settings)
 
 
-def prepare_lighting(path: LightingArgument | KnownLight, brdf: Brdf, mesh, settings: Settings, *,
-                     capture: Path | None = None, vertex_colors=None, albedo_texture=None, with_board: bool = False):
+def prepare_lighting(
+    path: LightingArgument | KnownLight,
+    brdf: Brdf,
+    mesh,
+    settings: Settings,
+    *,
+    capture: Path | None = None,
+    vertex_colors=None,
+    albedo_texture=None,
+    with_board: bool = False,
+):
     """The lighting ``path`` (a lighting argument, or a capture.toml [lighting] entry) prepared for
     ``settings.method`` (Lighting or AngularLighting); ``albedo_texture``: fit/textures' (atlas, base
     colour map) for the renderer (the frequency path takes ``vertex_colors``, the map at the vertices)."""
     if settings.method == "frequency" and brdf.model == "principled":
-        raise UserError("--method frequency renders the seed's convex lobes (lambert, phong, microfacet) only; "
-                        "a principled material needs --method angular (the default)")
+        raise UserError(
+            "--method frequency renders the seed's convex lobes (lambert, phong, microfacet) only; "
+            "a principled material needs --method angular (the default)"
+        )
     if isinstance(path, KnownLight) and path.path is not None:
-        path = lighting_argument(str(path.path))     # a map file: as any --env
+        path = lighting_argument(str(path.path))  # a map file: as any --env
     if isinstance(path, KnownLight) and settings.method == "frequency":
         raise UserError("a directional light of capture.toml [lighting] needs --method angular (the default)")
     if settings.method == "frequency":
-        return frequency_lighting(path, brdf, lobe_sh_order=settings.lobe_sh_order,
-                                  prefilter_height=settings.prefilter_height)
+        return frequency_lighting(path, brdf, lobe_sh_order=settings.lobe_sh_order, prefilter_height=settings.prefilter_height)
     board = board_occluder(capture) if capture is not None and with_board else None
     make = AngularLighting.from_directional_light if isinstance(path, KnownLight) else AngularLighting.from_argument
-    return make(path, brdf, mesh, env_height=settings.env_height, cell_height=settings.cell_height,
-                shadows=settings.shadows, vertex_albedo=vertex_colors, albedo_texture=albedo_texture, board=board,
-                lobe_sh_order=settings.lobe_sh_order, prefilter_height=settings.prefilter_height,
-                clamp_sh=settings.clamp_sh, bounces=settings.bounces, bounce_samples=settings.bounce_samples,
-                lobe_samples=settings.lobe_samples)
+    return make(
+        path,
+        brdf,
+        mesh,
+        env_height=settings.env_height,
+        cell_height=settings.cell_height,
+        shadows=settings.shadows,
+        vertex_albedo=vertex_colors,
+        albedo_texture=albedo_texture,
+        board=board,
+        lobe_sh_order=settings.lobe_sh_order,
+        prefilter_height=settings.prefilter_height,
+        clamp_sh=settings.clamp_sh,
+        bounces=settings.bounces,
+        bounce_samples=settings.bounce_samples,
+        lobe_samples=settings.lobe_samples,
+    )
 
 
 def vertex_albedo(work: Path, mesh) -> np.ndarray | None:

@@ -25,8 +25,9 @@ from stages.relight.settings import Settings
 from stages.relight.views import View, view_stem
 
 
-def _render_pixels(view: View, mesh, rays, lighting, albedo, vertex_colors, pixels: np.ndarray,
-                   supersample: int, pool=None, chunk: int = 1 << 13) -> tuple[np.ndarray, np.ndarray]:
+def _render_pixels(
+    view: View, mesh, rays, lighting, albedo, vertex_colors, pixels: np.ndarray, supersample: int, pool=None, chunk: int = 1 << 13
+) -> tuple[np.ndarray, np.ndarray]:
     """Radiance sums (P, 3) and hit counts (P,) of an n x n grid of rays in each listed pixel (flat ids),
     shaded in chunks of ``chunk`` rays (all the sub-pixel rays in one stream: a few highlight pixels
     at 8 x 8 rays are one call, not 64 small ones), by the threads of ``pool`` (a
@@ -34,28 +35,38 @@ def _render_pixels(view: View, mesh, rays, lighting, albedo, vertex_colors, pixe
     w = view.camera.width
     centres = cam.pixel_centers(w, view.camera.height)[pixels]
     offsets = cam.subpixel_offsets(supersample)
-    shift = np.stack(np.meshgrid(offsets, offsets, indexing="xy"), axis=-1).reshape(-1, 2)      # (n², 2): (ox, oy)
-    uv = (centres[None, :, :] + shift[:, None, :]).reshape(-1, 2)                              # offset-major
+    shift = np.stack(np.meshgrid(offsets, offsets, indexing="xy"), axis=-1).reshape(-1, 2)  # (n², 2): (ox, oy)
+    uv = (centres[None, :, :] + shift[:, None, :]).reshape(-1, 2)  # offset-major
     owner = np.tile(np.arange(pixels.size), len(shift))
     rgb = np.zeros((pixels.size, 3))
     hits = np.zeros(pixels.size)
 
     def shade(start: int) -> tuple[np.ndarray, np.ndarray]:
-        origins, dirs = cam.pixel_rays(view.camera, view.R, view.t, uv[start:start + chunk])
+        origins, dirs = cam.pixel_rays(view.camera, view.R, view.t, uv[start : start + chunk])
         h = first_hits(mesh, rays, origins, dirs)
         rho = albedo if vertex_colors is None else np.einsum("ij,ijk->ik", h.bary, vertex_colors[mesh.faces[h.face]])
         return owner[start + h.ray], lighting.shade_hits(h.face, h.bary, h.normal, -dirs[h.ray], rho)
 
     starts = range(0, len(uv), chunk)
-    for idx, values in (pool.map(shade, starts) if pool else map(shade, starts)):
+    for idx, values in pool.map(shade, starts) if pool else map(shade, starts):
         np.add.at(rgb, idx, values)
         np.add.at(hits, idx, 1.0)
     return rgb, hits
 
 
-def render_view(view: View, mesh, rays, lighting: "Lighting | AngularLighting", albedo, vertex_colors,
-                supersample: int = 1, refine: int = 8, contrast: float = 2.0, interior: int = 1,
-                pool=None) -> np.ndarray:
+def render_view(
+    view: View,
+    mesh,
+    rays,
+    lighting: "Lighting | AngularLighting",
+    albedo,
+    vertex_colors,
+    supersample: int = 1,
+    refine: int = 8,
+    contrast: float = 2.0,
+    interior: int = 1,
+    pool=None,
+) -> np.ndarray:
     """Linear RGBA (H, W, 4): radiance averaged over the rays of each pixel, alpha = hit fraction.
 
     ``interior`` x ``interior`` rays per pixel, then two adaptive passes: pixels at the silhouette
@@ -72,9 +83,8 @@ def render_view(view: View, mesh, rays, lighting: "Lighting | AngularLighting", 
     from scipy import ndimage
 
     w, h = view.camera.width, view.camera.height
-    rgb, hits = _render_pixels(view, mesh, rays, lighting, albedo, vertex_colors, np.arange(w * h), interior,
-                               pool)
-    rgb, hits = rgb / interior ** 2, hits / interior ** 2
+    rgb, hits = _render_pixels(view, mesh, rays, lighting, albedo, vertex_colors, np.arange(w * h), interior, pool)
+    rgb, hits = rgb / interior**2, hits / interior**2
 
     def again(pixels: np.ndarray, n: int) -> None:
         if pixels.size:
@@ -87,8 +97,7 @@ def render_view(view: View, mesh, rays, lighting: "Lighting | AngularLighting", 
     if refine > interior and on.any():
         lum = rgb.mean(axis=1).reshape(h, w)
         spread = ndimage.maximum_filter(lum, 3) - ndimage.minimum_filter(lum, 3)
-        again(np.flatnonzero((spread > contrast * float(lum[on].mean())) & ndimage.binary_dilation(on)),
-              max(refine, supersample))
+        again(np.flatnonzero((spread > contrast * float(lum[on].mean())) & ndimage.binary_dilation(on)), max(refine, supersample))
     return np.concatenate([rgb, hits[:, None]], axis=1).reshape(h, w, 4).astype(np.float32)
 
 
@@ -113,8 +122,17 @@ class Shot:
     exposures: dict = field(default_factory=dict)
 
 
-def render_views(views: list[View], mesh, rays, lighting_of: dict, albedo: np.ndarray, vertex_colors,
-                 settings: Settings, folder: Path, photos: PhotoSource | None) -> tuple[list[Path], Shot]:
+def render_views(
+    views: list[View],
+    mesh,
+    rays,
+    lighting_of: dict,
+    albedo: np.ndarray,
+    vertex_colors,
+    settings: Settings,
+    folder: Path,
+    photos: PhotoSource | None,
+) -> tuple[list[Path], Shot]:
     """Each view rendered under ``lighting_of[view.key]`` into folder/<stem>.exr and its sRGB
     preview <stem>.png, on ``settings.threads`` threads; with ``photos``, each view's photo and
     mask kept for the comparison -> (written paths, Shot)."""
@@ -126,12 +144,21 @@ def render_views(views: list[View], mesh, rays, lighting_of: dict, albedo: np.nd
     if threads > 1:
         for lighting in dict.fromkeys(lighting_of.values()):
             lighting.prepare()
-    with ExitStack() as stack:      # threads shade the chunks of each view; BLAS keeps to one per thread
+    with ExitStack() as stack:  # threads shade the chunks of each view; BLAS keeps to one per thread
         pool = stack.enter_context(ThreadPoolExecutor(threads)) if threads > 1 else None
         stack.enter_context(threadpool_limits(1))
         for view in progress(views, desc="relight", unit="view", leave=False):
-            rgba = render_view(view, mesh, rays, lighting_of[view.key], albedo, vertex_colors, settings.supersample,
-                               interior=settings.interior_supersample, pool=pool)
+            rgba = render_view(
+                view,
+                mesh,
+                rays,
+                lighting_of[view.key],
+                albedo,
+                vertex_colors,
+                settings.supersample,
+                interior=settings.interior_supersample,
+                pool=pool,
+            )
             stem = view_stem(view.key)
             written.append(write_image(folder / f"{stem}.exr", rgba, dtype="float"))
             exposure = preview_exposure(rgba[..., :3], rgba[..., 3] > 0.5)
@@ -140,8 +167,10 @@ def render_views(views: list[View], mesh, rays, lighting_of: dict, albedo: np.nd
                 photo, weight, _ = load_linear_image(photos.capture, photos.work, view.key, photos.manifest)
                 photo = photo.astype(float)
                 if photo.shape[:2] != rgba.shape[:2]:
-                    raise UserError(f"{view.key}: the photo is {photo.shape[1]}x{photo.shape[0]} but the render is "
-                                    f"{rgba.shape[1]}x{rgba.shape[0]}; --compare needs the native size (drop --size)")
+                    raise UserError(
+                        f"{view.key}: the photo is {photo.shape[1]}x{photo.shape[0]} but the render is "
+                        f"{rgba.shape[1]}x{rgba.shape[0]}; --compare needs the native size (drop --size)"
+                    )
                 valid = weight > 0.999  # fully valid pixels only (linearize's masks, alpha)
                 shot.renders[view.key], shot.photos[view.key], shot.exposures[view.key] = rgba, photo, exposure
                 shot.masks[view.key] = interior_pixels(rgba[..., 3]) & valid & np.all(np.isfinite(photo), axis=-1)

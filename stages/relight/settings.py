@@ -14,44 +14,70 @@ from pipeline.settings import setting
 @dataclass(frozen=True)
 class Settings:
     env: str = setting("", f"new lighting: {lighting_help()}; empty = the fitted lighting WORK/fit/lighting_sh.json")
-    views: str = setting("capture", "'capture' (every posed view), 'heldout' (the views left out of the samples), "
-                                    "a poses.json path, 'orbit:N' (N views on a ring 20 degrees above the object, "
-                                    "framing it) or image keys 'K1,K2,...'")
+    views: str = setting(
+        "capture",
+        "'capture' (every posed view), 'heldout' (the views left out of the samples), "
+        "a poses.json path, 'orbit:N' (N views on a ring 20 degrees above the object, "
+        "framing it) or image keys 'K1,K2,...'",
+    )
     size: str = setting("", "output size WxH (the intrinsics are scaled); empty = each camera's native size")
     out_dir: str = setting("", "output folder; empty = WORK/relight")
-    compare: bool = setting(False, "compare with the linear photos of the same views: error maps and relative errors "
-                                   "(after one global scale when the lighting is the fitted one)")
-    compare_with: str = setting("", "another capture of the same object (Stanford-ORB's protocol: fit under one "
-                                    "lighting, check under another): render its posed views under its lighting "
-                                    "(its capture.toml [lighting], or --env) and compare with its photos")
-    compare_work: str = setting("", "--compare-with's work folder, with its linear images and poses (`sigrend run "
-                                    "OTHER --to poses`); empty = OTHER-work")
-    supersample: int = setting(2, "rays per pixel along each axis (n x n) at the silhouette (alpha = the covered "
-                                   "fraction); inside it --interior-supersample, refined at highlights")
-    interior_supersample: int = setting(1, "rays per pixel along each axis inside the silhouette (1: the shading "
-                                           "at the pixel centre; 2: bunny 1.02 % against Cycles for 1.35 %, ~2.5x "
-                                           "the time, docs/relight.md)")
+    compare: bool = setting(
+        False,
+        "compare with the linear photos of the same views: error maps and relative errors "
+        "(after one global scale when the lighting is the fitted one)",
+    )
+    compare_with: str = setting(
+        "",
+        "another capture of the same object (Stanford-ORB's protocol: fit under one "
+        "lighting, check under another): render its posed views under its lighting "
+        "(its capture.toml [lighting], or --env) and compare with its photos",
+    )
+    compare_work: str = setting(
+        "", "--compare-with's work folder, with its linear images and poses (`sigrend run OTHER --to poses`); empty = OTHER-work"
+    )
+    supersample: int = setting(
+        2,
+        "rays per pixel along each axis (n x n) at the silhouette (alpha = the covered "
+        "fraction); inside it --interior-supersample, refined at highlights",
+    )
+    interior_supersample: int = setting(
+        1,
+        "rays per pixel along each axis inside the silhouette (1: the shading "
+        "at the pixel centre; 2: bunny 1.02 % against Cycles for 1.35 %, ~2.5x "
+        "the time, docs/relight.md)",
+    )
     method: Literal["angular", "frequency"] = setting(
-        "angular", "'angular': the reflection equation over the lighting's directions with the full BRDF and shadow "
-                   "rays (accurate); 'frequency': the fit's SH / prefiltered forward model (fast, no shadows, "
-                   "reflection-space lobe)")
+        "angular",
+        "'angular': the reflection equation over the lighting's directions with the full BRDF and shadow "
+        "rays (accurate); 'frequency': the fit's SH / prefiltered forward model (fast, no shadows, "
+        "reflection-space lobe)",
+    )
     env_height: int = setting(64, "angular method: height of the equirect map an SH lighting is synthesized to")
-    clamp_sh: bool = setting(False, "angular method: clamp the map synthesized from an SH lighting at 0; off = keep "
-                                    "its negative lobes (a signed map; only the image is clamped at 0), as the fit did")
-    cell_height: int = setting(32, "angular method: the map's remainder (outside bright pixels) is averaged into "
-                                   "cell_height x 2 cell_height directions")
+    clamp_sh: bool = setting(
+        False,
+        "angular method: clamp the map synthesized from an SH lighting at 0; off = keep "
+        "its negative lobes (a signed map; only the image is clamped at 0), as the fit did",
+    )
+    cell_height: int = setting(
+        32, "angular method: the map's remainder (outside bright pixels) is averaged into cell_height x 2 cell_height directions"
+    )
     shadows: bool = setting(True, "angular method: self-shadowing by shadow rays")
-    bounces: int = setting(8, "angular method with shadows: most diffuse interreflection bounces (stops earlier once a "
-                              "bounce adds < 0.5%); 0 = none")
+    bounces: int = setting(
+        8, "angular method with shadows: most diffuse interreflection bounces (stops earlier once a bounce adds < 0.5%); 0 = none"
+    )
     bounce_samples: int = setting(64, "angular method: hemisphere rays per vertex for interreflection")
     lobe_samples: int = setting(64, "angular method, principled material: importance samples of the specular lobe per ray")
     board: Literal["auto", "on", "off"] = setting(
-        "auto", "angular method with shadows: the capture's board (capture.toml [board]) occludes the object: 'on', "
-                "'off', or 'auto' = on under a given --env from the capture's own views (the board was in the scene "
-                "of those photos), off from new views (orbit:N, a poses.json: the asset alone) and under the fitted "
-                "lighting (the fit saw the board's shadow as darkness from below: it is already in the lighting)")
-    lobe_sh_order: int = setting(24, "a lobe that needs more SH bands than this is read from a prefiltered "
-                                     "angular-space map instead (sharp lobes)")
+        "auto",
+        "angular method with shadows: the capture's board (capture.toml [board]) occludes the object: 'on', "
+        "'off', or 'auto' = on under a given --env from the capture's own views (the board was in the scene "
+        "of those photos), off from new views (orbit:N, a poses.json: the asset alone) and under the fitted "
+        "lighting (the fit saw the board's shadow as darkness from below: it is already in the lighting)",
+    )
+    lobe_sh_order: int = setting(
+        24, "a lobe that needs more SH bands than this is read from a prefiltered angular-space map instead (sharp lobes)"
+    )
     prefilter_height: int = setting(128, "height of the prefiltered equirect map used for sharp lobes")
     threads: int = setting(0, "threads shading the pixels (0: one per core); the images do not depend on it")
 

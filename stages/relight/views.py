@@ -52,8 +52,10 @@ def photo_source(capture: Path, work: Path, settings: Settings) -> tuple[Path, P
         raise UserError(f"--compare-with {other}: no such capture folder")
     other_work = Path(settings.compare_work) if settings.compare_work else default_work(other)
     if not (other_work / "linear").is_dir():
-        raise UserError(f"--compare-with {other}: no linear photos in {other_work}; run `sigrend run {other} "
-                        f"-w {other_work} --to poses` first (or give --compare-work)")
+        raise UserError(
+            f"--compare-with {other}: no linear photos in {other_work}; run `sigrend run {other} "
+            f"-w {other_work} --to poses` first (or give --compare-work)"
+        )
     return other, other_work
 
 
@@ -84,8 +86,9 @@ def samples_holdout_keys(work: Path) -> list[str]:
         raise UserError(f"{path}: --views heldout needs the samples stage's output; run `sigrend samples` first")
     keys = read_samples_meta(path).get("holdout") or []
     if not keys:
-        raise UserError(f"{path}: no views were held out of the samples; use --views capture or rerun samples "
-                        "with held-out views")
+        raise UserError(
+            f"{path}: no views were held out of the samples; use --views capture or rerun samples with held-out views"
+        )
     return [str(k) for k in keys]
 
 
@@ -105,7 +108,7 @@ def _scaled(camera: cam.Camera, size: tuple[int, int] | None) -> cam.Camera:
     return camera.resized(*size)
 
 
-ORBIT_MARGIN = 1.05   # orbit views: the mesh's extent fills the frame but 5 % of each half side
+ORBIT_MARGIN = 1.05  # orbit views: the mesh's extent fills the frame but 5 % of each half side
 
 
 def orbit_views(n: int, mesh, size: tuple[int, int] | None) -> list[View]:
@@ -134,15 +137,24 @@ def resolve_views(*, capture: Path, work: Path, settings: Settings, mesh=None) -
         poses, keys, own = read_poses(choice.poses_file), None, False
     else:
         if not capture_poses.exists():
-            raise UserError(f"{capture}: no camera poses yet (no WORK/poses.json or CAPTURE/poses.json); "
-                            "run `sigrend poses` first or give --views orbit:N or a poses.json")
+            raise UserError(
+                f"{capture}: no camera poses yet (no WORK/poses.json or CAPTURE/poses.json); "
+                "run `sigrend poses` first or give --views orbit:N or a poses.json"
+            )
         poses, own = read_poses(capture_poses), True
-        keys = (None if choice.kind == "capture" else
-                samples_holdout_keys(work) if choice.kind == "heldout" else list(choice.keys))
+        keys = None if choice.kind == "capture" else samples_holdout_keys(work) if choice.kind == "heldout" else list(choice.keys)
         if keys is not None:
             missing = [k for k in keys if k not in poses.images]
             if missing:
                 raise UserError(f"--views: image key(s) {', '.join(missing[:5])} are not in {capture_poses}")
     keys = sorted(poses.images) if keys is None else keys
-    return [View(k, _scaled(poses.camera_of(k), size), poses.images[k].R, poses.images[k].t,
-                 own or (Path(capture) / "images" / k).exists()) for k in keys]
+    return [
+        View(
+            k,
+            _scaled(poses.camera_of(k), size),
+            poses.images[k].R,
+            poses.images[k].t,
+            own or (Path(capture) / "images" / k).exists(),
+        )
+        for k in keys
+    ]

@@ -32,9 +32,9 @@ def add_camera(scene, poses_file, key, width, height):
     data.shift_y = (cy * sy - height / 2) / max(width, height)
     cam = bpy.data.objects.new("camera", data)
     scene.collection.objects.link(cam)
-    rot = Matrix(image["R"])                         # world -> camera (OpenCV: +Y down, looks along +Z)
+    rot = Matrix(image["R"])  # world -> camera (OpenCV: +Y down, looks along +Z)
     centre = -(rot.transposed() @ Vector(image["t"]))
-    flip = Matrix(((1, 0, 0), (0, -1, 0), (0, 0, -1)))   # Blender's camera looks along -Z, +Y up
+    flip = Matrix(((1, 0, 0), (0, -1, 0), (0, 0, -1)))  # Blender's camera looks along -Z, +Y up
     cam.matrix_world = Matrix.Translation(centre) @ (rot.transposed() @ flip).to_4x4()
     scene.camera = cam
 
@@ -87,7 +87,7 @@ def main(asset, lighting, poses_file, key, out, width, height, samples):
         bpy.ops.import_scene.gltf(filepath=asset)
     scene = bpy.context.scene
     add_camera(scene, poses_file, key, width, height)
-    add_world(scene, lighting, "Closest")            # texels as sigrend reads them
+    add_world(scene, lighting, "Closest")  # texels as sigrend reads them
     set_cycles(scene, samples, width, height, out)
     bpy.ops.render.render(write_still=True)
 

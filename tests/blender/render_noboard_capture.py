@@ -58,10 +58,14 @@ def look_at(centre, target, roll_deg):
 
 def ring_poses(views, rng, width, height, focal):
     """poses.json of cameras at DISTANCE on rings: views = [(azimuth_deg, elevation_deg, key), ...]."""
-    poses = {"frame": "object", "units": "meters",
-             "cameras": {"cam0": {"model": "PINHOLE", "width": width, "height": height,
-                                  "params": [focal, focal, width / 2, height / 2]}},
-             "images": {}}
+    poses = {
+        "frame": "object",
+        "units": "meters",
+        "cameras": {
+            "cam0": {"model": "PINHOLE", "width": width, "height": height, "params": [focal, focal, width / 2, height / 2]}
+        },
+        "images": {},
+    }
     for azimuth, elevation, key in views:
         a, e = math.radians(azimuth), math.radians(elevation)
         centre = DISTANCE * np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
@@ -167,12 +171,20 @@ def main(out, capture_hdri, relight_hdri, samples=128, relight_samples=256):
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "gt" / "relight" / "images").mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(49)
-    views = [(az + (11.25 if ring else 0.0), elevation, f"IMG_{16 * ring + k:04d}.JPG")
-             for ring, elevation in enumerate((15.0, 40.0)) for k, az in enumerate(np.arange(16) * 22.5)]
+    views = [
+        (az + (11.25 if ring else 0.0), elevation, f"IMG_{16 * ring + k:04d}.JPG")
+        for ring, elevation in enumerate((15.0, 40.0))
+        for k, az in enumerate(np.arange(16) * 22.5)
+    ]
     poses = ring_poses(views, rng, WIDTH, HEIGHT, FOCAL)
     (out / "gt" / "poses.json").write_text(json.dumps(poses, indent=1))
-    relight = ring_poses([(az, 28.0, f"{k:04d}.exr") for k, az in enumerate((33.0, 118.0, 207.0, 296.0))],
-                         rng, RELIGHT_WIDTH, RELIGHT_HEIGHT, RELIGHT_FOCAL)
+    relight = ring_poses(
+        [(az, 28.0, f"{k:04d}.exr") for k, az in enumerate((33.0, 118.0, 207.0, 296.0))],
+        rng,
+        RELIGHT_WIDTH,
+        RELIGHT_HEIGHT,
+        RELIGHT_FOCAL,
+    )
     (out / "gt" / "relight" / "poses.json").write_text(json.dumps(relight, indent=1))
 
     bpy.ops.wm.read_factory_settings(use_empty=True)
@@ -181,18 +193,34 @@ def main(out, capture_hdri, relight_hdri, samples=128, relight_samples=256):
     add_material(obj)
     bpy.ops.object.select_all(action="DESELECT")
     obj.select_set(True)
-    bpy.ops.wm.ply_export(filepath=str(out / "mesh.ply"), export_selected_objects=True, apply_modifiers=True,
-                          export_normals=True, export_uv=False, export_colors="NONE", export_triangulated_mesh=True,
-                          forward_axis="Y", up_axis="Z", ascii_format=False)
+    bpy.ops.wm.ply_export(
+        filepath=str(out / "mesh.ply"),
+        export_selected_objects=True,
+        apply_modifiers=True,
+        export_normals=True,
+        export_uv=False,
+        export_colors="NONE",
+        export_triangulated_mesh=True,
+        forward_axis="Y",
+        up_axis="Z",
+        ascii_format=False,
+    )
 
     add_world(scene, capture_hdri, backdrop=True)
-    render_views(scene, out / "gt" / "poses.json", list(poses["images"]), WIDTH, HEIGHT, samples,
-                 out / "images", jpeg=True)
+    render_views(scene, out / "gt" / "poses.json", list(poses["images"]), WIDTH, HEIGHT, samples, out / "images", jpeg=True)
     add_world(scene, relight_hdri, backdrop=False)
-    render_views(scene, out / "gt" / "relight" / "poses.json", list(relight["images"]), RELIGHT_WIDTH,
-                 RELIGHT_HEIGHT, relight_samples, out / "gt" / "relight" / "images", jpeg=False)
+    render_views(
+        scene,
+        out / "gt" / "relight" / "poses.json",
+        list(relight["images"]),
+        RELIGHT_WIDTH,
+        RELIGHT_HEIGHT,
+        relight_samples,
+        out / "gt" / "relight" / "images",
+        jpeg=False,
+    )
 
 
 if __name__ == "__main__":
-    a = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+    a = sys.argv[sys.argv.index("--") + 1 :] if "--" in sys.argv else sys.argv[1:]
     main(a[0], a[1], a[2], *map(int, a[3:]))

@@ -45,15 +45,15 @@ def main(mesh, brdf_file, world_map, poses_file, key, out, samples, row0, row1, 
     camera = poses["cameras"][poses["images"][key]["camera"]]
     width, height = camera["width"], camera["height"]
     add_camera(scene, poses_file, key, width, height)
-    add_world(scene, world_map, "Linear")               # Blender's default, as the captures were made
+    add_world(scene, world_map, "Linear")  # Blender's default, as the captures were made
     set_cycles(scene, samples, width, height, out, seed)
     render = scene.render
     render.use_border, render.use_crop_to_border = True, False
     render.border_min_x, render.border_max_x = col0 / width, col1 / width
-    render.border_min_y, render.border_max_y = 1 - row1 / height, 1 - row0 / height   # Blender's y is up
+    render.border_min_y, render.border_max_y = 1 - row1 / height, 1 - row0 / height  # Blender's y is up
     bpy.ops.render.render(write_still=True)
 
 
 if __name__ == "__main__":
-    a = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else sys.argv[1:]
+    a = sys.argv[sys.argv.index("--") + 1 :] if "--" in sys.argv else sys.argv[1:]
     main(*a[:6], *map(int, a[6:]))

@@ -85,8 +85,9 @@ def test_cli_opencv_model_reports_errors(board_views, capsys):
     reprojection RMS under 0.5 px with per-image values, and near-zero distortion for views rendered without
     any."""
     out = board_views / "camera_opencv.json"
-    code = cli_main(["calib", "intrinsics", str(board_views / "views"), "--board", str(board_views / "board.toml"),
-                     "-o", str(out)])
+    code = cli_main(
+        ["calib", "intrinsics", str(board_views / "views"), "--board", str(board_views / "board.toml"), "-o", str(out)]
+    )
     assert code == 0
     import json
 

@@ -29,8 +29,7 @@ FLAGS = {"OPENCV": cv2.CALIB_FIX_K3, "FULL_OPENCV": 0, "FULL_OPENCV --rational":
 @pytest.fixture(scope="module")
 def board_file(tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("board") / "board.toml"
-    path.write_text(f'[board]\npattern = "chessboard"\nsquares = [{INNER[0] + 1}, {INNER[1] + 1}]\n'
-                    f"square_length = {SQUARE}\n")
+    path.write_text(f'[board]\npattern = "chessboard"\nsquares = [{INNER[0] + 1}, {INNER[1] + 1}]\nsquare_length = {SQUARE}\n')
     return path
 
 
@@ -52,8 +51,9 @@ def opencv_sample_calibration(flags: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def calib(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", "calib", "intrinsics", *map(str, args)],
-                          capture_output=True, text=True)
+    return subprocess.run(
+        [sys.executable, "-m", "pipeline.cli", "calib", "intrinsics", *map(str, args)], capture_output=True, text=True
+    )
 
 
 @pytest.mark.parametrize("model", sorted(FLAGS))
@@ -70,12 +70,13 @@ def test_chessboard_photos_match_opencv(model, board_file, tmp_path):
     np.testing.assert_allclose([cx - 0.5, cy - 0.5], [K[0, 2], K[1, 2]], atol=0.01 * 480)
     # the lens as a whole, where the photos saw the board (x 151-604, y 50-432 px; outside, both
     # calibrations extrapolate): the rays of a grid of pixels
-    theirs = Camera("FULL_OPENCV", 640, 480, (K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5,
-                                               *np.pad(dist[:8], (0, 8 - len(dist[:8])))))
+    theirs = Camera(
+        "FULL_OPENCV", 640, 480, (K[0, 0], K[1, 1], K[0, 2] + 0.5, K[1, 2] + 0.5, *np.pad(dist[:8], (0, 8 - len(dist[:8]))))
+    )
     grid = np.stack(np.meshgrid(np.linspace(160, 600, 12), np.linspace(60, 420, 10)), -1).reshape(-1, 2)
     mine = pixel_rays(ours, np.eye(3), np.zeros(3), grid)[1]
     ref = pixel_rays(theirs, np.eye(3), np.zeros(3), grid)[1]
-    assert np.degrees(np.arccos(np.clip(np.sum(mine * ref, axis=1), -1, 1))).max() < 0.1   # ~1 px at 533 px/rad
+    assert np.degrees(np.arccos(np.clip(np.sum(mine * ref, axis=1), -1, 1))).max() < 0.1  # ~1 px at 533 px/rad
     doc = json.loads((tmp_path / "camera.json").read_text())
     assert doc["model"] == model.split()[0] and doc["images_used"] == 13 and doc["rms_px"] < 0.3
     assert doc["warnings"] == [] and "warning" not in proc.stderr

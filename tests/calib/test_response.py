@@ -89,8 +89,9 @@ def test_neutral_grey_stays_neutral_when_the_channels_clip_differently(tmp_path)
     colour = np.exp(rng.uniform(np.log(1e-3), np.log(2.0), size=(24, 32, 3)))
     radiance = np.kron(np.concatenate([grey, colour], axis=0), np.ones((4, 4, 1)))
     for i, t in enumerate(TIMES):
-        write_image(tmp_path / f"b{i}.png", np.round(255 * camera(radiance * t)) / 255.0, dtype="uint8",
-                    attributes={"ExposureTime": t})
+        write_image(
+            tmp_path / f"b{i}.png", np.round(255 * camera(radiance * t)) / 255.0, dtype="uint8", attributes={"ExposureTime": t}
+        )
     images, times, _ = response.load_bracket(tmp_path, [])
     table = response.calibrate_response(images, times, make_settings(response.Settings))
     # Debevec pins each channel at code 128 (g(128) = 0); away from it its 100-sample fit wanders by

@@ -9,8 +9,7 @@ from helpers import assert_one_line_error
 def test_user_error_is_one_line_exit_2(tmp_path):
     """A user error (a capture that does not exist) is one line on stderr starting 'sigrend: error:', exit code
     2, no traceback."""
-    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(tmp_path / "nope")],
-                          capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(tmp_path / "nope")], capture_output=True, text=True)
     assert_one_line_error(proc, prefix="sigrend: error:")
 
 
@@ -30,9 +29,11 @@ def test_every_command_prints_its_help(capsys):
 def test_a_bad_option_is_one_line_too(tmp_path):
     """argparse's own errors (a choice not offered, a value of the wrong type): the same one line,
     naming where the options are listed, without argparse's usage block."""
-    for args, fragment in ((["relight", str(tmp_path), "--method", "bogus"], "invalid choice: 'bogus'"),
-                           (["fit", str(tmp_path), "--folds", "three"], "invalid int value"),
-                           (["calib", "response", str(tmp_path), "--times", "soon"], "invalid number value")):
+    for args, fragment in (
+        (["relight", str(tmp_path), "--method", "bogus"], "invalid choice: 'bogus'"),
+        (["fit", str(tmp_path), "--folds", "three"], "invalid int value"),
+        (["calib", "response", str(tmp_path), "--times", "soon"], "invalid number value"),
+    ):
         proc = subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True, text=True)
         assert_one_line_error(proc.stderr, fragment, "--help", code=proc.returncode)
 

@@ -20,7 +20,7 @@ def band_limited(tmp_path_factory):
     """A non-negative band-limited (order 4) RGB map at 64 x 128 and its true coefficients."""
     rng = np.random.default_rng(7)
     coeffs = 0.1 * rng.normal(size=(num_coeffs(4), 3))
-    coeffs[0] = 3.0   # a large constant keeps the map positive
+    coeffs[0] = 3.0  # a large constant keeps the map positive
     env = envmap_from_sh(coeffs, 64)
     assert env.min() > 0
     path = tmp_path_factory.mktemp("env") / "band_limited.exr"
@@ -67,11 +67,16 @@ def test_irradiance_map_matches_brute_force(tmp_path, order):
     height = 32
     dirs = equirect_directions(height).reshape(-1, 3)
     axis = np.array([0.5, -0.3, 0.8]) / np.linalg.norm([0.5, -0.3, 0.8])
-    radiance = np.stack([0.2 + np.exp(3 * (dirs @ axis - 1)),
-                         0.5 + 0.3 * np.maximum(0, dirs[:, 0]) ** 2,
-                         0.1 + 0.5 * np.exp(2 * (dirs[:, 2] - 1))], axis=1)
+    radiance = np.stack(
+        [
+            0.2 + np.exp(3 * (dirs @ axis - 1)),
+            0.5 + 0.3 * np.maximum(0, dirs[:, 0]) ** 2,
+            0.1 + 0.5 * np.exp(2 * (dirs[:, 2] - 1)),
+        ],
+        axis=1,
+    )
     src = write_image(tmp_path / "env.exr", radiance.reshape(height, 2 * height, 3), dtype="float")
-    radiance = read_image(src).reshape(-1, 3).astype(float)      # what the command sees (float32)
+    radiance = read_image(src).reshape(-1, 3).astype(float)  # what the command sees (float32)
     out = tmp_path / "irr.exr"
     argv = ["env", "irradiance", str(src), "-o", str(out)] + ([] if order is None else ["--order", order])
     assert sigrend(argv) == 0
@@ -84,6 +89,7 @@ def test_irradiance_map_matches_brute_force(tmp_path, order):
 
 
 # ------------------------------------------------------------------------------ bad input
+
 
 def run_cli(*argv):
     return subprocess.run([sys.executable, "-m", "pipeline.cli", *map(str, argv)], capture_output=True, text=True)
@@ -101,8 +107,15 @@ def bad_inputs(tmp_path_factory):
     garbage.write_bytes(b"this is not an image" * 10)
     broken_json = folder / "broken.json"
     broken_json.write_text("{order: 2")
-    return {"good": good, "square": square, "nan": with_nan, "garbage": garbage,
-            "missing": folder / "missing.exr", "broken_json": broken_json, "folder": folder}
+    return {
+        "good": good,
+        "square": square,
+        "nan": with_nan,
+        "garbage": garbage,
+        "missing": folder / "missing.exr",
+        "broken_json": broken_json,
+        "folder": folder,
+    }
 
 
 BAD_CASES = {
@@ -127,7 +140,7 @@ def test_bad_input_is_one_line_exit_2(bad_inputs, case):
     output = bad_inputs["folder"] / f"{case}.out.exr"
     if argv[1] == "project":
         output = output.with_suffix(".json")
-    output.write_text("earlier result")   # an earlier output must survive the failed run
+    output.write_text("earlier result")  # an earlier output must survive the failed run
     argv = [a.format(**bad_inputs) for a in argv] + ["-o", str(output)]
     proc = run_cli(*argv)
     assert_one_line_error(proc, expected, prefix="sigrend: error:")

@@ -24,9 +24,26 @@ import pytest
 
 from pipeline import STAGES, cli
 
-EXPECTED = {"", *STAGES, "export", "run", "batch", "calib", "calib intrinsics", "calib response", "calib vignetting",
-            "synth", "env", "env project", "env render", "env irradiance",
-            "env make", "planar", "planar figures", "bench"}
+EXPECTED = {
+    "",
+    *STAGES,
+    "export",
+    "run",
+    "batch",
+    "calib",
+    "calib intrinsics",
+    "calib response",
+    "calib vignetting",
+    "synth",
+    "env",
+    "env project",
+    "env render",
+    "env irradiance",
+    "env make",
+    "planar",
+    "planar figures",
+    "bench",
+}
 
 
 def parsers(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):
@@ -86,10 +103,13 @@ def option_help(parser: argparse.ArgumentParser, text: str, action: argparse.Act
     """The lines of ``text`` that describe ``action`` (its invocation, then its help), joined."""
     invocation = parser._get_formatter()._format_action_invocation(action)
     lines = text.splitlines()
-    start = next(i for i, line in enumerate(lines) if _indent(line) == 2
-                 and (line.strip() == invocation or line.strip().startswith(invocation + " ")))
+    start = next(
+        i
+        for i, line in enumerate(lines)
+        if _indent(line) == 2 and (line.strip() == invocation or line.strip().startswith(invocation + " "))
+    )
     block = [lines[start]]
-    for line in lines[start + 1:]:
+    for line in lines[start + 1 :]:
         if _indent(line) <= 2:
             break
         block.append(line)
@@ -97,8 +117,11 @@ def option_help(parser: argparse.ArgumentParser, text: str, action: argparse.Act
 
 
 def shown_actions(parser: argparse.ArgumentParser):
-    return [a for a in parser._actions if a.help != argparse.SUPPRESS and a.option_strings
-            and not isinstance(a, (argparse._HelpAction, argparse._VersionAction))]
+    return [
+        a
+        for a in parser._actions
+        if a.help != argparse.SUPPRESS and a.option_strings and not isinstance(a, (argparse._HelpAction, argparse._VersionAction))
+    ]
 
 
 def test_every_command_has_a_help(helps):
@@ -143,7 +166,8 @@ def test_the_global_verbose_is_the_only_one(helps):
             warnings.simplefilter("always")
             args = cli.build_parser("poses").parse_args(argv)
         settings = importlib.import_module("pipeline.settings").settings_from_args(
-            importlib.import_module("stages.poses").Settings, args)
+            importlib.import_module("stages.poses").Settings, args
+        )
         assert settings.verbose and args.verbose, argv
         deprecated = [w for w in caught if "deprecated" in str(w.message)]
         assert len(deprecated) == (argv[0] == "poses"), argv
@@ -190,7 +214,8 @@ def test_defaults_are_the_settings_defaults(helps):
                 continue
             if isinstance(default, tuple):
                 default = ("x" if action.metavar == "WxH" else "," if action.metavar == "MIN,MAX" else " ").join(
-                    map(str, default))
+                    map(str, default)
+                )
             assert line.endswith(f"(default: {default})"), (name, line)
 
 
@@ -218,6 +243,6 @@ def test_prose_lists_are_the_codes(helps):
     assert _listed(brdf, r"--forward convex\) among ([\w ,]+?);") == {"lambert", *LOBE_MODELS}
     out = line_of("export", "out")
     assert set(re.findall(r"(?<!\S)(\.\w+)", out.split("empty")[0])) == set(WRITERS)
-    for command, dest in (("synth", "env"), ("relight", "env"), ("env make", "spec")):   # one list: spec_help
+    for command, dest in (("synth", "env"), ("relight", "env"), ("env make", "spec")):  # one list: spec_help
         env = line_of(command, dest)
         assert _listed(env, r"NAME one of ([^(]*) \(") == set(ENV_PARAMS), command

@@ -18,9 +18,18 @@ from pipeline.io.poses import read_poses, write_poses
 def board_capture(tmp_path_factory):
     from pipeline.synth import make_test_capture
 
-    return make_test_capture(tmp_path_factory.mktemp("board"), views=3, size=(320, 240), board=True,
-                             env="overcast", brdf="lambert:albedo=0.5", elevation=(30.0, 65.0), noise="none",
-                             table=True, texture="noise")
+    return make_test_capture(
+        tmp_path_factory.mktemp("board"),
+        views=3,
+        size=(320, 240),
+        board=True,
+        env="overcast",
+        brdf="lambert:albedo=0.5",
+        elevation=(30.0, 65.0),
+        noise="none",
+        table=True,
+        texture="noise",
+    )
 
 
 def test_capture_layout_and_ground_truth(tiny_capture):
@@ -72,8 +81,26 @@ def test_no_poses_brackets_and_camera_formats(tmp_path):
     """--no-poses keeps poses out of the capture (only in gt/), --brackets 3 writes DNG brackets 2 EV apart in
     capture.toml and their EXIF, and JPEG and TIFF captures carry an exposure time."""
     out = tmp_path / "cap"
-    code = cli_main(["synth", "--mesh", "icosphere", "--views", "2", "--size", "32x24", "--format", "dng",
-                     "--brackets", "3", "--no-poses", "--env", "point", "-o", str(out)])
+    code = cli_main(
+        [
+            "synth",
+            "--mesh",
+            "icosphere",
+            "--views",
+            "2",
+            "--size",
+            "32x24",
+            "--format",
+            "dng",
+            "--brackets",
+            "3",
+            "--no-poses",
+            "--env",
+            "point",
+            "-o",
+            str(out),
+        ]
+    )
     assert code == 0
     assert not (out / "poses.json").exists() and (out / "gt" / "poses.json").exists()
     config = read_capture_config(out)
@@ -87,8 +114,7 @@ def test_no_poses_brackets_and_camera_formats(tmp_path):
     # 2 EV steps; times rounded to 3 significant digits
     np.testing.assert_allclose(np.array(times[1:]) / np.array(times[:-1]), 4.0, rtol=5e-3)
     for fmt, ext in (("jpeg", "jpg"), ("tiff", "tif")):
-        cli_main(["synth", "--views", "1", "--size", "32x24", "--format", fmt, "--no-shadows", "-o",
-                  str(tmp_path / fmt)])
+        cli_main(["synth", "--views", "1", "--size", "32x24", "--format", fmt, "--no-shadows", "-o", str(tmp_path / fmt)])
         img, meta = read_image(tmp_path / fmt / "images" / f"0000.{ext}", with_metadata=True)
         assert img.shape == (24, 32, 3) and meta["ExposureTime"] > 0
 
@@ -155,13 +181,45 @@ def test_env_file_and_texture_round_trip(tiny_capture, tmp_path):
 
     first = tiny_capture(views=2, size=(48, 48), noise="none")
     again = tmp_path / "again"
-    assert cli_main(["synth", "--views", "2", "--size", "48x48", "--brdf", "lambert:albedo=0.6", "--env",
-                     str(first / "gt" / "lighting.exr"), "-o", str(again)]) == 0
+    assert (
+        cli_main(
+            [
+                "synth",
+                "--views",
+                "2",
+                "--size",
+                "48x48",
+                "--brdf",
+                "lambert:albedo=0.6",
+                "--env",
+                str(first / "gt" / "lighting.exr"),
+                "-o",
+                str(again),
+            ]
+        )
+        == 0
+    )
     for key in ("0000.exr", "0001.exr"):
         np.testing.assert_allclose(read_image(again / "images" / key), read_image(first / "images" / key), rtol=1e-6)
     textured = tmp_path / "textured"
-    assert cli_main(["synth", "--views", "1", "--size", "48x48", "--brdf", "lambert:albedo=0.8",
-                     "--texture", "stripes:freq=3", "-o", str(textured)]) == 0
+    assert (
+        cli_main(
+            [
+                "synth",
+                "--views",
+                "1",
+                "--size",
+                "48x48",
+                "--brdf",
+                "lambert:albedo=0.8",
+                "--texture",
+                "stripes:freq=3",
+                "-o",
+                str(textured),
+            ]
+        )
+        == 0
+    )
     albedo = np.asarray(trimesh.load(textured / "gt" / "albedo.ply").visual.vertex_colors, float)[:, :3] / 255
     # stripes of contrast 0.6 on albedo 0.8: exactly two levels, 0.8 and 0.32 (to 1/255)
     np.testing.assert_allclose(np.unique(np.round(albedo[:, 0], 2)), [0.32, 0.8])

@@ -12,7 +12,7 @@ from pipeline.unwrap import unwrap
 
 @pytest.fixture(scope="module")
 def sphere_atlas():
-    mesh = trimesh.creation.icosphere(subdivisions=3)          # radius 1, area ~ 4 pi
+    mesh = trimesh.creation.icosphere(subdivisions=3)  # radius 1, area ~ 4 pi
     return mesh, unwrap(mesh.vertices, mesh.faces, texel_m=0.02)
 
 
@@ -25,7 +25,7 @@ def test_unwrap_keeps_faces_and_the_texel_size(sphere_atlas):
     assert atlas.face_uv.shape == (len(mesh.faces), 3, 2)
     assert atlas.face_uv.min() >= 0.0 and atlas.face_uv.max() <= 1.0
     texel, _, _ = atlas_mod.texel_points(atlas)
-    assert len(texel) * 0.02 ** 2 == pytest.approx(mesh.area, rel=0.10)
+    assert len(texel) * 0.02**2 == pytest.approx(mesh.area, rel=0.10)
 
 
 def test_texel_points_are_the_texel_centres(sphere_atlas):
@@ -43,14 +43,18 @@ def test_lookup_is_exact_for_a_linear_map(sphere_atlas):
     """Bilinear lookup reproduces a map linear in (col, row) exactly at any point inside the texel
     centres' hull: value = 2 u W + 3 v H - 1 (u, v the point's UV)."""
     _, atlas = sphere_atlas
-    rows, cols = np.mgrid[0:atlas.height, 0:atlas.width].astype(float)
+    rows, cols = np.mgrid[0 : atlas.height, 0 : atlas.width].astype(float)
     image = (2 * (cols + 0.5) + 3 * (rows + 0.5) - 1)[:, :, None]
     texel, face, bary = atlas_mod.texel_points(atlas)
     rng = np.random.default_rng(0)
     b = rng.dirichlet(np.ones(3), size=len(face))
     uv = atlas.uv_at(face, b)
-    inside = (uv[:, 0] * atlas.width > 0.5) & (uv[:, 0] * atlas.width < atlas.width - 0.5) & \
-             (uv[:, 1] * atlas.height > 0.5) & (uv[:, 1] * atlas.height < atlas.height - 0.5)
+    inside = (
+        (uv[:, 0] * atlas.width > 0.5)
+        & (uv[:, 0] * atlas.width < atlas.width - 0.5)
+        & (uv[:, 1] * atlas.height > 0.5)
+        & (uv[:, 1] * atlas.height < atlas.height - 0.5)
+    )
     expected = 2 * uv[:, 0] * atlas.width + 3 * uv[:, 1] * atlas.height - 1
     assert np.allclose(atlas.lookup(image, face, b)[inside, 0], expected[inside], atol=1e-9)
 

@@ -75,7 +75,7 @@ def test_reflect_is_the_mirror_direction():
     w = rng.normal(size=(10, 3))
     w /= np.linalg.norm(w, axis=1, keepdims=True)
     r = reflect(w, n)
-    np.testing.assert_allclose(np.sum(r * n, axis=1), np.sum(w * n, axis=1), atol=1e-12)     # same angle to n
+    np.testing.assert_allclose(np.sum(r * n, axis=1), np.sum(w * n, axis=1), atol=1e-12)  # same angle to n
     np.testing.assert_allclose(r + w, 2 * np.sum(w * n, axis=1, keepdims=True) * n, atol=1e-12)  # in-plane mirror
     np.testing.assert_allclose(reflect(n, n), n, atol=1e-12)
     tangent = np.cross(n, w)

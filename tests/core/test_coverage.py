@@ -31,13 +31,15 @@ def test_cell_of_known_directions():
     """The poles, a direction on a band edge and directions just either side of azimuth 180 deg land in the cells
     the band and sector edges say."""
     grid = EqualAreaGrid(4, 4)  # bands: z in [0.5, 1], [0, 0.5), [-0.5, 0), [-1, -0.5); sectors of 90 deg
-    d = np.array([
-        [0, 0, 1.0],          # +Z: top band, sector 0
-        [0, 0, -1.0],         # -Z: bottom band (3), sector 0
-        [0, 1.0, 0],          # +Y: z = 0 is the lower edge of band 1 -> band 2; phi = 90 deg -> sector 1
-        [-1.0, 1e-9, 0.3],    # z = 0.29 -> band 1; phi just below 180 deg -> sector 1
-        [-1.0, -1e-9, 0.3],   # phi just above 180 deg -> sector 2
-    ])
+    d = np.array(
+        [
+            [0, 0, 1.0],  # +Z: top band, sector 0
+            [0, 0, -1.0],  # -Z: bottom band (3), sector 0
+            [0, 1.0, 0],  # +Y: z = 0 is the lower edge of band 1 -> band 2; phi = 90 deg -> sector 1
+            [-1.0, 1e-9, 0.3],  # z = 0.29 -> band 1; phi just below 180 deg -> sector 1
+            [-1.0, -1e-9, 0.3],  # phi just above 180 deg -> sector 2
+        ]
+    )
     assert list(grid.cell_of(d)) == [0, 3 * 4 + 0, 2 * 4 + 1, 1 * 4 + 1, 1 * 4 + 2]
 
 

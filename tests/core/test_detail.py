@@ -30,8 +30,8 @@ def test_detail_transfer_is_the_sh_transfer_of_the_same_lobe(rng):
     grid = envmap_from_sh(coeffs, height).reshape(-1, 3)
     through_grid = prt.detail_transfer(geo, material, height) @ grid
     through_sh = np.einsum("pkc,kc->pc", prt.specular_transfer(geo, material).fixed, coeffs)
-    assert np.sqrt(np.mean(through_sh ** 2)) > 0.05        # the lobe sees the lighting at all
-    rel = np.sqrt(np.mean((through_grid - through_sh) ** 2) / np.mean(through_sh ** 2))
+    assert np.sqrt(np.mean(through_sh**2)) > 0.05  # the lobe sees the lighting at all
+    rel = np.sqrt(np.mean((through_grid - through_sh) ** 2) / np.mean(through_sh**2))
     assert rel < 0.01, rel
 
 
@@ -47,7 +47,7 @@ def test_one_pass_gives_the_specular_and_detail_transfers_of_their_own_passes(rn
     spec2 = prt.specular_transfer(together, material, detail_height=height)
     assert len(together._lobes) == 2
     detail2 = prt.detail_transfer(together, material, height)
-    assert len(together._lobes) == 2          # recalled, not made again
+    assert len(together._lobes) == 2  # recalled, not made again
     assert np.array_equal(spec.fixed, spec2.fixed)
     assert detail.nnz > 0 and (detail != detail2).nnz == 0
 
@@ -76,13 +76,13 @@ def test_detail_map_predicts_held_out_samples_and_leaves_the_sh_bands_alone(rng)
     cells = equirect_directions(height).reshape(-1, 3)
     truth = np.zeros((cells.shape[0], 3))
     for d, colour in zip(dirs, rng.uniform(0.5, 2.0, (6, 3))):
-        truth += np.exp((cells @ d - 1.0) / 0.002)[:, None] * colour          # ~3.6 deg spots
+        truth += np.exp((cells @ d - 1.0) / 0.002)[:, None] * colour  # ~3.6 deg spots
     m = truth.reshape(height, 2 * height, 3)
     truth = (m - envmap_from_sh(project_envmap(m, 4), height)).reshape(-1, 3)
     radiance = transfer @ truth
     obs = Observations(radiance, np.ones(len(radiance)), np.arange(len(radiance)) % 4)
     predicted = held_out_detail(transfer, radiance, obs, 4, height)
-    rel = np.sqrt(np.mean((predicted - radiance) ** 2) / np.mean(radiance ** 2))
+    rel = np.sqrt(np.mean((predicted - radiance) ** 2) / np.mean(radiance**2))
     assert rel < 0.5, rel
     detail = fit_detail_map(transfer, radiance, obs.weight, 4, height)
     low = project_envmap(detail.reshape(height, 2 * height, 3), 4)

@@ -21,17 +21,21 @@ def directions(rng, n: int = 200) -> tuple[np.ndarray, np.ndarray]:
     return normal, view
 
 
-@pytest.mark.parametrize("brdf, reflected", [
-    (Brdf("lambert", albedo=[0.6, 0.5, 0.4]), [0.6, 0.5, 0.4]),
-    (Brdf("phong", albedo=[0.3, 0.2, 0.1], specular=[0.2, 0.2, 0.2], exponent=40.0), [0.5, 0.4, 0.3]),
-])
+@pytest.mark.parametrize(
+    "brdf, reflected",
+    [
+        (Brdf("lambert", albedo=[0.6, 0.5, 0.4]), [0.6, 0.5, 0.4]),
+        (Brdf("phong", albedo=[0.3, 0.2, 0.1], specular=[0.2, 0.2, 0.2], exponent=40.0), [0.5, 0.4, 0.3]),
+    ],
+)
 def test_white_furnace(rng, brdf, reflected):
     """Uniform radiance L = 2 (its DC coefficient 2 sqrt(4π)): every sample reflects (rho + s) L."""
     coeffs = np.zeros((num_coeffs(8), 3))
     coeffs[0] = 2.0 * np.sqrt(4 * np.pi)
     normal, view = directions(rng)
-    np.testing.assert_allclose(render_samples(coeffs, brdf, normal, view),
-                               np.broadcast_to(2.0 * np.asarray(reflected), (len(normal), 3)), rtol=1e-9)
+    np.testing.assert_allclose(
+        render_samples(coeffs, brdf, normal, view), np.broadcast_to(2.0 * np.asarray(reflected), (len(normal), 3)), rtol=1e-9
+    )
 
 
 def test_one_band_through_the_clamped_cosine(rng):
@@ -41,8 +45,7 @@ def test_one_band_through_the_clamped_cosine(rng):
     normal, view = directions(rng)
     rho = np.array([0.6, 0.5, 0.4])
     want = rho / np.pi * (2 * np.pi / 3) * sh_basis(normal, 2)[:, [sh_index(1, 0)]] * coeffs[sh_index(1, 0)]
-    np.testing.assert_allclose(render_samples(coeffs, Brdf("lambert", albedo=rho.tolist()), normal, view),
-                               want, atol=1e-12)
+    np.testing.assert_allclose(render_samples(coeffs, Brdf("lambert", albedo=rho.tolist()), normal, view), want, atol=1e-12)
 
 
 def test_linear_in_the_lighting(rng):
@@ -51,6 +54,8 @@ def test_linear_in_the_lighting(rng):
     brdf = Brdf("microfacet", albedo=[0.4, 0.3, 0.2], specular=[0.04] * 3, roughness=0.2)
     a, b = rng.normal(size=(num_coeffs(6), 3)), rng.normal(size=(num_coeffs(6), 3))
     normal, view = directions(rng)
-    np.testing.assert_allclose(render_samples(2 * a + b, brdf, normal, view),
-                               2 * render_samples(a, brdf, normal, view) + render_samples(b, brdf, normal, view),
-                               atol=1e-10)
+    np.testing.assert_allclose(
+        render_samples(2 * a + b, brdf, normal, view),
+        2 * render_samples(a, brdf, normal, view) + render_samples(b, brdf, normal, view),
+        atol=1e-10,
+    )

@@ -33,7 +33,7 @@ def hemisphere_rule(n_theta: int = 400, n_phi: int = 200):
 @pytest.mark.parametrize("roughness", [0.05] + ROUGHNESS)
 def test_ggx_is_normalized(roughness):
     """int D(h) (n.h) dω_h = 1 over the hemisphere (Walter et al. 2007, eq. 4)."""
-    alpha = roughness ** 2
+    alpha = roughness**2
     # substitute t = tan(theta_h) / alpha: D cos sin dtheta is then smooth on t in (0, inf) -> x = t/(1+t)
     x, w = gauss_legendre(200, (0.0, 1.0))
     t = x / (1 - x) * alpha
@@ -71,8 +71,7 @@ def test_fresnel_limits(ior):
     assert fresnel_dielectric(np.array([0.0]), ior)[0] == pytest.approx(1.0)
     # at Brewster's angle the p-polarized part vanishes: F = R_s / 2 with R_s = cos^2(2 theta_B)
     theta_b = np.arctan(ior)
-    assert fresnel_dielectric(np.array([np.cos(theta_b)]), ior)[0] == pytest.approx(
-        0.5 * np.cos(2 * theta_b) ** 2, rel=1e-9)
+    assert fresnel_dielectric(np.array([np.cos(theta_b)]), ior)[0] == pytest.approx(0.5 * np.cos(2 * theta_b) ** 2, rel=1e-9)
 
 
 def test_microfacet_reflection_is_reciprocal(rng):
@@ -83,8 +82,9 @@ def test_microfacet_reflection_is_reciprocal(rng):
     a /= np.linalg.norm(a, axis=1, keepdims=True)
     b /= np.linalg.norm(b, axis=1, keepdims=True)
     for alpha in (0.02, 0.1, 0.5):
-        np.testing.assert_allclose(microfacet_reflection(n, a, b, alpha, 1.5), microfacet_reflection(n, b, a, alpha, 1.5),
-                                   rtol=1e-12)
+        np.testing.assert_allclose(
+            microfacet_reflection(n, a, b, alpha, 1.5), microfacet_reflection(n, b, a, alpha, 1.5), rtol=1e-12
+        )
 
 
 def brute_force_albedo(material: Principled, mu_out: float, n_theta: int = 200, n_phi: int = 180) -> np.ndarray:
@@ -95,14 +95,16 @@ def brute_force_albedo(material: Principled, mu_out: float, n_theta: int = 200, 
     under 5 % of their 2e-3 and 3e-3 tolerances and of the closest case's margin (4.2e-4), in 12 s
     instead of 139 s."""
     alpha = material.alpha
-    wo = np.array([np.sqrt(1 - mu_out ** 2), 0.0, mu_out])
+    wo = np.array([np.sqrt(1 - mu_out**2), 0.0, mu_out])
     x, wx = gauss_legendre(n_theta, (0.0, 1.0))
     t = x / (1 - x) * alpha
     theta = np.arctan(t)
     dtheta = alpha / (1 - x) ** 2 / (1 + t * t)
     phi = 2 * np.pi * (np.arange(n_phi) + 0.5) / n_phi
-    h = np.stack(np.broadcast_arrays(np.sin(theta)[:, None] * np.cos(phi), np.sin(theta)[:, None] * np.sin(phi),
-                                     np.cos(theta)[:, None]), -1).reshape(-1, 3)
+    h = np.stack(
+        np.broadcast_arrays(np.sin(theta)[:, None] * np.cos(phi), np.sin(theta)[:, None] * np.sin(phi), np.cos(theta)[:, None]),
+        -1,
+    ).reshape(-1, 3)
     w_h = np.repeat(wx * dtheta * np.sin(theta) * 2 * np.pi / n_phi, n_phi)
     c = h @ wo
     wi = 2 * c[:, None] * h - wo
@@ -134,8 +136,12 @@ def test_white_furnace_metal_conserves_energy(roughness):
 def test_no_configuration_reflects_more_than_it_receives(roughness):
     """No mix of base colour, metallic and IOR reflects more than it receives at any view (brute-force albedo <=
     1 + 2e-3), and a white dielectric is a perfect white furnace (albedo 1 within 3e-3)."""
-    for base, metallic, ior in [((1, 1, 1), 0.0, 1.5), ((0.9, 0.5, 0.1), 0.5, 1.5), ((1, 1, 1), 0.0, 2.4),
-                                ((0.2, 0.9, 0.9), 1.0, 1.5)]:
+    for base, metallic, ior in [
+        ((1, 1, 1), 0.0, 1.5),
+        ((0.9, 0.5, 0.1), 0.5, 1.5),
+        ((1, 1, 1), 0.0, 2.4),
+        ((0.2, 0.9, 0.9), 1.0, 1.5),
+    ]:
         m = Principled(base_color=base, roughness=roughness, metallic=metallic, ior=ior)
         for mu in (0.15, 0.6, 1.0):
             albedo = brute_force_albedo(m, mu)
@@ -156,15 +162,20 @@ def test_diffuse_base_is_attenuated_by_the_specular_layer():
 @pytest.mark.parametrize("roughness", [0.15, 0.5])
 def test_vndf_samples_integrate_the_lobe(roughness, rng):
     """E[F G2 / G1(w_out)] over GGX visible-normal samples = int f_spec cos dω (brute force)."""
-    alpha = roughness ** 2
+    alpha = roughness**2
     mu_out = 0.4
-    wo = np.array([np.sqrt(1 - mu_out ** 2), 0.0, mu_out])
+    wo = np.array([np.sqrt(1 - mu_out**2), 0.0, mu_out])
     u = rng.random((2, 400_000))
     h = sample_ggx_vndf(wo[None], alpha, u[0], u[1])
     c = h @ wo
     wi = 2 * c[:, None] * h - wo
-    est = np.mean(np.where(wi[:, 2] > 0, fresnel_dielectric(c, 1.5) * smith_g2(wi[:, 2], mu_out, alpha)
-                           / smith_g1(np.array([mu_out]), alpha)[0], 0.0))
+    est = np.mean(
+        np.where(
+            wi[:, 2] > 0,
+            fresnel_dielectric(c, 1.5) * smith_g2(wi[:, 2], mu_out, alpha) / smith_g1(np.array([mu_out]), alpha)[0],
+            0.0,
+        )
+    )
     d, w = hemisphere_rule(800, 400)
     n = np.tile([0.0, 0.0, 1.0], (len(d), 1))
     exact = (microfacet_reflection(n, d, np.tile(wo, (len(d), 1)), alpha, 1.5) * d[:, 2] * w).sum()

@@ -25,11 +25,11 @@ def bounced_scene(rng, bounce: float, truth: np.ndarray, n: int = 400, folds: in
     m = bounce * rng.uniform(0.0, 1.0, n)
     light = np.array([2.0, 1.5, 1.0])
     radiance = truth * (d[:, None] + truth * m[:, None]) * light
-    radiance *= 1.0 + 0.002 * rng.standard_normal(radiance.shape)    # photos have noise
+    radiance *= 1.0 + 0.002 * rng.standard_normal(radiance.shape)  # photos have noise
     fold = np.arange(n) % folds
 
     def score(rho: np.ndarray) -> np.ndarray:
-        design = rho * (d[:, None] + rho * m[:, None])                # (n, 3): B = design * L
+        design = rho * (d[:, None] + rho * m[:, None])  # (n, 3): B = design * L
         err = np.zeros(3)
         for f in range(folds):
             test = fold == f
@@ -45,7 +45,7 @@ def test_level_found_where_light_bounces(rng):
     albedo_level finds it within 1 % (+ its tolerance) of the truth from the right chromaticity at the wrong
     level, and returns its curve in order."""
     truth = np.array([0.7, 0.62, 0.5])
-    chroma = truth / truth.mean() * 0.5                               # the convention's level, right colour
+    chroma = truth / truth.mean() * 0.5  # the convention's level, right colour
     s, determined, curve = albedo_level(bounced_scene(rng, 0.3, truth), chroma)
     assert determined
     # 0.2% noise on 400 samples: the minimum within 1%; Brent stops within LEVEL_XTOL in log s
@@ -57,7 +57,7 @@ def test_flat_curve_keeps_the_convention(rng):
     """No bounce (a convex object): scaling rho is absorbed by the lighting exactly."""
     s, determined, curve = albedo_level(bounced_scene(rng, 0.0, np.array([0.7, 0.62, 0.5])), np.full(3, 0.5))
     assert not determined and s == 1.0
-    assert len(curve) == 3                       # the two ends and the middle: flat, nothing to search
+    assert len(curve) == 3  # the two ends and the middle: flat, nothing to search
 
 
 @pytest.mark.parametrize("bounce", [0.02, 0.3])
@@ -100,8 +100,7 @@ def test_source_located_against_the_sh_fitted_around_it(rng):
     sun_radiance = np.einsum("cpj,jc->pc", source_columns(geo, layer, st, None, base), np.array([[30.0, 28.0, 25.0]]))
     radiance = np.einsum("pkc,kc->pc", diffuse, coeffs) + sun_radiance
     obs = Observations(radiance, np.ones(len(radiance)), np.arange(len(radiance)) % 4)
-    fit = fit_material(geo, material, obs, order=3, folds=4, base0=base, spec=spec, fix_base=True, max_sources=1,
-                       max_bounces=0)
+    fit = fit_material(geo, material, obs, order=3, folds=4, base0=base, spec=spec, fix_base=True, max_sources=1, max_bounces=0)
     found = fit.sources.transfer.directions[0]
     assert np.degrees(np.arccos(min(found @ sun, 1.0))) < 0.2
 
@@ -116,8 +115,9 @@ def teapot_geometry(rng, n: int, order: int):
 
     mesh = read_mesh(Path(__file__).parents[1] / "data" / "cycles" / "teapot_city_glossy" / "mesh.ply")
     faces = rng.integers(0, len(mesh.faces), n)
-    return prt.geometry(ray_mesh(mesh), faces, rng.dirichlet([1.0, 1.0, 1.0], n), np.asarray(mesh.face_normals)[faces],
-                        order), mesh
+    return prt.geometry(
+        ray_mesh(mesh), faces, rng.dirichlet([1.0, 1.0, 1.0], n), np.asarray(mesh.face_normals)[faces], order
+    ), mesh
 
 
 def test_pattern_visibility_is_every_directions_own_shadow_rays(rng):
@@ -161,8 +161,12 @@ def test_grey_bounce_terms_are_the_bounce_series(rng):
             for vertex_direct in columns:
                 base = np.asarray(base)
                 direct = geo.vertex_direct if vertex_direct is None else vertex_direct
-                series = bounce_series(geo.bounce_matrices(material), np.broadcast_to(base, (len(mesh.vertices), 3)),
-                                       np.repeat(direct[..., None], 3, axis=2), 8)
+                series = bounce_series(
+                    geo.bounce_matrices(material),
+                    np.broadcast_to(base, (len(mesh.vertices), 3)),
+                    np.repeat(direct[..., None], 3, axis=2),
+                    8,
+                )
                 expected = np.einsum("pj,pjkc->pkc", geo.bary, series[geo.tri])
                 got = prt.indirect_transfer(geo, material, base, vertex_direct=vertex_direct)
                 assert np.abs(expected).max() > 1e-3
@@ -180,16 +184,19 @@ def test_mirror_peaks_point_at_the_lamps_a_glossy_sphere_reflects():
     rng = np.random.default_rng(0)
     normals = rng.normal(size=(240000, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    views = np.repeat(np.array([[np.cos(a), np.sin(a), 0.3] for a in np.linspace(0, 2 * np.pi, 12, endpoint=False)]),
-                      normals.shape[0] // 12, axis=0)
+    views = np.repeat(
+        np.array([[np.cos(a), np.sin(a), 0.3] for a in np.linspace(0, 2 * np.pi, 12, endpoint=False)]),
+        normals.shape[0] // 12,
+        axis=0,
+    )
     views /= np.linalg.norm(views, axis=1, keepdims=True)
     front = np.einsum("pc,pc->p", normals, views) > 0
     normals, views = normals[front], views[front]
     mirror = 2.0 * np.einsum("pc,pc->p", normals, views)[:, None] * normals - views
     lamps = np.array([[0.6, -0.7, 0.1], [-0.3, 0.9, -0.05]])
     lamps /= np.linalg.norm(lamps, axis=1, keepdims=True)
-    angle = np.arccos(np.clip(mirror @ lamps.T, -1, 1))                    # (P, 2)
-    residual = (np.exp(-(angle / np.radians(1.5)) ** 2) @ np.array([4.0, 1.0]))[:, None] * np.ones(3)
+    angle = np.arccos(np.clip(mirror @ lamps.T, -1, 1))  # (P, 2)
+    residual = (np.exp(-((angle / np.radians(1.5)) ** 2)) @ np.array([4.0, 1.0]))[:, None] * np.ones(3)
     geo = SimpleNamespace(normals=normals, view_dirs=views)
     found = mirror_peaks(geo, residual, np.ones(len(normals)), 2, [])
     assert len(found) == 2

@@ -20,8 +20,7 @@ class FakeCandidate:
 
     def __call__(self, material, grey, fix_base, directions):
         self.fitted.append(material.roughness)
-        return SimpleNamespace(validation_rmse=abs(np.log(material.roughness / self.minimum)), train_rmse=0.0,
-                               sources=None)
+        return SimpleNamespace(validation_rmse=abs(np.log(material.roughness / self.minimum)), train_rmse=0.0, sources=None)
 
 
 @pytest.mark.parametrize("minimum", [0.05, 0.14, 0.37, 0.8])

@@ -13,12 +13,12 @@ def _samples(sigma: float, seed: int = 0):
     images = []
     for k in range(3):
         smooth = 0.4 + 0.3 * np.sin(x / 30.0 + k) * np.cos(y / 25.0)
-        highlight = 50.0 * np.exp(-((x - 40 - 10 * k) ** 2 + (y - 50) ** 2) / 2.0)   # 2000 x the noise
+        highlight = 50.0 * np.exp(-((x - 40 - 10 * k) ** 2 + (y - 50) ** 2) / 2.0)  # 2000 x the noise
         edge = 0.5 * (x > 90)
         images.append((smooth + highlight + edge)[..., None] * np.array([1.0, 0.8, 0.5]))
     stack = np.stack(images)
     stack = stack + rng.normal(0.0, sigma, stack.shape)
-    inside = (x - 64) ** 2 / 60.0 ** 2 + (y - 48) ** 2 / 45.0 ** 2 < 1          # an object's footprint
+    inside = (x - 64) ** 2 / 60.0**2 + (y - 48) ** 2 / 45.0**2 < 1  # an object's footprint
     ids, ys, xs = np.nonzero(np.broadcast_to(inside, stack.shape[:3]))
     return stack[ids, ys, xs], ids, np.stack([xs, ys], axis=1)
 
@@ -76,5 +76,5 @@ def test_weighted_noise_sigma_is_the_weighted_rms_of_pure_noise():
     sigma = np.sqrt(a + b * radiance.mean(axis=1, keepdims=True))
     residual = rng.normal(size=radiance.shape) * sigma
     w = inverse_variance_weights(radiance, a, b) * rng.uniform(0.2, 1.0, 200_000)
-    rms = np.sqrt(np.sum(w[:, None] * residual ** 2) / (3 * np.sum(w)))
+    rms = np.sqrt(np.sum(w[:, None] * residual**2) / (3 * np.sum(w)))
     assert weighted_noise_sigma(w, radiance, a, b) == pytest.approx(rms, rel=0.01)

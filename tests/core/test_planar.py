@@ -45,7 +45,7 @@ def test_lambert_closed_form_matches_quadrature():
     assert np.abs(np.delete(rho, 3, axis=1)).max() < 1e-15  # constant in θ'_o: only q = 0
     closed = pl.lambert_filter(4)
     assert closed[4] == pytest.approx(1 / (2 * np.pi)) and closed[5] == 0.125
-    assert closed[6] == pytest.approx(1 / (6 * np.pi))     # (−1)^(1+1) / (2π·3)
+    assert closed[6] == pytest.approx(1 / (6 * np.pi))  # (−1)^(1+1) / (2π·3)
 
 
 def test_lambert_energy_in_low_band():
@@ -55,7 +55,7 @@ def test_lambert_energy_in_low_band():
     low = np.sum(f[p <= 2] ** 2)
     # Parseval: total = 1/(2π) ∫ (cos θ / 2)² over the visible half = 1/16 exactly.
     assert np.sum(f**2) == pytest.approx(1 / 16, rel=1e-9)  # tail beyond 2000 is O(p^-3) ~ 1e-11
-    assert low / (1 / 16) >= 0.99                           # measured 0.9953
+    assert low / (1 / 16) >= 0.99  # measured 0.9953
 
 
 @pytest.mark.parametrize("brdf", SMOOTH_BRDFS, ids=repr)
@@ -98,7 +98,7 @@ def test_inverse_lighting_exact_mirror_and_sharp_phong(rng):
 
     phong = pl.Phong(64)
     field = pl.reflect_brute_force(light_fn, phong, pl.circle_grid(64), pl.circle_grid(256))
-    phong_b = pl.light_field_coefficients(field, BAND, 64)   # B is C^63 in θ'_o: FFT ~exact
+    phong_b = pl.light_field_coefficients(field, BAND, 64)  # B is C^63 in θ'_o: FFT ~exact
     recovered = pl.inverse_lighting(phong_b, pl.transfer_coefficients(phong, BAND, 64))
     np.testing.assert_allclose(recovered, lighting, atol=1e-8)
     assert np.all(pl.lighting_conditioning(pl.transfer_coefficients(phong, BAND, 64), 1e-3, 1.0) == pl.WELL)
@@ -136,12 +136,12 @@ def test_brdf_estimation_directional_vs_area(rng):
     band; under a 0.5 rad area source the bands above 6 fall below the noise and are labelled ill-conditioned."""
     phong = pl.Phong(32)
     rho = pl.transfer_coefficients(phong, BAND, 32)
-    directional = np.full(2 * BAND + 1, 1 / (2 * np.pi), complex)      # δ(θ): L_p = 1/(2π)
+    directional = np.full(2 * BAND + 1, 1 / (2 * np.pi), complex)  # δ(θ): L_p = 1/(2π)
     recovered = pl.estimate_brdf(pl.reflect(directional, rho), directional)
-    np.testing.assert_allclose(recovered, rho, atol=1e-14)              # pure division: round-off
+    np.testing.assert_allclose(recovered, rho, atol=1e-14)  # pure division: round-off
     assert np.all(pl.brdf_conditioning(directional, 1e-4, 0.01) == pl.WELL)
     # an area source (Gaussian, width 0.5 rad): L_p ~ exp(−p²/8)/(2π) decays below the noise
-    area = np.exp(-pl.frequencies(BAND) ** 2 / 8.0) / (2 * np.pi) + 0j
+    area = np.exp(-(pl.frequencies(BAND) ** 2) / 8.0) / (2 * np.pi) + 0j
     labels = pl.brdf_conditioning(area, 1e-4, 0.01)
     p = np.abs(pl.frequencies(BAND))
     assert np.all(labels[p <= 2] == pl.WELL) and np.all(labels[p >= 7] == pl.ILL_CONDITIONED)
@@ -164,7 +164,7 @@ def test_factorization_noise_free(brdf, rng):
     # the observed (GL on the visible half) cosine-weighted field obeys B̃ = 2π L K (round-off)
     assert np.abs(observed - pl.reflect(lighting, kernel)).max() <= 1e-10 * np.abs(observed).max()
     result = pl.factorize(observed)
-    scale = lighting[BAND]          # factorize returns L_0 = 1; the truth has L_0 = 1 too
+    scale = lighting[BAND]  # factorize returns L_0 = 1; the truth has L_0 = 1 too
     assert result.determined.all() and result.singular_gap < 1e-10
     # up to one global scale (L·s, K/s): round-off, measured ~1e-14
     np.testing.assert_allclose(result.lighting * scale, lighting, atol=1e-6)
@@ -180,8 +180,7 @@ def test_factorization_degrades_gracefully_with_noise(rng):
         trials = []
         for _ in range(4):
             noise = level * np.abs(observed).max()
-            noisy = observed + noise * (rng.normal(size=observed.shape)
-                                        + 1j * rng.normal(size=observed.shape)) / np.sqrt(2)
+            noisy = observed + noise * (rng.normal(size=observed.shape) + 1j * rng.normal(size=observed.shape)) / np.sqrt(2)
             result = pl.factorize(noisy)
             trials.append(np.linalg.norm(result.lighting - lighting) / np.linalg.norm(lighting))
         errors.append(np.mean(trials))
@@ -210,10 +209,9 @@ def test_reflected_angle_spectra_match_seed_approximations():
     at s = 64, microfacet exp(-(sigma p)^2) at sigma = 0.05."""
     p = pl.frequencies(6)
     # Phong cos^s ≈ exp(−s x²/2) -> exp(−p²/(2s)); the error is O(1/s): 2% at s = 64 for p <= 6
-    np.testing.assert_allclose(pl.reflected_angle_spectrum(pl.Phong(64), 6), np.exp(-p**2 / 128), rtol=0.02)
+    np.testing.assert_allclose(pl.reflected_angle_spectrum(pl.Phong(64), 6), np.exp(-(p**2) / 128), rtol=0.02)
     # microfacet exp(−tan²(x/2)/σ²) ≈ exp(−x²/(4σ²)) -> exp(−(σp)²); O(σ²): 2% at σ = 0.05
-    np.testing.assert_allclose(pl.reflected_angle_spectrum(pl.Microfacet(0.05), 6),
-                               np.exp(-(0.05 * p) ** 2), rtol=0.02)
+    np.testing.assert_allclose(pl.reflected_angle_spectrum(pl.Microfacet(0.05), 6), np.exp(-((0.05 * p) ** 2)), rtol=0.02)
 
 
 def test_noise_amplification_matches_gain(rng):
@@ -222,9 +220,14 @@ def test_noise_amplification_matches_gain(rng):
     rho = pl.transfer_coefficients(pl.Phong(16), BAND, 24)
     clean = pl.reflect(lighting, rho)
     noise = 1e-3
-    draws = np.array([pl.inverse_lighting(clean + noise * (rng.normal(size=clean.shape)
-                                                           + 1j * rng.normal(size=clean.shape)) / np.sqrt(2), rho)
-                      for _ in range(400)])
+    draws = np.array(
+        [
+            pl.inverse_lighting(
+                clean + noise * (rng.normal(size=clean.shape) + 1j * rng.normal(size=clean.shape)) / np.sqrt(2), rho
+            )
+            for _ in range(400)
+        ]
+    )
     measured = np.sqrt(np.mean(np.abs(draws - lighting) ** 2, axis=0))
     predicted = noise / pl.lighting_gain(rho)
     # 400 draws: |e|² is exponential (CV 1), so the rms estimate has relative std ~1/(2·sqrt(400)) = 2.5%
@@ -240,13 +243,13 @@ def test_wiener_regularization_beats_plain_least_squares(rng):
     noise = 1e-3
     errs_plain, errs_wiener = [], []
     for _ in range(20):
-        noisy = pl.reflect(lighting, rho) + noise * (rng.normal(size=(2 * band + 1, 9))
-                                                     + 1j * rng.normal(size=(2 * band + 1, 9))) / np.sqrt(2)
+        noisy = pl.reflect(lighting, rho) + noise * (
+            rng.normal(size=(2 * band + 1, 9)) + 1j * rng.normal(size=(2 * band + 1, 9))
+        ) / np.sqrt(2)
         posed = pl.lighting_conditioning(rho, noise, 1.0) != pl.ILL_POSED
         signal = np.sqrt(np.mean(np.abs(lighting[posed]) ** 2))
         errs_plain.append(np.linalg.norm((pl.inverse_lighting(noisy, rho) - lighting)[posed]))
-        errs_wiener.append(np.linalg.norm((pl.inverse_lighting(noisy, rho, noise=noise, signal=signal)
-                                           - lighting)[posed]))
+        errs_wiener.append(np.linalg.norm((pl.inverse_lighting(noisy, rho, noise=noise, signal=signal) - lighting)[posed]))
     # Wiener is the MMSE linear estimate only for the Gaussian prior, so require a clear but not
     # extreme gain: measured ratio 0.60
     assert np.mean(errs_wiener) < 0.8 * np.mean(errs_plain)

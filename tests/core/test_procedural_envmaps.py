@@ -50,7 +50,12 @@ def test_spec_grammar():
     naming the fault."""
     assert parse_env_spec("area:n=3,seed=2,height=32") == ("area", 32, {"n": 3.0, "seed": 2.0})
     assert envmap_from_spec("smooth:height=8").shape == (8, 16, 3)
-    for spec, words in (("sunny", "unknown environment"), ("area:n", "key=value"), ("area:n=x", "must be a number"),
-                        ("area:nope=1", "no parameter 'nope'"), ("area:height=1", "height must be >= 2")):
+    for spec, words in (
+        ("sunny", "unknown environment"),
+        ("area:n", "key=value"),
+        ("area:n=x", "must be a number"),
+        ("area:nope=1", "no parameter 'nope'"),
+        ("area:height=1", "height must be >= 2"),
+    ):
         with pytest.raises(ValueError, match=words):
             parse_env_spec(spec)

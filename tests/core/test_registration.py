@@ -55,8 +55,7 @@ def test_viewing_center_is_where_the_axes_meet(rng):
 @pytest.mark.parametrize("scale", [1.0, 250.0, 0.004])
 def test_recovers_a_similarity_without_a_rotation_guess(bunny, rng, scale):
     """Any rotation (no guess), any scale (mm, km), partial coverage, noise 0.2 % of the size."""
-    truth = Similarity(scale, Rotation.random(random_state=int(rng.integers(1000))).as_matrix(),
-                       rng.normal(size=3) * scale)
+    truth = Similarity(scale, Rotation.random(random_state=int(rng.integers(1000))).as_matrix(), rng.normal(size=3) * scale)
     size = float(np.linalg.norm(bunny.extents))
     cloud = _cloud(bunny, truth, 3000, rng, noise=0.002 * size, upper_only=True)
     center = (bunny.bounds.mean(axis=0) - truth.t) @ truth.R / truth.scale + rng.normal(size=3) * 0.05 * size / scale
@@ -74,8 +73,13 @@ def test_background_points_are_cut_out(bunny, rng):
     size = float(np.linalg.norm(bunny.extents))
     on_object = _cloud(bunny, truth, 3000, rng, noise=0.001 * size)
     lo, hi = bunny.bounds
-    table = np.column_stack([rng.uniform(lo[0] - size, hi[0] + size, 1400), np.full(1400, lo[1] - 0.01 * size),
-                             rng.uniform(lo[2] - size, hi[2] + size, 1400)])
+    table = np.column_stack(
+        [
+            rng.uniform(lo[0] - size, hi[0] + size, 1400),
+            np.full(1400, lo[1] - 0.01 * size),
+            rng.uniform(lo[2] - size, hi[2] + size, 1400),
+        ]
+    )
     clutter = rng.uniform(lo - size, hi + size, size=(600, 3))
     cloud = np.concatenate([on_object, (np.concatenate([table, clutter]) - truth.t) @ truth.R / truth.scale])
     result = _register(bunny, cloud, (bunny.bounds.mean(axis=0) - truth.t) @ truth.R / truth.scale)
@@ -89,8 +93,11 @@ def test_background_points_are_cut_out(bunny, rng):
 def test_symmetric_shapes_are_reported_ambiguous(shape, rng):
     """Registering a point cloud to a sphere or a cylinder reports an ambiguous rotation (over 5 deg of equally
     good fits) instead of one answer."""
-    mesh = trimesh.creation.icosphere(subdivisions=4) if shape == "sphere" else trimesh.creation.cylinder(
-        radius=0.5, height=2.0, sections=128)
+    mesh = (
+        trimesh.creation.icosphere(subdivisions=4)
+        if shape == "sphere"
+        else trimesh.creation.cylinder(radius=0.5, height=2.0, sections=128)
+    )
     truth = Similarity(2.0, Rotation.random(random_state=5).as_matrix(), np.zeros(3))
     cloud = _cloud(mesh, truth, 3000, rng, noise=0.001)
     result = _register(mesh, cloud, (mesh.bounds.mean(axis=0) - truth.t) @ truth.R / truth.scale)

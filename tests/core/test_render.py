@@ -49,16 +49,18 @@ def test_lambert_sphere_matches_closed_form_irradiance():
     direction); the issue asks for 1 %.
     """
     env = make_envmap("smooth", 64)
-    renderer = Renderer(ray_mesh(sphere()), env, Brdf("lambert", albedo=[1.0, 1.0, 1.0]), shadows=False,
-                        cell_height=64)
+    renderer = Renderer(ray_mesh(sphere()), env, Brdf("lambert", albedo=[1.0, 1.0, 1.0]), shadows=False, cell_height=64)
     camera, R, t = view()
     result = renderer.render(camera, R, t)
     normals, disc = analytic_sphere_normals(camera, R, t, result.object_mask)
     interior = disc > 0.05 * RADIUS**2  # silhouette pixels hit the facets, not the analytic sphere
     c, a, q = smooth_coefficients()
     trace = np.trace(q, axis1=1, axis2=2)
-    irradiance = (np.pi * (c + trace / 3) + 2 * np.pi / 3 * normals @ a.T
-                  + np.pi / 4 * (np.einsum("pi,cij,pj->pc", normals, q, normals) - trace / 3))
+    irradiance = (
+        np.pi * (c + trace / 3)
+        + 2 * np.pi / 3 * normals @ a.T
+        + np.pi / 4 * (np.einsum("pi,cij,pj->pc", normals, q, normals) - trace / 3)
+    )
     got = result.radiance[result.object_mask]
     rel = np.abs(got - irradiance / np.pi) / (irradiance / np.pi)
     assert interior.sum() > 500
@@ -72,8 +74,7 @@ def test_white_furnace_lambert_returns_the_radiance():
     """
     env = make_envmap("constant", 32, value=2.0)
     for shadows in (False, True):
-        renderer = Renderer(ray_mesh(sphere(4)), env, Brdf("lambert", albedo=[1.0, 1.0, 1.0]), shadows=shadows,
-                            cell_height=32)
+        renderer = Renderer(ray_mesh(sphere(4)), env, Brdf("lambert", albedo=[1.0, 1.0, 1.0]), shadows=shadows, cell_height=32)
         result = renderer.render(*view())
         got = result.radiance[result.object_mask]
         if not shadows:
@@ -104,8 +105,10 @@ def test_specular_sum_matches_brute_force_over_the_light_set(rng):
     """The renderer's dense half-vector sums equal pipeline.core.brdf evaluated pair by pair."""
     mesh = sphere(2)
     env = make_envmap("area", 32)
-    for brdf in (Brdf("microfacet", albedo=[0.2, 0.3, 0.5], specular=[0.04, 0.5, 0.9], roughness=0.3),
-                 Brdf("phong", albedo=[0.2, 0.3, 0.5], specular=[0.3, 0.2, 0.1], exponent=20.0)):
+    for brdf in (
+        Brdf("microfacet", albedo=[0.2, 0.3, 0.5], specular=[0.04, 0.5, 0.9], roughness=0.3),
+        Brdf("phong", albedo=[0.2, 0.3, 0.5], specular=[0.3, 0.2, 0.1], exponent=20.0),
+    ):
         renderer = Renderer(ray_mesh(mesh), env, brdf, shadows=False, cell_height=8)
         faces = rng.integers(0, len(mesh.faces), 40)
         bary = rng.dirichlet([1, 1, 1], 40)
@@ -115,9 +118,20 @@ def test_specular_sum_matches_brute_force_over_the_light_set(rng):
         n = np.einsum("pk,pkc->pc", bary, mesh.vertex_normals[mesh.faces[faces]])
         n /= np.linalg.norm(n, axis=1, keepdims=True)
         lights = renderer.lights
-        want = np.array([(cosine_weighted_brdf(brdf, np.repeat(n[p:p + 1], len(lights), 0), lights.directions,
-                                               np.repeat(w_out[p:p + 1], len(lights), 0)) * lights.power).sum(0)
-                         for p in range(40)])
+        want = np.array(
+            [
+                (
+                    cosine_weighted_brdf(
+                        brdf,
+                        np.repeat(n[p : p + 1], len(lights), 0),
+                        lights.directions,
+                        np.repeat(w_out[p : p + 1], len(lights), 0),
+                    )
+                    * lights.power
+                ).sum(0)
+                for p in range(40)
+            ]
+        )
         # only the lobe's support cut differs: D < e^-16 of its peak, cos^s < 1e-7
         np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6 * want.max())
 
@@ -132,8 +146,9 @@ def open_box(depth: float = 0.5, n: int = 20) -> trimesh.Trimesh:
     faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
     parts = [trimesh.Trimesh(verts, faces, process=False)]
     for k in range(4):  # a wall along x = +0.5 facing -X, rotated about Z
-        wall = trimesh.Trimesh([[0.5, -0.5, 0], [0.5, 0.5, 0], [0.5, 0.5, depth], [0.5, -0.5, depth]],
-                               [[0, 2, 1], [0, 3, 2]], process=False)
+        wall = trimesh.Trimesh(
+            [[0.5, -0.5, 0], [0.5, 0.5, 0], [0.5, 0.5, depth], [0.5, -0.5, depth]], [[0, 2, 1], [0, 3, 2]], process=False
+        )
         wall.apply_transform(trimesh.transformations.rotation_matrix(k * np.pi / 2, [0, 0, 1]))
         parts.append(wall)
     mesh = trimesh.util.concatenate(parts)
@@ -204,7 +219,7 @@ def test_light_set_blocks_merge_broad_bright_pixels_and_keep_sources_and_sign():
     omega = equirect_solid_angles(64)[:, None, None]
     single, merged = light_set(env, cell_height=16), light_set(env, cell_height=16, bright_block=4)
     assert merged.n_bright < single.n_bright
-    np.testing.assert_array_equal(merged.bright, single.bright)     # the same pixels leave the remainder
+    np.testing.assert_array_equal(merged.bright, single.bright)  # the same pixels leave the remainder
     np.testing.assert_allclose(merged.power.sum(0), (env * omega).sum(axis=(0, 1)), rtol=1e-9)
     lamp = int(np.argmax((env * omega).max(axis=2)))
     assert lamp in merged.bright and merged.power.max() == pytest.approx((env * omega).max(), rel=1e-9)  # alone
@@ -221,8 +236,7 @@ def test_bright_blocks_the_lobe_cannot_resolve_leave_the_render_as_it_was():
     camera, R, t = view(32)
     brdf = Brdf("principled", base_color=[0.6, 0.4, 0.2], roughness=0.5)
     env = _glow_and_lamp()
-    images = [Renderer(ray_mesh(sphere(4)), env, brdf, shadows=False, bright_block=b).render(camera, R, t)
-              for b in (1, 4)]
+    images = [Renderer(ray_mesh(sphere(4)), env, brdf, shadows=False, bright_block=b).render(camera, R, t) for b in (1, 4)]
     mask = images[0].object_mask
     a, b = images[0].radiance[mask], images[1].radiance[mask]
     rel = np.abs(b - a).max(axis=1) / a.max(axis=1)
@@ -240,8 +254,7 @@ def test_every_procedural_env_covers_the_sphere():
 
 def test_camera_inside_a_closed_mesh_is_refused():
     """A camera inside a closed sphere is refused with InsideMeshError rather than rendering its back faces."""
-    renderer = Renderer(ray_mesh(sphere(3)), make_envmap("constant", 8), Brdf("lambert", albedo=[0.5] * 3),
-                        shadows=False)
+    renderer = Renderer(ray_mesh(sphere(3)), make_envmap("constant", 8), Brdf("lambert", albedo=[0.5] * 3), shadows=False)
     camera = Camera("PINHOLE", 16, 16, (16.0, 16.0, 8.0, 8.0))
     R, t = look_at(np.array([0.0, 0.0, 0.01]), np.array([1.0, 0.0, 0.0]))
     with pytest.raises(InsideMeshError):
@@ -258,8 +271,7 @@ def test_principled_white_furnace_through_the_renderer():
         brdf = Brdf("principled", base_color=[1.0, 1.0, 1.0], roughness=roughness)
         result = Renderer(ray_mesh(sphere(4)), make_envmap("constant", 32), brdf, shadows=False).render(camera, R, t)
         values = result.radiance[result.object_mask]
-        assert abs(values.mean() - 1.0) < 3e-3 and np.abs(values - 1.0).max() < 0.05, (roughness, values.min(),
-                                                                                       values.max())
+        assert abs(values.mean() - 1.0) < 3e-3 and np.abs(values - 1.0).max() < 0.05, (roughness, values.min(), values.max())
 
 
 def test_interreflection_closes_the_furnace_of_a_concave_object():
@@ -280,4 +292,6 @@ def test_interreflection_closes_the_furnace_of_a_concave_object():
     with_bounces, without = lit.radiance[lit.object_mask], dark.radiance[dark.object_mask]
     assert np.median(without) < 0.5  # concavity matters: the test can fail
     assert abs(with_bounces.mean() - 1.0) < 0.01 and np.percentile(with_bounces, 5) > 0.93, (
-        with_bounces.mean(), np.percentile(with_bounces, 5))
+        with_bounces.mean(),
+        np.percentile(with_bounces, 5),
+    )

@@ -40,7 +40,7 @@ def test_quadrature_rule_integrates_polynomials_exactly():
     # integral of x^2 y^2 over S^2 = 4 pi / 15
     assert np.sum(w * dirs[:, 0] ** 2 * dirs[:, 1] ** 2) == pytest.approx(4 * np.pi / 15, rel=1e-13)
     x, wx = gauss_legendre(5, (0.0, 2.0))  # exact up to degree 9 on [0, 2]
-    assert np.sum(wx * x ** 9) == pytest.approx(2.0 ** 10 / 10, rel=1e-13)
+    assert np.sum(wx * x**9) == pytest.approx(2.0**10 / 10, rel=1e-13)
 
 
 def test_orthonormal_to_order_30():
@@ -60,12 +60,23 @@ def test_closed_forms_up_to_band_2(rng):
     dirs = random_dirs(rng, 200)
     x, y, z = dirs.T
     c1 = np.sqrt(3 / (4 * np.pi))
-    c2 = np.sqrt(15 / (4 * np.pi))     # 1.092548
-    c20 = np.sqrt(5 / (16 * np.pi))    # 0.315392
-    c22 = np.sqrt(15 / (16 * np.pi))   # 0.546274
-    expected = np.stack([np.full_like(x, np.sqrt(1 / (4 * np.pi))),
-                         c1 * y, c1 * z, c1 * x,
-                         c2 * x * y, c2 * y * z, c20 * (3 * z * z - 1), c2 * x * z, c22 * (x * x - y * y)], axis=1)
+    c2 = np.sqrt(15 / (4 * np.pi))  # 1.092548
+    c20 = np.sqrt(5 / (16 * np.pi))  # 0.315392
+    c22 = np.sqrt(15 / (16 * np.pi))  # 0.546274
+    expected = np.stack(
+        [
+            np.full_like(x, np.sqrt(1 / (4 * np.pi))),
+            c1 * y,
+            c1 * z,
+            c1 * x,
+            c2 * x * y,
+            c2 * y * z,
+            c20 * (3 * z * z - 1),
+            c2 * x * z,
+            c22 * (x * x - y * y),
+        ],
+        axis=1,
+    )
     np.testing.assert_allclose(sh_basis(dirs, 2), expected, atol=1e-14)
     # and the rounded constants of DESIGN.md's table (6 decimals -> 5e-7)
     np.testing.assert_allclose([c2, c20, c22], [1.092548, 0.315392, 0.546274], atol=5e-7)
@@ -98,11 +109,11 @@ def test_finite_and_orthonormal_at_order_100(rng):
     # (b) sh_basis itself: Gram of 400 random columns (plus all of band 100) on a rule exact to
     #     degree 200.  Rounding grows mildly with L; 1e-8 still leaves a margin of > 1e4.
     dirs, w = sphere_rule_for_degree(2 * order)
-    cols = np.union1d(rng.choice(num_coeffs(order), 400, replace=False), np.arange(order ** 2, num_coeffs(order)))
+    cols = np.union1d(rng.choice(num_coeffs(order), 400, replace=False), np.arange(order**2, num_coeffs(order)))
     gram = np.zeros((len(cols), len(cols)))
     for start in range(0, len(dirs), 1000):
-        block = sh_basis(dirs[start:start + 1000], order)[:, cols]
-        gram += block.T @ (block * w[start:start + 1000, None])
+        block = sh_basis(dirs[start : start + 1000], order)[:, cols]
+        gram += block.T @ (block * w[start : start + 1000, None])
     np.testing.assert_allclose(gram, np.eye(len(cols)), atol=1e-8)
 
 
@@ -117,6 +128,7 @@ def test_band_energy_is_parseval(rng):
 
 
 # ------------------------------------------------------------------------------------ rotation
+
 
 def rotations(seed, n):
     return Rotation.random(n, random_state=seed).as_matrix()
@@ -134,8 +146,10 @@ def test_rotate_then_project_equals_project_then_rotate(rng, order):
     orders 1, 4 and 12."""
     coeffs = rng.normal(size=num_coeffs(order))
     for rot in rotations(1, 3):
+
         def rotated(dirs):  # g(d) = f(R^T d); rows d_i -> (R^T d_i)^T = d_i^T R
             return sh_evaluate(coeffs, dirs @ rot)
+
         # both sides exact up to rounding of O(K) terms: 1e-11
         np.testing.assert_allclose(rotate_sh(coeffs, rot), project_by_quadrature(rotated, order), atol=1e-11)
 
@@ -180,6 +194,7 @@ def test_rotation_rejects_non_rotations():
 
 
 # ------------------------------------------------------------------------------ env maps
+
 
 def test_envmap_synthesis_is_pointwise_evaluation(rng):
     """envmap_from_sh is sh_evaluate at the equirect pixel centres of DESIGN.md, to 1e-12."""
@@ -247,8 +262,7 @@ def test_rotating_an_env_map_projection(rng):
     dirs = equirect_directions(height).reshape(-1, 3)
     rotated_map = sh_evaluate(coeffs, dirs @ rot).reshape(height, 2 * height)
     # both sides carry the same midpoint-rule error (~h^2 as above): 2e-3 relative
-    np.testing.assert_allclose(project_envmap(rotated_map, order), rotate_sh(coeffs, rot),
-                               atol=2e-3 * np.abs(coeffs).max())
+    np.testing.assert_allclose(project_envmap(rotated_map, order), rotate_sh(coeffs, rot), atol=2e-3 * np.abs(coeffs).max())
 
 
 def test_product_rule_weights():

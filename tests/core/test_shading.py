@@ -30,13 +30,10 @@ def test_footprint_average_is_the_mean_of_its_points(roughness, jitter, toleranc
     material = Principled(roughness=roughness)
     cut = lobe_support_cos(material.alpha)
     got = specular_over_footprint(material, normals, views, dirs, power, vis, cut)
-    brute = sum(specular_over_directions(material, normals[:, i], views[:, i], dirs, power, vis, -1.0)
-                for i in range(k)) / k
+    brute = sum(specular_over_directions(material, normals[:, i], views[:, i], dirs, power, vis, -1.0) for i in range(k)) / k
     assert np.abs(got - brute).max() < tolerance * brute.max()
-    same = specular_over_footprint(material, np.repeat(n[:, None], k, 1), np.repeat(v[:, None], k, 1), dirs, power,
-                                   vis, cut)
-    np.testing.assert_allclose(same, specular_over_directions(material, n, v, dirs, power, vis, cut), rtol=1e-9,
-                               atol=1e-12)
+    same = specular_over_footprint(material, np.repeat(n[:, None], k, 1), np.repeat(v[:, None], k, 1), dirs, power, vis, cut)
+    np.testing.assert_allclose(same, specular_over_directions(material, n, v, dirs, power, vis, cut), rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("metallic", [0.0, 1.0])
@@ -58,8 +55,15 @@ def test_specular_columns_are_each_directions_own_sum(metallic):
     cols = specular_columns(material, n, v, dirs, vis, cut, base)
     assert cols.shape == (p, d, 3) and np.count_nonzero(cols) > 0.2 * cols.size
     for j in range(d):
-        own = specular_over_directions(material, n, v, dirs[j:j + 1], np.ones((1, 3)), vis[:, j:j + 1], cut, base)
+        own = specular_over_directions(material, n, v, dirs[j : j + 1], np.ones((1, 3)), vis[:, j : j + 1], cut, base)
         assert np.array_equal(cols[:, j], own), j
-    below = specular_columns(material, n[n[:, 2] < -0.5], v[n[:, 2] < -0.5], np.array([[0.0, 0.0, 1.0]]), None, cut,
-                             None if base is None else base[n[:, 2] < -0.5])
+    below = specular_columns(
+        material,
+        n[n[:, 2] < -0.5],
+        v[n[:, 2] < -0.5],
+        np.array([[0.0, 0.0, 1.0]]),
+        None,
+        cut,
+        None if base is None else base[n[:, 2] < -0.5],
+    )
     assert not below.any()

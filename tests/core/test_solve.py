@@ -49,8 +49,8 @@ def test_chunked_normal_equations_equal_one_shot_least_squares(rng):
     w = rng.uniform(0.5, 1.0, len(normal))
     eqs = solve.NormalEquations(4, 3, shared=False)
     for s in range(0, len(normal), 700):
-        terms = forward.design_terms(normal[s:s + 700], view[s:s + 700], 4, True)
-        eqs.add(forward.channel_designs(terms, brdf, 4), b[s:s + 700], w[s:s + 700], ids[s:s + 700] % 3)
+        terms = forward.design_terms(normal[s : s + 700], view[s : s + 700], 4, True)
+        eqs.add(forward.channel_designs(terms, brdf, 4), b[s : s + 700], w[s : s + 700], ids[s : s + 700] % 3)
     g, h, btb, wsum = eqs.channel_system(slice(None))
     designs = forward.channel_designs(forward.design_terms(normal, view, 4, True), brdf, 4)
     for c in range(3):
@@ -60,7 +60,6 @@ def test_chunked_normal_equations_equal_one_shot_least_squares(rng):
         # RSS from the normal equations equals the direct one (to rounding of b'Wb ~ 1e3)
         assert abs(solve.residual_sum(g, h, btb, np.stack([x] * 3, 1))[c] - (w * r * r).sum()) < 1e-8 * btb[c]
     assert eqs.count.sum() == len(normal) and abs(wsum - w.sum()) < 1e-9
-
 
 
 def test_retargeted_normal_equations_equal_fresh_ones(rng):
@@ -76,10 +75,11 @@ def test_retargeted_normal_equations_equal_fresh_ones(rng):
     fresh = solve.NormalEquations(3, 3, shared=False)
     fresh.add(designs, second, w, ids % 3)
     again = eqs.retargeted(designs, second, w, ids % 3)
-    assert again.gram is eqs.gram                    # shared, not rebuilt
+    assert again.gram is eqs.gram  # shared, not rebuilt
     for name in ("gram", "rhs", "btb", "weight", "count"):
         np.testing.assert_allclose(getattr(again, name), getattr(fresh, name), rtol=1e-12, atol=1e-12, err_msg=name)
     np.testing.assert_allclose(eqs.rhs, eqs.retargeted(designs, first, w, ids % 3).rhs, rtol=1e-12, atol=1e-12)
+
 
 def test_forward_model_against_numerical_integration(rng):
     """The frequency-space forward model equals numerical integration of the reflection equation over a 32x64
@@ -93,7 +93,7 @@ def test_forward_model_against_numerical_integration(rng):
     for brdf, tol in ((lambert, 0.005), (phong, 0.01), (micro, 0.05)):
         ref = _integrate(env, brdf, normal, view)
         model = forward.render_samples(coeffs, brdf, normal, view)
-        rel = np.sqrt(((model - ref) ** 2).sum() / (ref ** 2).sum())
+        rel = np.sqrt(((model - ref) ** 2).sum() / (ref**2).sum())
         # Lambert and R&H Phong are exact up to the 32x64 midpoint rule and the order-24 cut
         # (< 1%); the microfacet lobe is R&H's reflection-space approximation with a
         # view-dependent radial filter: 3-4% measured at n.v >= 0.7, 5% allowed
@@ -108,7 +108,7 @@ def _lambert_system(rng, noise, n=6000, order=8):
     ids = rng.integers(0, 16, n)
     brdf = Brdf("lambert", albedo=ALBEDO.tolist())
     b = forward.render_samples(truth, brdf, normal, normal)
-    b = b + noise * np.sqrt((b ** 2).mean()) * rng.normal(size=b.shape)
+    b = b + noise * np.sqrt((b**2).mean()) * rng.normal(size=b.shape)
     eqs = solve.NormalEquations(order, 4, shared=True)
     eqs.add(forward.design_terms(normal, normal, order, False).diffuse[None], b, np.ones(n), ids % 4)
     g, h, btb, w = eqs.channel_system(slice(None), ALBEDO)
@@ -124,8 +124,8 @@ def test_lambertian_bands_labelled_and_noise_sweep(rng):
         fit, truth = _lambert_system(rng, noise)
         labels = fit.labels
         assert all(labels[l] == "ill-posed" for l in (3, 5, 7))
-        assert np.all(fit.coeffs[num_coeffs(2):num_coeffs(3)] == 0)       # Â_3 = 0: zeroed, not invented
-        assert all(labels[l] != "recoverable" for l in (4, 6, 8))         # Â_4/Â_0 = 4%: never above noise floor
+        assert np.all(fit.coeffs[num_coeffs(2) : num_coeffs(3)] == 0)  # Â_3 = 0: zeroed, not invented
+        assert all(labels[l] != "recoverable" for l in (4, 6, 8))  # Â_4/Â_0 = 4%: never above noise floor
         err = np.linalg.norm(fit.coeffs[:9] - truth[:9]) / np.linalg.norm(truth[:9])
         errors.append(err)
         recoverable.append(sum(lab == "recoverable" for lab in labels))
@@ -143,8 +143,12 @@ def test_data_labels_rank_bands_against_the_photos_noise_not_the_residual():
     from the residual); an ill-posed band stays ill-posed whatever the noise."""
     from pipeline.core.solve import data_labels
 
-    bands = [{"l": 0, "label": "recoverable", "snr": 40.0}, {"l": 1, "label": "ill-conditioned", "snr": 5.0},
-             {"l": 2, "label": "ill-conditioned", "snr": 1.0}, {"l": 3, "label": "ill-posed", "snr": 0.0}]
+    bands = [
+        {"l": 0, "label": "recoverable", "snr": 40.0},
+        {"l": 1, "label": "ill-conditioned", "snr": 5.0},
+        {"l": 2, "label": "ill-conditioned", "snr": 1.0},
+        {"l": 3, "label": "ill-posed", "snr": 0.0},
+    ]
     out = data_labels(bands, noise_sigma=4.0, data_sigma=1.0, min_snr=10.0)
     assert [b["label"] for b in out] == ["recoverable", "recoverable", "ill-conditioned", "ill-posed"]
     assert [b["snr_data"] for b in out] == [160.0, 20.0, 4.0, 0.0]

@@ -22,9 +22,9 @@ def test_points_just_outside_are_clipped_and_degenerate_triangles_get_the_centro
     zero-area triangle gets the centroid's."""
     tri = np.array([[[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 0, 0], [1, 0, 0], [2, 0, 0]]], float)
     bary = barycentric(tri, np.array([[-1e-9, 0.5, 0.0], [0.5, 0.0, 0.0]]))
-    np.testing.assert_allclose(bary[0], [0.5, 0.0, 0.5], atol=1e-8)    # rounding outside the edge: on it
+    np.testing.assert_allclose(bary[0], [0.5, 0.0, 0.5], atol=1e-8)  # rounding outside the edge: on it
     assert bary[0].min() >= 0 and abs(bary[0].sum() - 1) < 1e-12
-    np.testing.assert_allclose(bary[1], [1 / 3, 1 / 3, 1 / 3])          # zero area: no barycentrics
+    np.testing.assert_allclose(bary[1], [1 / 3, 1 / 3, 1 / 3])  # zero area: no barycentrics
 
 
 def test_normals_interpolate_and_fall_back_to_the_face_where_vertex_normals_cancel():
@@ -32,7 +32,8 @@ def test_normals_interpolate_and_fall_back_to_the_face_where_vertex_normals_canc
     vertex_normals = np.array([[0, 0, 1], [0, 0, 1], [1, 0, 0], [0, 0, -1]], float)
     faces = np.array([[0, 1, 2], [0, 1, 3]])
     face_normals = np.array([[0, 0, 1], [0, 1, 0]], float)
-    n = interpolated_normals(vertex_normals, face_normals, faces, np.array([0, 1]),
-                             np.array([[0.25, 0.25, 0.5], [0.25, 0.25, 0.5]]))
+    n = interpolated_normals(
+        vertex_normals, face_normals, faces, np.array([0, 1]), np.array([[0.25, 0.25, 0.5], [0.25, 0.25, 0.5]])
+    )
     np.testing.assert_allclose(n[0], np.array([1, 0, 1]) / np.sqrt(2))
-    np.testing.assert_allclose(n[1], [0, 1, 0])                          # (0,0,1)/2 + (0,0,-1)/2 = 0
+    np.testing.assert_allclose(n[1], [0, 1, 0])  # (0,0,1)/2 + (0,0,-1)/2 = 0

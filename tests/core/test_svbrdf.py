@@ -26,8 +26,10 @@ def two_material_scene(rng, n: int = 6000, noise: float = 0.0):
     base = np.clip(0.5 + 0.3 * np.asarray(mesh.vertices)[:, :1] * np.array([[1.0, -0.5, 0.2]]), 0.05, 0.95)
     shades = [rng.uniform(0.5, 1.5, (n, 3)), rng.uniform(0.2, 3.0, (n, 3)) ** 2]
     speculars = [np.repeat(rng.uniform(0.0, 0.4, (n, 1)) ** 3, 3, axis=1), np.zeros((n, 3))]
-    cands = [svbrdf.CandidateShading(Principled(roughness=0.5), shades[0], speculars[0]),
-             svbrdf.CandidateShading(Principled(roughness=0.2, metallic=1.0), shades[1], speculars[1])]
+    cands = [
+        svbrdf.CandidateShading(Principled(roughness=0.5), shades[0], speculars[0]),
+        svbrdf.CandidateShading(Principled(roughness=0.2, metallic=1.0), shades[1], speculars[1]),
+    ]
     per_sample = svbrdf.sample_labels(interp, truth)
     rho = interp @ base
     radiance = np.where(per_sample[:, None] == 0, rho * shades[0] + speculars[0], rho * shades[1] + speculars[1])
@@ -44,7 +46,7 @@ def test_two_materials_found_with_their_regions_and_base_colour(rng):
     lap = texture.graph_laplacian(mesh.faces, len(mesh.vertices))
     found = svbrdf.material_map(interp, lap, cands, radiance, np.ones(len(radiance)), smoothness=1e-3)
     assert len(found.materials) == 2 and sorted(found.chosen) == [0, 1]
-    assert np.bincount(found.labels)[0] >= np.bincount(found.labels)[1]      # the larger first
+    assert np.bincount(found.labels)[0] >= np.bincount(found.labels)[1]  # the larger first
     got = found.chosen[found.labels]
     metal, true_metal = got == 1, truth == 1
     assert (metal & true_metal).sum() / (metal | true_metal).sum() >= 0.9

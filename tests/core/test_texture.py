@@ -22,7 +22,7 @@ def test_interpolation_reproduces_linear_functions(rng):
     interp = texture.interpolation_matrix(mesh.faces, face, bary, len(mesh.vertices))
     np.testing.assert_allclose(np.asarray(interp.sum(axis=1)).ravel(), 1.0, atol=1e-12)
     points = np.einsum("pk,pkc->pc", bary, mesh.vertices[mesh.faces[face]])
-    np.testing.assert_allclose(interp @ mesh.vertices, points, atol=1e-12)   # x, y, z are linear
+    np.testing.assert_allclose(interp @ mesh.vertices, points, atol=1e-12)  # x, y, z are linear
 
 
 def test_laplacian_is_symmetric_psd_with_constants_in_its_null_space():
@@ -61,10 +61,9 @@ def test_vertex_albedo_limits(rng):
     weight = np.ones(len(face))
     lap = texture.graph_laplacian(mesh.faces, nv)
     sharp = texture.fit_vertex_albedo(interp, shade, target, weight, lap, 0.0)
-    np.testing.assert_allclose(sharp, truth, atol=1e-4)     # only EPS = 1e-6 pulls towards the mean
+    np.testing.assert_allclose(sharp, truth, atol=1e-4)  # only EPS = 1e-6 pulls towards the mean
     flat = texture.fit_vertex_albedo(interp, shade, target, weight, lap, 1e6)
-    np.testing.assert_allclose(flat, np.broadcast_to(texture.uniform_albedo(shade, target, weight), flat.shape),
-                               atol=2e-3)
+    np.testing.assert_allclose(flat, np.broadcast_to(texture.uniform_albedo(shade, target, weight), flat.shape), atol=2e-3)
     assert texture.weighted_rmse(texture.predict(interp, shade, sharp), target, weight) < 1e-4
 
 
@@ -76,7 +75,7 @@ def test_solve_spd_equals_a_direct_solve_by_both_paths(rng):
 
     mesh = trimesh.creation.icosphere(subdivisions=3)
     nv = len(mesh.vertices)
-    face = rng.integers(0, len(mesh.faces), 800)                 # samples on a few faces: most vertices unseen
+    face = rng.integers(0, len(mesh.faces), 800)  # samples on a few faces: most vertices unseen
     bary = rng.dirichlet(np.ones(3), 800)
     a = texture.interpolation_matrix(mesh.faces, face, bary, nv)
     lap = texture.graph_laplacian(mesh.faces, nv)
@@ -110,8 +109,18 @@ def test_texel_detail_recovers_a_per_texel_pattern():
     (RMS error <= 0.01: noise 0.01 / sqrt(12 x ~1.1 mean s^2) ~ 0.003, shrinkage lam / (n + lam) of 0.1)."""
     texel, fold, shade, target, coarse, detail, n = _texel_scene(0.1)
     cands, choice, found, ridge = texture.choose_texel_detail(
-        texel, fold, np.ones(texel.size), shade, target, coarse, {f: coarse for f in range(4)}, n,
-        (0.5, 2.0, 8.0), parsimony=0.05, noise=0.0)
+        texel,
+        fold,
+        np.ones(texel.size),
+        shade,
+        target,
+        coarse,
+        {f: coarse for f in range(4)},
+        n,
+        (0.5, 2.0, 8.0),
+        parsimony=0.05,
+        noise=0.0,
+    )
     assert choice > 0 and cands[choice]["validation_rmse"] < 0.5 * cands[0]["validation_rmse"]
     assert np.sqrt(np.mean((found - detail) ** 2)) <= 0.01
     assert np.all(ridge > 0)
@@ -122,7 +131,17 @@ def test_texel_detail_is_not_kept_without_a_pattern():
     parsimony rule, so the level is not kept (detail zero)."""
     texel, fold, shade, target, coarse, _, n = _texel_scene(0.0)
     cands, choice, found, _ = texture.choose_texel_detail(
-        texel, fold, np.ones(texel.size), shade, target, coarse, {f: coarse for f in range(4)}, n,
-        (0.5, 2.0, 8.0), parsimony=0.05, noise=0.0)
+        texel,
+        fold,
+        np.ones(texel.size),
+        shade,
+        target,
+        coarse,
+        {f: coarse for f in range(4)},
+        n,
+        (0.5, 2.0, 8.0),
+        parsimony=0.05,
+        noise=0.0,
+    )
     assert choice == 0 and not found.any()
     assert min(c["validation_rmse"] for c in cands[1:]) >= cands[0]["validation_rmse"] * 0.99

@@ -43,7 +43,7 @@ def test_lambert_closed_form_against_quadrature():
     t, w = gauss_legendre(12, (0.0, 1.0))
     direct = np.array([2 * np.pi * np.sum(w * t * eval_legendre(l, t)) for l in range(order + 1)])
     closed = lambert_filter(order)
-    np.testing.assert_allclose(closed, direct, atol=1e-13)       # both exact: rounding only
+    np.testing.assert_allclose(closed, direct, atol=1e-13)  # both exact: rounding only
     assert closed[:3] == pytest.approx([np.pi, 2 * np.pi / 3, np.pi / 4], rel=1e-15)
     assert np.all(closed[3::2] == 0)
     # the generic lobe projection (panels split at the kink, 64 nodes each) reproduces it
@@ -59,12 +59,12 @@ def test_lambert_energy_in_first_three_bands():
     #   int_S2 k^2 dw = sum_l (2l+1)/(4 pi) Â_l^2 = 2 pi / 3   (direct: 2 pi int_0^1 t^2 dt)
     a = lambert_filter(2000)
     l = np.arange(2001)
-    energy = (2 * l + 1) / (4 * np.pi) * a ** 2
+    energy = (2 * l + 1) / (4 * np.pi) * a**2
     # the tail beyond l = 2000 is ~ sum l^-4 ~ 1e-10: the partial sum checks the definition
     assert energy.sum() == pytest.approx(2 * np.pi / 3, rel=1e-8)
     fraction = energy[:3].sum() / (2 * np.pi / 3)
-    assert fraction >= 0.99          # R&H 2001 (irradiance paper): 99.2%
-    assert fraction == pytest.approx(0.99219, abs=1e-5)   # = (1/4 + 1/3 + 5/64) / (2/3)
+    assert fraction >= 0.99  # R&H 2001 (irradiance paper): 99.2%
+    assert fraction == pytest.approx(0.99219, abs=1e-5)  # = (1/4 + 1/3 + 5/64) / (2/3)
 
 
 def phong_filter_recurrence(s, order):
@@ -83,7 +83,7 @@ def test_phong_filter_is_exact(s):
     # Gauss–Legendre projection against the independent closed-form recurrence: rounding only
     exact = phong_filter(s, 80)
     np.testing.assert_allclose(exact, phong_filter_recurrence(s, 80), atol=1e-12)
-    assert exact[0] == pytest.approx(1.0, rel=1e-13)   # unit-integral lobe
+    assert exact[0] == pytest.approx(1.0, rel=1e-13)  # unit-integral lobe
 
 
 @pytest.mark.parametrize("s", [100.0, 1000.0, 10000.0])
@@ -101,7 +101,7 @@ def test_phong_gaussian_approximation_for_large_exponent(s):
     assert np.abs(exact - np.exp(-l * (l + 1) / (2 * s))).max() <= 0.5 / s
     err = np.abs(exact - approx).max()
     assert err <= 0.31 / np.sqrt(s) + 0.5 / s
-    assert err >= 0.25 / np.sqrt(s)     # and it really is that size: the two are not the same function
+    assert err >= 0.25 / np.sqrt(s)  # and it really is that size: the two are not the same function
 
 
 def test_microfacet_lobe_is_brdf_module_formula():
@@ -110,7 +110,7 @@ def test_microfacet_lobe_is_brdf_module_formula():
     sigma = 0.2
     alpha = np.linspace(0.0, 1.4, 8)
     half = alpha / 2
-    beckmann = np.exp(-np.tan(half) ** 2 / sigma ** 2) / (np.pi * sigma ** 2 * np.cos(half) ** 4)
+    beckmann = np.exp(-(np.tan(half) ** 2) / sigma**2) / (np.pi * sigma**2 * np.cos(half) ** 4)
     shadowing = np.minimum(1.0, 2 * np.cos(alpha))
     np.testing.assert_allclose(microfacet_lobe_normal_view(np.cos(alpha), sigma), beckmann * shadowing / 4, rtol=1e-12)
 
@@ -129,8 +129,8 @@ def test_microfacet_filter_exact_and_approximation(sigma):
     # As for Phong with s = 1/(2 sigma^2): exact ~ exp(-sigma^2 l(l+1)) (measured <= 0.2 sigma^2),
     # and R&H's exp(-(sigma l)^2) differs from it by at most e^-1/2 sigma / sqrt(2) = 0.43 sigma.
     l = np.arange(order + 1)
-    assert np.abs(exact - np.exp(-sigma ** 2 * l * (l + 1))).max() <= 0.25 * sigma ** 2
-    assert np.abs(exact - microfacet_filter_approx(sigma, order)).max() <= 0.43 * sigma + 0.25 * sigma ** 2
+    assert np.abs(exact - np.exp(-(sigma**2) * l * (l + 1))).max() <= 0.25 * sigma**2
+    assert np.abs(exact - microfacet_filter_approx(sigma, order)).max() <= 0.43 * sigma + 0.25 * sigma**2
 
 
 def test_mirror_filter():
@@ -139,6 +139,7 @@ def test_mirror_filter():
 
 
 # ----------------------------------------------------------------------------- irradiance
+
 
 def hemisphere_rule(normal, n_t, n_phi):
     """Directions and weights on the hemisphere about ``normal``: GL in t = n.w on [0, 1] x uniform phi."""
@@ -149,8 +150,9 @@ def hemisphere_rule(normal, n_t, n_phi):
     u /= np.linalg.norm(u)
     v = np.cross(normal, u)
     s = np.sqrt(1 - t * t)
-    dirs = (t[:, None, None] * normal + s[:, None, None] * (np.cos(phi)[None, :, None] * u
-                                                            + np.sin(phi)[None, :, None] * v)).reshape(-1, 3)
+    dirs = (
+        t[:, None, None] * normal + s[:, None, None] * (np.cos(phi)[None, :, None] * u + np.sin(phi)[None, :, None] * v)
+    ).reshape(-1, 3)
     weights = np.repeat(wt, n_phi) * (2 * np.pi / n_phi)
     return dirs, weights, np.repeat(t, n_phi)
 
@@ -178,8 +180,9 @@ def test_nine_term_formula_equals_sh_sum(rng):
     normals = rng.normal(size=(50, 3))
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     # R&H's constants have 6 significant digits: relative 1e-6 of the coefficient scale
-    np.testing.assert_allclose(irradiance_9term(coeffs, normals), irradiance_from_sh(coeffs, normals),
-                               atol=2e-6 * np.abs(coeffs).sum(axis=0).max())
+    np.testing.assert_allclose(
+        irradiance_9term(coeffs, normals), irradiance_from_sh(coeffs, normals), atol=2e-6 * np.abs(coeffs).sum(axis=0).max()
+    )
 
 
 def test_irradiance_map_equals_brute_force_integration_of_env_map():
@@ -192,7 +195,7 @@ def test_irradiance_map_equals_brute_force_integration_of_env_map():
     radiance = 0.2 + np.exp(3 * (dirs @ axis - 1)) + 0.3 * np.maximum(0, dirs[:, 0]) ** 2
     env = radiance.reshape(height, 2 * height)
     omega = np.repeat(equirect_solid_angles(height), 2 * height)
-    brute = np.maximum(0.0, dirs @ dirs.T) @ (radiance * omega)     # sum over pixels of L (n.w)+ dOmega
+    brute = np.maximum(0.0, dirs @ dirs.T) @ (radiance * omega)  # sum over pixels of L (n.w)+ dOmega
     # 9 terms: R&H bound the l <= 2 truncation by a few % in the worst case; for smooth lighting
     # it is far smaller (measured 0.4% of max E here).  The brief's criterion: 1%.
     nine = irradiance_9term(project_envmap(env, 2), dirs)

@@ -39,8 +39,9 @@ def rendered() -> tuple[np.ndarray, np.ndarray]:
     mesh = trimesh.creation.icosphere(subdivisions=4, radius=0.1)
     camera = Camera("PINHOLE", 64, 64, (150.0, 150.0, 32.0, 32.0))
     R, t = look_at(np.array([0.4, 0.2, 0.2]), np.zeros(3))
-    result = Renderer(ray_mesh(mesh), make_envmap("overcast", 32), Brdf("lambert", albedo=[0.6, 0.5, 0.4]),
-                      shadows=False).render(camera, R, t)
+    result = Renderer(ray_mesh(mesh), make_envmap("overcast", 32), Brdf("lambert", albedo=[0.6, 0.5, 0.4]), shadows=False).render(
+        camera, R, t
+    )
     interior = cv2.erode(result.object_mask.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
     return result.radiance.astype(float), interior
 
@@ -67,8 +68,7 @@ def test_dng_decodes_through_rawpy_to_the_rendered_radiance(tmp_path, rendered, 
     rel = (linear[interior] - radiance[interior]) / radiance[interior]
     # noise per photosite at value v: sqrt(v / full_well + read^2) / v, ~1 % at v = 0.3; demosaicing
     # mixes neighbours: measured bias 0.01 %, rms 1.3 % (about the photosite noise)
-    sigma = np.sqrt(sensor_value(radiance[interior], exposure) / FULL_WELL + READ**2) / sensor_value(
-        radiance[interior], exposure)
+    sigma = np.sqrt(sensor_value(radiance[interior], exposure) / FULL_WELL + READ**2) / sensor_value(radiance[interior], exposure)
     assert abs(np.mean(rel)) < 0.005
     assert np.sqrt(np.mean(rel**2)) < 2.0 * np.sqrt(np.mean(sigma**2))
 

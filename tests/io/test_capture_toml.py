@@ -49,17 +49,19 @@ def test_missing_file_gives_defaults(tmp_path):
     assert cfg.camera is None and cfg.brackets == {} and cfg.board is None
 
 
-@pytest.mark.parametrize("text, match", [
-    ("[camera]\npath = \"nope.json\"\n", "does not exist"),
-    ("[exposure]\n\"a.jpg\" = {time = 0}\n", "positive"),
-    ("[exposure]\n\"a.jpg\" = {shutter = 1}\n", "time, iso and/or fnumber"),
-    ("[brackets]\nv = [\"a.jpg\"]\n", "at least two"),
-    ("[white_balance]\ngray_patch = [5, 5, 2, 2]\n", "x1 > x0"),
-    ("[board]\ndictionary = \"DICT_5X5_100\"\nsquares = [7, 5]\nsquare_length = 0.03\nmarker_length = 0.04\n",
-     "smaller than"),
-    ("[board]\nsquares = [7, 5]\n", "needs dictionary"),
-    ("this is = = not toml", "not valid TOML"),
-])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ('[camera]\npath = "nope.json"\n', "does not exist"),
+        ('[exposure]\n"a.jpg" = {time = 0}\n', "positive"),
+        ('[exposure]\n"a.jpg" = {shutter = 1}\n', "time, iso and/or fnumber"),
+        ('[brackets]\nv = ["a.jpg"]\n', "at least two"),
+        ("[white_balance]\ngray_patch = [5, 5, 2, 2]\n", "x1 > x0"),
+        ('[board]\ndictionary = "DICT_5X5_100"\nsquares = [7, 5]\nsquare_length = 0.03\nmarker_length = 0.04\n', "smaller than"),
+        ("[board]\nsquares = [7, 5]\n", "needs dictionary"),
+        ("this is = = not toml", "not valid TOML"),
+    ],
+)
 def test_bad_capture_toml(tmp_path, text, match):
     """Each kind of bad capture.toml (a missing camera file, a zero time, an unknown exposure key, a one-photo
     bracket, an empty grey patch, markers larger than squares, a board without dictionary, broken TOML) is a
@@ -72,8 +74,7 @@ def test_bad_capture_toml(tmp_path, text, match):
 def test_board_file_top_level_keys(tmp_path):
     """A board file with its keys at the top level reads, placed at the object frame's origin (identity) by
     default."""
-    (tmp_path / "b.toml").write_text('dictionary = "DICT_4X4_50"\nsquares = [5, 4]\nsquare_length = 0.05\n'
-                                     'marker_length = 0.04\n')
+    (tmp_path / "b.toml").write_text('dictionary = "DICT_4X4_50"\nsquares = [5, 4]\nsquare_length = 0.05\nmarker_length = 0.04\n')
     board = read_board(tmp_path / "b.toml")
     assert board.dictionary == "DICT_4X4_50" and np.array_equal(board.board_to_object, np.eye(4))
 

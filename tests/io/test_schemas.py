@@ -26,7 +26,7 @@ def test_exr_half_round_trip_within_half_precision(tmp_path, rng):
     img = rng.random((4, 4, 4)).astype(np.float32)
     write_image(tmp_path / "a.exr", img)
     # half floats carry 11 significant bits: relative error <= 2^-11
-    np.testing.assert_allclose(read_image(tmp_path / "a.exr"), img, rtol=2.0 ** -11, atol=1e-7)
+    np.testing.assert_allclose(read_image(tmp_path / "a.exr"), img, rtol=2.0**-11, atol=1e-7)
 
 
 def test_unreadable_images_raise_user_error(tmp_path):
@@ -53,8 +53,10 @@ def test_envmap_shape_and_values_are_checked(tmp_path):
 def test_poses_round_trip(tmp_path):
     """poses.json round-trips cameras, rotations and translations exactly."""
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-    poses = Poses({"cam0": Camera("PINHOLE", 64, 48, (50.0, 51.0, 32.0, 24.0))},
-                  {"0000.exr": ImagePose("cam0", R, np.array([0.1, 0.2, 1.0]))})
+    poses = Poses(
+        {"cam0": Camera("PINHOLE", 64, 48, (50.0, 51.0, 32.0, 24.0))},
+        {"0000.exr": ImagePose("cam0", R, np.array([0.1, 0.2, 1.0]))},
+    )
     write_poses(tmp_path / "poses.json", poses)
     back = read_poses(tmp_path / "poses.json")
     assert back.cameras == poses.cameras
@@ -64,8 +66,10 @@ def test_poses_round_trip(tmp_path):
 
 def test_malformed_poses_raise_user_error(tmp_path):
     """A non-orthonormal rotation and broken JSON in poses.json are UserErrors saying which."""
-    doc = {"cameras": {"c": {"model": "PINHOLE", "width": 8, "height": 8, "params": [1, 1, 4, 4]}},
-           "images": {"a.exr": {"camera": "c", "R": [[2, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [0, 0, 1]}}}
+    doc = {
+        "cameras": {"c": {"model": "PINHOLE", "width": 8, "height": 8, "params": [1, 1, 4, 4]}},
+        "images": {"a.exr": {"camera": "c", "R": [[2, 0, 0], [0, 1, 0], [0, 0, 1]], "t": [0, 0, 1]}},
+    }
     (tmp_path / "p.json").write_text(json.dumps(doc))
     with pytest.raises(UserError, match="orthonormal"):
         read_poses(tmp_path / "p.json")
@@ -116,8 +120,10 @@ def test_report_json_round_trip(tmp_path):
     """report.json: arrays as lists, NaN and inf as null, the schema stamped; another file is refused."""
     from pipeline.io.report import SCHEMA, read_report, write_report
 
-    write_report(tmp_path / "report.json", {"mode": "brdf", "bands": np.array([0.5, 0.25]), "rmse": float("nan"),
-                                            "nested": {"k": np.float32(2.0)}})
+    write_report(
+        tmp_path / "report.json",
+        {"mode": "brdf", "bands": np.array([0.5, 0.25]), "rmse": float("nan"), "nested": {"k": np.float32(2.0)}},
+    )
     doc = read_report(tmp_path / "report.json")
     assert doc == {"schema": SCHEMA, "mode": "brdf", "bands": [0.5, 0.25], "rmse": None, "nested": {"k": 2.0}}
     (tmp_path / "other.json").write_text('{"schema": "something else"}')
@@ -169,6 +175,6 @@ def test_material_map_round_trip(tmp_path):
     write_materials_brdf(tmp_path / "brdf.json", [metal, glaze], "material.ply")
     materials, name = read_materials(tmp_path / "brdf.json")
     assert name == "material.ply" and materials == [metal, glaze]
-    assert read_brdf(tmp_path / "brdf.json") == metal          # one-material readers take the first
+    assert read_brdf(tmp_path / "brdf.json") == metal  # one-material readers take the first
     write_brdf(tmp_path / "one.json", glaze)
     assert read_materials(tmp_path / "one.json") is None

@@ -50,8 +50,14 @@ def test_json_ready_makes_what_json_cannot_hold_plain():
 
     from pipeline.io.values import json_ready
 
-    doc = {1: np.float32(0.5), "a": np.arange(3), "nan": float("nan"), "inf": np.inf, "p": Path("x/y"),
-           "t": (np.int64(2), [np.bool_(True)])}
+    doc = {
+        1: np.float32(0.5),
+        "a": np.arange(3),
+        "nan": float("nan"),
+        "inf": np.inf,
+        "p": Path("x/y"),
+        "t": (np.int64(2), [np.bool_(True)]),
+    }
     ready = json_ready(doc)
     assert ready == {"1": 0.5, "a": [0, 1, 2], "nan": None, "inf": None, "p": "x/y", "t": [2, [True]]}
-    json.dumps(ready, allow_nan=False)     # strict JSON
+    json.dumps(ready, allow_nan=False)  # strict JSON

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-BLUR_SIGMA = 4.0       # px, the "4 px blur"
-SURFACE_EPS = 1e-4     # m: a shadow ray starts this far off the surface (mesh ~4 cm across)
+BLUR_SIGMA = 4.0  # px, the "4 px blur"
+SURFACE_EPS = 1e-4  # m: a shadow ray starts this far off the surface (mesh ~4 cm across)
 
 
 @dataclass(frozen=True)
@@ -70,8 +70,7 @@ def _sample(img: np.ndarray, valid: np.ndarray, uv: np.ndarray) -> tuple[np.ndar
     mx = (uv[:, 0] - 0.5).astype(np.float32)[None]
     my = (uv[:, 1] - 0.5).astype(np.float32)[None]
     value = cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)[0]
-    ok = cv2.remap(valid.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                   borderValue=0.0)[0] > 0.999
+    ok = cv2.remap(valid.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)[0] > 0.999
     return value.astype(float), ok
 
 
@@ -131,8 +130,7 @@ def blur(img: np.ndarray, mask: np.ndarray, sigma: float = BLUR_SIGMA) -> np.nda
     return np.where(mask, num / np.maximum(den, 1e-12), 0.0)
 
 
-def relative_rmse(pairs: list[tuple[np.ndarray, np.ndarray, np.ndarray]], *, blurred: bool = False,
-                  scale: float = 1.0) -> float:
+def relative_rmse(pairs: list[tuple[np.ndarray, np.ndarray, np.ndarray]], *, blurred: bool = False, scale: float = 1.0) -> float:
     """sqrt(sum (s B - P)^2 / sum P^2) pooled over (predicted B, photo P, mask) triples; ``blurred``: both
     images blurred inside the mask first."""
     num = den = 0.0

@@ -87,7 +87,7 @@ def test_sphere_normals_match_the_ground_truth_normal_map():
     key = sorted(poses.images)[0]
     cam, pose = poses.camera_of(key), poses.images[key]
     centre_uv, _ = project(cam, pose.R, pose.t, np.zeros((1, 3)))
-    radius_m = 0.03                                           # make_ball.RADIUS_M
+    radius_m = 0.03  # make_ball.RADIUS_M
     radius_px = cam.focal_principal()[0] * np.tan(np.arcsin(radius_m / np.linalg.norm(pose.t)))
     rows, cols = np.divmod(np.flatnonzero(mask), cam.width)
     x = (cols + 0.5 - centre_uv[0, 0]) / radius_px

@@ -31,7 +31,7 @@ HELD_OUT = ["cam04.png", "cam08.png", "cam12.png"]
 
 _spec = importlib.util.spec_from_file_location("real_baseline", Path(__file__).with_name("baseline.py"))
 baseline = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = baseline      # its dataclass looks its module up there
+sys.modules[_spec.name] = baseline  # its dataclass looks its module up there
 _spec.loader.exec_module(baseline)
 
 
@@ -190,8 +190,10 @@ def _sigrend_on_baseline_pixels(work: Path) -> tuple[float, float]:
         render = read_image(work / "relight" / "check" / f"{stem}.exr")[:, :, 0].astype(float)
         photo = read_image(work / "linear" / f"{stem}.exr")[:, :, 0].astype(float)
         pairs.append((render, photo, p.mask))
-    return (baseline.relative_rmse(pairs, scale=check["scale"]),
-            baseline.relative_rmse(pairs, scale=check["scale"], blurred=True))
+    return (
+        baseline.relative_rmse(pairs, scale=check["scale"]),
+        baseline.relative_rmse(pairs, scale=check["scale"], blurred=True),
+    )
 
 
 @pytest.mark.slow
@@ -213,13 +215,16 @@ def test_sigrend_run_on_the_real_ring(ring_run):
     assert f"{100 * check['relative_error']:.2f}%" in out
     ours, ours_blurred = _sigrend_on_baseline_pixels(work)
     assert math.isfinite(ours) and math.isfinite(ours_blurred)
-    assert ours == pytest.approx(check["relative_error"], abs=0.03)   # the same metric on ~the same pixels
+    assert ours == pytest.approx(check["relative_error"], abs=0.03)  # the same metric on ~the same pixels
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="sigrend's fit predicts the held-out ring views worse than the neighbour-"
-                   "reprojection baseline: 45.1 % vs 38.9 % (27.4 % vs 21.8 % after a 4 px blur), measured "
-                   "2026-12-07; a gap found by this test, no issue filed yet")
+@pytest.mark.xfail(
+    strict=True,
+    reason="sigrend's fit predicts the held-out ring views worse than the neighbour-"
+    "reprojection baseline: 45.1 % vs 38.9 % (27.4 % vs 21.8 % after a 4 px blur), measured "
+    "2026-12-07; a gap found by this test, no issue filed yet",
+)
 def test_sigrend_beats_the_neighbour_baseline(ring_run):
     """A relightable model fitted to nine views should predict a held-out view of the same shot at
     least as well as two neighbouring photos moved through the mesh; both blurred and unblurred."""

@@ -24,8 +24,8 @@ from pipeline.io.poses import read_poses
 from pipeline.synth import make_test_capture
 
 ALBEDO = (0.7, 0.5, 0.3)
-PATCH, GAP, MARGIN = 10, 3, 5     # pixels: a chart of 95 x 59 px with a dark frame
-CHART_AT = (4, 194)               # its top-left corner in the 256 x 256 photo 0000.exr (clear of the sphere)
+PATCH, GAP, MARGIN = 10, 3, 5  # pixels: a chart of 95 x 59 px with a dark frame
+CHART_AT = (4, 194)  # its top-left corner in the 256 x 256 photo 0000.exr (clear of the sphere)
 
 
 def sigrend(*args) -> subprocess.CompletedProcess:
@@ -55,13 +55,13 @@ def paste_colorchecker(capture: Path, name: str = "0000.exr") -> tuple[np.ndarra
     width, height = 6 * PATCH + 5 * GAP + 2 * MARGIN, 4 * PATCH + 3 * GAP + 2 * MARGIN
     irradiance, _ = chart_irradiance_truth(capture, name, np.array([x0 + width / 2, y0 + height / 2]))
     image = read_image(capture / "images" / name)[:, :, :3].copy()
-    image[y0:y0 + height, x0:x0 + width] = 0.02 * irradiance / np.pi
+    image[y0 : y0 + height, x0 : x0 + width] = 0.02 * irradiance / np.pi
     centres = []
     for i, rho in enumerate(core_chart.COLORCHECKER_REFLECTANCE):
         row, col = divmod(i, 6)
         xa, ya = x0 + MARGIN + col * (PATCH + GAP), y0 + MARGIN + row * (PATCH + GAP)
-        image[ya:ya + PATCH, xa:xa + PATCH] = np.clip(rho, 0, None) * irradiance / np.pi
-        centres.append((xa + PATCH / 2, ya + PATCH / 2))      # COLMAP: the top-left pixel's corner is (0, 0)
+        image[ya : ya + PATCH, xa : xa + PATCH] = np.clip(rho, 0, None) * irradiance / np.pi
+        centres.append((xa + PATCH / 2, ya + PATCH / 2))  # COLMAP: the top-left pixel's corner is (0, 0)
     write_image(capture / "images" / name, image, dtype="float")
     return np.array(centres), irradiance
 
@@ -75,8 +75,14 @@ def with_chart(capture: Path, table: dict) -> None:
 def lambert_capture(tmp_path_factory) -> Path:
     """A Lambert sphere of albedo (0.7, 0.5, 0.3) under sun and sky, 6 views of 256 x 256 EXR,
     the camera at 5 framed radii (room for a chart beside the sphere)."""
-    return make_test_capture(tmp_path_factory.mktemp("chart") / "capture", brdf="lambert:albedo=0.7,0.5,0.3",
-                             env="sun+sky", views=6, size=(256, 256), distance=5.0)
+    return make_test_capture(
+        tmp_path_factory.mktemp("chart") / "capture",
+        brdf="lambert:albedo=0.7,0.5,0.3",
+        env="sun+sky",
+        views=6,
+        size=(256, 256),
+        distance=5.0,
+    )
 
 
 def test_reference_reflectances_are_opencvs_chart():
@@ -86,7 +92,7 @@ def test_reference_reflectances_are_opencvs_chart():
     patch within 0.07 (measured 0.064, the saturated yellow); Lab (100, 0, 0) is the D50 white."""
     import cv2
 
-    ref = cv2.mcc.CCheckerDetector_create().getRefColors().reshape(24, 3)[:, ::-1] / 255.0   # BGR -> RGB
+    ref = cv2.mcc.CCheckerDetector_create().getRefColors().reshape(24, 3)[:, ::-1] / 255.0  # BGR -> RGB
     linear = np.where(ref <= 0.04045, ref / 12.92, ((ref + 0.055) / 1.055) ** 2.4)
     diff = np.abs(linear - core_chart.COLORCHECKER_REFLECTANCE)
     assert diff[core_chart.NEUTRAL].max() < 0.008
@@ -135,7 +141,7 @@ def test_a_rendered_colorchecker_fixes_the_lambert_base_colour(lambert_capture, 
     report = json.loads((work / "fit" / "report.json").read_text())
     assert report["scale_convention"]["chart"]["used"] == "applied"
     assert report["scale_convention"]["before_chart"]["chromaticity"].startswith("the convention")
-    fixed = json.loads((work / "fit" / "brdf.json").read_text())["colour_fixed_by"]   # brdf.json says so too
+    fixed = json.loads((work / "fit" / "brdf.json").read_text())["colour_fixed_by"]  # brdf.json says so too
     assert fixed == {"level": "the ColorChecker in 0000.exr", "chromaticity": "the ColorChecker in 0000.exr"}, fixed
 
 
@@ -149,7 +155,7 @@ def test_a_grey_card_box_measures_the_irradiance(lambert_capture, tmp_path):
     box = [8, 200, 40, 240]
     irradiance = np.array([5.0, 4.0, 3.0])
     image = read_image(capture / "images" / "0001.exr")[:, :, :3].copy()
-    image[box[1]:box[3], box[0]:box[2]] = 0.18 * irradiance / np.pi
+    image[box[1] : box[3], box[0] : box[2]] = 0.18 * irradiance / np.pi
     write_image(capture / "images" / "0001.exr", image, dtype="float")
     with_chart(capture, {"grey_card": {"image": "0001.exr", "box": box, "reflectance": 0.18}, "normal": [0, 0, 1]})
     proc = sigrend("linearize", capture, "-w", tmp_path / "work")

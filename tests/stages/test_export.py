@@ -32,11 +32,12 @@ from stages.export import lighting_map
 
 DATA = Path(__file__).parents[1] / "data"
 TEAPOT = DATA / "cycles" / "teapot_city_glossy"
-BPY = "bpy==4.5.15"        # the Blender the shared Cycles captures were rendered with
+BPY = "bpy==4.5.15"  # the Blender the shared Cycles captures were rendered with
 
 
-def make_fit(tmp_path: Path, brdf: Brdf, textured: bool, sun: bool = True, texels: bool = False,
-             materials: bool = False) -> tuple[Path, Path]:
+def make_fit(
+    tmp_path: Path, brdf: Brdf, textured: bool, sun: bool = True, texels: bool = False, materials: bool = False
+) -> tuple[Path, Path]:
     """A capture (the Cycles teapot's mesh and poses) and a work folder holding a fit: ``brdf``,
     the sunrise HDRI as a fit would hold it (the rest clipped at the 99.9th percentile as SH order
     8, with its sun as a directional source if ``sun``), optionally a per-vertex base colour, or
@@ -51,9 +52,12 @@ def make_fit(tmp_path: Path, brdf: Brdf, textured: bool, sun: bool = True, texel
     omega = equirect_solid_angles(env.shape[0])[:, None, None]
     coeffs, sources = project_envmap(rest, 8), []
     if sun:
-        sources = [{"direction": equirect_directions(env.shape[0])[np.unravel_index(env.sum(-1).argmax(),
-                                                                                   env.shape[:2])].tolist(),
-                    "intensity": ((env - rest) * omega).sum(axis=(0, 1)).tolist()}]
+        sources = [
+            {
+                "direction": equirect_directions(env.shape[0])[np.unravel_index(env.sum(-1).argmax(), env.shape[:2])].tolist(),
+                "intensity": ((env - rest) * omega).sum(axis=(0, 1)).tolist(),
+            }
+        ]
         coeffs = coeffs + sh_of_sources(np.array([sources[0]["direction"]]), np.array([sources[0]["intensity"]]), 8)
     write_lighting_sh(work / "fit" / "lighting_sh.json", coeffs, sources=sources)
     write_brdf(work / "fit" / "brdf.json", brdf)
@@ -87,12 +91,13 @@ def material_map(mesh, brdf: Brdf, fit: Path, texel_m: float = 0.001) -> None:
     from stages.fit.texels import material_textures
 
     z = mesh.vertices[:, 2]
-    label = (z < np.percentile(z, 80)).astype(np.int64)          # 0: the metal on top, 1: the dielectric
+    label = (z < np.percentile(z, 80)).astype(np.int64)  # 0: the metal on top, 1: the dielectric
     graded = np.asarray(brdf.base_color)[None, :] * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None]
     base = np.where(label[:, None] == 0, [0.95, 0.64, 0.54], graded)
     nv = len(z)
-    found = MaterialMap([METAL, material_from_brdf(brdf)], np.array([0, 1]), label, base, np.full((nv, 3), 0.01),
-                        np.ones(nv, bool))
+    found = MaterialMap(
+        [METAL, material_from_brdf(brdf)], np.array([0, 1]), label, base, np.full((nv, 3), 0.01), np.ones(nv, bool)
+    )
     write_materials_brdf(fit / "brdf.json", material_brdfs(found), "material.ply")
     write_material_ply(fit / "material.ply", mesh, material_values(found))
     maps = material_textures(mesh, found, unwrap(mesh.vertices, mesh.faces, texel_m))
@@ -131,14 +136,14 @@ def test_glb_holds_the_mesh_material_and_lighting_in_gltf_conventions(tmp_path):
     mat = doc.materials[0]
     assert mat.pbrMetallicRoughness.roughnessFactor == pytest.approx(0.3)
     assert mat.pbrMetallicRoughness.metallicFactor == 0.0
-    assert mat.pbrMetallicRoughness.baseColorFactor == [1.0, 1.0, 1.0, 1.0]     # the colour is per vertex
+    assert mat.pbrMetallicRoughness.baseColorFactor == [1.0, 1.0, 1.0, 1.0]  # the colour is per vertex
     assert mat.extensions["KHR_materials_ior"] == {"ior": pytest.approx(1.45)}
     assert mat.extensions["KHR_materials_specular"]["specularColorFactor"] == pytest.approx([1.0, 0.9, 0.8])
 
     def accessor(name):
         acc = doc.accessors[getattr(doc.meshes[0].primitives[0].attributes, name)]
         view = doc.bufferViews[acc.bufferView]
-        blob = doc.binary_blob()[view.byteOffset:view.byteOffset + view.byteLength]
+        blob = doc.binary_blob()[view.byteOffset : view.byteOffset + view.byteLength]
         return np.frombuffer(blob, np.float32).reshape(acc.count, 3)
 
     mesh = read_mesh(capture / "mesh.ply")
@@ -147,12 +152,12 @@ def test_glb_holds_the_mesh_material_and_lighting_in_gltf_conventions(tmp_path):
     np.testing.assert_allclose(accessor("NORMAL"), mesh.vertex_normals @ Y_UP_FROM_Z_UP.T, atol=1e-6)
     z = mesh.vertices[:, 2]
     expected = np.asarray(brdf.base_color) * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None]
-    np.testing.assert_allclose(accessor("COLOR_0"), expected, atol=0.5 / 255 + 1e-6)   # albedo.ply is 8-bit
+    np.testing.assert_allclose(accessor("COLOR_0"), expected, atol=0.5 / 255 + 1e-6)  # albedo.ply is 8-bit
     # the lighting map, in Blender's column order, holds the SH (clamped) and the source's energy
     exported = read_image(tmp_path / "out" / "teapot.glb.lighting.exr")[..., :3]
     ours, clamped = lighting_map(work / "fit" / "lighting_sh.json", 512)
     np.testing.assert_allclose(blender_columns(exported), ours, rtol=1e-6, atol=1e-6)
-    assert 0.0 <= clamped < 0.03   # the SH part's negative lobes: 2.6 % of the energy
+    assert 0.0 <= clamped < 0.03  # the SH part's negative lobes: 2.6 % of the energy
     manifest = json.loads((tmp_path / "out" / "teapot.glb.export.json").read_text())
     assert manifest["per_vertex_base_color"] and manifest["material"]["ior"] == pytest.approx(1.45)
 
@@ -171,15 +176,20 @@ def test_usd_holds_the_mesh_in_the_object_frame_and_a_preview_surface(tmp_path):
     np.testing.assert_array_equal(np.array(mesh.GetFaceVertexIndicesAttr().Get()), ours.faces.reshape(-1))
     colors = np.array(UsdGeom.PrimvarsAPI(mesh).GetPrimvar("displayColor").Get())
     z = ours.vertices[:, 2]
-    np.testing.assert_allclose(colors, np.asarray(brdf.base_color) * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None],
-                               atol=0.5 / 255 + 1e-6)
+    np.testing.assert_allclose(
+        colors, np.asarray(brdf.base_color) * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None], atol=0.5 / 255 + 1e-6
+    )
     material, _ = UsdShade.MaterialBindingAPI(mesh.GetPrim()).ComputeBoundMaterial()
     shader = material.ComputeSurfaceSource()[0]
     assert shader.GetIdAttr().Get() == "UsdPreviewSurface"
     values = {name: shader.GetInput(name).Get() for name in ("roughness", "metallic", "ior", "useSpecularWorkflow")}
-    assert values == {"roughness": pytest.approx(0.3), "metallic": pytest.approx(0.25), "ior": pytest.approx(1.45),
-                      "useSpecularWorkflow": 0}
-    assert shader.GetInput("diffuseColor").HasConnectedSource()      # the per-vertex base colour
+    assert values == {
+        "roughness": pytest.approx(0.3),
+        "metallic": pytest.approx(0.25),
+        "ior": pytest.approx(1.45),
+        "useSpecularWorkflow": 0,
+    }
+    assert shader.GetInput("diffuseColor").HasConnectedSource()  # the per-vertex base colour
 
 
 def test_lambert_is_a_gltf_material_without_specular_layer(tmp_path):
@@ -199,9 +209,9 @@ def test_lambert_is_a_gltf_material_without_specular_layer(tmp_path):
     sizes = {f["file"]: f["bytes"] for f in manifest["files"]}
     assert sizes == {p.name: p.stat().st_size for p in folder.iterdir() if p.name != "asset.glb.export.json"}
     sky, room = (read_image(folder / manifest["previews"][spec])[..., :3].astype(float) for spec in ("sun+sky", "room"))
-    centre = (slice(96, 160), slice(96, 160))          # the teapot fills the middle of the 256^2 view
+    centre = (slice(96, 160), slice(96, 160))  # the teapot fills the middle of the 256^2 view
     assert sky[centre].mean() > 0.1 and room[centre].mean() > 0.1
-    assert np.abs(sky - room).mean() > 0.05            # two different lights
+    assert np.abs(sky - room).mean() > 0.05  # two different lights
     report = (work / "report.html").read_text()
     assert "Exported asset" in report and all(f"<td>{name}</td>" in report for name in sizes)
 
@@ -233,17 +243,17 @@ def test_material_map_exports_roughness_and_metallic_per_texel(tmp_path, capsys)
     assert (pbr.roughnessFactor, pbr.metallicFactor) == (1.0, 1.0) and pbr.baseColorTexture is not None
     image = doc.images[doc.textures[pbr.metallicRoughnessTexture.index].source]
     view = doc.bufferViews[image.bufferView]
-    packed = np.asarray(Image.open(io.BytesIO(doc.binary_blob()[view.byteOffset:view.byteOffset + view.byteLength])))
+    packed = np.asarray(Image.open(io.BytesIO(doc.binary_blob()[view.byteOffset : view.byteOffset + view.byteLength])))
     primitive = doc.meshes[0].primitives[0]
 
     def accessor(index):
         acc = doc.accessors[index]
         view = doc.bufferViews[acc.bufferView]
-        raw = doc.binary_blob()[view.byteOffset:view.byteOffset + view.byteLength]
+        raw = doc.binary_blob()[view.byteOffset : view.byteOffset + view.byteLength]
         return np.frombuffer(raw, np.uint32 if acc.type == "SCALAR" else np.float32).reshape(acc.count, -1)
 
     uv = accessor(primitive.attributes.TEXCOORD_0)[accessor(primitive.indices).reshape(-1, 3)].mean(axis=1)
-    row = np.clip((uv[:, 1] * packed.shape[0]).astype(int), 0, packed.shape[0] - 1)   # glTF: v down from the top
+    row = np.clip((uv[:, 1] * packed.shape[0]).astype(int), 0, packed.shape[0] - 1)  # glTF: v down from the top
     col = np.clip((uv[:, 0] * packed.shape[1]).astype(int), 0, packed.shape[1] - 1)
     texel = packed[row, col, :3] / 255.0
     mesh = read_mesh(capture / "mesh.ply")
@@ -284,14 +294,30 @@ def blender_render(blender_python: str, asset: Path, view: Path, key: str, out: 
     """``asset`` rendered by tests/blender/render_asset.py (Cycles, 256 spp, 128 x 128, the world lit by
     the asset's exported lighting map) from ``key`` of ``view`` -> the linear RGBA image."""
     script = Path(__file__).parents[1] / "blender" / "render_asset.py"
-    subprocess.run([blender_python, str(script), str(asset), str(asset.with_name(f"{asset.name}.lighting.exr")),
-                    str(view), key, str(out), "128", "128", "256"], check=True, capture_output=True)
+    subprocess.run(
+        [
+            blender_python,
+            str(script),
+            str(asset),
+            str(asset.with_name(f"{asset.name}.lighting.exr")),
+            str(view),
+            key,
+            str(out),
+            "128",
+            "128",
+            "256",
+        ],
+        check=True,
+        capture_output=True,
+    )
     return read_image(out)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("asset_name", "kind"), [("asset.glb", "per vertex"), ("asset.usda", "per vertex"),
-                                                  ("asset.glb", "texels"), ("asset.usda", "texels")])
+@pytest.mark.parametrize(
+    ("asset_name", "kind"),
+    [("asset.glb", "per vertex"), ("asset.usda", "per vertex"), ("asset.glb", "texels"), ("asset.usda", "texels")],
+)
 def test_blender_renders_the_exported_asset_as_sigrend_relights_it(tmp_path, blender_python, asset_name, kind):
     """Issue 13's round trip: the .glb imported by Blender's glTF importer, the world lit by the
     exported map, Cycles 256 spp at 128 x 128 against `sigrend relight` (2 x 2 rays per pixel) of
@@ -312,11 +338,30 @@ def test_blender_renders_the_exported_asset_as_sigrend_relights_it(tmp_path, ble
     blender = blender_render(blender_python, asset / asset_name, view, key, tmp_path / "blender.exr")
     from pipeline.io.images import write_image
 
-    write_image(tmp_path / "ours_env.exr", blender_columns(read_image(asset / f"{asset_name}.lighting.exr")[..., :3]),
-                dtype="float")
-    assert sigrend(["relight", str(capture), "-w", str(work), "--env", str(tmp_path / "ours_env.exr"),
-                    "--views", str(tmp_path / "view.json"), "--size", "128x128", "--interior-supersample", "2",
-                    "-o", str(tmp_path / "relight")]) == 0
+    write_image(
+        tmp_path / "ours_env.exr", blender_columns(read_image(asset / f"{asset_name}.lighting.exr")[..., :3]), dtype="float"
+    )
+    assert (
+        sigrend(
+            [
+                "relight",
+                str(capture),
+                "-w",
+                str(work),
+                "--env",
+                str(tmp_path / "ours_env.exr"),
+                "--views",
+                str(tmp_path / "view.json"),
+                "--size",
+                "128x128",
+                "--interior-supersample",
+                "2",
+                "-o",
+                str(tmp_path / "relight"),
+            ]
+        )
+        == 0
+    )
     ours = read_image(tmp_path / "relight" / f"{Path(key).stem}.exr")
     error = block_relative_rmse([ours], [blender], fit_scale=False)
     print(f"{asset_name} {kind}: Blender vs sigrend relight {error}")
@@ -350,13 +395,13 @@ def test_blender_reads_the_material_maps_as_each_faces_material(tmp_path, blende
     mesh = read_mesh(capture / "mesh.ply")
     materials, base, face_material = read_material_map(work / "fit" / "brdf.json", mesh)
     alone = []
-    for k, material in enumerate(materials):     # each material on the whole teapot, the map's base colours
+    for k, material in enumerate(materials):  # each material on the whole teapot, the map's base colours
         one_capture, one_work = make_fit(tmp_path / str(k), material, textured=False, sun=False)
         write_vertex_albedo(one_work / "fit" / "albedo.ply", mesh, base)
         assert sigrend(["export", str(one_capture), "-w", str(one_work), "-o", str(one_work / asset_name)]) == 0
         alone.append(blender_render(blender_python, one_work / asset_name, view, key, tmp_path / f"{k}.exr"))
     poses = read_poses(view)
-    camera = poses.camera_of(key).resized(128, 128)          # as render_asset.py scales it
+    camera = poses.camera_of(key).resized(128, 128)  # as render_asset.py scales it
     origins, dirs = pixel_rays(camera, poses.images[key].R, poses.images[key].t, pixel_centers(128, 128))
     hits = first_hits(mesh, ray_mesh(mesh).rays, origins, dirs)
     pixel_material = np.full(128 * 128, -1)
@@ -385,8 +430,10 @@ def test_glb_then_usda_to_one_stem_keep_their_own_extras(tmp_path):
         assert set(listed) == {name, f"{name}.lighting.exr", f"{name}.preview_sunsky.png", f"{name}.preview_room.png"}
         assert listed == {f: (out / f).stat().st_size for f in listed}
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        f"{name}{extra}" for name in ("teapot.glb", "teapot.usda")
-        for extra in ("", ".lighting.exr", ".preview_sunsky.png", ".preview_room.png", ".export.json"))
+        f"{name}{extra}"
+        for name in ("teapot.glb", "teapot.usda")
+        for extra in ("", ".lighting.exr", ".preview_sunsky.png", ".preview_room.png", ".export.json")
+    )
 
 
 def test_usd_dome_light_shows_the_fitted_source_in_its_direction(tmp_path):
@@ -403,10 +450,11 @@ def test_usd_dome_light_shows_the_fitted_source_in_its_direction(tmp_path):
     e, a = np.radians(35.0), np.radians(70.0)
     source = np.array([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)])
     coeffs = np.zeros((9, 3))
-    coeffs[0] = 0.05 / 0.28209479177387814            # a constant 0.05 everywhere
+    coeffs[0] = 0.05 / 0.28209479177387814  # a constant 0.05 everywhere
     coeffs += sh_of_sources(source[None], np.array([[5.0, 5.0, 5.0]]), 2)
-    write_lighting_sh(work / "fit" / "lighting_sh.json", coeffs,
-                      sources=[{"direction": source.tolist(), "intensity": [5.0, 5.0, 5.0]}])
+    write_lighting_sh(
+        work / "fit" / "lighting_sh.json", coeffs, sources=[{"direction": source.tolist(), "intensity": [5.0, 5.0, 5.0]}]
+    )
     asset = tmp_path / "out" / "teapot.usda"
     assert sigrend(["export", str(capture), "-w", str(work), "-o", str(asset), "--env-height", "64"]) == 0
 
@@ -417,7 +465,7 @@ def test_usd_dome_light_shows_the_fitted_source_in_its_direction(tmp_path):
     texture = Path(light.GetTextureFileAttr().Get().resolvedPath)
     assert texture == (asset.parent / "teapot.usda.lighting.exr").resolve() and texture.is_file()
     assert light.GetTextureFormatAttr().Get() == "latlong" and light.GetIntensityAttr().Get() == 1.0
-    assert stage.GetDefaultPrim().GetPath() == "/object"      # a reference to the asset brings no light
+    assert stage.GetDefaultPrim().GetPath() == "/object"  # a reference to the asset brings no light
     env = read_image(texture)[..., :3].sum(axis=-1)
     height, width = env.shape
     y, x = np.unravel_index(env.argmax(), env.shape)

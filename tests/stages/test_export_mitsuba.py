@@ -27,8 +27,9 @@ from pipeline.io.poses import read_poses
 
 mi.set_variant("scalar_rgb")
 
-SOURCE = np.array([np.cos(np.radians(35)) * np.cos(np.radians(70)), np.cos(np.radians(35)) * np.sin(np.radians(70)),
-                   np.sin(np.radians(35))])          # elevation 35, azimuth 70 degrees: on no symmetry of the mappings
+SOURCE = np.array(
+    [np.cos(np.radians(35)) * np.cos(np.radians(70)), np.cos(np.radians(35)) * np.sin(np.radians(70)), np.sin(np.radians(35))]
+)  # elevation 35, azimuth 70 degrees: on no symmetry of the mappings
 BRDF = Brdf("principled", base_color=[0.7, 0.45, 0.1], roughness=0.4, ior=1.5)
 
 
@@ -39,13 +40,15 @@ def make_fit(capture: Path, work: Path, brdf: Brdf) -> None:
     coeffs[0] = 0.3 / 0.28209479177387814
     coeffs[1:4] = [0.05, 0.04, 0.03]
     coeffs += sh_of_sources(SOURCE[None], np.array([[3.0, 3.0, 3.0]]), 2)
-    write_lighting_sh(work / "fit" / "lighting_sh.json", coeffs,
-                      sources=[{"direction": SOURCE.tolist(), "intensity": [3.0, 3.0, 3.0]}])
+    write_lighting_sh(
+        work / "fit" / "lighting_sh.json", coeffs, sources=[{"direction": SOURCE.tolist(), "intensity": [3.0, 3.0, 3.0]}]
+    )
     write_brdf(work / "fit" / "brdf.json", brdf)
     mesh = read_mesh(capture / "mesh.ply")
     z = mesh.vertices[:, 2]
-    write_vertex_albedo(work / "fit" / "albedo.ply", mesh,
-                        brdf.diffuse_color[None, :] * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None])
+    write_vertex_albedo(
+        work / "fit" / "albedo.ply", mesh, brdf.diffuse_color[None, :] * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None]
+    )
 
 
 def mitsuba_against_relight(capture: Path, work: Path, scene: Path, tmp_path: Path):
@@ -60,8 +63,25 @@ def mitsuba_against_relight(capture: Path, work: Path, scene: Path, tmp_path: Pa
     key = sorted(poses["images"])[0]
     poses["images"] = {key: poses["images"][key]}
     (tmp_path / "view.json").write_text(json.dumps(poses))
-    assert sigrend(["relight", str(capture), "-w", str(work), "--env", str(tmp_path / "env.exr"), "--views",
-                    str(tmp_path / "view.json"), "--interior-supersample", "2", "-o", str(tmp_path / "relight")]) == 0
+    assert (
+        sigrend(
+            [
+                "relight",
+                str(capture),
+                "-w",
+                str(work),
+                "--env",
+                str(tmp_path / "env.exr"),
+                "--views",
+                str(tmp_path / "view.json"),
+                "--interior-supersample",
+                "2",
+                "-o",
+                str(tmp_path / "relight"),
+            ]
+        )
+        == 0
+    )
     ours = read_image(tmp_path / "relight" / f"{Path(key).stem}.exr")
     inside = ours[..., 3] > 0.999
     error = block_relative_rmse([rendered], [ours], masks=[inside], fit_scale=False)
@@ -87,8 +107,13 @@ def test_scene_holds_the_mesh_material_and_extras_under_its_own_name(exported):
     capture, work, scene = exported
     manifest = json.loads(scene.with_name("scene.xml.export.json").read_text())
     listed = {f["file"]: f["bytes"] for f in manifest["files"]}
-    assert set(listed) == {"scene.xml", "scene.xml.mesh.ply", "scene.xml.lighting.exr",
-                           "scene.xml.preview_sunsky.png", "scene.xml.preview_room.png"}
+    assert set(listed) == {
+        "scene.xml",
+        "scene.xml.mesh.ply",
+        "scene.xml.lighting.exr",
+        "scene.xml.preview_sunsky.png",
+        "scene.xml.preview_room.png",
+    }
     assert listed == {name: (scene.parent / name).stat().st_size for name in listed}
     assert manifest["frame"].startswith("Mitsuba 3 world = the object frame")
     loaded = mi.load_file(str(scene))
@@ -101,7 +126,7 @@ def test_scene_holds_the_mesh_material_and_extras_under_its_own_name(exported):
     colors = np.array(shape.attribute_buffer("vertex_color")).reshape(-1, 3)
     z = mesh.vertices[:, 2]
     expected = BRDF.diffuse_color * (0.55 + 0.45 * (z - z.min()) / np.ptp(z))[:, None]
-    np.testing.assert_allclose(colors, expected, atol=0.5 / 255 + 1e-6)      # albedo.ply is 8-bit
+    np.testing.assert_allclose(colors, expected, atol=0.5 / 255 + 1e-6)  # albedo.ply is 8-bit
 
 
 def test_envmap_emitter_shows_the_fitted_source_in_its_direction(exported):
@@ -127,11 +152,11 @@ def test_envmap_emitter_shows_the_fitted_source_in_its_direction(exported):
 
     def radiance(direction):
         si = mi.SurfaceInteraction3f()
-        si.wi = mi.Vector3f(*(-np.asarray(direction, float)))      # eval reads the direction -wi
+        si.wi = mi.Vector3f(*(-np.asarray(direction, float)))  # eval reads the direction -wi
         return float(np.sum(emitter.eval(si)))
 
     peak = env[y, x].sum()
-    assert radiance(world) == pytest.approx(peak, rel=0.3)            # bilinear between the texels around it
+    assert radiance(world) == pytest.approx(peak, rel=0.3)  # bilinear between the texels around it
     assert radiance(world) > 100 * radiance(SOURCE * [-1, 1, 1])
 
 
@@ -151,7 +176,7 @@ def test_sensor_rays_are_the_capture_view_pixel_rays(exported):
         ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(pu / camera.width, pv / camera.height), mi.Point2f(0.5, 0.5))
         d = d / np.linalg.norm(d)
         np.testing.assert_allclose(np.array(ray.d), d, atol=1e-5)
-        offset = np.array(ray.o) - origin            # Mitsuba starts the ray on its near clip plane
+        offset = np.array(ray.o) - origin  # Mitsuba starts the ray on its near clip plane
         np.testing.assert_allclose(offset - (offset @ d) * d, 0.0, atol=1e-5)
 
 
@@ -170,14 +195,13 @@ def test_mitsuba_renders_the_scene_as_sigrend_relights_it(exported, tmp_path):
     print(f"Mitsuba vs sigrend relight: block relative RMSE {error.total:.4f}, mean ratio {ratio}")
     assert error.total < 0.05, f"Mitsuba vs sigrend relight of the exported scene: {error}"
     np.testing.assert_allclose(ratio, 1.0, atol=0.03)
-    assert 0.92 < diffuse_compensation(BRDF) < 0.94       # 1 - 0.070: the layer's mean albedo at roughness 0.4
+    assert 0.92 < diffuse_compensation(BRDF) < 0.94  # 1 - 0.070: the layer's mean albedo at roughness 0.4
 
 
 def test_a_tinted_specular_has_no_mitsuba_equivalent(tiny_capture, tmp_path, capsys):
     """brdf.json's RGB specular tint is not Mitsuba's scalar spec_tint: one line, exit 2, no scene."""
     capture = tiny_capture(mesh="sphere", views=2, size=(64, 64))
-    make_fit(capture, tmp_path / "work", Brdf("principled", base_color=[0.5] * 3, roughness=0.3,
-                                              specular_tint=[1.0, 0.8, 0.6]))
+    make_fit(capture, tmp_path / "work", Brdf("principled", base_color=[0.5] * 3, roughness=0.3, specular_tint=[1.0, 0.8, 0.6]))
     code = sigrend(["export", str(capture), "-w", str(tmp_path / "work"), "-o", str(tmp_path / "out" / "scene.xml")])
     assert_one_line_error(capsys.readouterr().err, "spec_tint", "glTF", code=code)
     assert not (tmp_path / "out" / "scene.xml").exists()
@@ -204,7 +228,7 @@ def test_mitsuba_renders_the_base_colour_map_as_sigrend_relights_it(tiny_capture
     points = np.einsum("pk,pkc->pc", bary, mesh.vertices[mesh.faces[face]])
     lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
     image = np.zeros((atlas.height * atlas.width, 3))
-    image[texel] = 0.15 + 0.7 * (points - lo) / (hi - lo)          # red along x, green along y, blue along z
+    image[texel] = 0.15 + 0.7 * (points - lo) / (hi - lo)  # red along x, green along y, blue along z
     filled = np.zeros(atlas.height * atlas.width, bool)
     filled[texel] = True
     image = dilate(image.reshape(atlas.height, atlas.width, 3), filled.reshape(atlas.height, atlas.width), 8)

@@ -91,8 +91,9 @@ def bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     x, y = np.clip(x - 0.5, 0, w - 1), np.clip(y - 0.5, 0, h - 1)
     x0, y0 = np.minimum(np.floor(x).astype(int), w - 2), np.minimum(np.floor(y).astype(int), h - 2)
     fx, fy = (x - x0)[:, None], (y - y0)[:, None]
-    return ((1 - fy) * ((1 - fx) * image[y0, x0] + fx * image[y0, x0 + 1])
-            + fy * ((1 - fx) * image[y0 + 1, x0] + fx * image[y0 + 1, x0 + 1]))
+    return (1 - fy) * ((1 - fx) * image[y0, x0] + fx * image[y0, x0 + 1]) + fy * (
+        (1 - fx) * image[y0 + 1, x0] + fx * image[y0 + 1, x0 + 1]
+    )
 
 
 def corner_truth(work: Path, mesh) -> np.ndarray:
@@ -111,7 +112,7 @@ def gltf_arrays(doc) -> dict:
             continue
         acc = doc.accessors[index]
         view = doc.bufferViews[acc.bufferView]
-        raw = doc.binary_blob()[view.byteOffset:view.byteOffset + view.byteLength]
+        raw = doc.binary_blob()[view.byteOffset : view.byteOffset + view.byteLength]
         width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}[acc.type]
         out[name] = np.frombuffer(raw, np.uint32 if name == "indices" else np.float32).reshape(acc.count, width)
     return out
@@ -135,26 +136,29 @@ def test_glb_texcoords_and_embedded_texture_give_the_map_at_every_face_corner(te
     image = doc.images[doc.textures[mat.baseColorTexture.index].source]
     assert image.mimeType == "image/png" and image.uri is None
     view = doc.bufferViews[image.bufferView]
-    pixels = png_pixels(doc.binary_blob()[view.byteOffset:view.byteOffset + view.byteLength])
+    pixels = png_pixels(doc.binary_blob()[view.byteOffset : view.byteOffset + view.byteLength])
     arrays = gltf_arrays(doc)
     assert "COLOR_0" not in arrays
-    corners = arrays["indices"].reshape(-1)                         # F * 3 glTF vertices, face by face
+    corners = arrays["indices"].reshape(-1)  # F * 3 glTF vertices, face by face
     assert len(mesh.vertices) < len(arrays["POSITION"]) <= 3 * len(mesh.faces)
-    np.testing.assert_allclose(arrays["POSITION"][corners] @ Y_UP_FROM_Z_UP,        # back to the object frame
-                               mesh.vertices[mesh.faces.reshape(-1)], atol=1e-6)
+    np.testing.assert_allclose(
+        arrays["POSITION"][corners] @ Y_UP_FROM_Z_UP,  # back to the object frame
+        mesh.vertices[mesh.faces.reshape(-1)],
+        atol=1e-6,
+    )
     keys = np.c_[arrays["POSITION"], arrays["TEXCOORD_0"]]
-    assert len(np.unique(keys, axis=0)) == len(keys)                # no two vertices alike: split only at seams
+    assert len(np.unique(keys, axis=0)) == len(keys)  # no two vertices alike: split only at seams
 
     uv = arrays["TEXCOORD_0"][corners].astype(float)
     height, width = pixels.shape[:2]
-    found = bilinear(pixels, uv[:, 0] * width, uv[:, 1] * height)   # glTF: (0, 0) top-left, v down
+    found = bilinear(pixels, uv[:, 0] * width, uv[:, 1] * height)  # glTF: (0, 0) top-left, v down
     error = np.abs(found - corner_truth(work, mesh)).max()
     print(f"glTF: max |PNG at TEXCOORD_0 - map| = {error:.4f} (limit {QUANTIZATION:.4f}) on {len(uv)} corners")
     assert error < QUANTIZATION
     position = lo + (found - 0.1) / 0.8 * (hi - lo)
     off = np.linalg.norm(position - mesh.vertices[mesh.faces.reshape(-1)], axis=1).max()
     print(f"glTF: the colour's position is {off * 1e3:.2f} mm from the vertex at most (texel {TEXEL_M * 1e3} mm)")
-    assert off < 2 * TEXEL_M     # a corner on a chart's edge mixes in padding texels up to a diagonal away
+    assert off < 2 * TEXEL_M  # a corner on a chart's edge mixes in padding texels up to a diagonal away
     flipped = bilinear(pixels, uv[:, 0] * width, (1 - uv[:, 1]) * height)
     assert np.abs(flipped - corner_truth(work, mesh)).max() > 0.3
 
@@ -206,7 +210,7 @@ def test_usd_st_and_uv_texture_give_the_map_at_every_face_corner(textured_fit, e
 
     pixels = png_pixels(file.read_bytes())
     height, width = pixels.shape[:2]
-    found = bilinear(pixels, st[:, 0] * width, (1 - st[:, 1]) * height)   # t up from the lower-left
+    found = bilinear(pixels, st[:, 0] * width, (1 - st[:, 1]) * height)  # t up from the lower-left
     error = np.abs(found - corner_truth(work, mesh)).max()
     print(f"USD: max |PNG at st - map| = {error:.4f} (limit {QUANTIZATION:.4f}) on {len(st)} corners")
     assert error < QUANTIZATION
@@ -230,17 +234,33 @@ def test_metallic_roughness_texture_hook_packs_as_gltf_and_usd_read_it(textured_
     Image.fromarray(np.full((4, 4, 3), [0, 100, 30], np.uint8)).save(packed)
     brdf = Brdf("principled", base_color=[0.5, 0.5, 0.5], roughness=0.4, metallic=0.2)
     base = work / "fit" / "textures" / "base_color.png"
-    write_gltf(tmp_path / "a.glb", mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, face_uv=atlas.face_uv,
-               base_color_texture=base, metallic_roughness_texture=packed)
+    write_gltf(
+        tmp_path / "a.glb",
+        mesh.vertices,
+        mesh.faces,
+        mesh.vertex_normals,
+        brdf,
+        face_uv=atlas.face_uv,
+        base_color_texture=base,
+        metallic_roughness_texture=packed,
+    )
     doc = pygltflib.GLTF2().load(str(tmp_path / "a.glb"))
     pbr = doc.materials[0].pbrMetallicRoughness
     assert (pbr.roughnessFactor, pbr.metallicFactor) == (1.0, 1.0)
     image = doc.images[doc.textures[pbr.metallicRoughnessTexture.index].source]
     view = doc.bufferViews[image.bufferView]
-    assert doc.binary_blob()[view.byteOffset:view.byteOffset + view.byteLength] == packed.read_bytes()
+    assert doc.binary_blob()[view.byteOffset : view.byteOffset + view.byteLength] == packed.read_bytes()
 
-    write_usd(tmp_path / "a.usda", mesh.vertices, mesh.faces, mesh.vertex_normals, brdf, face_uv=atlas.face_uv,
-              base_color_texture="base.png", metallic_roughness_texture=packed.name)
+    write_usd(
+        tmp_path / "a.usda",
+        mesh.vertices,
+        mesh.faces,
+        mesh.vertex_normals,
+        brdf,
+        face_uv=atlas.face_uv,
+        base_color_texture="base.png",
+        metallic_roughness_texture=packed.name,
+    )
     stage = Usd.Stage.Open(str(tmp_path / "a.usda"))
     surface = UsdShade.Shader(stage.GetPrimAtPath("/object/material/surface"))
     for name, channel in (("roughness", "g"), ("metallic", "b")):
@@ -259,7 +279,7 @@ def test_textures_for_another_mesh_leave_the_per_vertex_export(textured_fit, tmp
     capture, work, mesh, _ = textured_fit
     other = tmp_path / "capture"
     other.mkdir()
-    coarser = trimesh.creation.icosphere(subdivisions=1, radius=0.1)      # 80 faces, not 320
+    coarser = trimesh.creation.icosphere(subdivisions=1, radius=0.1)  # 80 faces, not 320
     coarser.export(other / "mesh.ply")
     work2 = tmp_path / "work"
     (work2 / "fit").mkdir(parents=True)

@@ -30,10 +30,9 @@ def test_cycles_diffuse_sphere_known_albedo(tmp_path):
     capture, work = DATA / "capture", tmp_path / "work"
     run_stage("samples", capture=capture, work=work, settings=make_settings(samples.Settings, stride=2), force=True)
     brdf = write_brdf(tmp_path / "brdf.json", Brdf("lambert", albedo=[0.55, 0.45, 0.35]))
-    run_stage("fit", capture=capture, work=work, settings=make_settings(fit.Settings, brdf=str(brdf), order="8"),
-              force=True)
+    run_stage("fit", capture=capture, work=work, settings=make_settings(fit.Settings, brdf=str(brdf), order="8"), force=True)
     fitted = read_lighting_sh(work / "fit" / "lighting_sh.json")
-    truth = read_lighting_sh(DATA / "gt" / "lighting_sh.json")[:len(fitted)]
+    truth = read_lighting_sh(DATA / "gt" / "lighting_sh.json")[: len(fitted)]
     errors = band_relative_errors(fitted, truth, 2)
     # Measured 0.01% / 0.08% / 0.13% (every pixel, 79k samples; stride 2 about the same): the MC
     # noise (a few % per pixel) averages over ~2e4 pixels per view, and bands 0-2 see it
@@ -55,11 +54,15 @@ def test_synth_capture_lambertian_unknown_lighting(tiny_capture, tmp_path):
     work = tmp_path / "work"
     run_stage("samples", capture=capture, work=work, settings=make_settings(samples.Settings), force=True)
     brdf = write_brdf(tmp_path / "brdf.json", Brdf("lambert", albedo=[0.6, 0.6, 0.6]))
-    run_stage("fit", capture=capture, work=work, settings=make_settings(fit.Settings, brdf=str(brdf), order="auto", max_order=12,
-                                                                factor_order=12),
-              force=True)
+    run_stage(
+        "fit",
+        capture=capture,
+        work=work,
+        settings=make_settings(fit.Settings, brdf=str(brdf), order="auto", max_order=12, factor_order=12),
+        force=True,
+    )
     fitted = read_lighting_sh(work / "fit" / "lighting_sh.json")
-    truth = read_lighting_sh(capture / "gt" / "lighting_sh.json")[:len(fitted)]
+    truth = read_lighting_sh(capture / "gt" / "lighting_sh.json")[: len(fitted)]
     errors = band_relative_errors(fitted, truth, 2)
     report = read_report(work / "fit" / "report.json")
     # issue 11: bands 0-2 within 5%.  Measured on the physical forward model (the sun found as a

@@ -109,8 +109,9 @@ def test_map_off_by_two_is_refused_in_one_line_and_fitted(glossy, tmp_path):
     shutil.copytree(samples, work)
     dim = scaled_map(capture / "gt" / "lighting.exr", tmp_path / "dim.exr", 0.5)
     proc = sigrend("fit", capture, "-w", work, "--lighting", dim)
-    assert_one_line_error(proc.stderr, "the photos are about x", "too dim", "exposure", "or give --lighting-scale",
-                          code=proc.returncode)
+    assert_one_line_error(
+        proc.stderr, "the photos are about x", "too dim", "exposure", "or give --lighting-scale", code=proc.returncode
+    )
     factor = re.search(r"about x([0-9.]+)", proc.stderr).group(1)
     assert abs(float(factor) / 2 - 1) <= 0.03 and len(re.sub(r"\D", "", factor)) <= 3, proc.stderr
     assert not (work / "fit" / "brdf.json").exists()
@@ -133,15 +134,35 @@ def test_lighting_scale_on_the_convex_path(glossy, tmp_path):
     for value in ("1", "2"):
         work = tmp_path / f"work{value}"
         shutil.copytree(samples, work)
-        proc = sigrend("fit", capture, "-w", work, "--lighting", capture / "gt" / "lighting.exr", "--brdf", "phong",
-                       "--lighting-scale", value)
+        proc = sigrend(
+            "fit",
+            capture,
+            "-w",
+            work,
+            "--lighting",
+            capture / "gt" / "lighting.exr",
+            "--brdf",
+            "phong",
+            "--lighting-scale",
+            value,
+        )
         assert proc.returncode == 0, proc.stderr
         fits[value] = json.loads((work / "fit" / "brdf.json").read_text())
         assert lighting_scale(work)["applied"] == float(value)
     for key in ("albedo", "specular"):
         assert np.allclose(np.asarray(fits["2"][key]) * 2, fits["1"][key], rtol=1e-9), (key, fits)
-    proc = sigrend("fit", capture, "-w", tmp_path / "work1", "--lighting", capture / "gt" / "lighting.exr",
-                   "--brdf", "phong", "--lighting-scale", "fit")
+    proc = sigrend(
+        "fit",
+        capture,
+        "-w",
+        tmp_path / "work1",
+        "--lighting",
+        capture / "gt" / "lighting.exr",
+        "--brdf",
+        "phong",
+        "--lighting-scale",
+        "fit",
+    )
     assert_one_line_error(proc.stderr, "--lighting-scale fit needs the physical forward model", code=proc.returncode)
     dim = scaled_map(capture / "gt" / "lighting.exr", tmp_path / "dim.exr", 0.25)
     proc = sigrend("fit", capture, "-w", tmp_path / "work1", "--lighting", dim, "--brdf", "phong")
@@ -153,8 +174,7 @@ def one_view_capture(root: Path, name: str, direction, intensity: float) -> tupl
     """One photo (64^2) of the principled sphere under one directional light (capture.toml [lighting]'s
     form, drawn as pipeline.io.lighting.known_light_map draws it, plus nothing else): the capture and the
     light's map."""
-    light = KnownLight(direction=tuple(np.asarray(direction, float) / np.linalg.norm(direction)),
-                       intensity=(intensity,) * 3)
+    light = KnownLight(direction=tuple(np.asarray(direction, float) / np.linalg.norm(direction)), intensity=(intensity,) * 3)
     env = root / f"{name}.exr"
     write_image(env, known_light_map(light).astype(np.float32), dtype="float")
     capture = make_test_capture(root / name, brdf=MATERIAL, env=str(env), views=1, size=(64, 64), noise="none")
@@ -184,8 +204,20 @@ def test_one_view_directional_light_auto(tmp_path):
             line = [x for x in proc.stderr.splitlines() if "all in one fold" in x]
             assert len(line) == 1 and "kept principled dielectric" in line[0] and "Lambert's" in line[0], proc.stderr
         out = tmp_path / f"relit-{brdf}"
-        proc = sigrend("relight", capture, "-w", work, "--env", other_env, "--compare-with", other,
-                       "--compare-work", tmp_path / "side-work", "-o", out)
+        proc = sigrend(
+            "relight",
+            capture,
+            "-w",
+            work,
+            "--env",
+            other_env,
+            "--compare-with",
+            other,
+            "--compare-work",
+            tmp_path / "side-work",
+            "-o",
+            out,
+        )
         assert proc.returncode == 0, proc.stderr
         errors[brdf] = json.loads((out / "relight.json").read_text())["compare"]["relative_error"]
     assert errors["auto"] <= errors["phong"], errors

@@ -20,8 +20,23 @@ def test_one_material_object_keeps_one_material(tiny_capture, tmp_path):
     capture = tiny_capture(mesh="sphere", brdf="lambert:albedo=0.6", env="area", views=6, size=(64, 64))
     work = tmp_path / "work"
     assert cli.main(["run", str(capture), "-w", str(work), "--to", "samples", "--no-report"]) == 0
-    assert cli.main(["fit", str(capture), "-w", str(work), "--materials", "auto", "--physical-samples", "3000",
-                     "--roughness-candidates", "0.3,1.0"]) == 0
+    assert (
+        cli.main(
+            [
+                "fit",
+                str(capture),
+                "-w",
+                str(work),
+                "--materials",
+                "auto",
+                "--physical-samples",
+                "3000",
+                "--roughness-candidates",
+                "0.3,1.0",
+            ]
+        )
+        == 0
+    )
     report = json.loads((work / "fit" / "report.json").read_text())
     entry = report["materials"]
     assert [c["name"].split(",")[0] for c in entry["candidates"]][0] == "one material"

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import CYCLES as DATA
+from helpers import relight_references, relight_world
 
 from pipeline.core.brdf import Brdf
 from pipeline.core.image_metrics import block_relative_rmse
@@ -20,8 +22,6 @@ from pipeline.io.images import read_image, write_image
 from pipeline.io.report import read_report
 from pipeline.runner import run_stage
 from pipeline.settings import make_settings
-
-from helpers import CYCLES as DATA, relight_references, relight_world
 
 
 def fit_and_relight(scene: str, work: Path, *fit_args: str) -> tuple[dict, dict, object]:
@@ -35,14 +35,24 @@ def fit_and_relight(scene: str, work: Path, *fit_args: str) -> tuple[dict, dict,
     from stages import relight
 
     folder = DATA / scene
-    subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(folder), "-w", str(work), "--to", "samples"],
-                   check=True, capture_output=True)
-    subprocess.run([sys.executable, "-m", "pipeline.cli", "fit", str(folder), "-w", str(work), *fit_args],
-                   check=True, capture_output=True)
+    subprocess.run(
+        [sys.executable, "-m", "pipeline.cli", "run", str(folder), "-w", str(work), "--to", "samples"],
+        check=True,
+        capture_output=True,
+    )
+    subprocess.run(
+        [sys.executable, "-m", "pipeline.cli", "fit", str(folder), "-w", str(work), *fit_args], check=True, capture_output=True
+    )
     write_image(work / "relight_world.exr", relight_world(scene), dtype="float")
-    run_stage("relight", capture=folder, work=work, force=True,
-              settings=make_settings(relight.Settings, env=str(work / "relight_world.exr"),
-                                     views=str(folder / "gt" / "relight" / "poses.json")))
+    run_stage(
+        "relight",
+        capture=folder,
+        work=work,
+        force=True,
+        settings=make_settings(
+            relight.Settings, env=str(work / "relight_world.exr"), views=str(folder / "gt" / "relight" / "poses.json")
+        ),
+    )
     rendered = sorted((work / "relight").glob("*.exr"))
     assert len(rendered) == 4
     error = block_relative_rmse([read_image(p) for p in rendered], relight_references(folder, [p.name for p in rendered]))
@@ -129,21 +139,58 @@ def test_known_lighting_off_in_scale(tmp_path):
     folder, work = DATA / "teapot_city_glossy", tmp_path / "work"
     dim = tmp_path / "dim.exr"
     write_image(dim, (np.asarray(read_envmap(folder / "gt" / "lighting.exr")) * 0.4).astype(np.float32), dtype="float")
-    subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(folder), "-w", str(work), "--to", "samples"],
-                   check=True, capture_output=True)
+    subprocess.run(
+        [sys.executable, "-m", "pipeline.cli", "run", str(folder), "-w", str(work), "--to", "samples"],
+        check=True,
+        capture_output=True,
+    )
     fast = ["--roughness-candidates", "0.3", "--physical-samples", "8000"]
-    bad = subprocess.run([sys.executable, "-m", "pipeline.cli", "fit", str(folder), "-w", str(work), "--lighting",
-                          str(dim), *fast], capture_output=True, text=True)
+    bad = subprocess.run(
+        [sys.executable, "-m", "pipeline.cli", "fit", str(folder), "-w", str(work), "--lighting", str(dim), *fast],
+        capture_output=True,
+        text=True,
+    )
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
     line = bad.stderr.strip().splitlines()[-1]
     assert "--lighting-scale" in line and "x2." in line, line
     assert not (work / "fit" / "brdf.json").exists()
     for value in ("-1", "big"):
-        r = subprocess.run([sys.executable, "-m", "pipeline.cli", "fit", str(folder), "-w", str(work), "--lighting",
-                            str(dim), "--lighting-scale", value], capture_output=True, text=True)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "pipeline.cli",
+                "fit",
+                str(folder),
+                "-w",
+                str(work),
+                "--lighting",
+                str(dim),
+                "--lighting-scale",
+                value,
+            ],
+            capture_output=True,
+            text=True,
+        )
         assert r.returncode == 2 and "--lighting-scale" in r.stderr and "Traceback" not in r.stderr
-    subprocess.run([sys.executable, "-m", "pipeline.cli", "fit", str(folder), "-w", str(work), "--lighting", str(dim),
-                    "--lighting-scale", "fit", *fast], check=True, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pipeline.cli",
+            "fit",
+            str(folder),
+            "-w",
+            str(work),
+            "--lighting",
+            str(dim),
+            "--lighting-scale",
+            "fit",
+            *fast,
+        ],
+        check=True,
+        capture_output=True,
+    )
     scale = read_report(work / "fit" / "report.json")["scale_convention"]["lighting_scale"]
     assert abs(scale["applied"] / 2.5 - 1) < 0.1, scale
 
@@ -198,8 +245,10 @@ def test_glossy_sphere_both_unknown(tmp_path):
     errors = band_errors(tmp_path / "work", truth)
     assert np.all(errors < 0.05), errors
     found = np.array([s["direction"] for s in report["sources"]])
-    off = [np.degrees(np.arccos(np.clip((found @ d).max(), -1, 1)))
-           for d in brightest_lamps(np.asarray(read_envmap(truth))[..., :3], 5)]
+    off = [
+        np.degrees(np.arccos(np.clip((found @ d).max(), -1, 1)))
+        for d in brightest_lamps(np.asarray(read_envmap(truth))[..., :3], 5)
+    ]
     assert max(off) < 1.0, off
     assert report["lighting_refit"]["validation_rmse"] < 0.0065, report["lighting_refit"]
     assert err.total < 0.03, err
@@ -221,13 +270,35 @@ def test_glossy_sphere_known_lighting(tmp_path):
     assert err.total < 0.03, err
 
 
-def synth_capture(folder: Path, mesh: str, brdf: str, views: int = 10, size: str = "96x96",
-                  texture: str = "none") -> Path:
+def synth_capture(folder: Path, mesh: str, brdf: str, views: int = 10, size: str = "96x96", texture: str = "none") -> Path:
     """A capture rendered by sigrend synth under the Cycles teapot's city map (truth in gt/)."""
     env = DATA / "teapot_city_glossy" / "gt" / "lighting.exr"
-    subprocess.run([sys.executable, "-m", "pipeline.cli", "synth", "-o", str(folder), "--mesh", mesh, "--mesh-up", "z",
-                    "--env", str(env), "--brdf", brdf, "--views", str(views), "--size", size, "--texture", texture],
-                   check=True, capture_output=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pipeline.cli",
+            "synth",
+            "-o",
+            str(folder),
+            "--mesh",
+            mesh,
+            "--mesh-up",
+            "z",
+            "--env",
+            str(env),
+            "--brdf",
+            brdf,
+            "--views",
+            str(views),
+            "--size",
+            size,
+            "--texture",
+            texture,
+        ],
+        check=True,
+        capture_output=True,
+    )
     return folder
 
 
@@ -236,10 +307,30 @@ def fit_synth(capture: Path, work: Path, *fit_args: str) -> tuple[dict, dict]:
     the fit models each sample as a point (--footprint 1): with its default pixel footprint the
     metal's known-lighting base colour came out 8% low (0.828, 0.559, 0.287); against synth
     --supersample 4 images, 3.4% low (0.869, 0.580, 0.291), roughness 0.250."""
-    subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(capture), "-w", str(work), "--to", "samples"],
-                   check=True, capture_output=True)
-    subprocess.run([sys.executable, "-m", "pipeline.cli", "fit", str(capture), "-w", str(work), "--force",
-                    "--physical-samples", "12000", "--footprint", "1", *fit_args], check=True, capture_output=True)
+    subprocess.run(
+        [sys.executable, "-m", "pipeline.cli", "run", str(capture), "-w", str(work), "--to", "samples"],
+        check=True,
+        capture_output=True,
+    )
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pipeline.cli",
+            "fit",
+            str(capture),
+            "-w",
+            str(work),
+            "--force",
+            "--physical-samples",
+            "12000",
+            "--footprint",
+            "1",
+            *fit_args,
+        ],
+        check=True,
+        capture_output=True,
+    )
     return json.loads((work / "fit" / "brdf.json").read_text()), read_report(work / "fit" / "report.json")
 
 
@@ -252,8 +343,11 @@ def test_synth_metal_teapot(tmp_path):
     1.3 deg from the truth's chromaticity, its level 0.79-0.83 (with the lighting unknown a metal's
     F0 trades with the lighting, only Schlick's grazing rise tells them apart); while the base
     colour search ridged the lighting's bands 0-2, F0 went to its bound: (1, 1, 0.598)."""
-    capture = synth_capture(tmp_path / "metal", str(DATA / "teapot_city_glossy" / "mesh.ply"),
-                            "principled:base_color=0.9,0.6,0.3,roughness=0.25,metallic=1")
+    capture = synth_capture(
+        tmp_path / "metal",
+        str(DATA / "teapot_city_glossy" / "mesh.ply"),
+        "principled:base_color=0.9,0.6,0.3,roughness=0.25,metallic=1",
+    )
     fast = ("--roughness-candidates", "0.15,0.3,0.6")
     brdf, report = fit_synth(capture, tmp_path / "known", "--lighting", str(capture / "gt" / "lighting.exr"), *fast)
     assert brdf["model"] == "principled" and brdf["metallic"] == 1.0, brdf
@@ -263,7 +357,7 @@ def test_synth_metal_teapot(tmp_path):
     assert brdf["model"] == "principled" and brdf["metallic"] == 1.0, brdf
     assert abs(brdf["roughness"] / 0.25 - 1) < 0.25
     assert chromaticity_deg(brdf["base_color"], [0.9, 0.6, 0.3]) < 3.0, brdf
-    assert "metal" in report["scale_convention"]["source"]        # not the dielectric layer's Fresnel
+    assert "metal" in report["scale_convention"]["source"]  # not the dielectric layer's Fresnel
 
 
 @pytest.mark.slow
@@ -281,8 +375,9 @@ def test_synth_dielectric_both_unknown(tmp_path, roughness):
     the pursuit's three, a "source" at the zenith carrying the sky: 0.8 / 1.1 / 6.4 %; with the
     ridged search 12 / 11 / 21 %), 0.7 / 0.8 / 1.8 % at 0.6."""
     base = [0.2, 0.5, 0.3]
-    capture = synth_capture(tmp_path / "sphere", "sphere",
-                            f"principled:base_color={','.join(map(str, base))},roughness={roughness}")
+    capture = synth_capture(
+        tmp_path / "sphere", "sphere", f"principled:base_color={','.join(map(str, base))},roughness={roughness}"
+    )
     brdf, report = fit_synth(capture, tmp_path / "work")
     assert brdf["model"] == "principled" and brdf["metallic"] == 0.0, (brdf, report["candidates"])
     assert abs(brdf["roughness"] / roughness - 1) < 0.25, brdf
@@ -328,8 +423,7 @@ def test_synth_textured_glossy_both_unknown(tmp_path):
     from pipeline.io.samples import read_samples
     from stages import relight
 
-    capture = synth_capture(tmp_path / "sphere", "sphere", "principled:base_color=0.2,0.5,0.3,roughness=0.3",
-                            texture="stripes")
+    capture = synth_capture(tmp_path / "sphere", "sphere", "principled:base_color=0.2,0.5,0.3,roughness=0.3", texture="stripes")
     brdf, report = fit_synth(capture, tmp_path / "work")
     assert report["albedo"]["choice"] == "textured", report["albedo"]
     assert brdf["model"] == "principled" and brdf["metallic"] == 0.0, (brdf, report["candidates"])
@@ -384,6 +478,7 @@ def test_summary_line_says_when_a_lambert_colour_is_a_convention():
     # brdf.json says the same (outputs.colour_note): what fixed the level, and the colour
     note = colour_note({"scale_convention": bounced})["colour_fixed_by"]
     assert note["level"] == "interreflection" and note["chromaticity"].startswith("the convention")
-    dielectric = colour_note({"scale_convention": scale_note(Brdf("principled", base_color=[0.5] * 3, roughness=0.3),
-                                                               None)})["colour_fixed_by"]
+    dielectric = colour_note({"scale_convention": scale_note(Brdf("principled", base_color=[0.5] * 3, roughness=0.3), None)})[
+        "colour_fixed_by"
+    ]
     assert "dielectric specular layer" in dielectric["level"] and dielectric["chromaticity"] == dielectric["level"]

@@ -30,8 +30,16 @@ def stripes(tmp_path_factory):
     coarse = trimesh.creation.icosphere(subdivisions=2)
     fine = coarse.subdivide().subdivide()
     fine.export(out / "fine.ply")
-    capture = make_test_capture(out / "capture", mesh=str(out / "fine.ply"), brdf="lambert:albedo=0.6", env="area",
-                                views=8, size=(128, 128), texture="stripes:freq=3,contrast=0.6", noise="none")
+    capture = make_test_capture(
+        out / "capture",
+        mesh=str(out / "fine.ply"),
+        brdf="lambert:albedo=0.6",
+        env="area",
+        views=8,
+        size=(128, 128),
+        texture="stripes:freq=3,contrast=0.6",
+        noise="none",
+    )
     placed = read_mesh(capture / "mesh.ply")
     # synth scales and moves the mesh: the same similarity carries the coarse mesh into the capture's frame
     frame, *_ = np.linalg.lstsq(np.c_[fine.vertices, np.ones(len(fine.vertices))], placed.vertices, rcond=None)
@@ -86,7 +94,7 @@ def test_stripes_finer_than_the_vertices_are_found_per_texel(stripes, tmp_path):
     with_texels = relight_check(work)["relative_error"]
 
     assert cli.main(["fit", str(capture), "-w", str(work), "--brdf", "lambert", "--albedo", "textured", "--force"]) == 0
-    assert not (work / "fit" / "textures").exists()          # the stale map is removed: relight would read it
+    assert not (work / "fit" / "textures").exists()  # the stale map is removed: relight would read it
     vertex_rho = read_vertex_albedo(work / "fit" / "albedo.ply", len(mesh.vertices))
     from_vertices = _relative_error(np.einsum("pk,pk->p", bary, vertex_rho[mesh.faces[face], 0]), truth[:, 0])
     assert from_texels < 0.9 * from_vertices, (from_texels, from_vertices)

@@ -28,8 +28,15 @@ MEDIAN_TOLERANCE = 0.05
 
 
 def _fit(tmp_path: Path, texture: str, **more):
-    capture = make_test_capture(tmp_path / "capture", env="smooth", views=6, size=(96, 96), noise="none",
-                                texture=texture, brdf="lambert:albedo=0.7,0.6,0.5")
+    capture = make_test_capture(
+        tmp_path / "capture",
+        env="smooth",
+        views=6,
+        size=(96, 96),
+        noise="none",
+        texture=texture,
+        brdf="lambert:albedo=0.7,0.6,0.5",
+    )
     work = tmp_path / "work"
     samples_stage.run(capture=capture, work=work, settings=make_settings(samples_stage.Settings))
     settings = make_settings(fit.Settings, lighting=str(capture / "gt" / "lighting_sh.json"), brdf="lambert", **more)

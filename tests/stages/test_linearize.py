@@ -59,8 +59,17 @@ def srgb_encode(v: np.ndarray) -> np.ndarray:
     return np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)
 
 
-def write_dng(path: Path, linear: np.ndarray, *, t: float = T_REF, fnumber: float = N_REF,
-              neutral=(1.0, 1.0, 1.0), noise: float = 0.0, rng=None, truncate: bool = False) -> None:
+def write_dng(
+    path: Path,
+    linear: np.ndarray,
+    *,
+    t: float = T_REF,
+    fnumber: float = N_REF,
+    neutral=(1.0, 1.0, 1.0),
+    noise: float = 0.0,
+    rng=None,
+    truncate: bool = False,
+) -> None:
     """The synth's DNG (pipeline.io.camera_files.write_dng: camera space = linear sRGB, no ISO) of ``linear``.
 
     ``neutral``: the simulated sensor's channel sensitivities (raw = value x neutral), written as the
@@ -83,8 +92,16 @@ def write_dng(path: Path, linear: np.ndarray, *, t: float = T_REF, fnumber: floa
         path.write_bytes(data[: len(data) // 3])
 
 
-def write_jpeg(path: Path, value: np.ndarray, *, t: float = T_REF, fnumber: float = N_REF, iso: int = 100,
-               encode=srgb_encode, ext_dtype: str = "uint8") -> None:
+def write_jpeg(
+    path: Path,
+    value: np.ndarray,
+    *,
+    t: float = T_REF,
+    fnumber: float = N_REF,
+    iso: int = 100,
+    encode=srgb_encode,
+    ext_dtype: str = "uint8",
+) -> None:
     attrs = {"ExposureTime": t, "FNumber": fnumber, "Exif:PhotographicSensitivity": iso}
     if path.suffix.lower() in (".jpg", ".jpeg"):
         attrs["Compression"] = "jpeg:95"
@@ -141,10 +158,21 @@ def test_exif_orientation_is_ignored_for_raw_and_jpeg_alike(tmp_path):
     linear image equals the untagged one's exactly."""
     L = scene()
     cap = tmp_path / "cap"
-    write_camera_dng(cap / "images" / "upright.dng", exposed(L, T_REF), Exposure(time=T_REF, iso=100.0, fnumber=N_REF),
-                     black=BLACK, white=WHITE)
-    write_camera_dng(cap / "images" / "turned.dng", exposed(L, T_REF), Exposure(time=T_REF, iso=100.0, fnumber=N_REF),
-                     black=BLACK, white=WHITE, orientation=6)
+    write_camera_dng(
+        cap / "images" / "upright.dng",
+        exposed(L, T_REF),
+        Exposure(time=T_REF, iso=100.0, fnumber=N_REF),
+        black=BLACK,
+        white=WHITE,
+    )
+    write_camera_dng(
+        cap / "images" / "turned.dng",
+        exposed(L, T_REF),
+        Exposure(time=T_REF, iso=100.0, fnumber=N_REF),
+        black=BLACK,
+        white=WHITE,
+        orientation=6,
+    )
     write_jpeg(cap / "images" / "turned.jpg", exposed(L, T_REF))
     import OpenImageIO as oiio
 
@@ -152,7 +180,7 @@ def test_exif_orientation_is_ignored_for_raw_and_jpeg_alike(tmp_path):
     buf.specmod().attribute("Orientation", 6)
     buf.write(str(cap / "images" / "turned_tag.jpg"))
     (cap / "images" / "turned.jpg").unlink()
-    (cap / "capture.toml").write_text('[exposure]\ndefault = {iso = 100}\n')    # DNGs here carry no ISO
+    (cap / "capture.toml").write_text("[exposure]\ndefault = {iso = 100}\n")  # DNGs here carry no ISO
     run_stage(cap, tmp_path / "work")
     upright, _ = read_linear_image(tmp_path / "work", "upright")
     turned, _ = read_linear_image(tmp_path / "work", "turned")
@@ -170,7 +198,7 @@ def test_raw_saturation_masked_before_demosaic_and_dilated(tmp_path):
     run_stage(cap, tmp_path / "work")
     _, valid = read_linear_image(tmp_path / "work", "s")
     clipped = np.zeros((H, W), bool)
-    clipped[20 - 2:24 + 2, 30 - 2:34 + 2] = True  # 4x4 clipped photosites dilated by the 5x5 demosaic footprint
+    clipped[20 - 2 : 24 + 2, 30 - 2 : 34 + 2] = True  # 4x4 clipped photosites dilated by the 5x5 demosaic footprint
     assert not valid[clipped].any()
     assert valid[~clipped].all()
     entry = read_manifest(tmp_path / "work")["images"]["s"]
@@ -200,8 +228,12 @@ def test_camera_white_balance_and_gray_card(tmp_path):
 def test_exr_exact_and_jpeg_within_3_percent(tmp_path):
     L = scene()
     cap = tmp_path / "cap"
-    write_image(cap / "images" / "e.exr", exposed(L, T_REF / 4), dtype="float",
-                attributes={"ExposureTime": T_REF / 4, "FNumber": N_REF, "Exif:PhotographicSensitivity": 100})
+    write_image(
+        cap / "images" / "e.exr",
+        exposed(L, T_REF / 4),
+        dtype="float",
+        attributes={"ExposureTime": T_REF / 4, "FNumber": N_REF, "Exif:PhotographicSensitivity": 100},
+    )
     write_jpeg(cap / "images" / "j1.jpg", exposed(L, T_REF))
     write_jpeg(cap / "images" / "j2.jpg", exposed(L, T_REF * 2, 5.6), t=T_REF * 2, fnumber=5.6)
     write_jpeg(cap / "images" / "j3.jpg", exposed(L, T_REF / 2), t=T_REF, iso=50)  # half the gain
@@ -241,16 +273,19 @@ def test_8bit_alpha_is_honoured(tmp_path, channels):
     value = srgb_encode(exposed(L, T_REF))
     alpha = np.ones((H, W, 1))
     alpha[:, : W // 3] = 0.0  # transparent: background removed
-    alpha[:, W // 3: W // 3 + 4] = 0.5  # the cut-out's soft edge
-    pixels = np.concatenate([value, alpha], axis=2) if channels == "rgba" else \
-        np.concatenate([value[:, :, 1:2], alpha], axis=2)
+    alpha[:, W // 3 : W // 3 + 4] = 0.5  # the cut-out's soft edge
+    pixels = np.concatenate([value, alpha], axis=2) if channels == "rgba" else np.concatenate([value[:, :, 1:2], alpha], axis=2)
     cap = tmp_path / "cap"
-    write_image(cap / "images" / "p.png", pixels, dtype="uint8",
-                attributes={"ExposureTime": T_REF, "FNumber": N_REF, "Exif:PhotographicSensitivity": 100})
+    write_image(
+        cap / "images" / "p.png",
+        pixels,
+        dtype="uint8",
+        attributes={"ExposureTime": T_REF, "FNumber": N_REF, "Exif:PhotographicSensitivity": 100},
+    )
     run_stage(cap, tmp_path / "work")
     rgb, valid = read_linear_image(tmp_path / "work", "p")
     assert not valid[:, : W // 3 + 4].any()
-    assert valid[:, W // 3 + 4:].all()
+    assert valid[:, W // 3 + 4 :].all()
     want = radiance(L) if channels == "rgba" else np.repeat(radiance(L)[:, :, 1:2], 3, axis=2)
     assert rel_err(rgb, want, valid) < 0.01
 
@@ -356,15 +391,23 @@ def good_capture(tmp_path, capsys):
     return cap, work, snapshot
 
 
-@pytest.mark.parametrize("case", ["truncated_raw", "unknown_extension", "all_black", "all_saturated",
-                                  "zero_exposure", "missing_exposure", "mixed_sizes"])
+@pytest.mark.parametrize(
+    "case",
+    ["truncated_raw", "unknown_extension", "all_black", "all_saturated", "zero_exposure", "missing_exposure", "mixed_sizes"],
+)
 def test_bad_input_one_line_exit_2_outputs_intact(good_capture, capsys, case):
     cap, work, snapshot = good_capture
     images = cap / "images"
     L = scene()
     culprit = {
-        "truncated_raw": "z.dng", "unknown_extension": "notes.txt", "all_black": "c.jpg",
-        "all_saturated": "c.jpg", "zero_exposure": "c.jpg", "missing_exposure": "c.jpg", "mixed_sizes": "c.jpg"}[case]
+        "truncated_raw": "z.dng",
+        "unknown_extension": "notes.txt",
+        "all_black": "c.jpg",
+        "all_saturated": "c.jpg",
+        "zero_exposure": "c.jpg",
+        "missing_exposure": "c.jpg",
+        "mixed_sizes": "c.jpg",
+    }[case]
     if case == "truncated_raw":
         write_dng(images / culprit, exposed(L, T_REF), truncate=True)
     elif case == "unknown_extension":
@@ -405,8 +448,12 @@ def test_missing_iso_in_some_images_only(tmp_path):
     L = scene()
     cap = tmp_path / "cap"
     write_jpeg(cap / "images" / "a.jpg", exposed(L, T_REF))
-    write_image(cap / "images" / "b.jpg", srgb_encode(exposed(L, T_REF)), dtype="uint8",
-                attributes={"ExposureTime": T_REF, "FNumber": N_REF})
+    write_image(
+        cap / "images" / "b.jpg",
+        srgb_encode(exposed(L, T_REF)),
+        dtype="uint8",
+        attributes={"ExposureTime": T_REF, "FNumber": N_REF},
+    )
     with pytest.raises(UserError, match="b.jpg: no ISO"):
         run_stage(cap, tmp_path / "work")
     (cap / "capture.toml").write_text('[exposure]\n"b.jpg" = {iso = 100}\n')
@@ -429,13 +476,18 @@ def test_bands_of_rows_give_the_whole_images_values(tmp_path):
     write_dng(cap / "images" / "raw.dng", exposed(L, T_REF / 8), t=T_REF / 8)
     write_jpeg(cap / "images" / "jpeg.jpg", exposed(L, T_REF))
     alpha = np.where(np.arange(W) < W // 4, 0.0, 1.0)[None, :, None] * np.ones((H, 1, 1))
-    write_jpeg(cap / "images" / "tiff.tif", np.concatenate([exposed(L, T_REF), alpha], axis=2), ext_dtype="uint16",
-               encode=lambda v: np.clip(v, 0, 1))
-    write_image(cap / "images" / "float.exr", exposed(L, T_REF), dtype="float",
-                attributes={"ExposureTime": T_REF, "FNumber": N_REF})
+    write_jpeg(
+        cap / "images" / "tiff.tif",
+        np.concatenate([exposed(L, T_REF), alpha], axis=2),
+        ext_dtype="uint16",
+        encode=lambda v: np.clip(v, 0, 1),
+    )
+    write_image(
+        cap / "images" / "float.exr", exposed(L, T_REF), dtype="float", attributes={"ExposureTime": T_REF, "FNumber": N_REF}
+    )
     import OpenImageIO as oiio
 
-    spec = oiio.ImageSpec(W, H, 3, "half")       # a tiled EXR: read by whole rows of 16 x 16 tiles
+    spec = oiio.ImageSpec(W, H, 3, "half")  # a tiled EXR: read by whole rows of 16 x 16 tiles
     spec.tile_width = spec.tile_height = 16
     spec.attribute("ExposureTime", T_REF)
     spec.attribute("FNumber", N_REF)
@@ -446,21 +498,24 @@ def test_bands_of_rows_give_the_whole_images_values(tmp_path):
         write_jpeg(cap / "images" / f"b_{i}.png", exposed(L, t), t=t)
     gain = 1.0 - 0.3 * ((np.mgrid[0:H, 0:W][1] - W / 2) / W) ** 2
     write_image(cap / "vignetting.exr", np.repeat(gain[:, :, None], 3, axis=2), dtype="float")
-    (cap / "capture.toml").write_text('[brackets]\nbracket = ["b_0.png", "b_1.png", "b_2.png"]\n'
-                                      '[vignetting]\npath = "vignetting.exr"\n[exposure]\ndefault = {iso = 100}\n')
+    (cap / "capture.toml").write_text(
+        '[brackets]\nbracket = ["b_0.png", "b_1.png", "b_2.png"]\n'
+        '[vignetting]\npath = "vignetting.exr"\n[exposure]\ndefault = {iso = 100}\n'
+    )
     settings = make_settings(linearize.Settings)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="no ISO", category=UserWarning)
         whole = {job["key"]: (job, linearize.linearize_job(job)) for job in linearize.build_jobs(cap, tmp_path / "a", settings)}
-        bands = {job["key"]: (job, linearize.linearize_job(job, rows=5)) for job in linearize.build_jobs(cap, tmp_path / "b",
-                                                                                                          settings)}
+        bands = {
+            job["key"]: (job, linearize.linearize_job(job, rows=5)) for job in linearize.build_jobs(cap, tmp_path / "b", settings)
+        }
     assert sorted(whole) == ["bracket", "float", "jpeg", "raw", "tiff", "tiled"]
     for key, (job, entry) in whole.items():
         other_job, other_entry = bands[key]
         assert entry == other_entry, key
         for a, b in ((job["exr"], other_job["exr"]), (job["mask"], other_job["mask"])):
             np.testing.assert_array_equal(read_image(a), read_image(b), err_msg=key)
-    assert 0 < whole["tiff"][1]["valid_fraction"] < 0.8      # the alpha's transparent quarter is not data
+    assert 0 < whole["tiff"][1]["valid_fraction"] < 0.8  # the alpha's transparent quarter is not data
     assert whole["raw"][1]["saturated_fraction"] == 0
     # a plan of the default budget: these 48 x 64 photos are linearized whole (one pass)
     jobs = linearize.build_jobs(cap, tmp_path / "c", settings)

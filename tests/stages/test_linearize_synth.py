@@ -25,8 +25,13 @@ VIEWS, SIZE = 2, (64, 64)
 def linearized(tmp_path_factory):
     root = tmp_path_factory.mktemp("synth_linearize")
     out = {}
-    for name, fmt, more in (("exr", "exr", {}), ("dng", "dng", {}), ("tiff", "tiff", {}), ("jpeg", "jpeg", {}),
-                            ("brackets", "jpeg", {"brackets": 3})):
+    for name, fmt, more in (
+        ("exr", "exr", {}),
+        ("dng", "dng", {}),
+        ("tiff", "tiff", {}),
+        ("jpeg", "jpeg", {}),
+        ("brackets", "jpeg", {"brackets": 3}),
+    ):
         capture = make_test_capture(root / name, views=VIEWS, size=SIZE, fmt=fmt, noise="none", **more)
         with warnings.catch_warnings():
             # EXR: no EXIF at all; DNG: no ISO (LibRaw reads it from EXIF only): documented warnings
@@ -60,12 +65,15 @@ def test_exr_capture_is_the_rendered_radiance(linearized):
         np.testing.assert_array_equal(rgb, value)
 
 
-@pytest.mark.parametrize("name, tol", [
-    ("dng", 0.01),       # issue: DNG within noise (none here), mean relative error < 1 % (AHD at edges)
-    ("tiff", 0.01),      # 16-bit linear TIFF: quantization 1/65535 only
-    ("jpeg", 0.03),      # issue: JPEG via sRGB within 3 %
-    ("brackets", 0.03),  # JPEG brackets merged (sRGB, quantization): same 3 %
-])
+@pytest.mark.parametrize(
+    "name, tol",
+    [
+        ("dng", 0.01),  # issue: DNG within noise (none here), mean relative error < 1 % (AHD at edges)
+        ("tiff", 0.01),  # 16-bit linear TIFF: quantization 1/65535 only
+        ("jpeg", 0.03),  # issue: JPEG via sRGB within 3 %
+        ("brackets", 0.03),  # JPEG brackets merged (sRGB, quantization): same 3 %
+    ],
+)
 def test_formats_match_rendered_radiance(linearized, name, tol):
     capture, work = linearized[name]
     read_manifest(work)

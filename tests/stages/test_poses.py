@@ -136,8 +136,7 @@ def test_too_few_images(tmp_path, capture_dir, capsys):
 
 
 def test_no_board_and_no_poses(tmp_path, capture_dir, capsys):
-    capture = _partial_capture(capture_dir, tmp_path / "noboard", ["0000.jpg", "0001.jpg", "0002.jpg"],
-                               with_toml=False)
+    capture = _partial_capture(capture_dir, tmp_path / "noboard", ["0000.jpg", "0001.jpg", "0002.jpg"], with_toml=False)
     _expect_user_error(capsys, capture, tmp_path / "work", "no poses", "[board]", "no mesh")
 
 
@@ -166,11 +165,14 @@ def test_sfm_registers_under_half(tmp_path, capture_dir, capsys, rng):
     assert "0000.jpg" not in message
 
 
-@pytest.mark.parametrize("content, needle", [
-    ("{not json", "not valid JSON"),
-    ('{"cameras": {}}', "needs 'cameras' and 'images'"),
-    ("missing-image", "no pose for 1 of 3 photos"),
-])
+@pytest.mark.parametrize(
+    "content, needle",
+    [
+        ("{not json", "not valid JSON"),
+        ('{"cameras": {}}', "needs 'cameras' and 'images'"),
+        ("missing-image", "no pose for 1 of 3 photos"),
+    ],
+)
 def test_malformed_capture_poses(tmp_path, capture_dir, capsys, content, needle):
     keys = ["0000.jpg", "0001.jpg", "0002.jpg"]
     capture = _partial_capture(capture_dir, tmp_path / "badposes", keys)
@@ -188,8 +190,7 @@ def test_board_detection_uses_colmap_pixel_convention():
     rng = np.random.default_rng(3)
     quads = scene_quads(rng)
     camera = Camera("PINHOLE", 400, 300, (440.0, 440.0, 200.0, 150.0))
-    spec = BoardSpec(BOARD["dictionary"], BOARD["squares"], BOARD["square_length"], BOARD["marker_length"],
-                     BOARD_TO_OBJECT)
+    spec = BoardSpec(BOARD["dictionary"], BOARD["squares"], BOARD["square_length"], BOARD["marker_length"], BOARD_TO_OBJECT)
     offsets = []
     for center in ([0.0, -0.35, 0.45], [0.3, 0.2, 0.4]):
         R, t = look_at(np.array(center), np.zeros(3))
@@ -228,8 +229,7 @@ def test_calibrated_camera_is_kept_fixed(tmp_path, capture_dir):
     shutil.copytree(capture_dir / "images", capture / "images")
     gt = read_poses(capture_dir / "gt" / "poses.json")
     write_camera_json(capture / "camera.json", gt.cameras["cam0"])
-    (capture / "capture.toml").write_text((capture_dir / "capture.toml").read_text()
-                                          + '\n[camera]\npath = "camera.json"\n')
+    (capture / "capture.toml").write_text((capture_dir / "capture.toml").read_text() + '\n[camera]\npath = "camera.json"\n')
     work = tmp_path / "work"
     stage.run(capture=capture, work=work, settings=make_settings(stage.Settings))
     est = read_poses(work / "poses.json")
@@ -277,9 +277,15 @@ def test_one_pose_per_bracket(tmp_path):
     work = tmp_path / "work"
     assert pose_keys(capture, work) == ["a1.jpg", "b.jpg", "c1.jpg", "c2.jpg"]
     # linearize merged differently (e.g. --bracket-size): its manifest wins
-    write_manifest(work, {"a": {"sources": [{"file": "a1.jpg"}, {"file": "a2.jpg"}]},
-                          "a3": {"sources": [{"file": "a3.jpg"}]}, "b": {"sources": [{"file": "b.jpg"}]},
-                          "c": {"sources": [{"file": "c1.jpg"}, {"file": "c2.jpg"}]}})
+    write_manifest(
+        work,
+        {
+            "a": {"sources": [{"file": "a1.jpg"}, {"file": "a2.jpg"}]},
+            "a3": {"sources": [{"file": "a3.jpg"}]},
+            "b": {"sources": [{"file": "b.jpg"}]},
+            "c": {"sources": [{"file": "c1.jpg"}, {"file": "c2.jpg"}]},
+        },
+    )
     assert pose_keys(capture, work) == ["a1.jpg", "a3.jpg", "b.jpg", "c1.jpg"]
 
 
@@ -298,8 +304,16 @@ def synth_run(request, tmp_path_factory):
     from stages import linearize
 
     fmt = request.param
-    capture = make_test_capture(tmp_path_factory.mktemp(f"synth_{fmt}"), views=12, size=(400, 300), fmt=fmt,
-                                board=True, poses=False, table=True, texture="noise")
+    capture = make_test_capture(
+        tmp_path_factory.mktemp(f"synth_{fmt}"),
+        views=12,
+        size=(400, 300),
+        fmt=fmt,
+        board=True,
+        poses=False,
+        table=True,
+        texture="noise",
+    )
     work = tmp_path_factory.mktemp(f"synth_{fmt}_work")
     if fmt == "dng":
         run_stage("linearize", capture=capture, work=work, settings=make_settings(linearize.Settings))
@@ -361,8 +375,12 @@ def _sample_data_as_jpeg(folder: Path, dng_work: Path) -> Path:
         rgb, valid = read_linear_image(dng_work, key)
         value = rgb / source["scale"]
         value[~valid] = 1.0
-        write_jpeg_srgb(folder / "images" / f"IMG_{Path(source['file']).stem}.JPG", value,
-                        Exposure(source["exposure_time_s"], source["iso"], source["f_number"]), quality=90)
+        write_jpeg_srgb(
+            folder / "images" / f"IMG_{Path(source['file']).stem}.JPG",
+            value,
+            Exposure(source["exposure_time_s"], source["iso"], source["f_number"]),
+            quality=90,
+        )
     return folder
 
 
@@ -393,7 +411,7 @@ def test_board_jpeg_capture_runs_and_poses_match_truth(tmp_path):
     assert summary["method"] == "colmap + board registration + board bundle adjustment"
     gt = read_poses(SAMPLE / "poses.json")
     est = read_poses(work / "poses.json")
-    est = Poses(est.cameras, {f"{key[len('IMG_'):-len('.JPG')]}.dng": p for key, p in est.images.items()})
+    est = Poses(est.cameras, {f"{key[len('IMG_') : -len('.JPG')]}.dng": p for key, p in est.images.items()})
     assert set(est.images) == set(gt.images)
     rot, cen = pose_errors(gt, est)
     assert np.median(rot) < 0.15, rot

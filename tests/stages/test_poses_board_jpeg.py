@@ -32,7 +32,7 @@ def jpeg_capture(folder: Path) -> Path:
     (folder / "images").mkdir(parents=True)
     shutil.copy(SAMPLE / "mesh.ply", folder / "mesh.ply")
     toml = (SAMPLE / "capture.toml").read_text()
-    (folder / "capture.toml").write_text(toml[toml.index("[board]"):])
+    (folder / "capture.toml").write_text(toml[toml.index("[board]") :])
     for i, dng in enumerate(sorted((SAMPLE / "images").glob("*.dng"))):
         with rawpy.imread(str(dng)) as raw:
             rgb = raw.postprocess(use_camera_wb=True, output_bps=8)
@@ -58,11 +58,15 @@ def test_board_jpeg_capture_one_input(tmp_path):
     results = {}
     for name, command in (("alone", ["poses"]), ("run", ["run", "--to", "poses"])):
         work = tmp_path / f"work_{name}"
-        result = subprocess.run([sys.executable, "-m", "pipeline.cli", command[0], str(capture), "-w", str(work),
-                                 *command[1:]], capture_output=True, text=True)
+        result = subprocess.run(
+            [sys.executable, "-m", "pipeline.cli", command[0], str(capture), "-w", str(work), *command[1:]],
+            capture_output=True,
+            text=True,
+        )
         assert result.returncode == 0, result.stderr
         assert json.loads((work / "poses_summary.json").read_text())["method"] == (
-            "colmap + board registration + board bundle adjustment")
+            "colmap + board registration + board bundle adjustment"
+        )
         results[name] = read_poses(work / "poses.json")
     assert (tmp_path / "work_run" / "linear" / "manifest.json").exists()  # the run path did linearize first
     names = {f"IMG_{i:04d}.JPG": dng.name for i, dng in enumerate(sorted((SAMPLE / "images").glob("*.dng")))}

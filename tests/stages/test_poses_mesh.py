@@ -36,9 +36,17 @@ ELSEWHERE = Similarity(0.001, Rotation.from_rotvec([0.4, -1.1, 2.0]).as_matrix()
 def bunny_capture(tmp_path_factory) -> Path:
     from pipeline.synth import make_test_capture
 
-    return make_test_capture(tmp_path_factory.mktemp("bunny_noboard"), mesh=str(BUNNY), views=16, size=(800, 600),
-                             fmt="jpeg", env="sun+sky:elev=40", poses=False, distance=2.2,
-                             texture="patches:freq=24,contrast=0.8")
+    return make_test_capture(
+        tmp_path_factory.mktemp("bunny_noboard"),
+        mesh=str(BUNNY),
+        views=16,
+        size=(800, 600),
+        fmt="jpeg",
+        env="sun+sky:elev=40",
+        poses=False,
+        distance=2.2,
+        texture="patches:freq=24,contrast=0.8",
+    )
 
 
 @pytest.fixture(scope="session")
@@ -103,6 +111,7 @@ def test_mesh_in_another_frame_and_units(bunny_capture, tmp_path, capsys):
 
 # -- COLMAP models ----------------------------------------------------------------------------------
 
+
 def _imported_as_object_frame(capture: Path, work: Path, gt: Poses) -> Poses:
     """Run the stage with --frame object; every true pose must come back to 1e-6."""
     assert cli_main(["poses", str(capture), "-w", str(work), "--frame", "object"]) == 0
@@ -121,9 +130,9 @@ def _write_colmap_model(poses: Poses, folder: Path, text: bool) -> None:
     ids = {}
     for i, (name, cam) in enumerate(poses.cameras.items(), start=1):
         ids[name] = i
-        reconstruction.add_camera_with_trivial_rig(pycolmap.Camera(model=cam.model, width=cam.width,
-                                                                   height=cam.height, params=list(cam.params),
-                                                                   camera_id=i))
+        reconstruction.add_camera_with_trivial_rig(
+            pycolmap.Camera(model=cam.model, width=cam.width, height=cam.height, params=list(cam.params), camera_id=i)
+        )
     for j, (key, p) in enumerate(sorted(poses.images.items()), start=1):
         image = pycolmap.Image(name=key, camera_id=ids[p.camera], image_id=j)
         reconstruction.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(p.R), p.t))
@@ -152,7 +161,7 @@ def test_colmap_model_in_another_frame_is_registered(bunny_capture, bunny_run, t
     model = pycolmap.Reconstruction(str(bunny_run / "colmap" / "sparse"))
     model.transform(pycolmap.Sim3d(ELSEWHERE.scale, pycolmap.Rotation3d(ELSEWHERE.R), ELSEWHERE.t))
     for image in model.images.values():
-        image.name = image.name.split("/", 1)[1][:-len(".png")]  # cam0/0003.jpg.png -> 0003.jpg
+        image.name = image.name.split("/", 1)[1][: -len(".png")]  # cam0/0003.jpg.png -> 0003.jpg
     (capture / "sparse" / "0").mkdir(parents=True)
     model.write(capture / "sparse" / "0")
     work = tmp_path / "work"
@@ -164,6 +173,7 @@ def test_colmap_model_in_another_frame_is_registered(bunny_capture, bunny_run, t
 
 # -- nerfstudio / instant-ngp transforms.json -------------------------------------------------------
 
+
 def _transforms(poses: Poses, *, instant_ngp: bool = False, distortion: dict | None = None) -> dict:
     """poses.json -> nerfstudio transforms.json: camera-to-world with OpenGL axes (y up, z back)."""
     cam = next(iter(poses.cameras.values()))
@@ -171,8 +181,16 @@ def _transforms(poses: Poses, *, instant_ngp: bool = False, distortion: dict | N
     if instant_ngp:
         doc = {"camera_angle_x": 2 * np.arctan(0.5 * cam.width / fx), "w": cam.width, "h": cam.height}
     else:
-        doc = {"camera_model": "OPENCV", "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": cam.width,
-               "h": cam.height, **(distortion or {})}
+        doc = {
+            "camera_model": "OPENCV",
+            "fl_x": fx,
+            "fl_y": fy,
+            "cx": cx,
+            "cy": cy,
+            "w": cam.width,
+            "h": cam.height,
+            **(distortion or {}),
+        }
     frames = []
     for key, p in sorted(poses.images.items()):
         c2w = np.eye(4)
@@ -215,8 +233,7 @@ def test_transforms_json_registered_by_its_point_cloud(bunny_capture, tmp_path, 
     gt = read_poses(bunny_capture / "gt" / "poses.json")
     capture = _copy_capture(bunny_capture, tmp_path / "capture")
     to_file = _inverse(ELSEWHERE)  # object -> the file's frame
-    (capture / "transforms.json").write_text(json.dumps({**_transforms(_moved(gt, to_file)),
-                                                         "ply_file_path": "sparse_pc.ply"}))
+    (capture / "transforms.json").write_text(json.dumps({**_transforms(_moved(gt, to_file)), "ply_file_path": "sparse_pc.ply"}))
     _point_cloud(trimesh.load(capture / "mesh.ply", process=False), to_file, capture / "sparse_pc.ply", rng)
     work = tmp_path / "work"
     assert cli_main(["poses", str(capture), "-w", str(work)]) == 0
@@ -233,9 +250,18 @@ def test_a_photographed_sphere_cannot_fix_the_rotation(tmp_path, capsys):
     from pipeline.synth import make_test_capture
 
     trimesh.creation.icosphere(subdivisions=6).export(tmp_path / "sphere.ply")  # fine enough for the patches
-    capture = make_test_capture(tmp_path / "sphere", mesh=str(tmp_path / "sphere.ply"), mesh_up="z", views=16,
-                                size=(800, 600), fmt="jpeg", env="sun+sky:elev=40", poses=False, distance=2.2,
-                                texture="patches:freq=24,contrast=0.8")
+    capture = make_test_capture(
+        tmp_path / "sphere",
+        mesh=str(tmp_path / "sphere.ply"),
+        mesh_up="z",
+        views=16,
+        size=(800, 600),
+        fmt="jpeg",
+        env="sun+sky:elev=40",
+        poses=False,
+        distance=2.2,
+        texture="patches:freq=24,contrast=0.8",
+    )
     assert cli_main(["poses", str(capture), "-w", str(tmp_path / "work")]) == 2
     message = capsys.readouterr().err.strip().splitlines()[-1]
     assert "does not fix the cameras' rotation" in message and "board" in message
@@ -248,22 +274,24 @@ def test_a_sphere_cannot_fix_the_rotation(tmp_path, rng, capsys):
     capture = make_test_capture(tmp_path / "sphere", views=4, size=(48, 48), poses=False)
     gt = read_poses(capture / "gt" / "poses.json")
     to_file = Similarity(2.0, Rotation.from_rotvec([0.3, 0.2, -0.5]).as_matrix(), np.array([1.0, 0.0, 0.0]))
-    (capture / "transforms.json").write_text(json.dumps({**_transforms(_moved(gt, to_file)),
-                                                         "ply_file_path": "points.ply"}))
+    (capture / "transforms.json").write_text(json.dumps({**_transforms(_moved(gt, to_file)), "ply_file_path": "points.ply"}))
     _point_cloud(trimesh.load(capture / "mesh.ply", process=False), to_file, capture / "points.ply", rng)
     assert cli_main(["poses", str(capture), "-w", str(tmp_path / "work")]) == 2
     message = capsys.readouterr().err.strip().splitlines()[-1]
     assert "does not fix the cameras' rotation" in message and "board" in message
 
 
-@pytest.mark.parametrize("change, needle", [
-    (lambda doc: doc.update(camera_model="OPENCV_FISHEYE"), "OPENCV_FISHEYE"),
-    (lambda doc: doc.update(k3=0.1), "k3"),
-    (lambda doc: doc["frames"][0].update(transform_matrix=[[1, 0], [0, 1]]), "camera-to-world"),
-    (lambda doc: [f.update(file_path=f"frame_{i:05d}.png") for i, f in enumerate(doc["frames"])], "0 of the"),
-    (lambda doc: None, "no 3D points"),
-    (lambda doc: doc.update(ply_file_path="missing.ply"), "it is missing"),
-])
+@pytest.mark.parametrize(
+    "change, needle",
+    [
+        (lambda doc: doc.update(camera_model="OPENCV_FISHEYE"), "OPENCV_FISHEYE"),
+        (lambda doc: doc.update(k3=0.1), "k3"),
+        (lambda doc: doc["frames"][0].update(transform_matrix=[[1, 0], [0, 1]]), "camera-to-world"),
+        (lambda doc: [f.update(file_path=f"frame_{i:05d}.png") for i, f in enumerate(doc["frames"])], "0 of the"),
+        (lambda doc: None, "no 3D points"),
+        (lambda doc: doc.update(ply_file_path="missing.ply"), "it is missing"),
+    ],
+)
 def test_bad_transforms_json(bunny_capture, tmp_path, capsys, change, needle):
     gt = read_poses(bunny_capture / "gt" / "poses.json")
     capture = _copy_capture(bunny_capture, tmp_path / "capture")
@@ -298,14 +326,16 @@ def test_mesh_bundle_adjustment_drops_points_seen_once():
     points = 0.5 * points / np.linalg.norm(points, axis=1, keepdims=True)
     camera = Camera("PINHOLE", 640, 480, (500.0, 500.0, 320.0, 240.0))
     reconstruction = pycolmap.Reconstruction()
-    reconstruction.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=640, height=480,
-                                                               params=list(camera.params), camera_id=1))
+    reconstruction.add_camera_with_trivial_rig(
+        pycolmap.Camera(model="PINHOLE", width=640, height=480, params=list(camera.params), camera_id=1)
+    )
     poses = [look_at(np.array(c), np.zeros(3)) for c in ([2.5, 0, 1], [0, 2.5, 1.2], [-1.8, 1.8, 0.8])]
     for image_id, (R, t) in enumerate(poses, start=1):
         uv, _ = project(camera, R, t, points)
         reconstruction.add_image_with_trivial_frame(
             pycolmap.Image(name=f"{image_id}.jpg", keypoints=uv, camera_id=1, image_id=image_id),
-            pycolmap.Rigid3d(pycolmap.Rotation3d(R), t))
+            pycolmap.Rigid3d(pycolmap.Rotation3d(R), t),
+        )
     for k, xyz in enumerate(points[:-1]):  # every point seen by all three images ...
         track = pycolmap.Track()
         for image_id in (1, 2, 3):
@@ -319,6 +349,6 @@ def test_mesh_bundle_adjustment_drops_points_seen_once():
     assert 0 < held <= len(points) - 1
     assert once_id not in reconstruction.points3D
     assert reconstruction.num_points3D() == len(points) - 1
-    for image_id, (R, t) in enumerate(poses, start=1):
+    for image_id, (R, _t) in enumerate(poses, start=1):
         pose = reconstruction.images[image_id].cam_from_world()
         assert np.degrees(np.linalg.norm(Rotation.from_matrix(pose.rotation.matrix() @ R.T).as_rotvec())) < 0.05

@@ -48,8 +48,7 @@ def test_run_and_poses_register_the_capture_alike(tmp_path):
     run, alone = poses["run"], poses["alone"]
     assert set(run.images) == set(alone.images)
     for key, pose in run.images.items():
-        assert np.allclose(pose.R, alone.images[key].R, atol=1e-9) and np.allclose(pose.t, alone.images[key].t,
-                                                                                  atol=1e-9)
+        assert np.allclose(pose.R, alone.images[key].R, atol=1e-9) and np.allclose(pose.t, alone.images[key].t, atol=1e-9)
     rotation, centre = pose_errors(truth, run)
     errors = dict(zip(run.images, rotation.round(3)))
     assert len(run.images) >= 28, sorted(set(truth.images) - set(run.images))
@@ -70,9 +69,9 @@ def synthetic_reconstruction(mesh, surface, truth, count: int = 1500):
     points = surface.points[np.random.default_rng(0).choice(len(surface.points), count, replace=False)]
     camera = next(iter(truth.cameras.values()))
     reconstruction = pycolmap.Reconstruction()
-    reconstruction.add_camera_with_trivial_rig(pycolmap.Camera(model=camera.model, width=camera.width,
-                                                               height=camera.height, params=list(camera.params),
-                                                               camera_id=1))
+    reconstruction.add_camera_with_trivial_rig(
+        pycolmap.Camera(model=camera.model, width=camera.width, height=camera.height, params=list(camera.params), camera_id=1)
+    )
     tracks: dict[int, list] = {}
     for image_id, (key, pose) in enumerate(sorted(truth.images.items()), start=1):
         uv, depth = project(camera, pose.R, pose.t, points)
@@ -81,11 +80,18 @@ def synthetic_reconstruction(mesh, surface, truth, count: int = 1500):
         hits = first_hits(rays, rays.rays, np.repeat(center[None], count, axis=0), (points - center) / distance[:, None])
         first = np.full(count, np.inf)
         first[hits.ray] = np.linalg.norm(hits.point - center, axis=1)
-        seen = np.flatnonzero((depth > 0) & (uv[:, 0] > 0) & (uv[:, 0] < camera.width) & (uv[:, 1] > 0)
-                              & (uv[:, 1] < camera.height) & (first > distance - 1e-4))
+        seen = np.flatnonzero(
+            (depth > 0)
+            & (uv[:, 0] > 0)
+            & (uv[:, 0] < camera.width)
+            & (uv[:, 1] > 0)
+            & (uv[:, 1] < camera.height)
+            & (first > distance - 1e-4)
+        )
         reconstruction.add_image_with_trivial_frame(
             pycolmap.Image(name=key, keypoints=uv[seen], camera_id=1, image_id=image_id),
-            pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t))
+            pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t),
+        )
         for index, k in enumerate(seen):
             tracks.setdefault(int(k), []).append((image_id, index))
     for k, elements in tracks.items():
@@ -121,8 +127,9 @@ def test_a_camera_registered_the_wrong_way_round_is_dropped(capsys):
     pose = reconstruction.images[turned].cam_from_world()
     half_turn = np.diag([-1.0, -1.0, 1.0])  # 180° about +Z: the camera moves to the other side of the object
     R = pose.rotation.matrix() @ half_turn.T
-    reconstruction.images[turned].frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(R),
-                                                                          np.asarray(pose.translation, float))
+    reconstruction.images[turned].frame.rig_from_world = pycolmap.Rigid3d(
+        pycolmap.Rotation3d(R), np.asarray(pose.translation, float)
+    )
     dropped = drop_hidden_cameras(reconstruction, surface, tolerance, {})
     assert list(dropped) == ["IMG_0004.JPG"] and dropped["IMG_0004.JPG"] < 0.5, dropped
     assert sum(im.has_pose for im in reconstruction.images.values()) == 31
@@ -173,10 +180,12 @@ def test_half_clouds_of_suzanne_register():
     for axis in range(3):
         for sign in (1, -1):
             index = rng.choice(np.flatnonzero(sign * surface.normals[:, axis] > 0.0), 1000)
-            points = np.concatenate([surface.points[index] + rng.normal(0, 0.0004, (1000, 3)),
-                                     middle + rng.uniform(-0.25, 0.25, (250, 3))])
+            points = np.concatenate(
+                [surface.points[index] + rng.normal(0, 0.0004, (1000, 3)), middle + rng.uniform(-0.25, 0.25, (250, 3))]
+            )
             R, s, t = Rotation.random(random_state=rng).as_matrix(), 7.0, rng.normal(size=3)
-            found = register_to_surface(s * points @ R.T + t, surface.points, surface.normals, center=s * R @ middle + t,
-                                        scale=1 / s, seed=0)
+            found = register_to_surface(
+                s * points @ R.T + t, surface.points, surface.normals, center=s * R @ middle + t, scale=1 / s, seed=0
+            )
             results.append((axis, sign, rotation_angle_deg(found.similarity.R, R.T), found.ambiguous_deg))
     assert all(error < 1.0 and ambiguous == 0 for _, _, error, ambiguous in results), results

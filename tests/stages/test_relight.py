@@ -62,7 +62,7 @@ def _sphere_normals(view: relight.View) -> tuple[np.ndarray, np.ndarray]:
 
     o, d = pixel_rays(view.camera, view.R, view.t, pixel_centers(view.camera.width, view.camera.height))
     b = np.einsum("ij,ij->i", o, d)
-    disc = b * b - (np.einsum("ij,ij->i", o, o) - RADIUS ** 2)
+    disc = b * b - (np.einsum("ij,ij->i", o, o) - RADIUS**2)
     s = -b - np.sqrt(np.where(disc > 0, disc, np.nan))
     n = (o + s[:, None] * d) / RADIUS
     return n, -d
@@ -115,7 +115,7 @@ def test_sharp_lobe_via_prefiltered_map_agrees_with_sh_path(tmp_path, rng):
     """The dual representation: the same Phong lobe summed in SH and read from the prefiltered map."""
     h = 64
     env = np.full((h, 2 * h, 3), 0.2, dtype=np.float32)
-    env[10:16, 30:40] = [20.0, 18.0, 15.0]   # an area light
+    env[10:16, 30:40] = [20.0, 18.0, 15.0]  # an area light
     brdf = Brdf("phong", albedo=[0.3, 0.3, 0.3], specular=[0.4, 0.4, 0.4], exponent=40.0)
     capture, work = _scene(tmp_path, brdf, _lighting(rng))
     write_image(tmp_path / "env.exr", env, dtype="float")
@@ -151,13 +151,12 @@ def test_outputs_compare_scale_and_freshness(tmp_path, rng):
     compare = make_settings(relight.Settings, compare=True, out_dir=str(tmp_path / "cmp"))
     run_stage("relight", capture=capture, work=work, settings=compare)
     result = json.loads((tmp_path / "cmp" / "relight.json").read_text())["compare"]
-    assert result["scale_fitted"] and result["scale"] == pytest.approx(3.0, rel=1e-3)   # EXR float32
+    assert result["scale_fitted"] and result["scale"] == pytest.approx(3.0, rel=1e-3)  # EXR float32
     assert result["relative_error"] < 1e-4
     assert (tmp_path / "cmp" / "0002_error.png").exists() and (tmp_path / "cmp" / "0002_photo.png").exists()
     # new lighting (a file that is not the fit's): no free scale, so the 3x shows as a 2/3 error
     write_lighting_sh(tmp_path / "other.json", coeffs)
-    other = make_settings(relight.Settings, compare=True, env=str(tmp_path / "other.json"),
-                          out_dir=str(tmp_path / "cmp2"))
+    other = make_settings(relight.Settings, compare=True, env=str(tmp_path / "other.json"), out_dir=str(tmp_path / "cmp2"))
     run_stage("relight", capture=capture, work=work, settings=other)
     result = json.loads((tmp_path / "cmp2" / "relight.json").read_text())["compare"]
     assert not result["scale_fitted"]
@@ -167,8 +166,7 @@ def test_outputs_compare_scale_and_freshness(tmp_path, rng):
 def test_orbit_views_with_size(tmp_path, rng):
     capture, work = _scene(tmp_path, Brdf("lambert", albedo=[0.5, 0.5, 0.5]), _lighting(rng))
     # view geometry only: the fast method (the angular one shades the same hits)
-    settings = make_settings(relight.Settings, views="orbit:5", size="40x30", out_dir=str(tmp_path / "orbit"),
-                             method="frequency")
+    settings = make_settings(relight.Settings, views="orbit:5", size="40x30", out_dir=str(tmp_path / "orbit"), method="frequency")
     run_stage("relight", capture=capture, work=work, settings=settings)
     for i in range(5):
         rgba = read_image(tmp_path / "orbit" / f"orbit_{i:03d}.exr")
@@ -180,8 +178,9 @@ def test_orbit_views_with_size(tmp_path, rng):
 def test_size_scales_the_capture_cameras(tmp_path, rng):
     capture, work = _scene(tmp_path, Brdf("lambert", albedo=[0.5, 0.5, 0.5]), _lighting(rng))
     native = make_settings(relight.Settings, views="0001.exr", out_dir=str(tmp_path / "a"), method="frequency")
-    double = make_settings(relight.Settings, views="0001.exr", size=f"{2 * SIZE[0]}x{2 * SIZE[1]}",
-                           out_dir=str(tmp_path / "b"), method="frequency")
+    double = make_settings(
+        relight.Settings, views="0001.exr", size=f"{2 * SIZE[0]}x{2 * SIZE[1]}", out_dir=str(tmp_path / "b"), method="frequency"
+    )
     run_stage("relight", capture=capture, work=work, settings=native)
     run_stage("relight", capture=capture, work=work, settings=double, record="relight-b")
     a = read_image(tmp_path / "a" / "0001.exr")[..., 3]
@@ -193,40 +192,51 @@ def test_size_scales_the_capture_cameras(tmp_path, rng):
 def test_images_do_not_depend_on_the_threads(tmp_path, rng):
     """--threads threads shade the chunks of rays; a principled lobe's samples are seeded by the
     points they shade, not by the order the chunks come in, so the images are the same to the bit."""
-    capture, work = _scene(tmp_path, Brdf("principled", base_color=[0.6, 0.3, 0.2], roughness=0.3),
-                           _lighting(rng))
+    capture, work = _scene(tmp_path, Brdf("principled", base_color=[0.6, 0.3, 0.2], roughness=0.3), _lighting(rng))
     for threads in (1, 2):
-        run_stage("relight", capture=capture, work=work, record=f"relight-{threads}",
-                  settings=make_settings(relight.Settings, views="0001.exr", size="160x128", threads=threads,
-                                         out_dir=str(tmp_path / str(threads))))
+        run_stage(
+            "relight",
+            capture=capture,
+            work=work,
+            record=f"relight-{threads}",
+            settings=make_settings(
+                relight.Settings, views="0001.exr", size="160x128", threads=threads, out_dir=str(tmp_path / str(threads))
+            ),
+        )
     one, two = (read_image(tmp_path / str(t) / "0001.exr") for t in (1, 2))
     covered = np.flatnonzero(one[..., 3] > 0)
-    assert covered.min() < 8192 < covered.max()     # the object spans chunks of 8192 rays, shaded apart
+    assert covered.min() < 8192 < covered.max()  # the object spans chunks of 8192 rays, shaded apart
     assert np.array_equal(one, two)
 
 
-@pytest.mark.parametrize("text, expected", [
-    ("capture", relight.ViewChoice("capture")),
-    ("", relight.ViewChoice("capture")),
-    (" heldout ", relight.ViewChoice("heldout")),
-    ("gt/relight/poses.json", relight.ViewChoice("poses", poses_file=Path("gt/relight/poses.json"))),
-    ("orbit:12", relight.ViewChoice("orbit", orbit_count=12)),
-    ("0001.exr, 0003.exr", relight.ViewChoice("keys", keys=("0001.exr", "0003.exr"))),
-])
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("capture", relight.ViewChoice("capture")),
+        ("", relight.ViewChoice("capture")),
+        (" heldout ", relight.ViewChoice("heldout")),
+        ("gt/relight/poses.json", relight.ViewChoice("poses", poses_file=Path("gt/relight/poses.json"))),
+        ("orbit:12", relight.ViewChoice("orbit", orbit_count=12)),
+        ("0001.exr, 0003.exr", relight.ViewChoice("keys", keys=("0001.exr", "0003.exr"))),
+    ],
+)
 def test_views_are_parsed_once_into_a_choice(text, expected):
     assert relight.parse_views(text) == expected
     assert make_settings(relight.Settings, views=text).view_choice == expected
 
 
-@pytest.mark.parametrize("values, message", [
-    ({"size": "12by7"}, "WxH"),
-    ({"views": "orbit:0"}, "between 1 and 1000"),
-    ({"views": "orbit:x"}, "orbit:N"),
-    ({"supersample": 0}, "supersample"),
-    ({"method": "raytrace"}, "method"),
-    ({"cell_height": 2}, "cell-height"),
-    ({"threads": -1}, "threads"),
-])
+@pytest.mark.parametrize(
+    "values, message",
+    [
+        ({"size": "12by7"}, "WxH"),
+        ({"views": "orbit:0"}, "between 1 and 1000"),
+        ({"views": "orbit:x"}, "orbit:N"),
+        ({"supersample": 0}, "supersample"),
+        ({"method": "raytrace"}, "method"),
+        ({"cell_height": 2}, "cell-height"),
+        ({"threads": -1}, "threads"),
+    ],
+)
 def test_bad_settings_are_user_errors(values, message):
     with pytest.raises(UserError, match=message):
         make_settings(relight.Settings, **values)
@@ -239,22 +249,24 @@ def test_missing_inputs_fail_with_one_line_and_keep_outputs(tmp_path, rng):
     with pytest.raises(UserError, match="not in"):
         run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings, views="9999.exr"))
     with pytest.raises(UserError, match="lighting not found"):
-        run_stage("relight", capture=capture, work=work,
-                  settings=make_settings(relight.Settings, env=str(tmp_path / "nope.exr")))
+        run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings, env=str(tmp_path / "nope.exr")))
     (work / "fit" / "brdf.json").unlink()
     with pytest.raises(UserError, match="sigrend fit"):
         run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings), force=True)
     assert (work / "relight" / "0000.exr").stat().st_mtime_ns == before
 
 
-@pytest.mark.parametrize("brdf, tolerance", [
-    # the reference renderer's light set (full-resolution bright pixels + 16-row coarse cells) against
-    # exact SH irradiance: measured 0.07 %
-    ("lambert:albedo=0.6,0.5,0.4", 0.005),
-    # plus the horizon: the reference clips the Phong lobe where it dips below the surface, the R&H
-    # reflection-space model does not; measured 1.1 % for s = 20
-    ("phong:albedo=0.3,0.3,0.3,specular=0.3,exponent=20", 0.02),
-])
+@pytest.mark.parametrize(
+    "brdf, tolerance",
+    [
+        # the reference renderer's light set (full-resolution bright pixels + 16-row coarse cells) against
+        # exact SH irradiance: measured 0.07 %
+        ("lambert:albedo=0.6,0.5,0.4", 0.005),
+        # plus the horizon: the reference clips the Phong lobe where it dips below the surface, the R&H
+        # reflection-space model does not; measured 1.1 % for s = 20
+        ("phong:albedo=0.3,0.3,0.3,specular=0.3,exponent=20", 0.02),
+    ],
+)
 def test_relit_with_the_true_lighting_matches_the_independent_renderer(tiny_capture, tmp_path, brdf, tolerance):
     """The frequency method under the capture's own (ground-truth) lighting and BRDF reproduces the photos
     that the angular-domain reference renderer (pipeline.core.render, no SH code) made.  (Not run for the
@@ -264,8 +276,9 @@ def test_relit_with_the_true_lighting_matches_the_independent_renderer(tiny_capt
     (work / "fit").mkdir(parents=True)
     (work / "fit" / "brdf.json").write_text((capture / "gt" / "brdf.json").read_text())
     for env in ("lighting_sh.json", "lighting.exr"):
-        settings = make_settings(relight.Settings, env=str(capture / "gt" / env), compare=True,
-                                 out_dir=str(tmp_path / env), method="frequency")
+        settings = make_settings(
+            relight.Settings, env=str(capture / "gt" / env), compare=True, out_dir=str(tmp_path / env), method="frequency"
+        )
         run_stage("relight", capture=capture, work=work, settings=settings, record=f"relight-{env}")
         result = json.loads((tmp_path / env / "relight.json").read_text())["compare"]
         assert not result["scale_fitted"] and result["scale"] == 1.0
@@ -273,6 +286,7 @@ def test_relit_with_the_true_lighting_matches_the_independent_renderer(tiny_capt
 
 
 # ------------------------------------------------------------------------------- angular method
+
 
 def _relight_both(tmp_path, capture, work, **common) -> tuple[np.ndarray, np.ndarray]:
     out = {}
@@ -295,7 +309,8 @@ def test_angular_method_agrees_with_the_irradiance_formula_for_lambert(tmp_path,
     capture, work = _scene(tmp_path, Brdf("lambert", albedo=[0.6, 0.5, 0.4]), coeffs)
     if dc < 1:
         from pipeline.core.sh import envmap_from_sh
-        assert envmap_from_sh(coeffs, 64).min() < 0   # the case is what it claims to be
+
+        assert envmap_from_sh(coeffs, 64).min() < 0  # the case is what it claims to be
     freq, ang = _relight_both(tmp_path, capture, work, supersample=1, shadows=False)
     m = (freq[..., 3] == 1) & (ang[..., 3] == 1)
     rel = np.linalg.norm(ang[..., :3][m] - freq[..., :3][m]) / np.linalg.norm(freq[..., :3][m])
@@ -324,7 +339,7 @@ def test_angular_method_keeps_the_energy_of_a_lobe_sharper_than_its_cells(tmp_pa
     rgba = read_image(work / "relight" / "0001.exr")
     view = relight.resolve_views(capture=capture, work=work, settings=settings)[1]
     normals, to_viewer = _sphere_normals(view)
-    facing = np.einsum("ij,ij->i", np.nan_to_num(normals), to_viewer) > 0.5   # away from the rim
+    facing = np.einsum("ij,ij->i", np.nan_to_num(normals), to_viewer) > 0.5  # away from the rim
     m = facing & (rgba[..., 3].ravel() == 1)
     got = rgba[..., :3].reshape(-1, 3)[m]
     # tolerance: float32 EXR and the 64-row SH map (constant here: exact); the lobe (~1.3 deg wide)
@@ -368,8 +383,7 @@ def test_angular_shadows_in_a_well_match_the_view_factor_of_its_opening():
     lit = bounced.shade_hits(faces, bary, up, up, np.full(3, albedo))[0]
     assert np.all(lit > 1.05 * expected) and np.all(lit <= albedo * radiance * 1.01)
     unshadowed = relight.AngularLighting(brdf, mesh, env=env, cell_height=32, shadows=False)
-    np.testing.assert_allclose(unshadowed.shade_hits(faces, bary, up, up, np.full(3, albedo))[0],
-                               albedo * radiance, rtol=3e-3)
+    np.testing.assert_allclose(unshadowed.shade_hits(faces, bary, up, up, np.full(3, albedo))[0], albedo * radiance, rtol=3e-3)
     # (tolerance: the cosine integrated by the midpoint rule over 32-row cells, O(cell^2): measured 1.2e-3)
 
 
@@ -414,27 +428,42 @@ def test_two_materials_each_pixel_is_its_faces_material(tmp_path, rng):
     glaze = Brdf("principled", base_color=[0.6, 0.3, 0.2], roughness=0.5)
     capture, work = _scene(tmp_path, glaze, _lighting(rng))
     mesh = read_mesh(capture / "mesh.ply")
-    label = (np.asarray(mesh.vertices)[:, 2] <= 0).astype(int)        # 0: metal above, 1: glaze below
+    label = (np.asarray(mesh.vertices)[:, 2] <= 0).astype(int)  # 0: metal above, 1: glaze below
     base = np.where(label[:, None] == 0, [0.95, 0.64, 0.54], 0.4 + 0.2 * np.asarray(mesh.vertices) / RADIUS)
-    base = np.round(base * 255) / 255       # as albedo.ply stores it (8 bits), for the one-material renders
-    write_material_ply(work / "fit" / "material.ply", mesh, {
-        "base_r": base[:, 0], "base_g": base[:, 1], "base_b": base[:, 2], "roughness": np.where(label, 0.5, 0.25),
-        "metallic": 1.0 - label, "material_id": label.astype(float)})
+    base = np.round(base * 255) / 255  # as albedo.ply stores it (8 bits), for the one-material renders
+    write_material_ply(
+        work / "fit" / "material.ply",
+        mesh,
+        {
+            "base_r": base[:, 0],
+            "base_g": base[:, 1],
+            "base_b": base[:, 2],
+            "roughness": np.where(label, 0.5, 0.25),
+            "metallic": 1.0 - label,
+            "material_id": label.astype(float),
+        },
+    )
     write_materials_brdf(work / "fit" / "brdf.json", [metal, glaze], "material.ply")
 
     def render(name: str) -> np.ndarray:
-        run_stage("relight", capture=capture, work=work, record=f"relight-{name}",
-                  settings=make_settings(relight.Settings, views="0001.exr", out_dir=str(tmp_path / name)))
+        run_stage(
+            "relight",
+            capture=capture,
+            work=work,
+            record=f"relight-{name}",
+            settings=make_settings(relight.Settings, views="0001.exr", out_dir=str(tmp_path / name)),
+        )
         return read_image(tmp_path / name / "0001.exr").reshape(-1, 4)
 
     both = render("two")
     write_vertex_albedo(work / "fit" / "albedo.ply", mesh, base)
     alone = []
     for k, material in enumerate((metal, glaze)):
-        write_brdf(work / "fit" / "brdf.json", material)       # one material, its base colours from albedo.ply
+        write_brdf(work / "fit" / "brdf.json", material)  # one material, its base colours from albedo.ply
         alone.append(render(str(k)))
-    view = relight.resolve_views(capture=capture, work=work, settings=make_settings(relight.Settings, views="0001.exr"),
-                                 mesh=mesh)[0]
+    view = relight.resolve_views(
+        capture=capture, work=work, settings=make_settings(relight.Settings, views="0001.exr"), mesh=mesh
+    )[0]
     origins, dirs = pixel_rays(view.camera, view.R, view.t, pixel_centers(view.camera.width, view.camera.height))
     hits = first_hits(mesh, ray_mesh(mesh).rays, origins, dirs)
     pixel_material = np.full(len(both), -1)
@@ -445,5 +474,5 @@ def test_two_materials_each_pixel_is_its_faces_material(tmp_path, rng):
         got, same, other = both[rows, :3], alone[k][rows, :3], alone[1 - k][rows, :3]
         assert rows.sum() > 50
         assert abs(got.mean() / same.mean() - 1) < 0.01
-        assert np.sqrt(np.mean((got - same) ** 2)) / np.sqrt(np.mean(same ** 2)) < 0.05
-        assert np.sqrt(np.mean((got - other) ** 2)) / np.sqrt(np.mean(same ** 2)) > 0.08
+        assert np.sqrt(np.mean((got - same) ** 2)) / np.sqrt(np.mean(same**2)) < 0.05
+        assert np.sqrt(np.mean((got - other) ** 2)) / np.sqrt(np.mean(same**2)) > 0.08

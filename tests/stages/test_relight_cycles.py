@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import DATA, relight_references, relight_world
 
 from pipeline.core.brdf import Brdf
 from pipeline.core.image_metrics import block_relative_rmse
@@ -17,15 +18,14 @@ from pipeline.io.images import read_image, write_image
 from pipeline.runner import run_stage
 from pipeline.settings import make_settings
 
-from helpers import DATA, relight_references, relight_world
-
 
 def relight_with_truth(capture: Path, work: Path, env: Path, views: str, brdf: Brdf) -> list[Path]:
     from stages import relight
 
     write_brdf(work / "fit" / "brdf.json", brdf)
-    run_stage("relight", capture=capture, work=work, force=True,
-              settings=make_settings(relight.Settings, env=str(env), views=views))
+    run_stage(
+        "relight", capture=capture, work=work, force=True, settings=make_settings(relight.Settings, env=str(env), views=views)
+    )
     return sorted((work / "relight").glob("*.exr"))
 
 
@@ -40,8 +40,7 @@ def relight_with_truth(capture: Path, work: Path, env: Path, views: str, brdf: B
 # +-4% Monte Carlo noise (three renders with other seeds: -2.4, -4.4, -1.8% of the reference's; the
 # converged block -4.6%) and decides the metric (6.26 / 9.08 / 2.34 against them), while sigrend is
 # within 0.6% of the converged block.
-CASES = {"bunny_sunrise_diffuse": (0.015, 0.015), "teapot_city_glossy": (0.05, 0.05),
-         "sphere_night_glossy": (0.04, 0.04)}
+CASES = {"bunny_sunrise_diffuse": (0.015, 0.015), "teapot_city_glossy": (0.05, 0.05), "sphere_night_glossy": (0.04, 0.04)}
 
 
 @pytest.mark.slow
@@ -56,8 +55,9 @@ def test_relight_matches_cycles_with_true_lighting_and_material(scene, tmp_path)
     assert np.abs(env.reshape(h, 2, w, 2, 3).mean(axis=(1, 3)) - small).max() < 1e-3 * small.max()
     write_image(tmp_path / "env.exr", env, dtype="float")
     truth = material_from_blender(json.loads((folder / "gt" / "brdf.json").read_text()))
-    rendered = relight_with_truth(folder, tmp_path / "work", tmp_path / "env.exr",
-                                  str(folder / "gt" / "relight" / "poses.json"), truth)
+    rendered = relight_with_truth(
+        folder, tmp_path / "work", tmp_path / "env.exr", str(folder / "gt" / "relight" / "poses.json"), truth
+    )
     refs = relight_references(folder, [p.name for p in rendered])
     assert len(rendered) == 4
     err = block_relative_rmse([read_image(p) for p in rendered], refs)
@@ -70,8 +70,13 @@ def test_relight_matches_cycles_diffuse_sphere_capture_views(tmp_path):
     """The capture's own views under its own lighting (background visible: the object's blocks
     are the ones our render covers).  Target 1%; measured 0.32%."""
     folder = DATA / "cycles_sphere_forest_diffuse"
-    rendered = relight_with_truth(folder / "capture", tmp_path / "work", folder / "gt" / "lighting.exr", "capture",
-                                  Brdf("lambert", albedo=[0.55, 0.45, 0.35]))
+    rendered = relight_with_truth(
+        folder / "capture",
+        tmp_path / "work",
+        folder / "gt" / "lighting.exr",
+        "capture",
+        Brdf("lambert", albedo=[0.55, 0.45, 0.35]),
+    )
     preds = [read_image(p) for p in rendered]
     refs = [read_image(folder / "capture" / "images" / p.name) for p in rendered]
     err = block_relative_rmse(preds, refs, masks=[p[..., 3] > 0.999 for p in preds])

@@ -21,7 +21,7 @@ from pipeline.io.images import read_image
 from pipeline.io.lighting import write_lighting_sh
 
 ROOT = Path(__file__).parents[2]
-SAMPLE = ROOT / "sample_data" / "capture"                        # a board in capture.toml, cameras ~0.5 m away
+SAMPLE = ROOT / "sample_data" / "capture"  # a board in capture.toml, cameras ~0.5 m away
 TEAPOT = ROOT / "tests" / "data" / "cycles" / "teapot_city_glossy"
 
 
@@ -69,8 +69,20 @@ def test_a_bad_env_is_one_line_and_keeps_earlier_outputs(tmp_path, capsys):
     """A misspelt procedural map or a missing map file: exit 2, one line saying which, and the earlier
     renders in the output folder untouched."""
     capture, work = fitted(tmp_path, SAMPLE / "mesh.ply")
-    common = ["relight", str(capture), "-w", str(work), "--views", "orbit:1", "--size", "16x16", "--method", "frequency",
-              "-o", str(tmp_path / "out")]
+    common = [
+        "relight",
+        str(capture),
+        "-w",
+        str(work),
+        "--views",
+        "orbit:1",
+        "--size",
+        "16x16",
+        "--method",
+        "frequency",
+        "-o",
+        str(tmp_path / "out"),
+    ]
     assert sigrend([*common, "--env", "overcast"]) == 0
     before = (tmp_path / "out" / "orbit_000.exr").read_bytes()
     capsys.readouterr()
@@ -96,8 +108,25 @@ def test_orbit_views_frame_the_object(tmp_path, shape):
     else:
         shutil.copy(SAMPLE / "mesh.ply", mesh)
     capture, work = fitted(tmp_path, mesh)
-    assert sigrend(["relight", str(capture), "-w", str(work), "--views", "orbit:6", "--size", "64x64",
-                    "--method", "frequency", "-o", str(tmp_path / "out")]) == 0
+    assert (
+        sigrend(
+            [
+                "relight",
+                str(capture),
+                "-w",
+                str(work),
+                "--views",
+                "orbit:6",
+                "--size",
+                "64x64",
+                "--method",
+                "frequency",
+                "-o",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 0
+    )
     spans = []
     for i in range(6):
         alpha = read_image(tmp_path / "out" / f"orbit_{i:03d}.exr")[..., 3]
@@ -117,8 +146,11 @@ def test_board_is_left_out_of_new_views_unless_asked(tmp_path):
     under a new --env (the board was in those photos' scene)."""
     capture, work = fitted(tmp_path, SAMPLE / "mesh.ply")
     fast = ["--size", "16x16", "--bounces", "0", "--cell-height", "8", "--env", "sun+sky:height=16"]
-    runs = {"orbit": ["--views", "orbit:1"], "orbit_board": ["--views", "orbit:1", "--board", "on"],
-            "capture_view": ["--views", "0000.dng"]}
+    runs = {
+        "orbit": ["--views", "orbit:1"],
+        "orbit_board": ["--views", "orbit:1", "--board", "on"],
+        "capture_view": ["--views", "0000.dng"],
+    }
     for name, extra in runs.items():
         assert sigrend(["relight", str(capture), "-w", str(work), *fast, *extra, "-o", str(tmp_path / name)]) == 0
     occludes = {name: relight_json(tmp_path / name)["lighting"]["board_occludes"] for name in runs}

@@ -129,8 +129,7 @@ def test_points_normals_pixels_and_radiance_match_the_sphere(sphere_run):
         uv, _ = project(camera, pose.R, pose.t, point[sel])
         np.testing.assert_allclose(uv, a["pixel"][sel][:, ::-1] + 0.5, atol=1e-3)
         to_camera = camera_center(pose.R, pose.t) - point[sel]
-        np.testing.assert_allclose(a["view_dir"][sel], to_camera / np.linalg.norm(to_camera, axis=1, keepdims=True),
-                                   atol=1e-6)
+        np.testing.assert_allclose(a["view_dir"][sel], to_camera / np.linalg.norm(to_camera, axis=1, keepdims=True), atol=1e-6)
     # radiance was rendered as 0.5 + 0.5 n from the exact sphere along the same ray: it differs from
     # 0.5 + 0.5 n(mesh) by at most half the normal error (1.1 deg -> 0.0096)
     assert np.abs(a["radiance"] - (0.5 + 0.5 * normal)).max() < 0.5 * max_edge_angle() / 4
@@ -213,8 +212,7 @@ def test_reads_linearize_output_when_present(sphere_run, tmp_path):
         linear = 2.0 * read_image(capture / "images" / key)  # another exposure scale than the capture's EXR
         write_image(work / "linear" / f"{stem}.exr", linear)  # half floats, like linearize
         write_image(work / "linear" / "masks" / f"{stem}.png", mask, dtype="uint8")
-        entries[stem] = {"exr": f"{stem}.exr", "mask": f"masks/{stem}.png", "width": 80, "height": 80,
-                         "sources": [{"file": key}]}
+        entries[stem] = {"exr": f"{stem}.exr", "mask": f"masks/{stem}.png", "width": 80, "height": 80, "sources": [{"file": key}]}
     write_manifest(work, entries)
     a, meta, summary = run_samples(capture, work)
     assert summary["count"] == int(np.sum(full["pixel"][:, 0] >= 40)) == len(a["radiance"])
@@ -233,8 +231,12 @@ def test_exif_exposure_is_divided_out_on_the_direct_path(sphere_run, tmp_path):
 
     for key in poses.images:
         path = tmp_path / "capture" / "images" / key
-        write_image(path, read_image(path), dtype="float",
-                    attributes={"ExposureTime": 0.5, "FNumber": 2.0, "Exif:PhotographicSensitivity": 200})
+        write_image(
+            path,
+            read_image(path),
+            dtype="float",
+            attributes={"ExposureTime": 0.5, "FNumber": 2.0, "Exif:PhotographicSensitivity": 200},
+        )
     a, _, summary = run_samples(tmp_path / "capture", tmp_path / "work")
     scale = 2.0**2 / (0.5 * 200 / 100)  # = 4
     assert all(v["exposure_scale"] == scale for v in summary["images"].values())
@@ -295,11 +297,12 @@ def test_occlusion_edge_in_front_of_a_wall(tmp_path):
     dropped as silhouette_edge; bracketed by the in- and circumscribed spheres' pairs."""
     size = 80
     capture, poses = make_capture(tmp_path / "capture", [(0.0, 0.0, 0.5)], size=size)
-    wall = trimesh.Trimesh(vertices=np.array([[-1, -1, -0.3], [1, -1, -0.3], [1, 1, -0.3], [-1, 1, -0.3]], float),
-                           faces=[[0, 1, 2], [0, 2, 3]])  # normal +Z, towards the camera
+    wall = trimesh.Trimesh(
+        vertices=np.array([[-1, -1, -0.3], [1, -1, -0.3], [1, 1, -0.3], [-1, 1, -0.3]], float), faces=[[0, 1, 2], [0, 2, 3]]
+    )  # normal +Z, towards the camera
     sphere = trimesh.load(capture / "mesh.ply", force="mesh")
     trimesh.util.concatenate([sphere, wall]).export(capture / "mesh.ply")
-    with pytest.warns(UserWarning, match=r"mesh.ply: 4 boundary edges"):     # the wall is an open quad
+    with pytest.warns(UserWarning, match=r"mesh.ply: 4 boundary edges"):  # the wall is an open quad
         _, _, summary = run_samples(capture, tmp_path / "work")
     drops = summary["drops"]
     key = next(iter(poses.images))
@@ -379,8 +382,10 @@ def test_vertex_visibility_against_the_view_factor_of_a_wall():
     (Howell's catalogue, C-4): φ1 = 90° − atan(h/a), φ2 = 90°, so visibility = 1 − F = (1 + a/√(a²+h²)) / 2.
     """
     rays = 64
-    floor = trimesh.Trimesh(vertices=np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0], [-1, 0, 0]], float),
-                            faces=[[4, 0, 1], [4, 1, 2], [4, 2, 3]])  # normals +Z; vertices 0, 3, 4 on x = -1
+    floor = trimesh.Trimesh(
+        vertices=np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0], [-1, 0, 0]], float),
+        faces=[[4, 0, 1], [4, 1, 2], [4, 2, 3]],
+    )  # normals +Z; vertices 0, 3, 4 on x = -1
     height = 2.0
     wall = trimesh.creation.box(extents=(0.02, 2000.0, height))  # 2 km wide: "infinitely" wide to 1e-6
     wall.apply_translation((-1.011, 0.0, height / 2))  # its face at x = -1.001, 1 mm from the floor's edge
@@ -440,7 +445,8 @@ def test_bad_input_is_one_line_and_exit_2(good_work, case, capsys):
     from pipeline.cli import main
 
     capture, work = good_work
-    def outputs() -> dict:     # (dot files: the fingerprint cache, not an output)
+
+    def outputs() -> dict:  # (dot files: the fingerprint cache, not an output)
         return {p.name: p.read_bytes() for p in work.iterdir() if p.is_file() and not p.name.startswith(".")}
 
     before = outputs()
@@ -468,9 +474,8 @@ def test_threads_and_streamed_rows_give_the_serial_samples(sphere_run, tmp_path)
 
     for extra in ({}, {"max_samples": 300}):
         serial, meta, summary = run_samples(capture, tmp_path / f"serial{len(extra)}", workers=1, **extra)
-        threads, meta2, summary2 = run_samples(capture, tmp_path / f"threads{len(extra)}", workers=2, chunk_pixels=800,
-                                               **extra)
+        threads, meta2, summary2 = run_samples(capture, tmp_path / f"threads{len(extra)}", workers=2, chunk_pixels=800, **extra)
         for field in serial:
             np.testing.assert_array_equal(threads[field], serial[field], err_msg=field)
         assert without_time(summary2) == without_time(summary)
-        assert not list((tmp_path / f"threads{len(extra)}").glob(".*"))     # no spool left behind
+        assert not list((tmp_path / f"threads{len(extra)}").glob(".*"))  # no spool left behind

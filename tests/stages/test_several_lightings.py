@@ -53,11 +53,9 @@ def merged(folder: Path, parts: dict[str, Path]) -> Path:
 @pytest.fixture(scope="module")
 def captures(tmp_path_factory):
     root = tmp_path_factory.mktemp("lightings")
-    sun = make_test_capture(root / "sun", brdf=MATERIAL, env="sun+sky:elev=40,az=30", views=6, size=(64, 64),
-                            noise="none")
+    sun = make_test_capture(root / "sun", brdf=MATERIAL, env="sun+sky:elev=40,az=30", views=6, size=(64, 64), noise="none")
     area = make_test_capture(root / "area", brdf=MATERIAL, env="area:seed=3", views=6, size=(64, 64), noise="none")
-    other = make_test_capture(root / "other", brdf=MATERIAL, env="area:seed=7", views=3, size=(64, 64),
-                              noise="none")
+    other = make_test_capture(root / "other", brdf=MATERIAL, env="area:seed=7", views=3, size=(64, 64), noise="none")
     with open(other / "capture.toml", "a") as fh:
         fh.write('\n[lighting]\ndefault = "gt/lighting.exr"\n')
     return merged(root / "both", {"sun": sun, "area": area}), other
@@ -100,8 +98,9 @@ def test_one_lighting_for_the_fit_is_worse_than_the_truth(captures, tmp_path):
     proc = sigrend("run", wrong, "-w", tmp_path / "work", "--to", "fit")
     if proc.returncode == 0:
         brdf = json.loads((tmp_path / "work" / "fit" / "brdf.json").read_text())
-        assert (abs(brdf["roughness"] / ROUGHNESS - 1) > 0.1
-                or np.max(np.abs(np.asarray(brdf["base_color"]) / BASE - 1)) > 0.03), brdf
+        assert abs(brdf["roughness"] / ROUGHNESS - 1) > 0.1 or np.max(np.abs(np.asarray(brdf["base_color"]) / BASE - 1)) > 0.03, (
+            brdf
+        )
     else:
         assert_one_line_error(proc, prefix="sigrend: error: capture.toml [lighting]: the photos are", progress=True)
 
@@ -109,15 +108,17 @@ def test_one_lighting_for_the_fit_is_worse_than_the_truth(captures, tmp_path):
 def test_directional_light_entries(tmp_path):
     """{direction, intensity}: a unit direction towards the light and its irradiance at normal
     incidence, drawn into a map whose power is that irradiance, centred on the direction."""
-    (tmp_path / "capture.toml").write_text('[lighting]\n"a.jpg" = {direction = [0, 3, 4], intensity = 2.5}\n'
-                                           '"b.jpg" = {direction = [1, 0, 0], intensity = [1.0, 2.0, 3.0]}\n')
+    (tmp_path / "capture.toml").write_text(
+        '[lighting]\n"a.jpg" = {direction = [0, 3, 4], intensity = 2.5}\n'
+        '"b.jpg" = {direction = [1, 0, 0], intensity = [1.0, 2.0, 3.0]}\n'
+    )
     config = read_capture_config(tmp_path)
     a = config.lighting_for("a.jpg")
     assert a.direction == pytest.approx((0, 0.6, 0.8)) and a.intensity == (2.5, 2.5, 2.5)
     assert config.lighting_for("c.jpg") is None
     with pytest.raises(UserError, match="gives no lighting for c.jpg"):
         config.lights_for(["a.jpg", "c.jpg"])
-    env = known_light_map(config.lighting_for("b"))          # by stem too
+    env = known_light_map(config.lighting_for("b"))  # by stem too
     power = (env * equirect_solid_angles(env.shape[0])[:, None, None]).sum(axis=(0, 1))
     np.testing.assert_allclose(power, [1.0, 2.0, 3.0], rtol=1e-6)
     (tmp_path / "capture.toml").write_text('[lighting]\n"a.jpg" = {direction = [0, 0, 0], intensity = 1}\n')

@@ -32,29 +32,56 @@ HELP = "Benchmarks (timings, not tests): write DIR/bench_<suite>.csv and print a
 
 # suite name -> (one-line help, "module:function")
 SUITES: dict[str, tuple[str, str]] = {
-    "sh": ("spherical harmonics: evaluation throughput at L = 8, 20, 50; env projection 2048x1024 at L = 20",
-           "pipeline.commands.bench:sh_suite"),
-    "linearize": ("linearize throughput (MP/s), DNG and JPEG, serial vs process pool, beside rawpy's bare decode",
-                  "pipeline.commands.bench.linearize:linearize_suite"),
-    "poses": ("poses stage seconds for 24 photos at 1 and 6 MP: extraction, matching, mapping, registration; "
-              "accuracy vs ground truth", "pipeline.commands.bench.poses:poses_suite"),
-    "stability": ("error vs noise: inverse lighting (Lambertian vs glossy), BRDF estimation (sharp vs soft "
-                  "lighting); charts + stability.csv in DIR", "pipeline.commands.bench.pipeline:stability_suite"),
-    "synth": ("reference renderer: seconds per 512x512 bunny view under a 128x64 env, Lambert/microfacet, "
-              "with/without shadows", "pipeline.commands.bench.synth:synth_suite"),
-    "fit": ("fit time vs samples (10^4-10^7) and vs SH order, per mode (known BRDF, known lighting, factorization)",
-            "pipeline.commands.bench.fit:fit_suite"),
-    "render": ("renderer error vs Blender Cycles (tests/data/cycles) vs seconds over lobe samples, interreflection "
-               "rays and bounces; render.png in DIR; seconds per 384x384 view", "pipeline.commands.bench.render:render_suite"),
-    "batch": ("8 copies of sample_data: sequential `sigrend run` vs `sigrend batch` on 2 workers, and the "
-              "per-task cost when every stage is fresh", "pipeline.commands.bench.batch:batch_suite"),
-    "scale": ("the fit's mesh-level transfer (30 000 samples, bounce rays, interreflection): seconds and peak memory "
-              "vs triangles (69 k - 1.1 M), full mesh vs proxy; scale.png (log-log, slopes) in DIR",
-              "pipeline.commands.bench.scale:scale_suite"),
-    "pixels": ("linearize and samples: seconds and peak memory (process tree) vs total pixels (12 x 0.2 MP - "
-               "48 x 12 MP JPEG); pixels.png (log-log, slopes) in DIR", "pipeline.commands.bench.pixels:pixels_suite"),
-    "pipeline": ("speed vs accuracy of samples -> fit -> relight on synthetic scenes (SH order, data, fit mode); "
-                 "bench.csv + bench.png (Pareto front) in DIR", "pipeline.commands.bench.pipeline:pipeline_suite"),
+    "sh": (
+        "spherical harmonics: evaluation throughput at L = 8, 20, 50; env projection 2048x1024 at L = 20",
+        "pipeline.commands.bench:sh_suite",
+    ),
+    "linearize": (
+        "linearize throughput (MP/s), DNG and JPEG, serial vs process pool, beside rawpy's bare decode",
+        "pipeline.commands.bench.linearize:linearize_suite",
+    ),
+    "poses": (
+        "poses stage seconds for 24 photos at 1 and 6 MP: extraction, matching, mapping, registration; accuracy vs ground truth",
+        "pipeline.commands.bench.poses:poses_suite",
+    ),
+    "stability": (
+        "error vs noise: inverse lighting (Lambertian vs glossy), BRDF estimation (sharp vs soft "
+        "lighting); charts + stability.csv in DIR",
+        "pipeline.commands.bench.pipeline:stability_suite",
+    ),
+    "synth": (
+        "reference renderer: seconds per 512x512 bunny view under a 128x64 env, Lambert/microfacet, with/without shadows",
+        "pipeline.commands.bench.synth:synth_suite",
+    ),
+    "fit": (
+        "fit time vs samples (10^4-10^7) and vs SH order, per mode (known BRDF, known lighting, factorization)",
+        "pipeline.commands.bench.fit:fit_suite",
+    ),
+    "render": (
+        "renderer error vs Blender Cycles (tests/data/cycles) vs seconds over lobe samples, interreflection "
+        "rays and bounces; render.png in DIR; seconds per 384x384 view",
+        "pipeline.commands.bench.render:render_suite",
+    ),
+    "batch": (
+        "8 copies of sample_data: sequential `sigrend run` vs `sigrend batch` on 2 workers, and the "
+        "per-task cost when every stage is fresh",
+        "pipeline.commands.bench.batch:batch_suite",
+    ),
+    "scale": (
+        "the fit's mesh-level transfer (30 000 samples, bounce rays, interreflection): seconds and peak memory "
+        "vs triangles (69 k - 1.1 M), full mesh vs proxy; scale.png (log-log, slopes) in DIR",
+        "pipeline.commands.bench.scale:scale_suite",
+    ),
+    "pixels": (
+        "linearize and samples: seconds and peak memory (process tree) vs total pixels (12 x 0.2 MP - "
+        "48 x 12 MP JPEG); pixels.png (log-log, slopes) in DIR",
+        "pipeline.commands.bench.pixels:pixels_suite",
+    ),
+    "pipeline": (
+        "speed vs accuracy of samples -> fit -> relight on synthetic scenes (SH order, data, fit mode); "
+        "bench.csv + bench.png (Pareto front) in DIR",
+        "pipeline.commands.bench.pipeline:pipeline_suite",
+    ),
 }
 
 
@@ -91,17 +118,31 @@ def sh_suite(quick: bool, repeat: int) -> list[BenchRow]:
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
         coeffs = rng.normal(size=(num_coeffs(order), 3))
         seconds = best_time(lambda: sh_evaluate(coeffs, dirs), repeat)
-        rows.append(BenchRow("sh_evaluate RGB", order, f"{n} dirs", n / seconds, "directions/s",
-                             "sum_k c_k Y_k(d), 3 channels, chunked basis"))
+        rows.append(
+            BenchRow(
+                "sh_evaluate RGB", order, f"{n} dirs", n / seconds, "directions/s", "sum_k c_k Y_k(d), 3 channels, chunked basis"
+            )
+        )
         block = dirs[: min(n, max(1000, (1 << 22) // num_coeffs(order)))]
         seconds = best_time(lambda: sh_basis(block, order), repeat)
-        rows.append(BenchRow("sh_basis", order, f"{len(block)} dirs", len(block) / seconds, "directions/s",
-                             f"all {num_coeffs(order)} functions per direction"))
+        rows.append(
+            BenchRow(
+                "sh_basis",
+                order,
+                f"{len(block)} dirs",
+                len(block) / seconds,
+                "directions/s",
+                f"all {num_coeffs(order)} functions per direction",
+            )
+        )
     height = 128 if quick else 1024
     env = rng.random((height, 2 * height, 3), dtype=np.float32)
     seconds = best_time(lambda: project_envmap(env, 20), repeat)
-    rows.append(BenchRow("project_envmap", 20, f"{2 * height}x{height} RGB", seconds, "s",
-                         "exact pixel solid angles, separable, 64-row chunks"))
+    rows.append(
+        BenchRow(
+            "project_envmap", 20, f"{2 * height}x{height} RGB", seconds, "s", "exact pixel solid angles, separable, 64-row chunks"
+        )
+    )
     coeffs = rng.normal(size=(num_coeffs(20), 3))
     seconds = best_time(lambda: envmap_from_sh(coeffs, height), repeat)
     rows.append(BenchRow("envmap_from_sh", 20, f"{2 * height}x{height} RGB", seconds, "s", "synthesis"))
@@ -114,8 +155,12 @@ def sh_suite(quick: bool, repeat: int) -> list[BenchRow]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("suite", choices=sorted(SUITES), metavar="SUITE",
-                        help="; ".join(f"{name}: {info[0]}" for name, info in sorted(SUITES.items())))
+    parser.add_argument(
+        "suite",
+        choices=sorted(SUITES),
+        metavar="SUITE",
+        help="; ".join(f"{name}: {info[0]}" for name, info in sorted(SUITES.items())),
+    )
     parser.add_argument("-o", "--output", type=Path, default=Path("bench"), help="folder for bench_<suite>.csv")
     parser.add_argument("--repeat", type=int, default=3, help="timed runs per case (the best is kept)")
     parser.add_argument("--quick", action="store_true", help="small sizes: a smoke test, numbers not comparable")

@@ -41,8 +41,11 @@ def batch_suite(quick: bool, repeat: int) -> list[BenchRow]:
         seq_fresh = sum(_seconds(cmd) for cmd in sequential)
         batch_fresh = _seconds(batch)
     size = f"{copies} x sample_data"
-    return [BenchRow("sequential sigrend run", 0, size, seq_s, "s"),
-            BenchRow("sigrend batch, 2 workers", 0, size, batch_s, "s", f"speed-up {seq_s / batch_s:.2f}x"),
-            BenchRow("sequential, every stage fresh", 0, size, seq_fresh / copies, "s/capture"),
-            BenchRow("batch, every stage fresh", 0, size, batch_fresh / copies, "s/capture",
-                     "cluster start-up and scheduling included")]
+    return [
+        BenchRow("sequential sigrend run", 0, size, seq_s, "s"),
+        BenchRow("sigrend batch, 2 workers", 0, size, batch_s, "s", f"speed-up {seq_s / batch_s:.2f}x"),
+        BenchRow("sequential, every stage fresh", 0, size, seq_fresh / copies, "s/capture"),
+        BenchRow(
+            "batch, every stage fresh", 0, size, batch_fresh / copies, "s/capture", "cluster start-up and scheduling included"
+        ),
+    ]

@@ -33,8 +33,13 @@ def _chunk(rng: np.random.Generator, n: int, truth: np.ndarray, brdf: Brdf) -> d
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     view = normal + 0.5 * rng.normal(size=(n, 3))
     view /= np.linalg.norm(view, axis=1, keepdims=True)
-    return {"normal": normal, "view_dir": view, "radiance": render_samples(truth, brdf, normal, view),
-            "image_id": np.sort(rng.integers(0, 32, n)), "weight": np.ones(n)}   # grouped by image, as in a file
+    return {
+        "normal": normal,
+        "view_dir": view,
+        "radiance": render_samples(truth, brdf, normal, view),
+        "image_id": np.sort(rng.integers(0, 32, n)),
+        "weight": np.ones(n),
+    }  # grouped by image, as in a file
 
 
 def _chunks(n: int, truth: np.ndarray):
@@ -57,13 +62,18 @@ def _lighting_fit(chunks, order: int, brdf: Brdf) -> None:
 
 def _timed_fit(n: int, order: int, brdf: Brdf, truth: np.ndarray, repeat: int) -> tuple[float, float, str]:
     """(wall s, cpu s, note): samples pre-generated up to 10^6, streamed (generation included) beyond."""
-    if n <= 10 ** 6:
+    if n <= 10**6:
         chunks = list(_chunks(n, truth))
-        return (best_time(lambda: _lighting_fit(chunks, order, brdf), repeat),
-                _cpu_seconds(lambda: _lighting_fit(chunks, order, brdf)), "samples in memory")
-    return (best_time(lambda: _lighting_fit(_chunks(n, truth), order, brdf), 1),
-            _cpu_seconds(lambda: _lighting_fit(_chunks(n, truth), order, brdf)),
-            "streamed chunks, time includes generating them")
+        return (
+            best_time(lambda: _lighting_fit(chunks, order, brdf), repeat),
+            _cpu_seconds(lambda: _lighting_fit(chunks, order, brdf)),
+            "samples in memory",
+        )
+    return (
+        best_time(lambda: _lighting_fit(_chunks(n, truth), order, brdf), 1),
+        _cpu_seconds(lambda: _lighting_fit(_chunks(n, truth), order, brdf)),
+        "streamed chunks, time includes generating them",
+    )
 
 
 def _cpu_seconds(func) -> float:
@@ -77,28 +87,40 @@ def fit_suite(quick: bool, repeat: int) -> list[BenchRow]:
     truth8 = rng.normal(size=(81, 3)) * 0.1
     truth8[0] = 3.0
     rows = []
-    sizes = (10 ** 4, 10 ** 5) if quick else (10 ** 4, 10 ** 5, 10 ** 6, 10 ** 7)
+    sizes = (10**4, 10**5) if quick else (10**4, 10**5, 10**6, 10**7)
     for n in sizes:
         for name, brdf in (("lighting lambert", LAMBERT), ("lighting microfacet", GLOSSY)):
-            if brdf is GLOSSY and n >= 10 ** 7:
+            if brdf is GLOSSY and n >= 10**7:
                 continue
             wall, cpu, note = _timed_fit(n, 8, brdf, truth8, repeat)
             rows.append(BenchRow(name, 8, f"{n} samples", wall, "s", f"normal equations + solve; {note}"))
-            rows.append(BenchRow(name + " (cpu)", 8, f"{n} samples", cpu, "cpu s",
-                                 "process CPU time = wall time on idle cores when BLAS runs one thread"))
-    n = 10 ** 4 if quick else 10 ** 5
+            rows.append(
+                BenchRow(
+                    name + " (cpu)",
+                    8,
+                    f"{n} samples",
+                    cpu,
+                    "cpu s",
+                    "process CPU time = wall time on idle cores when BLAS runs one thread",
+                )
+            )
+    n = 10**4 if quick else 10**5
     for order in (2, 4, 8, 12, 16):
         truth = np.zeros(((order + 1) ** 2, 3))
         truth[0] = 3.0
         wall, _, note = _timed_fit(n, order, LAMBERT, truth, repeat)
         rows.append(BenchRow("lighting lambert", order, f"{n} samples", wall, "s", f"vs order; {note}"))
     opts = ConvexOptions(iterations=3)
-    for n in ((2000,) if quick else (10 ** 4, 10 ** 5)):
+    for n in (2000,) if quick else (10**4, 10**5):
         data = _chunk(np.random.default_rng(2), n, truth8, GLOSSY)
         seconds = best_time(lambda: fit_brdf_models(brdf_data(data, truth8, 4), ["microfacet"], opts, 8), 1)
-        rows.append(BenchRow("brdf microfacet", 8, f"{n} samples", seconds, "s",
-                             "variable projection, 4-fold validation + full fit"))
+        rows.append(
+            BenchRow("brdf microfacet", 8, f"{n} samples", seconds, "s", "variable projection, 4-fold validation + full fit")
+        )
         seconds = best_time(lambda: factorize(data, "microfacet", 8, np.full(3, 0.5), opts), 1)
-        rows.append(BenchRow("factorization microfacet", 8, f"{n} samples", seconds, "s",
-                             "joint linear start (9 widths) + 3 alternations"))
+        rows.append(
+            BenchRow(
+                "factorization microfacet", 8, f"{n} samples", seconds, "s", "joint linear start (9 widths) + 3 alternations"
+            )
+        )
     return rows

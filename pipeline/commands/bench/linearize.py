@@ -37,20 +37,37 @@ def linearize_suite(quick: bool, repeat: int) -> list[BenchRow]:
         for i in range(n):
             scene = _scene(h, w, i)
             write_dng(tmp / "dng" / "images" / f"{i:03d}.dng", scene, Exposure(time=0.01, iso=100.0, fnumber=4.0))
-            write_image(tmp / "jpeg" / "images" / f"{i:03d}.jpg", srgb_encode(scene), dtype="uint8",
-                        attributes={"ExposureTime": 0.01, "FNumber": 4.0, "Exif:PhotographicSensitivity": 100,
-                                    "Compression": "jpeg:95"})
+            write_image(
+                tmp / "jpeg" / "images" / f"{i:03d}.jpg",
+                srgb_encode(scene),
+                dtype="uint8",
+                attributes={"ExposureTime": 0.01, "FNumber": 4.0, "Exif:PhotographicSensitivity": 100, "Compression": "jpeg:95"},
+            )
         dngs = sorted((tmp / "dng" / "images").iterdir())
 
         def bare_decode():
             for path in dngs:
                 with rawpy.imread(str(path)) as raw:
-                    raw.postprocess(gamma=(1, 1), no_auto_bright=True, output_bps=16, user_wb=[1, 1, 1, 1],
-                                    adjust_maximum_thr=0.0, highlight_mode=rawpy.HighlightMode.Clip)
+                    raw.postprocess(
+                        gamma=(1, 1),
+                        no_auto_bright=True,
+                        output_bps=16,
+                        user_wb=[1, 1, 1, 1],
+                        adjust_maximum_thr=0.0,
+                        highlight_mode=rawpy.HighlightMode.Clip,
+                    )
 
         seconds = best_time(bare_decode, repeat)
-        rows.append(BenchRow("rawpy bare decode", 0, f"{n}x{w}x{h} DNG", megapixels / seconds, "MP/s",
-                             "imread + postprocess(linear, 16 bit), serial"))
+        rows.append(
+            BenchRow(
+                "rawpy bare decode",
+                0,
+                f"{n}x{w}x{h} DNG",
+                megapixels / seconds,
+                "MP/s",
+                "imread + postprocess(linear, 16 bit), serial",
+            )
+        )
         counter = iter(range(10**6))
         for kind in ("dng", "jpeg"):
             for workers, label in ((1, "serial"), (0, f"pool{os.cpu_count()}")):
@@ -62,6 +79,14 @@ def linearize_suite(quick: bool, repeat: int) -> list[BenchRow]:
                         linearize.run(capture=tmp / kind, work=tmp / f"work{next(counter)}", settings=settings)
 
                 seconds = best_time(run_once, repeat)
-                rows.append(BenchRow(f"linearize {kind} {label}", 0, f"{n}x{w}x{h}", megapixels / seconds, "MP/s",
-                                     "decode, mask, EXR float32 + mask PNG, manifest"))
+                rows.append(
+                    BenchRow(
+                        f"linearize {kind} {label}",
+                        0,
+                        f"{n}x{w}x{h}",
+                        megapixels / seconds,
+                        "MP/s",
+                        "decode, mask, EXR float32 + mask PNG, manifest",
+                    )
+                )
     return rows

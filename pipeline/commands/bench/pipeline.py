@@ -8,7 +8,8 @@ a sphere seen from many directions are generated with the frequency-space forwar
     Lambertian and a glossy sphere (R&H: from a Lambertian object only l <= 2 is recoverable,
     odd l > 1 not at all; a sharp lobe carries high bands);
   * BRDF estimation (the fit's variable projection, pipeline.core.solve.fit_brdf): relative error
-    of the recovered lobe width and specular weight vs noise, under sharp lighting (small area lights) and soft lighting (a smooth order-2 sky) (R&H: the
+    of the recovered lobe width and specular weight vs noise, under sharp lighting (small area lights) and
+    soft lighting (a smooth order-2 sky) (R&H: the
     lobe width is recoverable only when the lighting has the frequencies the lobe passes).
 Writes stability_lighting.png, stability_brdf.png and stability.csv.
 
@@ -57,10 +58,11 @@ def _plt():
 def sphere_light_field(n_normals: int, n_views: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """(normal, view_dir) pairs of a sphere photographed from ``n_views`` directions spread over the
     sphere: every normal facing a camera (n.v > 0.2) gives one sample per camera.  (N, 3) each."""
+
     def fibonacci(n):
         i = np.arange(n) + 0.5
         z = 1 - 2 * i / n
-        phi = np.pi * (1 + 5 ** 0.5) * i
+        phi = np.pi * (1 + 5**0.5) * i
         s = np.sqrt(1 - z * z)
         return np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=1)
 
@@ -96,8 +98,10 @@ def _solve_lighting(normal, view, radiance, brdf, order) -> np.ndarray:
 def stability_lighting(rng: np.random.Generator, order: int = 8, trials: int = 3) -> list[dict]:
     """Inverse lighting error per band vs noise, Lambertian vs glossy (rows for the CSV)."""
     normal, view = sphere_light_field(1500, 24, rng)
-    scenes = {"lambertian": Brdf("lambert", albedo=(0.8, 0.8, 0.8)),
-              "glossy (phong s=200)": Brdf("phong", albedo=(0.3, 0.3, 0.3), specular=(0.6, 0.6, 0.6), exponent=200.0)}
+    scenes = {
+        "lambertian": Brdf("lambert", albedo=(0.8, 0.8, 0.8)),
+        "glossy (phong s=200)": Brdf("phong", albedo=(0.3, 0.3, 0.3), specular=(0.6, 0.6, 0.6), exponent=200.0),
+    }
     rows = []
     for scene, brdf in scenes.items():
         for noise in NOISE_LEVELS:
@@ -109,8 +113,15 @@ def stability_lighting(rng: np.random.Generator, order: int = 8, trials: int = 3
                 errs.append(band_relative_errors(_solve_lighting(normal, view, noisy, brdf, order), truth))
             med = np.median(errs, axis=0)
             for l, e in enumerate(med):
-                rows.append({"problem": "inverse lighting", "scene": scene, "noise": noise, "quantity": f"band {l}",
-                             "relative_error": float(e)})
+                rows.append(
+                    {
+                        "problem": "inverse lighting",
+                        "scene": scene,
+                        "noise": noise,
+                        "quantity": f"band {l}",
+                        "relative_error": float(e),
+                    }
+                )
     return rows
 
 
@@ -118,16 +129,19 @@ def samples_brdf_data(normal, view, radiance, coeffs):
     """pipeline.core.solve.BrdfData of samples under known SH lighting ``coeffs`` (one fold), built
     by the fit's own helper."""
     n = len(normal)
-    return brdf_data({"normal": normal, "view_dir": view, "radiance": radiance, "weight": np.ones(n),
-                      "image_id": np.zeros(n, int)}, coeffs, 1)
+    return brdf_data(
+        {"normal": normal, "view_dir": view, "radiance": radiance, "weight": np.ones(n), "image_id": np.zeros(n, int)}, coeffs, 1
+    )
 
 
 def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
     """BRDF estimation error (lobe width, specular weight) vs noise under sharp and soft lighting."""
     normal, view = sphere_light_field(600, 16, rng)
     order = 24
-    lightings = {"sharp (area lights)": project_envmap(make_envmap("area", 64), order),
-                 "soft (smooth sky)": project_envmap(make_envmap("smooth", 64), 2)}
+    lightings = {
+        "sharp (area lights)": project_envmap(make_envmap("area", 64), order),
+        "soft (smooth sky)": project_envmap(make_envmap("smooth", 64), 2),
+    }
     exponent, specular = 200.0, 0.5
     truth = Brdf("phong", albedo=(0.4, 0.4, 0.4), specular=specular, exponent=exponent)
     rows = []
@@ -139,6 +153,7 @@ def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
         def filter_fn(model, width, cos_view=None, l_max=l_max, data=data):
             """Per-sample A_l (N, L+1) of the forward model, as the fit's solver asks for them."""
             return forward.sample_lobe_filters(model, width, l_max, data.cos_view if cos_view is None else cos_view)
+
         for noise in NOISE_LEVELS:
             w_err, s_err = [], []
             for _ in range(trials):
@@ -146,10 +161,24 @@ def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
                 fit = fit_brdf(data, "phong", filter_fn, noise_floor=1e-6).brdf
                 w_err.append(abs(fit.exponent / exponent - 1.0))
                 s_err.append(float(np.abs(np.asarray(fit.specular) - specular).mean() / specular))
-            rows.append({"problem": "BRDF estimation", "scene": name, "noise": noise,
-                         "quantity": "lobe width (Phong exponent)", "relative_error": float(np.median(w_err))})
-            rows.append({"problem": "BRDF estimation", "scene": name, "noise": noise,
-                         "quantity": "specular weight", "relative_error": float(np.median(s_err))})
+            rows.append(
+                {
+                    "problem": "BRDF estimation",
+                    "scene": name,
+                    "noise": noise,
+                    "quantity": "lobe width (Phong exponent)",
+                    "relative_error": float(np.median(w_err)),
+                }
+            )
+            rows.append(
+                {
+                    "problem": "BRDF estimation",
+                    "scene": name,
+                    "noise": noise,
+                    "quantity": "specular weight",
+                    "relative_error": float(np.median(s_err)),
+                }
+            )
     return rows
 
 
@@ -170,8 +199,14 @@ def plot_stability(rows: list[dict], out_dir: Path) -> list[Path]:
         for q in dict.fromkeys(r["quantity"] for r in sub):
             pts = [r for r in sub if r["quantity"] == q]
             noise = _noise_axis(np.array([r["noise"] for r in pts]))
-            ax.loglog(noise, np.maximum([r["relative_error"] for r in pts], 1e-6), marker="o", ms=3,
-                      label=q, color=plt.cm.viridis(int(q.split()[-1]) / 9))
+            ax.loglog(
+                noise,
+                np.maximum([r["relative_error"] for r in pts], 1e-6),
+                marker="o",
+                ms=3,
+                label=q,
+                color=plt.cm.viridis(int(q.split()[-1]) / 9),
+            )
         ax.axhline(1.0, color="k", lw=0.6, ls="--")
         ax.set_title(f"inverse lighting, {scene}")
         ax.set_xlabel("noise (fraction of mean radiance; leftmost = noiseless)")
@@ -213,6 +248,7 @@ def _write_csv(path: Path, rows: list[dict]) -> Path:
 
 # --------------------------------------------------------------------------------------- suites
 
+
 def stability_suite(quick: bool, repeat: int, output: Path = Path("bench")) -> list:
     """`sigrend bench stability`: the charts and CSV in ``output``; rows = error at each noise level.
 
@@ -226,9 +262,12 @@ def stability_suite(quick: bool, repeat: int, output: Path = Path("bench")) -> l
     _write_csv(out_dir / "stability.csv", rows)
     charts = plot_stability(rows, out_dir)
     keep = [r for r in rows if r["noise"] in (0.0, 0.01, 0.1)]
-    return [BenchRow(f"{r['scene']}: {r['quantity']}", 0, f"noise {r['noise']:g}", r["relative_error"],
-                     "relative error", r["problem"]) for r in keep] + \
-        [BenchRow("charts", 0, "", len(charts), "files", ", ".join(str(p) for p in charts))]
+    return [
+        BenchRow(
+            f"{r['scene']}: {r['quantity']}", 0, f"noise {r['noise']:g}", r["relative_error"], "relative error", r["problem"]
+        )
+        for r in keep
+    ] + [BenchRow("charts", 0, "", len(charts), "files", ", ".join(str(p) for p in charts))]
 
 
 # --------------------------------------------------------------------------------------- pipeline suite
@@ -237,15 +276,15 @@ SCENES = {
     "diffuse": "lambert:albedo=0.6,0.5,0.4",
     "glossy": "principled:base_color=0.5,0.35,0.2,roughness=0.3",
 }
-REPORT_BANDS = 4   # lighting error columns band0 .. band4
+REPORT_BANDS = 4  # lighting error columns band0 .. band4
 
 
 def _lighting_band_errors(fitted: np.ndarray, truth: np.ndarray, scale_free: bool) -> tuple[np.ndarray, float]:
     """Relative error per band (l <= REPORT_BANDS) of fitted vs true SH lighting; bands the fit does not
     have count as error 1.  ``scale_free``: first fit the one global scale (factorization)."""
-    ref = truth[:num_coeffs(REPORT_BANDS)]
-    est = fitted[:len(ref)]                 # band_relative_errors counts the rows it lacks as zero
-    scale = float((est * ref[:len(est)]).sum() / (est * est).sum()) if scale_free and (est ** 2).sum() > 0 else 1.0
+    ref = truth[: num_coeffs(REPORT_BANDS)]
+    est = fitted[: len(ref)]  # band_relative_errors counts the rows it lacks as zero
+    scale = float((est * ref[: len(est)]).sum() / (est * est).sum()) if scale_free and (est**2).sum() > 0 else 1.0
     return band_relative_errors(scale * est, ref), scale
 
 
@@ -267,15 +306,19 @@ def pipeline_configs(quick: bool) -> list[dict]:
     for scene in SCENES:
         for mode in ("known BRDF", "factorization"):
             for order in orders:
-                configs.append({"scene": scene, "mode": mode, "order": order, "train_views": 9, "stride": 1,
-                                "fit_samples": 30000})
+                configs.append(
+                    {"scene": scene, "mode": mode, "order": order, "train_views": 9, "stride": 1, "fit_samples": 30000}
+                )
             if not quick:
-                configs.append({"scene": scene, "mode": mode, "order": "auto", "train_views": 9, "stride": 1,
-                                "fit_samples": 10000})
-                configs.append({"scene": scene, "mode": mode, "order": "auto", "train_views": 9, "stride": 3,
-                                "fit_samples": 30000})
-                configs.append({"scene": scene, "mode": mode, "order": "auto", "train_views": 4, "stride": 1,
-                                "fit_samples": 30000})
+                configs.append(
+                    {"scene": scene, "mode": mode, "order": "auto", "train_views": 9, "stride": 1, "fit_samples": 10000}
+                )
+                configs.append(
+                    {"scene": scene, "mode": mode, "order": "auto", "train_views": 9, "stride": 3, "fit_samples": 30000}
+                )
+                configs.append(
+                    {"scene": scene, "mode": mode, "order": "auto", "train_views": 4, "stride": 1, "fit_samples": 30000}
+                )
     return configs
 
 
@@ -287,8 +330,10 @@ def run_pipeline_bench(out_dir: Path, quick: bool = False) -> tuple[list[dict], 
     rows, sample_runs = [], {}
     for config in pipeline_configs(quick):
         capture, validation, sample_work, samples_s = _bench_samples(scratch, config, quick, sample_runs)
-        name = (f"{config['scene']}_{config['mode'].replace(' ', '-')}_L{config['order']}_v{config['train_views']}"
-                f"_s{config['stride']}_n{config['fit_samples']}")
+        name = (
+            f"{config['scene']}_{config['mode'].replace(' ', '-')}_L{config['order']}_v{config['train_views']}"
+            f"_s{config['stride']}_n{config['fit_samples']}"
+        )
         row = _bench_fit_relight(config, capture, scratch / config["scene"] / name, sample_work, validation, samples_s)
         rows.append(row)
         print(f"{name}: time {row['time_s']:.2f} s, relight error {100 * row['relight_error']:.2f}%")
@@ -308,24 +353,25 @@ def _bench_samples(scratch: Path, config: dict, quick: bool, runs: dict) -> tupl
     views, size = 12, (64, 64) if quick else (96, 96)
     capture = scratch / scene / "capture"
     if not capture.exists():
-        make_test_capture(capture, brdf=SCENES[scene], env="area", views=views, size=size, fmt="exr",
-                          mesh="sphere", noise="none")
+        make_test_capture(capture, brdf=SCENES[scene], env="area", views=views, size=size, fmt="exr", mesh="sphere", noise="none")
     keys = sorted(f"{i:04d}.exr" for i in range(views))
     validation = keys[3::4]
     training = [k for k in keys if k not in validation]
-    train = training[::max(1, len(training) // config["train_views"])][:config["train_views"]]
+    train = training[:: max(1, len(training) // config["train_views"])][: config["train_views"]]
     key = (scene, config["train_views"], config["stride"])
     if key not in runs:
         work = scratch / scene / f"samples_v{config['train_views']}_s{config['stride']}"
         holdout = tuple(sorted(set(keys) - set(train)))
-        result = run_stage("samples", capture=capture, work=work,
-                           settings=stage_settings("samples", holdout=holdout, stride=config["stride"]))
+        result = run_stage(
+            "samples", capture=capture, work=work, settings=stage_settings("samples", holdout=holdout, stride=config["stride"])
+        )
         runs[key] = (work, result.seconds)
     return (capture, validation) + runs[key]
 
 
-def _bench_fit_relight(config: dict, capture: Path, work: Path, sample_work: Path, validation: list[str],
-                       samples_s: float) -> dict:
+def _bench_fit_relight(
+    config: dict, capture: Path, work: Path, sample_work: Path, validation: list[str], samples_s: float
+) -> dict:
     """The fit of one configuration on the shared samples (hard-linked into ``work``) and its relight
     of the validation views -> bench.csv's row: times, relight error, lighting scale and band errors,
     the fitted order, model and roughness."""
@@ -333,22 +379,39 @@ def _bench_fit_relight(config: dict, capture: Path, work: Path, sample_work: Pat
     if not (work / "samples.npz").exists():
         os.link(sample_work / "samples.npz", work / "samples.npz")
     brdf = str(capture / "gt" / "brdf.json") if config["mode"] == "known BRDF" else "auto"
-    fit = run_stage("fit", capture=capture, work=work,
-                    settings=stage_settings("fit", brdf=brdf, order=config["order"], lighting="unknown",
-                                            physical_samples=config["fit_samples"]))
-    relit = run_stage("relight", capture=capture, work=work,
-                      settings=stage_settings("relight", views=",".join(validation), compare=True, supersample=1))
+    fit = run_stage(
+        "fit",
+        capture=capture,
+        work=work,
+        settings=stage_settings(
+            "fit", brdf=brdf, order=config["order"], lighting="unknown", physical_samples=config["fit_samples"]
+        ),
+    )
+    relit = run_stage(
+        "relight",
+        capture=capture,
+        work=work,
+        settings=stage_settings("relight", views=",".join(validation), compare=True, supersample=1),
+    )
     check = json.loads((work / "relight" / "relight.json").read_text())["compare"]
     fitted = read_lighting_sh(work / "fit" / "lighting_sh.json")
     brdf_fit = json.loads((work / "fit" / "brdf.json").read_text())
-    band_err, scale = _lighting_band_errors(fitted, read_lighting_sh(capture / "gt" / "lighting_sh.json"),
-                                            config["mode"] != "known BRDF")
-    return {**config, "samples_s": round(samples_s, 3), "fit_s": round(fit.seconds, 3),
-            "time_s": round(samples_s + fit.seconds, 3), "relight_s": round(relit.seconds, 3),
-            "relight_error": check["relative_error"], "lighting_scale": scale,
-            "fitted_order": order_of(fitted.shape[0]), "fitted_model": brdf_fit["model"],
-            "fitted_roughness": brdf_fit.get("roughness", ""),
-            **{f"band{l}_error": float(e) for l, e in enumerate(band_err)}}
+    band_err, scale = _lighting_band_errors(
+        fitted, read_lighting_sh(capture / "gt" / "lighting_sh.json"), config["mode"] != "known BRDF"
+    )
+    return {
+        **config,
+        "samples_s": round(samples_s, 3),
+        "fit_s": round(fit.seconds, 3),
+        "time_s": round(samples_s + fit.seconds, 3),
+        "relight_s": round(relit.seconds, 3),
+        "relight_error": check["relative_error"],
+        "lighting_scale": scale,
+        "fitted_order": order_of(fitted.shape[0]),
+        "fitted_model": brdf_fit["model"],
+        "fitted_roughness": brdf_fit.get("roughness", ""),
+        **{f"band{l}_error": float(e) for l, e in enumerate(band_err)},
+    }
 
 
 def mark_pareto(rows: list[dict]) -> None:
@@ -360,7 +423,7 @@ def mark_pareto(rows: list[dict]) -> None:
             r["pareto"] = bool(f)
 
 
-ORDER_COLOUR = {"auto": 16}   # 'auto' ends at orders up to --max-order 16
+ORDER_COLOUR = {"auto": 16}  # 'auto' ends at orders up to --max-order 16
 
 
 def plot_pareto(rows: list[dict], path: Path) -> Path:
@@ -374,11 +437,22 @@ def plot_pareto(rows: list[dict], path: Path) -> Path:
         sub = [r for r in rows if r["scene"] == scene]
         for r in sub:
             colour = plt.cm.viridis(min(int(ORDER_COLOUR.get(r["order"], r["order"])), 16) / 17)
-            ax.scatter(r["time_s"], r["relight_error"] * 100, marker=markers[r["mode"]], color=colour,
-                       s=50, edgecolors="k" if r["pareto"] else "none", linewidths=1.2)
-            ax.annotate(f"L{r['order']} v{r['train_views']} s{r['stride']} n{r['fit_samples'] // 1000}k",
-                        (r["time_s"], r["relight_error"] * 100),
-                        fontsize=6, xytext=(3, 3), textcoords="offset points")
+            ax.scatter(
+                r["time_s"],
+                r["relight_error"] * 100,
+                marker=markers[r["mode"]],
+                color=colour,
+                s=50,
+                edgecolors="k" if r["pareto"] else "none",
+                linewidths=1.2,
+            )
+            ax.annotate(
+                f"L{r['order']} v{r['train_views']} s{r['stride']} n{r['fit_samples'] // 1000}k",
+                (r["time_s"], r["relight_error"] * 100),
+                fontsize=6,
+                xytext=(3, 3),
+                textcoords="offset points",
+            )
         front = sorted((r["time_s"], r["relight_error"] * 100) for r in sub if r["pareto"])
         if front:
             ax.step(*zip(*front), where="post", color="k", lw=1, ls="--", label="Pareto front")
@@ -388,8 +462,9 @@ def plot_pareto(rows: list[dict], path: Path) -> Path:
         ax.set_yscale("log")
         ax.set_xlabel("time: samples + fit (s, 2 shared cores)")
         ax.set_ylabel("relight error on held-out views (%, relative RMS)")
-        ax.set_title(f"{scene} scene (colour = SH order L; v = training views, s = sample stride, "
-                     f"n = samples fitted)", fontsize=8)
+        ax.set_title(
+            f"{scene} scene (colour = SH order L; v = training views, s = sample stride, n = samples fitted)", fontsize=8
+        )
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=100)

@@ -76,8 +76,9 @@ def make_capture(out: Path, views: int, width: int, height: int) -> Path:
     make_test_capture(small, views=views, size=(width // 8, height // 8), fmt="jpeg")
     shutil.copytree(small, out)
     poses = read_poses(small / "poses.json")
-    write_poses(out / "poses.json", Poses(cameras={k: c.resized(width, height) for k, c in poses.cameras.items()},
-                                          images=poses.images))
+    write_poses(
+        out / "poses.json", Poses(cameras={k: c.resized(width, height) for k, c in poses.cameras.items()}, images=poses.images)
+    )
     for path in sorted((out / "images").iterdir()):
         buf = oiio.ImageBuf(str(path))
         spec = buf.spec()
@@ -110,8 +111,11 @@ def pixels_suite(quick: bool, repeat: int, output: Path = Path("bench")) -> list
             for stage in STAGES:
                 seconds, peak = measured([*sigrend, stage, str(capture), "-w", str(work)])
                 record[stage] = (seconds, peak)
-                print(f"bench pixels: {views} x {width}x{height}: {stage} {seconds:.1f} s, peak {peak / 1e6:.0f} MB",
-                      file=sys.stderr, flush=True)
+                print(
+                    f"bench pixels: {views} x {width}x{height}: {stage} {seconds:.1f} s, peak {peak / 1e6:.0f} MB",
+                    file=sys.stderr,
+                    flush=True,
+                )
                 size = f"{views} x {width}x{height} ({total / 1e6:.0f} MP)"
                 rows.append(BenchRow(f"{stage}: seconds", 0, size, round(seconds, 2), "s"))
                 rows.append(BenchRow(f"{stage}: peak memory", 0, size, round(peak / 1e6), "MB"))

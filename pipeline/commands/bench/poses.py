@@ -38,31 +38,34 @@ def noise_texture(rng, size: int) -> np.ndarray:
     """Multi-scale random texture (8-bit gray) with SIFT-friendly blobs at every scale."""
     tex = np.zeros((size, size), np.float32)
     for cells in (4, 8, 16, 32, 64, 128):
-        tex += cv2.resize(rng.random((cells, cells)).astype(np.float32), (size, size),
-                          interpolation=cv2.INTER_CUBIC)
+        tex += cv2.resize(rng.random((cells, cells)).astype(np.float32), (size, size), interpolation=cv2.INTER_CUBIC)
     tex = (tex - tex.min()) / (tex.max() - tex.min())
     return np.round(40 + 200 * tex).astype(np.uint8)
 
 
-def scene_quads(rng, textured: bool = True, texture_scale: int = 1) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+def scene_quads(
+    rng, textured: bool = True, texture_scale: int = 1
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """Scene as textured rectangles: (origin, edge a, edge b, 8-bit texture); point = o + u·a + v·b."""
-    board = make_board(BoardSpec(BOARD["dictionary"], tuple(BOARD["squares"]), BOARD["square_length"],
-                                 BOARD["marker_length"]))
+    board = make_board(BoardSpec(BOARD["dictionary"], tuple(BOARD["squares"]), BOARD["square_length"], BOARD["marker_length"]))
     sx, sy = BOARD["squares"]
     board_img = board.generateImage((sx * 100, sy * 100), marginSize=0)
     R, t = BOARD_TO_OBJECT[:3, :3], BOARD_TO_OBJECT[:3, 3]
-    quads = [(t + [0, 0, 1e-4], R @ [sx * BOARD["square_length"], 0, 0], R @ [0, sy * BOARD["square_length"], 0],
-              board_img)]
+    quads = [(t + [0, 0, 1e-4], R @ [sx * BOARD["square_length"], 0, 0], R @ [0, sy * BOARD["square_length"], 0], board_img)]
     if not textured:  # only the board: SfM is starved of features
         return quads
-    quads.append((np.array([-0.3, -0.3, 0.0]), np.array([0.6, 0, 0]), np.array([0, 0.6, 0]), noise_texture(rng, 1024 * texture_scale)))
+    quads.append(
+        (np.array([-0.3, -0.3, 0.0]), np.array([0.6, 0, 0]), np.array([0, 0.6, 0]), noise_texture(rng, 1024 * texture_scale))
+    )
     # a textured box (0.08 m) off the board: four sides and the top
     c, h = np.array([0.07, 0.12, 0.0]), 0.08
     corners = [c + [-h / 2, -h / 2, 0], c + [h / 2, -h / 2, 0], c + [h / 2, h / 2, 0], c + [-h / 2, h / 2, 0]]
     for i in range(4):
         p, q = corners[i], corners[(i + 1) % 4]
         quads.append((p, q - p, np.array([0, 0, h]), noise_texture(rng, 256 * texture_scale)))
-    quads.append((corners[0] + [0, 0, h], corners[1] - corners[0], corners[3] - corners[0], noise_texture(rng, 256 * texture_scale)))
+    quads.append(
+        (corners[0] + [0, 0, h], corners[1] - corners[0], corners[3] - corners[0], noise_texture(rng, 256 * texture_scale))
+    )
     return quads
 
 
@@ -91,9 +94,20 @@ def render(camera: Camera, R: np.ndarray, t: np.ndarray, quads, supersample: int
     return cv2.resize(img, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
 
 
-def make_textured_capture(folder: Path, *, n_views: int = 14, size=(400, 300), focal: float = 440.0,
-                          seed: int = 7, board: bool = True, textured: bool = True, views=None,
-                          supersample: int = 2, texture_scale: int = 1, progress: bool = False) -> Poses:
+def make_textured_capture(
+    folder: Path,
+    *,
+    n_views: int = 14,
+    size=(400, 300),
+    focal: float = 440.0,
+    seed: int = 7,
+    board: bool = True,
+    textured: bool = True,
+    views=None,
+    supersample: int = 2,
+    texture_scale: int = 1,
+    progress: bool = False,
+) -> Poses:
     """Write images/NNNN.jpg (q95, +1 grey level noise), capture.toml ([board]) and gt/poses.json.
 
     Cameras on a ring at 0.55 m (elevations 38°/50° alternating) looking at the scene centre;
@@ -108,8 +122,10 @@ def make_textured_capture(folder: Path, *, n_views: int = 14, size=(400, 300), f
     if views is None:
         az = np.linspace(0, 2 * np.pi, n_views, endpoint=False) + 0.3
         el = np.deg2rad(np.where(np.arange(n_views) % 2, 50.0, 38.0))
-        views = [(np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)]) * 0.55,
-                  np.array([0.02, 0.02, 0.03])) for a, e in zip(az, el)]
+        views = [
+            (np.array([np.cos(a) * np.cos(e), np.sin(a) * np.cos(e), np.sin(e)]) * 0.55, np.array([0.02, 0.02, 0.03]))
+            for a, e in zip(az, el)
+        ]
     for i, (center, target) in enumerate(progress_bar(views, desc="render", enabled=progress)):
         R, t = look_at(center, target)
         img = render(camera, R, t, quads, supersample)
@@ -117,10 +133,18 @@ def make_textured_capture(folder: Path, *, n_views: int = 14, size=(400, 300), f
         cv2.imwrite(str(folder / "images" / f"{i:04d}.jpg"), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
         gt.images[f"{i:04d}.jpg"] = ImagePose("cam0", R, t)
     if board:
-        write_capture_toml(folder / "capture.toml", {"board": {
-            "dictionary": BOARD["dictionary"], "squares": list(BOARD["squares"]),
-            "square_length": BOARD["square_length"], "marker_length": BOARD["marker_length"],
-            "board_to_object": np.asarray(BOARD_TO_OBJECT, float).tolist()}})
+        write_capture_toml(
+            folder / "capture.toml",
+            {
+                "board": {
+                    "dictionary": BOARD["dictionary"],
+                    "squares": list(BOARD["squares"]),
+                    "square_length": BOARD["square_length"],
+                    "marker_length": BOARD["marker_length"],
+                    "board_to_object": np.asarray(BOARD_TO_OBJECT, float).tolist(),
+                }
+            },
+        )
     (folder / "gt").mkdir()
     write_poses(folder / "gt" / "poses.json", gt)
     return gt
@@ -149,8 +173,15 @@ def poses_suite(quick: bool, repeat: int) -> list[BenchRow]:
             w = int(round(np.sqrt(megapixels * 1e6 * 1.5)))
             h = int(round(w / 1.5))
             capture = Path(tmp) / f"capture_{megapixels:g}mp"
-            gt = make_textured_capture(capture, n_views=n, size=(w, h), focal=1.1 * w, supersample=1,
-                                       texture_scale=max(1, int(np.ceil(w / 1000))), progress=True)
+            gt = make_textured_capture(
+                capture,
+                n_views=n,
+                size=(w, h),
+                focal=1.1 * w,
+                supersample=1,
+                texture_scale=max(1, int(np.ceil(w / 1000))),
+                progress=True,
+            )
             best: dict[str, float] = {}
             for run in range(max(1, repeat)):
                 work = Path(tmp) / f"work_{megapixels:g}mp_{run}"
@@ -162,8 +193,16 @@ def poses_suite(quick: bool, repeat: int) -> list[BenchRow]:
             rot, cen = pose_errors(gt, read_poses(work / "poses.json"))
             size = f"{n} x {w}x{h}"
             for step in (*STEPS, "copies_and_board_detection", "total"):
-                rows.append(BenchRow(f"poses {step}", 0, size, best.get(step, float("nan")), "s",
-                                     "registration = triangulation + similarity + board BA" if step == "registration" else ""))
+                rows.append(
+                    BenchRow(
+                        f"poses {step}",
+                        0,
+                        size,
+                        best.get(step, float("nan")),
+                        "s",
+                        "registration = triangulation + similarity + board BA" if step == "registration" else "",
+                    )
+                )
             rows.append(BenchRow("poses max rotation error", 0, size, float(rot.max()), "deg", "vs ground truth"))
             rows.append(BenchRow("poses max centre error", 0, size, float(100 * cen.max()), "% of distance", ""))
     return rows

@@ -29,9 +29,15 @@ DEFAULT = (64, 64, 8)
 
 def _relight(folder: Path, work: Path, lobe: int, rays: int, bounces: int, size: str = "", views: str = ""):
     write_brdf(work / "fit" / "brdf.json", material_from_blender(json.loads((folder / "gt" / "brdf.json").read_text())))
-    settings = make_settings(relight.Settings, env=str(folder / "gt" / "relight" / "env.exr"), size=size,
-                             views=views or str(folder / "gt" / "relight" / "poses.json"), lobe_samples=lobe,
-                             bounce_samples=rays, bounces=bounces)
+    settings = make_settings(
+        relight.Settings,
+        env=str(folder / "gt" / "relight" / "env.exr"),
+        size=size,
+        views=views or str(folder / "gt" / "relight" / "poses.json"),
+        lobe_samples=lobe,
+        bounce_samples=rays,
+        bounces=bounces,
+    )
     start = time.perf_counter()
     run_stage("relight", capture=folder, work=work, settings=settings, force=True)
     return time.perf_counter() - start
@@ -55,7 +61,7 @@ def render_suite(quick: bool, repeat: int, output: Path):
             rows.append(BenchRow(f"{folder.name} time", 0, f"{len(rendered)} views", seconds, "s", note))
             points.append((seconds, 100 * err.total, (lobe, rays, bounces) == DEFAULT))
         xs, ys, default = zip(*points)
-        line, = ax.plot(xs, ys, "o-", label=folder.name)
+        (line,) = ax.plot(xs, ys, "o-", label=folder.name)
         for x, y, d in points:
             if d:
                 ax.plot([x], [y], "*", ms=14, color=line.get_color())
@@ -73,6 +79,14 @@ def render_suite(quick: bool, repeat: int, output: Path):
     if teapot.exists() and not quick:
         with tempfile.TemporaryDirectory() as tmp:
             seconds = _relight(teapot, Path(tmp), *DEFAULT, size="384x384")
-        rows.append(BenchRow("teapot 384x384", 0, "4 views", seconds / 4, "s/view",
-                             "shadows + interreflection + principled lobe, defaults (incl. vertex precompute)"))
+        rows.append(
+            BenchRow(
+                "teapot 384x384",
+                0,
+                "4 views",
+                seconds / 4,
+                "s/view",
+                "shadows + interreflection + principled lobe, defaults (incl. vertex precompute)",
+            )
+        )
     return rows

@@ -90,9 +90,13 @@ def scale_suite(quick: bool, repeat: int, output: Path = Path("bench")) -> list[
             case = "proxy" if proxy else "full mesh"
             total = r["mesh"] + r["transfer"] + r["interreflection"]
             note = f"proxy {r['proxy_faces']} faces" if r["proxy_faces"] else ""
-            for name, value, unit in (("mesh + proxy", r["mesh"], "s"), ("transfer", r["transfer"], "s"),
-                                      ("interreflection", r["interreflection"], "s"), ("total", total, "s"),
-                                      ("peak memory", r["peak_mb"], "MB")):
+            for name, value, unit in (
+                ("mesh + proxy", r["mesh"], "s"),
+                ("transfer", r["transfer"], "s"),
+                ("interreflection", r["interreflection"], "s"),
+                ("total", total, "s"),
+                ("peak memory", r["peak_mb"], "MB"),
+            ):
                 rows.append(BenchRow(f"{case}: {name}", ORDER, f"{r['faces']} faces", round(value, 3), unit, note))
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)

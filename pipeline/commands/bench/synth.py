@@ -14,7 +14,6 @@ from pipeline.core.render import Renderer
 from pipeline.raycast import ray_mesh
 from pipeline.synth import SynthSettings, load_mesh, make_views
 
-
 BENCH_MESH = Path(__file__).resolve().parents[3] / "sample_data" / "meshes" / "stanford-bunny.obj"  # see its SOURCES.md
 
 
@@ -32,8 +31,10 @@ def synth_suite(quick: bool, repeat: int) -> list:
     settings = replace(SynthSettings(), views=2, size=(size, size), layout="ring", elevation=(20.0, 40.0))
     camera, poses = make_views(mesh, settings, None)
     env = make_envmap("area", 64, n=3)
-    brdfs = {"lambert": Brdf("lambert", albedo=(0.5, 0.5, 0.5)),
-             "microfacet": Brdf("microfacet", albedo=(0.2, 0.3, 0.5), specular=0.04, roughness=0.2)}
+    brdfs = {
+        "lambert": Brdf("lambert", albedo=(0.5, 0.5, 0.5)),
+        "microfacet": Brdf("microfacet", albedo=(0.2, 0.3, 0.5), specular=0.04, roughness=0.2),
+    }
     rows = []
     for name, brdf in brdfs.items():
         for shadows in (False, True):
@@ -43,8 +44,7 @@ def synth_suite(quick: bool, repeat: int) -> list:
             for label, pose in (("first view", poses[0]), ("second view", poses[1])):
                 start = time.perf_counter()
                 renderer.render(camera, *pose)
-                rows.append(BenchRow(f"{case}, {label}", 0, f"{size}x{size}", time.perf_counter() - start,
-                                     "s/view", note))
+                rows.append(BenchRow(f"{case}, {label}", 0, f"{size}x{size}", time.perf_counter() - start, "s/view", note))
             best = min(_timed(lambda: renderer.render(camera, *poses[0])) for _ in range(max(1, repeat)))
             rows.append(BenchRow(f"{case}, cached visibility", 0, f"{size}x{size}", best, "s/view", note))
     return rows

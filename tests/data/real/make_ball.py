@@ -17,17 +17,16 @@ from pathlib import Path
 import numpy as np
 
 SRC = "data/DiLiGenT/pmsData/ballPNG"
-WIDTH, HEIGHT = 612, 512          # DiLiGenT's images (2448 x 2048 sensor binned/downsampled by 4)
-FOCAL_PX = 3772.0                 # assumed (see README): not shipped with this copy, not recoverable from it
-CROP = 160                        # square crop around the ball (its mask is 142 px across)
-RADIUS_M = 0.03                   # nominal sphere radius: one view does not fix the scale
-LIGHT_TILT_DEG = 25.0             # the four side lights are those nearest 25 degrees off the frontal one
-SUBDIVISIONS = 5                  # icosphere: 20480 faces
+WIDTH, HEIGHT = 612, 512  # DiLiGenT's images (2448 x 2048 sensor binned/downsampled by 4)
+FOCAL_PX = 3772.0  # assumed (see README): not shipped with this copy, not recoverable from it
+CROP = 160  # square crop around the ball (its mask is 142 px across)
+RADIUS_M = 0.03  # nominal sphere radius: one view does not fix the scale
+LIGHT_TILT_DEG = 25.0  # the four side lights are those nearest 25 degrees off the frontal one
+SUBDIVISIONS = 5  # icosphere: 20480 faces
 
 
 def git_show(mirror: Path, path: str) -> bytes:
-    return subprocess.run(["git", f"--git-dir={mirror}", "show", f"HEAD:{path}"], check=True,
-                          capture_output=True).stdout
+    return subprocess.run(["git", f"--git-dir={mirror}", "show", f"HEAD:{path}"], check=True, capture_output=True).stdout
 
 
 def decode(data: bytes, flags: int):
@@ -46,7 +45,7 @@ def silhouette_cone(mask: np.ndarray, fx: float, cx: float, cy: float) -> tuple[
         shifted = np.zeros_like(mask)
         r0, r1 = max(dr, 0), mask.shape[0] + min(dr, 0)
         c0, c1 = max(dc, 0), mask.shape[1] + min(dc, 0)
-        shifted[r0 - dr:r1 - dr, c0 - dc:c1 - dc] = mask[r0:r1, c0:c1]   # shifted[r, c] = mask[r + dr, c + dc]
+        shifted[r0 - dr : r1 - dr, c0 - dc : c1 - dc] = mask[r0:r1, c0:c1]  # shifted[r, c] = mask[r + dr, c + dc]
         rr, cc = np.nonzero(mask & ~shifted)
         pts.append(np.stack([cc + 0.5 + 0.5 * dc, rr + 0.5 + 0.5 * dr], axis=1))
     uv = np.concatenate(pts)
@@ -88,13 +87,14 @@ def main() -> None:
     out = args.out
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "gt").mkdir(exist_ok=True)
-    commit = subprocess.run(["git", f"--git-dir={args.mirror}", "rev-parse", "HEAD"], check=True,
-                            capture_output=True, text=True).stdout.strip()
+    commit = subprocess.run(
+        ["git", f"--git-dir={args.mirror}", "rev-parse", "HEAD"], check=True, capture_output=True, text=True
+    ).stdout.strip()
 
     mask = decode(git_show(args.mirror, f"{SRC}/mask.png"), cv2.IMREAD_GRAYSCALE) > 0
     normals = scipy.io.loadmat(io.BytesIO(git_show(args.mirror, f"{SRC}/Normal_gt.mat")))["Normal_gt"].astype(float)
     directions = np.loadtxt(io.BytesIO(git_show(args.mirror, f"{SRC}/light_directions.txt")))
-    intensities = np.loadtxt(io.BytesIO(git_show(args.mirror, f"{SRC}/light_intensities.txt")))   # R G B
+    intensities = np.loadtxt(io.BytesIO(git_show(args.mirror, f"{SRC}/light_intensities.txt")))  # R G B
     names = git_show(args.mirror, f"{SRC}/filenames.txt").decode().split()
     assert mask.shape == (HEIGHT, WIDTH) and len(directions) == len(intensities) == len(names) == 96
 
@@ -110,29 +110,46 @@ def main() -> None:
     axis, alpha, n_edge = silhouette_cone(mask[window], fx, cx, cy)
     distance = RADIUS_M / np.sin(alpha)
     centre_cam = distance * axis
-    poses = {"frame": "object", "units": "meters",
-             "cameras": {"cam0": {"model": "PINHOLE", "width": CROP, "height": CROP, "params": [fx, fx, cx, cy]}},
-             "images": {}}
+    poses = {
+        "frame": "object",
+        "units": "meters",
+        "cameras": {"cam0": {"model": "PINHOLE", "width": CROP, "height": CROP, "params": [fx, fx, cx, cy]}},
+        "images": {},
+    }
 
     lights = choose_lights(directions)
-    toml = ["# DiLiGenT ball: one camera, one calibrated directional light per photo (make_ball.py, README.md)",
-            "# direction: unit vector towards the light in the object frame; intensity: DiLiGenT's light_intensities",
-            "# (R, G, B; relative units, as the dataset gives them)", "", "[lighting]"]
+    toml = [
+        "# DiLiGenT ball: one camera, one calibrated directional light per photo (make_ball.py, README.md)",
+        "# direction: unit vector towards the light in the object frame; intensity: DiLiGenT's light_intensities",
+        "# (R, G, B; relative units, as the dataset gives them)",
+        "",
+        "[lighting]",
+    ]
     chosen = []
     for i in lights:
         src = names[i]
-        img = decode(git_show(args.mirror, f"{SRC}/{src}"), cv2.IMREAD_UNCHANGED)      # BGR, uint16
+        img = decode(git_show(args.mirror, f"{SRC}/{src}"), cv2.IMREAD_UNCHANGED)  # BGR, uint16
         assert img.dtype == np.uint16 and img.shape == (HEIGHT, WIDTH, 3)
         key = f"light{i + 1:03d}.png"
-        cv2.imwrite(str(out / "images" / key), img[window])                            # BGR stays BGR
+        cv2.imwrite(str(out / "images" / key), img[window])  # BGR stays BGR
         poses["images"][key] = {"camera": "cam0", "R": OBJECT_TO_CAMERA.tolist(), "t": centre_cam.tolist()}
         d_obj = D_TO_OBJECT @ directions[i]
         d_obj /= np.linalg.norm(d_obj)
-        toml.append(f'"{key}" = {{direction = [{d_obj[0]:.6f}, {d_obj[1]:.6f}, {d_obj[2]:.6f}], '
-                    f'intensity = [{intensities[i, 0]:.4f}, {intensities[i, 1]:.4f}, {intensities[i, 2]:.4f}]}}')
-        chosen.append({"image": key, "source": src, "index0": i, "direction_diligent": directions[i].tolist(),
-                       "direction_object": d_obj.tolist(), "intensity_rgb": intensities[i].tolist(),
-                       "saturated_pixels": int((img[window] >= 65535).any(axis=2).sum())})
+        toml.append(
+            f'"{key}" = {{direction = [{d_obj[0]:.6f}, {d_obj[1]:.6f}, {d_obj[2]:.6f}], '
+            f"intensity = [{intensities[i, 0]:.4f}, {intensities[i, 1]:.4f}, {intensities[i, 2]:.4f}]}}"
+        )
+        chosen.append(
+            {
+                "image": key,
+                "source": src,
+                "index0": i,
+                "direction_diligent": directions[i].tolist(),
+                "direction_object": d_obj.tolist(),
+                "intensity_rgb": intensities[i].tolist(),
+                "saturated_pixels": int((img[window] >= 65535).any(axis=2).sum()),
+            }
+        )
     (out / "capture.toml").write_text("\n".join(toml) + "\n")
     (out / "poses.json").write_text(json.dumps(poses, indent=1) + "\n")
 
@@ -148,19 +165,29 @@ def main() -> None:
     sx = np.linalg.lstsq(a, n[:, 0], rcond=None)[0]
     b = np.stack([np.ones(len(rr)), rr + 0.5], axis=1)
     sy = np.linalg.lstsq(b, n[:, 1], rcond=None)[0]
-    ortho = {"centre_px_colmap": [-sx[0] / sx[1], -sy[0] / sy[1]], "radius_px": [1 / sx[1], -1 / sy[1]],
-             "rms_nx": float(np.sqrt(np.mean((a @ sx - n[:, 0]) ** 2))),
-             "rms_ny": float(np.sqrt(np.mean((b @ sy - n[:, 1]) ** 2)))}
-    check = {"source": {"repo": "t-taniai/neuralps", "commit": commit, "path": SRC},
-             "crop": {"row0": r0, "col0": c0, "size": CROP},
-             "camera": {"focal_px": fx, "cx": cx, "cy": cy, "focal_assumed": True},
-             "sphere": {"axis_cam": axis.tolist(), "half_angle_deg": float(np.degrees(alpha)),
-                        "edge_points": n_edge, "radius_m": RADIUS_M, "distance_m": float(distance),
-                        "radius_px_equivalent": float(fx * np.tan(alpha)),
-                        "centre_px_colmap_full": [float(fx * axis[0] / axis[2] + cx + c0),
-                                                  float(fx * axis[1] / axis[2] + cy + r0)]},
-             "ground_truth_normals_as_orthographic_sphere": ortho,
-             "mask_pixels": int(mask.sum()), "lights": chosen}
+    ortho = {
+        "centre_px_colmap": [-sx[0] / sx[1], -sy[0] / sy[1]],
+        "radius_px": [1 / sx[1], -1 / sy[1]],
+        "rms_nx": float(np.sqrt(np.mean((a @ sx - n[:, 0]) ** 2))),
+        "rms_ny": float(np.sqrt(np.mean((b @ sy - n[:, 1]) ** 2))),
+    }
+    check = {
+        "source": {"repo": "t-taniai/neuralps", "commit": commit, "path": SRC},
+        "crop": {"row0": r0, "col0": c0, "size": CROP},
+        "camera": {"focal_px": fx, "cx": cx, "cy": cy, "focal_assumed": True},
+        "sphere": {
+            "axis_cam": axis.tolist(),
+            "half_angle_deg": float(np.degrees(alpha)),
+            "edge_points": n_edge,
+            "radius_m": RADIUS_M,
+            "distance_m": float(distance),
+            "radius_px_equivalent": float(fx * np.tan(alpha)),
+            "centre_px_colmap_full": [float(fx * axis[0] / axis[2] + cx + c0), float(fx * axis[1] / axis[2] + cy + r0)],
+        },
+        "ground_truth_normals_as_orthographic_sphere": ortho,
+        "mask_pixels": int(mask.sum()),
+        "lights": chosen,
+    }
     (out / "conversion.json").write_text(json.dumps(check, indent=1) + "\n")
     print(json.dumps(check, indent=1))
 

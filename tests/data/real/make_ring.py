@@ -22,18 +22,17 @@ from pathlib import Path
 
 import numpy as np
 
-HELD_BACK = "2016_10_24__17_43_17"   # the walnut kept for evaluation: never converted
+HELD_BACK = "2016_10_24__17_43_17"  # the walnut kept for evaluation: never converted
 CAMERAS = 12
-FACTOR = 4                            # 1280x1024 -> 320x256
-SATURATED_CODE = 250                  # 8-bit codes >= this count as clipped (sigrend's default 0.98 x 255)
+FACTOR = 4  # 1280x1024 -> 320x256
+SATURATED_CODE = 250  # 8-bit codes >= this count as clipped (sigrend's default 0.98 x 255)
 MAX_FACES = 20000
 POISSON_DEPTH = 8
-REFERENCE_POINTS = 4000               # subsample of the PMVS cloud kept beside the mesh (with its colours)
+REFERENCE_POINTS = 4000  # subsample of the PMVS cloud kept beside the mesh (with its colours)
 
 
 def git_show(mirror: Path, path: str) -> bytes:
-    return subprocess.run(["git", f"--git-dir={mirror}", "show", f"HEAD:{path}"], check=True,
-                          capture_output=True).stdout
+    return subprocess.run(["git", f"--git-dir={mirror}", "show", f"HEAD:{path}"], check=True, capture_output=True).stdout
 
 
 def halcon_intrinsics(text: str) -> dict[str, float]:
@@ -62,7 +61,7 @@ def load_cloud(data: bytes):
     text = data.decode("ascii")
     header, body = text.split("end_header\n", 1)
     props = [line.split()[-1] for line in header.splitlines() if line.startswith("property")]
-    table = np.loadtxt(io.StringIO(body), ndmin=2)[:, :len(props) - (1 if "vertex_indices" in props else 0)]
+    table = np.loadtxt(io.StringIO(body), ndmin=2)[:, : len(props) - (1 if "vertex_indices" in props else 0)]
     col = {name: table[:, k] for k, name in enumerate(props) if name != "vertex_indices"}
     points = np.stack([col["x"], col["y"], col["z"]], axis=1)
     normals = np.stack([col["nx"], col["ny"], col["nz"]], axis=1)
@@ -113,11 +112,12 @@ def poisson_mesh(points: np.ndarray, normals: np.ndarray):
     ms.clear()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=verts, face_matrix=faces))
     ms.meshing_remove_duplicate_vertices()
-    ms.meshing_decimation_quadric_edge_collapse(targetfacenum=MAX_FACES, preservenormal=True, planarquadric=True,
-                                                preservetopology=True)
+    ms.meshing_decimation_quadric_edge_collapse(
+        targetfacenum=MAX_FACES, preservenormal=True, planarquadric=True, preservetopology=True
+    )
     m = ms.current_mesh()
     mesh = trimesh.Trimesh(m.vertex_matrix(), m.face_matrix(), process=True)
-    parts = mesh.split(only_watertight=False)      # keep the largest piece (Poisson islands, if any)
+    parts = mesh.split(only_watertight=False)  # keep the largest piece (Poisson islands, if any)
     mesh = max(parts, key=lambda p: len(p.faces))
     trimesh.repair.fix_normals(mesh)
     if mesh.volume < 0:
@@ -169,8 +169,12 @@ def reprojection_check(points_obj, normals_obj, colours, views, images):
 
         def ncc(du, dv=0.0):
             # COLMAP (u, v) -> OpenCV remap coordinates: subtract 0.5 (pixel centres at integers)
-            s = cv2.remap(img.astype(np.float32), (u[sel] - 0.5 + du).astype(np.float32)[None],
-                          (v[sel] - 0.5 + dv).astype(np.float32)[None], cv2.INTER_LINEAR)[0]
+            s = cv2.remap(
+                img.astype(np.float32),
+                (u[sel] - 0.5 + du).astype(np.float32)[None],
+                (v[sel] - 0.5 + dv).astype(np.float32)[None],
+                cv2.INTER_LINEAR,
+            )[0]
             a, b = s - s.mean(), colours[sel] - colours[sel].mean()
             return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
 
@@ -178,9 +182,15 @@ def reprojection_check(points_obj, normals_obj, colours, views, images):
         grid = np.arange(-8, 9) / 8.0
         scores = np.array([[ncc(du, dv) for du in grid] for dv in grid])
         iv, iu = np.unravel_index(np.argmax(scores), scores.shape)
-        out[key] = {"points": int(sel.sum()), "in_image": float(inside.mean()), "ncc": round(ncc(0.0), 4),
-                    "ncc_shift_1px": round(ncc(1.0), 4), "ncc_shift_3px": round(ncc(3.0), 4),
-                    "ncc_peak_offset_px": [float(grid[iu]), float(grid[iv])], "ncc_peak": round(float(scores.max()), 4)}
+        out[key] = {
+            "points": int(sel.sum()),
+            "in_image": float(inside.mean()),
+            "ncc": round(ncc(0.0), 4),
+            "ncc_shift_1px": round(ncc(1.0), 4),
+            "ncc_shift_3px": round(ncc(3.0), 4),
+            "ncc_peak_offset_px": [float(grid[iu]), float(grid[iv])],
+            "ncc_peak": round(float(scores.max()), 4),
+        }
     return out
 
 
@@ -192,11 +202,11 @@ def main() -> None:
     args = ap.parse_args()
     if args.capture == HELD_BACK:
         raise SystemExit(f"{HELD_BACK} is held back for evaluation: never convert it")
-    import trimesh
 
     src = f"undistorted_images/{args.capture}"
-    commit = subprocess.run(["git", f"--git-dir={args.mirror}", "rev-parse", "HEAD"], check=True,
-                            capture_output=True, text=True).stdout.strip()
+    commit = subprocess.run(
+        ["git", f"--git-dir={args.mirror}", "rev-parse", "HEAD"], check=True, capture_output=True, text=True
+    ).stdout.strip()
     out = args.out
     (out / "images").mkdir(parents=True, exist_ok=True)
 
@@ -215,7 +225,7 @@ def main() -> None:
         r_cw = uu @ vt
         raw[i] = (intr, r_cw.T, -r_cw.T @ t_cw)
     centres = np.array([-r.T @ t for _, r, t in raw.values()])
-    cam_down = np.array([r[1] for _, r, _ in raw.values()])     # camera +Y in world = row 1 of R
+    cam_down = np.array([r[1] for _, r, _ in raw.values()])  # camera +Y in world = row 1 of R
 
     points, normals, colours = load_cloud(git_show(args.mirror, f"reference_reconstructions/{args.capture}/reference.ply"))
     q, origin = object_frame(centres, cam_down, points, centres[0])
@@ -252,8 +262,9 @@ def main() -> None:
         write_png16(out / "images" / key, gray16, alpha16)
         photos[key] = gray16.astype(float) / 65535.0
 
-    (out / "poses.json").write_text(json.dumps({"frame": "object", "units": "meters", "cameras": cameras,
-                                                 "images": images}, indent=1) + "\n")
+    (out / "poses.json").write_text(
+        json.dumps({"frame": "object", "units": "meters", "cameras": cameras, "images": images}, indent=1) + "\n"
+    )
 
     mesh = poisson_mesh(points_obj, normals_obj)
     mesh.export(out / "mesh.ply")
@@ -279,12 +290,19 @@ def main() -> None:
         "ring_flatness_m": float(np.linalg.svd(centres - centres.mean(0))[1][2] / np.sqrt(CAMERAS)),
         "cloud_points": int(len(points_obj)),
         "cloud_extent_m": (points_obj.max(0) - points_obj.min(0)).tolist(),
-        "mesh": {"vertices": len(mesh.vertices), "faces": len(mesh.faces), "watertight": bool(mesh.is_watertight),
-                 "winding_consistent": bool(mesh.is_winding_consistent), "volume_m3": float(mesh.volume),
-                 "extent_m": mesh.extents.tolist()},
-        "cloud_to_mesh_m": {"hit_fraction": float(np.isfinite(dist).mean()),
-                            "median_abs": float(np.nanmedian(np.abs(dist))),
-                            "p95_abs": float(np.nanpercentile(np.abs(dist), 95))},
+        "mesh": {
+            "vertices": len(mesh.vertices),
+            "faces": len(mesh.faces),
+            "watertight": bool(mesh.is_watertight),
+            "winding_consistent": bool(mesh.is_winding_consistent),
+            "volume_m3": float(mesh.volume),
+            "extent_m": mesh.extents.tolist(),
+        },
+        "cloud_to_mesh_m": {
+            "hit_fraction": float(np.isfinite(dist).mean()),
+            "median_abs": float(np.nanmedian(np.abs(dist))),
+            "p95_abs": float(np.nanpercentile(np.abs(dist), 95)),
+        },
         "reprojection": reprojection_check(points_obj, normals_obj, colours, views, photos),
     }
     (out / "conversion.json").write_text(json.dumps(check, indent=1) + "\n")
@@ -296,11 +314,13 @@ def main() -> None:
 def _write_points_with_normals(path: Path, points: np.ndarray, normals: np.ndarray, grey: np.ndarray) -> None:
     """Binary little-endian PLY: x y z nx ny nz (float32) and the PMVS grey colour (uchar red = green = blue)."""
     n = len(points)
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              "comment PMVS reference points (subsample), object frame, metres; colour = PMVS point colour\n"
-              f"element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
-              "property float nx\nproperty float ny\nproperty float nz\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        "comment PMVS reference points (subsample), object frame, metres; colour = PMVS point colour\n"
+        f"element vertex {n}\nproperty float x\nproperty float y\nproperty float z\n"
+        "property float nx\nproperty float ny\nproperty float nz\n"
+        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
+    )
     rec = np.zeros(n, dtype=[("p", "<f4", 3), ("n", "<f4", 3), ("c", "u1", 3)])
     rec["p"], rec["n"] = points, normals
     rec["c"] = np.repeat(np.clip(np.round(grey), 0, 255)[:, None], 3, axis=1)
