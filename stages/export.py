@@ -193,13 +193,14 @@ def preview(mesh, material: AssetMaterial, env_spec: str) -> tuple[np.ndarray, n
     colors = material.colors if material.parts is not None or material.texture is None else None
     texture = None if material.parts is not None else material.texture
     if material.parts is None:
-        result = Renderer(scene, env, material.brdf, vertex_albedo=colors, albedo_texture=texture).render(camera, R, t)
+        renderer = Renderer(scene, env, material.brdf, vertex_albedo=colors, albedo_texture=texture, glossy_bounce=True)
+        result = renderer.render(camera, R, t)
         return result.radiance, result.object_mask
     origins, dirs = pixel_rays(camera, R, t, pixel_centers(camera.width, camera.height))
     hits = first_hits(mesh, scene.rays, origins, dirs)
     radiance = None
     for brdf, faces in material.parts:
-        result = Renderer(scene, env, brdf, vertex_albedo=colors).render(camera, R, t)
+        result = Renderer(scene, env, brdf, vertex_albedo=colors, glossy_bounce=True).render(camera, R, t)
         if radiance is None:
             radiance = result.radiance.reshape(-1, 3).copy()
         own = hits.ray[faces[hits.face]]

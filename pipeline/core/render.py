@@ -300,6 +300,7 @@ class Renderer:
     board_supersample: int = 4
     chunk_pairs: int = 1 << 21
     interreflection: bool = True
+    glossy_bounce: bool = False  # a lobe sample hitting the object sees that point's lobe too (_object_radiance)
     bounce_samples: int = 64
     lobe_samples: int = 64
     max_bounces: int = 8
@@ -609,10 +610,12 @@ class Renderer:
 
     def _object_radiance(self, faces: np.ndarray, points: np.ndarray, w_toward: np.ndarray) -> np.ndarray:
         """Radiance (N, 3) that points on the mesh send along unit ``w_toward`` (N, 3): the diffuse
-        layer's (vertex irradiance, interreflection included) and the lobe's under the whole map,
-        unshadowed (HIT_LOBE_SAMPLES filtered samples): one glossy bounce, the light a metal knob
-        takes from the metal lid it stands on (without it, 31 % of Blender's teapot of roughness 0.25
-        was missing at such places)."""
+        layer's (vertex irradiance, interreflection included) and, with ``glossy_bounce``, the lobe's
+        under the whole map, unshadowed (HIT_LOBE_SAMPLES filtered samples): one glossy bounce, the
+        light a metal knob takes from the metal lid it stands on (without it, 31 % of Blender's teapot
+        of roughness 0.25 was missing at such places).  Off by default: the fit's forward model
+        (pipeline.core.prt) has no glossy bounce yet, and synth and the known-map fit render with this
+        renderer; relight and the export previews turn it on."""
         tri = np.asarray(self.mesh.faces)[faces]
         bary = barycentric(self.mesh.triangles[faces], points)
         normals = self._normals_at(faces, bary)
@@ -626,7 +629,7 @@ class Renderer:
         base = self._base(faces, tri, bary)
         out = self._diffuse_albedo(mu, base) / np.pi * e_total
         front = np.flatnonzero(cos_out > 0)
-        if self.material is None or not front.size:
+        if self.material is None or not self.glossy_bounce or not front.size:
             return out
         whole = self._whole_map_pyramid()
         out[front] += sampled_lobe(

@@ -114,6 +114,7 @@ class AngularLighting:
             board=board if self.shadows else None,
             cell_height=cell_height,
             interreflection=bounces > 0,
+            glossy_bounce=bounces > 0,
             max_bounces=max(bounces, 1),
             bounce_samples=bounce_samples,
             lobe_samples=lobe_samples,
