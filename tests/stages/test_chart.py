@@ -114,6 +114,7 @@ def test_chart_irradiance_is_pi_radiance_over_reflectance():
     assert np.allclose(core_chart.albedo_factor(got, got * 2), 0.5)
 
 
+@pytest.mark.slow
 def test_a_rendered_colorchecker_fixes_the_lambert_base_colour(lambert_capture, tmp_path):
     """Issue 49 target (5): a ColorChecker drawn into one photo of a Lambert sphere (0.7, 0.5, 0.3)
     under unknown lighting is found by cv2.mcc (every patch within 2.5 px of where it was drawn), its
@@ -145,6 +146,7 @@ def test_a_rendered_colorchecker_fixes_the_lambert_base_colour(lambert_capture, 
     assert fixed == {"level": "the ColorChecker in 0000.exr", "chromaticity": "the ColorChecker in 0000.exr"}, fixed
 
 
+@pytest.mark.slow
 def test_a_grey_card_box_measures_the_irradiance(lambert_capture, tmp_path):
     """A grey card of reflectance 0.18 painted into a photo as 0.18 E / pi and named by its box in
     capture.toml: linearize's chart.json holds E (to float32 precision) and the capture's normal."""
@@ -165,6 +167,7 @@ def test_a_grey_card_box_measures_the_irradiance(lambert_capture, tmp_path):
     assert record["normal"] == [0.0, 0.0, 1.0] and record["kind"] == "grey_card"
 
 
+@pytest.mark.slow
 def test_a_chart_named_but_not_found_is_one_line(lambert_capture, tmp_path):
     """capture.toml [chart] names a photo without a chart: linearize stops with one line naming
     [chart] and the photo (exit 2), and the linear images of the run before are untouched."""

@@ -226,6 +226,7 @@ def test_export_without_a_fit_or_with_a_seed_lobe_says_what_to_do(tmp_path, caps
     assert not (work / "export").exists()
 
 
+@pytest.mark.slow
 def test_material_map_exports_roughness_and_metallic_per_texel(tmp_path, capsys):
     """Two materials (material_map: a metal lid and knob on a dielectric of roughness 0.3) export as one
     glTF material whose metallicRoughnessTexture (embedded, factors 1) holds each face's material: the
@@ -415,6 +416,7 @@ def test_blender_reads_the_material_maps_as_each_faces_material(tmp_path, blende
         assert own.sum() > 50 and same < 0.05 and other > 0.15
 
 
+@pytest.mark.slow
 def test_glb_then_usda_to_one_stem_keep_their_own_extras(tmp_path):
     """Exporting teapot.glb and then teapot.usda into one folder leaves both assets' extras (lighting
     map, previews, manifest) side by side, each manifest naming its own asset and listing exactly its

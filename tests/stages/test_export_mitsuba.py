@@ -180,6 +180,7 @@ def test_sensor_rays_are_the_capture_view_pixel_rays(exported):
         np.testing.assert_allclose(offset - (offset @ d) * d, 0.0, atol=1e-5)
 
 
+@pytest.mark.slow
 def test_mitsuba_renders_the_scene_as_sigrend_relights_it(exported, tmp_path):
     """Issue 48 item 6: Mitsuba 3.9 (scalar_rgb, path tracer, 64 spp) renders scene.xml — principled,
     roughness 0.4, per-vertex base colour, the fitted source over a sky — from the capture's first view
@@ -207,6 +208,7 @@ def test_a_tinted_specular_has_no_mitsuba_equivalent(tiny_capture, tmp_path, cap
     assert not (tmp_path / "out" / "scene.xml").exists()
 
 
+@pytest.mark.slow
 def test_mitsuba_renders_the_base_colour_map_as_sigrend_relights_it(tiny_capture, tmp_path):
     """Issue 48 item 6, 'textures when the material varies': a fit with fit/textures/ (an xatlas atlas
     of the capture's sphere at 2 texels per photo pixel, a base colour map varying in all three

@@ -29,6 +29,8 @@ from pipeline.io.response_json import srgb_inverse_table
 from pipeline.io.textures import read_base_color_texture, write_base_color_textures
 from pipeline.unwrap import unwrap
 
+pytestmark = pytest.mark.slow  # the module's fixtures export three assets (~50 s): out of the inner loop
+
 TEXEL_M = 0.004
 # an 8-bit sRGB code is within half a code of the value; the decode's slope is at most 2.3 (at 1): so a
 # texel read back from the PNG is within 0.5 / 255 * 2.3 of the linear map, and so is any bilinear mix

@@ -56,6 +56,7 @@ def glossy(tmp_path_factory):
     return capture, prepared(capture, root / "glossy-work")
 
 
+@pytest.mark.slow
 def test_synth_own_map_is_accepted_at_one(glossy, tmp_path):
     """Issue 49 item 6: `sigrend fit CAP --lighting CAP/gt/lighting.exr` on a capture synth made is
     accepted at scale 1 +- 2 %: the fit keeps the map as it is and the base colour, whose level goes as
@@ -78,6 +79,7 @@ def test_synth_own_map_is_accepted_at_one(glossy, tmp_path):
     assert np.max(np.abs(np.asarray(brdf["base_color"]) / BASE - 1)) <= 0.02, brdf
 
 
+@pytest.mark.slow
 def test_synth_lambert_own_map_is_accepted(tmp_path):
     """Issue 49 item 6 as reported: synth's default capture (a Lambert sphere of albedo 0.6) with its own
     gt/lighting.exr, refused before ("the photos are about x0.503 the radiance this map predicts"), is
@@ -95,6 +97,7 @@ def test_synth_lambert_own_map_is_accepted(tmp_path):
     assert np.allclose(albedo, 0.6, rtol=0.01), brdf
 
 
+@pytest.mark.slow
 def test_map_off_by_two_is_refused_in_one_line_and_fitted(glossy, tmp_path):
     """The same capture's map at half its level: one line (exit 2, nothing written) naming the factor to 3
     significant digits (measured "about x1.97 (accepted x1.86-x2.1)"), which way the light is off ("too
@@ -123,6 +126,7 @@ def test_map_off_by_two_is_refused_in_one_line_and_fitted(glossy, tmp_path):
     assert np.max(np.abs(np.asarray(brdf["base_color"]) / BASE - 1)) <= 0.03, brdf
 
 
+@pytest.mark.slow
 def test_lighting_scale_on_the_convex_path(glossy, tmp_path):
     """--lighting-scale on the convex path (--brdf phong): a number is applied (scale 2 halves the fitted
     albedo and specular, to 1e-9: the convex fit is linear in them), 'fit' is refused in one line (its

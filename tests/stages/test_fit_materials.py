@@ -13,6 +13,7 @@ from pipeline import cli
 pytestmark = pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning")
 
 
+@pytest.mark.slow
 def test_one_material_object_keeps_one_material(tiny_capture, tmp_path):
     """A uniform Lambertian sphere (synth, 6 views): report.json's `materials` compares one material
     with the candidates' map by held-out RMSE and keeps one, so brdf.json lists no materials and no

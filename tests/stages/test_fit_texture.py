@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from pipeline.io.mesh import read_mesh
 from pipeline.io.samples import read_samples
@@ -45,6 +46,7 @@ def _fit(tmp_path: Path, texture: str, **more):
     return capture, work, report
 
 
+@pytest.mark.slow
 def test_stripes_textured(tmp_path, capsys):
     capture, work, report = _fit(tmp_path, "stripes")
     assert "fit: lambert, albedo textured, mean" in capsys.readouterr().err
@@ -78,6 +80,7 @@ def test_uniform_stays_uniform(tmp_path):
     assert not (work / "fit" / "albedo.ply").exists()
 
 
+@pytest.mark.slow
 def test_convex_path_residuals_are_the_textures_too(tmp_path):
     """The convex forward model (--forward convex) chooses the texture the same way; its per-view
     residuals are the textured model's as well (issue 16, point 7)."""

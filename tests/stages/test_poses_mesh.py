@@ -140,6 +140,7 @@ def _write_colmap_model(poses: Poses, folder: Path, text: bool) -> None:
     reconstruction.write_text(folder) if text else reconstruction.write(folder)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("text", [False, True], ids=["bin", "txt"])
 def test_colmap_model_round_trip(bunny_capture, tmp_path, text):
     gt = read_poses(bunny_capture / "gt" / "poses.json")

@@ -61,6 +61,7 @@ def captures(tmp_path_factory):
     return merged(root / "both", {"sun": sun, "area": area}), other
 
 
+@pytest.mark.slow
 def test_fit_under_two_known_lightings_and_relight_under_a_third(captures, tmp_path):
     """Measured: roughness 0.294, base colour (0.600, 0.400, 0.300) from the 12 photos under their
     two maps; the third capture's 3 photos (a third map) relit at 0.74 % with no scale fitted.  (A
@@ -86,6 +87,7 @@ def test_fit_under_two_known_lightings_and_relight_under_a_third(captures, tmp_p
     assert all((out / f"{Path(k).stem}_error.png").exists() for k in result["views"])
 
 
+@pytest.mark.slow
 def test_one_lighting_for_the_fit_is_worse_than_the_truth(captures, tmp_path):
     """The same photos with every one said to be under the sun map: the area-lit half disagrees,
     and the fit says the map and the photos differ (measured: "the photos are about x0.018 the
@@ -129,6 +131,7 @@ def test_directional_light_entries(tmp_path):
         read_capture_config(tmp_path)
 
 
+@pytest.mark.slow
 def test_compare_with_needs_the_other_captures_work_and_lighting(captures, tmp_path):
     both, other = captures
     proc = sigrend("relight", both, "-w", tmp_path / "w", "--compare-with", other, "--compare-work", tmp_path / "none")
