@@ -1,7 +1,18 @@
-"""Shared fixtures: a seeded random generator (every test is reproducible)."""
+"""Shared fixtures: a seeded random generator (every test is reproducible).
+
+The test process runs BLAS on one thread, as the fit stage (``--blas-threads 1``) and relight's
+renderer already do: on a 2-core machine shared with other jobs, multithreaded OpenBLAS's threads
+fight them, and the tests' own small products ran 5-70x slower than on one thread (test_planar's:
+0.1 s alone, 2-7 s after earlier tests had started the BLAS threads; docs/ci.md, Inner loop).  OpenCV's
+own bundled OpenBLAS and the processes a test starts are not affected.
+"""
 
 import numpy as np
 import pytest
+import scipy.linalg  # noqa: F401  (loads SciPy's own OpenBLAS, so that the limit below covers it too)
+from threadpoolctl import threadpool_limits
+
+threadpool_limits(limits=1, user_api="blas")
 
 
 @pytest.fixture

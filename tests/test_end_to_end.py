@@ -137,7 +137,7 @@ def test_one_photo_under_a_known_camera(tiny_capture, tmp_path, capsys):
     work = tmp_path / "work"
     assert cli.main(["run", str(capture), "-w", str(work)]) == 0
     err = capsys.readouterr().err
-    assert "all in one fold" in err and "nothing held out validates the choice" in err  # outputs.one_view_line
+    assert "all in one fold" in err and "nothing held out validates the choice" in err  # notes.one_view_line
     assert "no held-out views: not validated" in err or "fit: lambert" in err
     report = json.loads((work / "fit" / "report.json").read_text())
     assert report["model_selection"]["by"] == "training residual"

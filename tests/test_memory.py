@@ -87,6 +87,7 @@ def linearized(large_capture, tmp_path_factory):
     return work, peak
 
 
+@pytest.mark.slow  # 20-35 s with its fixtures: 24 MP photos decoded in subprocesses
 def test_large_photos_are_linearized_and_sampled_within_the_budget(large_capture, linearized, tmp_path):
     """Two 24 MP photos decoded whole as float RGB (the stages' in-memory path) would be 576 MB of
     pixels alone, beyond the 600 MB budget beside the process's own ~0.1-0.2 GB; streamed in bands
@@ -106,6 +107,7 @@ def test_large_photos_are_linearized_and_sampled_within_the_budget(large_capture
     assert summary["pixels"] == 2 * (WIDTH // 4) * (HEIGHT // 4) and summary["count"] > 10**5
 
 
+@pytest.mark.slow  # 10-17 s: subprocesses on the 24 MP capture
 def test_a_budget_that_cannot_be_met_is_one_line(large_capture, linearized, tmp_path):
     """A budget below what one photo's chunk needs: exit 2, one line naming the limit and what to
     reduce (samples: --chunk-pixels; linearize: the photos' size), no traceback, and the outputs

@@ -5,6 +5,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from pipeline.core import prt
 from pipeline.io.mesh import read_mesh
@@ -47,6 +48,7 @@ def test_a_mesh_coarser_than_the_threshold_gets_no_proxy_and_the_same_numbers():
     assert not np.array_equal(_radiance(forced, *pts)[1], plain[1])
 
 
+@pytest.mark.slow  # 3 s: the interreflection of 3000 points on a 23 k-face mesh, twice
 def test_a_proxy_gives_the_full_meshs_interreflection_within_its_monte_carlo_noise():
     """sample_data's mesh subdivided once (23 k faces) with a proxy simplified back to 5856 faces:
     the direct irradiance at 3000 points is untouched (byte-identical: first hits and visibility stay

@@ -247,11 +247,11 @@ def _disk_full(path):
 def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch, capsys, fault, fragment):
     """A stage failing at its third image (a user error, or a full disk) is one line with the expected message,
     and the two images it wrote before are not committed: the work folder is byte-identical."""
-    from stages import linearize
+    from stages.linearize import jobs
 
     capture, work = linearized
     before = digest(work)
-    real = linearize.ImageRowWriter  # each photo's mask and EXR are written through one of these
+    real = jobs.ImageRowWriter  # each photo's mask and EXR are written through one of these (linearize_job)
     calls = []
 
     def failing(path, *args, **kwargs):
@@ -260,7 +260,7 @@ def test_a_stage_that_fails_half_way_commits_nothing(linearized, monkeypatch, ca
             raise fault(path)
         return real(path, *args, **kwargs)
 
-    monkeypatch.setattr(linearize, "ImageRowWriter", failing)
+    monkeypatch.setattr(jobs, "ImageRowWriter", failing)
     capsys.readouterr()
     assert cli.main(["linearize", str(capture), "-w", str(work), "--saturation", "0.6", "--workers", "1"]) == 2
     assert len(calls) == 3

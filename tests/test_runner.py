@@ -205,10 +205,10 @@ def test_report_is_self_contained_and_says_what_is_missing(capture, tmp_path, ca
     assert "the fit stage has not run" in html
 
 
-def test_verbose_logs_each_stage_settings_at_its_start(tmp_path):
+def test_verbose_logs_each_stage_settings_at_its_start(capture, tmp_path):
     """`sigrend -v`: the package logger (pipeline.logs, configured once by the command line) says
-    each stage's settings as it starts; without -v it says nothing."""
-    capture = Path(__file__).parents[1] / "sample_data" / "capture"
+    each stage's settings as it starts; without -v it says nothing (linearize of the tiny capture,
+    in a process of its own each)."""
     args = [sys.executable, "-m", "pipeline.cli"]
     loud = subprocess.run([*args, "-v", "linearize", str(capture), "-w", str(tmp_path / "w")], capture_output=True, text=True)
     assert loud.returncode == 0, loud.stderr

@@ -4,7 +4,8 @@ An n-node Gauss–Legendre rule integrates polynomials of degree <= 2n - 1 exact
 product rule pairs Gauss–Legendre in z = cos(theta) with n_phi equally spaced azimuths (exact
 for trigonometric polynomials of degree < n_phi), so it integrates every spherical polynomial
 of degree <= D exactly (in particular every product Y_k Y_k' with l + l' <= D) when
-n_z >= (D + 1) / 2 and n_phi >= D + 1.
+n_z >= (D + 1) / 2 and n_phi >= D + 1.  A fixed cosine-distributed set of hemisphere directions
+(Malley's method) estimates cosine-weighted hemisphere integrals such as a vertex's visibility.
 """
 
 from __future__ import annotations
@@ -43,3 +44,16 @@ def sphere_product_rule(n_z: int, n_phi: int) -> tuple[np.ndarray, np.ndarray]:
 def sphere_rule_for_degree(degree: int) -> tuple[np.ndarray, np.ndarray]:
     """The smallest product rule exact for spherical polynomials of total degree <= ``degree``."""
     return sphere_product_rule(degree // 2 + 1, degree + 1)
+
+
+def cosine_hemisphere_directions(count: int) -> np.ndarray:
+    """(count, 3) fixed cosine-distributed unit directions about +Z (Malley's method on a Fibonacci disk).
+
+    Uniform points on the unit disk (golden-angle spiral, r = sqrt((k + 0.5) / count)) lifted to
+    z = sqrt(1 − r²) have density cos θ / π on the hemisphere, so the mean of V over them estimates
+    the cosine-weighted visible fraction (1/π)∫V(ω) cos θ dω.
+    """
+    k = np.arange(count) + 0.5
+    r = np.sqrt(k / count)
+    phi = k * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - r * r, 0.0))], axis=1)

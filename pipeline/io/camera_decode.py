@@ -3,7 +3,7 @@
 Used by the linearize stage and by calib (vignetting flats).  Functions never scale by exposure: they
 return the file's linear values (RAW: LibRaw 16-bit output / 65535, 8-bit: inverse response of the
 code, 16-bit and float: the stored value) with a valid mask, and raise ``UserError`` naming the file
-when it cannot be read.  See stages/linearize.py for the policy (white balance, saturation).
+when it cannot be read.  See stages/linearize/ for the policy (white balance, saturation).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""samples.npz: irregular light-field samples on the known geometry (written by stages/samples.py).
+"""samples.npz: irregular light-field samples on the known geometry (written by stages/samples/).
 
 Layout
 ------

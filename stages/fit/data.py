@@ -1,6 +1,7 @@
 """The fit's samples: read from samples.npz in chunks, filtered (zero weight, non-finite,
 self-shadowed for the convex model, off the mesh for the physical one) and subsampled with the
-stage's seed.  Arrays are float64 except the integer fields (image_id, face, pixel)."""
+stage's seed.  Arrays are float64 except the integer fields (image_id, face, pixel).  The physical
+transfer's normals and view directions over each sample's pixel: sample_footprints."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ import numpy as np
 
 from pipeline.core.noise import inverse_variance_weights, noise_level_function, pixel_noise_sigma, weighted_noise_sigma
 from pipeline.errors import UserError
+from pipeline.io.poses import poses_path, read_poses
 from pipeline.io.samples import iter_sample_chunks
+from pipeline.raycast import RayMesh, pixel_footprints
 from stages.fit.settings import Settings
 
 FIELDS = ("normal", "view_dir", "radiance", "image_id", "weight", "visibility")  # the convex model's
@@ -89,3 +92,26 @@ def load_physical(path: Path, settings: Settings, n_faces: int) -> tuple[dict, d
         keep = np.sort(np.random.default_rng(settings.seed).choice(n, settings.physical_samples, replace=False))
         data = {k: v[keep] for k, v in data.items()}
     return data, noise, everything
+
+
+def sample_footprints(capture: Path, work: Path, mesh: RayMesh, data: dict, keys: list[str], n: int) -> tuple | None:
+    """Normals and view directions (N, n*n, 3) over each sample's pixel (pipeline.raycast
+    .pixel_footprints on ``mesh``'s intersector, through the poses the samples were made with);
+    None for n = 1."""
+    if n <= 1:
+        return None
+    path = poses_path(capture, work)
+    poses = read_poses(path)
+    rays = mesh.rays
+    normals = np.zeros((data["face"].size, n * n, 3))
+    views = np.zeros_like(normals)
+    for i in np.unique(data["image_id"]):
+        key = keys[int(i)]
+        if key not in poses.images:
+            raise UserError(f"{path} has no pose for {key}, which samples.npz was made from; run `sigrend samples` again")
+        sel = np.flatnonzero(data["image_id"] == i)
+        pose = poses.images[key]
+        normals[sel], views[sel] = pixel_footprints(
+            mesh, rays, poses.camera_of(key), pose.R, pose.t, data["pixel"][sel], n, data["normal"][sel], data["view_dir"][sel]
+        )
+    return normals, views

@@ -2,11 +2,13 @@
 and its lighting are chosen, candidate materials (the chosen one, a rougher and a sharper
 dielectric, two metals, Lambert) are shaded under that lighting, each vertex takes the one that
 explains its samples best (pipeline.core.svbrdf) and the map is kept where the held-out views
-prefer it to one material with a per-vertex base colour (the parsimony rule)."""
+prefer it to one material with a per-vertex base colour (the parsimony rule).  The lighting they are
+shaded under: the body's (body_lighting), fitted again without a view-dependent part's samples."""
 
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -14,11 +16,11 @@ from pipeline.core import material_fit, prt, svbrdf, texture
 from pipeline.core.brdf import Brdf
 from pipeline.core.candidate import Observations
 from pipeline.core.material import Principled, brdf_from_material
-from pipeline.core.material_search import SearchOptions
+from pipeline.core.material_search import CandidateFit, SearchOptions, select_material
 from pipeline.core.selection import fold_of, parsimonious_choice
 from pipeline.core.sh import order_of
 from pipeline.core.sources import Sources
-from stages.fit.settings import Settings
+from stages.fit.settings import DEFAULT_ALBEDO, Settings
 
 DIELECTRIC_ROUGHNESS = (0.25, 0.5)  # the other dielectrics tried beside the chosen material
 METAL_ROUGHNESS = (0.15, 0.35)  # the metals tried (F0 = base colour)
@@ -135,3 +137,29 @@ def _describe(material: Principled | None) -> dict:
     if material is None:
         return {"model": "lambert"}
     return {"model": "principled", "roughness": material.roughness, "metallic": material.metallic, "ior": material.ior}
+
+
+def body_lighting(
+    mesh, everything: dict, data: dict, candidate: CandidateFit, models: list[str], hint
+) -> tuple[material_fit.MaterialFit | None, dict]:
+    """The material and lighting fitted again without the view-dependent seed's samples
+    (materials.view_dependent_seed on every sample; the fit's subset ``data`` / ``candidate`` less
+    the seeded vertices'): a metal part's reflections no longer bend the lighting the rest of the
+    surface explains, so the metal candidates can then be shaded under it.  -> (that fit or None
+    when there is no seed, report.json's note)."""
+    seed = view_dependent_seed(mesh, everything)
+    if seed is None:
+        return None, {"seeded": False, "why": "no view-dependent part between 2 % and 98 % of the surface seen"}
+    keep = np.flatnonzero(~seed[texture.heaviest_vertex(mesh.faces, data["face"], data["bary"])])
+    obs = candidate.obs
+    body = replace(
+        candidate, geo=candidate.geo.rows(keep), obs=Observations(obs.radiance[keep], obs.weight[keep], obs.fold[keep])
+    )
+    fit = select_material(body, models, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float), False)[0]
+    return fit, {
+        "seeded": True,
+        "vertex_share": float(seed.mean()),
+        "samples_left_out": int(len(obs.weight) - len(keep)),
+        "spread_threshold": SEED_SPREAD,
+        "body_material": brdf_from_material(fit.material, fit.base).to_dict(),
+    }

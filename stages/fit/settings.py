@@ -71,11 +71,12 @@ class Settings:
         "weight of the mesh-Laplacian smoothness term of the per-vertex albedo (relative to the mean data weight per vertex)",
     )
     texels: Literal["off", "auto"] = setting(
-        "off",
+        "auto",
         "physical fit: a base colour per texel of a UV atlas at the photos' footprint "
         "(the mesh's own UVs, else an xatlas unwrap) from every sample, over the per-vertex "
-        "albedo refitted on every sample; 'auto' keeps each level where the held-out views "
-        "improve (fit/textures/)",
+        "albedo refitted on every sample; 'auto' runs where the sample subset chose a "
+        "texture or was too thin to decide (under two samples per vertex and fold) and keeps "
+        "each level where the held-out views improve (fit/textures/)",
     )
     materials: Literal["one", "auto"] = setting(
         "one",

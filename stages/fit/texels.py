@@ -45,6 +45,30 @@ class TexelFit:
     metallic: np.ndarray | None = None
 
 
+def texels_called_for(albedo: dict, samples: int, folds: int) -> tuple[bool, str]:
+    """Whether --texels auto runs its ladder on every sample, and why: the subset's per-vertex albedo
+    choice (report.json "albedo": its "choice", "samples", "vertices_with_samples") won, or the
+    subset was too thin to decide (fewer than two samples per vertex in each fold) while all
+    ``samples`` are not.  On a real ring of a textured sweet (tests/data/real/ring_sweet: 30 000 of
+    137 000 samples, 3 per vertex) the subset kept a uniform albedo that every sample rejects."""
+    if albedo.get("choice") == "textured":
+        return True, "the subset's per-vertex albedo beat a uniform one on the held-out views"
+    vertices = max(int(albedo.get("vertices_with_samples", 0)), 1)
+    enough = 2 * folds  # two samples per vertex in each fold
+    used = int(albedo.get("samples", samples))
+    if used / vertices < enough <= samples / vertices:
+        return True, (
+            f"the subset ({used} samples, {used / vertices:.1f} per vertex) is too thin to decide; all {samples} "
+            f"({samples / vertices:.1f} per vertex) decide"
+        )
+    if samples / vertices < enough:
+        return False, (
+            f"the subset chose a uniform albedo, and all {samples} samples ({samples / vertices:.1f} per vertex) are too "
+            "thin for a per-vertex texture either"
+        )
+    return False, "the subset chose a uniform albedo and was dense enough to decide"
+
+
 def shading_at_all(geo: prt.Geometry, best: material_fit.MaterialFit, data: dict, settings: Settings):
     """(shade per unit base colour (N, 3), specular (N, 3)) of ``best`` at every sample of ``data``
     (face, bary, view_dir), in chunks on ``geo``'s mesh part (prt.over_chunks; each chunk through

@@ -1,6 +1,8 @@
 """The fit's textured vs uniform diffuse albedo (--albedo): a per-vertex albedo with the fitted
 lighting and specular part fixed (pipeline.core.texture), kept only when the held-out views prefer
-it, for either forward model."""
+it, for either forward model; on the physical one with the residual per view of the chosen fit
+(texture_and_residuals) and the texture's pattern the material is chosen again with
+(texture_pattern)."""
 
 from __future__ import annotations
 
@@ -9,14 +11,16 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core import forward, texture
+from pipeline.core import forward, material_fit, prt, texture
 from pipeline.core.brdf import Brdf
+from pipeline.core.candidate import Observations
 from pipeline.core.factorization import rms_radiance
 from pipeline.core.selection import fold_of
 from pipeline.errors import UserError
 from pipeline.io.mesh import mesh_path, read_mesh
 from pipeline.io.samples import iter_sample_chunks
 from stages.fit.data import FIELDS, filter_rows
+from stages.fit.outputs import residuals_per_view
 from stages.fit.settings import Settings
 
 
@@ -103,3 +107,46 @@ def albedo_from_shading(
     if choice != "textured":
         return entry, None, mesh
     return entry, np.clip(rho, 0.0, None), mesh
+
+
+def texture_pattern(obs: Observations, mesh, data: dict, vertex_rho: np.ndarray) -> np.ndarray:
+    """The per-vertex albedo ``vertex_rho`` (V, 3) at the samples over its weighted mean (N, 3), the
+    pattern a uniform base colour times which models a texture (prt.Geometry.pattern)."""
+    rho = texture.interpolation_matrix(mesh.faces, data["face"], data["bary"].astype(float), len(mesh.vertices)) @ vertex_rho
+    mean = (obs.weight[:, None] * rho).sum(axis=0) / obs.weight.sum()
+    return np.clip(rho, 1e-3, None) / np.maximum(mean, 1e-6)
+
+
+def texture_and_residuals(
+    mesh,
+    data: dict,
+    geo: prt.Geometry,
+    obs: Observations,
+    best: material_fit.MaterialFit,
+    report: dict,
+    settings: Settings,
+    keys: list[str],
+    spec: prt.SpecularTransfer | None = None,
+) -> np.ndarray | None:
+    """The per-vertex albedo choice (texture.albedo_from_shading on the physical shading) and the
+    residual per view of the chosen model,
+    a texture's colour at each sample, into ``report``; -> the per-vertex albedo (V, 3) or None.
+    ``spec``: best's specular transfer to the geometry's order if already computed (final_lighting)."""
+    if best.material is None or best.parts is not None:  # parts: fit_to_map's
+        spec = None
+    elif spec is None:
+        spec = prt.specular_transfer(geo, best.material, settings.lobe_samples, settings.seed)
+    shade, specular = material_fit.shading_parts(geo, best, spec)
+    vertex_rho = None
+    entry = {"setting": settings.albedo, "smoothness": settings.albedo_smoothness}
+    if settings.albedo == "uniform":
+        report["albedo"] = {**entry, "choice": "uniform", "note": "--albedo uniform: no per-vertex fit"}
+    else:
+        report["albedo"], vertex_rho, _ = albedo_from_shading(mesh, data, shade, obs.radiance - specular, settings, entry)
+    rho = (
+        best.base
+        if vertex_rho is None
+        else texture.interpolation_matrix(mesh.faces, data["face"], data["bary"].astype(float), len(mesh.vertices)) @ vertex_rho
+    )
+    report["residuals_per_view"] = residuals_per_view(obs, rho * shade + specular, data["image_id"], keys, settings.folds)
+    return vertex_rho

@@ -56,6 +56,7 @@ def calib(*args) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow  # 3-5 s each: two calibrations of 13 photos
 @pytest.mark.parametrize("model", sorted(FLAGS))
 def test_chessboard_photos_match_opencv(model, board_file, tmp_path):
     """Measured: fx 533.09 / 532.82 / 532.43 (OPENCV / FULL_OPENCV / --rational) against OpenCV's

@@ -52,6 +52,7 @@ def test_viewing_center_is_where_the_axes_meet(rng):
     assert viewing_center(centers, axes) == pytest.approx(target, abs=1e-9)
 
 
+@pytest.mark.slow  # 8-14 s each: the rotation search over 3000 points
 @pytest.mark.parametrize("scale", [1.0, 250.0, 0.004])
 def test_recovers_a_similarity_without_a_rotation_guess(bunny, rng, scale):
     """Any rotation (no guess), any scale (mm, km), partial coverage, noise 0.2 % of the size."""
@@ -67,6 +68,7 @@ def test_recovers_a_similarity_without_a_rotation_guess(bunny, rng, scale):
     assert result.rms == pytest.approx(0.002 * size, rel=0.3)  # the noise, not a misfit
 
 
+@pytest.mark.slow  # 11-14 s: the rotation search over 5000 points
 def test_background_points_are_cut_out(bunny, rng):
     """40 % of the cloud is a table and clutter: the fit ignores them (robust cut) and says how many it used."""
     truth = Similarity(3.0, Rotation.random(random_state=3).as_matrix(), np.array([1.0, 2.0, 3.0]))
@@ -89,6 +91,7 @@ def test_background_points_are_cut_out(bunny, rng):
     assert result.inliers[:3000].mean() > 0.95
 
 
+@pytest.mark.slow  # 6-9 s each: the rotation search over 3000 points
 @pytest.mark.parametrize("shape", ["sphere", "cylinder"])
 def test_symmetric_shapes_are_reported_ambiguous(shape, rng):
     """Registering a point cloud to a sphere or a cylinder reports an ambiguous rotation (over 5 deg of equally

@@ -128,7 +128,12 @@ def texel_map(mesh, brdf: Brdf, fit: Path, texel_m: float = 0.001, wavelength_m:
     write_vertex_albedo(fit / "albedo.ply", mesh, atlas.at_vertices(image, mesh.faces, len(mesh.vertices)))
 
 
+@pytest.mark.slow  # 7-9 s: an export with its two preview renders
 def test_glb_holds_the_mesh_material_and_lighting_in_gltf_conventions(tmp_path):
+    """The .glb of a per-vertex-coloured principled fit holds its roughness, metallic 0, IOR and specular tint in
+    glTF's factors and extensions; positions and normals in glTF's +Y-up frame and the vertex colours (to 8-bit
+    rounding) match the mesh and albedo.ply; the lighting map, in Blender's column order, equals lighting_map's to 1e-6
+    with < 3% of its energy clamped; and the manifest records the per-vertex colour and IOR."""
     brdf = Brdf("principled", base_color=[0.7, 0.45, 0.1], roughness=0.3, ior=1.45, specular_tint=[1.0, 0.9, 0.8])
     capture, work = make_fit(tmp_path, brdf, textured=True)
     assert sigrend(["export", str(capture), "-w", str(work), "-o", str(tmp_path / "out" / "teapot.glb")]) == 0
@@ -162,7 +167,11 @@ def test_glb_holds_the_mesh_material_and_lighting_in_gltf_conventions(tmp_path):
     assert manifest["per_vertex_base_color"] and manifest["material"]["ior"] == pytest.approx(1.45)
 
 
+@pytest.mark.slow  # 7-12 s: an export with its two preview renders
 def test_usd_holds_the_mesh_in_the_object_frame_and_a_preview_surface(tmp_path):
+    """The .usdc keeps the mesh in the object frame (Z up, metres): points to 1e-6 and face indices exactly, the
+    vertex colours as displayColor (to 8-bit rounding), and a bound UsdPreviewSurface with the fit's roughness,
+    metallic and IOR, metallic workflow, its diffuseColor connected to the per-vertex colour."""
     from pxr import Usd, UsdGeom, UsdShade
 
     brdf = Brdf("principled", base_color=[0.7, 0.45, 0.1], roughness=0.3, metallic=0.25, ior=1.45)
@@ -192,6 +201,7 @@ def test_usd_holds_the_mesh_in_the_object_frame_and_a_preview_surface(tmp_path):
     assert shader.GetInput("diffuseColor").HasConnectedSource()  # the per-vertex base colour
 
 
+@pytest.mark.slow  # 2-4 s: an export with its two preview renders
 def test_lambert_is_a_gltf_material_without_specular_layer(tmp_path):
     """... and the export's files with their sizes and its previews under two bundled maps reach
     the report of the run (issue 13, point 4)."""
@@ -217,6 +227,9 @@ def test_lambert_is_a_gltf_material_without_specular_layer(tmp_path):
 
 
 def test_export_without_a_fit_or_with_a_seed_lobe_says_what_to_do(tmp_path, capsys):
+    """A Phong fit (no glTF/USD equivalent) exits 2 saying to refit with --brdf principled; a work folder without
+    a fit gives a one-line error to run `sigrend fit`; -o with an unsupported extension (.usdz) exits 2 and leaves no
+    work/export folder (weak: its message is not checked, and this Phong fit would exit 2 anyway)."""
     capture, work = make_fit(tmp_path, Brdf("phong", albedo=[0.5] * 3, specular=[0.1] * 3, exponent=50), textured=False)
     assert sigrend(["export", str(capture), "-w", str(work)]) == 2
     assert "refit with --brdf principled" in capsys.readouterr().err
@@ -438,6 +451,7 @@ def test_glb_then_usda_to_one_stem_keep_their_own_extras(tmp_path):
     )
 
 
+@pytest.mark.slow  # 2-3 s: an export with its two preview renders
 def test_usd_dome_light_shows_the_fitted_source_in_its_direction(tmp_path):
     """The .usda's UsdLux.DomeLight reads the exported lighting map and its transform turns the map
     into the object frame: a fit whose lighting is one directional source (elevation 35, azimuth 70

@@ -100,6 +100,7 @@ def exported(tiny_capture, tmp_path_factory):
     return capture, work, scene
 
 
+@pytest.mark.slow  # the exported fixture: 16-19 s (the export's preview renders)
 def test_scene_holds_the_mesh_material_and_extras_under_its_own_name(exported):
     """The scene's files sit beside it under its name (scene.xml.mesh.ply, .lighting.exr, ...), the
     manifest lists them with their sizes, and Mitsuba loads the PLY with the mesh's vertices, faces
@@ -129,6 +130,7 @@ def test_scene_holds_the_mesh_material_and_extras_under_its_own_name(exported):
     np.testing.assert_allclose(colors, expected, atol=0.5 / 255 + 1e-6)  # albedo.ply is 8-bit
 
 
+@pytest.mark.slow  # the exported fixture
 def test_envmap_emitter_shows_the_fitted_source_in_its_direction(exported):
     """The brightest texel of the scene's lighting map, put where Mitsuba's envmap puts it (column x at
     u = (x + 0.5) / W, row y at v = y / (H - 1), direction (sin 2pi u sin pi v, cos pi v, -cos 2pi u
@@ -160,6 +162,7 @@ def test_envmap_emitter_shows_the_fitted_source_in_its_direction(exported):
     assert radiance(world) > 100 * radiance(SOURCE * [-1, 1, 1])
 
 
+@pytest.mark.slow  # the exported fixture
 def test_sensor_rays_are_the_capture_view_pixel_rays(exported):
     """The scene's perspective sensor shoots, through each pixel centre of the 64 x 64 film, the ray
     sigrend casts through that pixel of the capture's first view (pipeline.core.camera.pixel_rays:

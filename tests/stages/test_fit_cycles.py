@@ -25,6 +25,9 @@ DATA = Path(__file__).parents[1] / "data" / "cycles_sphere_forest_diffuse"
 
 @pytest.mark.slow
 def test_cycles_diffuse_sphere_known_albedo(tmp_path):
+    """On a Cycles render of a diffuse sphere under a real HDRI (independent path tracer, MC noise), samples + fit
+    with the known albedo recover the HDRI's ground-truth SH bands 0-2 within 1% (measured 0.01% / 0.08% / 0.13%);
+    bands 3, 5, 7 are labelled ill-posed, 4, 6, 8 ill-conditioned, and no band above 2 has more energy than the truth."""
     from stages import fit, samples
 
     capture, work = DATA / "capture", tmp_path / "work"

@@ -414,7 +414,7 @@ def test_synth_sharp_lobe_known_material(tmp_path):
 def test_synth_textured_glossy_both_unknown(tmp_path):
     """Issue 11, a textured object with both unknown: a glossy sphere (roughness 0.3) whose base
     colour carries stripes (synth --texture stripes, contrast 0.6): the texture wins, and the
-    material is chosen again with its pattern in the diffuse layer (stages.fit.physical:
+    material is chosen again with its pattern in the diffuse layer (stages.fit.texture:
     texture_pattern, prt.Geometry.pattern).  Measured: roughness 0.351, the per-vertex base colour's
     median relative error 10 % (90th percentile 29 %, the stripes' edges), its mean (0.139, 0.400,
     0.230) for (0.139, 0.352, 0.210): 2.2 deg.  Chosen with a uniform base colour only (before):

@@ -93,10 +93,33 @@ def test_stripes_finer_than_the_vertices_are_found_per_texel(stripes, tmp_path):
     assert cli.main(["run", str(capture), "-w", str(work), "--from", "relight", "--no-report"]) == 0
     with_texels = relight_check(work)["relative_error"]
 
-    assert cli.main(["fit", str(capture), "-w", str(work), "--brdf", "lambert", "--albedo", "textured", "--force"]) == 0
+    assert (
+        cli.main(
+            ["fit", str(capture), "-w", str(work), "--brdf", "lambert", "--albedo", "textured", "--texels", "off", "--force"]
+        )
+        == 0
+    )
     assert not (work / "fit" / "textures").exists()  # the stale map is removed: relight would read it
     vertex_rho = read_vertex_albedo(work / "fit" / "albedo.ply", len(mesh.vertices))
     from_vertices = _relative_error(np.einsum("pk,pk->p", bary, vertex_rho[mesh.faces[face], 0]), truth[:, 0])
     assert from_texels < 0.9 * from_vertices, (from_texels, from_vertices)
     assert cli.main(["run", str(capture), "-w", str(work), "--from", "relight", "--no-report"]) == 0
     assert with_texels < relight_check(work)["relative_error"]
+
+
+def test_the_texels_step_runs_where_the_photos_call_for_it():
+    """--texels auto's gate (texels_called_for) with the numbers of three captures: a subset that chose a
+    texture runs it; the real ring (30 000 of 136 768 samples on 9460 vertices: 3.2 per vertex in the
+    subset, 14.5 in all, 4 folds need 8) runs it, the subset being too thin to decide; sample_data (12 per
+    vertex in the subset) does not, its subset decided; the two-material teapot (38 770 vertices, 4.9 per
+    vertex in all) does not, every sample being too thin too — each with its reason."""
+    from stages.fit.texels import texels_called_for
+
+    ring = {"choice": "uniform", "samples": 30000, "vertices_with_samples": 9460}
+    assert texels_called_for({**ring, "choice": "textured"}, 136768, 4)[0]
+    run, why = texels_called_for(ring, 136768, 4)
+    assert run and "too thin to decide" in why
+    run, why = texels_called_for({"choice": "uniform", "samples": 30000, "vertices_with_samples": 2490}, 300000, 4)
+    assert not run and "dense enough to decide" in why
+    run, why = texels_called_for({"choice": "uniform", "samples": 30000, "vertices_with_samples": 38770}, 190000, 4)
+    assert not run and "too thin for a per-vertex texture either" in why

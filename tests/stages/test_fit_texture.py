@@ -40,7 +40,10 @@ def _fit(tmp_path: Path, texture: str, **more):
     )
     work = tmp_path / "work"
     samples_stage.run(capture=capture, work=work, settings=make_settings(samples_stage.Settings))
-    settings = make_settings(fit.Settings, lighting=str(capture / "gt" / "lighting_sh.json"), brdf="lambert", **more)
+    # the per-vertex level alone (the texel level over it: tests/stages/test_fit_texels.py)
+    settings = make_settings(
+        fit.Settings, lighting=str(capture / "gt" / "lighting_sh.json"), brdf="lambert", texels="off", **more
+    )
     fit.run(capture=capture, work=work, settings=settings)
     report = json.loads((work / "fit" / "report.json").read_text())
     return capture, work, report
@@ -48,6 +51,10 @@ def _fit(tmp_path: Path, texture: str, **more):
 
 @pytest.mark.slow
 def test_stripes_textured(tmp_path, capsys):
+    """On a synthetic sphere with striped albedo under known smooth lighting, fit chooses a textured albedo whose
+    seen vertices match gt/albedo.ply with median relative error < 5% (measured 1.6%); brdf.json's albedo is the
+    texture's mean within 2%, the per-view residuals are the textured model's (< half the uniform one's, within 20% of
+    the textured one's: issue 16, point 7), and the HTML report shows the texture."""
     capture, work, report = _fit(tmp_path, "stripes")
     assert "fit: lambert, albedo textured, mean" in capsys.readouterr().err
     entry = report["albedo"]
@@ -75,6 +82,7 @@ def test_stripes_textured(tmp_path, capsys):
 
 
 def test_uniform_stays_uniform(tmp_path):
+    """Without a texture in the synthetic capture, fit keeps the uniform albedo and writes no albedo.ply."""
     _, work, report = _fit(tmp_path, "none")
     assert report["albedo"]["choice"] == "uniform", json.dumps(report["albedo"], indent=1)
     assert not (work / "fit" / "albedo.ply").exists()

@@ -53,6 +53,8 @@ def _truth(linearized, view):
 
 
 def test_exr_capture_is_the_rendered_radiance(linearized):
+    """A synth EXR capture (no EXIF) linearizes with scale 1 and no exposure time (ISO 100 from synth's capture.toml)
+    to exactly the EXR's rendered radiance, every pixel valid: the ground truth the other formats are checked against."""
     capture, work = linearized["exr"]
     manifest = read_manifest(work)
     for view in _views(capture):
@@ -75,6 +77,9 @@ def test_exr_capture_is_the_rendered_radiance(linearized):
     ],
 )
 def test_formats_match_rendered_radiance(linearized, name, tol):
+    """DNG, 16-bit TIFF, JPEG and bracketed-JPEG synth captures of the same views linearize to the EXR capture's
+    radiance within the issue's mean relative error (DNG, TIFF 1%; JPEG, brackets 3%) on object pixels 3 px inside
+    the silhouette, above 1e-3 of the view's maximum, and covering > 20% of the object."""
     capture, work = linearized[name]
     read_manifest(work)
     for view in _views(linearized["exr"][0]):

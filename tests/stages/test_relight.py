@@ -69,6 +69,10 @@ def _sphere_normals(view: relight.View) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_lambertian_sphere_matches_quadrature_of_the_reflection_equation(tmp_path, rng):
+    """The frequency method's render of a Lambertian icosphere under order-2 SH lighting equals the reflection
+    equation rho/pi * int L max(0, n.w) dw by a 64 x 128 product rule (no A_l) at the ideal sphere's normals, within
+    rtol 5e-3 (the cosine's kink ~1e-3, icosphere normals < 1e-3 rad, float32), over > 300 pixels; the background has
+    alpha 0."""
     coeffs = _lighting(rng)
     albedo = np.array([0.6, 0.5, 0.4])
     capture, work = _scene(tmp_path, Brdf("lambert", albedo=albedo.tolist()), coeffs)
@@ -94,6 +98,9 @@ def test_lambertian_sphere_matches_quadrature_of_the_reflection_equation(tmp_pat
 
 def test_prefiltered_map_matches_direct_convolution():
     # a small bright patch + a dim constant: P(r) = integral L(w) K(r.w) dw summed pixel by pixel
+    """The Phong-prefiltered map (exponent 30) of a bright patch on a dim constant equals the normalized lobe
+    convolution summed pixel by pixel at every 37th direction within rtol 1e-3 (the series truncated at l = 200 and
+    interpolated from an 8192-entry table)."""
     h = 32
     env = np.full((h, 2 * h, 3), 0.05)
     env[9:12, 20:24] = [40.0, 30.0, 20.0]
@@ -136,9 +143,14 @@ def test_sharp_lobe_via_prefiltered_map_agrees_with_sh_path(tmp_path, rng):
 
 
 def test_outputs_compare_scale_and_freshness(tmp_path, rng):
+    """The outputs (EXR and PNG per view), an unchanged rerun skipped, and --compare against "photos" that
+    are the render at 3x: the fit's lighting gets the free scale 3 (error < 1e-4), another lighting file
+    none (error 2/3).  The "photos" are the stage's own render, so the fast method serves (the angular
+    one's images are the subject of the tests below); every run uses it, the same settings throughout."""
     coeffs = _lighting(rng)
     capture, work = _scene(tmp_path, Brdf("lambert", albedo=[0.5, 0.5, 0.5]), coeffs)
-    first = run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings))
+    fast = {"method": "frequency"}
+    first = run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings, **fast))
     assert not first.skipped
     for i in range(3):
         rgba = read_image(work / "relight" / f"{i:04d}.exr")
@@ -146,9 +158,9 @@ def test_outputs_compare_scale_and_freshness(tmp_path, rng):
         assert (work / "relight" / f"{i:04d}.png").exists()
         # "photos" = the render at 3x the brightness: the fitted lighting's free scale is 3
         write_image(capture / "images" / f"{i:04d}.exr", 3.0 * rgba[..., :3], dtype="float")
-    again = run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings))
+    again = run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings, **fast))
     assert again.skipped
-    compare = make_settings(relight.Settings, compare=True, out_dir=str(tmp_path / "cmp"))
+    compare = make_settings(relight.Settings, compare=True, out_dir=str(tmp_path / "cmp"), **fast)
     run_stage("relight", capture=capture, work=work, settings=compare)
     result = json.loads((tmp_path / "cmp" / "relight.json").read_text())["compare"]
     assert result["scale_fitted"] and result["scale"] == pytest.approx(3.0, rel=1e-3)  # EXR float32
@@ -156,7 +168,9 @@ def test_outputs_compare_scale_and_freshness(tmp_path, rng):
     assert (tmp_path / "cmp" / "0002_error.png").exists() and (tmp_path / "cmp" / "0002_photo.png").exists()
     # new lighting (a file that is not the fit's): no free scale, so the 3x shows as a 2/3 error
     write_lighting_sh(tmp_path / "other.json", coeffs)
-    other = make_settings(relight.Settings, compare=True, env=str(tmp_path / "other.json"), out_dir=str(tmp_path / "cmp2"))
+    other = make_settings(
+        relight.Settings, compare=True, env=str(tmp_path / "other.json"), out_dir=str(tmp_path / "cmp2"), **fast
+    )
     run_stage("relight", capture=capture, work=work, settings=other)
     result = json.loads((tmp_path / "cmp2" / "relight.json").read_text())["compare"]
     assert not result["scale_fitted"]
@@ -164,6 +178,8 @@ def test_outputs_compare_scale_and_freshness(tmp_path, rng):
 
 
 def test_orbit_views_with_size(tmp_path, rng):
+    """--views orbit:5 --size 40x30 writes 5 frames of 30 x 40 RGBA, each covering between 5% and 80% of the frame:
+    the object is in view and does not fill it (framing only, not the shading)."""
     capture, work = _scene(tmp_path, Brdf("lambert", albedo=[0.5, 0.5, 0.5]), _lighting(rng))
     # view geometry only: the fast method (the angular one shades the same hits)
     settings = make_settings(relight.Settings, views="orbit:5", size="40x30", out_dir=str(tmp_path / "orbit"), method="frequency")
@@ -176,6 +192,8 @@ def test_orbit_views_with_size(tmp_path, rng):
 
 
 def test_size_scales_the_capture_cameras(tmp_path, rng):
+    """--size at twice a capture view's resolution keeps its framing: the covered (alpha) area grows 4x within 3%
+    (edge pixels ~2/perimeter)."""
     capture, work = _scene(tmp_path, Brdf("lambert", albedo=[0.5, 0.5, 0.5]), _lighting(rng))
     native = make_settings(relight.Settings, views="0001.exr", out_dir=str(tmp_path / "a"), method="frequency")
     double = make_settings(
@@ -189,6 +207,7 @@ def test_size_scales_the_capture_cameras(tmp_path, rng):
     assert b.sum() / a.sum() == pytest.approx(4.0, rel=0.03)
 
 
+@pytest.mark.slow  # 6-10 s: two principled renders of 160x128
 def test_images_do_not_depend_on_the_threads(tmp_path, rng):
     """--threads threads shade the chunks of rays; a principled lobe's samples are seeded by the
     points they shade, not by the order the chunks come in, so the images are the same to the bit."""
@@ -221,6 +240,8 @@ def test_images_do_not_depend_on_the_threads(tmp_path, rng):
     ],
 )
 def test_views_are_parsed_once_into_a_choice(text, expected):
+    """Each --views spelling (capture, empty, padded heldout, a poses file, orbit:N, a key list) parses to the
+    expected ViewChoice, both by parse_views and as the settings' view_choice."""
     assert relight.parse_views(text) == expected
     assert make_settings(relight.Settings, views=text).view_choice == expected
 
@@ -238,21 +259,31 @@ def test_views_are_parsed_once_into_a_choice(text, expected):
     ],
 )
 def test_bad_settings_are_user_errors(values, message):
+    """Each malformed relight setting (size, orbit count 0 or non-numeric, supersample 0, an unknown method,
+    cell height 2, negative threads) is a UserError naming the setting when the settings are made."""
     with pytest.raises(UserError, match=message):
         make_settings(relight.Settings, **values)
 
 
 def test_missing_inputs_fail_with_one_line_and_keep_outputs(tmp_path, rng):
+    """A view not in the capture, a lighting file that is not there, no brdf.json: each a UserError
+    naming it, the earlier outputs untouched (the fast method: errors of the inputs, not of the shading)."""
     capture, work = _scene(tmp_path, Brdf("lambert", albedo=[0.5, 0.5, 0.5]), _lighting(rng))
-    run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings))
+    fast = {"method": "frequency"}
+    run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings, **fast))
     before = (work / "relight" / "0000.exr").stat().st_mtime_ns
     with pytest.raises(UserError, match="not in"):
-        run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings, views="9999.exr"))
+        run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings, views="9999.exr", **fast))
     with pytest.raises(UserError, match="lighting not found"):
-        run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings, env=str(tmp_path / "nope.exr")))
+        run_stage(
+            "relight",
+            capture=capture,
+            work=work,
+            settings=make_settings(relight.Settings, env=str(tmp_path / "nope.exr"), **fast),
+        )
     (work / "fit" / "brdf.json").unlink()
     with pytest.raises(UserError, match="sigrend fit"):
-        run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings), force=True)
+        run_stage("relight", capture=capture, work=work, settings=make_settings(relight.Settings, **fast), force=True)
     assert (work / "relight" / "0000.exr").stat().st_mtime_ns == before
 
 
@@ -406,6 +437,7 @@ def test_angular_phong_lobe_agrees_with_the_frequency_path_away_from_the_horizon
     assert rel < 0.01, rel
 
 
+@pytest.mark.slow  # 6-10 s: three principled renders
 def test_two_materials_each_pixel_is_its_faces_material(tmp_path, rng):
     """A fit of two materials (brdf.json "materials" + fit/material.ply: a copper metal on the upper
     half of the sphere, a dielectric below, a per-vertex base colour): the pixels whose hit face

@@ -46,6 +46,10 @@ CASES = {"bunny_sunrise_diffuse": (0.015, 0.015), "teapot_city_glossy": (0.05, 0
 @pytest.mark.slow
 @pytest.mark.parametrize("scene", sorted(CASES))
 def test_relight_matches_cycles_with_true_lighting_and_material(scene, tmp_path):
+    """With the true HDRI (its 2x2 box average checked against the capture's relight map to 1e-3) and the true
+    Blender material, relight's 4 views match the Cycles references by block relative RMSE, total and interior, within
+    the issue-10 targets (bunny 1.5%, night sphere 4%, teapot 5%; measured 1.35%, 0.99%, 3.20%), with each view's
+    fitted scale within 5% of 1."""
     folder = DATA / "cycles" / scene
     total, interior = CASES[scene]
     env = relight_world(scene)

@@ -106,6 +106,10 @@ def sphere_run(tmp_path_factory):
 
 
 def test_points_normals_pixels_and_radiance_match_the_sphere(sphere_run):
+    """Against the exact sphere: points lie between the icosphere's in- and circumscribed spheres (1e-6 relative),
+    interpolated normals are within a quarter facet angle (1.1 deg) of radial and unit to 1e-6, points project back to
+    their pixel centres to 1e-3 px, view directions point to the camera to 1e-6, radiance is within half that normal
+    error of 0.5 + 0.5 n, and weights and visibility are 1 (convex, no alpha)."""
     capture, work, poses, a, meta, summary = sphere_run
     inradius, circumradius = mesh_radii()
     point = a["point"].astype(float)
@@ -139,6 +143,9 @@ def test_points_normals_pixels_and_radiance_match_the_sphere(sphere_run):
 
 
 def test_drop_counts_bracket_the_analytic_disk(sphere_run):
+    """Per view, kept plus dropped pixels equal the image's, and the background and silhouette-edge drops lie between
+    the counts for the mesh's in- and circumscribed spheres' analytic disks; no hidden, grazing, masked or max-samples
+    drops, and the per-view drops sum to the summary's and the npz metadata's totals."""
     capture, work, poses, a, meta, summary = sphere_run
     inradius, circumradius = mesh_radii()
     for image_id, key in enumerate(sorted(poses.images)):
@@ -162,6 +169,9 @@ def test_drop_counts_bracket_the_analytic_disk(sphere_run):
 
 
 def test_grazing_threshold_against_the_analytic_cosine(sphere_run, tmp_path):
+    """With --min-cos 0.5 each view keeps between the exact sphere's pixels with cos >= 0.5 + slack and those with
+    cos >= 0.5 - slack (slack: the mesh's normal error, sin 1.1 deg), drops some as grazing, and no kept sample has
+    n.v below 0.5 (to 1e-6)."""
     capture, work, poses, *_ = sphere_run
     min_cos = 0.5
     a, meta, summary = run_samples(capture, tmp_path / "work", min_cos=min_cos)
@@ -178,6 +188,8 @@ def test_grazing_threshold_against_the_analytic_cosine(sphere_run, tmp_path):
 
 
 def test_masked_pixels_are_dropped_and_counted(sphere_run, tmp_path):
+    """An alpha channel of 0 drops exactly the pixels the unmasked run kept inside that block (counted as masked,
+    kept count reduced by as many), and alpha 0.5 becomes a sample weight of 0.5 on exactly its block, 1 elsewhere."""
     _, _, poses, full, _, full_summary = sphere_run
     size = 80
     alpha = np.ones((size, size), np.float32)
@@ -272,6 +284,9 @@ def test_synth_capture_lambert_sphere_under_constant_light(tmp_path):
 
 
 def test_chunking_stride_and_max_samples(sphere_run, tmp_path):
+    """Chunks of 160 pixels give every array bit-identical to the one-chunk run; --stride 2 samples the 40 x 40 grid
+    of even rows and columns, a subset of the full run's pixels; --max-samples 300 keeps exactly 100 per view, drawn
+    from the full run's pixels, and counts the rest as max_samples drops."""
     capture, _, poses, full, _, _ = sphere_run
     # tiny chunks (two rows at a time, halo rows for the edge test) give exactly the one-chunk result
     chunked, _, _ = run_samples(capture, tmp_path / "chunked", chunk_pixels=160)
@@ -336,6 +351,8 @@ def test_occlusion_edge_in_front_of_a_wall(tmp_path):
 
 
 def test_holdout_views_are_left_out_and_listed(sphere_run, tmp_path):
+    """--holdout leaves one view out, lists it in the metadata and renumbers the rest, whose pixels are exactly the
+    full run's; a holdout key not among the views is a UserError."""
     capture, _, poses, full, _, _ = sphere_run
     keys = sorted(poses.images)
     a, meta, summary = run_samples(capture, tmp_path / "work", holdout=(keys[1],))
@@ -442,6 +459,9 @@ SUBPROCESS_CASES = {"millimetres", "missing image"}  # the rest in-process: same
 
 @pytest.mark.parametrize("case", sorted(BAD_INPUTS))
 def test_bad_input_is_one_line_and_exit_2(good_work, case, capsys):
+    """Each broken capture (a mesh in millimetres, centred or not, or in another frame, inward normals, a missing
+    image, no poses, a NaN pixel, every pixel masked) gives exit 2 and a one-line error with the expected phrase, and
+    the earlier work outputs are byte-identical."""
     from pipeline.cli import main
 
     capture, work = good_work

@@ -133,6 +133,8 @@ def test_directional_light_entries(tmp_path):
 
 @pytest.mark.slow
 def test_compare_with_needs_the_other_captures_work_and_lighting(captures, tmp_path):
+    """relight --compare-with OTHER whose --compare-work folder does not exist stops with a one-line error pointing to
+    "--to poses"; only the missing work is checked here, not a missing lighting."""
     both, other = captures
     proc = sigrend("relight", both, "-w", tmp_path / "w", "--compare-with", other, "--compare-work", tmp_path / "none")
     assert_one_line_error(proc.stderr, "--to poses", code=proc.returncode)
