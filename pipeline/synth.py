@@ -236,7 +236,7 @@ def board_plane(mesh_size: float, *, charuco: bool = True, table: bool = False, 
     the object, white paper 0.8 / black print 0.04.  Table (``table``): 3 x the board's size,
     multi-scale value noise of albedo 0.1-0.7 (six octaves, 8 to 256 cells across), with a white paper margin of half a
     square around the board, to give structure-from-motion texture off the board.
-    Returns (render.BoardPlane or None, capture.toml [board] dict or None, the board's (w, h)).
+    Returns (render_view.BoardPlane or None, capture.toml [board] dict or None, the board's (w, h)).
     ``board_to_object`` maps OpenCV's board frame (origin at the top-left corner of the generated
     image, x along columns, y along rows, z into the board) to the object frame:
     x_b -> +X, y_b -> -Y, z_b -> -Z (face up).
@@ -244,7 +244,7 @@ def board_plane(mesh_size: float, *, charuco: bool = True, table: bool = False, 
     import cv2
 
     from pipeline.board import make_board
-    from pipeline.core.render import BoardPlane
+    from pipeline.core.render_view import BoardPlane
     from pipeline.io.capture_toml import BoardSpec
 
     if not (charuco or table):
@@ -351,7 +351,8 @@ def _auto_exposure_time(radiance: np.ndarray, mask: np.ndarray, fnumber: float, 
 
 def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool = True) -> list[Path]:
     """Render and write a capture (module docstring); returns the written paths."""
-    from pipeline.core.render import InsideMeshError, Renderer
+    from pipeline.core.render import Renderer
+    from pipeline.core.render_view import InsideMeshError, render_view
     from pipeline.io.brdf import parse_brdf_spec
     from pipeline.io.images import write_image
     from pipeline.io.poses import ImagePose, Poses
@@ -387,7 +388,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
     bar = progress_bar(list(enumerate(view_poses)), desc="synth views", unit="view", enabled=progress)
     for i, (R, t) in bar:
         try:
-            result = renderer.render(camera, R, t, highlight_supersample=settings.supersample)
+            result = render_view(renderer, camera, R, t, highlight_supersample=settings.supersample)
         except InsideMeshError:
             raise UserError(
                 f"view {i}: the camera is inside the mesh; increase --distance (now {settings.distance}) or check the mesh"

@@ -186,6 +186,7 @@ def preview(mesh, material: AssetMaterial, env_spec: str) -> tuple[np.ndarray, n
     from pipeline.core.camera import enclosing_sphere, orbit_poses, pixel_centers, pixel_rays
     from pipeline.core.procedural_envmaps import envmap_from_spec
     from pipeline.core.render import Renderer
+    from pipeline.core.render_view import render_view
     from pipeline.raycast import first_hits, ray_mesh
 
     camera, [(R, t)] = orbit_poses(*enclosing_sphere(mesh.vertices), 1, PREVIEW_PX, PREVIEW_PX)
@@ -194,13 +195,13 @@ def preview(mesh, material: AssetMaterial, env_spec: str) -> tuple[np.ndarray, n
     texture = None if material.parts is not None else material.texture
     if material.parts is None:
         renderer = Renderer(scene, env, material.brdf, vertex_albedo=colors, albedo_texture=texture, glossy_bounce=True)
-        result = renderer.render(camera, R, t)
+        result = render_view(renderer, camera, R, t)
         return result.radiance, result.object_mask
     origins, dirs = pixel_rays(camera, R, t, pixel_centers(camera.width, camera.height))
     hits = first_hits(mesh, scene.rays, origins, dirs)
     radiance = None
     for brdf, faces in material.parts:
-        result = Renderer(scene, env, brdf, vertex_albedo=colors, glossy_bounce=True).render(camera, R, t)
+        result = render_view(Renderer(scene, env, brdf, vertex_albedo=colors, glossy_bounce=True), camera, R, t)
         if radiance is None:
             radiance = result.radiance.reshape(-1, 3).copy()
         own = hits.ray[faces[hits.face]]

@@ -15,7 +15,8 @@ towards the light, ``w_out`` towards the viewer.  Values are per RGB channel, (N
                sigma = roughness (RMS microfacet slope), Schlick F = F0 + (1 - F0)(1 - c)^5 with
                F0 = specular, Cook-Torrance V-cavity G = min(1, 2 (n.h)(n.w_out)/(w_out.h),
                2 (n.h)(n.w_in)/(w_out.h)).  R&H approximate its filter by exp(-(sigma l)^2).
-Both sides are zero when either direction is below the surface.
+Both sides are zero when either direction is below the surface.  lobe_over_directions sums the
+phong and microfacet lobes over a light set (pipeline.core.light_set) on their support (lobe_support_cut).
 """
 
 from __future__ import annotations
@@ -188,3 +189,69 @@ def brdf_value(brdf: Brdf, normal: np.ndarray, w_in: np.ndarray, w_out: np.ndarr
     """f(w_in, w_out) in 1/sr, (N, 3); zero below either horizon (see the module docstring)."""
     n_in = _dot(np.atleast_2d(normal), np.atleast_2d(w_in))
     return cosine_weighted_brdf(brdf, normal, w_in, w_out) / np.maximum(n_in, _EPS)[:, None]
+
+
+LOBE_CUT_SIGMAS = 4.0  # microfacet support: tan(theta_h) < 4 sigma, D > exp(-16) of its peak
+PHONG_CUT = 1e-7  # phong support: cos(alpha)^s > 1e-7
+
+
+def lobe_support_cut(brdf: Brdf) -> float | None:
+    """cos of the largest angle between w_in and the mirror direction r of w_out at which the seed
+    models' lobe is not negligible (None for a model without one): for Beckmann roughness σ the half
+    vector is more than atan(4σ) from n (D < e^-16 of its peak) whenever w_in is more than 2 atan(4σ)
+    from r (reflecting w_out about h instead of n is r rotated by twice the angle between h and n);
+    for Phong where cos^s < 1e-7."""
+    model = brdf.model
+    if model == "microfacet":
+        return float(np.cos(min(np.pi, 2.0 * np.arctan(LOBE_CUT_SIGMAS * brdf.roughness))))
+    if model == "phong":
+        return float(max(0.0, np.exp(np.log(PHONG_CUT) / brdf.exponent)))
+    return None
+
+
+def lobe_over_directions(
+    brdf: Brdf,
+    n: np.ndarray,
+    wo: np.ndarray,
+    n_out: np.ndarray,
+    cos_in: np.ndarray,
+    vis: np.ndarray | None,
+    spec_cut: float,
+    dirs: np.ndarray,
+    power: np.ndarray,
+) -> np.ndarray:
+    """Specular lobe of a phong or microfacet ``brdf`` summed over directions ``dirs`` (D, 3) with
+    power L dω ``power`` (D, 3) for P points of unit normals ``n`` and view directions ``wo`` (P, 3):
+    radiance (P, 3), on the lobe's support only (``spec_cut``: lobe_support_cut).
+
+    ``n_out`` = n . w_o (P, 1); ``cos_in`` = n . w_j where both are positive, else 0 (P, D);
+    ``vis`` interpolated visibility (P, D) or None.  Dense over the pairs, with the half
+    vector never formed: |w_j + w_o|^2 = 2 + 2 w_o . w_j, so n . h = (n . w_j + n . w_o) /
+    |w_j + w_o| and w_o . h = w_j . h = (1 + w_o . w_j) / |w_j + w_o|.  Schlick's F is linear
+    in F0, so F0 (RGB) is applied after the sum over directions.
+    """
+    r = 2.0 * n_out * n - wo  # mirror direction of w_o
+    r_w = r @ dirs.T
+    support = (cos_in > 0) & (r_w > spec_cut)
+    if vis is not None:
+        support &= vis > 0
+    specular = np.asarray(brdf.specular, float)
+    if brdf.model == "phong":
+        # R&H reflection-space Phong: the transfer f cos(theta_in) is the lobe itself
+        transfer = np.where(support, phong_lobe(r_w, brdf.exponent), 0.0)
+        if vis is not None:
+            transfer = transfer * vis
+        return specular[None, :] * (transfer @ power)
+    wo_w = wo @ dirs.T
+    inv_len = 1.0 / np.sqrt(np.maximum(2.0 + 2.0 * wo_w, 1e-12))
+    n_h = np.where(support, (cos_in + n_out) * inv_len, 1.0)
+    out_h = np.where(support, (1.0 + wo_w) * inv_len, 1.0)
+    d = beckmann_distribution(n_h, brdf.roughness)
+    g = vcavity_shadowing(n_h, cos_in, n_out, out_h)
+    # f cos(theta_in) = F D G / (4 n . w_out) (Torrance-Sparrow; cos(theta_in) cancels)
+    transfer = np.where(support, d * g, 0.0) / (4.0 * np.maximum(n_out, 1e-12))
+    if vis is not None:
+        transfer = transfer * vis
+    schlick = (1.0 - np.clip(out_h, 0.0, 1.0)) ** 5
+    s1, s2 = transfer @ power, (transfer * schlick) @ power
+    return specular[None, :] * s1 + (1.0 - specular[None, :]) * s2

@@ -34,9 +34,10 @@ from typing import Callable
 
 import numpy as np
 
+from pipeline.core.bounce import bounce_powers, bounce_series, bounce_terms_needed
 from pipeline.core.brdf import Brdf
 from pipeline.core.material import Principled
-from pipeline.core.render import Renderer, bounce_powers, bounce_series, bounce_terms_needed
+from pipeline.core.render import Renderer
 from pipeline.core.sh import num_coeffs, sh_basis
 from pipeline.core.shading import (
     LobeSamples,
@@ -263,7 +264,7 @@ def _bounce_terms(
     """(M^i E_d interpolated at the samples (n, N, C), i = 1.. up to the first that is zero, the
     largest |M^i E_d| at the vertices (max_bounces,), max |E_d|) of the material's bounce matrices
     (the same for every channel: a grey diffuse layer, else None) and the vertices' direct transfer
-    ``direct`` (V, C) (``digest``: its hash, None for the SH lighting's): render.bounce_powers, kept
+    ``direct`` (V, C) (``digest``: its hash, None for the SH lighting's): bounce.bounce_powers, kept
     per geometry (the last BOUNCE_CACHE), so a new base colour costs a weighted sum of the terms."""
     key = (Geometry._layer_key(material), max_bounces, digest)
     if key not in geo._bounce_terms:

@@ -14,8 +14,10 @@ from pipeline.core import chart as core_chart
 from pipeline.core import lighting_scale, prt
 from pipeline.core.brdf import BRDF_PARAMS, Brdf
 from pipeline.core.candidate import Observations
+from pipeline.core.light_set import light_set
 from pipeline.core.material_search import KnownLighting
-from pipeline.core.render import Renderer, SceneGroups, light_set
+from pipeline.core.render import Renderer
+from pipeline.core.scene_groups import SceneGroups
 from pipeline.core.sh import num_coeffs, project_envmap
 from pipeline.errors import UserError
 from pipeline.io.brdf import parse_brdf_spec

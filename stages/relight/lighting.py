@@ -46,10 +46,10 @@ class AngularLighting:
     Lambertian object half of the map's power can be negative) that the fit's linear model relied
     on; clamping them at 0 (``clamp_sh``) adds their energy back as light, so by default the map
     keeps its sign (the reflection equation is linear in L: one signed light set renders B(L+) - B(L-),
-    render.light_set) and only the image is clamped at 0.  The renderer splits the map
+    light_set.light_set) and only the image is clamped at 0.  The renderer splits the map
     into bright full-resolution pixels and ``cell_height`` x 2 ``cell_height`` remainder cells with
     their exact solid angles, evaluates the full BRDF per direction and, with ``shadows``, casts
-    shadow rays once per mesh vertex (``board``: a render.BoardPlane that occludes too).
+    shadow rays once per mesh vertex (``board``: a render_view.BoardPlane that occludes too).
 
     A lobe sharper than the cells (it needs more SH bands than ``cell_height``, needed_order) would
     be point-sampled between directions and lose its energy; such a lobe is taken from the
@@ -212,7 +212,7 @@ class MaterialLightings:
 
 def bright_block(brdf: Brdf, env_height: int, cell_height: int) -> int:
     """Pixels per side of the blocks in which the renderer merges a map's broad bright pixels
-    (render.light_set's bright_block): a principled lobe's width 2 alpha over two of the map's
+    (light_set.light_set's bright_block): a principled lobe's width 2 alpha over two of the map's
     pixels (pi / H each), which the lobe cannot resolve, and no coarser than the remainder's
     cells; 1 (none merged) for other models."""
     if brdf.model != "principled":
@@ -222,12 +222,12 @@ def bright_block(brdf: Brdf, env_height: int, cell_height: int) -> int:
 
 
 def board_occluder(capture: Path):
-    """The capture's ChArUco board (capture.toml [board]) as a render.BoardPlane occluder, or None.
+    """The capture's ChArUco board (capture.toml [board]) as a render_view.BoardPlane occluder, or None.
 
     Only its rectangle matters here (it blocks the object's lower hemisphere as in the photos);
     its texture is not rendered.
     """
-    from pipeline.core.render import BoardPlane
+    from pipeline.core.render_view import BoardPlane
     from pipeline.io.capture_toml import read_capture_config
 
     spec = read_capture_config(capture).board

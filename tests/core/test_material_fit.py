@@ -147,11 +147,11 @@ def test_pattern_visibility_is_every_directions_own_shadow_rays(rng):
 
 def test_grey_bounce_terms_are_the_bounce_series(rng):
     """indirect_transfer's kept terms sum_i rho_c^i M^i E_d (one series for every base colour, the
-    three channels' bounce matrices equal) equal render.bounce_series' iteration E = M rho (E_d + E)
+    three channels' bounce matrices equal) equal bounce.bounce_series' iteration E = M rho (E_d + E)
     with its stopping rule, to rounding, on the Cycles teapot (spout, handle and lid bounce light
     onto the body): for Lambert and a dielectric, a dark and a bright base colour (few and many
     terms), the SH lighting's and a source's columns."""
-    from pipeline.core.render import bounce_series
+    from pipeline.core.bounce import bounce_series
 
     geo, mesh = teapot_geometry(rng, 4000, 4)
     assert geo.interreflects

@@ -12,8 +12,10 @@ import trimesh
 from pipeline.core.brdf import Brdf, cosine_weighted_brdf
 from pipeline.core.camera import Camera, look_at, pixel_centers, pixel_rays
 from pipeline.core.envmap import equirect_directions, equirect_solid_angles
+from pipeline.core.light_set import light_set
 from pipeline.core.procedural_envmaps import ENV_PARAMS, make_envmap, smooth_coefficients
-from pipeline.core.render import InsideMeshError, Renderer, light_set
+from pipeline.core.render import Renderer
+from pipeline.core.render_view import InsideMeshError, render_view
 from pipeline.raycast import ray_mesh
 
 RADIUS = 0.1
@@ -51,7 +53,7 @@ def test_lambert_sphere_matches_closed_form_irradiance():
     env = make_envmap("smooth", 64)
     renderer = Renderer(ray_mesh(sphere()), env, Brdf("lambert", albedo=[1.0, 1.0, 1.0]), shadows=False, cell_height=64)
     camera, R, t = view()
-    result = renderer.render(camera, R, t)
+    result = render_view(renderer, camera, R, t)
     normals, disc = analytic_sphere_normals(camera, R, t, result.object_mask)
     interior = disc > 0.05 * RADIUS**2  # silhouette pixels hit the facets, not the analytic sphere
     c, a, q = smooth_coefficients()
@@ -75,7 +77,7 @@ def test_white_furnace_lambert_returns_the_radiance():
     env = make_envmap("constant", 32, value=2.0)
     for shadows in (False, True):
         renderer = Renderer(ray_mesh(sphere(4)), env, Brdf("lambert", albedo=[1.0, 1.0, 1.0]), shadows=shadows, cell_height=32)
-        result = renderer.render(*view())
+        result = render_view(renderer, *view())
         got = result.radiance[result.object_mask]
         if not shadows:
             np.testing.assert_allclose(got, 2.0, rtol=5e-3)
@@ -92,7 +94,7 @@ def test_microfacet_lobe_never_returns_more_than_it_receives(roughness):
     env = make_envmap("constant", 64)
     brdf = Brdf("microfacet", albedo=[0.0, 0.0, 0.0], specular=[1.0, 1.0, 1.0], roughness=roughness)
     renderer = Renderer(ray_mesh(sphere(4)), env, brdf, shadows=False, cell_height=64)
-    result = renderer.render(*view())
+    result = render_view(renderer, *view())
     got = result.radiance[result.object_mask]
     # 64-row pixel quadrature of a lobe of width >= 0.15 rad: error measured < 0.5 %; bound 1 %
     assert got.max() <= 1.01
@@ -236,7 +238,7 @@ def test_bright_blocks_the_lobe_cannot_resolve_leave_the_render_as_it_was():
     camera, R, t = view(32)
     brdf = Brdf("principled", base_color=[0.6, 0.4, 0.2], roughness=0.5)
     env = _glow_and_lamp()
-    images = [Renderer(ray_mesh(sphere(4)), env, brdf, shadows=False, bright_block=b).render(camera, R, t) for b in (1, 4)]
+    images = [render_view(Renderer(ray_mesh(sphere(4)), env, brdf, shadows=False, bright_block=b), camera, R, t) for b in (1, 4)]
     mask = images[0].object_mask
     a, b = images[0].radiance[mask], images[1].radiance[mask]
     rel = np.abs(b - a).max(axis=1) / a.max(axis=1)
@@ -258,7 +260,7 @@ def test_camera_inside_a_closed_mesh_is_refused():
     camera = Camera("PINHOLE", 16, 16, (16.0, 16.0, 8.0, 8.0))
     R, t = look_at(np.array([0.0, 0.0, 0.01]), np.array([1.0, 0.0, 0.0]))
     with pytest.raises(InsideMeshError):
-        renderer.render(camera, R, t)
+        render_view(renderer, camera, R, t)
 
 
 def test_principled_white_furnace_through_the_renderer():
@@ -269,7 +271,7 @@ def test_principled_white_furnace_through_the_renderer():
     camera, R, t = view(48)
     for roughness in (0.15, 0.5):
         brdf = Brdf("principled", base_color=[1.0, 1.0, 1.0], roughness=roughness)
-        result = Renderer(ray_mesh(sphere(4)), make_envmap("constant", 32), brdf, shadows=False).render(camera, R, t)
+        result = render_view(Renderer(ray_mesh(sphere(4)), make_envmap("constant", 32), brdf, shadows=False), camera, R, t)
         values = result.radiance[result.object_mask]
         assert abs(values.mean() - 1.0) < 3e-3 and np.abs(values - 1.0).max() < 0.05, (roughness, values.min(), values.max())
 
@@ -287,8 +289,8 @@ def test_interreflection_closes_the_furnace_of_a_concave_object():
     brdf = Brdf("lambert", albedo=[1.0, 1.0, 1.0])
     camera, R, t = view(48, eye=(0.05, 0.02, 0.5))
     env = make_envmap("constant", 32)
-    lit = Renderer(ray_mesh(bowl), env, brdf, shadows=True, max_bounces=64).render(camera, R, t)
-    dark = Renderer(ray_mesh(bowl), env, brdf, shadows=True, interreflection=False).render(camera, R, t)
+    lit = render_view(Renderer(ray_mesh(bowl), env, brdf, shadows=True, max_bounces=64), camera, R, t)
+    dark = render_view(Renderer(ray_mesh(bowl), env, brdf, shadows=True, interreflection=False), camera, R, t)
     with_bounces, without = lit.radiance[lit.object_mask], dark.radiance[dark.object_mask]
     assert np.median(without) < 0.5  # concavity matters: the test can fail
     assert abs(with_bounces.mean() - 1.0) < 0.01 and np.percentile(with_bounces, 5) > 0.93, (

@@ -11,6 +11,7 @@ from pipeline.core.brdf import Brdf
 from pipeline.core.camera import Camera, look_at
 from pipeline.core.procedural_envmaps import make_envmap
 from pipeline.core.render import Renderer
+from pipeline.core.render_view import render_view
 from pipeline.io.camera_decode import decode_raw
 from pipeline.io.camera_files import (
     DNG_BLACK,
@@ -39,9 +40,8 @@ def rendered() -> tuple[np.ndarray, np.ndarray]:
     mesh = trimesh.creation.icosphere(subdivisions=4, radius=0.1)
     camera = Camera("PINHOLE", 64, 64, (150.0, 150.0, 32.0, 32.0))
     R, t = look_at(np.array([0.4, 0.2, 0.2]), np.zeros(3))
-    result = Renderer(ray_mesh(mesh), make_envmap("overcast", 32), Brdf("lambert", albedo=[0.6, 0.5, 0.4]), shadows=False).render(
-        camera, R, t
-    )
+    scene = Renderer(ray_mesh(mesh), make_envmap("overcast", 32), Brdf("lambert", albedo=[0.6, 0.5, 0.4]), shadows=False)
+    result = render_view(scene, camera, R, t)
     interior = cv2.erode(result.object_mask.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
     return result.radiance.astype(float), interior
 

@@ -11,6 +11,7 @@ from pipeline.commands.bench import BenchRow
 from pipeline.core.brdf import Brdf
 from pipeline.core.procedural_envmaps import make_envmap
 from pipeline.core.render import Renderer
+from pipeline.core.render_view import render_view
 from pipeline.raycast import ray_mesh
 from pipeline.synth import SynthSettings, load_mesh, make_views
 
@@ -43,9 +44,9 @@ def synth_suite(quick: bool, repeat: int) -> list:
             note = f"{Path(mesh_spec).name}, {len(renderer.lights)} light directions, 128x64 env"
             for label, pose in (("first view", poses[0]), ("second view", poses[1])):
                 start = time.perf_counter()
-                renderer.render(camera, *pose)
+                render_view(renderer, camera, *pose)
                 rows.append(BenchRow(f"{case}, {label}", 0, f"{size}x{size}", time.perf_counter() - start, "s/view", note))
-            best = min(_timed(lambda: renderer.render(camera, *poses[0])) for _ in range(max(1, repeat)))
+            best = min(_timed(lambda: render_view(renderer, camera, *poses[0])) for _ in range(max(1, repeat)))
             rows.append(BenchRow(f"{case}, cached visibility", 0, f"{size}x{size}", best, "s/view", note))
     return rows
 
