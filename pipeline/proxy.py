@@ -8,7 +8,7 @@ The approximation: the light bounced between parts of the object is that of the 
 to an edge length of PROXY_PIXELS photo pixels (the photos' median footprint on the surface,
 pipeline.core.atlas.photo_footprint_m), the full mesh's vertex v taking the proxy's value at the
 proxy's closest point to v (barycentric in the proxy's face).  Interreflection is a diffuse,
-low-frequency part of the radiance (its SH bands <= 4, prt.INDIRECT_ORDER), so detail finer than a
+low-frequency part of the radiance (its SH bands <= 4, interreflection.INDIRECT_ORDER), so detail finer than a
 few pixels changes it little; docs/fit.md (Speed) has the measured error.  Meshes with fewer than
 PROXY_MIN_RATIO times the proxy's faces get no proxy: their numbers are exactly as without it.
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from pipeline.core import prt
+from pipeline.core.interreflection import indirect_transfer
 from pipeline.io.mesh import read_mesh
 from pipeline.proxy import build_proxy, proxy_faces, with_proxy
 from pipeline.raycast import ray_mesh
@@ -26,7 +27,7 @@ def _points(mesh, n: int, seed: int = 1):
 def _radiance(rm, faces, bary, view, seed: int = 0):
     """(direct, interreflected) irradiance (N, 3) under SKY at base colour 0.8, SH order 4."""
     g = prt.geometry(rm, faces, bary, view, 4, seed=seed)
-    indirect = prt.indirect_transfer(g, None, np.array([0.8, 0.8, 0.8]))
+    indirect = indirect_transfer(g, None, np.array([0.8, 0.8, 0.8]))
     return g.direct @ SKY, np.einsum("pkc,kc->pc", indirect, SKY)
 
 

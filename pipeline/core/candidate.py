@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.core import prt, solve
+from pipeline.core.interreflection import indirect_transfer
 from pipeline.core.material import Principled
 from pipeline.core.sh import num_coeffs
 from pipeline.core.threads import thread_map
@@ -42,7 +43,7 @@ def per_unit_base_channel(
     kd = (layer[:, c] / np.pi)[:, None]
     out = np.multiply(geo.direct[:, :k], kd, out=out)
     if indirect is not None:
-        ki = min(k, indirect.shape[1])  # the interreflection's bands (prt.INDIRECT_ORDER)
+        ki = min(k, indirect.shape[1])  # the interreflection's bands (interreflection.INDIRECT_ORDER)
         out[:, :ki] += indirect[:, :ki, c] * kd
     if spec is not None and spec.scaled is not None:
         out += spec.scaled[:, :k, c]
@@ -136,8 +137,8 @@ class Candidate:
     _blocks: dict = field(default_factory=dict, repr=False, compare=False)  # base_blocks() per channel
 
     def indirect(self, base: np.ndarray, vertex_direct: np.ndarray | None = None) -> np.ndarray:
-        """prt.indirect_transfer at base colour ``base`` (of the SH lighting, or of ``vertex_direct``'s columns)."""
-        return prt.indirect_transfer(self.geo, self.material, base, self.max_bounces, vertex_direct)
+        """interreflection.indirect_transfer at base colour ``base`` (of the SH lighting, or of ``vertex_direct``'s columns)."""
+        return indirect_transfer(self.geo, self.material, base, self.max_bounces, vertex_direct)
 
     def system(self, base: np.ndarray, order: int | None = None) -> ShSystem:
         """The SH lighting's system of the design at base colour ``base`` (to ``order``, default the

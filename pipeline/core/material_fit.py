@@ -10,40 +10,31 @@ The material is found around that:
   and base colour have an absolute scale: scaling L by s and rho by 1 / s keeps the diffuse part
   and scales the specular one.  The joint start solves for X_c = rho_c L_c and L_c together
   (linear) and reads rho_c off the low bands (rho_c = <X_c, L_c> / <L_c, L_c>); then rho_c is
-  searched per channel with the lighting refitted at every value (_base_search);
+  searched per channel with the lighting refitted at every value (pipeline.core.base_search);
 * roughness: each candidate is a full fit, compared on held-out views (pipeline.core.solve
   cross_validate_orders).  A Lambertian object has no such anchor: its scale follows the
   fit's convention (a known or default albedo);
 * directional sources (the lighting's dual angular part) by matching pursuit
-  (pipeline.core.sources), on the candidate's linear system (pipeline.core.candidate).
+  (pipeline.core.sources), on the candidate's linear system (pipeline.core.candidate);
+* the lighting for a fixed base colour and its final search (order, prior, sources kept) in
+  pipeline.core.lighting_search; the lighting's detail part's map in pipeline.core.detail_map.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import NamedTuple
 
 import numpy as np
 
 from pipeline.core import prt, solve
-from pipeline.core.candidate import (
-    Candidate,
-    Observations,
-    ShSystem,
-    gram_with_columns,
-    joint_start,
-)
+from pipeline.core.base_search import search_base
+from pipeline.core.candidate import Candidate, Observations, joint_start
+from pipeline.core.detail_map import Detail, held_out_detail
+from pipeline.core.interreflection import indirect_transfer
+from pipeline.core.lighting_search import LightingChoice, lighting_given_base, lighting_search
 from pipeline.core.material import Principled, brdf_from_material
-from pipeline.core.selection import parabola_minimum
-from pipeline.core.sh import envmap_from_sh, num_coeffs, order_of, project_envmap
-from pipeline.core.sources import (
-    Sources,
-    add_sources,
-    source_columns,
-    source_intensities,
-    source_per_unit_base,
-)
-from pipeline.core.threads import thread_map
+from pipeline.core.sh import num_coeffs, order_of
+from pipeline.core.sources import Sources, add_sources, source_columns, source_per_unit_base
 
 
 @dataclass
@@ -91,7 +82,7 @@ def fit_material(
     ``spec``: its specular transfer (prt.specular_transfer; None for Lambert).  ``base0``: the
     start, kept when ``fix_base`` (the known-material mode).  Base colour: with a specular layer
     and unknown lighting, per channel the rho_c minimizing the training residual with the lighting
-    refitted (_base_search: channels are independent, a 1-D search on a log grid of ``base_grid``
+    refitted (search_base: channels are independent, a 1-D search on a log grid of ``base_grid``
     values in [0.02, 1], refined by a parabola); Lambert: the chromaticity by least squares, the mean kept
     at base0's (the scale convention); known lighting: least squares.
     Up to ``max_sources`` directional sources join the SH lighting, one at a time after the first
@@ -128,7 +119,7 @@ def fit_material(
     if not fix_base:
         base = _fit_base_colour(cand, base, float(np.mean(base0)), sources, known, base_grid)
     # the design and source columns at the final base colour (and the sources' intensities for it)
-    _, _, system, src_cols = _lighting_given_base(cand, base, sources, 8, known)
+    _, _, system, src_cols = lighting_given_base(cand, base, sources, 8, known)
     target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
     if known is not None:
         w = obs.weight
@@ -181,46 +172,11 @@ def tries_detail(detail: "DetailSetup | None", material: Principled | None, fix_
 @dataclass(frozen=True)
 class DetailSetup:
     """How the lighting's detail part is fitted: lobe samples per sample and their seed
-    (prt.detail_transfer), and SIRT iterations (fit_detail_map)."""
+    (prt.detail_transfer), and SIRT iterations (detail_map.fit_detail_map)."""
 
     lobe_samples: int = 32
     seed: int = 0
     iterations: int = 5
-
-
-@dataclass
-class Detail:
-    """The lighting's detail part as a fit uses it: an H x 2H map (``height`` rows) of what the SH
-    bands above the fit's order hold, seen by the specular lobe only (a diffuse layer filters it
-    out: R&H 2001, the clamped cosine's bands above 2 carry < 1 %), and each sample's detail
-    radiance (N, 3) from the map fitted without the sample's fold; ``validation_rmse_without``:
-    the held-out RMSE of the same candidate without it."""
-
-    height: int
-    radiance: np.ndarray
-    validation_rmse_without: float
-
-
-def fit_detail_map(
-    transfer, residual: np.ndarray, weight: np.ndarray, order: int, height: int, iterations: int = 5
-) -> np.ndarray:
-    """A detail map (H * 2H, 3) through detail transfer ``transfer`` (N, H * 2H; prt.detail_transfer)
-    from the residual (N, 3) of the SH + sources fit: SIRT (Gilbert 1972: x += T^T W (r - T x) /
-    (T^T W T 1)) projected after every step onto maps without SH bands <= ``order`` (those are the
-    SH lighting's, which the diffuse layer sees too and which keep the lighting / base colour scale
-    that the specular layer's Fresnel fixes).  Few iterations: stopping early is the
-    regularization (the Cycles night sphere at roughness 0.15: 5 iterations, held-out RMSE 0.0116
-    and base colour green 0.417 for 0.45; 20 iterations with the map refitted three times, 0.0121
-    and 0.383)."""
-    w = np.asarray(weight, float)
-    norm = np.asarray(transfer.T @ (w * np.asarray(transfer.sum(axis=1)).ravel())).ravel()
-    norm = norm + 1e-3 * max(float(norm.max()), 1e-300)  # cells no sample sees stay 0
-    detail = np.zeros((transfer.shape[1], residual.shape[1]))
-    for _ in range(iterations):
-        detail += (transfer.T @ (w[:, None] * (residual - transfer @ detail))) / norm[:, None]
-        m = detail.reshape(height, 2 * height, -1)
-        detail = (m - envmap_from_sh(project_envmap(m, order), height)).reshape(detail.shape)
-    return detail
 
 
 def _fit_base_colour(
@@ -229,10 +185,10 @@ def _fit_base_colour(
     """fit_material's base colour (3,) from the start ``base``: with the lighting known or no
     specular layer, least squares in rho given the lighting, alternated with the interreflection
     (Lambert with the lighting unknown: the chromaticity only, its mean kept at ``level``, the
-    scale convention's); else the per-channel search with the lighting refitted (_base_search)."""
+    scale convention's); else the per-channel search with the lighting refitted (search_base)."""
     if known is not None or cand.spec is None:
         for _ in range(4):
-            coeffs = _lighting_given_base(cand, base, sources, 4, known)[0]
+            coeffs = lighting_given_base(cand, base, sources, 4, known)[0]
             new = _base_least_squares(cand, base, sources, coeffs)
             if cand.spec is None and known is None:
                 new *= level / float(np.mean(new))
@@ -246,21 +202,8 @@ def _fit_base_colour(
     # lighting's DC as rho changes, so that no rho is favoured by a relatively weaker prior
     ridge_dc2 = start.ridge * float(np.mean(start.coeffs[0] ** 2))
     for _ in range(2 if cand.geo.interreflects else 1):  # the second with the interreflection of the first's rho
-        base = _base_search(cand, base, sources, ridge_dc2, grid)
+        base = search_base(cand, base, sources, ridge_dc2, grid)
     return base
-
-
-def held_out_detail(
-    transfer, residual: np.ndarray, obs: Observations, order: int, height: int, iterations: int = 5
-) -> np.ndarray:
-    """Each sample's detail radiance (N, 3) through the map fitted (fit_detail_map) on the other folds."""
-    out = np.zeros_like(residual)
-    for k in np.unique(obs.fold):
-        train, test = obs.fold != k, obs.fold == k
-        out[test] = transfer[test] @ fit_detail_map(
-            transfer[train], residual[train], obs.weight[train], order, height, iterations
-        )
-    return out
 
 
 def with_detail(
@@ -326,7 +269,7 @@ def lambert_held_out(
     if fit.sources is not None:
         sources = Sources(fit.sources.transfer, fit.sources.power * fit.base / base)
     cand = Candidate(geo, obs, None, layer, None, order, folds, lighting_kw, max_bounces)
-    _, _, system, src_cols = _lighting_given_base(cand, base, sources, 4, None)
+    _, _, system, src_cols = lighting_given_base(cand, base, sources, 4, None)
     target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
     return np.asarray(
         solve.cross_validate_orders(system.equations(target), [order], None, **lighting_kw)[0]["validation_rmse_per_channel"]
@@ -410,13 +353,13 @@ def refine_lighting(
         )
     keep = list(range(0 if fit.sources is None else len(fit.sources.power)))
     table: list[dict] = []
-    best = _lighting_search(system, obs, fit.sources, src_cols, keep, list(range(order + 1)), priors, lighting_kw, table)
+    best = lighting_search(system, obs, fit.sources, src_cols, keep, list(range(order + 1)), priors, lighting_kw, table)
     # backward elimination at the best order and prior: a source the richer SH makes redundant is
     # dropped while that lowers the held-out error (the pursuit kept it against the cheaper lighting)
     kept = keep
     while keep:
         drops = {
-            j: _lighting_search(
+            j: lighting_search(
                 system, obs, fit.sources, src_cols, [k for k in keep if k != j], [best.order], [best.prior], lighting_kw, table
             )
             for j in keep
@@ -426,7 +369,7 @@ def refine_lighting(
             break
         best, keep = drops[j], [k for k in keep if k != j]
     if keep != kept:  # the order and prior chosen again for the sources left
-        best = _lighting_search(system, obs, fit.sources, src_cols, keep, list(range(order + 1)), priors, lighting_kw, table)
+        best = lighting_search(system, obs, fit.sources, src_cols, keep, list(range(order + 1)), priors, lighting_kw, table)
     base = fit.base
     if refit_base and spec is not None:
         base, best = _refit_base(cand, fit, best, keep, base_grid, table)
@@ -446,9 +389,9 @@ def refine_lighting(
 
 
 def _refit_base(
-    cand: Candidate, fit: MaterialFit, best: "_LightingChoice", keep: list[int], grid: int, table: list
-) -> tuple[np.ndarray, "_LightingChoice"]:
-    """refine_lighting's base colour chromaticity: the base colour search (_base_search) again at
+    cand: Candidate, fit: MaterialFit, best: "LightingChoice", keep: list[int], grid: int, table: list
+) -> tuple[np.ndarray, "LightingChoice"]:
+    """refine_lighting's base colour chromaticity: the base colour search (search_base) again at
     the chosen lighting's order and prior with its sources ``keep`` (indices into fit.sources), the
     level (sum_c s_c rho_c, s_c the channel's weighted radiance) kept at the fit's, the SH and the
     sources' intensities refitted there -> (base colour, lighting choice), the fit's own where the
@@ -463,7 +406,7 @@ def _refit_base(
     ridge_dc2 = best.fit.ridge * float(np.mean(best.fit.coeffs[0] ** 2))
     base = fit.base
     for _ in range(2 if cand.geo.interreflects else 1):  # the second with the interreflection of the first's rho
-        base = _base_search(at, base, sources, ridge_dc2, grid)
+        base = search_base(at, base, sources, ridge_dc2, grid)
     share = (cand.obs.weight[:, None] * cand.obs.radiance).sum(axis=0)
     base = base * float(share @ fit.base) / float(share @ base)
     base = np.clip(base, 1e-3, 1.0)
@@ -473,167 +416,10 @@ def _refit_base(
             cand.geo, cand.layer, fit.sources.transfer, cand.indirect(base, fit.sources.transfer.vertex_direct), base
         )
     rows = len(table)
-    again = _lighting_search(cand.system(base), cand.obs, fit.sources, src_cols, keep, [best.order], [best.prior], cand.kw, table)
+    again = lighting_search(cand.system(base), cand.obs, fit.sources, src_cols, keep, [best.order], [best.prior], cand.kw, table)
     for row in table[rows:]:
         row["base_color"] = [float(x) for x in base]
     return (base, again) if again.validation_rmse < best.validation_rmse else (fit.base, best)
-
-
-class _LightingChoice(NamedTuple):
-    """_lighting_search's best: its held-out RMSE, SH fit, cross_validate_orders table, sources, prior."""
-
-    validation_rmse: float
-    fit: solve.LightingFit
-    orders: list
-    sources: Sources | None
-    prior: float
-
-    @property
-    def order(self) -> int:
-        return order_of(self.fit.coeffs.shape[0])
-
-
-def _lighting_search(
-    system: "ShSystem",
-    obs: Observations,
-    sources: Sources | None,
-    src_cols: np.ndarray | None,
-    keep: list[int],
-    orders: list[int],
-    priors: list[float],
-    lighting_kw: dict,
-    table: list,
-) -> _LightingChoice:
-    """refine_lighting's search with the sources ``keep`` (indices) of ``sources`` (their columns
-    ``src_cols`` (3, N, J)): SH ``orders`` x ``priors`` by held-out views, the sources' intensities
-    refitted once around the best SH; a row per prior and source update added to ``table``."""
-    a = system.a
-    if not keep:
-        sources = src_cols = None
-    elif sources is not None:
-        sources = Sources(sources.transfer.subset(keep), sources.power[keep].copy())
-        src_cols = src_cols[..., keep]
-    best = None
-    for update in range(2 if sources is not None else 1):
-        if update:  # the sources' intensities around the best SH, then the SH again
-            sources = Sources(
-                sources.transfer,
-                source_intensities(
-                    src_cols,
-                    obs.radiance - np.einsum("cpk,kc->pc", a[:, :, : best.fit.coeffs.shape[0]], best.fit.coeffs),
-                    obs.weight,
-                ),
-            )
-        target = obs.radiance if sources is None else obs.radiance - np.einsum("cpj,jc->pc", src_cols, sources.power)
-        eqs = system.equations(target)
-        for prior in priors:
-            cands = solve.cross_validate_orders(eqs, orders, None, **{**lighting_kw, "band_prior": prior})
-            i = min(range(len(cands)), key=lambda j: cands[j]["validation_rmse"])
-            table.append(
-                {
-                    "band_prior": prior,
-                    "order": cands[i]["order"],
-                    "sources_refitted": bool(update),
-                    "sources": len(keep),
-                    "validation_rmse": cands[i]["validation_rmse"],
-                    "train_rmse": cands[i]["train_rmse"],
-                }
-            )
-            if best is None or cands[i]["validation_rmse"] < best.validation_rmse:
-                best = _LightingChoice(cands[i]["validation_rmse"], cands[i]["fit"], cands, sources, prior)
-    return best
-
-
-BASE_FREE_ORDER = 2
-
-
-def _base_search(cand: Candidate, base: np.ndarray, sources: Sources | None, ridge_dc2: np.ndarray, grid: int) -> np.ndarray:
-    """rho (3,): per channel the value on a log grid of ``grid`` points in [0.02, 1] (refined by a
-    parabola) whose training RSS is least with the lighting — SH and source intensities jointly,
-    with the SH ridge ``ridge_dc2`` (K,) / L_0^2 (the DC of an unregularized solve at that rho) above
-    band BASE_FREE_ORDER — refitted.
-    The design rho_c P_c + S_c makes the normal equations quadratic in rho_c; their blocks are the
-    candidate's base-independent grams (base_blocks) updated with the columns that depend on the
-    base (the interreflection's first bands, taken at ``base``, and the sources'); the channels are
-    independent."""
-    obs, layer = cand.obs, cand.layer
-    k = num_coeffs(cand.order)
-    w = obs.weight
-    indirect = cand.indirect(base)
-    ki = min(k, indirect.shape[1])  # the interreflection's bands (prt.INDIRECT_ORDER)
-    n_src = 0 if sources is None else sources.directions.shape[0]
-    n = k + n_src
-    if sources is not None:
-        st = sources.transfer
-        src_scaled = source_per_unit_base(layer, st, cand.indirect(base, st.vertex_direct))
-        src_spec = st.specular if st.specular is not None else np.zeros_like(src_scaled)
-    at_p = np.concatenate([np.arange(ki), np.arange(k, n)])  # P's base-dependent columns
-    at_s = np.arange(k, n)  # S's (the sources' specular)
-    reg = np.concatenate([np.asarray(ridge_dc2, float)[:k], np.zeros(n_src)])
-    reg[: num_coeffs(BASE_FREE_ORDER)] = 0.0
-    betas = np.geomspace(0.02, 1.0, grid)
-    for c in range(3):  # before the threads: base_blocks fills a cache the channels share
-        cand.base_blocks(c)
-
-    def channel(c: int) -> float:
-        blocks = cand.base_blocks(c)
-        x_p = indirect[:, :ki, c] * (layer[:, c] / np.pi)[:, None]
-        x_s = np.zeros((len(w), 0))
-        if sources is not None:
-            x_p = np.concatenate([x_p, src_scaled[..., c]], axis=1)
-            x_s = src_spec[..., c]
-        b = obs.radiance[:, c]
-        dd = gram_with_columns(blocks.qq, blocks.q, blocks.q, w, n, x_p, at_p, x_p, at_p)
-        ds = gram_with_columns(blocks.qs, blocks.q, blocks.s, w, n, x_p, at_p, x_s, at_s)
-        ss = gram_with_columns(blocks.ss, blocks.s, blocks.s, w, n, x_s, at_s, x_s, at_s)
-        wb = w * b
-        hd = np.concatenate([blocks.q.T @ wb, np.zeros(n_src)])
-        hd[at_p] += x_p.T @ wb
-        hs = np.concatenate([blocks.s.T @ wb, x_s.T @ wb])
-        bb = float(b @ wb)
-
-        def rss(beta: float) -> float:
-            g = beta * beta * dd + beta * (ds + ds.T) + ss
-            h = beta * hd + hs
-            eps = 1e-10 * np.trace(g) / len(g)
-            dc2 = float(np.linalg.solve(g + eps * np.eye(len(g)), h)[0] ** 2)
-            x = np.linalg.solve(g + np.diag(reg / max(dc2, 1e-300) + eps), h)
-            return bb - 2.0 * float(x @ h) + float(x @ g @ x)
-
-        return parabola_minimum(betas, np.array([rss(bt) for bt in betas]))
-
-    return np.array(thread_map(channel, range(3)))  # a channel per thread
-
-
-def _lighting_given_base(
-    cand: Candidate, base: np.ndarray, sources: Sources | None, inner: int, known: np.ndarray | None
-) -> tuple[np.ndarray, np.ndarray, ShSystem, np.ndarray | None]:
-    """SH lighting (K, 3) for a fixed base colour (``known``: that lighting), alternating with the
-    sources' intensities (updated in ``sources``) ``inner`` times; the weighted training RSS per
-    channel (3,); the SH system of the design (3, N, K) and the sources' columns (3, N, J) or None
-    it used."""
-    obs = cand.obs
-    w = obs.weight
-    system = cand.system(base)
-    src_cols = None
-    if sources is not None:
-        src_ind = cand.indirect(base, sources.transfer.vertex_direct)
-        src_cols = source_columns(cand.geo, cand.layer, sources.transfer, src_ind, base)
-
-    def sh_fit():
-        if known is not None:
-            return known
-        return system.solve(obs.radiance - (0.0 if sources is None else np.einsum("cpj,jc->pc", src_cols, sources.power))).coeffs
-
-    coeffs = sh_fit()
-    if sources is not None and known is None:
-        for _ in range(inner):
-            sources.power = source_intensities(src_cols, obs.radiance - system.predict(coeffs), w)
-            coeffs = sh_fit()
-    pred = system.predict(coeffs)
-    if sources is not None:
-        pred += np.einsum("cpj,jc->pc", src_cols, sources.power)
-    return coeffs, (w[:, None] * (obs.radiance - pred) ** 2).sum(axis=0), system, src_cols
 
 
 def _base_least_squares(cand: Candidate, base: np.ndarray, sources: Sources | None, coeffs: np.ndarray) -> np.ndarray:
@@ -652,7 +438,7 @@ def shading_parts(
     if fit.parts is not None:
         return fit.parts
     layer = geo.sample_layer(fit.material)
-    indirect = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces)
+    indirect = indirect_transfer(geo, fit.material, fit.base, max_bounces)
     k = fit.coeffs.shape[0]
     ki = min(k, indirect.shape[1])
     # per_unit_base_channel's transfer times the lighting, without building it (3, N, K)
@@ -662,7 +448,7 @@ def shading_parts(
     specular = np.zeros_like(shade) if spec is None else np.einsum("pkc,kc->pc", spec.fixed[:, :k], fit.coeffs)
     if fit.sources is not None:
         st = fit.sources.transfer
-        src_ind = prt.indirect_transfer(geo, fit.material, fit.base, max_bounces, st.vertex_direct)
+        src_ind = indirect_transfer(geo, fit.material, fit.base, max_bounces, st.vertex_direct)
         shade += np.einsum("pjc,jc->pc", source_per_unit_base(layer, st, src_ind), fit.sources.power)
         if st.specular is not None:
             specular += np.einsum("pjc,jc->pc", st.specular, fit.sources.power)

@@ -10,9 +10,9 @@ from fit_scenes import sphere_geometry
 
 from pipeline.core import prt
 from pipeline.core.candidate import Observations
+from pipeline.core.detail_map import fit_detail_map, held_out_detail
 from pipeline.core.envmap import equirect_directions
 from pipeline.core.material import Principled
-from pipeline.core.material_fit import fit_detail_map, held_out_detail
 from pipeline.core.sh import envmap_from_sh, num_coeffs, project_envmap
 
 

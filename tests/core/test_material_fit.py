@@ -10,6 +10,7 @@ from fit_scenes import sphere_geometry
 
 from pipeline.core import prt
 from pipeline.core.candidate import Observations
+from pipeline.core.interreflection import indirect_transfer
 from pipeline.core.material import Principled
 from pipeline.core.material_fit import LEVEL_XTOL, albedo_level, fit_material
 from pipeline.core.sh import num_coeffs
@@ -168,7 +169,7 @@ def test_grey_bounce_terms_are_the_bounce_series(rng):
                     8,
                 )
                 expected = np.einsum("pj,pjkc->pkc", geo.bary, series[geo.tri])
-                got = prt.indirect_transfer(geo, material, base, vertex_direct=vertex_direct)
+                got = indirect_transfer(geo, material, base, vertex_direct=vertex_direct)
                 assert np.abs(expected).max() > 1e-3
                 np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * np.abs(expected).max())
 

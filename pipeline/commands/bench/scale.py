@@ -5,7 +5,7 @@ The mesh: sample_data/meshes/stanford-bunny.obj (69 k faces) scaled to 0.2 m and
 and 2 times (midpoint: 278 k, 1.1 M faces; --quick: 0 and 1).  Per case, in a fresh process (its
 peak RSS its own): the transfer of 30 000 samples (the fit's --physical-samples) at random points,
 SH order 8, 64 bounce rays per vertex (prt.geometry: the samples' direct transfer with the vertices'
-visibility, the vertices' transfer and bounce rays) and one interreflection (prt.indirect_transfer),
+visibility, the vertices' transfer and bounce rays) and one interreflection (interreflection.indirect_transfer),
 at a footprint of 0.5 mm per pixel (12 views of 512 x 384 around a 0.2 m object).  Writes
 DIR/bench_scale.csv and DIR/scale.png (log-log, slopes in the legend).  A benchmark, never a test: each
 case runs once (2 cores, shared).
@@ -36,6 +36,7 @@ def _worker(subdivisions: int, proxy: bool) -> dict:
     import trimesh
 
     from pipeline.core import prt
+    from pipeline.core.interreflection import indirect_transfer
     from pipeline.proxy import with_proxy
     from pipeline.raycast import ray_mesh
 
@@ -55,7 +56,7 @@ def _worker(subdivisions: int, proxy: bool) -> dict:
     geo = prt.geometry(rm, faces, bary, np.asarray(mesh.face_normals)[faces], ORDER)
     out["transfer"] = time.perf_counter() - t
     t = time.perf_counter()
-    prt.indirect_transfer(geo, None, np.array([0.6, 0.5, 0.4]))
+    indirect_transfer(geo, None, np.array([0.6, 0.5, 0.4]))
     out["interreflection"] = time.perf_counter() - t
     out["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     return out
