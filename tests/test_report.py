@@ -23,7 +23,8 @@ from pipeline.core.sh import sh_evaluate
 from pipeline.core.shading import specular_samples
 from pipeline.core.transfer import irradiance_from_sh
 from pipeline.io.images import read_image
-from pipeline.report import build_report, principled_sphere, texture_views
+from pipeline.report import build_report
+from pipeline.report.figures import principled_sphere, texture_views
 
 SAMPLE = Path(__file__).parents[1] / "sample_data" / "capture"
 
