@@ -21,8 +21,9 @@ from pathlib import Path
 
 from pipeline import STAGES
 from pipeline.errors import UserError
+from pipeline.io.run_summary import relight_check, summary_lines
 from pipeline.logs import progress
-from pipeline.runner import relight_argument
+from pipeline.runner import RunPlan, check_capture, relight_argument, run_capture
 from pipeline.workdir import make_folder, write_text
 
 HELP = "Run many captures (sigrend run each) as tasks on Dask distributed: a local cluster or an existing scheduler."
@@ -96,9 +97,6 @@ def run_one(
     from threadpoolctl import threadpool_limits
 
     os.environ["TQDM_DISABLE"] = "1"  # no progress bars or stage listings in the workers' logs
-
-    from pipeline.io.run_summary import relight_check, summary_lines
-    from pipeline.runner import RunPlan, check_capture, run_capture
 
     row = {"capture": capture, "work": work}
     try:

@@ -18,7 +18,7 @@ import sys
 import threading
 import warnings
 
-from pipeline import STAGES
+from pipeline import STAGES, __version__
 from pipeline.errors import UserError
 from pipeline.logs import configure as configure_logging
 from pipeline.settings import HelpFormatter
@@ -39,7 +39,7 @@ COMMANDS = {
 
 def _command_module(name: str):
     if name in STAGE_COMMANDS:
-        from pipeline.runner import stage_command
+        from pipeline.runner import stage_command  # lazy: the runner imports every stage; other commands start without them
 
         return stage_command(name)
     return importlib.import_module(COMMANDS[name])
@@ -61,7 +61,6 @@ class OneLineParser(argparse.ArgumentParser):
 def build_parser(selected: str | None = None) -> argparse.ArgumentParser:
     """The full parser; modules are imported only for ``selected`` (or all, for --help)."""
     parser = OneLineParser(prog="sigrend", description="Lighting and BRDF from photos of a known shape, in frequency space.")
-    from pipeline import __version__
 
     parser.add_argument("--version", action="version", version=f"sigrend {__version__}")
     parser.add_argument(

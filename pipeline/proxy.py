@@ -21,6 +21,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from pipeline.core.atlas import photo_footprint_m
+from pipeline.core.camera import camera_center
+from pipeline.core.surface import barycentric
 from pipeline.raycast import RayMesh, ray_mesh
 
 PROXY_PIXELS = 2.0  # the proxy's edge length in photo pixels (4: the Cycles bunny relit 1.62 -> 2.25 %; 2: 1.60 %)
@@ -80,8 +83,6 @@ def closest_points(proxy: RayMesh, points: np.ndarray, normals: np.ndarray, chun
     from scipy.spatial import cKDTree
     from trimesh.triangles import closest_point
 
-    from pipeline.core.surface import barycentric
-
     tris = np.asarray(proxy.triangles, float)
     tree = cKDTree(tris.mean(axis=1))
     k = min(CANDIDATE_FACES, len(tris))
@@ -107,8 +108,6 @@ def samples_footprint_m(triangles: np.ndarray, data: dict, poses, keys: list[str
     """The photos' median pixel size on the surface (metres, pipeline.core.atlas.photo_footprint_m) at
     samples ``data`` (face, bary, image_id; samples.npz's) seen through ``poses`` (pipeline.io.poses
     .Poses) of images ``keys`` (image_id's names); ``triangles`` (F, 3, 3) the mesh's."""
-    from pipeline.core.atlas import photo_footprint_m
-    from pipeline.core.camera import camera_center
 
     centres = np.array([camera_center(poses.images[k].R, poses.images[k].t) for k in keys])
     focal = np.array([poses.camera_of(k).focal_principal()[0] for k in keys])

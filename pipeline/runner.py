@@ -30,10 +30,12 @@ from types import SimpleNamespace
 from pipeline import STAGES, __version__
 from pipeline.errors import UserError
 from pipeline.io.lighting import lighting_argument, lighting_help
+from pipeline.io.poses import poses_path, read_poses
 from pipeline.io.run_summary import HOLDOUT_FIELD, StageResult, samples_holdout, stage_table, summary_lines
 from pipeline.logs import LOGGER
 from pipeline.logs import progress as progress_bar
 from pipeline.memory import Budget
+from pipeline.report import write_report
 from pipeline.settings import add_settings_arguments, make_settings, settings_dict, settings_from_args
 from pipeline.workdir import (
     changed_settings,
@@ -114,8 +116,6 @@ def stage_command(name: str) -> SimpleNamespace:
         for path in result.outputs:
             print(f"  {path}")
         if not result.skipped and (Path(work) / "report.html").exists():  # a run's report shows this stage too
-            from pipeline.report import write_report
-
             print(f"report: {write_report(args.capture, work)}")
         return 0
 
@@ -128,7 +128,6 @@ def stage_command(name: str) -> SimpleNamespace:
 
 def image_keys(capture: Path, work: Path) -> list[str]:
     """Sorted image keys of the capture's posed views (WORK/poses.json, else CAPTURE/poses.json)."""
-    from pipeline.io.poses import poses_path, read_poses
 
     return sorted(read_poses(poses_path(capture, work)).images)
 
@@ -325,8 +324,6 @@ def run_capture(plan: RunPlan, report: bool = True, progress: bool = True) -> di
         else:
             write_json(plan.work / "run.json", record)
             if report:
-                from pipeline.report import write_report
-
                 record["report"] = str(write_report(plan.capture, plan.work))
     record["table"] = stage_table(results)
     return record

@@ -30,10 +30,21 @@ from typing import Literal
 
 import numpy as np
 
+from pipeline.board import make_board
+from pipeline.core.camera import Camera, look_at
+from pipeline.core.render_view import BoardPlane, InsideMeshError, render_view
+from pipeline.core.sh import project_envmap
 from pipeline.errors import UserError
-from pipeline.io.lighting import lighting_help
+from pipeline.io.camera_files import Exposure, add_sensor_noise, sensor_value, write_camera_file
+from pipeline.io.capture_toml import BoardSpec, write_capture_toml
+from pipeline.io.images import write_image
+from pipeline.io.lighting import lighting_argument, lighting_help, write_lighting_sh
+from pipeline.io.mesh import read_mesh, write_vertex_albedo
+from pipeline.io.poses import ImagePose, Poses, write_poses
 from pipeline.logs import progress as progress_bar
-from pipeline.settings import setting
+from pipeline.raycast import ray_mesh
+from pipeline.settings import setting, settings_dict
+from pipeline.workdir import atomic_path, write_json
 
 BUILTIN_MESHES = ("sphere", "icosphere")
 BOARD_DICTIONARY = "DICT_5X5_100"
@@ -204,8 +215,6 @@ def load_mesh(spec: str, mesh_size: float, up: str = "y"):
         mesh = trimesh.creation.icosphere(subdivisions=4 if spec == "sphere" else 2, radius=1.0)
         up = "z"
     else:
-        from pipeline.io.mesh import read_mesh
-
         mesh = read_mesh(spec)  # UserError when missing, unreadable or without faces
     mesh = mesh.copy()
     if up == "y":  # +Y up -> +Z up: rotate +90 degrees about X
@@ -221,7 +230,6 @@ def load_mesh(spec: str, mesh_size: float, up: str = "y"):
 
 def load_env(spec: str) -> np.ndarray:
     """Equirect map from a file path (validated) or a procedural spec (pipeline.io.lighting.lighting_argument)."""
-    from pipeline.io.lighting import lighting_argument
 
     return lighting_argument(spec, sh=False).envmap()
 
@@ -242,10 +250,6 @@ def board_plane(mesh_size: float, *, charuco: bool = True, table: bool = False, 
     x_b -> +X, y_b -> -Y, z_b -> -Z (face up).
     """
     import cv2
-
-    from pipeline.board import make_board
-    from pipeline.core.render_view import BoardPlane
-    from pipeline.io.capture_toml import BoardSpec
 
     if not (charuco or table):
         return None, None, None
@@ -309,7 +313,6 @@ def view_directions(n: int, layout: str, elevation: tuple[float, float]) -> np.n
 
 def make_views(mesh, settings: SynthSettings, board_size: tuple[float, float] | None):
     """Camera (shared PINHOLE) and (R, t) per view, looking at the object's bounding-sphere centre."""
-    from pipeline.core.camera import Camera, look_at
 
     lo, hi = mesh.bounds
     target = (lo + hi) / 2
@@ -341,7 +344,6 @@ def _capture_tables(board_table: dict | None, brackets: dict[str, list[str]], is
 
 def _auto_exposure_time(radiance: np.ndarray, mask: np.ndarray, fnumber: float, iso: float) -> float:
     """Exposure time mapping the 99.5th-percentile radiance in ``mask`` to 0.7 of full scale (3 significant digits)."""
-    from pipeline.io.camera_files import Exposure
 
     values = radiance[mask] if mask.any() else radiance.reshape(-1, 3)
     level = float(np.percentile(values.max(axis=1), 99.5)) if values.size else 1.0
@@ -351,12 +353,9 @@ def _auto_exposure_time(radiance: np.ndarray, mask: np.ndarray, fnumber: float, 
 
 def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool = True) -> list[Path]:
     """Render and write a capture (module docstring); returns the written paths."""
+    # lazy: SciPy (~0.5-0.8 s); `sigrend synth --help` imports this module for SynthSettings
     from pipeline.core.render import Renderer
-    from pipeline.core.render_view import InsideMeshError, render_view
     from pipeline.io.brdf import parse_brdf_spec
-    from pipeline.io.images import write_image
-    from pipeline.io.poses import ImagePose, Poses
-    from pipeline.raycast import ray_mesh
 
     settings.validate()
     out = Path(out_dir)
@@ -435,7 +434,6 @@ def _write_shots(
     """One view's photos images/<stem>[_b<k>]: a bracket of ``settings.brackets`` exposures (times
     t_base 4^step s, the view's own offset ``view_stops`` in stops), each the sensor value of the
     rendered ``radiance`` with ``noise`` drawn from ``rng``."""
-    from pipeline.io.camera_files import Exposure, add_sensor_noise, sensor_value, write_camera_file
 
     paths = []
     for k in range(settings.brackets):
@@ -455,10 +453,6 @@ def _write_capture_files(
     """What a user's capture holds besides the photos: mesh.ply, capture.toml (``tables``) and
     poses.json when ``settings.poses``; gt/poses.json and gt/albedo.ply (a texture's per-vertex
     linear albedo, DESIGN.md) beside the truth."""
-    from pipeline.io.capture_toml import write_capture_toml
-    from pipeline.io.mesh import write_vertex_albedo
-    from pipeline.io.poses import write_poses
-    from pipeline.workdir import atomic_path
 
     written = [write_poses(out / "gt" / "poses.json", poses)]
     if settings.poses:
@@ -474,9 +468,8 @@ def _write_capture_files(
 
 def _write_truth(out: Path, env: np.ndarray, brdf, record: dict) -> list[Path]:
     """gt/: the lighting (lighting.exr and its SH, lighting_sh.json), brdf.json and synth.json (``record``)."""
+    # lazy: SciPy (~0.5-0.8 s); `sigrend synth --help` imports this module for SynthSettings
     from pipeline.io.brdf import write_brdf
-    from pipeline.io.images import write_image
-    from pipeline.workdir import write_json
 
     return [
         write_image(out / "gt" / "lighting.exr", env, dtype="float"),
@@ -487,14 +480,11 @@ def _write_truth(out: Path, env: np.ndarray, brdf, record: dict) -> list[Path]:
 
 
 def _settings_json(settings: SynthSettings) -> dict:
-    from pipeline.settings import settings_dict
 
     return settings_dict(settings)
 
 
 def _write_lighting_sh(path: Path, env: np.ndarray) -> Path:
-    from pipeline.core.sh import project_envmap
-    from pipeline.io.lighting import write_lighting_sh
 
     return write_lighting_sh(
         path, project_envmap(np.asarray(env, float), SH_ORDER), source="gt/lighting.exr projected by sigrend synth"

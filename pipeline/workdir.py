@@ -27,6 +27,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Iterator
 
+from pipeline.errors import UserError
 from pipeline.settings import settings_dict
 
 _UMASK = os.umask(0)
@@ -117,7 +118,6 @@ def transaction(invalidate: Path | None = None) -> Iterator[None]:
 def make_folder(folder: str | os.PathLike, option: str = "-w") -> Path:
     """Create an output folder (and its parents) if needed; UserError naming the command-line
     ``option`` that gave it when it cannot be (a file of that name, no permission, a read-only disk)."""
-    from pipeline.errors import UserError
 
     folder = Path(folder)
     try:
@@ -142,8 +142,6 @@ def work_lock(work: str | os.PathLike) -> Iterator[None]:
     temporaries) with the first's.  flock(2): the kernel releases the lock when its holder exits,
     killed or not, so a lock is never stale.  Re-entrant within a process."""
     import fcntl
-
-    from pipeline.errors import UserError
 
     work = Path(work)
     key = str(work.resolve())
@@ -190,7 +188,6 @@ def read_json(path: str | os.PathLike, *, missing: str = "", unreadable: str = "
 
     ``missing`` / ``unreadable``: what the user should do, appended to the message.
     """
-    from pipeline.errors import UserError
 
     path = Path(path)
     try:

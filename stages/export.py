@@ -45,8 +45,13 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline import __version__
 from pipeline.core.brdf import Brdf
+from pipeline.core.camera import enclosing_sphere, orbit_poses, pixel_centers, pixel_rays
 from pipeline.core.envmap import add_sources, blender_columns, equirect_solid_angles
+from pipeline.core.procedural_envmaps import envmap_from_spec
+from pipeline.core.render import Renderer
+from pipeline.core.render_view import render_view
 from pipeline.core.sh import envmap_from_sh
 from pipeline.errors import UserError
 from pipeline.io import gltf, mitsuba, usd
@@ -57,6 +62,7 @@ from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
 from pipeline.io.poses import capture_poses_path
 from pipeline.io.textures import FOLDER as TEXTURES
 from pipeline.io.textures import read_base_color_texture
+from pipeline.raycast import first_hits, ray_mesh
 from pipeline.settings import setting
 from pipeline.workdir import atomic_path, make_folder, write_json, written_size
 
@@ -183,11 +189,6 @@ def preview(mesh, material: AssetMaterial, env_spec: str) -> tuple[np.ndarray, n
     20 degrees above the object (pipeline.core.camera.orbit_poses), the map as background; the base
     colour from the texture when there is one, else per vertex; a material map's pixels each shaded
     by the material of the face they see (its own render of the whole object)."""
-    from pipeline.core.camera import enclosing_sphere, orbit_poses, pixel_centers, pixel_rays
-    from pipeline.core.procedural_envmaps import envmap_from_spec
-    from pipeline.core.render import Renderer
-    from pipeline.core.render_view import render_view
-    from pipeline.raycast import first_hits, ray_mesh
 
     camera, [(R, t)] = orbit_poses(*enclosing_sphere(mesh.vertices), 1, PREVIEW_PX, PREVIEW_PX)
     scene, env = ray_mesh(mesh), envmap_from_spec(env_spec)
@@ -231,7 +232,6 @@ def lighting_map(path: Path, height: int) -> tuple[np.ndarray, float]:
 
 
 def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
-    from pipeline import __version__
 
     fit = Path(work) / "fit"
     for name, what in (("brdf.json", "material"), ("lighting_sh.json", "lighting")):

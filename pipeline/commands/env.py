@@ -19,8 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.procedural_envmaps import spec_help
+from pipeline.core.envmap import equirect_directions
+from pipeline.core.procedural_envmaps import envmap_from_spec, spec_help
+from pipeline.core.sh import band_energy, envmap_from_sh, project_envmap
 from pipeline.errors import UserError
+from pipeline.io.images import read_envmap, write_image
+from pipeline.io.lighting import read_lighting_sh, write_lighting_sh
 from pipeline.settings import setting
 
 HELP = "Environment maps and spherical harmonics: project, render, irradiance; make a procedural map."
@@ -112,9 +116,6 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _project(args: argparse.Namespace) -> int:
-    from pipeline.core.sh import band_energy, project_envmap
-    from pipeline.io.images import read_envmap
-    from pipeline.io.lighting import write_lighting_sh
 
     output = _output_name(args.output, (".json",))
     env = read_envmap(args.envmap)
@@ -130,9 +131,6 @@ def _project(args: argparse.Namespace) -> int:
 
 
 def _render(args: argparse.Namespace) -> int:
-    from pipeline.core.sh import envmap_from_sh
-    from pipeline.io.images import write_image
-    from pipeline.io.lighting import read_lighting_sh
 
     output = _output_name(args.output, (".exr",))
     height = _positive_int(args.height, "--height", 1, MAX_HEIGHT, "give the output height in pixels, e.g. 256")
@@ -149,9 +147,7 @@ def _render(args: argparse.Namespace) -> int:
 
 
 def _irradiance(args: argparse.Namespace) -> int:
-    from pipeline.core.sh import project_envmap
-    from pipeline.core.transfer import irradiance_envmap
-    from pipeline.io.images import read_envmap, write_image
+    from pipeline.core.transfer import irradiance_envmap  # lazy: SciPy (~0.35 s), for this command only, not `sigrend env --help`
 
     output = _output_name(args.output, (".exr",))
     env = read_envmap(args.envmap)
@@ -172,9 +168,6 @@ def _irradiance(args: argparse.Namespace) -> int:
 
 
 def _make(args: argparse.Namespace) -> int:
-    from pipeline.core.envmap import equirect_directions
-    from pipeline.core.procedural_envmaps import envmap_from_spec
-    from pipeline.io.images import write_image
 
     output = _output_name(args.output, (".exr",))
     try:

@@ -13,12 +13,12 @@ from pathlib import Path
 
 from pipeline.errors import UserError
 from pipeline.settings import choices_of
+from pipeline.synth import SynthSettings, make_capture
 
 HELP = "Render a synthetic capture (images, mesh, poses, capture.toml) with its ground truth in gt/."
 
 
 def _help(name: str) -> str:
-    from pipeline.synth import SynthSettings
 
     return {f.name: f.metadata["help"] for f in dataclasses.fields(SynthSettings)}[name]
 
@@ -40,7 +40,6 @@ def _pair(text: str) -> tuple[float, float]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from pipeline.synth import SynthSettings
 
     d = SynthSettings()
     parser.add_argument("-o", "--output", type=Path, required=True, help="capture folder to write")
@@ -80,7 +79,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from pipeline.synth import SynthSettings, make_capture
 
     values = {f.name: getattr(args, f.name) for f in dataclasses.fields(SynthSettings)}
     settings = SynthSettings(**values)

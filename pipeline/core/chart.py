@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.core.transfer import irradiance_from_sh
+
 # The ColorChecker Classic's 24 patches (row-major from "dark skin", the chart's brown corner at
 # the top left, the grey row last), CIE L*a*b* under D50, 2 deg observer: X-Rite's post-2005
 # formulation as OpenCV's mcc/ccm module carries it (ColorChecker2005_LAB_D50_2 in
@@ -151,7 +153,6 @@ def lighting_irradiance(
     (J, 3), intensity = irradiance at normal incidence (J, 3)) times max(0, n . d).  A plane in the
     open sees the whole sphere of directions (what a chart does; the object's own shadow on it is
     not modelled)."""
-    from pipeline.core.transfer import irradiance_from_sh
 
     n = np.asarray(normal, float).reshape(1, 3)
     n = n / np.linalg.norm(n)

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.core.envmap import equirect_angles, equirect_solid_angles
+
 
 def num_coeffs(order: int) -> int:
     """(L+1)^2 coefficients up to and including band L."""
@@ -200,7 +202,6 @@ def project_envmap(env: np.ndarray, order: int, rows_per_chunk: int = 64) -> np.
     row's Legendre values.  Processed ``rows_per_chunk`` rows at a time (memory ~ rows * W * C).
     A 2-D (H, 2H) map gives ((L+1)^2,).
     """
-    from pipeline.core.envmap import equirect_angles, equirect_solid_angles
 
     env = np.asarray(env)
     squeeze = env.ndim == 2
@@ -230,7 +231,6 @@ def project_envmap(env: np.ndarray, order: int, rows_per_chunk: int = 64) -> np.
 
 def envmap_from_sh(coeffs: np.ndarray, height: int) -> np.ndarray:
     """Evaluate SH coefficients ((L+1)^2[, C]) at the pixel centres of an (H, 2H[, C]) equirect map."""
-    from pipeline.core.envmap import equirect_angles
 
     coeffs = np.asarray(coeffs, dtype=float)
     squeeze = coeffs.ndim == 1

@@ -10,6 +10,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import gammaln
 
+from pipeline.core.brdf import Brdf, cosine_weighted_brdf, phong_lobe
+from pipeline.core.envmap import equirect_directions
+from pipeline.core.sh import band_of_index, envmap_from_sh, order_of, sh_evaluate
+
 
 def normalization_lambda(order: int) -> np.ndarray:
     """Lambda_l = sqrt(4 pi / (2l+1)) for l = 0..order."""
@@ -99,7 +103,6 @@ def phong_filter(exponent: float, order: int, n_nodes: int | None = None) -> np.
     (pipeline.core.brdf.phong_lobe; unit integral, so A_0 = 1).  R&H 2001 approximate it by
     exp(-l^2 / 2s) (``phong_filter_approx``).
     """
-    from pipeline.core.brdf import phong_lobe
 
     s = float(exponent)
     if s < 0:
@@ -120,7 +123,6 @@ def microfacet_lobe_normal_view(cos_in: np.ndarray, roughness: float) -> np.ndar
     V-cavity G, Fresnel F = 1) seen from the normal (w_out = n), as a function of
     cos(theta_in) = cos alpha; at normal view the mirror direction is n, so this is the lobe
     about the reflected direction whose filter R&H approximate by exp(-(sigma l)^2)."""
-    from pipeline.core.brdf import Brdf, cosine_weighted_brdf
 
     t = np.asarray(cos_in, dtype=float).reshape(-1)
     sin_t = np.sqrt(np.maximum(0.0, 1.0 - t * t))
@@ -162,7 +164,6 @@ def irradiance_from_sh(coeffs: np.ndarray, normals: np.ndarray) -> np.ndarray:
 
     ``coeffs``: lighting ((L+1)^2[, C]); all its bands are used.  Returns (N[, C]).
     """
-    from pipeline.core.sh import band_of_index, order_of, sh_evaluate
 
     coeffs = np.asarray(coeffs, dtype=float)
     order = order_of(coeffs.shape[0])
@@ -206,8 +207,6 @@ def irradiance_envmap(coeffs: np.ndarray, height: int, nine_term: bool = False) 
     L >= 2, higher bands ignored); otherwise E = sum_lm Â_l L_lm Y_lm over all given bands,
     synthesized separably (``envmap_from_sh`` of the Â-filtered coefficients).
     """
-    from pipeline.core.envmap import equirect_directions
-    from pipeline.core.sh import band_of_index, envmap_from_sh, order_of
 
     coeffs = np.asarray(coeffs, dtype=float)
     if nine_term:

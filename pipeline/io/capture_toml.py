@@ -62,6 +62,7 @@ import numpy as np
 from pipeline.errors import UserError
 from pipeline.io.values import is_number
 from pipeline.settings import number
+from pipeline.workdir import write_text
 
 try:
     import tomllib
@@ -381,8 +382,6 @@ def write_capture_toml(path: str | os.PathLike, doc: dict, comment: str = "") ->
     """A capture.toml from its tables (plain Python values) through tomli_w (strings escaped), with
     ``comment`` as a first line: what synth and the poses bench write, read back by read_capture_config."""
     import tomli_w
-
-    from pipeline.workdir import write_text
 
     return write_text(path, (f"# {comment}\n\n" if comment else "") + tomli_w.dumps(doc))
 

@@ -11,7 +11,11 @@ from typing import Literal
 
 import numpy as np
 
+from pipeline.core.envmap import add_sources
+from pipeline.core.procedural_envmaps import envmap_from_spec, parse_env_spec, spec_help
+from pipeline.core.sh import order_of, sh_of_sources
 from pipeline.errors import UserError
+from pipeline.io.images import read_envmap
 from pipeline.io.values import number_array, whole_number
 from pipeline.workdir import read_json, write_json
 
@@ -61,7 +65,6 @@ def read_lighting_sources(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarr
 def read_lighting_parts(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A lighting_sh.json split as an angular renderer wants it: (the SH coefficients without the
     sources' projection ((L+1)^2, 3), source directions (J, 3), intensities (J, 3))."""
-    from pipeline.core.sh import order_of, sh_of_sources
 
     coeffs = read_lighting_sh(path)
     dirs, power = read_lighting_sources(path)
@@ -77,8 +80,6 @@ def known_light_map(light, height: int = KNOWN_LIGHT_HEIGHT) -> np.ndarray:
     """The equirect map (H, 2H, 3) of a capture.toml [lighting] entry (io.capture_toml.KnownLight): its
     map file as it is, or its directional light spread over the four pixel centres around it
     (core.envmap.add_sources, as relight draws the fit's sources) on a black map ``height`` rows tall."""
-    from pipeline.core.envmap import add_sources
-    from pipeline.io.images import read_envmap
 
     if light.path is not None:
         return np.asarray(read_envmap(light.path), float)
@@ -102,12 +103,9 @@ class LightingArgument:
     def envmap(self) -> np.ndarray:
         """The map (H, 2H, 3) float32: the file read and checked, or the procedural map made."""
         if self.kind == "procedural":
-            from pipeline.core.procedural_envmaps import envmap_from_spec
-
             return envmap_from_spec(self.text)
         if self.kind == "sh":
             raise UserError(f"{self.text}: an SH lighting, not a map; give an equirect map or a procedural spec")
-        from pipeline.io.images import read_envmap
 
         if not self.path.is_file():
             raise UserError(
@@ -119,7 +117,6 @@ class LightingArgument:
 
 def lighting_help(sh: bool = True) -> str:
     """What a lighting argument may be, for --help (``sh``: a lighting_sh.json too)."""
-    from pipeline.core.procedural_envmaps import spec_help
 
     files = (
         "a lighting_sh.json, an equirect EXR/HDR (DESIGN.md convention)" if sh else "an equirect EXR/HDR (DESIGN.md convention)"
@@ -132,7 +129,6 @@ def lighting_argument(text: str, option: str = "--env", sh: bool = True) -> Ligh
     unless ``sh``), one ending in an image suffix or naming an existing file is an equirect map, else
     it must be a procedural spec (UserError, one line, naming ``option``, otherwise).  Files are not
     read here (a stage's inputs may not exist yet); LightingArgument.envmap reads them."""
-    from pipeline.core.procedural_envmaps import parse_env_spec
 
     path = Path(text)
     suffix = path.suffix.lower()

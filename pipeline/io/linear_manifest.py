@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.io.images import read_image
+from pipeline.io.images import ImageRowReader, read_image
 from pipeline.workdir import read_json, write_json
 
 LINEAR_DIR = "linear"
@@ -146,7 +146,6 @@ class LinearImageRows:
     BYTES_PER_PIXEL = 40  # the rows read (RGB(A) float32), weight, mask, the finite test's booleans
 
     def __init__(self, capture: Path, work: Path, key: str, manifest: dict | None, scale: float = 1.0):
-        from pipeline.io.images import ImageRowReader
 
         self.capture, self.work, self.key, self.manifest, self.scale = capture, work, key, manifest, scale
         self.name = image_source(capture, work, key, manifest)

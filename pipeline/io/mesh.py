@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import UserError
+from pipeline.workdir import atomic_path
 
 MESH_NAMES = ("mesh.ply", "mesh.obj", "mesh.glb")
 
@@ -67,7 +68,6 @@ def write_vertex_albedo(path: str | os.PathLike, mesh, albedo: np.ndarray) -> Pa
     """The mesh with per-vertex linear albedo / base colour (V, 3) as PLY vertex colours x 255
     (uint8; values outside [0, 1] clipped): fit/albedo.ply and synth's gt/albedo.ply, which
     read_vertex_albedo reads."""
-    from pipeline.workdir import atomic_path
 
     path = Path(path)
     out = mesh.copy()
@@ -86,8 +86,6 @@ def write_material_ply(path: str | os.PathLike, mesh, values: dict[str, np.ndarr
     vertex properties MATERIAL_PROPERTIES and their standard deviations (``<name>_std``; inf where
     the photos do not determine a value), each (V,) in ``values``; read back by read_material_ply."""
     from trimesh.exchange.ply import export_ply
-
-    from pipeline.workdir import atomic_path
 
     missing = [n for n in MATERIAL_PROPERTIES if n not in values]
     if missing:

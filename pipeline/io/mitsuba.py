@@ -51,9 +51,12 @@ import numpy as np
 from pipeline.core.brdf import Brdf
 from pipeline.core.camera import Camera, mitsuba_sensor_to_world
 from pipeline.core.envmap import MITSUBA_ENVMAP_TO_OBJECT
+from pipeline.core.material import material_from_brdf
+from pipeline.core.quadrature import gauss_legendre
 from pipeline.errors import UserError
 from pipeline.io.gltf import split_at_seams
 from pipeline.io.images import write_image
+from pipeline.io.poses import read_poses
 from pipeline.workdir import atomic_path
 
 FORMATS = (".xml",)
@@ -93,8 +96,6 @@ def diffuse_compensation(brdf: Brdf) -> float:
     mu dmu the cosine-weighted average of brdf.json's specular layer's directional albedo (its largest
     channel, as the layering weight: pipeline.core.material.Principled.diffuse_weight), by 64-point
     Gauss-Legendre in mu; 1 for Lambert and for metallic > 0 (module docstring)."""
-    from pipeline.core.material import material_from_brdf
-    from pipeline.core.quadrature import gauss_legendre
 
     if brdf.model != "principled" or brdf.metallic > 0:
         return 1.0
@@ -265,7 +266,6 @@ def write_mitsuba(
 def capture_view(poses_file: str | os.PathLike) -> SensorView | None:
     """The sensor's view: the first image (in key order) of a poses.json (DESIGN.md), at its camera's
     size; None when the file does not exist."""
-    from pipeline.io.poses import read_poses
 
     if not Path(poses_file).exists():
         return None

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.brdf import Brdf
+from pipeline.core.envmap import USD_DOME_ROTATE_XYZ_DEG
 from pipeline.errors import UserError
 from pipeline.workdir import atomic_path
 
@@ -184,8 +185,6 @@ def add_dome_light(stage, texture: str, path: str = "/lighting"):
     oriented into the object frame (pipeline.core.envmap.USD_DOME_ROTATE_XYZ_DEG), intensity 1:
     the map's values are the radiance, in the photos' linear units."""
     from pxr import Gf, Sdf, UsdGeom, UsdLux
-
-    from pipeline.core.envmap import USD_DOME_ROTATE_XYZ_DEG
 
     light = UsdLux.DomeLight.Define(stage, path)
     light.CreateTextureFileAttr(Sdf.AssetPath(f"./{texture}"))

@@ -19,6 +19,20 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.io.brdf import read_brdf
+from pipeline.io.images import read_image
+from pipeline.io.lighting import read_lighting_sh
+from pipeline.io.mesh import mesh_path, read_mesh, read_vertex_albedo
+from pipeline.io.poses import capture_poses_path, read_poses
+from pipeline.io.run_summary import (
+    StageResult,
+    method_description,
+    noise_phrase,
+    relight_check,
+    samples_holdout,
+    stage_table,
+    summary_lines,
+)
 from pipeline.report.figures import (
     array_png,
     camera_plot,
@@ -74,7 +88,6 @@ def _json(path: Path) -> dict | None:
 
 
 def _summary(capture: Path, work: Path) -> str:
-    from pipeline.io.run_summary import StageResult, stage_table, summary_lines
 
     parts = [
         f"<p>capture <code>{html.escape(str(Path(capture).resolve()))}</code>, "
@@ -105,7 +118,6 @@ def _warnings(work: Path) -> str:
 
 
 def _photos(capture: Path, work: Path) -> str:
-    from pipeline.io.images import read_image
 
     linear = Path(work) / "linear"
     exrs = sorted(p for p in linear.glob("*.exr") if not p.name.startswith("."))[:MAX_PHOTOS] if linear.is_dir() else []
@@ -131,8 +143,6 @@ def _photos(capture: Path, work: Path) -> str:
 
 
 def _cameras(capture: Path, work: Path) -> str:
-    from pipeline.io.poses import capture_poses_path, read_poses
-    from pipeline.io.run_summary import samples_holdout
 
     path = capture_poses_path(capture, work)
     if not path.exists():
@@ -140,8 +150,6 @@ def _cameras(capture: Path, work: Path) -> str:
     poses = read_poses(path)
     bounds = None
     try:
-        from pipeline.io.mesh import mesh_path, read_mesh
-
         bounds = read_mesh(mesh_path(capture)).bounds
     except Exception:  # the report shows what it can; a bad mesh is reported by the stages
         bounds = None
@@ -181,9 +189,6 @@ def _coverage(work: Path) -> str:
 
 
 def _lighting(work: Path) -> str:
-    from pipeline.io.brdf import read_brdf
-    from pipeline.io.images import read_image
-    from pipeline.io.lighting import read_lighting_sh
 
     fit = Path(work) / "fit"
     sh_file = fit / "lighting_sh.json"
@@ -231,8 +236,6 @@ def _brdf(capture: Path, work: Path) -> str:
     if (fit / "albedo.ply").exists():
         import trimesh
 
-        from pipeline.io.mesh import read_vertex_albedo
-
         tex = trimesh.load(fit / "albedo.ply", force="mesh", process=False)
         colour = read_vertex_albedo(fit / "albedo.ply", len(tex.vertices))
         if colour is not None:
@@ -253,7 +256,6 @@ def _brdf(capture: Path, work: Path) -> str:
 def _texels(folder: Path, entry: dict) -> str:
     """fit/textures/: the base colour map and its relative uncertainty, and the levels the held-out
     views chose (report.json "texels")."""
-    from pipeline.io.images import read_image
 
     base = read_image(folder / "base_color.png")[:, :, :3]
     std = read_image(folder / "base_color_std.exr")[:, :, :3].astype(float)
@@ -293,7 +295,6 @@ def _texels(folder: Path, entry: dict) -> str:
 
 
 def _relight(work: Path) -> str:
-    from pipeline.io.run_summary import method_description, noise_phrase, relight_check
 
     folder = Path(work) / "relight" / "check"
     check = relight_check(work)

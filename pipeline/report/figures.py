@@ -14,8 +14,13 @@ import io
 import numpy as np
 
 from pipeline.core.brdf import Brdf
+from pipeline.core.camera import camera_center
 from pipeline.core.material import material_from_brdf
+from pipeline.core.prefilter import Lighting
+from pipeline.core.sh import sh_evaluate
 from pipeline.core.shading import sphere_radiance
+from pipeline.core.transfer import irradiance_from_sh
+from pipeline.io.images import preview_exposure, srgb_encode
 
 
 def pyplot():
@@ -46,7 +51,6 @@ def array_png(rgb: np.ndarray) -> bytes:
 
 def tonemap(linear: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """sRGB-encoded display image of linear RGB (H, W, 3+), exposed for its ``mask``ed pixels (all by default)."""
-    from pipeline.io.images import preview_exposure, srgb_encode
 
     rgb = np.asarray(linear, float)[..., :3]
     m = mask if mask is not None else np.ones(rgb.shape[:2], bool)
@@ -65,7 +69,6 @@ def masked_overlay(rgb: np.ndarray, valid: np.ndarray, strength: float = 0.6) ->
 
 def camera_plot(poses, bounds: np.ndarray | None, heldout: list[str]) -> bytes:
     """PNG: camera centres (held-out ones in orange) with viewing directions, and the mesh's bounding box."""
-    from pipeline.core.camera import camera_center
 
     plt = pyplot()
     fig = plt.figure(figsize=(5.5, 5))
@@ -103,9 +106,6 @@ def principled_sphere(coeffs: np.ndarray, brdf: Brdf, normal: np.ndarray, view: 
 def sphere_renders(coeffs: np.ndarray, brdf: Brdf | None, size: int = 128) -> bytes:
     """PNG: orthographic spheres seen from +Y under SH lighting ``coeffs`` (one panel each):
     a mirror sphere (the lighting itself), a white Lambertian sphere, and the fitted BRDF."""
-    from pipeline.core.sh import sh_evaluate
-    from pipeline.core.transfer import irradiance_from_sh
-    from pipeline.io.images import srgb_encode
 
     # orthographic view along -Y (camera on +Y looking at the origin): image x -> world x, image up -> +Z
     u = (np.arange(size) + 0.5) / size * 2 - 1
@@ -122,8 +122,6 @@ def sphere_renders(coeffs: np.ndarray, brdf: Brdf | None, size: int = 128) -> by
     if brdf is not None and brdf.model == "principled":
         panels["fitted material"] = principled_sphere(coeffs, brdf, normal, np.array(view))
     elif brdf is not None:
-        from pipeline.core.prefilter import Lighting
-
         lighting = Lighting(brdf, coeffs=coeffs)  # the same forward model as relight
         panels["fitted BRDF"] = lighting.radiance(normal, np.array(view), np.asarray(brdf.albedo, float))
     plt = pyplot()
@@ -143,8 +141,6 @@ def texture_views(vertices: np.ndarray, faces: np.ndarray, colour: np.ndarray, s
     sides and from above (+Z up): each face in its vertices' mean colour, sRGB-encoded, nearer faces
     drawn over farther ones."""
     from matplotlib.collections import PolyCollection
-
-    from pipeline.io.images import srgb_encode
 
     sides = {"from +X": (1, 2, 0), "from +Y": (0, 2, 1), "from −X": (1, 2, 0), "from −Y": (0, 2, 1), "from above": (0, 1, 2)}
     # (image x, image y, towards the viewer) signs: from +X the image's right is +Y, from +Y it is -X

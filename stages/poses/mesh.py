@@ -26,6 +26,7 @@ from pipeline.io.capture_toml import CaptureConfig
 from pipeline.io.mesh import MESH_NAMES, mesh_path, read_mesh
 from pipeline.io.pose_imports import reconstruction_points
 from pipeline.io.poses import ImagePose, Poses
+from pipeline.raycast import first_hits, ray_mesh
 from stages.poses.colmap import IDENTITY, bundle_adjust, colmap_copies, colmap_name, poses_from_reconstruction, run_colmap
 from stages.poses.photos import calibrated_camera
 from stages.poses.settings import Settings
@@ -166,8 +167,6 @@ def visible_fractions(reconstruction, surface: Surface, tolerance: float) -> dic
     not hidden behind another part.  A camera registered in a wrong place (SfM's mirrored or flipped solution
     of a few matches, 180 degrees off) looks at its points through the object or from behind them.
     """
-    from pipeline.raycast import first_hits, ray_mesh  # lazily: Embree
-
     rays = ray_mesh(surface.mesh)
     ids = [i for i, p in reconstruction.points3D.items() if p.track.length() >= 2]
     xyz = np.array([reconstruction.points3D[i].xyz for i in ids], float).reshape(-1, 3)

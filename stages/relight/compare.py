@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.image_metrics import BLOCK, error_sums, total_figures
+from pipeline.core.noise import image_noise_level
 from pipeline.io.images import write_image, write_preview
 from stages.relight.render import Shot
 from stages.relight.views import view_stem
@@ -33,8 +35,6 @@ def compare_views(
     ``s`` is one least-squares scale over all views (s = sum R.P / sum R.R) when ``fit_scale``
     (lighting and BRDF are recovered up to one global scale), else 1.
     """
-    from pipeline.core.image_metrics import BLOCK, error_sums, total_figures
-    from pipeline.core.noise import image_noise_level
 
     num = den = 0.0
     for key, img in rendered.items():

@@ -12,9 +12,11 @@ import numpy as np
 from pipeline.core.brdf import Brdf
 from pipeline.core.envmap import add_sources
 from pipeline.core.prefilter import MAX_LOBE_ORDER, Lighting, brdf_lobe_filter, needed_order
+from pipeline.core.render import Renderer
+from pipeline.core.render_view import BoardPlane
 from pipeline.core.sh import envmap_from_sh, order_of
 from pipeline.errors import UserError
-from pipeline.io.capture_toml import KnownLight
+from pipeline.io.capture_toml import KnownLight, read_capture_config
 from pipeline.io.lighting import (
     LightingArgument,
     known_light_map,
@@ -79,7 +81,6 @@ class AngularLighting:
         lobe_samples: int = 64,
         sources: tuple | None = None,
     ):
-        from pipeline.core.render import Renderer
 
         self.source = source
         self.lobe_order = needed_order(brdf_lobe_filter(brdf, MAX_LOBE_ORDER))
@@ -227,8 +228,6 @@ def board_occluder(capture: Path):
     Only its rectangle matters here (it blocks the object's lower hemisphere as in the photos);
     its texture is not rendered.
     """
-    from pipeline.core.render_view import BoardPlane
-    from pipeline.io.capture_toml import read_capture_config
 
     spec = read_capture_config(capture).board
     if spec is None:

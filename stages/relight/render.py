@@ -19,6 +19,7 @@ from pipeline.core.prefilter import Lighting
 from pipeline.errors import UserError
 from pipeline.io.images import preview_exposure, write_image, write_preview
 from pipeline.io.linear_manifest import load_linear_image
+from pipeline.logs import progress
 from pipeline.raycast import first_hits
 from stages.relight.lighting import AngularLighting
 from stages.relight.settings import Settings
@@ -136,7 +137,6 @@ def render_views(
     """Each view rendered under ``lighting_of[view.key]`` into folder/<stem>.exr and its sRGB
     preview <stem>.png, on ``settings.threads`` threads; with ``photos``, each view's photo and
     mask kept for the comparison -> (written paths, Shot)."""
-    from pipeline.logs import progress
 
     written: list[Path] = []
     shot = Shot()

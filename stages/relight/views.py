@@ -15,6 +15,7 @@ from pipeline.io.capture_toml import read_capture_config
 from pipeline.io.lighting import LightingArgument, lighting_argument
 from pipeline.io.mesh import mesh_path, read_mesh
 from pipeline.io.poses import capture_poses_path, read_poses
+from pipeline.io.samples import read_samples_meta
 from pipeline.workdir import default_work
 from stages.relight.settings import Settings, parse_size
 
@@ -79,7 +80,6 @@ def view_stem(key: str) -> str:
 
 def samples_holdout_keys(work: Path) -> list[str]:
     """Image keys the samples stage left out (samples.npz meta 'holdout'), for an honest check."""
-    from pipeline.io.samples import read_samples_meta
 
     path = Path(work) / "samples.npz"
     if not path.exists():

@@ -23,6 +23,8 @@ from pathlib import Path
 
 from pipeline.commands.bench import BenchRow
 from pipeline.commands.bench.scale import slope
+from pipeline.io.poses import Poses, read_poses, write_poses
+from pipeline.synth import make_test_capture
 
 CASES = [(12, 516, 388), (12, 1224, 816), (24, 2448, 1632), (48, 4240, 2832)]
 QUICK = [(6, 516, 388), (6, 1224, 816)]
@@ -68,9 +70,6 @@ def measured(args: list[str]) -> tuple[float, int]:
 def make_capture(out: Path, views: int, width: int, height: int) -> Path:
     """The case's capture: the synth's render at an eighth of the size, resized to ``width`` x ``height`` JPEGs."""
     import OpenImageIO as oiio
-
-    from pipeline.io.poses import Poses, read_poses, write_poses
-    from pipeline.synth import make_test_capture
 
     small = out.with_name(out.name + "-small")
     make_test_capture(small, views=views, size=(width // 8, height // 8), fmt="jpeg")

@@ -21,6 +21,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.commands.bench import BenchRow
+from pipeline.core import prt
+from pipeline.core.interreflection import indirect_transfer
+from pipeline.proxy import with_proxy
+from pipeline.raycast import ray_mesh
 
 MESH = Path(__file__).resolve().parents[3] / "sample_data" / "meshes" / "stanford-bunny.obj"
 FOOTPRINT_M = 5e-4
@@ -34,11 +38,6 @@ def _worker(subdivisions: int, proxy: bool) -> dict:
     import time
 
     import trimesh
-
-    from pipeline.core import prt
-    from pipeline.core.interreflection import indirect_transfer
-    from pipeline.proxy import with_proxy
-    from pipeline.raycast import ray_mesh
 
     mesh = trimesh.load(MESH, force="mesh", process=False)
     mesh.apply_scale(0.2 / float(mesh.extents.max()))
