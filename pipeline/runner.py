@@ -35,7 +35,7 @@ from pipeline.io.run_summary import HOLDOUT_FIELD, StageResult, samples_holdout,
 from pipeline.logs import LOGGER
 from pipeline.logs import progress as progress_bar
 from pipeline.memory import Budget
-from pipeline.report import write_report
+from pipeline.report import write_report_html
 from pipeline.settings import add_settings_arguments, make_settings, settings_dict, settings_from_args
 from pipeline.workdir import (
     changed_settings,
@@ -116,7 +116,7 @@ def stage_command(name: str) -> SimpleNamespace:
         for path in result.outputs:
             print(f"  {path}")
         if not result.skipped and (Path(work) / "report.html").exists():  # a run's report shows this stage too
-            print(f"report: {write_report(args.capture, work)}")
+            print(f"report: {write_report_html(args.capture, work)}")
         return 0
 
     doc = (module.__doc__ or name).strip().splitlines()[0]
@@ -324,7 +324,7 @@ def run_capture(plan: RunPlan, report: bool = True, progress: bool = True) -> di
         else:
             write_json(plan.work / "run.json", record)
             if report:
-                record["report"] = str(write_report(plan.capture, plan.work))
+                record["report"] = str(write_report_html(plan.capture, plan.work))
     record["table"] = stage_table(results)
     return record
 

@@ -152,7 +152,7 @@ def _fig_inverse_lighting(plt, rng, noise):
     axes[1].plot(theta, pl.fourier_synthesis(lighting, theta), "k", lw=2.5, label="true lighting")
     for name, brdf, marker in (("mirror", pl.Mirror(), "o"), ("Lambertian", pl.Lambertian(), "s")):
         rho = pl.transfer_coefficients(brdf, band, band_q)
-        field, sigma = _noisy(rng, pl.reflect(lighting, rho), noise)
+        field, sigma = _noisy(rng, pl.reflected_field(lighting, rho), noise)
         signal = np.sqrt(np.mean(np.abs(lighting) ** 2))
         gain = pl.lighting_gain(rho)
         labels = pl.lighting_conditioning(rho, sigma, signal)
@@ -196,7 +196,7 @@ def _fig_brdf_estimation(plt, rng, noise):
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
     axes[1].plot(theta_i, truth, "k", lw=2.5, label=f"true Phong s=32 (band {band})")
     for (name, lighting), marker in zip(sources.items(), ("o", "s")):
-        field, sigma = _noisy(rng, pl.reflect(lighting, rho), noise)
+        field, sigma = _noisy(rng, pl.reflected_field(lighting, rho), noise)
         signal = np.sqrt(np.mean(np.abs(rho) ** 2))
         gain = 2 * np.pi * np.abs(lighting)
         labels = pl.brdf_conditioning(lighting, sigma, signal)
@@ -228,14 +228,14 @@ def _fig_factorization(plt, rng, noise):
     lighting = sample_lighting(band)
     brdf = pl.Phong(24)
     kernel = pl.transfer_coefficients(brdf, band, band_q, cosine_outgoing=True)
-    field, sigma = _noisy(rng, pl.reflect(lighting, kernel), noise)
-    result = pl.factorize(field)
-    scale = lighting[band].real  # factorize fixes L_0 = 1: undo for display
+    field, sigma = _noisy(rng, pl.reflected_field(lighting, kernel), noise)
+    result = pl.factorize_field(field)
+    scale = lighting[band].real  # factorize_field fixes L_0 = 1: undo for display
     rec_l, rec_k = result.lighting * scale, result.kernel / scale
     alpha = np.linspace(0, 2 * np.pi, 181)
     theta_o = np.linspace(-np.pi / 2, np.pi / 2, 91)
     true_img = pl.light_field_synthesis(field, alpha, theta_o)
-    rec_img = pl.light_field_synthesis(pl.reflect(rec_l, rec_k), alpha, theta_o)
+    rec_img = pl.light_field_synthesis(pl.reflected_field(rec_l, rec_k), alpha, theta_o)
     theta = np.linspace(-np.pi, np.pi, 721)
     theta_i = np.linspace(-np.pi / 2, np.pi / 2, 181)
 

@@ -226,7 +226,7 @@ PlanarBRDF = Lambertian | Mirror | Phong | Microfacet
 def transfer(brdf, theta_i, theta_o) -> np.ndarray:
     """Transfer function ρ̂ = ρ(θ'_i, θ'_o) max(cos θ'_i, 0) (not defined for the mirror's delta)."""
     if isinstance(brdf, Mirror):
-        raise ValueError("the mirror's transfer is a delta; use transfer_coefficients or reflect_brute_force")
+        raise ValueError("the mirror's transfer is a delta; use transfer_coefficients or reflected_field_brute_force")
     return brdf.brdf(theta_i, theta_o) * np.maximum(np.cos(theta_i), 0.0)
 
 
@@ -297,7 +297,7 @@ def reflected_angle_spectrum(brdf, band: int, n_quad: int = 2048) -> np.ndarray:
 # ----------------------------------------------------------------------------- forward
 
 
-def reflect(lighting: np.ndarray, rho: np.ndarray) -> np.ndarray:
+def reflected_field(lighting: np.ndarray, rho: np.ndarray) -> np.ndarray:
     """B_pq = 2π L_p ρ̂_{−p,q} (R&H 2001, §3).  lighting (2P+1,), rho (2P+1, 2Q+1)."""
     lighting = np.asarray(lighting)
     rho = np.asarray(rho)
@@ -306,7 +306,7 @@ def reflect(lighting: np.ndarray, rho: np.ndarray) -> np.ndarray:
     return 2.0 * np.pi * lighting[:, None] * rho[::-1, :]
 
 
-def reflect_brute_force(lighting, brdf, alpha: np.ndarray, theta_o: np.ndarray, *, n_quad: int = 400) -> np.ndarray:
+def reflected_field_brute_force(lighting, brdf, alpha: np.ndarray, theta_o: np.ndarray, *, n_quad: int = 400) -> np.ndarray:
     """B(α, θ'_o) = ∫ L(α + θ'_i) ρ̂(θ'_i, θ'_o) dθ'_i by Gauss–Legendre quadrature in angle space.
 
     lighting: a callable L(θ) (vectorized, radians).  alpha (n_α,), theta_o (n_θ,) → (n_α, n_θ).
@@ -415,7 +415,7 @@ def estimate_brdf(
 
 @dataclass(frozen=True)
 class Factorization:
-    """Result of ``factorize``: lighting (2P+1,) with L_0 = 1, kernel K (2P+1, 2Q+1) such that
+    """Result of ``factorize_field``: lighting (2P+1,) with L_0 = 1, kernel K (2P+1, 2Q+1) such that
     B̃_pq ≈ 2π L_p K_{−p,q}; ``determined`` marks the p whose L_p the data fix; ``singular_gap``
     is σ_min / σ_second of the homogeneous system (≈ 0 noise-free; near 1 means no unique answer)."""
 
@@ -425,7 +425,9 @@ class Factorization:
     singular_gap: float
 
 
-def factorize(weighted_field: np.ndarray, *, noise: float = 0.0, signal: float = 1.0, zero_tol: float = 1e-9) -> Factorization:
+def factorize_field(
+    weighted_field: np.ndarray, *, noise: float = 0.0, signal: float = 1.0, zero_tol: float = 1e-9
+) -> Factorization:
     """Factor a cosine-weighted light field B̃_pq into lighting and BRDF kernel, up to one scale.
 
     Uses reciprocity K_pq = K_qp (R&H 2001, 2D): B̃_pq L_{−q} = B̃_{−q,−p} L_p for all |p|, |q| <= P,
@@ -436,14 +438,14 @@ def factorize(weighted_field: np.ndarray, *, noise: float = 0.0, signal: float =
     L_{−p} = conj(L_p) is enforced (real lighting).  K_{−p,q} is the least-squares solution of
     B̃_pq = 2π L_p K_{−p,q} and (|q| <= P) B̃_{−q,−p} = 2π L_{−q} K_{−p,q}.
     weighted_field: (2P+1, 2Q+1) with Q >= P, from ``observed_coefficients`` or
-    ``reflect(L, transfer_coefficients(..., cosine_outgoing=True))``.  ``noise`` (std on each
+    ``reflected_field(L, transfer_coefficients(..., cosine_outgoing=True))``.  ``noise`` (std on each
     B̃_pq) and ``signal`` (expected |K_pq|) add the Wiener term (noise/signal)² to K's normal
     equations, as in ``estimate_brdf``; the lighting (total least squares) needs no parameter.
     """
     b = np.asarray(weighted_field)
     band_p, band_q = (b.shape[0] - 1) // 2, (b.shape[1] - 1) // 2
     if band_q < band_p:
-        raise ValueError("factorize needs band_q >= band_p (the reciprocity pairs need q = −p)")
+        raise ValueError("factorize_field needs band_q >= band_p (the reciprocity pairs need q = −p)")
     n = 2 * band_p + 1
     sq = b[:, band_q - band_p : band_q + band_p + 1]  # B̃_pq for |p|, |q| <= P
     # equation (p, q): B̃_{−q,−p} L_p − B̃_pq L_{−q} = 0; index of −q is (n−1) − (q+P)
@@ -464,7 +466,7 @@ def factorize(weighted_field: np.ndarray, *, noise: float = 0.0, signal: float =
     lighting = np.zeros(n, dtype=complex)
     lighting[determined] = null
     if not determined[band_p]:
-        raise ValueError("factorize: the light field has no mean (p = 0) component to fix the scale")
+        raise ValueError("factorize_field: the light field has no mean (p = 0) component to fix the scale")
     lighting = lighting / lighting[band_p]  # L_0 = 1 (real, positive)
     lighting = 0.5 * (lighting + np.conj(lighting[::-1]))  # real lighting: L_{−p} = conj(L_p)
     # K_{−p,q}: least squares over the (one or two) equations that contain it

@@ -405,6 +405,6 @@ def build_report(capture: Path, work: Path) -> str:
     )
 
 
-def write_report(capture: Path, work: Path) -> Path:
+def write_report_html(capture: Path, work: Path) -> Path:
     """Write WORK/report.html atomically and return its path."""
     return write_text(Path(work) / "report.html", build_report(capture, work))

@@ -65,8 +65,8 @@ def test_forward_convolution_equals_brute_force(brdf, rng):
     lighting = random_lighting(rng)
     rho = pl.transfer_coefficients(brdf, BAND, 128)
     alpha, theta_o = rng.uniform(0, 2 * np.pi, 40), rng.uniform(-np.pi, np.pi, 40)
-    by_convolution = pl.light_field_synthesis(pl.reflect(lighting, rho), alpha, theta_o)
-    brute = pl.reflect_brute_force(lambda t: pl.fourier_synthesis(lighting, t), brdf, alpha, theta_o)
+    by_convolution = pl.light_field_synthesis(pl.reflected_field(lighting, rho), alpha, theta_o)
+    brute = pl.reflected_field_brute_force(lambda t: pl.fourier_synthesis(lighting, t), brdf, alpha, theta_o)
     # see module docstring: round-off vs 1e-6; q <= 128 truncation: lobes decay below 1e-16 there
     assert np.abs(by_convolution - brute).max() <= 1e-6 * np.abs(brute).max()
 
@@ -77,9 +77,9 @@ def test_forward_convolution_mirror(rng):
     mirror = pl.Mirror(0.9)
     alpha = pl.circle_grid(64)
     theta_o, weights = pl.visible_quadrature(200)
-    brute = pl.reflect_brute_force(lambda t: pl.fourier_synthesis(lighting, t), mirror, alpha, theta_o)
+    brute = pl.reflected_field_brute_force(lambda t: pl.fourier_synthesis(lighting, t), mirror, alpha, theta_o)
     measured = pl.observed_coefficients(brute, theta_o, weights, BAND, 16, cosine_weighted=False)
-    predicted = pl.reflect(lighting, pl.transfer_coefficients(mirror, BAND, 16))
+    predicted = pl.reflected_field(lighting, pl.transfer_coefficients(mirror, BAND, 16))
     # 200-node GL of a smooth band-8 integrand over the half circle: round-off (~1e-15)
     assert np.abs(measured - predicted).max() <= 1e-6 * np.abs(measured).max()
 
@@ -90,14 +90,14 @@ def test_inverse_lighting_exact_mirror_and_sharp_phong(rng):
     lighting = random_lighting(rng)
     light_fn = lambda t: pl.fourier_synthesis(lighting, t)  # noqa: E731
     theta_o, weights = pl.visible_quadrature(200)
-    field = pl.reflect_brute_force(light_fn, pl.Mirror(), pl.circle_grid(64), theta_o)
+    field = pl.reflected_field_brute_force(light_fn, pl.Mirror(), pl.circle_grid(64), theta_o)
     mirror_b = pl.observed_coefficients(field, theta_o, weights, BAND, 16, cosine_weighted=False)
     recovered = pl.inverse_lighting(mirror_b, pl.transfer_coefficients(pl.Mirror(), BAND, 16))
     # noise-free data, well-conditioned filter: only quadrature round-off (~1e-15) remains
     np.testing.assert_allclose(recovered, lighting, atol=1e-8)
 
     phong = pl.Phong(64)
-    field = pl.reflect_brute_force(light_fn, phong, pl.circle_grid(64), pl.circle_grid(256))
+    field = pl.reflected_field_brute_force(light_fn, phong, pl.circle_grid(64), pl.circle_grid(256))
     phong_b = pl.light_field_coefficients(field, BAND, 64)  # B is C^63 in θ'_o: FFT ~exact
     recovered = pl.inverse_lighting(phong_b, pl.transfer_coefficients(phong, BAND, 64))
     np.testing.assert_allclose(recovered, lighting, atol=1e-8)
@@ -124,7 +124,7 @@ def test_lambertian_odd_frequencies_ill_posed(rng):
     assert np.all(loud[even & (np.abs(p) == 12)] == pl.ILL_CONDITIONED)
     # the regularized inverse does not invent the unmeasured odd frequencies
     lighting = random_lighting(rng, band)
-    noisy = pl.reflect(lighting, rho) + 1e-4 * rng.normal(size=(2 * band + 1, 9))
+    noisy = pl.reflected_field(lighting, rho) + 1e-4 * rng.normal(size=(2 * band + 1, 9))
     recovered = pl.inverse_lighting(noisy, rho, noise=1e-4, signal=0.3)
     assert np.all(recovered[odd_high] == 0)
     # p <= 2: gain >= 2π/(2π·3) = 1/3, error <= noise/gain·(1/√9 from 9 q's) ~ 1e-4: bound 1e-3
@@ -137,7 +137,7 @@ def test_brdf_estimation_directional_vs_area(rng):
     phong = pl.Phong(32)
     rho = pl.transfer_coefficients(phong, BAND, 32)
     directional = np.full(2 * BAND + 1, 1 / (2 * np.pi), complex)  # δ(θ): L_p = 1/(2π)
-    recovered = pl.estimate_brdf(pl.reflect(directional, rho), directional)
+    recovered = pl.estimate_brdf(pl.reflected_field(directional, rho), directional)
     np.testing.assert_allclose(recovered, rho, atol=1e-14)  # pure division: round-off
     assert np.all(pl.brdf_conditioning(directional, 1e-4, 0.01) == pl.WELL)
     # an area source (Gaussian, width 0.5 rad): L_p ~ exp(−p²/8)/(2π) decays below the noise
@@ -151,20 +151,20 @@ def _weighted_field(rng, brdf, band_q=BAND + 4):
     lighting = random_lighting(rng)
     light_fn = lambda t: pl.fourier_synthesis(lighting, t)  # noqa: E731
     theta_o, weights = pl.visible_quadrature(200)
-    field = pl.reflect_brute_force(light_fn, brdf, pl.circle_grid(64), theta_o)
+    field = pl.reflected_field_brute_force(light_fn, brdf, pl.circle_grid(64), theta_o)
     kernel = pl.transfer_coefficients(brdf, BAND, band_q, cosine_outgoing=True)
     return lighting, kernel, pl.observed_coefficients(field, theta_o, weights, BAND, band_q)
 
 
 @pytest.mark.parametrize("brdf", [pl.Phong(16), pl.Microfacet(0.2), pl.Mirror()], ids=repr)
 def test_factorization_noise_free(brdf, rng):
-    """From a noise-free cosine-weighted field, factorize recovers lighting and BRDF kernel up to the one global
+    """From a noise-free cosine-weighted field, factorize_field recovers lighting and BRDF kernel up to the one global
     scale to 1e-6, for Phong, microfacet and mirror."""
     lighting, kernel, observed = _weighted_field(rng, brdf)
     # the observed (GL on the visible half) cosine-weighted field obeys B̃ = 2π L K (round-off)
-    assert np.abs(observed - pl.reflect(lighting, kernel)).max() <= 1e-10 * np.abs(observed).max()
-    result = pl.factorize(observed)
-    scale = lighting[BAND]  # factorize returns L_0 = 1; the truth has L_0 = 1 too
+    assert np.abs(observed - pl.reflected_field(lighting, kernel)).max() <= 1e-10 * np.abs(observed).max()
+    result = pl.factorize_field(observed)
+    scale = lighting[BAND]  # factorize_field returns L_0 = 1; the truth has L_0 = 1 too
     assert result.determined.all() and result.singular_gap < 1e-10
     # up to one global scale (L·s, K/s): round-off, measured ~1e-14
     np.testing.assert_allclose(result.lighting * scale, lighting, atol=1e-6)
@@ -181,7 +181,7 @@ def test_factorization_degrades_gracefully_with_noise(rng):
         for _ in range(4):
             noise = level * np.abs(observed).max()
             noisy = observed + noise * (rng.normal(size=observed.shape) + 1j * rng.normal(size=observed.shape)) / np.sqrt(2)
-            result = pl.factorize(noisy)
+            result = pl.factorize_field(noisy)
             trials.append(np.linalg.norm(result.lighting - lighting) / np.linalg.norm(lighting))
         errors.append(np.mean(trials))
     errors = np.array(errors)
@@ -197,7 +197,7 @@ def test_lambertian_factorization_reports_undetermined(rng):
     determined ones to 1e-8."""
     lighting = random_lighting(rng)
     kernel = pl.transfer_coefficients(pl.Lambertian(), BAND, BAND + 2, cosine_outgoing=True)
-    result = pl.factorize(pl.reflect(lighting, kernel))
+    result = pl.factorize_field(pl.reflected_field(lighting, kernel))
     p = np.abs(pl.frequencies(BAND))
     np.testing.assert_array_equal(result.determined, ~((p % 2 == 1) & (p > 1)))
     # determined ones (|p| <= 2 and even) are recovered up to the scale (L_0 = 1 here): round-off
@@ -218,7 +218,7 @@ def test_noise_amplification_matches_gain(rng):
     """The conditioning's premise: the least-squares error of L_p has std noise / gain_p."""
     lighting = random_lighting(rng)
     rho = pl.transfer_coefficients(pl.Phong(16), BAND, 24)
-    clean = pl.reflect(lighting, rho)
+    clean = pl.reflected_field(lighting, rho)
     noise = 1e-3
     draws = np.array(
         [
@@ -243,7 +243,7 @@ def test_wiener_regularization_beats_plain_least_squares(rng):
     noise = 1e-3
     errs_plain, errs_wiener = [], []
     for _ in range(20):
-        noisy = pl.reflect(lighting, rho) + noise * (
+        noisy = pl.reflected_field(lighting, rho) + noise * (
             rng.normal(size=(2 * band + 1, 9)) + 1j * rng.normal(size=(2 * band + 1, 9))
         ) / np.sqrt(2)
         posed = pl.lighting_conditioning(rho, noise, 1.0) != pl.ILL_POSED

@@ -14,7 +14,7 @@ from pipeline.io.mesh import read_mesh, read_vertex_albedo
 from pipeline.io.run_summary import relight_check
 from pipeline.io.textures import read_base_color_texture
 from pipeline.raycast import first_hits, ray_mesh
-from pipeline.report import write_report
+from pipeline.report import write_report_html as write_report
 from pipeline.synth import make_test_capture
 
 pytestmark = pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning")
