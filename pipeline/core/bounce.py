@@ -2,7 +2,7 @@
 (BounceRays) and the fixed point E = E_d + M_c (rho_c E) iterated over sparse (V, V) bounce
 matrices M_c (pipeline.core.render.Renderer.bounce_matrices).
 
-Units: irradiance E in the lighting's units (W m^-2 per unit radiance scale) per vertex and
+Units: irradiance E (the map's radiance units times sr: sum of L cos dω) per vertex and
 channel; rho the diffuse base colour (linear, 0-1); a bounce matrix maps a vertex's outgoing
 rho E to the irradiance the other vertices' occluded rays receive from it.  Used by the renderer
 (vertex irradiance) and by the fit's transfer (pipeline.core.interreflection: the same series of

@@ -3,7 +3,7 @@ angular-domain renderer (pipeline.core.render.Renderer) integrates the reflectio
 
 Input: an (H, 2H, 3) equirect map of linear radiance (DESIGN.md convention, pipeline.core.envmap).
 Output: a LightSet, directions (D, 3) unit vectors in the object frame and power L dω (D, 3) RGB
-(radiance times solid angle, W m^-2 per unit radiance scale), whose sum is the map's sum(L dω)
+(radiance times solid angle: the map's radiance units times sr), whose sum is the map's sum(L dω)
 per channel exactly.  The map is split into *bright* pixels, kept at full resolution one by one
 (sun disks, area lights, lamps: every pixel brighter than ``bright_ratio`` times the map's mean
 luminance or than its coarse cell's mean, at most ``max_bright`` of them by power; ``bright_block``
