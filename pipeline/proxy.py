@@ -22,7 +22,6 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from pipeline.core.atlas import photo_footprint_m
-from pipeline.core.camera import camera_center
 from pipeline.core.surface import barycentric
 from pipeline.raycast import RayMesh, ray_mesh
 
@@ -109,7 +108,7 @@ def samples_footprint_m(triangles: np.ndarray, data: dict, poses, keys: list[str
     samples ``data`` (face, bary, image_id; samples.npz's) seen through ``poses`` (pipeline.io.poses
     .Poses) of images ``keys`` (image_id's names); ``triangles`` (F, 3, 3) the mesh's."""
 
-    centres = np.array([camera_center(poses.images[k].R, poses.images[k].t) for k in keys])
+    centres = np.array([poses.images[k].cam_from_world.center() for k in keys])
     focal = np.array([poses.camera_of(k).focal_principal()[0] for k in keys])
     ids = np.asarray(data["image_id"], np.int64)
     points = np.einsum("pk,pkc->pc", np.asarray(data["bary"], float), np.asarray(triangles)[data["face"]])

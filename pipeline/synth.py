@@ -31,7 +31,7 @@ from typing import Literal
 import numpy as np
 
 from pipeline.board import make_board
-from pipeline.core.camera import Camera, look_at
+from pipeline.core.camera import Camera, Rigid3, look_at
 from pipeline.core.render_view import BoardPlane, InsideMeshError, render_view
 from pipeline.core.sh import project_envmap
 from pipeline.errors import UserError
@@ -398,7 +398,7 @@ def make_capture(out_dir: str | Path, settings: SynthSettings, *, progress: bool
         view_stops = exposure_rng.uniform(-settings.vary_exposure, settings.vary_exposure)
         shots = _write_shots(out, stem, result.radiance, t_base, view_stops, settings, noise, rng)
         written += shots
-        poses.images.update({path.name: ImagePose("cam0", R, t) for path in shots})
+        poses.images.update({path.name: ImagePose("cam0", Rigid3(R, t)) for path in shots})
         if settings.brackets > 1:
             brackets[f"view_{stem}"] = [path.name for path in shots]
         written.append(write_image(out / "gt" / "masks" / f"{stem}.png", result.object_mask.astype(np.float32), dtype="uint8"))

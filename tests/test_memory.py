@@ -16,7 +16,7 @@ import pytest
 import trimesh
 from helpers import assert_one_line_error
 
-from pipeline.core.camera import Camera, look_at
+from pipeline.core.camera import Camera, Rigid3, look_at
 from pipeline.errors import UserError
 from pipeline.io.images import write_image
 from pipeline.io.poses import ImagePose, Poses, write_poses
@@ -58,7 +58,7 @@ def large_capture(tmp_path_factory):
     r2 = ((x - WIDTH / 2) ** 2 + (y - HEIGHT / 2) ** 2) / (0.3 * HEIGHT) ** 2
     for i, centre in enumerate([(0.5, 0.0, 0.1), (0.0, 0.5, -0.1)]):
         R, t = look_at(centre, (0.0, 0.0, 0.0))
-        poses.images[f"{i}.jpg"] = ImagePose("cam0", R, t)
+        poses.images[f"{i}.jpg"] = ImagePose("cam0", Rigid3(R, t))
         value = np.where(r2 < 1, 0.8 * np.sqrt(np.clip(1 - r2, 0, 1)), 0.1 + 0.2 * x / WIDTH).astype(np.float32)
         write_image(
             root / "images" / f"{i}.jpg",

@@ -68,7 +68,6 @@ def test_board_and_colmap_poses_fit_the_bundled_poses_material(bundled_run, tmp_
     without a refinement step on this capture."""
     import shutil
 
-    from pipeline.core.camera import camera_center
     from pipeline.io.poses import read_poses
 
     capture = tmp_path / "capture"
@@ -78,8 +77,8 @@ def test_board_and_colmap_poses_fit_the_bundled_poses_material(bundled_run, tmp_
     assert sorted(found.images) == sorted(truth.images)
     for key, pose in truth.images.items():
         got = found.images[key]
-        assert rotation_deg(got.R, pose.R) < 0.25, key
-        assert np.linalg.norm(camera_center(got.R, got.t) - camera_center(pose.R, pose.t)) < 2.5e-3, key
+        assert rotation_deg(got.cam_from_world.rotation, pose.cam_from_world.rotation) < 0.25, key
+        assert np.linalg.norm(got.cam_from_world.center() - pose.cam_from_world.center()) < 2.5e-3, key
     brdf = json.loads((tmp_path / "work" / "fit" / "brdf.json").read_text())
     reference = json.loads((bundled_run / "fit" / "brdf.json").read_text())
     ratio = np.asarray(brdf["base_color"]) / np.asarray(reference["base_color"])

@@ -56,6 +56,19 @@ class Camera:
         return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
+@dataclass(frozen=True)
+class Rigid3:
+    """A rigid transform x_b = rotation @ x_a + translation, as pycolmap's ``Rigid3d`` (``b_from_a``):
+    a pose's ``cam_from_world`` is DESIGN.md's world-to-camera (R, t), metres, OpenCV camera axes."""
+
+    rotation: np.ndarray  # (3, 3)
+    translation: np.ndarray  # (3,)
+
+    def center(self) -> np.ndarray:
+        """The origin of frame b in frame a, -R^T t: a ``cam_from_world``'s camera centre (camera_center)."""
+        return camera_center(self.rotation, self.translation)
+
+
 def _distort(xn: np.ndarray, yn: np.ndarray, k: tuple[float, ...]):
     """OpenCV's distortion of normalized coordinates, k = (k1, k2, p1, p2, k3, k4, k5, k6): radial
     (1 + k1 r² + k2 r⁴ + k3 r⁶) / (1 + k4 r² + k5 r⁴ + k6 r⁶) and tangential p1, p2 (as COLMAP's
@@ -125,12 +138,12 @@ def camera_center(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 MITSUBA_FROM_OPENCV_CAMERA = np.diag([-1.0, -1.0, 1.0])
 
 
-def mitsuba_sensor_to_world(R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """The 4x4 ``to_world`` of a Mitsuba 3 ``perspective`` sensor seen as the world-to-camera pose (R, t)
-    (DESIGN.md's OpenCV axes): x_world = R^T diag(-1, -1, 1) x_sensor + C, C = -R^T t."""
+def mitsuba_sensor_to_world(cam_from_world: Rigid3) -> np.ndarray:
+    """The 4x4 ``to_world`` of a Mitsuba 3 ``perspective`` sensor seen as the world-to-camera pose
+    ``cam_from_world`` = (R, t) (DESIGN.md's OpenCV axes): x_world = R^T diag(-1, -1, 1) x_sensor + C, C = -R^T t."""
     out = np.eye(4)
-    out[:3, :3] = np.asarray(R, float).T @ MITSUBA_FROM_OPENCV_CAMERA
-    out[:3, 3] = camera_center(R, t)
+    out[:3, :3] = np.asarray(cam_from_world.rotation, float).T @ MITSUBA_FROM_OPENCV_CAMERA
+    out[:3, 3] = cam_from_world.center()
     return out
 
 

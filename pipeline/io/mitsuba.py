@@ -49,7 +49,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from pipeline.core.brdf import Brdf
-from pipeline.core.camera import Camera, mitsuba_sensor_to_world
+from pipeline.core.camera import Camera, Rigid3, mitsuba_sensor_to_world
 from pipeline.core.envmap import MITSUBA_ENVMAP_TO_OBJECT
 from pipeline.core.material import material_from_brdf
 from pipeline.core.quadrature import gauss_legendre
@@ -68,8 +68,7 @@ class SensorView:
     """One view for the scene's sensor: intrinsics and the world-to-camera pose (DESIGN.md), its name."""
 
     camera: Camera
-    R: np.ndarray
-    t: np.ndarray
+    cam_from_world: Rigid3
     name: str = ""
 
 
@@ -151,7 +150,9 @@ def sensor_element(view: SensorView, vertices: np.ndarray, spp: int = SAMPLES_PE
     if abs(fx - fy) > 1e-3 * fx:
         raise UserError(f"view {view.name}: fx {fx:g} != fy {fy:g}; Mitsuba's perspective sensor has square pixels")
     fov_x = math.degrees(2.0 * math.atan(0.5 * cam.width / fx))
-    depth = np.asarray(vertices, float) @ np.asarray(view.R, float)[2] + float(np.asarray(view.t, float)[2])
+    depth = np.asarray(vertices, float) @ np.asarray(view.cam_from_world.rotation, float)[2] + float(
+        np.asarray(view.cam_from_world.translation, float)[2]
+    )
     near = max(1e-4, 0.5 * float(depth.min())) if depth.min() > 0 else 1e-3
     far = max(2.0 * float(depth.max()), 10.0 * near)
     lines = [
@@ -161,7 +162,7 @@ def sensor_element(view: SensorView, vertices: np.ndarray, spp: int = SAMPLES_PE
         _float("principal_point_offset_y", (cy - cam.height / 2) / cam.height),
         _float("near_clip", near),
         _float("far_clip", far),
-        _matrix(mitsuba_sensor_to_world(view.R, view.t)),
+        _matrix(mitsuba_sensor_to_world(view.cam_from_world)),
         f'<sampler type="independent"><integer name="sample_count" value="{int(spp)}"/></sampler>',
         '<film type="hdrfilm">'
         f'<integer name="width" value="{cam.width}"/>'
@@ -274,4 +275,4 @@ def capture_view(poses_file: str | os.PathLike) -> SensorView | None:
         return None
     key = sorted(poses.images)[0]
     pose = poses.images[key]
-    return SensorView(poses.camera_of(key), np.asarray(pose.R, float), np.asarray(pose.t, float), key)
+    return SensorView(poses.camera_of(key), pose.cam_from_world, key)

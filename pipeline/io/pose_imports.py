@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.camera import MODELS, Camera
+from pipeline.core.camera import MODELS, Camera, Rigid3
 from pipeline.errors import UserError
 from pipeline.io.poses import ImagePose, Poses
 from pipeline.workdir import read_json
@@ -67,7 +67,7 @@ def read_colmap_model(folder: str | os.PathLike, *, min_track_length: int = 2, m
         if image.has_pose:
             pose = image.cam_from_world()
             poses.images[image.name] = ImagePose(
-                f"cam{image.camera_id}", pose.rotation.matrix(), np.asarray(pose.translation, float)
+                f"cam{image.camera_id}", Rigid3(pose.rotation.matrix(), np.asarray(pose.translation, float))
             )
     return ImportedPoses(poses, reconstruction_points(reconstruction, min_track_length, max_error_px), reconstruction)
 
@@ -158,7 +158,7 @@ def read_transforms_json(path: str | os.PathLike) -> ImportedPoses:
         camera = _intrinsics(doc, frame, where)
         name = names.setdefault(camera, f"cam{len(names)}")
         poses.cameras[name] = camera
-        poses.images[str(frame["file_path"])] = ImagePose(name, R, -R @ c2w[:3, 3])
+        poses.images[str(frame["file_path"])] = ImagePose(name, Rigid3(R, -R @ c2w[:3, 3]))
     points = None
     if doc.get("ply_file_path"):
         points = _read_points_ply(path.parent / str(doc["ply_file_path"]))

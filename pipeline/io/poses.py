@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.camera import Camera
+from pipeline.core.camera import Camera, Rigid3
 from pipeline.errors import UserError
 from pipeline.io.camera_json import camera_from_dict
 from pipeline.workdir import read_json, write_json
@@ -16,9 +16,10 @@ from pipeline.workdir import read_json, write_json
 
 @dataclass(frozen=True)
 class ImagePose:
+    """One image's camera name and world-to-camera pose (poses.json's "R" and "t", DESIGN.md)."""
+
     camera: str
-    R: np.ndarray  # (3, 3) world-to-camera rotation
-    t: np.ndarray  # (3,) translation, metres
+    cam_from_world: Rigid3
 
 
 @dataclass
@@ -78,7 +79,7 @@ def read_poses(path: str | os.PathLike) -> Poses:
             raise UserError(f"{path}: image {key!r} needs a finite 3x3 R and 3-vector t")
         if np.abs(R @ R.T - np.eye(3)).max() > 1e-4 or np.linalg.det(R) < 0:
             raise UserError(f"{path}: image {key!r} has a rotation that is not orthonormal with det +1")
-        poses.images[key] = ImagePose(cam, R, t)
+        poses.images[key] = ImagePose(cam, Rigid3(R, t))
     return poses
 
 
@@ -92,7 +93,11 @@ def write_poses(path: str | os.PathLike, poses: Poses) -> Path:
             for n, c in poses.cameras.items()
         },
         "images": {
-            k: {"camera": p.camera, "R": np.asarray(p.R).tolist(), "t": np.asarray(p.t).tolist()}
+            k: {
+                "camera": p.camera,
+                "R": np.asarray(p.cam_from_world.rotation).tolist(),
+                "t": np.asarray(p.cam_from_world.translation).tolist(),
+            }
             for k, p in sorted(poses.images.items())
         },
     }

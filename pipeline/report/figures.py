@@ -14,7 +14,6 @@ import io
 import numpy as np
 
 from pipeline.core.brdf import Brdf
-from pipeline.core.camera import camera_center
 from pipeline.core.material import material_from_brdf
 from pipeline.core.prefilter import Lighting
 from pipeline.core.sh import sh_evaluate
@@ -73,8 +72,8 @@ def camera_plot(poses, bounds: np.ndarray | None, heldout: list[str]) -> bytes:
     plt = pyplot()
     fig = plt.figure(figsize=(5.5, 5))
     ax = fig.add_subplot(projection="3d")
-    centres = np.array([camera_center(p.R, p.t) for p in poses.images.values()])
-    axes = np.array([p.R[2] for p in poses.images.values()])  # +Z_cam in world = viewing direction
+    centres = np.array([p.cam_from_world.center() for p in poses.images.values()])
+    axes = np.array([p.cam_from_world.rotation[2] for p in poses.images.values()])  # +Z_cam in world = viewing direction
     span = float(np.ptp(centres, axis=0).max()) if len(centres) > 1 else 1.0
     held = np.array([k in heldout for k in poses.images])
     for sel, colour, label in ((~held, "tab:blue", "fit views"), (held, "tab:orange", "held-out views")):

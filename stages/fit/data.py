@@ -112,6 +112,14 @@ def sample_footprints(capture: Path, work: Path, mesh: RayMesh, data: dict, keys
         sel = np.flatnonzero(data["image_id"] == i)
         pose = poses.images[key]
         normals[sel], views[sel] = pixel_footprints(
-            mesh, rays, poses.camera_of(key), pose.R, pose.t, data["pixel"][sel], n, data["normal"][sel], data["view_dir"][sel]
+            mesh,
+            rays,
+            poses.camera_of(key),
+            pose.cam_from_world.rotation,
+            pose.cam_from_world.translation,
+            data["pixel"][sel],
+            n,
+            data["normal"][sel],
+            data["view_dir"][sel],
         )
     return normals, views

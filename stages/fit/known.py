@@ -363,7 +363,12 @@ def chart_reference(capture: Path, work: Path) -> ChartReference | None:
             "normal = [x, y, z] (object frame) or keep the photo among the posed ones"
         )
     pose = poses.images[key]
-    _, ray = pixel_rays(poses.camera_of(key), pose.R, pose.t, np.asarray(record["centre"], float)[None])
+    _, ray = pixel_rays(
+        poses.camera_of(key),
+        pose.cam_from_world.rotation,
+        pose.cam_from_world.translation,
+        np.asarray(record["centre"], float)[None],
+    )
     return ChartReference(np.asarray(record["irradiance"], float), -ray[0], "its photo's camera", name)
 
 

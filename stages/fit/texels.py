@@ -83,7 +83,9 @@ def shading_at_all(geo: prt.Geometry, best: material_fit.MaterialFit, data: dict
 
 def make_atlas(mesh, data: dict, poses: Poses, keys: list[str]) -> atlas_mod.Atlas:
     """The mesh's own UVs (at the footprint's size) or an xatlas unwrap at the photos' median footprint."""
-    centres = np.array([camera_center(poses.images[k].R, poses.images[k].t) for k in keys])
+    centres = np.array(
+        [camera_center(poses.images[k].cam_from_world.rotation, poses.images[k].cam_from_world.translation) for k in keys]
+    )
     focal = np.array([poses.camera_of(k).focal_principal()[0] for k in keys])
     ids = data["image_id"].astype(np.int64)
     points = np.einsum("pk,pkc->pc", data["bary"].astype(float), mesh.triangles[data["face"]])

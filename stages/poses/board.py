@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.board import board_corners_object, make_board
-from pipeline.core.camera import Camera, project
+from pipeline.core.camera import Camera, Rigid3, project
 from pipeline.core.registration import rotation_angle_deg
 from pipeline.core.similarity import Similarity, ransac_similarity, transform_pose
 from pipeline.errors import UserError
@@ -312,7 +312,9 @@ def board_reprojection_px(poses: Poses, detections_by_key: dict, spec: BoardSpec
     for key, pose in poses.images.items():
         ids, uv = detections_by_key.get(key, (np.zeros(0, int), np.zeros((0, 2))))
         if len(ids):
-            proj, _ = project(poses.cameras[pose.camera], pose.R, pose.t, corners[ids])
+            proj, _ = project(
+                poses.cameras[pose.camera], pose.cam_from_world.rotation, pose.cam_from_world.translation, corners[ids]
+            )
             errors.append(np.linalg.norm(proj - uv, axis=1))
     return float(np.sqrt(np.mean(np.concatenate(errors) ** 2))) if errors else float("nan")
 
@@ -392,6 +394,6 @@ def pnp_poses(
                 R, t, err = pnp_pose(camera, ids, uv, spec)
             except ValueError:
                 continue
-            poses.images[key] = ImagePose(group, R, t)
+            poses.images[key] = ImagePose(group, Rigid3(R, t))
             errors[key] = err
     return poses, errors

@@ -19,7 +19,7 @@ from typing import Iterator
 import numpy as np
 
 from pipeline.board import detect_board
-from pipeline.core.camera import Camera
+from pipeline.core.camera import Camera, Rigid3
 from pipeline.core.similarity import Similarity, transform_pose
 from pipeline.errors import UserError
 from pipeline.io.camera_decode import RAW_EXTENSIONS
@@ -343,5 +343,5 @@ def poses_from_reconstruction(
             continue
         pose = image.cam_from_world()
         R, t = transform_pose(similarity, pose.rotation.matrix(), np.asarray(pose.translation, float))
-        poses.images[name_to_key[image.name]] = ImagePose(camera_names[image.camera_id], R, t)
+        poses.images[name_to_key[image.name]] = ImagePose(camera_names[image.camera_id], Rigid3(R, t))
     return poses

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.camera import camera_center
+from pipeline.core.camera import Rigid3, camera_center
 from pipeline.core.registration import project_to_surface, register_to_surface, scale_guess, viewing_center
 from pipeline.core.similarity import Similarity, transform_pose
 from pipeline.errors import UserError
@@ -240,13 +240,13 @@ def refine_on_mesh(reconstruction, surface: Surface, fixed_intrinsics: bool) -> 
 
 def register_poses(poses, points: np.ndarray, surface: Surface, *, max_residual: float, seed: int, what: str):
     """Poses (DESIGN.md Poses, any frame) and their frame's points -> the same poses in the mesh's frame."""
-    centers = np.array([camera_center(p.R, p.t) for p in poses.images.values()])
-    axes = np.array([p.R[2] for p in poses.images.values()])
+    centers = np.array([p.cam_from_world.center() for p in poses.images.values()])
+    axes = np.array([p.cam_from_world.rotation[2] for p in poses.images.values()])
     similarity, summary = register_points(points, centers, axes, surface, max_residual=max_residual, seed=seed, what=what)
     out = Poses(cameras=dict(poses.cameras))
     for key, pose in poses.images.items():
-        R, t = transform_pose(similarity, pose.R, pose.t)
-        out.images[key] = ImagePose(pose.camera, R, t)
+        R, t = transform_pose(similarity, pose.cam_from_world.rotation, pose.cam_from_world.translation)
+        out.images[key] = ImagePose(pose.camera, Rigid3(R, t))
     return out, summary
 
 

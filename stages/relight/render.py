@@ -43,7 +43,9 @@ def _render_pixels(
     hits = np.zeros(pixels.size)
 
     def shade(start: int) -> tuple[np.ndarray, np.ndarray]:
-        origins, dirs = cam.pixel_rays(view.camera, view.R, view.t, uv[start : start + chunk])
+        origins, dirs = cam.pixel_rays(
+            view.camera, view.cam_from_world.rotation, view.cam_from_world.translation, uv[start : start + chunk]
+        )
         h = first_hits(mesh, rays, origins, dirs)
         rho = albedo if vertex_colors is None else np.einsum("ij,ijk->ik", h.bary, vertex_colors[mesh.faces[h.face]])
         return owner[start + h.ray], lighting.shade_hits(h.face, h.bary, h.normal, -dirs[h.ray], rho)

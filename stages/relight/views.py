@@ -96,8 +96,7 @@ def samples_holdout_keys(work: Path) -> list[str]:
 class View:
     key: str
     camera: cam.Camera
-    R: np.ndarray
-    t: np.ndarray
+    cam_from_world: cam.Rigid3
     has_photo: bool
 
 
@@ -121,7 +120,7 @@ def orbit_views(n: int, mesh, size: tuple[int, int] | None) -> list[View]:
     _, poses = cam.orbit_poses(*cam.enclosing_sphere(mesh.vertices), n, width, height)
     f = cam.framing_focal(np.asarray(mesh.vertices), poses, width, height, ORBIT_MARGIN)
     camera = cam.Camera("PINHOLE", width, height, (f, f, width / 2, height / 2))
-    return [View(f"orbit_{i:03d}", camera, R, t, False) for i, (R, t) in enumerate(poses)]
+    return [View(f"orbit_{i:03d}", camera, cam.Rigid3(R, t), False) for i, (R, t) in enumerate(poses)]
 
 
 def resolve_views(*, capture: Path, work: Path, settings: Settings, mesh=None) -> list[View]:
@@ -152,8 +151,7 @@ def resolve_views(*, capture: Path, work: Path, settings: Settings, mesh=None) -
         View(
             k,
             _scaled(poses.camera_of(k), size),
-            poses.images[k].R,
-            poses.images[k].t,
+            poses.images[k].cam_from_world,
             own or (Path(capture) / "images" / k).exists(),
         )
         for k in keys

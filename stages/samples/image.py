@@ -202,7 +202,15 @@ def sample_view(
     kept = 0
     with progress(total=len(range(0, camera.height, settings.stride)), desc=f"samples {key}", unit="row", leave=False) as bar:
         for arrays, chunk_drops in sample_image(
-            mesh, camera, pose.R, pose.t, image, image_id, settings, visibility, progress=bar
+            mesh,
+            camera,
+            pose.cam_from_world.rotation,
+            pose.cam_from_world.translation,
+            image,
+            image_id,
+            settings,
+            visibility,
+            progress=bar,
         ):
             for reason, count in chunk_drops.items():
                 drops[reason] += count

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.brdf import reflect
-from pipeline.core.camera import camera_center, project
+from pipeline.core.camera import project
 from pipeline.core.coverage import EqualAreaGrid, coverage_stats
 from pipeline.io.poses import Poses
 from pipeline.io.samples import SamplesWriter
@@ -78,7 +78,7 @@ def units_hint(mesh, poses: Poses, totals: dict) -> str:
     or back faces only (cameras inside the mesh, or faces wound inwards)."""
     size = float(np.linalg.norm(mesh.extents))
     centre = np.asarray(mesh.bounds, float).mean(axis=0)
-    centres = np.array([camera_center(p.R, p.t) for p in poses.images.values()])
+    centres = np.array([p.cam_from_world.center() for p in poses.images.values()])
     # the scale of the camera rig from the cameras alone (their spread about their centroid): measured
     # from the mesh's centre instead, a mesh 1000x too large puts the cameras inside it at ~its radius
     distance = float(np.median(np.linalg.norm(centres - centres.mean(axis=0), axis=1)))
@@ -97,7 +97,7 @@ def units_hint(mesh, poses: Poses, totals: dict) -> str:
     in_view = 0
     for key, pose in poses.images.items():
         cam = poses.camera_of(key)
-        uv, z = project(cam, pose.R, pose.t, centre[None])
+        uv, z = project(cam, pose.cam_from_world.rotation, pose.cam_from_world.translation, centre[None])
         in_view += bool(z[0] > 0 and 0 <= uv[0, 0] < cam.width and 0 <= uv[0, 1] < cam.height)
     if in_view == 0 or totals["hidden"] == 0:
         return (

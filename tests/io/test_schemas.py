@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.core.brdf import Brdf
-from pipeline.core.camera import Camera
+from pipeline.core.camera import Camera, Rigid3
 from pipeline.errors import UserError
 from pipeline.io.brdf import parse_brdf_spec, read_brdf, write_brdf
 from pipeline.io.images import read_envmap, read_image, write_image
@@ -55,13 +55,13 @@ def test_poses_round_trip(tmp_path):
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     poses = Poses(
         {"cam0": Camera("PINHOLE", 64, 48, (50.0, 51.0, 32.0, 24.0))},
-        {"0000.exr": ImagePose("cam0", R, np.array([0.1, 0.2, 1.0]))},
+        {"0000.exr": ImagePose("cam0", Rigid3(R, np.array([0.1, 0.2, 1.0])))},
     )
     write_poses(tmp_path / "poses.json", poses)
     back = read_poses(tmp_path / "poses.json")
     assert back.cameras == poses.cameras
-    np.testing.assert_array_equal(back.images["0000.exr"].R, R)
-    np.testing.assert_array_equal(back.images["0000.exr"].t, [0.1, 0.2, 1.0])
+    np.testing.assert_array_equal(back.images["0000.exr"].cam_from_world.rotation, R)
+    np.testing.assert_array_equal(back.images["0000.exr"].cam_from_world.translation, [0.1, 0.2, 1.0])
 
 
 def test_malformed_poses_raise_user_error(tmp_path):

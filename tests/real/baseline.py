@@ -76,7 +76,7 @@ def _sample(img: np.ndarray, valid: np.ndarray, uv: np.ndarray) -> tuple[np.ndar
 
 def predict(capture: Path, key: str, neighbours: list[str]) -> Prediction:
     """The neighbour-reprojection prediction of view ``key`` of ``capture`` from the views ``neighbours``."""
-    from pipeline.core.camera import camera_center, pixel_centers, pixel_rays, project
+    from pipeline.core.camera import pixel_centers, pixel_rays, project
     from pipeline.io.mesh import mesh_path, read_mesh
     from pipeline.io.poses import read_poses
     from pipeline.raycast import first_hits, intersector, occluded
@@ -87,7 +87,7 @@ def predict(capture: Path, key: str, neighbours: list[str]) -> Prediction:
     rays = intersector(mesh)
     cam, pose = poses.camera_of(key), poses.images[key]
     h, w = cam.height, cam.width
-    origins, dirs = pixel_rays(cam, pose.R, pose.t, pixel_centers(w, h))
+    origins, dirs = pixel_rays(cam, pose.cam_from_world.rotation, pose.cam_from_world.translation, pixel_centers(w, h))
     hits = first_hits(mesh, rays, origins, dirs)
     hit = np.zeros(h * w, bool)
     hit[hits.ray] = True
@@ -97,14 +97,14 @@ def predict(capture: Path, key: str, neighbours: list[str]) -> Prediction:
     count = np.zeros(len(hits.ray))
     for other in neighbours:
         ocam, opose = poses.camera_of(other), poses.images[other]
-        centre = camera_center(opose.R, opose.t)
+        centre = opose.cam_from_world.center()
         to_cam = centre - hits.point
         dist = np.linalg.norm(to_cam, axis=1)
         to_cam /= dist[:, None]
         facing = np.einsum("ij,ij->i", hits.normal, to_cam) > 0
         start = hits.point + SURFACE_EPS * hits.normal
         visible = facing & ~occluded(rays, start, to_cam)
-        uv, depth = project(ocam, opose.R, opose.t, hits.point)
+        uv, depth = project(ocam, opose.cam_from_world.rotation, opose.cam_from_world.translation, hits.point)
         inside = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= ocam.width) & (uv[:, 1] <= ocam.height)
         img, valid = read_grey(capture / "images" / other)
         value, ok = _sample(img, valid, np.where(inside[:, None], uv, 0.0))

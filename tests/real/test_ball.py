@@ -39,7 +39,9 @@ def _sphere_pixels():
     mesh = read_mesh(CAPTURE / "mesh.ply")
     key = sorted(poses.images)[0]
     cam, pose = poses.camera_of(key), poses.images[key]
-    origins, dirs = pixel_rays(cam, pose.R, pose.t, pixel_centers(cam.width, cam.height))
+    origins, dirs = pixel_rays(
+        cam, pose.cam_from_world.rotation, pose.cam_from_world.translation, pixel_centers(cam.width, cam.height)
+    )
     hits = first_hits(mesh, intersector(mesh), origins, dirs)
     mask = cv2.imread(str(CAPTURE / "gt" / "mask.png"), cv2.IMREAD_GRAYSCALE).ravel() > 0
     normal_gt = np.load(CAPTURE / "gt" / "normal_gt.npz")["normal"].reshape(-1, 3).astype(float)
@@ -86,9 +88,9 @@ def test_sphere_normals_match_the_ground_truth_normal_map():
     poses = read_poses(CAPTURE / "poses.json")
     key = sorted(poses.images)[0]
     cam, pose = poses.camera_of(key), poses.images[key]
-    centre_uv, _ = project(cam, pose.R, pose.t, np.zeros((1, 3)))
+    centre_uv, _ = project(cam, pose.cam_from_world.rotation, pose.cam_from_world.translation, np.zeros((1, 3)))
     radius_m = 0.03  # make_ball.RADIUS_M
-    radius_px = cam.focal_principal()[0] * np.tan(np.arcsin(radius_m / np.linalg.norm(pose.t)))
+    radius_px = cam.focal_principal()[0] * np.tan(np.arcsin(radius_m / np.linalg.norm(pose.cam_from_world.translation)))
     rows, cols = np.divmod(np.flatnonzero(mask), cam.width)
     x = (cols + 0.5 - centre_uv[0, 0]) / radius_px
     y = -(rows + 0.5 - centre_uv[0, 1]) / radius_px

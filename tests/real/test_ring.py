@@ -53,11 +53,10 @@ def _scene():
 
 def _visible(rays, poses, key, points, normals):
     """Reference points facing view ``key`` and not hidden from it by the mesh."""
-    from pipeline.core.camera import camera_center
     from pipeline.raycast import occluded
 
     pose = poses.images[key]
-    to_cam = camera_center(pose.R, pose.t) - points
+    to_cam = pose.cam_from_world.center() - points
     to_cam /= np.linalg.norm(to_cam, axis=1, keepdims=True)
     facing = np.einsum("ij,ij->i", normals, to_cam) > 0
     # start 1 mm out along the normal: the points lie up to ~0.5 mm off the mesh (95th percentile 0.44 mm)
@@ -68,12 +67,11 @@ def test_capture_is_a_sigrend_capture_in_metres():
     """The converted folder reads as a capture: 12 posed PINHOLE views of 320x256 on a ring of 0.2 m
     radius (the HALCON calibration is in metres), the mesh watertight, outward and ~4 cm across, within
     the DESIGN.md limits the brief set (<= 20k faces)."""
-    from pipeline.core.camera import camera_center
 
     poses, mesh, _ = _scene()
     assert sorted(poses.images) == [f"cam{i:02d}.png" for i in range(1, 13)]
     assert all(c.model == "PINHOLE" and (c.width, c.height) == (320, 256) for c in poses.cameras.values())
-    centres = np.array([camera_center(p.R, p.t) for p in poses.images.values()])
+    centres = np.array([p.cam_from_world.center() for p in poses.images.values()])
     radius = np.linalg.norm(centres[:, :2], axis=1)
     # the ring is horizontal in the object frame (+Z up) and centred on the object to a few mm
     assert np.allclose(radius, 0.2, atol=0.005), radius
@@ -99,7 +97,7 @@ def test_calibration_puts_reference_points_on_their_pixels():
     for key in sorted(poses.images):
         cam, pose = poses.camera_of(key), poses.images[key]
         sel = _visible(rays, poses, key, points, normals)
-        uv, _ = project(cam, pose.R, pose.t, points[sel])
+        uv, _ = project(cam, pose.cam_from_world.rotation, pose.cam_from_world.translation, points[sel])
         photo, valid = baseline.read_grey(CAPTURE / "images" / key)
         for shift, out in ((0.0, scores), (3.0, shifted)):
             value, ok = baseline._sample(photo, np.ones_like(valid), uv + [shift, 0.0])
@@ -118,18 +116,18 @@ def test_mesh_lies_on_the_reference_cloud_in_every_view():
     the normals the cloud is 0.16 mm off the mesh, a grazing ray stretches that): the calibration and the
     mesh agree, so the samples stage puts every photo's pixels on the right surface.  (Points seen more
     obliquely often hit the mesh in front of them along a grazing ray: 81-93 % within 1 mm.)"""
-    from pipeline.core.camera import camera_center, pixel_rays, project
+    from pipeline.core.camera import pixel_rays, project
     from pipeline.raycast import first_hits
 
     poses, mesh, rays = _scene()
     points, normals, _ = _reference_points()
     for key in sorted(poses.images):
         cam, pose = poses.camera_of(key), poses.images[key]
-        view = camera_center(pose.R, pose.t) - points
+        view = pose.cam_from_world.center() - points
         view /= np.linalg.norm(view, axis=1, keepdims=True)
         sel = _visible(rays, poses, key, points, normals) & (np.einsum("ij,ij->i", normals, view) > 0.5)
-        uv, _ = project(cam, pose.R, pose.t, points[sel])
-        origins, dirs = pixel_rays(cam, pose.R, pose.t, uv)
+        uv, _ = project(cam, pose.cam_from_world.rotation, pose.cam_from_world.translation, points[sel])
+        origins, dirs = pixel_rays(cam, pose.cam_from_world.rotation, pose.cam_from_world.translation, uv)
         hits = first_hits(mesh, rays, origins, dirs)
         gap = np.full(int(sel.sum()), np.inf)
         gap[hits.ray] = np.linalg.norm(hits.point - points[sel][hits.ray], axis=1)

@@ -37,7 +37,7 @@ def chart_irradiance_truth(capture: Path, name: str, centre: np.ndarray) -> tupl
     direct quadrature of gt/lighting.exr (sum of L max(0, n.w) dw over its pixels: no SH), and the normal."""
     poses = read_poses(capture / "poses.json")
     pose = poses.images[name]
-    _, ray = pixel_rays(poses.camera_of(name), pose.R, pose.t, centre[None])
+    _, ray = pixel_rays(poses.camera_of(name), pose.cam_from_world.rotation, pose.cam_from_world.translation, centre[None])
     normal = -ray[0]
     env = np.asarray(read_envmap(capture / "gt" / "lighting.exr"), float)
     h = env.shape[0]

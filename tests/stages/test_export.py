@@ -416,7 +416,9 @@ def test_blender_reads_the_material_maps_as_each_faces_material(tmp_path, blende
         alone.append(blender_render(blender_python, one_work / asset_name, view, key, tmp_path / f"{k}.exr"))
     poses = read_poses(view)
     camera = poses.camera_of(key).resized(128, 128)  # as render_asset.py scales it
-    origins, dirs = pixel_rays(camera, poses.images[key].R, poses.images[key].t, pixel_centers(128, 128))
+    origins, dirs = pixel_rays(
+        camera, poses.images[key].cam_from_world.rotation, poses.images[key].cam_from_world.translation, pixel_centers(128, 128)
+    )
     hits = first_hits(mesh, ray_mesh(mesh).rays, origins, dirs)
     pixel_material = np.full(128 * 128, -1)
     pixel_material[hits.ray] = face_material[hits.face]

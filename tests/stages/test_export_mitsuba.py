@@ -174,7 +174,7 @@ def test_sensor_rays_are_the_capture_view_pixel_rays(exported):
     camera, pose = poses.camera_of(key), poses.images[key]
     [sensor] = mi.load_file(str(scene)).sensors()
     uv = pixel_centers(camera.width, camera.height)[::37]
-    origins, dirs = pixel_rays(camera, pose.R, pose.t, uv)
+    origins, dirs = pixel_rays(camera, pose.cam_from_world.rotation, pose.cam_from_world.translation, uv)
     for (pu, pv), origin, d in zip(uv, origins, dirs):
         ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(pu / camera.width, pv / camera.height), mi.Point2f(0.5, 0.5))
         d = d / np.linalg.norm(d)

@@ -29,7 +29,7 @@ from pipeline.commands.bench.poses import (
     render,
     scene_quads,
 )
-from pipeline.core.camera import Camera, camera_center, look_at, project
+from pipeline.core.camera import Camera, look_at, project
 from pipeline.io.capture_toml import BoardSpec, read_capture_config
 from pipeline.io.poses import Poses, read_poses, write_poses
 from pipeline.settings import make_settings
@@ -365,7 +365,7 @@ def test_synth_capture_poses(synth_run):
     assert summary["unregistered"] == []
     rot, cen = pose_errors(gt, est)
     keys = sorted(est.images)
-    centres = np.array([camera_center(gt.images[k].R, gt.images[k].t) for k in keys])
+    centres = np.array([gt.images[k].cam_from_world.center() for k in keys])
     steep = centres[:, 2] / np.linalg.norm(centres, axis=1) > np.sin(np.radians(20.0))  # vs the object origin
     steep[np.argmin(centres[:, 2])] = False  # the lowest view (15° towards its aim point)
     assert steep.sum() >= 10

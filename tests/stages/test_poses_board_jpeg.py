@@ -75,7 +75,9 @@ def test_board_jpeg_capture_one_input(tmp_path):
     alone, run = results["alone"], results["run"]
     assert set(alone.images) == set(run.images) == set(truth.images)
     for key, pose in alone.images.items():
-        assert np.allclose(pose.R, run.images[key].R, atol=1e-9) and np.allclose(pose.t, run.images[key].t, atol=1e-9)
+        assert np.allclose(pose.cam_from_world.rotation, run.images[key].cam_from_world.rotation, atol=1e-9) and np.allclose(
+            pose.cam_from_world.translation, run.images[key].cam_from_world.translation, atol=1e-9
+        )
     rotation, centre = pose_errors(truth, alone)
     assert np.median(rotation) < 0.15, dict(zip(alone.images, rotation.round(3)))
     assert rotation.max() < 0.4, dict(zip(alone.images, rotation.round(3)))

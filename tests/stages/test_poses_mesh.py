@@ -23,7 +23,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.cli import main as cli_main
 from pipeline.commands.bench.poses import pose_errors
-from pipeline.core.camera import camera_center
+from pipeline.core.camera import Rigid3
 from pipeline.core.similarity import Similarity, transform_pose
 from pipeline.io.poses import ImagePose, Poses, read_poses
 from pipeline.settings import make_settings
@@ -89,8 +89,8 @@ def _moved(poses: Poses, similarity: Similarity) -> Poses:
     """The same cameras with the world mapped by ``similarity``."""
     out = Poses(cameras=dict(poses.cameras))
     for key, p in poses.images.items():
-        R, t = transform_pose(similarity, p.R, p.t)
-        out.images[key] = ImagePose(p.camera, R, t)
+        R, t = transform_pose(similarity, p.cam_from_world.rotation, p.cam_from_world.translation)
+        out.images[key] = ImagePose(p.camera, Rigid3(R, t))
     return out
 
 
@@ -130,9 +130,9 @@ def test_mesh_in_another_frame_and_units(bunny_capture, tmp_path, capsys):
     rot, _ = pose_errors(gt, est)
     assert rot.max() < 0.3
     for key, p in est.images.items():
-        c_gt = camera_center(gt.images[key].R, gt.images[key].t)
+        c_gt = gt.images[key].cam_from_world.center()
         distance = np.linalg.norm(c_gt - mesh.bounds.mean(axis=0))
-        assert np.linalg.norm(camera_center(p.R, p.t) - c_gt) < 0.01 * distance
+        assert np.linalg.norm(p.cam_from_world.center() - c_gt) < 0.01 * distance
 
 
 # -- COLMAP models ----------------------------------------------------------------------------------
@@ -144,8 +144,8 @@ def _imported_as_object_frame(capture: Path, work: Path, gt: Poses) -> Poses:
     est = read_poses(work / "poses.json")
     assert set(est.images) == set(gt.images)
     for key, p in est.images.items():
-        assert p.R == pytest.approx(gt.images[key].R, abs=1e-6)
-        assert p.t == pytest.approx(gt.images[key].t, abs=1e-6)
+        assert p.cam_from_world.rotation == pytest.approx(gt.images[key].cam_from_world.rotation, abs=1e-6)
+        assert p.cam_from_world.translation == pytest.approx(gt.images[key].cam_from_world.translation, abs=1e-6)
     return est
 
 
@@ -161,7 +161,9 @@ def _write_colmap_model(poses: Poses, folder: Path, text: bool) -> None:
         )
     for j, (key, p) in enumerate(sorted(poses.images.items()), start=1):
         image = pycolmap.Image(name=key, camera_id=ids[p.camera], image_id=j)
-        reconstruction.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(p.R), p.t))
+        reconstruction.add_image_with_trivial_frame(
+            image, pycolmap.Rigid3d(pycolmap.Rotation3d(p.cam_from_world.rotation), p.cam_from_world.translation)
+        )
     folder.mkdir(parents=True)
     reconstruction.write_text(folder) if text else reconstruction.write(folder)
 
@@ -223,8 +225,8 @@ def _transforms(poses: Poses, *, instant_ngp: bool = False, distortion: dict | N
     frames = []
     for key, p in sorted(poses.images.items()):
         c2w = np.eye(4)
-        c2w[:3, :3] = p.R.T @ np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes -> OpenGL
-        c2w[:3, 3] = camera_center(p.R, p.t)
+        c2w[:3, :3] = p.cam_from_world.rotation.T @ np.diag([1.0, -1.0, -1.0])  # OpenCV camera axes -> OpenGL
+        c2w[:3, 3] = p.cam_from_world.center()
         frames.append({"file_path": f"images/{key}", "transform_matrix": c2w.tolist()})
     return {**doc, "frames": frames}
 

@@ -48,7 +48,9 @@ def test_run_and_poses_register_the_capture_alike(tmp_path):
     run, alone = poses["run"], poses["alone"]
     assert set(run.images) == set(alone.images)
     for key, pose in run.images.items():
-        assert np.allclose(pose.R, alone.images[key].R, atol=1e-9) and np.allclose(pose.t, alone.images[key].t, atol=1e-9)
+        assert np.allclose(pose.cam_from_world.rotation, alone.images[key].cam_from_world.rotation, atol=1e-9) and np.allclose(
+            pose.cam_from_world.translation, alone.images[key].cam_from_world.translation, atol=1e-9
+        )
     rotation, centre = pose_errors(truth, run)
     errors = dict(zip(run.images, rotation.round(3)))
     assert len(run.images) >= 28, sorted(set(truth.images) - set(run.images))
@@ -62,7 +64,7 @@ def synthetic_reconstruction(mesh, surface, truth, count: int = 1500):
     that sees it (in the image, not hidden by the mesh), points seen twice or more kept."""
     import pycolmap
 
-    from pipeline.core.camera import camera_center, project
+    from pipeline.core.camera import project
     from pipeline.raycast import first_hits, ray_mesh
 
     rays = ray_mesh(mesh)
@@ -74,8 +76,8 @@ def synthetic_reconstruction(mesh, surface, truth, count: int = 1500):
     )
     tracks: dict[int, list] = {}
     for image_id, (key, pose) in enumerate(sorted(truth.images.items()), start=1):
-        uv, depth = project(camera, pose.R, pose.t, points)
-        center = camera_center(pose.R, pose.t)
+        uv, depth = project(camera, pose.cam_from_world.rotation, pose.cam_from_world.translation, points)
+        center = pose.cam_from_world.center()
         distance = np.linalg.norm(points - center, axis=1)
         hits = first_hits(rays, rays.rays, np.repeat(center[None], count, axis=0), (points - center) / distance[:, None])
         first = np.full(count, np.inf)
@@ -90,7 +92,7 @@ def synthetic_reconstruction(mesh, surface, truth, count: int = 1500):
         )
         reconstruction.add_image_with_trivial_frame(
             pycolmap.Image(name=key, keypoints=uv[seen], camera_id=1, image_id=image_id),
-            pycolmap.Rigid3d(pycolmap.Rotation3d(pose.R), pose.t),
+            pycolmap.Rigid3d(pycolmap.Rotation3d(pose.cam_from_world.rotation), pose.cam_from_world.translation),
         )
         for index, k in enumerate(seen):
             tracks.setdefault(int(k), []).append((image_id, index))

@@ -15,7 +15,7 @@ import pytest
 import trimesh
 
 from pipeline.core.brdf import Brdf, phong_lobe
-from pipeline.core.camera import Camera, look_at
+from pipeline.core.camera import Camera, Rigid3, look_at
 from pipeline.core.envmap import equirect_directions, equirect_solid_angles
 from pipeline.core.prefilter import prefilter_envmap
 from pipeline.core.quadrature import sphere_product_rule
@@ -43,7 +43,7 @@ def _scene(tmp: Path, brdf: Brdf, coeffs: np.ndarray, views: int = 3) -> tuple[P
     for i in range(views):
         phi = 2 * np.pi * i / views + 0.3
         R, t = look_at(np.array([0.45 * np.cos(phi), 0.45 * np.sin(phi), 0.15]), np.zeros(3))
-        poses.images[f"{i:04d}.exr"] = ImagePose("cam0", R, t)
+        poses.images[f"{i:04d}.exr"] = ImagePose("cam0", Rigid3(R, t))
     write_poses(capture / "poses.json", poses)
     write_lighting_sh(work / "fit" / "lighting_sh.json", coeffs)
     write_brdf(work / "fit" / "brdf.json", brdf)
@@ -60,7 +60,12 @@ def _sphere_normals(view: relight.View) -> tuple[np.ndarray, np.ndarray]:
     """Exact normals and view directions of the ideal sphere at every pixel centre, NaN off it."""
     from pipeline.core.camera import pixel_centers, pixel_rays
 
-    o, d = pixel_rays(view.camera, view.R, view.t, pixel_centers(view.camera.width, view.camera.height))
+    o, d = pixel_rays(
+        view.camera,
+        view.cam_from_world.rotation,
+        view.cam_from_world.translation,
+        pixel_centers(view.camera.width, view.camera.height),
+    )
     b = np.einsum("ij,ij->i", o, d)
     disc = b * b - (np.einsum("ij,ij->i", o, o) - RADIUS**2)
     s = -b - np.sqrt(np.where(disc > 0, disc, np.nan))
@@ -496,7 +501,12 @@ def test_two_materials_each_pixel_is_its_faces_material(tmp_path, rng):
     view = relight.resolve_views(
         capture=capture, work=work, settings=make_settings(relight.Settings, views="0001.exr"), mesh=mesh
     )[0]
-    origins, dirs = pixel_rays(view.camera, view.R, view.t, pixel_centers(view.camera.width, view.camera.height))
+    origins, dirs = pixel_rays(
+        view.camera,
+        view.cam_from_world.rotation,
+        view.cam_from_world.translation,
+        pixel_centers(view.camera.width, view.camera.height),
+    )
     hits = first_hits(mesh, ray_mesh(mesh).rays, origins, dirs)
     pixel_material = np.full(len(both), -1)
     pixel_material[hits.ray] = face_materials(np.asarray(mesh.faces), label)[hits.face]

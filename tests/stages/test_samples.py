@@ -18,7 +18,7 @@ import trimesh
 from helpers import assert_one_line_error
 
 import stages.samples as samples_stage
-from pipeline.core.camera import Camera, camera_center, look_at, pixel_centers, pixel_rays, project
+from pipeline.core.camera import Camera, Rigid3, look_at, pixel_centers, pixel_rays, project
 from pipeline.core.coverage import EqualAreaGrid
 from pipeline.errors import UserError
 from pipeline.io.images import write_image
@@ -58,7 +58,7 @@ def make_capture(root, centers, size=80, focal=96.0, alpha=None, nan_pixel=None)
     for i, centre in enumerate(centers):
         R, t = look_at(centre, (0.0, 0.0, 0.0))
         key = f"{i:04d}.exr"
-        poses.images[key] = ImagePose("cam0", R, t)
+        poses.images[key] = ImagePose("cam0", Rigid3(R, t))
         hit, normal, _ = sphere_hits(camera, R, t, RADIUS)
         image = np.where(hit[:, None], 0.5 + 0.5 * normal, 0.0).reshape(size, size, 3)
         if alpha is not None:
@@ -130,9 +130,9 @@ def test_points_normals_pixels_and_radiance_match_the_sphere(sphere_run):
         pose, camera = poses.images[key], poses.camera_of(key)
         # the point projects back onto its pixel's centre (COLMAP: centre of (row i, col j) = (j+.5, i+.5));
         # float32 points of 0.1 m: ~1e-8 m -> 1e-5 px
-        uv, _ = project(camera, pose.R, pose.t, point[sel])
+        uv, _ = project(camera, pose.cam_from_world.rotation, pose.cam_from_world.translation, point[sel])
         np.testing.assert_allclose(uv, a["pixel"][sel][:, ::-1] + 0.5, atol=1e-3)
-        to_camera = camera_center(pose.R, pose.t) - point[sel]
+        to_camera = pose.cam_from_world.center() - point[sel]
         np.testing.assert_allclose(a["view_dir"][sel], to_camera / np.linalg.norm(to_camera, axis=1, keepdims=True), atol=1e-6)
     # radiance was rendered as 0.5 + 0.5 n from the exact sphere along the same ray: it differs from
     # 0.5 + 0.5 n(mesh) by at most half the normal error (1.1 deg -> 0.0096)
@@ -155,8 +155,8 @@ def test_drop_counts_bracket_the_analytic_disk(sphere_run):
         drops = counts["drops"]
         assert counts["pixels"] == size * size == counts["kept"] + sum(drops.values())
         assert counts["kept"] == int(np.sum(a["image_id"] == image_id))
-        hit_out, _, _ = sphere_hits(camera, pose.R, pose.t, circumradius)
-        hit_in, _, _ = sphere_hits(camera, pose.R, pose.t, inradius)
+        hit_out, _, _ = sphere_hits(camera, pose.cam_from_world.rotation, pose.cam_from_world.translation, circumradius)
+        hit_in, _, _ = sphere_hits(camera, pose.cam_from_world.rotation, pose.cam_from_world.translation, inradius)
         # the mesh lies between the two spheres, so its background is between their backgrounds
         assert (~hit_out).sum() <= drops["background"] <= (~hit_in).sum()
         # silhouette band (edge_px = 1): hit pixels with a background 8-neighbour, bracketed the same way
@@ -179,7 +179,7 @@ def test_grazing_threshold_against_the_analytic_cosine(sphere_run, tmp_path):
     slack = np.sin(max_edge_angle() / 4)
     for key in sorted(poses.images):
         pose, camera = poses.images[key], poses.camera_of(key)
-        hit, _, cos = sphere_hits(camera, pose.R, pose.t, RADIUS)
+        hit, _, cos = sphere_hits(camera, pose.cam_from_world.rotation, pose.cam_from_world.translation, RADIUS)
         kept = summary["images"][key]["kept"]
         assert (hit & (cos >= min_cos + slack)).sum() <= kept <= (hit & (cos >= min_cos - slack)).sum()
         assert summary["images"][key]["drops"]["grazing"] > 0
@@ -323,8 +323,10 @@ def test_occlusion_edge_in_front_of_a_wall(tmp_path):
     key = next(iter(poses.images))
     pose, camera = poses.images[key], poses.camera_of(key)
     inradius, circumradius = mesh_radii()
-    hit_in = sphere_hits(camera, pose.R, pose.t, inradius)[0].reshape(size, size)
-    hit_out = sphere_hits(camera, pose.R, pose.t, circumradius)[0].reshape(size, size)
+    hit_in = sphere_hits(camera, pose.cam_from_world.rotation, pose.cam_from_world.translation, inradius)[0].reshape(size, size)
+    hit_out = sphere_hits(camera, pose.cam_from_world.rotation, pose.cam_from_world.translation, circumradius)[0].reshape(
+        size, size
+    )
 
     def pair_pixels(on, off):
         """Pixels of 4-neighbour pairs with one pixel in ``on`` and the other in ``off``."""

@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from pipeline.board import make_board
 from pipeline.commands.bench import BenchRow
-from pipeline.core.camera import Camera, camera_center, look_at, pixel_centers, pixel_rays
+from pipeline.core.camera import Camera, Rigid3, look_at, pixel_centers, pixel_rays
 from pipeline.io.capture_toml import BoardSpec, write_capture_toml
 from pipeline.io.poses import ImagePose, Poses, read_poses, write_poses
 from pipeline.logs import progress as progress_bar
@@ -131,7 +131,7 @@ def make_textured_capture(
         img = render(camera, R, t, quads, supersample)
         img = np.clip(img + rng.normal(0, 1.0, img.shape), 0, 255).astype(np.uint8)
         cv2.imwrite(str(folder / "images" / f"{i:04d}.jpg"), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
-        gt.images[f"{i:04d}.jpg"] = ImagePose("cam0", R, t)
+        gt.images[f"{i:04d}.jpg"] = ImagePose("cam0", Rigid3(R, t))
     if board:
         write_capture_toml(
             folder / "capture.toml",
@@ -155,9 +155,11 @@ def pose_errors(gt: Poses, est: Poses) -> tuple[np.ndarray, np.ndarray]:
     rot, cen = [], []
     for key, p in est.images.items():
         g = gt.images[key]
-        rot.append(np.rad2deg(np.linalg.norm(Rotation.from_matrix(p.R @ g.R.T).as_rotvec())))
-        c_gt = camera_center(g.R, g.t)
-        cen.append(np.linalg.norm(camera_center(p.R, p.t) - c_gt) / np.linalg.norm(c_gt))
+        rot.append(
+            np.rad2deg(np.linalg.norm(Rotation.from_matrix(p.cam_from_world.rotation @ g.cam_from_world.rotation.T).as_rotvec()))
+        )
+        c_gt = g.cam_from_world.center()
+        cen.append(np.linalg.norm(p.cam_from_world.center() - c_gt) / np.linalg.norm(c_gt))
     return np.array(rot), np.array(cen)
 
 
