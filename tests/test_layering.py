@@ -30,11 +30,7 @@ CORE_LIBRARIES = {"numpy", "scipy"}
 
 KNOWN_BREAKS: set[tuple[str, str]] = set()  # none left: the report's previews use core.prefilter, not the relight stage
 LAZY = "# lazy:"
-LAZY_TO_MEND: set[tuple[str, str]] = {  # (module, imported) inside a function, no reason given: another developer's file
-    ("stages.fit.known", "pipeline.core.camera"),
-    ("stages.fit.known", "pipeline.io.chart_json"),
-    ("stages.fit.known", "pipeline.io.poses"),
-}
+LAZY_TO_MEND: set[tuple[str, str]] = set()  # (module, imported) inside a function, no reason given: none left
 
 
 def layer(module: str) -> float | None:

@@ -51,7 +51,7 @@ class MaterialFit:
     train_rmse: float
     sources: "Sources | None" = None
     parts: tuple[np.ndarray, np.ndarray] | None = None  # (diffuse per unit base, specular) (N, 3) each, when
-    # the fit ran on a renderer's own shading (fit_to_map)
+    # the fit ran on a renderer's own shading (fit_to_map); the diffuse without a texture pattern (shading_parts applies it)
     detail: "Detail | None" = None
 
 
@@ -435,8 +435,9 @@ def shading_parts(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(diffuse radiance per unit base colour (N, 3), specular radiance (N, 3)) of a fitted
     candidate at the samples, its lighting (SH + sources) and interreflection included."""
-    if fit.parts is not None:
-        return fit.parts
+    if fit.parts is not None:  # a known map's (fit_to_map): the diffuse without the texture pattern
+        diffuse, specular = fit.parts
+        return (diffuse if geo.pattern is None else diffuse * geo.pattern), specular
     layer = geo.sample_layer(fit.material)
     indirect = indirect_transfer(geo, fit.material, fit.base, max_bounces)
     k = fit.coeffs.shape[0]
@@ -485,16 +486,20 @@ def fit_to_map(
     The returned fit has no SH lighting of its own (coeffs empty, lighting None)."""
     base = np.asarray(base0, float).copy()
 
+    pattern = 1.0 if geo.pattern is None else geo.pattern
+
     def parts(b) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(diffuse, specular, interreflected irradiance) at base colour b."""
+        """(diffuse per unit base colour, specular, interreflected irradiance) at base colour b: the
+        sample's own base colour is b x its texture pattern (prt.Geometry.pattern), the
+        interreflection's hit points keep b (as prt.Geometry.sample_layer)."""
         r = scene.with_brdf(brdf_from_material(material, b))
         d, sp = r.shade_parts(geo.faces, geo.bary, geo.view_dirs, direct, geo.footprint)
-        return d * scale, sp * scale, r._indirect_at(geo.tri, geo.bary)
+        return d * (scale * pattern), sp * scale, r._indirect_at(geo.tri, geo.bary)
 
     if material is not None and material.metallic > 0:
         # F0 = base colour: the specular is linear in it (Schlick's F); no diffuse to interreflect
         zero, one = parts(np.zeros(3))[1], parts(np.ones(3))[1]
-        diffuse, specular = one - zero, zero
+        diffuse, specular = (one - zero) * pattern, zero
         if not fix_base:
             base = _base_from_parts(diffuse, specular, obs, np.ones(obs.weight.size, bool))
     else:
@@ -518,7 +523,7 @@ def fit_to_map(
             rho = _base_from_parts(diffuse, specular, obs, ~test)
             residual[test] = obs.radiance[test] - rho * diffuse[test] - specular[test]
         held = trimmed_rmse(residual, obs.weight)
-    return MaterialFit(material, base, np.zeros((0, 3)), None, [], held, train, None, (diffuse, specular))
+    return MaterialFit(material, base, np.zeros((0, 3)), None, [], held, train, None, (diffuse / pattern, specular))
 
 
 TRIM_FRACTION = 0.005  # the samples with the largest residuals left out of a known map's score: the peaks of

@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core import chart as core_chart
-from pipeline.core import lighting_scale, prt
+from pipeline.core import lighting_scale, material_fit, prt
 from pipeline.core.brdf import BRDF_PARAMS, Brdf
+from pipeline.core.camera import pixel_rays
 from pipeline.core.candidate import Observations
 from pipeline.core.light_set import light_set
 from pipeline.core.material_search import KnownLighting
@@ -22,8 +23,10 @@ from pipeline.core.sh import num_coeffs, project_envmap
 from pipeline.errors import UserError
 from pipeline.io.brdf import parse_brdf_spec
 from pipeline.io.capture_toml import read_capture_config, read_toml
+from pipeline.io.chart_json import read_chart
 from pipeline.io.images import read_envmap
 from pipeline.io.lighting import known_light_map, read_lighting_parts, read_lighting_sh
+from pipeline.io.poses import poses_path, read_poses
 from pipeline.io.values import number_array
 from stages.fit.settings import DEFAULT_ALBEDO, Settings
 
@@ -97,7 +100,7 @@ def known_lighting_parts(settings: Settings, order: int) -> tuple[np.ndarray, np
 
 def map_lighting_parts(env: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """An equirect map as (SH coefficients, source directions, intensities, the map): its
-    KNOWN_SOURCES brightest pixels (pipeline.core.render.light_set) as sources and the rest
+    KNOWN_SOURCES brightest pixels (pipeline.core.light_set.light_set) as sources and the rest
     projected to SH (what lighting_sh.json records; the material is fitted under the map itself)."""
     lights = light_set(env, cell_height=min(16, env.shape[0]), max_bright=KNOWN_SOURCES)
     remainder = env.reshape(-1, 3).copy()
@@ -298,7 +301,7 @@ def fitted_material_scale(candidate, best, settings: Settings) -> dict:
     (the check ran before the search)."""
     known, obs = candidate.known, candidate.obs
     if best.parts is not None:
-        shade, specular = best.parts
+        shade, specular = material_fit.shading_parts(candidate.geo, best, None)
     else:
         shade, specular = lighting_scale.sh_shading(
             candidate.geo, known.coeffs, known.directions, known.intensity, best.base, settings.lobe_samples, settings.seed
@@ -339,10 +342,6 @@ def chart_reference(capture: Path, work: Path) -> ChartReference | None:
     its normal "camera" resolved through the poses (minus the viewing ray through the chart's
     centre), or None.  A user error when capture.toml also gives [fit] known_albedo, or the chart's
     photo has no pose."""
-    from pipeline.core.camera import pixel_rays
-    from pipeline.io.chart_json import read_chart
-    from pipeline.io.poses import poses_path, read_poses
-
     record = read_chart(work)
     if record is None:
         return None

@@ -184,7 +184,7 @@ def fit_physical(
         t0 = time.perf_counter()
         poses = read_poses(poses_path(capture, work))
         report["texels"], texels = fit_texels(
-            mesh, replace(geo, pattern=None), chosen.best, everything, noise, poses, keys, settings
+            mesh, replace(geo, pattern=None), chosen.best, everything, noise, poses, keys, settings, chosen.candidate.known
         )
         if texels is not None and report["albedo"].get("choice") != "textured" and known_brdf is None:
             # every sample found a texture the subset could not: the material and lighting chosen again
@@ -192,7 +192,7 @@ def fit_physical(
             chosen, report, brdf, vertex_rho = with_texture(texels.vertex_base, report)
             best, interval = chosen.best, chosen.interval
             report["texels"], texels = fit_texels(
-                mesh, replace(geo, pattern=None), best, everything, noise, poses, keys, settings
+                mesh, replace(geo, pattern=None), best, everything, noise, poses, keys, settings, chosen.candidate.known
             )
         report["texels"].update(setting="auto", ran=True, why=why)
         timings["texels"] = time.perf_counter() - t0

@@ -17,9 +17,10 @@ import numpy as np
 
 from pipeline.core import atlas as atlas_mod
 from pipeline.core import material_fit, prt, svbrdf, texture
-from pipeline.core.camera import camera_center
 from pipeline.core.factorization import rms_radiance
+from pipeline.core.material_search import KnownLighting
 from pipeline.core.selection import fold_of
+from pipeline.core.sources import Sources
 from pipeline.io.poses import Poses
 from pipeline.unwrap import unwrap
 from stages.fit.materials import candidate_shading
@@ -83,9 +84,7 @@ def shading_at_all(geo: prt.Geometry, best: material_fit.MaterialFit, data: dict
 
 def make_atlas(mesh, data: dict, poses: Poses, keys: list[str]) -> atlas_mod.Atlas:
     """The mesh's own UVs (at the footprint's size) or an xatlas unwrap at the photos' median footprint."""
-    centres = np.array(
-        [camera_center(poses.images[k].cam_from_world.rotation, poses.images[k].cam_from_world.translation) for k in keys]
-    )
+    centres = np.array([poses.images[k].cam_from_world.center() for k in keys])
     focal = np.array([poses.camera_of(k).focal_principal()[0] for k in keys])
     ids = data["image_id"].astype(np.int64)
     points = np.einsum("pk,pkc->pc", data["bary"].astype(float), mesh.triangles[data["face"]])
@@ -97,6 +96,21 @@ def make_atlas(mesh, data: dict, poses: Poses, keys: list[str]) -> atlas_mod.Atl
     return unwrap(mesh.vertices, mesh.faces, footprint)
 
 
+def on_known_sh(best: material_fit.MaterialFit, known: KnownLighting | None, geo: prt.Geometry) -> material_fit.MaterialFit:
+    """A fit under a known map (material_fit.fit_to_map: the renderer's shading, at the subset's samples
+    only) as the same material under the map's SH + directional sources form (KnownLighting, scaled as
+    applied): the transfer's model, which shades every sample in chunks.  ``best`` itself when it is not
+    a known map's or the lighting is one per photo."""
+    if best.parts is None or known is None or known.per_image is not None:
+        return best
+    sources = None
+    if len(known.directions):
+        sources = Sources(prt.source_transfer(geo, best.material, known.directions), known.intensity)
+    return material_fit.MaterialFit(
+        best.material, best.base, known.coeffs, None, [], best.validation_rmse, best.train_rmse, sources, detail=best.detail
+    )
+
+
 def fit_texels(
     mesh,
     geo: prt.Geometry,
@@ -106,15 +120,17 @@ def fit_texels(
     poses: Poses,
     keys: list[str],
     settings: Settings,
+    known: KnownLighting | None = None,
 ) -> tuple[dict, TexelFit | None]:
     """The per-vertex and per-texel base colour of the module docstring from all samples ``data``
-    (load_physical's everything; ``noise`` its measured pixel noise) under the chosen fit ``best``.
-    -> (report.json's "texels" entry, the TexelFit or None when neither level beats the uniform
-    base colour)."""
+    (load_physical's everything; ``noise`` its measured pixel noise) under the chosen fit ``best``
+    (under a known lighting ``known``: its SH + sources form, on_known_sh).  -> (report.json's "texels"
+    entry, the TexelFit or None when neither level beats the uniform base colour)."""
+    best = on_known_sh(best, known, geo)
     if best.parts is not None or best.detail is not None:
         return {
             "choice": "uniform",
-            "note": "no per-texel fit: the chosen lighting is a known map's or has a "
+            "note": "no per-texel fit: the chosen lighting is one per photo or has a "
             "detail part, whose shading at every sample is not computed",
         }, None
     shade, specular = shading_at_all(geo, best, data, settings)

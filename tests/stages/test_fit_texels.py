@@ -14,7 +14,7 @@ from pipeline.io.mesh import read_mesh, read_vertex_albedo
 from pipeline.io.run_summary import relight_check
 from pipeline.io.textures import read_base_color_texture
 from pipeline.raycast import first_hits, ray_mesh
-from pipeline.report import write_report_html as write_report
+from pipeline.report import write_report_html
 from pipeline.synth import make_test_capture
 
 pytestmark = pytest.mark.filterwarnings("ignore:no (exposure time|ISO|f-number) in any image:UserWarning")
@@ -88,7 +88,7 @@ def test_stripes_finer_than_the_vertices_are_found_per_texel(stripes, tmp_path):
     face, bary = _on_mesh(mesh, fine_vertices)
     from_texels = _relative_error(atlas.lookup(image, face, bary)[:, 0], truth[:, 0])
     assert (work / "fit" / "textures" / "base_color.png").exists()
-    page = write_report(capture, work).read_text()
+    page = write_report_html(capture, work).read_text()
     assert "Base colour per texel" in page and 'alt="base colour map and uncertainty"' in page
     assert cli.main(["run", str(capture), "-w", str(work), "--from", "relight", "--no-report"]) == 0
     with_texels = relight_check(work)["relative_error"]
