@@ -57,6 +57,18 @@ def test_a_finished_run_shows_its_numbers_inline(tmp_path):
     assert "no fitted BRDF yet" not in page
 
 
+def test_a_skipped_texel_step_says_why(tmp_path):
+    """A fit whose per-texel step did not run (report.json "texels": ran false, with texels_called_for's
+    why) says so in words in the BRDF section, instead of leaving the map out without a word."""
+    work = tmp_path / "work"
+    (work / "fit").mkdir(parents=True)
+    (work / "fit" / "brdf.json").write_text('{"model": "lambert", "albedo": [0.5, 0.4, 0.3]}')
+    why = "the subset chose a uniform albedo & was dense enough to decide"
+    (work / "fit" / "report.json").write_text(json.dumps({"texels": {"setting": "auto", "ran": False, "why": why}}))
+    page = build_report(SAMPLE, work)
+    assert f"<b>Base colour per texel:</b> not fitted ({html.escape(why)})" in page
+
+
 def test_texture_views_put_each_side_where_it_is(tmp_path):
     """A sphere red where x > 0, black elsewhere: seen from +X the middle is red, from -X black."""
     mesh = trimesh.creation.icosphere(subdivisions=3)

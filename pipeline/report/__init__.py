@@ -243,8 +243,12 @@ def _brdf(capture: Path, work: Path) -> str:
             body += f"<h3>Textured {word} (fit/albedo.ply; the table holds its mean)</h3>" + _img_tag(
                 texture_views(np.asarray(tex.vertices), np.asarray(tex.faces), colour), "texture"
             )
+    texels = (report or {}).get("texels") or {}
     if (fit / "textures" / "base_color.png").exists():
-        body += _texels(fit / "textures", (report or {}).get("texels") or {})
+        body += _texels(fit / "textures", texels)
+    elif texels.get("why") or texels.get("note"):  # the per-texel step was skipped, or kept no map: say why
+        said = "; ".join(html.escape(texels[k]) for k in ("why", "note") if texels.get(k))
+        body += f"<p><b>Base colour per texel:</b> {'none kept' if texels.get('ran') else 'not fitted'} ({said}).</p>"
     selection = (report or {}).get("model_selection") or {}
     if selection.get("by") == "training residual":
         body = f"<p><b>Not validated:</b> {html.escape(selection['why'])} (kept: {html.escape(selection['kept'])}).</p>" + body
@@ -277,6 +281,7 @@ def _texels(folder: Path, entry: dict) -> str:
     fig.tight_layout()
     rows = [
         ["levels kept", entry.get("choice", "?")],
+        ["why the step ran", entry.get("why", "?")],
         ["texel size (mm)", format_value(entry.get("atlas", {}).get("texel_mm"))],
         ["texels with samples / in charts", f"{entry.get('texels_with_samples', '?')} / {entry.get('texels_in_charts', '?')}"],
         ["samples", format_value(entry.get("samples"))],

@@ -3,6 +3,7 @@ atlas from every sample, kept by the held-out views, written to fit/textures/ an
 
 from __future__ import annotations
 
+import html
 import json
 
 import numpy as np
@@ -90,6 +91,7 @@ def test_stripes_finer_than_the_vertices_are_found_per_texel(stripes, tmp_path):
     assert (work / "fit" / "textures" / "base_color.png").exists()
     page = write_report_html(capture, work).read_text()
     assert "Base colour per texel" in page and 'alt="base colour map and uncertainty"' in page
+    assert html.escape(entry["why"]) in page  # why the step ran (texels_called_for), in words
     assert cli.main(["run", str(capture), "-w", str(work), "--from", "relight", "--no-report"]) == 0
     with_texels = relight_check(work)["relative_error"]
 
