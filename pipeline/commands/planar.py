@@ -136,7 +136,7 @@ def _fig_lobes(plt, rng, noise):
         ylabel=r"normalized $|\rho_p|$ of the lobe in $\theta_i'+\theta_o'$",
         ylim=(1e-6, 2),
     )
-    axes[1].set(title=r"microfacet, roughness σ (dashed: $e^{-(\sigma p)^2}$)", xlabel="frequency p", ylim=(1e-6, 2))
+    axes[1].set(title=r"microfacet, Beckmann σ (dashed: $e^{-(\sigma p)^2}$)", xlabel="frequency p", ylim=(1e-6, 2))
     for ax in axes:
         ax.legend()
     fig.suptitle("Specular lobes are low-pass filters whose width shrinks as the lobe sharpens")

@@ -7,16 +7,22 @@ towards the light, ``w_out`` towards the viewer.  Values are per RGB channel, (N
 
   lambert      f = rho_d / pi
   phong        f = rho_d / pi + k_s (s + 1) / (2 pi) max(0, r . w_in)^s / (n . w_in)
-               with r = reflect(w_out, n): R&H 2001's reflection-space Phong, whose *transfer*
-               f cos(theta_in) is a lobe symmetric about r with unit integral over the sphere,
-               so its SH filter is exactly radial (A_0 = k_s; A_l ~ exp(-l^2 / 2s)).
+               with k_s = specular_weight, s = exponent and r = reflect(w_out, n): R&H 2001's
+               reflection-space Phong, whose *transfer* f cos(theta_in) is a lobe symmetric about
+               r with unit integral over the sphere, so its SH filter is exactly radial (A_0 = k_s;
+               A_l ~ exp(-l^2 / 2s)).
   microfacet   f = rho_d / pi + F(w_in . h) D(h) G / (4 (n . w_in)(n . w_out))   (Torrance-Sparrow)
                Beckmann D(h) = exp(-tan^2 theta_h / sigma^2) / (pi sigma^2 cos^4 theta_h) with
-               sigma = roughness (RMS microfacet slope), Schlick F = F0 + (1 - F0)(1 - c)^5 with
-               F0 = specular, Cook-Torrance V-cavity G = min(1, 2 (n.h)(n.w_out)/(w_out.h),
+               sigma = beckmann_sigma (RMS microfacet slope), Schlick F = F0 + (1 - F0)(1 - c)^5
+               with F0 = f0, Cook-Torrance V-cavity G = min(1, 2 (n.h)(n.w_out)/(w_out.h),
                2 (n.h)(n.w_in)/(w_out.h)).  R&H approximate its filter by exp(-(sigma l)^2).
 Both sides are zero when either direction is below the surface.  lobe_over_directions sums the
 phong and microfacet lobes over a light set (pipeline.core.light_set) on their support (lobe_support_cut).
+
+Each parameter name has one meaning: ``roughness`` is only the principled model's perceptual
+roughness (GGX alpha = roughness^2), the microfacet model's Beckmann RMS slope is ``beckmann_sigma``;
+Phong's lobe weight is ``specular_weight``, the microfacet model's Fresnel reflectance at normal
+incidence ``f0``.
 """
 
 from __future__ import annotations
@@ -37,13 +43,15 @@ RGB = tuple[float, float, float]
 BRDF_PARAMS: dict[str, tuple[str, ...]] = {
     "lambert": ("albedo",),
     "principled": ("base_color", "roughness", "metallic", "ior", "specular_tint"),
-    "phong": ("albedo", "specular", "exponent"),
-    "microfacet": ("albedo", "specular", "roughness"),
+    "phong": ("albedo", "specular_weight", "exponent"),
+    "microfacet": ("albedo", "f0", "beckmann_sigma"),
 }
 PARAM_DEFAULTS = {"metallic": 0.0, "ior": 1.5, "specular_tint": (1.0, 1.0, 1.0)}  # principled's optional ones
-RGB_PARAMS = ("albedo", "specular", "base_color", "specular_tint")
+RGB_PARAMS = ("albedo", "specular_weight", "f0", "base_color", "specular_tint")
 LOBE_MODELS = ("phong", "microfacet")  # the seed's models with R&H's reflection-space lobe
-WIDTH_PARAM = {"phong": "exponent", "microfacet": "roughness"}  # the lobe's width parameter
+WIDTH_PARAM = {"phong": "exponent", "microfacet": "beckmann_sigma"}  # the lobe's width parameter
+# the lobe's RGB parameter, linear in the radiance: Phong's weight k_s, the microfacet's Schlick F0
+LOBE_COLOR_PARAM = {"phong": "specular_weight", "microfacet": "f0"}
 
 
 @dataclass(frozen=True)
@@ -55,8 +63,10 @@ class Brdf:
 
     model: BrdfModel
     albedo: RGB | None = None
-    specular: RGB | None = None
+    specular_weight: RGB | None = None
     exponent: float | None = None
+    f0: RGB | None = None
+    beckmann_sigma: float | None = None
     base_color: RGB | None = None
     roughness: float | None = None
     metallic: float | None = None
@@ -121,6 +131,22 @@ class Brdf:
         """The lobe's width parameter (Phong exponent s or Beckmann sigma) of a ``has_lobe`` model."""
         return float(getattr(self, WIDTH_PARAM[self.model]))
 
+    @property
+    def lobe_color(self) -> np.ndarray:
+        """The lobe's RGB parameter (3,) of a ``has_lobe`` model: Phong's specular_weight or the
+        microfacet's f0 (LOBE_COLOR_PARAM)."""
+        return np.array(getattr(self, LOBE_COLOR_PARAM[self.model]), float)
+
+    def with_lobe_color(self, color) -> "Brdf":
+        """The same ``has_lobe`` material with another lobe colour (3,) (specular_weight or f0)."""
+        return replace(self, **{LOBE_COLOR_PARAM[self.model]: color})
+
+    @classmethod
+    def from_lobe(cls, model: str, albedo, lobe_color, lobe_width: float) -> "Brdf":
+        """A phong or microfacet material from its albedo, lobe colour and lobe width (the
+        solvers' generic parameters; LOBE_COLOR_PARAM and WIDTH_PARAM name them)."""
+        return cls(model, albedo=albedo, **{LOBE_COLOR_PARAM[model]: lobe_color, WIDTH_PARAM[model]: lobe_width})
+
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", a, b)
@@ -133,11 +159,12 @@ def reflect(w: np.ndarray, normal: np.ndarray) -> np.ndarray:
     return 2.0 * _dot(n, w)[:, None] * n - w
 
 
-def beckmann_distribution(cos_h: np.ndarray, roughness: float) -> np.ndarray:
-    """Beckmann D(h) for cos(theta_h) = n . h; normalized so that integral D cos(theta_h) dw = 1."""
+def beckmann_distribution(cos_h: np.ndarray, beckmann_sigma: float) -> np.ndarray:
+    """Beckmann D(h) for cos(theta_h) = n . h and RMS slope sigma; normalized so that
+    integral D cos(theta_h) dw = 1."""
     c2 = np.clip(cos_h, _EPS, 1.0) ** 2
     tan2 = (1.0 - c2) / c2
-    d = np.exp(-tan2 / roughness**2) / (np.pi * roughness**2 * c2 * c2)
+    d = np.exp(-tan2 / beckmann_sigma**2) / (np.pi * beckmann_sigma**2 * c2 * c2)
     return np.where(cos_h > 0, d, 0.0)
 
 
@@ -170,14 +197,14 @@ def cosine_weighted_brdf(brdf: Brdf, normal: np.ndarray, w_in: np.ndarray, w_out
     model = brdf.model
     if model == "phong":
         lobe = phong_lobe(_dot(reflect(wo, n), wi), brdf.exponent)
-        value = value + np.where(front, lobe, 0.0)[:, None] * np.asarray(brdf.specular, float)[None, :]
+        value = value + np.where(front, lobe, 0.0)[:, None] * np.asarray(brdf.specular_weight, float)[None, :]
     elif model == "microfacet":
         h = wi + wo
         h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), _EPS)
         n_h, out_h = _dot(n, h), _dot(wo, h)
-        d = beckmann_distribution(n_h, brdf.roughness)
+        d = beckmann_distribution(n_h, brdf.beckmann_sigma)
         g = vcavity_shadowing(n_h, np.maximum(n_in, 0), np.maximum(n_out, 0), out_h)
-        f = schlick_fresnel(_dot(wi, h), brdf.specular)
+        f = schlick_fresnel(_dot(wi, h), brdf.f0)
         spec = np.where(front, d * g / (4.0 * np.maximum(n_out, _EPS)), 0.0)  # cos_in cancels
         value = value + spec[:, None] * f
     elif model != "lambert":
@@ -197,13 +224,13 @@ PHONG_CUT = 1e-7  # phong support: cos(alpha)^s > 1e-7
 
 def lobe_support_cut(brdf: Brdf) -> float | None:
     """cos of the largest angle between w_in and the mirror direction r of w_out at which the seed
-    models' lobe is not negligible (None for a model without one): for Beckmann roughness σ the half
+    models' lobe is not negligible (None for a model without one): for Beckmann sigma σ the half
     vector is more than atan(4σ) from n (D < e^-16 of its peak) whenever w_in is more than 2 atan(4σ)
     from r (reflecting w_out about h instead of n is r rotated by twice the angle between h and n);
     for Phong where cos^s < 1e-7."""
     model = brdf.model
     if model == "microfacet":
-        return float(np.cos(min(np.pi, 2.0 * np.arctan(LOBE_CUT_SIGMAS * brdf.roughness))))
+        return float(np.cos(min(np.pi, 2.0 * np.arctan(LOBE_CUT_SIGMAS * brdf.beckmann_sigma))))
     if model == "phong":
         return float(max(0.0, np.exp(np.log(PHONG_CUT) / brdf.exponent)))
     return None
@@ -235,18 +262,18 @@ def lobe_over_directions(
     support = (cos_in > 0) & (r_w > spec_cut)
     if vis is not None:
         support &= vis > 0
-    specular = np.asarray(brdf.specular, float)
+    lobe_color = brdf.lobe_color  # Phong's specular_weight or the microfacet's f0
     if brdf.model == "phong":
         # R&H reflection-space Phong: the transfer f cos(theta_in) is the lobe itself
         transfer = np.where(support, phong_lobe(r_w, brdf.exponent), 0.0)
         if vis is not None:
             transfer = transfer * vis
-        return specular[None, :] * (transfer @ power)
+        return lobe_color[None, :] * (transfer @ power)
     wo_w = wo @ dirs.T
     inv_len = 1.0 / np.sqrt(np.maximum(2.0 + 2.0 * wo_w, 1e-12))
     n_h = np.where(support, (cos_in + n_out) * inv_len, 1.0)
     out_h = np.where(support, (1.0 + wo_w) * inv_len, 1.0)
-    d = beckmann_distribution(n_h, brdf.roughness)
+    d = beckmann_distribution(n_h, brdf.beckmann_sigma)
     g = vcavity_shadowing(n_h, cos_in, n_out, out_h)
     # f cos(theta_in) = F D G / (4 n . w_out) (Torrance-Sparrow; cos(theta_in) cancels)
     transfer = np.where(support, d * g, 0.0) / (4.0 * np.maximum(n_out, 1e-12))
@@ -254,4 +281,4 @@ def lobe_over_directions(
         transfer = transfer * vis
     schlick = (1.0 - np.clip(out_h, 0.0, 1.0)) ** 5
     s1, s2 = transfer @ power, (transfer * schlick) @ power
-    return specular[None, :] * s1 + (1.0 - specular[None, :]) * s2
+    return lobe_color[None, :] * s1 + (1.0 - lobe_color[None, :]) * s2

@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from pipeline.core import forward, solve
-from pipeline.core.brdf import WIDTH_PARAM, Brdf, reflect
+from pipeline.core.brdf import Brdf, reflect
 from pipeline.core.coverage import EqualAreaGrid
 from pipeline.core.selection import fold_of, parsimonious_choice
 from pipeline.core.sh import band_of_index, num_coeffs, order_of, sh_evaluate
@@ -209,7 +209,7 @@ def joint_initialization(data: dict, model: str, order: int, opts: ConvexOptions
         if best is None or rss < best[0]:
             best = (rss, width, ratio, y)
     _, width, ratio, y = best
-    brdf = Brdf(model, albedo=ratio, specular=(1.0, 1.0, 1.0), **{WIDTH_PARAM[model]: width})
+    brdf = Brdf.from_lobe(model, ratio, (1.0, 1.0, 1.0), width)
     return y, brdf
 
 
@@ -230,10 +230,11 @@ def factorize(data: dict, model: str, order: int, albedo0: np.ndarray, opts: Con
 
 
 def apply_scale_convention(coeffs: np.ndarray, brdf: Brdf, target: np.ndarray) -> tuple[np.ndarray, Brdf, np.ndarray]:
-    """Rescale so that albedo = target per channel: L_c * s_c, (albedo, specular)_c / s_c."""
+    """Rescale so that albedo = target per channel: L_c * s_c, (albedo, lobe colour)_c / s_c (the
+    lobe colour: Phong's specular_weight or the microfacet's f0)."""
     albedo = np.asarray(brdf.albedo, float)
     s = np.where(albedo > 0, albedo / target, 1.0)
     out = replace(brdf, albedo=albedo / s)
-    if brdf.specular is not None:
-        out = replace(out, specular=np.asarray(brdf.specular, float) / s)
+    if brdf.has_lobe:
+        out = out.with_lobe_color(brdf.lobe_color / s)
     return coeffs * s[None, :], out, s

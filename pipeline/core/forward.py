@@ -10,15 +10,16 @@ lighting with SH coefficients L_lm,c is modelled as
 with Â_l the clamped-cosine filter (pipeline.core.transfer.lambert_filter) and A_l(w) the filter of
 the specular lobe of width w (pipeline.core.transfer.phong_filter / microfacet_filter).  The lobe
 factor k_c is
-  phong       k_c = specular_c                                (the R&H Phong transfer is exactly
+  phong       k_c = specular_weight_c                         (the R&H Phong transfer is exactly
                                                                radial about r with unit integral)
-  microfacet  k_c = F0_c (1 - f) + f,  f = (1 - n.v)^5        (Schlick's Fresnel at the half
+  microfacet  k_c = f0_c (1 - f) + f,  f = (1 - n.v)^5        (Schlick's Fresnel at the half
                                                                vector ~ n, the lobe's centre), and
-              A_l(sigma) = the exact filter of the Torrance–Sparrow lobe seen from the normal;
+              A_l(sigma) (sigma = beckmann_sigma) = the exact filter of the Torrance–Sparrow lobe seen from the normal;
               away from normal view the lobe stretches and loses energy to shadowing; that
               approximation error is what R&H accept (measured in tests/core/test_solve.py).
-Everything is linear in the lighting for a fixed BRDF, and linear in (rho_c, specular_c) for fixed
-lighting and lobe width: the two facts the solvers in pipeline.core.solve use.
+Everything is linear in the lighting for a fixed BRDF, and linear in (rho_c, the lobe colour
+specular_weight_c or f0_c: Brdf.lobe_color) for fixed lighting and lobe width: the two facts the
+solvers in pipeline.core.solve use.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from pipeline.core.sh import band_of_index, sh_basis
 
 def specular_lobe_filter(model: str, width: float, order: int) -> np.ndarray:
     """A_l (l = 0..order) of the specular lobe of ``model`` with width parameter ``width``
-    (Phong exponent s or Beckmann roughness sigma)."""
+    (Phong exponent s or Beckmann sigma)."""
     if model == "phong":
         return transfer.phong_filter(width, order)
     if model == "microfacet":
@@ -80,7 +81,7 @@ def design_terms(normal: np.ndarray, view_dir: np.ndarray, order: int, with_lobe
 def lobe_factor(brdf: Brdf, grazing: np.ndarray) -> np.ndarray:
     """k_c per sample and channel (N, 3) of the module docstring; zeros for a Lambertian BRDF."""
     model = brdf.model
-    spec = np.asarray(brdf.specular if brdf.has_lobe else (0.0, 0.0, 0.0), dtype=float)
+    spec = brdf.lobe_color if brdf.has_lobe else np.zeros(3)  # specular_weight or f0
     if model == "phong":
         return np.broadcast_to(spec[None, :], (grazing.shape[0], 3))
     if model == "microfacet":
@@ -144,7 +145,7 @@ VIEW_COS_GRID = np.linspace(0.1, 1.0, 10)
 _AZIMUTHS = 24
 
 
-def _microfacet_profile_about_r(cos_view: float, roughness: float):
+def _microfacet_profile_about_r(cos_view: float, beckmann_sigma: float):
     """p(cos alpha): the microfacet transfer (F = 1) at angle alpha from r, averaged over the
     azimuth around r, for a view at cos(theta_o) = cos_view (normal = +Z)."""
     s = np.sqrt(max(0.0, 1.0 - cos_view**2))
@@ -153,7 +154,7 @@ def _microfacet_profile_about_r(cos_view: float, roughness: float):
     e1 = np.array([cos_view, 0.0, s])  # orthonormal frame (e1, e2, r)
     e2 = np.array([0.0, 1.0, 0.0])
     beta = 2.0 * np.pi * (np.arange(_AZIMUTHS) + 0.5) / _AZIMUTHS
-    brdf = Brdf("microfacet", albedo=(0.0, 0.0, 0.0), specular=(1.0, 1.0, 1.0), roughness=roughness)
+    brdf = Brdf("microfacet", albedo=(0.0, 0.0, 0.0), f0=(1.0, 1.0, 1.0), beckmann_sigma=beckmann_sigma)
 
     def profile(t: np.ndarray) -> np.ndarray:
         t = np.asarray(t, dtype=float).reshape(-1)
@@ -169,10 +170,10 @@ def _microfacet_profile_about_r(cos_view: float, roughness: float):
 
 
 @functools.lru_cache(maxsize=256)
-def microfacet_filter_table(roughness: float, order: int) -> np.ndarray:
+def microfacet_filter_table(beckmann_sigma: float, order: int) -> np.ndarray:
     """A_l(theta_o) on VIEW_COS_GRID: (len(grid), order+1) (see the section comment); cached,
     read-only."""
-    sigma = float(roughness)
+    sigma = float(beckmann_sigma)
     widths = [2.0 * np.arctan(k * sigma) for k in (1.0, 3.0, 6.0)] + [np.pi / 3]
     breaks = [0.0, np.pi / 2, np.pi] + [float(min(a, np.pi / 2)) for a in widths]
     # 24 Gauss–Legendre nodes per panel: the panels sit at the lobe's scales (|error| < 2e-4 vs 96)

@@ -44,10 +44,11 @@ Arrays
     - Lambertian:  ρ = a / 2  (unit albedo a = 1 gives BRDF 1/2).
     - Mirror:      ρ = r δ(θ'_o + θ'_i) / cos θ'_i, so ρ̂ = r δ(θ'_i + θ'_o) on |θ'_i| < π/2
                    (a delta: its coefficients are closed-form).
-    - Phong:       ρ = k_s c_s max(cos(θ'_i + θ'_o), 0)^s, a cos^s lobe about the reflection
+    - Phong:       ρ = k_s c_s max(cos(θ'_i + θ'_o), 0)^s (k_s = specular_weight), a cos^s lobe about the reflection
                    direction −θ'_i, c_s = Γ(s/2 + 1) / (√π Γ(s/2 + 1/2)) so ∫ c_s cos^s = 1.
                    Its reflected-angle spectrum ≈ exp(−p²/(2s)) (the seed's Phong approximation).
-    - Microfacet:  ρ = k_s exp(−tan²θ_h / σ²) / (2√π σ),  θ_h = (θ'_i + θ'_o)/2 the half angle
+    - Microfacet:  ρ = k_s exp(−tan²θ_h / σ²) / (2√π σ),  θ_h = (θ'_i + θ'_o)/2 the half angle,
+                   σ = beckmann_sigma, k_s = specular_weight (a weight: this lobe has no Fresnel F0)
                    (a Beckmann-like Gaussian slope lobe, no Fresnel, no shadowing); albedo ≈ k_s
                    for small σ, and the reflected-angle spectrum ≈ exp(−(σp)²) (the seed's
                    microfacet approximation).  exp(−tan²) is C^∞ and 2π-periodic in θ'_i + θ'_o.
@@ -192,32 +193,32 @@ class Mirror:
 
 @dataclass(frozen=True)
 class Phong:
-    """ρ = specular · c_s · max(cos(θ'_i + θ'_o), 0)^exponent, c_s = Γ(s/2+1)/(√π Γ(s/2+1/2))."""
+    """ρ = specular_weight · c_s · max(cos(θ'_i + θ'_o), 0)^exponent, c_s = Γ(s/2+1)/(√π Γ(s/2+1/2))."""
 
     exponent: float
-    specular: float = 1.0
+    specular_weight: float = 1.0
 
     def brdf(self, theta_i, theta_o):
         s = float(self.exponent)
         c_s = np.exp(gammaln(0.5 * s + 1.0) - gammaln(0.5 * s + 0.5)) / np.sqrt(np.pi)
         lobe = np.maximum(np.cos(np.add(theta_i, theta_o)), 0.0) ** s
-        return self.specular * c_s * lobe
+        return self.specular_weight * c_s * lobe
 
 
 @dataclass(frozen=True)
 class Microfacet:
-    """ρ = specular · exp(−tan²θ_h / σ²) / (2√π σ), θ_h = (θ'_i + θ'_o)/2, σ = roughness."""
+    """ρ = specular_weight · exp(−tan²θ_h / σ²) / (2√π σ), θ_h = (θ'_i + θ'_o)/2, σ = beckmann_sigma."""
 
-    roughness: float
-    specular: float = 1.0
+    beckmann_sigma: float
+    specular_weight: float = 1.0
 
     def brdf(self, theta_i, theta_o):
-        sigma = float(self.roughness)
+        sigma = float(self.beckmann_sigma)
         half = 0.5 * np.add(theta_i, theta_o)
         cos_h = np.cos(half)
         with np.errstate(divide="ignore", invalid="ignore"):
             tan2 = np.where(np.abs(cos_h) > 1e-300, (np.sin(half) / cos_h) ** 2, np.inf)
-        return self.specular * np.exp(-tan2 / sigma**2) / (2.0 * np.sqrt(np.pi) * sigma)
+        return self.specular_weight * np.exp(-tan2 / sigma**2) / (2.0 * np.sqrt(np.pi) * sigma)
 
 
 PlanarBRDF = Lambertian | Mirror | Phong | Microfacet

@@ -361,10 +361,11 @@ def _nnls_2(g: np.ndarray, h: np.ndarray) -> np.ndarray:
 
 
 def linear_brdf(data: BrdfData, model: str, filt: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, float]:
-    """Non-negative least squares for (albedo_c, specular_c) at fixed per-sample lobe filters
-    ``filt`` (N, L+1) (A_l of each sample's view).
+    """Non-negative least squares for (albedo_c, lobe colour_c) at fixed per-sample lobe filters
+    ``filt`` (N, L+1) (A_l of each sample's view); the lobe colour is Phong's specular_weight or
+    the microfacet's f0 (pipeline.core.brdf.LOBE_COLOR_PARAM).
 
-    Returns albedo (3,), specular (3,) and the weighted RSS (all channels)."""
+    Returns albedo (3,), lobe colour (3,) and the weighted RSS (all channels)."""
     w = data.weight
     albedo, spec, rss = np.zeros(3), np.zeros(3), 0.0
     lobe = None if model == "lambert" else np.einsum("nlc,nl->nc", data.bands, filt)  # (N, 3)
@@ -464,7 +465,7 @@ def fit_brdf(
     spread = ang[-1] / max(ang[0], 1e-300)
     recoverable = bool(spread <= 3.0 and np.max(spec) > 0)
     return BrdfFit(
-        Brdf(model, albedo=albedo, specular=spec, **{param: width}),
+        Brdf.from_lobe(model, albedo, spec, width),
         mse,
         width,
         [{param: float(np.exp(x)), "mse": float(m)} for x, m in zip(log_grid, profile)],
@@ -480,7 +481,7 @@ def brdf_mse(data: BrdfData, brdf: Brdf, filter_fn) -> float:
     if model != "lambert":
         filt = filter_fn(model, brdf.lobe_width, data.cos_view)
         lobe = np.einsum("nlc,nl->nc", data.bands, filt)
-        spec = np.asarray(brdf.specular)[None, :]
+        spec = brdf.lobe_color[None, :]
         k = spec if model == "phong" else spec * (1.0 - data.grazing[:, None]) + data.grazing[:, None]
         pred = pred + k * lobe
     r = data.radiance - pred

@@ -118,7 +118,7 @@ def phong_filter_approx(exponent: float, order: int) -> np.ndarray:
     return np.exp(-(l**2) / (2.0 * float(exponent)))
 
 
-def microfacet_lobe_normal_view(cos_in: np.ndarray, roughness: float) -> np.ndarray:
+def microfacet_lobe_normal_view(cos_in: np.ndarray, beckmann_sigma: float) -> np.ndarray:
     """Transfer f cos(theta_in) of pipeline.core.brdf's microfacet specular term (Beckmann D,
     V-cavity G, Fresnel F = 1) seen from the normal (w_out = n), as a function of
     cos(theta_in) = cos alpha; at normal view the mirror direction is n, so this is the lobe
@@ -128,30 +128,30 @@ def microfacet_lobe_normal_view(cos_in: np.ndarray, roughness: float) -> np.ndar
     sin_t = np.sqrt(np.maximum(0.0, 1.0 - t * t))
     w_in = np.stack([sin_t, np.zeros_like(t), t], axis=1)
     normal = np.broadcast_to([0.0, 0.0, 1.0], w_in.shape)
-    brdf = Brdf("microfacet", albedo=(0.0, 0.0, 0.0), specular=(1.0, 1.0, 1.0), roughness=roughness)
+    brdf = Brdf("microfacet", albedo=(0.0, 0.0, 0.0), f0=(1.0, 1.0, 1.0), beckmann_sigma=beckmann_sigma)
     return cosine_weighted_brdf(brdf, normal, w_in, normal)[:, 0]
 
 
-def microfacet_filter(roughness: float, order: int, n_nodes: int | None = None) -> np.ndarray:
+def microfacet_filter(beckmann_sigma: float, order: int, n_nodes: int | None = None) -> np.ndarray:
     """Exact filter A_l of the microfacet lobe at normal view (``microfacet_lobe_normal_view``).
 
     Not renormalized: A_0 is the lobe's directional albedo at normal view (F = 1), which is
     1 - O(sigma^2) (shadowing and the horizon remove a little energy).  R&H 2001 approximate the
     filter by exp(-(sigma l)^2) (``microfacet_filter_approx``).
     """
-    sigma = float(roughness)
+    sigma = float(beckmann_sigma)
     if sigma <= 0:
-        raise ValueError("roughness must be > 0")
+        raise ValueError("beckmann_sigma must be > 0")
     # theta_h = alpha/2 and D ~ exp(-tan^2 theta_h / sigma^2): panels at tan(alpha/2) = k sigma;
     # the V-cavity G has a kink at cos alpha = 1/2.
     widths = [2.0 * np.arctan(k * sigma) for k in (1.0, 3.0, 6.0)] + [np.pi / 3]
     return lobe_filter(lambda t: microfacet_lobe_normal_view(t, sigma), order, n_nodes, _peak_breakpoints(widths))
 
 
-def microfacet_filter_approx(roughness: float, order: int) -> np.ndarray:
+def microfacet_filter_approx(beckmann_sigma: float, order: int) -> np.ndarray:
     """R&H 2001's Gaussian approximation of the microfacet filter: A_l ~ exp(-(sigma l)^2)."""
     l = np.arange(order + 1)
-    return np.exp(-((float(roughness) * l) ** 2))
+    return np.exp(-((float(beckmann_sigma) * l) ** 2))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -6,8 +6,13 @@ Models and their parameters (formulas in pipeline.core.material, pipeline.core.b
   principled  base_color [r,g,b] in [0, 1], roughness in (0, 1] (perceptual: GGX alpha = roughness^2),
               metallic in [0, 1] (default 0), ior >= 1 (default 1.5), specular_tint [r,g,b] in [0, 1]
               (default white) -- Blender's Principled BSDF and glTF 2.0 metallic-roughness
-  phong       albedo, specular [r,g,b], exponent s          (the seed's theory: R&H reflection-space lobe)
-  microfacet  albedo, specular [r,g,b] (F0), roughness sigma (the seed's theory: Beckmann RMS slope)
+  phong       albedo, specular_weight [r,g,b] (lobe weight k_s), exponent s
+                                                  (the seed's theory: R&H reflection-space lobe)
+  microfacet  albedo, f0 [r,g,b] (Schlick's F0), beckmann_sigma (Beckmann RMS slope sigma)
+                                                  (the seed's theory: Torrance-Sparrow)
+Each key has one meaning: ``roughness`` is principled's perceptual roughness only.  A phong or
+microfacet file or spec with the keys these had before (``specular``, ``roughness``) is refused in
+one line naming the new key (RENAMED_KEYS).
 """
 
 from __future__ import annotations
@@ -26,6 +31,14 @@ from pipeline.workdir import read_json, write_json
 
 UNIT_PARAMS = ("albedo", "base_color", "specular_tint", "metallic")  # physically within [0, 1]
 LEGACY_MODELS = {"lambertian": "lambert", "principled_v2": "principled", "ggx": "principled"}
+# phong's and microfacet's keys before each name had one meaning: old key -> (new key, its meaning)
+RENAMED_KEYS = {
+    "phong": {"specular": ("specular_weight", "the lobe's weight k_s")},
+    "microfacet": {
+        "specular": ("f0", "Schlick's Fresnel reflectance at normal incidence"),
+        "roughness": ("beckmann_sigma", "the Beckmann RMS slope sigma; 'roughness' is principled's perceptual roughness"),
+    },
+}
 # keys a brdf.json may carry besides its model's parameters (provenance, notes)
 FREE_KEYS = ("model", "notes", "source", "blender", "note", "evidence", "materials", "material_map", "colour_fixed_by")
 
@@ -44,7 +57,8 @@ def _principled_ranges(name: str, doc: dict) -> None:
 def validate_brdf(doc: dict, name: str = "brdf") -> Brdf:
     """A brdf.json-shaped dict -> Brdf (RGB params as 3 floats, scalars as float); UserError when
     malformed.  Principled: optional parameters get their defaults, every value is range-checked
-    and an unknown key is refused (one line naming the key and what is valid).
+    and an unknown key is refused (one line naming the key and what is valid); phong and microfacet:
+    a key of theirs that was renamed (RENAMED_KEYS) is refused in one line naming the new key.
     """
     model = doc.get("model")
     ours = LEGACY_MODELS.get(model.split(" ")[0]) if isinstance(model, str) else None
@@ -56,6 +70,11 @@ def validate_brdf(doc: dict, name: str = "brdf") -> Brdf:
         )
     if not isinstance(model, str) or model not in BRDF_PARAMS:
         raise UserError(f"{name}: unknown BRDF model {model!r}; use one of {', '.join(BRDF_PARAMS)}")
+    renamed = [
+        f"{old!r} is now called {new!r} ({meaning})" for old, (new, meaning) in RENAMED_KEYS.get(model, {}).items() if old in doc
+    ]
+    if renamed:
+        raise UserError(f"{name}: {model}'s {'; '.join(renamed)}; rename the key{'s' if len(renamed) > 1 else ''}")
     out = dict(doc)
     if model == "principled":
         unknown = sorted(set(doc) - set(BRDF_PARAMS[model]) - set(FREE_KEYS))
@@ -102,7 +121,7 @@ def _required(model: str) -> tuple[str, ...]:
 def parse_brdf_spec(spec: str) -> Brdf:
     """A brdf.json path or an inline spec ``model:key=v[,v,v],key=v`` -> validated Brdf.
 
-    Example: ``microfacet:albedo=0.2,0.3,0.5,specular=0.04,roughness=0.2``.
+    Example: ``microfacet:albedo=0.2,0.3,0.5,f0=0.04,beckmann_sigma=0.2``.
     """
     if spec.endswith(".json") or Path(spec).is_file():
         return read_brdf(spec)

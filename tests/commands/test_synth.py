@@ -36,12 +36,12 @@ def test_capture_layout_and_ground_truth(tiny_capture):
     """synth writes a capture's images, poses for each, and gt/ with the BRDF, the SH lighting, an equirect map
     and masks; the mesh stands on z = 0 at the asked size, every vertex facing a camera projects inside its
     mask, and the object is lit there."""
-    cap = tiny_capture(views=3, size=(64, 48), brdf="microfacet:albedo=0.2,0.3,0.5,specular=0.04,roughness=0.3")
+    cap = tiny_capture(views=3, size=(64, 48), brdf="microfacet:albedo=0.2,0.3,0.5,f0=0.04,beckmann_sigma=0.3")
     keys = sorted(p.name for p in (cap / "images").iterdir())
     assert keys == ["0000.exr", "0001.exr", "0002.exr"]
     poses = read_poses(cap / "poses.json")
     assert sorted(poses.images) == keys
-    assert read_brdf(cap / "gt" / "brdf.json").roughness == 0.3
+    assert read_brdf(cap / "gt" / "brdf.json").beckmann_sigma == 0.3
     assert read_lighting_sh(cap / "gt" / "lighting_sh.json").shape == (21 * 21, 3)
     env = read_image(cap / "gt" / "lighting.exr")
     assert env.shape[1] == 2 * env.shape[0]

@@ -39,12 +39,12 @@ def test_beckmann_is_normalized():
 
 @pytest.mark.parametrize("view_cos", [1.0, 0.7, 0.3])
 def test_phong_transfer_has_at_most_unit_energy(view_cos):
-    """The R&H Phong transfer (s = 50, unit specular) reflects exactly 1 at normal view and never more than 1 at
+    """The R&H Phong transfer (s = 50, unit specular weight) reflects exactly 1 at normal view and never more than 1 at
     oblique views, where the horizon clips it."""
     dirs, w = _hemisphere_rule()
     n = np.tile([0.0, 0.0, 1.0], (len(dirs), 1))
     wo = np.tile([np.sqrt(1 - view_cos**2), 0.0, view_cos], (len(dirs), 1))
-    brdf = Brdf("phong", albedo=[0, 0, 0], specular=[1, 1, 1], exponent=50.0)
+    brdf = Brdf("phong", albedo=[0, 0, 0], specular_weight=[1, 1, 1], exponent=50.0)
     total = (cosine_weighted_brdf(brdf, n, dirs, wo)[:, 0] * w).sum()
     # the lobe integrates to 1 over the sphere; the horizon clips it at grazing views only
     assert total <= 1.0 + 1e-3
@@ -52,15 +52,15 @@ def test_phong_transfer_has_at_most_unit_energy(view_cos):
         assert total == pytest.approx(1.0, rel=1e-3)
 
 
-@pytest.mark.parametrize("roughness", [0.1, 0.3])
+@pytest.mark.parametrize("beckmann_sigma", [0.1, 0.3])
 @pytest.mark.parametrize("view_cos", [1.0, 0.5, 0.15])
-def test_microfacet_never_returns_more_than_it_receives(roughness, view_cos):
+def test_microfacet_never_returns_more_than_it_receives(beckmann_sigma, view_cos):
     """The Torrance-Sparrow lobe with F = 1 keeps more than half the energy and never creates any (<= 1 + 2e-3),
-    for roughness 0.1 and 0.3 at normal to grazing views."""
+    for Beckmann sigma 0.1 and 0.3 at normal to grazing views."""
     dirs, w = _hemisphere_rule(1000, 1000)
     n = np.tile([0.0, 0.0, 1.0], (len(dirs), 1))
     wo = np.tile([np.sqrt(1 - view_cos**2), 0.0, view_cos], (len(dirs), 1))
-    brdf = Brdf("microfacet", albedo=[0, 0, 0], specular=[1, 1, 1], roughness=roughness)
+    brdf = Brdf("microfacet", albedo=[0, 0, 0], f0=[1, 1, 1], beckmann_sigma=beckmann_sigma)
     total = (cosine_weighted_brdf(brdf, n, dirs, wo)[:, 0] * w).sum()
     assert 0.5 < total <= 1.0 + 2e-3  # F = 1: the lobe keeps most energy, never creates any
 
@@ -87,9 +87,11 @@ def test_brdf_type_holds_each_model_to_its_parameters():
     """The one parameter table: RGB parameters as 3 floats (a scalar is grey), principled's
     optional ones defaulted, a parameter of another model or a missing one refused, and the
     brdf.json form round-trips with JSON types."""
-    glossy = Brdf("microfacet", albedo=[0.2, 0.3, 0.5], specular=0.04, roughness=np.float32(0.2))
-    assert glossy.specular == (0.04, 0.04, 0.04) and type(glossy.roughness) is float
-    assert glossy.has_lobe and glossy.lobe_width == pytest.approx(0.2)
+    glossy = Brdf("microfacet", albedo=[0.2, 0.3, 0.5], f0=0.04, beckmann_sigma=np.float32(0.2))
+    assert glossy.f0 == (0.04, 0.04, 0.04) and type(glossy.beckmann_sigma) is float and glossy.roughness is None
+    assert glossy.has_lobe and glossy.lobe_width == pytest.approx(0.2) and glossy.lobe_color.tolist() == [0.04] * 3
+    assert glossy.with_lobe_color(0.5).f0 == (0.5, 0.5, 0.5)
+    assert Brdf.from_lobe("phong", 0.2, 0.3, 40.0) == Brdf("phong", albedo=0.2, specular_weight=0.3, exponent=40.0)
     assert Brdf.from_dict({**glossy.to_dict(), "notes": "ignored"}) == glossy
     assert glossy.to_dict()["albedo"] == [0.2, 0.3, 0.5]
     plastic = Brdf("principled", base_color=(0.7, 0.45, 0.1), roughness=0.3)
@@ -99,7 +101,9 @@ def test_brdf_type_holds_each_model_to_its_parameters():
     assert Brdf("lambert", albedo=0.5).with_diffuse_color([0.1, 0.2, 0.3]).albedo == (0.1, 0.2, 0.3)
     with pytest.raises(ValueError, match="no parameter 'roughness'"):
         Brdf("lambert", albedo=0.5, roughness=0.3)
+    with pytest.raises(ValueError, match="no parameter 'roughness'"):
+        Brdf("microfacet", albedo=0.5, f0=0.04, beckmann_sigma=0.2, roughness=0.2)
     with pytest.raises(ValueError, match="needs 'exponent'"):
-        Brdf("phong", albedo=0.5, specular=0.1)
+        Brdf("phong", albedo=0.5, specular_weight=0.1)
     with pytest.raises(ValueError, match="unknown BRDF model"):
         Brdf("velvet", albedo=0.5)

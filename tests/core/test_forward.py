@@ -1,5 +1,5 @@
 """pipeline.core.forward (the convex R&H forward model) against closed forms: the white furnace
-(a Lambertian albedo rho reflects rho L, a unit-integral Phong lobe adds specular x L), a single
+(a Lambertian albedo rho reflects rho L, a unit-integral Phong lobe adds specular_weight x L), a single
 SH band through the clamped cosine (Â_1 = 2π/3: B = rho/π Â_1 c Y_1m(n)), and linearity in the
 lighting."""
 
@@ -25,7 +25,7 @@ def directions(rng, n: int = 200) -> tuple[np.ndarray, np.ndarray]:
     "brdf, reflected",
     [
         (Brdf("lambert", albedo=[0.6, 0.5, 0.4]), [0.6, 0.5, 0.4]),
-        (Brdf("phong", albedo=[0.3, 0.2, 0.1], specular=[0.2, 0.2, 0.2], exponent=40.0), [0.5, 0.4, 0.3]),
+        (Brdf("phong", albedo=[0.3, 0.2, 0.1], specular_weight=[0.2, 0.2, 0.2], exponent=40.0), [0.5, 0.4, 0.3]),
     ],
 )
 def test_white_furnace(rng, brdf, reflected):
@@ -51,7 +51,7 @@ def test_one_band_through_the_clamped_cosine(rng):
 def test_linear_in_the_lighting(rng):
     """The forward model is linear in the SH lighting for a fixed BRDF: render(2a + b) = 2 render(a) + render(b)
     to 1e-10 (what the solvers rely on)."""
-    brdf = Brdf("microfacet", albedo=[0.4, 0.3, 0.2], specular=[0.04] * 3, roughness=0.2)
+    brdf = Brdf("microfacet", albedo=[0.4, 0.3, 0.2], f0=[0.04] * 3, beckmann_sigma=0.2)
     a, b = rng.normal(size=(num_coeffs(6), 3)), rng.normal(size=(num_coeffs(6), 3))
     normal, view = directions(rng)
     np.testing.assert_allclose(

@@ -88,18 +88,18 @@ def test_white_furnace_lambert_returns_the_radiance():
             assert got.min() > 2.0 * 0.995
 
 
-@pytest.mark.parametrize("roughness", [0.15, 0.4, 0.8])
-def test_microfacet_lobe_never_returns_more_than_it_receives(roughness):
+@pytest.mark.parametrize("beckmann_sigma", [0.15, 0.4, 0.8])
+def test_microfacet_lobe_never_returns_more_than_it_receives(beckmann_sigma):
     """F0 = 1 (F = 1), no diffuse, L = 1: B(w_o) is the lobe's directional albedo, <= 1 (+ quadrature)."""
     env = make_envmap("constant", 64)
-    brdf = Brdf("microfacet", albedo=[0.0, 0.0, 0.0], specular=[1.0, 1.0, 1.0], roughness=roughness)
+    brdf = Brdf("microfacet", albedo=[0.0, 0.0, 0.0], f0=[1.0, 1.0, 1.0], beckmann_sigma=beckmann_sigma)
     renderer = Renderer(ray_mesh(sphere(4)), env, brdf, shadows=False, cell_height=64)
     result = render_view(renderer, *view())
     got = result.radiance[result.object_mask]
     # 64-row pixel quadrature of a lobe of width >= 0.15 rad: error measured < 0.5 %; bound 1 %
     assert got.max() <= 1.01
     # ... and not trivially small: the median directional albedo measured 0.999, 0.92, 0.74 for
-    # sigma = 0.15, 0.4, 0.8 (V-cavity masking loses more at larger roughness)
+    # sigma = 0.15, 0.4, 0.8 (V-cavity masking loses more at larger sigma)
     assert np.median(got) > 0.6
 
 
@@ -108,8 +108,8 @@ def test_specular_sum_matches_brute_force_over_the_light_set(rng):
     mesh = sphere(2)
     env = make_envmap("area", 32)
     for brdf in (
-        Brdf("microfacet", albedo=[0.2, 0.3, 0.5], specular=[0.04, 0.5, 0.9], roughness=0.3),
-        Brdf("phong", albedo=[0.2, 0.3, 0.5], specular=[0.3, 0.2, 0.1], exponent=20.0),
+        Brdf("microfacet", albedo=[0.2, 0.3, 0.5], f0=[0.04, 0.5, 0.9], beckmann_sigma=0.3),
+        Brdf("phong", albedo=[0.2, 0.3, 0.5], specular_weight=[0.3, 0.2, 0.1], exponent=20.0),
     ):
         renderer = Renderer(ray_mesh(mesh), env, brdf, shadows=False, cell_height=8)
         faces = rng.integers(0, len(mesh.faces), 40)

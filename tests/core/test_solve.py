@@ -44,7 +44,7 @@ def test_chunked_normal_equations_equal_one_shot_least_squares(rng):
     """Weighted normal equations accumulated in chunks solve to the one-shot weighted least-squares answer (rtol
     1e-8) per channel, give its residual sum of squares, and count every sample and weight."""
     normal, view, ids = _sphere(rng, 3000)
-    brdf = Brdf("phong", albedo=[0.5, 0.4, 0.3], specular=[0.3, 0.3, 0.3], exponent=50.0)
+    brdf = Brdf("phong", albedo=[0.5, 0.4, 0.3], specular_weight=[0.3, 0.3, 0.3], exponent=50.0)
     b = rng.normal(size=(len(normal), 3))
     w = rng.uniform(0.5, 1.0, len(normal))
     eqs = solve.NormalEquations(4, 3, shared=False)
@@ -66,7 +66,7 @@ def test_retargeted_normal_equations_equal_fresh_ones(rng):
     """Normal equations retargeted to new data share the Gram matrix and equal ones built afresh for that data
     (1e-12), and retargeting to the first data gives its right-hand side back."""
     normal, view, ids = _sphere(rng, 2000)
-    brdf = Brdf("phong", albedo=[0.5, 0.4, 0.3], specular=[0.3, 0.3, 0.3], exponent=50.0)
+    brdf = Brdf("phong", albedo=[0.5, 0.4, 0.3], specular_weight=[0.3, 0.3, 0.3], exponent=50.0)
     designs = forward.channel_designs(forward.design_terms(normal, view, 3, True), brdf, 3)
     w = rng.uniform(0.5, 1.0, len(normal))
     first, second = rng.normal(size=(2, len(normal), 3))
@@ -88,8 +88,8 @@ def test_forward_model_against_numerical_integration(rng):
     normal, view, _ = _sphere(rng, 400)
     coeffs = project_envmap(env, 24)
     lambert = Brdf("lambert", albedo=ALBEDO.tolist())
-    phong = Brdf("phong", albedo=[0.3, 0.2, 0.1], specular=[0.5, 0.5, 0.5], exponent=60.0)
-    micro = Brdf("microfacet", albedo=[0.3, 0.2, 0.1], specular=[0.9, 0.9, 0.9], roughness=0.15)
+    phong = Brdf("phong", albedo=[0.3, 0.2, 0.1], specular_weight=[0.5, 0.5, 0.5], exponent=60.0)
+    micro = Brdf("microfacet", albedo=[0.3, 0.2, 0.1], f0=[0.9, 0.9, 0.9], beckmann_sigma=0.15)
     for brdf, tol in ((lambert, 0.005), (phong, 0.01), (micro, 0.05)):
         ref = _integrate(env, brdf, normal, view)
         model = forward.render_samples(coeffs, brdf, normal, view)

@@ -4,7 +4,9 @@ import json
 
 import numpy as np
 import pytest
+from helpers import assert_one_line_error
 
+from pipeline.cli import main as cli_main
 from pipeline.core.brdf import Brdf
 from pipeline.core.camera import Camera, Rigid3
 from pipeline.errors import UserError
@@ -92,14 +94,44 @@ def test_lighting_sh_round_trip_and_shape_check(tmp_path, rng):
 def test_brdf_spec_and_file(tmp_path):
     """A --brdf spec string parses to the Brdf, which round-trips through brdf.json; an unknown model and a
     missing parameter are UserErrors naming them."""
-    b = parse_brdf_spec("microfacet:albedo=0.2,0.3,0.5,specular=0.04,roughness=0.2")
-    assert b == Brdf("microfacet", albedo=[0.2, 0.3, 0.5], specular=[0.04] * 3, roughness=0.2)
+    b = parse_brdf_spec("microfacet:albedo=0.2,0.3,0.5,f0=0.04,beckmann_sigma=0.2")
+    assert b == Brdf("microfacet", albedo=[0.2, 0.3, 0.5], f0=[0.04] * 3, beckmann_sigma=0.2)
     write_brdf(tmp_path / "b.json", b)
     assert read_brdf(tmp_path / "b.json") == b
     with pytest.raises(UserError, match="unknown BRDF model"):
         parse_brdf_spec("velvet:albedo=0.5")
-    with pytest.raises(UserError, match="needs parameter 'roughness'"):
-        parse_brdf_spec("microfacet:albedo=0.5,specular=0.04")
+    with pytest.raises(UserError, match="needs parameter 'beckmann_sigma'"):
+        parse_brdf_spec("microfacet:albedo=0.5,f0=0.04")
+
+
+@pytest.mark.parametrize(
+    "spec, renamed",
+    [
+        ("phong:albedo=0.3,specular=0.3,exponent=20", {"specular": "specular_weight"}),
+        ("microfacet:albedo=0.2,specular=0.04,beckmann_sigma=0.2", {"specular": "f0"}),
+        ("microfacet:albedo=0.2,f0=0.04,roughness=0.2", {"roughness": "beckmann_sigma"}),
+        ("microfacet:albedo=0.2,specular=0.04,roughness=0.2", {"specular": "f0", "roughness": "beckmann_sigma"}),
+    ],
+)
+def test_renamed_brdf_keys_are_refused_naming_the_new_key(tmp_path, capsys, spec, renamed):
+    """Each phong/microfacet key that was renamed so that a name has one meaning (specular -> specular_weight
+    for phong, f0 for microfacet; microfacet's roughness -> beckmann_sigma) is refused, not silently read, both in
+    a --brdf spec string and in a brdf.json passed as --brdf: the CLI exits 2 with one line naming every old key
+    used and its new name, and nothing is rendered."""
+    model, _, rest = spec.partition(":")
+    doc = {"model": model}
+    for token in rest.split(","):
+        key, _, value = token.partition("=")
+        doc[key] = float(value)
+    old_file = tmp_path / "old_brdf.json"
+    old_file.write_text(json.dumps(doc))
+    for i, brdf in enumerate((spec, str(old_file))):
+        out = tmp_path / f"out{i}"
+        code = cli_main(["synth", "--size", "16x16", "--views", "1", "--brdf", brdf, "-o", str(out)])
+        now = [f"{old!r} is now called {new!r}" for old, new in renamed.items()]
+        line = assert_one_line_error(capsys.readouterr().err, f"{model}'s {now[0]}", *now, "rename the key", code=code)
+        assert line.count("is now called") == len(renamed)
+        assert not (out / "images").exists() or not any((out / "images").iterdir())
 
 
 def test_atomic_writes_have_ordinary_permissions(tmp_path):

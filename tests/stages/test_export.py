@@ -230,7 +230,7 @@ def test_export_without_a_fit_or_with_a_seed_lobe_says_what_to_do(tmp_path, caps
     """A Phong fit (no glTF/USD equivalent) exits 2 saying to refit with --brdf principled; a work folder without
     a fit gives a one-line error to run `sigrend fit`; -o with an unsupported extension (.usdz) exits 2 and leaves no
     work/export folder (weak: its message is not checked, and this Phong fit would exit 2 anyway)."""
-    capture, work = make_fit(tmp_path, Brdf("phong", albedo=[0.5] * 3, specular=[0.1] * 3, exponent=50), textured=False)
+    capture, work = make_fit(tmp_path, Brdf("phong", albedo=[0.5] * 3, specular_weight=[0.1] * 3, exponent=50), textured=False)
     assert sigrend(["export", str(capture), "-w", str(work)]) == 2
     assert "refit with --brdf principled" in capsys.readouterr().err
     assert sigrend(["export", str(capture), "-w", str(tmp_path / "empty")]) == 2

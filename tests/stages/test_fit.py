@@ -24,7 +24,7 @@ from pipeline.settings import make_settings
 from stages import fit
 
 ALBEDO = [0.6, 0.5, 0.4]
-GLOSSY = Brdf("microfacet", albedo=[0.3, 0.25, 0.2], specular=[0.9, 0.9, 0.9], roughness=0.1)
+GLOSSY = Brdf("microfacet", albedo=[0.3, 0.25, 0.2], f0=[0.9, 0.9, 0.9], beckmann_sigma=0.1)
 
 
 @pytest.fixture(scope="session")
@@ -113,7 +113,7 @@ def test_order_auto_lists_candidates(lambert_scene, tmp_path):
 
 
 def test_glossy_known_brdf_recovers_lighting_to_order_8(glossy_scene, tmp_path):
-    """With a known glossy microfacet BRDF (roughness 0.1) the lighting fitted to order 16 matches the sharp
+    """With a known glossy microfacet BRDF (Beckmann sigma 0.1) the lighting fitted to order 16 matches the sharp
     environment's projection within 10% per band for bands 0-8 (the higher bands are not checked)."""
     capture, work, env, _ = glossy_scene
     brdf_file = write_brdf(tmp_path / "brdf.json", GLOSSY)
@@ -126,7 +126,7 @@ def test_glossy_known_brdf_recovers_lighting_to_order_8(glossy_scene, tmp_path):
 
 def test_glossy_known_lighting_recovers_brdf(glossy_scene, tmp_path):
     """With the lighting known (the environment's order-16 projection), --brdf auto picks microfacet and recovers
-    the true albedo within 2%, specular within 10% and roughness within 10% (relative), and reports the lobe width
+    the true albedo within 2%, f0 within 10% and Beckmann sigma within 10% (relative), and reports the lobe width
     as recoverable."""
     capture, work, env, _ = glossy_scene
     light = write_lighting_sh(tmp_path / "lighting_sh.json", project_envmap(env, 16))
@@ -135,8 +135,8 @@ def test_glossy_known_lighting_recovers_brdf(glossy_scene, tmp_path):
     report = read_report(work / "fit" / "report.json")
     assert brdf.model == "microfacet", (brdf, [(c["name"], c["validation_rmse"]) for c in report["candidates"]])
     assert np.max(np.abs(np.array(brdf.albedo) / GLOSSY.albedo - 1)) < 0.02
-    assert np.max(np.abs(np.array(brdf.specular) / GLOSSY.specular - 1)) < 0.10
-    assert abs(brdf.roughness / GLOSSY.roughness - 1) < 0.10
+    assert np.max(np.abs(np.array(brdf.f0) / GLOSSY.f0 - 1)) < 0.10
+    assert abs(brdf.beckmann_sigma / GLOSSY.beckmann_sigma - 1) < 0.10
     assert report["brdf_width"]["width_recoverable"] is True
 
 
@@ -182,18 +182,18 @@ def test_model_selection_picks_lambert_and_low_order(tmp_path, rng):
 
 
 def test_soft_lighting_reports_width_unrecoverable(tmp_path, rng):
-    """Under lighting with only bands 0-2, the microfacet lobe's width (roughness 0.15) is reported as not
-    recoverable: A_1, A_2 differ from 1 by < 3% for any roughness < 0.15, so the residuals cannot tell widths apart."""
+    """Under lighting with only bands 0-2, the microfacet lobe's width (Beckmann sigma 0.15) is reported as
+    not recoverable: A_1, A_2 differ from 1 by < 3% for any sigma < 0.15, so the residuals cannot tell widths apart."""
     env = smooth_env(32)
     n, v, ids = sphere_views(rng, 10, 150, min_cos=0.7)
-    brdf = replace(GLOSSY, roughness=0.15)
+    brdf = replace(GLOSSY, beckmann_sigma=0.15)
     b = integrate_radiance(env, brdf, n, v)
     write_scene(tmp_path / "work", n, v, ids, b)
     (tmp_path / "capture").mkdir()
     light = write_lighting_sh(tmp_path / "lighting_sh.json", project_envmap(env, 4))
     run_fit(tmp_path / "capture", tmp_path / "work", lighting=str(light), brdf="microfacet")
     width = read_report(tmp_path / "work" / "fit" / "report.json")["brdf_width"]
-    # bands 0-2 only: the lobe's A_1, A_2 differ from 1 by < 3% for any roughness < 0.15, so the
+    # bands 0-2 only: the lobe's A_1, A_2 differ from 1 by < 3% for any sigma < 0.15, so the
     # residual profile is flat within the 0.5% noise floor over most of the range
     assert width["width_recoverable"] is False
 

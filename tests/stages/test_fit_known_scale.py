@@ -129,7 +129,7 @@ def test_map_off_by_two_is_refused_in_one_line_and_fitted(glossy, tmp_path):
 @pytest.mark.slow
 def test_lighting_scale_on_the_convex_path(glossy, tmp_path):
     """--lighting-scale on the convex path (--brdf phong): a number is applied (scale 2 halves the fitted
-    albedo and specular, to 1e-9: the convex fit is linear in them), 'fit' is refused in one line (its
+    albedo and specular_weight, to 1e-9: the convex fit is linear in them), 'fit' is refused in one line (its
     lobes' free specular leaves nothing to fit the factor by), and an albedo above 1 (the map 0.25 x too
     dim) is refused in one line with 3 significant digits and the hint that the light may be too dim.
     Before: --lighting-scale was silently ignored there, and the albedo refusal printed 16 digits."""
@@ -153,7 +153,7 @@ def test_lighting_scale_on_the_convex_path(glossy, tmp_path):
         assert proc.returncode == 0, proc.stderr
         fits[value] = json.loads((work / "fit" / "brdf.json").read_text())
         assert lighting_scale(work)["applied"] == float(value)
-    for key in ("albedo", "specular"):
+    for key in ("albedo", "specular_weight"):
         assert np.allclose(np.asarray(fits["2"][key]) * 2, fits["1"][key], rtol=1e-9), (key, fits)
     proc = sigrend(
         "fit",
@@ -237,7 +237,7 @@ def test_real_one_view_ball_is_accepted_at_one(tmp_path):
     photos bound the factor only loosely (accepted x0.50 to beyond x1.4; the highlight's peak is
     saturated and its roughness trades with its level), so 1 must lie in the accepted run.  Measured
     relight under light076 from the same view: auto 34 %, forced Phong 12.6 % — the dielectric's fixed
-    ior 1.5 (F0 0.04) over-predicts this ball's highlight (Phong's specular 0.0076; with --ior 1.2 auto
+    ior 1.5 (F0 0.04) over-predicts this ball's highlight (Phong's specular_weight 0.0076; with --ior 1.2 auto
     relights at 11.5 %): not asserted here (docs/fit.md)."""
     import tomllib
 

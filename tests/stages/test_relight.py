@@ -128,7 +128,7 @@ def test_sharp_lobe_via_prefiltered_map_agrees_with_sh_path(tmp_path, rng):
     h = 64
     env = np.full((h, 2 * h, 3), 0.2, dtype=np.float32)
     env[10:16, 30:40] = [20.0, 18.0, 15.0]  # an area light
-    brdf = Brdf("phong", albedo=[0.3, 0.3, 0.3], specular=[0.4, 0.4, 0.4], exponent=40.0)
+    brdf = Brdf("phong", albedo=[0.3, 0.3, 0.3], specular_weight=[0.4, 0.4, 0.4], exponent=40.0)
     capture, work = _scene(tmp_path, brdf, _lighting(rng))
     write_image(tmp_path / "env.exr", env, dtype="float")
     common = dict(env=str(tmp_path / "env.exr"), supersample=1, prefilter_height=h, method="frequency")
@@ -300,7 +300,7 @@ def test_missing_inputs_fail_with_one_line_and_keep_outputs(tmp_path, rng):
         ("lambert:albedo=0.6,0.5,0.4", 0.005),
         # plus the horizon: the reference clips the Phong lobe where it dips below the surface, the R&H
         # reflection-space model does not; measured 1.1 % for s = 20
-        ("phong:albedo=0.3,0.3,0.3,specular=0.3,exponent=20", 0.02),
+        ("phong:albedo=0.3,0.3,0.3,specular_weight=0.3,exponent=20", 0.02),
     ],
 )
 def test_relit_with_the_true_lighting_matches_the_independent_renderer(tiny_capture, tmp_path, brdf, tolerance):
@@ -366,7 +366,7 @@ def test_angular_method_keeps_the_energy_of_a_lobe_sharper_than_its_cells(tmp_pa
     radiance = 1.5
     coeffs = np.zeros((9, 3))
     coeffs[0] = radiance * np.sqrt(4 * np.pi)  # L = c_00 Y_00
-    brdf = Brdf("phong", albedo=[0.3, 0.3, 0.3], specular=[0.2, 0.2, 0.2], exponent=2000.0)
+    brdf = Brdf("phong", albedo=[0.3, 0.3, 0.3], specular_weight=[0.2, 0.2, 0.2], exponent=2000.0)
     capture, work = _scene(tmp_path, brdf, coeffs)
     settings = make_settings(relight.Settings, method="angular", supersample=1)
     run_stage("relight", capture=capture, work=work, settings=settings)
@@ -427,7 +427,7 @@ def test_angular_phong_lobe_agrees_with_the_frequency_path_away_from_the_horizon
     """R&H Phong (the lobe about r, f cos = lobe) is exact in the frequency path for SH lighting, so
     with no shadows the angular method may differ only by its discretization and by clipping the lobe
     below the surface (which the reflection-space model does not do): compared where n.v > 0.6."""
-    brdf = Brdf("phong", albedo=[0.2, 0.2, 0.2], specular=[0.5, 0.5, 0.5], exponent=8.0)
+    brdf = Brdf("phong", albedo=[0.2, 0.2, 0.2], specular_weight=[0.5, 0.5, 0.5], exponent=8.0)
     capture, work = _scene(tmp_path, brdf, _lighting(rng, order=4))
     freq, ang = _relight_both(tmp_path, capture, work, supersample=1, shadows=False)
     view = relight.resolve_views(capture=capture, work=work, settings=make_settings(relight.Settings))[1]

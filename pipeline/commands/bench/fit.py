@@ -25,7 +25,7 @@ from pipeline.core.forward import render_samples
 
 CHUNK = 262144
 LAMBERT = Brdf("lambert", albedo=(0.6, 0.5, 0.4))
-GLOSSY = Brdf("microfacet", albedo=(0.3, 0.25, 0.2), specular=(0.9, 0.9, 0.9), roughness=0.15)
+GLOSSY = Brdf("microfacet", albedo=(0.3, 0.25, 0.2), f0=(0.9, 0.9, 0.9), beckmann_sigma=0.15)
 
 
 def _chunk(rng: np.random.Generator, n: int, truth: np.ndarray, brdf: Brdf) -> dict:

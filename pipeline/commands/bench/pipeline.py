@@ -100,7 +100,7 @@ def stability_lighting(rng: np.random.Generator, order: int = 8, trials: int = 3
     normal, view = sphere_light_field(1500, 24, rng)
     scenes = {
         "lambertian": Brdf("lambert", albedo=(0.8, 0.8, 0.8)),
-        "glossy (phong s=200)": Brdf("phong", albedo=(0.3, 0.3, 0.3), specular=(0.6, 0.6, 0.6), exponent=200.0),
+        "glossy (phong s=200)": Brdf("phong", albedo=(0.3, 0.3, 0.3), specular_weight=(0.6, 0.6, 0.6), exponent=200.0),
     }
     rows = []
     for scene, brdf in scenes.items():
@@ -142,8 +142,8 @@ def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
         "sharp (area lights)": project_envmap(make_envmap("area", 64), order),
         "soft (smooth sky)": project_envmap(make_envmap("smooth", 64), 2),
     }
-    exponent, specular = 200.0, 0.5
-    truth = Brdf("phong", albedo=(0.4, 0.4, 0.4), specular=specular, exponent=exponent)
+    exponent, specular_weight = 200.0, 0.5
+    truth = Brdf("phong", albedo=(0.4, 0.4, 0.4), specular_weight=specular_weight, exponent=exponent)
     rows = []
     for name, coeffs in lightings.items():
         clean = forward.render_samples(coeffs, truth, normal, view)
@@ -160,7 +160,7 @@ def stability_brdf(rng: np.random.Generator, trials: int = 3) -> list[dict]:
                 data.radiance = clean + noise * clean.mean() * rng.normal(size=clean.shape)
                 fit = fit_brdf(data, "phong", filter_fn, noise_floor=1e-6).brdf
                 w_err.append(abs(fit.exponent / exponent - 1.0))
-                s_err.append(float(np.abs(np.asarray(fit.specular) - specular).mean() / specular))
+                s_err.append(float(np.abs(np.asarray(fit.specular_weight) - specular_weight).mean() / specular_weight))
             rows.append(
                 {
                     "problem": "BRDF estimation",

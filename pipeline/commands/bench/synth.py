@@ -34,7 +34,7 @@ def synth_suite(quick: bool, repeat: int) -> list:
     env = make_envmap("area", 64, n=3)
     brdfs = {
         "lambert": Brdf("lambert", albedo=(0.5, 0.5, 0.5)),
-        "microfacet": Brdf("microfacet", albedo=(0.2, 0.3, 0.5), specular=0.04, roughness=0.2),
+        "microfacet": Brdf("microfacet", albedo=(0.2, 0.3, 0.5), f0=0.04, beckmann_sigma=0.2),
     }
     rows = []
     for name, brdf in brdfs.items():
