@@ -120,25 +120,29 @@ def fit_physical(
         else ("brdf" if known is not None else "factorization")
     )
 
+    def choose(cand: CandidateFit) -> tuple:
+        """The material and lighting (material_and_lighting), a Lambertian colour and level then fixed by
+        the colour chart where there is one and nothing else fixed them (chart_colour) -> (chosen, the
+        chart's record or None)."""
+        chosen = material_and_lighting(cand, settings, known_brdf, models, hint, top, timings)
+        if chart is not None and chosen.best.material is None and known is None and known_brdf is None:
+            return chart_colour(chart, chosen, cand, settings, models, hint, top, timings)
+        return chosen, None
+
     def with_texture(rho: np.ndarray, first_report: dict) -> tuple:
-        """The material and lighting chosen again with the per-vertex texture ``rho``'s pattern in the
-        diffuse layer -> (chosen, report, brdf, vertex_rho); the first search's roughness and
-        candidates kept in report.json "albedo" "uniform_base_search"."""
+        """The material and lighting chosen again (choose) with the per-vertex texture ``rho``'s pattern
+        in the diffuse layer -> (chosen, report, brdf, vertex_rho, the chart's record); the first search's
+        roughness and candidates kept in report.json "albedo" "uniform_base_search"."""
         first = {"roughness": first_report["brdf"].get("roughness"), "candidates": first_report["candidates"]}
         pattern = texture_pattern(obs, mesh, data, rho)
-        again = material_and_lighting(
-            replace(candidate, geo=replace(geo, pattern=pattern)), settings, known_brdf, models, hint, top, timings
-        )
+        again, applied = choose(replace(candidate, geo=replace(geo, pattern=pattern)))
         report, brdf, vertex_rho = _report_and_texture(
             again, settings, mode, capture, mesh, data, obs, noise, keys, known_brdf, hint
         )
         report["albedo"]["uniform_base_search"] = first
-        return again, report, brdf, vertex_rho
+        return again, report, brdf, vertex_rho, applied
 
-    chosen = material_and_lighting(candidate, settings, known_brdf, models, hint, top, timings)
-    applied = None
-    if chart is not None and chosen.best.material is None and known is None and known_brdf is None:
-        chosen, applied = chart_colour(chart, chosen, candidate, settings, models, hint, top, timings)
+    chosen, applied = choose(candidate)
     report, brdf, vertex_rho = _report_and_texture(
         chosen, settings, mode, capture, mesh, data, obs, noise, keys, known_brdf, hint
     )
@@ -146,11 +150,9 @@ def fit_physical(
         # the material and lighting were chosen with a uniform base colour, whose missing texture a
         # rougher lobe partly absorbs and whose variance hides a weak specular layer (a textured
         # glossy Suzanne chose Lambert: relit 28.9 % vs 21.7 %): chosen again with the texture's
-        # pattern in the diffuse layer
-        chosen, report, brdf, vertex_rho = with_texture(vertex_rho, report)
+        # pattern in the diffuse layer (and a chart's colour applied again: the texture is refitted)
+        chosen, report, brdf, vertex_rho, applied = with_texture(vertex_rho, report)
     timings["material"] = time.perf_counter() - t0
-    if chart is not None:
-        report["scale_convention"] = chart_convention(report["scale_convention"], chart, chosen, applied)
     best, interval = chosen.best, chosen.interval
     if one_fold and known_brdf is None and len(models) > 1:  # --brdf auto: say what it kept and why
         print(
@@ -189,7 +191,7 @@ def fit_physical(
         if texels is not None and report["albedo"].get("choice") != "textured" and known_brdf is None:
             # every sample found a texture the subset could not: the material and lighting chosen again
             # with its pattern in the diffuse layer (as above for a texture the subset found)
-            chosen, report, brdf, vertex_rho = with_texture(texels.vertex_base, report)
+            chosen, report, brdf, vertex_rho, applied = with_texture(texels.vertex_base, report)
             best, interval = chosen.best, chosen.interval
             report["texels"], texels = fit_texels(
                 mesh, replace(geo, pattern=None), best, everything, noise, poses, keys, settings, chosen.candidate.known
@@ -200,6 +202,8 @@ def fit_physical(
             vertex_rho = texels.vertex_base
             brdf = brdf.with_diffuse_color(np.clip(vertex_rho.mean(axis=0), 0.0, 1.0))
             report["brdf"] = brdf.to_dict()
+    if chart is not None:  # the last choice's: what fixed the colour, or the chart's check of it
+        report["scale_convention"] = chart_convention(report["scale_convention"], chart, chosen, applied)
     print(
         summary_line(
             brdf,
