@@ -302,6 +302,22 @@ def synth_capture(folder: Path, mesh: str, brdf: str, views: int = 10, size: str
     return folder
 
 
+def albedo_where_seen(capture: Path, work: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(fitted, true) per-vertex base colour (V', 3) of a synth capture's fit, on the vertices of the faces
+    some sample fell on: what relight reads from WORK/fit, and synth's gt/albedo.ply (8-bit)."""
+    from pipeline.io.mesh import read_mesh
+    from pipeline.io.samples import read_samples
+    from stages import relight
+
+    mesh = read_mesh(next(capture.glob("mesh.*")))
+    truth = np.asarray(read_mesh(capture / "gt" / "albedo.ply").visual.vertex_colors, float)[:, :3] / 255
+    got = relight.vertex_albedo(work, mesh)
+    arrays, _ = read_samples(work / "samples.npz")
+    seen = np.zeros(len(mesh.vertices), bool)
+    seen[mesh.faces[arrays["face"]].ravel()] = True
+    return got[seen], truth[seen]
+
+
 def fit_synth(capture: Path, work: Path, *fit_args: str) -> tuple[dict, dict]:
     """The fit of a synth capture.  synth renders one ray per pixel centre (its --supersample 1), so
     the fit models each sample as a point (--footprint 1): with its default pixel footprint the
@@ -420,24 +436,15 @@ def test_synth_textured_glossy_known_lighting(tmp_path):
     colour and kept Lambert on a Cycles-rendered textured Suzanne (relit 26.3 %; 19.7 % with the
     pattern, 18.1 % with the texels too; a pattern baked into the map's shading made the albedo
     step pick a uniform colour: 55.6 %)."""
-    from pipeline.io.mesh import read_mesh
-    from pipeline.io.samples import read_samples
-    from stages import relight
-
     capture = synth_capture(tmp_path / "sphere", "sphere", "principled:base_color=0.2,0.5,0.3,roughness=0.3", texture="stripes")
     brdf, report = fit_synth(capture, tmp_path / "work", "--lighting", str(capture / "gt" / "lighting.exr"))
     assert report["albedo"]["choice"] == "textured", report["albedo"]
     assert brdf["model"] == "principled" and brdf["metallic"] == 0.0, (brdf, report["candidates"])
     assert abs(brdf["roughness"] / 0.3 - 1) < 0.25, brdf
     assert report["texels"]["ran"] and "note" not in report["texels"], report["texels"]
-    mesh = read_mesh(next(capture.glob("mesh.*")))
-    truth = np.asarray(read_mesh(capture / "gt" / "albedo.ply").visual.vertex_colors, float)[:, :3] / 255
-    got = relight.vertex_albedo(tmp_path / "work", mesh)
-    arrays, _ = read_samples(tmp_path / "work" / "samples.npz")
-    seen = np.zeros(len(mesh.vertices), bool)
-    seen[mesh.faces[arrays["face"]].ravel()] = True
-    assert np.median(np.abs(got[seen] / truth[seen] - 1)) < 0.2  # measured 11.8 % (8-bit truth: the dark stripes' 0.08 is +-5 %)
-    assert chromaticity_deg(got[seen].mean(axis=0), truth[seen].mean(axis=0)) < 3.0
+    got, truth = albedo_where_seen(capture, tmp_path / "work")
+    assert np.median(np.abs(got / truth - 1)) < 0.2  # measured 11.8 % (8-bit truth: the dark stripes' 0.08 is +-5 %)
+    assert chromaticity_deg(got.mean(axis=0), truth.mean(axis=0)) < 3.0
 
 
 @pytest.mark.slow
@@ -449,23 +456,14 @@ def test_synth_textured_glossy_both_unknown(tmp_path):
     median relative error 10 % (90th percentile 29 %, the stripes' edges), its mean (0.139, 0.400,
     0.230) for (0.139, 0.352, 0.210): 2.2 deg.  Chosen with a uniform base colour only (before):
     roughness 0.457 and a median error of 30 % (level 0.67-0.74)."""
-    from pipeline.io.mesh import read_mesh
-    from pipeline.io.samples import read_samples
-    from stages import relight
-
     capture = synth_capture(tmp_path / "sphere", "sphere", "principled:base_color=0.2,0.5,0.3,roughness=0.3", texture="stripes")
     brdf, report = fit_synth(capture, tmp_path / "work")
     assert report["albedo"]["choice"] == "textured", report["albedo"]
     assert brdf["model"] == "principled" and brdf["metallic"] == 0.0, (brdf, report["candidates"])
     assert abs(brdf["roughness"] / 0.3 - 1) < 0.25, (brdf, report["albedo"]["uniform_base_search"]["roughness"])
-    mesh = read_mesh(next(capture.glob("mesh.*")))
-    truth = np.asarray(read_mesh(capture / "gt" / "albedo.ply").visual.vertex_colors, float)[:, :3] / 255
-    got = relight.vertex_albedo(tmp_path / "work", mesh)
-    arrays, _ = read_samples(tmp_path / "work" / "samples.npz")
-    seen = np.zeros(len(mesh.vertices), bool)
-    seen[mesh.faces[arrays["face"]].ravel()] = True
-    assert np.median(np.abs(got[seen] / truth[seen] - 1)) < 0.2
-    assert chromaticity_deg(got[seen].mean(axis=0), truth[seen].mean(axis=0)) < 3.0
+    got, truth = albedo_where_seen(capture, tmp_path / "work")
+    assert np.median(np.abs(got / truth - 1)) < 0.2
+    assert chromaticity_deg(got.mean(axis=0), truth.mean(axis=0)) < 3.0
 
 
 def test_scale_note_says_what_fixed_the_level():
