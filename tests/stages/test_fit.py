@@ -4,9 +4,11 @@ environment map (tests/fit_scenes.py), not produced by the SH forward model."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -54,6 +56,12 @@ def glossy_scene(tmp_path_factory):
     return capture, work, env, (n[~fitted], v[~fitted], b[~fitted])
 
 
+def own_copy(work: Path, tmp_path: Path) -> Path:
+    """A test's own copy of a session scene's work folder: the fixtures stay read-only, so no test sees
+    another's fit/ (run_fit rewrites it with force=True)."""
+    return Path(shutil.copytree(work, tmp_path / "work"))
+
+
 def run_fit(capture, work, **values):
     settings = make_settings(fit.Settings, **values)
     return run_stage("fit", capture=capture, work=work, settings=settings, force=True)
@@ -65,6 +73,7 @@ def test_lambertian_unknown_lighting_known_albedo(lambert_scene, tmp_path):
     are labelled ill-posed with zero energy, 4, 6, 8 ill-conditioned with no more energy than the truth, and every
     output file is written."""
     capture, work, env = lambert_scene
+    work = own_copy(work, tmp_path)
     brdf_file = write_brdf(tmp_path / "brdf.json", Brdf("lambert", albedo=ALBEDO))
     result = run_fit(capture, work, brdf=str(brdf_file), order="8")
     assert {p.name for p in result.outputs} >= {
@@ -97,6 +106,7 @@ def test_order_auto_lists_candidates(lambert_scene, tmp_path):
     with positive parameter counts and non-negative RMSEs, chooses one of the priors, and still gets the environment's
     bands 0-2 within 3% of its projection."""
     capture, work, env = lambert_scene
+    work = own_copy(work, tmp_path)
     brdf_file = write_brdf(tmp_path / "brdf.json", Brdf("lambert", albedo=ALBEDO))
     run_fit(capture, work, brdf=str(brdf_file))
     report = read_report(work / "fit" / "report.json")
@@ -116,6 +126,7 @@ def test_glossy_known_brdf_recovers_lighting_to_order_8(glossy_scene, tmp_path):
     """With a known glossy microfacet BRDF (Beckmann sigma 0.1) the lighting fitted to order 16 matches the sharp
     environment's projection within 10% per band for bands 0-8 (the higher bands are not checked)."""
     capture, work, env, _ = glossy_scene
+    work = own_copy(work, tmp_path)
     brdf_file = write_brdf(tmp_path / "brdf.json", GLOSSY)
     run_fit(capture, work, brdf=str(brdf_file), order="16")
     coeffs = read_lighting_sh(work / "fit" / "lighting_sh.json")
@@ -129,6 +140,7 @@ def test_glossy_known_lighting_recovers_brdf(glossy_scene, tmp_path):
     the true albedo within 2%, f0 within 10% and Beckmann sigma within 10% (relative), and reports the lobe width
     as recoverable."""
     capture, work, env, _ = glossy_scene
+    work = own_copy(work, tmp_path)
     light = write_lighting_sh(tmp_path / "lighting_sh.json", project_envmap(env, 16))
     run_fit(capture, work, lighting=str(light), brdf="auto")
     brdf = read_brdf(work / "fit" / "brdf.json")
@@ -140,11 +152,12 @@ def test_glossy_known_lighting_recovers_brdf(glossy_scene, tmp_path):
     assert report["brdf_width"]["width_recoverable"] is True
 
 
-def test_factorization_predicts_held_out_views(glossy_scene):
+def test_factorization_predicts_held_out_views(glossy_scene, tmp_path):
     """Joint lighting and microfacet fit (scale fixed by capture.toml's known albedo) predicts 3 held-out views'
     quadrature radiance within 5% relative RMS (issue 6); the report says factorization, names capture.toml as the
     scale source, never claims the lobe width, and the albedo equals the given one."""
     capture, work, env, (n_out, v_out, b_out) = glossy_scene
+    work = own_copy(work, tmp_path)
     (capture / "capture.toml").write_text("[fit]\nknown_albedo = [0.3, 0.25, 0.2]\n")
     try:
         run_fit(capture, work, brdf="microfacet", order="16")
@@ -207,6 +220,7 @@ def test_bad_inputs_are_one_line_errors_and_keep_outputs(lambert_scene, tmp_path
     lighting file, unparsable --order/--footprint/--noise-model, no samples file, every sample shadowed) each give a
     one-line error naming the problem or the fix, and the earlier lighting_sh.json is left byte-identical."""
     capture, work, env = lambert_scene
+    work = own_copy(work, tmp_path)
     brdf_file = write_brdf(tmp_path / "brdf.json", Brdf("lambert", albedo=ALBEDO))
     run_fit(capture, work, brdf=str(brdf_file), order="2")
     before = (work / "fit" / "lighting_sh.json").read_bytes()
@@ -238,6 +252,7 @@ def test_check_mode_reports_residuals_of_known_lighting_and_brdf(lambert_scene, 
     relative RMSE is < 1% (the order-8 cut of the sun and the midpoint rule), the model-limit groups' fractions sum to 1,
     the convex sphere has no shadowed samples, and every non-empty group is also < 1%."""
     capture, work, env = lambert_scene
+    work = own_copy(work, tmp_path)
     brdf_file = write_brdf(tmp_path / "brdf.json", Brdf("lambert", albedo=ALBEDO))
     light = write_lighting_sh(tmp_path / "lighting_sh.json", project_envmap(env, 8))
     run_fit(capture, work, brdf=str(brdf_file), lighting=str(light))
