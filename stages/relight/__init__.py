@@ -43,13 +43,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from pipeline.core.brdf import Brdf
 from pipeline.errors import UserError
 from pipeline.io.brdf import read_brdf, read_material_map
 from pipeline.io.capture_toml import read_capture_config
 from pipeline.io.linear_manifest import image_source, linear_manifest
 from pipeline.io.mesh import mesh_path, read_mesh
-from pipeline.io.poses import capture_poses_path
+from pipeline.io.poses import capture_poses_path, poses_path, read_poses
+from pipeline.io.samples import iter_sample_chunks, read_samples_meta
+from pipeline.proxy import samples_footprint_m, with_proxy
 from pipeline.raycast import ray_mesh
 from pipeline.workdir import make_folder, write_json
 from stages.relight.compare import compare_views, write_error_maps
@@ -115,6 +119,8 @@ def inputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
         paths.append(mesh_path(capture))
     except UserError:
         pass
+    if _may_proxy(work, settings):
+        paths.append(Path(work) / "samples.npz")  # the proxy's footprint (scene_rays)
     choice = settings.view_choice
     try:
         source, source_work = photo_source(capture, work, settings)
@@ -156,6 +162,47 @@ def outputs(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     return paths
 
 
+PROXY_SAMPLES = 30000  # samples whose median pixel footprint sets the proxy's edge (the fit's --physical-samples)
+
+
+def _may_proxy(work: Path, settings: Settings) -> bool:
+    """Whether scene_rays may build a proxy (then WORK/samples.npz is an input)."""
+    return (
+        settings.proxy_pixels > 0
+        and settings.method == "angular"
+        and settings.shadows
+        and settings.bounces > 0
+        and (Path(work) / "samples.npz").exists()
+    )
+
+
+def scene_rays(mesh, capture: Path, work: Path, settings: Settings):
+    """The mesh's RayMesh (pipeline.raycast), with the fit's interreflection proxy (pipeline.proxy.with_proxy)
+    where the mesh is much finer than the capture's photos resolve: their median footprint on the
+    surface from about PROXY_SAMPLES of WORK/samples.npz (evenly strided) seen through the capture's
+    poses, edges of ``settings.proxy_pixels`` of it, as the fit's physical model has it.  No proxy
+    without those samples, with --proxy-pixels 0, or where the renderer has no interreflection
+    (the frequency method, --no-shadows, --bounces 0)."""
+    samples = Path(work) / "samples.npz"
+    if not _may_proxy(work, settings):
+        return ray_mesh(mesh)
+    meta = read_samples_meta(samples)
+    step = max(1, int(meta.get("count", 0)) // PROXY_SAMPLES)
+    parts = [
+        {k: v[::step] for k, v in chunk.items()}
+        for chunk in iter_sample_chunks(samples, step * 65536, ("face", "bary", "image_id"))
+    ]
+    if not parts:
+        return ray_mesh(mesh)
+    data = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    keep = (data["face"] >= 0) & (data["face"] < len(mesh.faces))
+    data = {k: v[keep] for k, v in data.items()}
+    if not keep.any():
+        return ray_mesh(mesh)
+    footprint = samples_footprint_m(mesh.triangles, data, read_poses(poses_path(capture, work)), meta["image_keys"])
+    return with_proxy(mesh, footprint, settings.proxy_pixels)
+
+
 def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     capture, work = Path(capture), Path(work)
     source, source_work = photo_source(capture, work, settings)
@@ -174,7 +221,7 @@ def run(*, capture: Path, work: Path, settings: Settings) -> list[Path]:
     vertex_colors = vertex_albedo(work, mesh) if materials is None else materials[1]
     texture = albedo_texture(work, mesh) if materials is None else None
     lights = view_lights(source, views) if settings.compare_with and not settings.env else {}
-    scene_mesh = ray_mesh(mesh)  # one intersector for the camera rays and every lighting's renderer
+    scene_mesh = scene_rays(mesh, capture, work, settings)  # one intersector for the camera rays and every lighting's renderer
 
     def lighting_for(light):
         def prepared(material: Brdf):

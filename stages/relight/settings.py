@@ -8,6 +8,7 @@ from typing import Literal
 
 from pipeline.errors import UserError
 from pipeline.io.lighting import lighting_argument, lighting_help
+from pipeline.proxy import PROXY_PIXELS
 from pipeline.settings import setting
 
 
@@ -67,6 +68,12 @@ class Settings:
         8, "angular method with shadows: most diffuse interreflection bounces (stops earlier once a bounce adds < 0.5%); 0 = none"
     )
     bounce_samples: int = setting(64, "angular method: hemisphere rays per vertex for interreflection")
+    proxy_pixels: float = setting(
+        0.0,
+        "angular method: a mesh much finer than the capture's photos resolve (more than twice the faces of "
+        f"edges this many photo pixels long, at WORK/samples.npz's footprint) gets a simplified proxy for its "
+        f"interreflection, as the fit's (pipeline/proxy.py; the fit's default {PROXY_PIXELS:g}); 0: never (the default)",
+    )
     lobe_samples: int = setting(64, "angular method, principled material: importance samples of the specular lobe per ray")
     board: Literal["auto", "on", "off"] = setting(
         "auto",
@@ -96,6 +103,8 @@ class Settings:
             raise UserError(f"--supersample {self.supersample}: use 1 to 8 rays per pixel and axis")
         if not 1 <= self.interior_supersample <= 8:
             raise UserError(f"--interior-supersample {self.interior_supersample}: use 1 to 8 rays per pixel and axis")
+        if not self.proxy_pixels >= 0:
+            raise UserError(f"--proxy-pixels must be >= 0 (0: no proxy), got {self.proxy_pixels}")
         if self.threads < 0:
             raise UserError(f"--threads {self.threads}: use 0 (one per core) or more")
         if self.lobe_sh_order < 2:
