@@ -2,7 +2,7 @@
 
 A suite is a function ``suite(quick: bool, repeat: int) -> list[BenchRow]`` registered in
 ``SUITES`` (name -> (help, "module:function")); add a suite by adding one entry.  ``sh`` is here; the
-others are this package's modules (batch, fit, linearize, pipeline, pixels, poses, render, scale, synth), imported
+others are this package's modules (batch, fit, linearize, pipeline, pixels, poses, render, scale, scale_run, synth), imported
 only when their suite runs; they import ``BenchRow`` and ``best_time`` from here, never the reverse.  Every timing is
 the best of ``--repeat`` runs (the least disturbed by other processes), measured with
 ``time.perf_counter``.  ``--quick`` shrinks the problem sizes (for smoke tests), so its numbers
@@ -71,6 +71,11 @@ SUITES: dict[str, tuple[str, str]] = {
         "the fit's mesh-level transfer (30 000 samples, bounce rays, interreflection): seconds and peak memory "
         "vs triangles (69 k - 1.1 M), full mesh vs proxy; scale.png (log-log, slopes) in DIR",
         "pipeline.commands.bench.scale:scale_suite",
+    ),
+    "scale-run": (
+        "the whole `sigrend run` stage by stage (seconds, peak memory of the process tree) on the 12-view synth "
+        "bunny at 69 k and 278 k faces (--quick: 69 k)",
+        "pipeline.commands.bench.scale_run:run_suite",
     ),
     "pixels": (
         "linearize and samples: seconds and peak memory (process tree) vs total pixels (12 x 0.2 MP - "
