@@ -144,6 +144,20 @@ def aggregates(graph: sp.spmatrix) -> np.ndarray:
     return np.asarray(agg, np.int64)
 
 
+_AGGREGATES: list = []  # [(graph, its aggregates)]: the last two graphs' (the folds' and channels' solves share one)
+
+
+def _recent_aggregates(graph: sp.spmatrix) -> np.ndarray:
+    """aggregates(graph), kept for the last two graph objects (the same object, not an equal one: it
+    is held here, so its identity is not reused)."""
+    for held, agg in _AGGREGATES:
+        if held is graph:
+            return agg
+    agg = aggregates(graph)
+    _AGGREGATES[:] = [*_AGGREGATES[-1:], (graph, agg)]
+    return agg
+
+
 def two_level_preconditioner(lhs: sp.csr_matrix, graph: sp.spmatrix, omega: float = 0.6) -> spla.LinearOperator:
     """A symmetric two-level preconditioner of the SPD ``lhs`` (smoothed aggregation, e.g. Vanek,
     Mandel & Brezina 1996): the prolongation P = (I - 2/3 D^-1 lhs) P0 with P0 the indicator of the
@@ -151,7 +165,7 @@ def two_level_preconditioner(lhs: sp.csr_matrix, graph: sp.spmatrix, omega: floa
     of the unknowns), two damped Jacobi sweeps (``omega``) before and after the coarse correction.
     It removes what Jacobi CG leaves: the smooth error of the vertices no sample sees."""
     n = lhs.shape[0]
-    agg = aggregates(graph)
+    agg = aggregates(graph) if graph is lhs else _recent_aggregates(graph)  # a mesh's Laplacian is kept
     p0 = sp.csr_matrix((np.ones(n), (np.arange(n), agg)), shape=(n, int(agg.max()) + 1))
     dinv = 1.0 / np.maximum(lhs.diagonal(), 1e-300)
     p = (p0 - (2.0 / 3.0) * (sp.diags(dinv) @ (lhs @ p0))).tocsr()
