@@ -18,6 +18,8 @@ Pure NumPy/SciPy; no I/O.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -47,6 +49,45 @@ def interpolation_matrix(faces: np.ndarray, face: np.ndarray, bary: np.ndarray, 
     return sp.csr_matrix((np.asarray(bary, float).ravel(), (rows, verts.ravel())), shape=(len(face), n_vertices))
 
 
+@dataclass(frozen=True)
+class CoarseBasis:
+    """The per-vertex albedo's unknowns on a coarser mesh (module docstring): its faces ``faces``
+    (Fc, 3) over ``n`` vertices, and ``to_vertices`` (V x n) the full mesh's vertices as barycentric
+    combinations of the coarse vertices (rows sum to 1)."""
+
+    faces: np.ndarray
+    n: int
+    to_vertices: sp.csr_matrix
+
+
+def coarse_basis(faces: np.ndarray, n: int, tri: np.ndarray, bary: np.ndarray) -> CoarseBasis:
+    """The CoarseBasis of a coarse mesh (``faces`` (Fc, 3) over ``n`` vertices) to which each full
+    vertex v maps by the coarse vertex ids ``tri[v]`` and barycentrics ``bary[v]`` (V, 3) each
+    (pipeline.proxy.Proxy's tri and bary)."""
+    tri = np.asarray(tri, np.int64)
+    return CoarseBasis(np.asarray(faces, np.int64), int(n), interpolation_matrix(tri, np.arange(len(tri)), bary, int(n)))
+
+
+def albedo_system(
+    faces: np.ndarray, n_vertices: int, face: np.ndarray, bary: np.ndarray, basis: CoarseBasis | None = None
+) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    """(the samples' interpolation matrix onto the unknowns (N x U), the unknowns' graph Laplacian
+    (U x U)): the mesh's vertices (U = V), or with ``basis`` the coarse mesh's (U = basis.n, the
+    product of the samples' barycentrics on the full mesh and basis.to_vertices)."""
+    interp = interpolation_matrix(faces, face, bary, n_vertices)
+    if basis is None:
+        return interp, graph_laplacian(faces, n_vertices)
+    return (interp @ basis.to_vertices).tocsr(), graph_laplacian(basis.faces, basis.n)
+
+
+def _two_level_from(basis: CoarseBasis | None) -> int | None:
+    """solve_spd's two_level_from for the unknowns of ``basis``: its default (TWO_LEVEL_FROM) on the
+    mesh's vertices; 0 (the two-level preconditioner at once) on a coarse mesh's, whose systems Jacobi CG does not
+    solve in its 1000 iterations (the 278k-triangle synth bunny's proxy, 35 535 unknowns from 30 000
+    samples: 15 x 1000 Jacobi iterations, 12 s, then ~32 two-level ones each)."""
+    return None if basis is None else 0
+
+
 def heaviest_vertex(faces: np.ndarray, face: np.ndarray, bary: np.ndarray) -> np.ndarray:
     """(N,) each sample's vertex of largest barycentric weight: the vertex a sample belongs to."""
     return np.asarray(faces, np.int64)[np.asarray(face, np.int64), np.argmax(bary, axis=1)]
@@ -61,12 +102,18 @@ def uniform_albedo(shade: np.ndarray, target: np.ndarray, weight: np.ndarray) ->
 
 
 def fit_vertex_albedo(
-    interp: sp.csr_matrix, shade: np.ndarray, target: np.ndarray, weight: np.ndarray, laplacian: sp.csr_matrix, smoothness: float
+    interp: sp.csr_matrix,
+    shade: np.ndarray,
+    target: np.ndarray,
+    weight: np.ndarray,
+    laplacian: sp.csr_matrix,
+    smoothness: float,
+    two_level_from: int | None = None,
 ) -> np.ndarray:
     """Per-vertex albedo (V, 3) minimizing the objective of the module docstring.
 
     interp (N x V), shade (N, 3) = E/pi per channel, target (N, 3) = radiance - specular,
-    weight (N,), laplacian (V x V), smoothness = lam.
+    weight (N,), laplacian (V x V), smoothness = lam; ``two_level_from``: solve_spd's.
     """
     n_v = interp.shape[1]
     rho_u = uniform_albedo(shade, target, weight)
@@ -80,7 +127,7 @@ def fit_vertex_albedo(
         scale = float(diag[diag > 0].mean()) if np.any(diag > 0) else 1.0
         lhs = ata + smoothness * scale * ltl + EPS * scale * sp.identity(n_v)
         rhs = aw @ target[:, c] + EPS * scale * rho_u[c]
-        out[:, c] = solve_spd(lhs.tocsr(), rhs, np.full(n_v, rho_u[c]), graph=laplacian)
+        out[:, c] = solve_spd(lhs.tocsr(), rhs, np.full(n_v, rho_u[c]), graph=laplacian, two_level_from=two_level_from)
     return out
 
 
@@ -91,11 +138,12 @@ def solve_spd(
     rtol: float = 1e-10,
     maxiter: int = 1000,
     graph: sp.spmatrix | None = None,
+    two_level_from: int | None = None,
 ) -> np.ndarray:
     """x of the symmetric positive definite system lhs x = rhs by conjugate gradients from ``x0`` to a
-    relative residual ``rtol``.  Below TWO_LEVEL_FROM unknowns with a Jacobi preconditioner first: on
-    the 35k-vertex bunny it takes 0.08 s where SuperLU takes 0.8 s (1.8 s with its default column
-    ordering), the albedos equal to 3e-8.  From TWO_LEVEL_FROM unknowns, or when Jacobi CG does not
+    relative residual ``rtol``.  Below ``two_level_from`` (default TWO_LEVEL_FROM) unknowns with a
+    Jacobi preconditioner first: on the 35k-vertex bunny it takes 0.08 s where SuperLU takes 0.8 s (1.8 s with its default column
+    ordering), the albedos equal to 3e-8.  From ``two_level_from`` unknowns, or when Jacobi CG does not
     converge within ``maxiter`` iterations (continuing from its iterate), with a two-level
     preconditioner (:func:`two_level_preconditioner` on the one-ring aggregates of ``graph``'s edges,
     the mesh's Laplacian; default lhs's own pattern); if that fails too, SuperLU with a symmetric
@@ -104,7 +152,7 @@ def solve_spd(
     U 25 M entries each) per solve; the two-level CG converges in 79 iterations (2.3 s with its
     setup, under 100 MB), the albedos within 2e-6 of SuperLU's (what a relative residual of 1e-10
     leaves of a system whose unseen vertices only the bi-Laplacian and EPS hold)."""
-    if lhs.shape[0] < TWO_LEVEL_FROM:
+    if lhs.shape[0] < (TWO_LEVEL_FROM if two_level_from is None else two_level_from):
         x0, info = spla.cg(lhs, rhs, x0=x0, rtol=rtol, maxiter=maxiter, M=sp.diags(1.0 / np.maximum(lhs.diagonal(), 1e-300)))
         if info == 0:
             return x0
@@ -206,19 +254,20 @@ def vertex_fold_fits(
     shade: np.ndarray,
     target: np.ndarray,
     smoothness: float,
+    basis: CoarseBasis | None = None,
 ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """Per fold f with other folds: (the uniform albedo (3,), the per-vertex albedo (V, 3)) fitted on
-    the samples of the other folds (arguments as :func:`choose_vertex_albedo`'s)."""
+    """Per fold f with other folds: (the uniform albedo (3,), the per-vertex albedo (V, 3), or with
+    ``basis`` the coarse vertices' (basis.n, 3)) fitted on the samples of the other folds (arguments
+    as :func:`choose_vertex_albedo`'s)."""
     w = np.asarray(weight, float)
-    interp = interpolation_matrix(faces, face, bary, n_vertices)
-    lap = graph_laplacian(faces, n_vertices)
+    interp, lap = albedo_system(faces, n_vertices, face, bary, basis)
     fits = {}
     for f in np.unique(fold):
         tr = fold != f
         if tr.any():
             fits[int(f)] = (
                 uniform_albedo(shade[tr], target[tr], w[tr]),
-                fit_vertex_albedo(interp[tr], shade[tr], target[tr], w[tr], lap, smoothness),
+                fit_vertex_albedo(interp[tr], shade[tr], target[tr], w[tr], lap, smoothness, _two_level_from(basis)),
             )
     return fits
 
@@ -237,6 +286,7 @@ def choose_vertex_albedo(
     parsimony: float,
     noise: float,
     fits: dict | None = None,
+    basis: CoarseBasis | None = None,
 ) -> tuple[list[dict], str, np.ndarray, int]:
     """Textured vs uniform albedo by held-out views: each fold's views held out of a uniform and a
     per-vertex fit (:func:`fit_vertex_albedo`, Laplacian weight ``smoothness``) of the samples'
@@ -244,14 +294,16 @@ def choose_vertex_albedo(
     (N, 3), and scored on them; textured is chosen when uniform's held-out RMSE exceeds textured's
     by more than the parsimony rule (selection.parsimonious_choice with ``parsimony``, ``noise``).
     ``face`` (N,), ``bary`` (N, 3): the samples on the mesh ``faces`` (F, 3) of ``n_vertices``;
-    ``fits``: :func:`vertex_fold_fits` of the same arguments when already made.
+    ``fits``: :func:`vertex_fold_fits` of the same arguments when already made.  ``basis``: the
+    unknowns on a coarser mesh (:class:`CoarseBasis`; the albedo returned is then the coarse
+    vertices', basis.to_vertices takes it to the mesh's).
     -> (the two candidates {name, params, validation_rmse, train_rmse, albedo | albedo_mean}, the
-    rule's choice, the per-vertex albedo (V, 3) fitted on all samples, the vertices with samples)."""
+    rule's choice, the per-vertex albedo (V, 3) (with ``basis``: (basis.n, 3)) fitted on all
+    samples, the mesh's vertices with samples)."""
     w = np.asarray(weight, float)
-    interp = interpolation_matrix(faces, face, bary, n_vertices)
-    lap = graph_laplacian(faces, n_vertices)
+    interp, lap = albedo_system(faces, n_vertices, face, bary, basis)
     if fits is None:
-        fits = vertex_fold_fits(faces, n_vertices, face, bary, fold, weight, shade, target, smoothness)
+        fits = vertex_fold_fits(faces, n_vertices, face, bary, fold, weight, shade, target, smoothness, basis)
     sse = {"uniform": [0.0, 0.0], "textured": [0.0, 0.0]}  # validation, training (weighted SSE)
     wsum = [0.0, 0.0]
     for f, (rho_u, rho_t) in fits.items():
@@ -265,13 +317,19 @@ def choose_vertex_albedo(
     rmse = {name: [float(np.sqrt(v[k] / (3 * max(wsum[k], 1e-300)))) for k in (0, 1)] for name, v in sse.items()}
     cands = [
         {"name": "uniform", "params": 3, "validation_rmse": rmse["uniform"][0], "train_rmse": rmse["uniform"][1]},
-        {"name": "textured", "params": 3 * n_vertices, "validation_rmse": rmse["textured"][0], "train_rmse": rmse["textured"][1]},
+        {
+            "name": "textured",
+            "params": 3 * interp.shape[1],
+            "validation_rmse": rmse["textured"][0],
+            "train_rmse": rmse["textured"][1],
+        },
     ]
     auto = cands[parsimonious_choice(cands, parsimony, noise=noise)]["name"]
-    rho = fit_vertex_albedo(interp, shade, target, w, lap, smoothness)
+    rho = fit_vertex_albedo(interp, shade, target, w, lap, smoothness, _two_level_from(basis))
     cands[0]["albedo"] = uniform_albedo(shade, target, w).tolist()
     cands[1]["albedo_mean"] = rho.mean(axis=0).tolist()
-    observed = int((np.asarray(interp.sum(axis=0)).ravel() > 0).sum())
+    seen = interp if basis is None else interpolation_matrix(faces, face, bary, n_vertices)
+    observed = int((np.asarray(seen.sum(axis=0)).ravel() > 0).sum())
     return cands, auto, rho, observed
 
 

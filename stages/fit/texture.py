@@ -2,7 +2,10 @@
 lighting and specular part fixed (pipeline.core.texture), kept only when the held-out views prefer
 it, for either forward model; on the physical one with the residual per view of the chosen fit
 (texture_and_residuals) and the texture's pattern the material is chosen again with
-(texture_pattern)."""
+(texture_pattern).  Where the physical fit's mesh has an interreflection proxy (pipeline.proxy: a
+simplified mesh at the photos' resolution) the albedo's unknowns are the proxy's vertices
+(texture.CoarseBasis) and the albedo is interpolated to the mesh's vertices with the proxy's
+barycentrics for every consumer (albedo.ply, the pattern, relight)."""
 
 from __future__ import annotations
 
@@ -69,14 +72,16 @@ def choose_albedo(
 
 
 def albedo_from_shading(
-    mesh, data: dict, shade: np.ndarray, target: np.ndarray, settings: Settings, entry: dict
+    mesh, data: dict, shade: np.ndarray, target: np.ndarray, settings: Settings, entry: dict, proxy=None
 ) -> tuple[dict, np.ndarray | None, object]:
     """Textured vs uniform albedo from the samples' shading per unit albedo ``shade`` (N, 3) and
     their radiance less the specular part ``target`` (N, 3) (``data``: face, bary, weight,
     image_id of the same samples): the choice of :func:`choose_albedo`, for either forward model
-    (pipeline.core.texture.choose_vertex_albedo).  -> (report entry, per-vertex albedo (V, 3) or
-    None for uniform, mesh)."""
+    (pipeline.core.texture.choose_vertex_albedo); with ``proxy`` (a pipeline.proxy.Proxy of the
+    mesh) solved on the proxy's vertices and interpolated to the mesh's.  -> (report entry,
+    per-vertex albedo (V, 3) or None for uniform, mesh)."""
     nv = len(mesh.vertices)
+    basis = None if proxy is None else texture.coarse_basis(proxy.mesh.faces, len(proxy.mesh.vertices), proxy.tri, proxy.bary)
     noise = settings.noise_floor * rms_radiance(data)
     cands, auto, rho, observed = texture.choose_vertex_albedo(
         mesh.faces,
@@ -90,6 +95,7 @@ def albedo_from_shading(
         smoothness=settings.albedo_smoothness,
         parsimony=settings.parsimony,
         noise=noise,
+        basis=basis,
     )
     choice = "textured" if settings.albedo == "textured" else auto
     entry.update(
@@ -104,8 +110,12 @@ def albedo_from_shading(
         f"(1 + parsimony {settings.parsimony}) + noise floor x RMS radiance ({noise:.3g})",
         folds=settings.folds,
     )
+    if basis is not None:
+        entry["unknowns"] = {"on": "the interreflection proxy's vertices", "count": basis.n}
     if choice != "textured":
         return entry, None, mesh
+    if basis is not None:  # the proxy's albedo at the mesh's vertices
+        return entry, basis.to_vertices @ np.clip(rho, 0.0, None), mesh
     return entry, np.clip(rho, 0.0, None), mesh
 
 
@@ -142,7 +152,8 @@ def texture_and_residuals(
     if settings.albedo == "uniform":
         report["albedo"] = {**entry, "choice": "uniform", "note": "--albedo uniform: no per-vertex fit"}
     else:
-        report["albedo"], vertex_rho, _ = albedo_from_shading(mesh, data, shade, obs.radiance - specular, settings, entry)
+        proxy = getattr(geo.renderer.mesh, "proxy", None)  # the proxy's vertices as the unknowns
+        report["albedo"], vertex_rho, _ = albedo_from_shading(mesh, data, shade, obs.radiance - specular, settings, entry, proxy)
     rho = (
         best.base
         if vertex_rho is None
