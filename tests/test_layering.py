@@ -4,7 +4,7 @@ at the top or inside a function — points down the arrows
     pipeline/core  <-  pipeline/errors, settings  <-  pipeline/io, raycast, board, workdir, ...
                    <-  stages/, calib/, synth  <-  report  <-  runner  <-  batch, commands/  <-  cli
 
-pipeline/core imports only the standard library, NumPy and SciPy; errors and settings import only
+pipeline/core imports only the standard library, NumPy, SciPy and nlopt (optimisers); errors and settings import only
 core and each other.  Within a layer an import is sideways, and a break too: between two stages,
 between stages, calib and synth, and between batch and the commands — except inside one package
 (a stage's package, stages/<name>/, is one unit with its modules; no name-based folding).  The
@@ -26,7 +26,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).parents[1]
 PACKAGES = ("pipeline", "stages", "calib")
-CORE_LIBRARIES = {"numpy", "scipy"}
+CORE_LIBRARIES = {"numpy", "scipy", "nlopt"}
 
 KNOWN_BREAKS: set[tuple[str, str]] = set()  # none left: the report's previews use core.prefilter, not the relight stage
 LAZY = "# lazy:"

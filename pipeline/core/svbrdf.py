@@ -135,13 +135,18 @@ def smooth_errors(
     )
 
 
-def assign(errors: np.ndarray, vertex_weight: np.ndarray, laplacian: sp.csr_matrix) -> np.ndarray:
+def assign(
+    errors: np.ndarray, vertex_weight: np.ndarray, laplacian: sp.csr_matrix, fixed: np.ndarray | None = None
+) -> np.ndarray:
     """(V,) each vertex's candidate: the smallest smoothed error; a candidate winning less than
-    MIN_SHARE of the observed sample weight gives its vertices to their next best."""
+    MIN_SHARE of the observed sample weight gives its vertices to their next best.  ``fixed`` (V,):
+    a candidate a vertex takes whatever its error (>= 0), or -1 to decide by the errors."""
     smoothed = smooth_errors(errors, vertex_weight, laplacian)
     alive = np.ones(errors.shape[1], bool)
     while True:
         labels = np.argmin(np.where(alive[None, :], smoothed, np.inf), axis=1)
+        if fixed is not None:
+            labels = np.where(fixed >= 0, fixed, labels)
         share = np.bincount(labels, vertex_weight, errors.shape[1]) / max(float(vertex_weight.sum()), 1e-300)
         weak = alive & (share < MIN_SHARE)
         if not weak.any() or alive.sum() == 1:
@@ -156,10 +161,12 @@ def material_map(
     radiance: np.ndarray,
     weight: np.ndarray,
     smoothness: float,
+    fixed: np.ndarray | None = None,
 ) -> MaterialMap:
-    """The materials and per-vertex base colour (module docstring) from the candidates' shadings."""
+    """The materials and per-vertex base colour (module docstring) from the candidates' shadings;
+    ``fixed``: the vertices whose candidate is given (assign)."""
     errors, vertex_weight, bases = candidate_fits(interp, laplacian, shadings, radiance, weight, smoothness)
-    labels = assign(errors, vertex_weight, laplacian)
+    labels = assign(errors, vertex_weight, laplacian, fixed)
     used, count = np.unique(labels, return_counts=True)
     used = used[np.argsort(-count, kind="stable")]  # the material most vertices have first
     remap = np.full(len(shadings), -1)
@@ -177,15 +184,16 @@ def held_out_rmse(
     weight: np.ndarray,
     fold: np.ndarray,
     smoothness: float,
+    fixed: np.ndarray | None = None,
 ) -> float:
-    """Leave-one-fold-out RMSE (radiance units) of material_map: fitted on the other folds' samples
-    (assignment and base colours), predicted on the fold's."""
+    """Leave-one-fold-out RMSE (radiance units) of material_map (``fixed`` its given vertices): fitted
+    on the other folds' samples (assignment and base colours), predicted on the fold's."""
     se, wsum = 0.0, 0.0
     for f in np.unique(fold):
         tr, va = fold != f, fold == f
         if not tr.any() or not va.any():
             continue
-        fitted = material_map(interp[tr], laplacian, [c.rows(tr) for c in shadings], radiance[tr], weight[tr], smoothness)
+        fitted = material_map(interp[tr], laplacian, [c.rows(tr) for c in shadings], radiance[tr], weight[tr], smoothness, fixed)
         pred = predict(interp[va], [shadings[m].rows(va) for m in fitted.chosen], fitted.labels, fitted.base)
         se += float((weight[va, None] * (radiance[va] - pred) ** 2).sum())
         wsum += float(weight[va].sum())

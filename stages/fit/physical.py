@@ -40,7 +40,7 @@ from pipeline.raycast import ray_mesh
 from stages.fit.choice import Chosen, chart_colour, chart_convention, material_and_lighting, search_options
 from stages.fit.data import load_physical, sample_footprints
 from stages.fit.known import chart_reference, known_lighting_setup
-from stages.fit.materials import body_lighting, fit_materials, material_brdfs
+from stages.fit.materials import body_lighting, fit_materials, material_brdfs, mixed_lighting, vertex_spread
 from stages.fit.notes import lighting_report, one_view_line, per_image_note, scale_note, selection_note, summary_line
 from stages.fit.outputs import write_fit
 from stages.fit.settings import Settings
@@ -161,12 +161,20 @@ def fit_physical(
         )
     found = lit = None
     if settings.materials == "auto" and known_brdf is None and candidate.known is None:
-        lit, seed_note = body_lighting(mesh, everything, data, replace(candidate, geo=replace(geo, pattern=None)), models, hint)
-        report["materials"], found = fit_materials(
-            mesh, everything, replace(geo, pattern=None), best, settings, candidate.opts, lit
+        plain = replace(candidate, geo=replace(geo, pattern=None))
+        spread = vertex_spread(mesh, everything)
+        lit, seed_note = body_lighting(mesh, spread, data, plain, models, hint)
+        mixed, mixed_note = (
+            (None, {"ran": False, "why": "no view-dependent seed"})
+            if lit is None
+            else mixed_lighting(mesh, spread, data, plain, lit)
         )
-        report["materials"]["seed"] = seed_note
-        if found is not None and lit is not None:  # the map's materials were shaded under the body's lighting
+        report["materials"], found = fit_materials(
+            mesh, everything, replace(geo, pattern=None), best, settings, candidate.opts, lit, mixed
+        )
+        report["materials"].update(seed=seed_note, mixed=mixed_note)
+        lit = lit if mixed is None else mixed.lighting
+        if found is not None and lit is not None:  # the map's materials were shaded under the body's (or mixed) lighting
             best = lit
     materials = None if found is None else (mesh, found, material_brdfs(found))
     texels = None

@@ -98,3 +98,20 @@ def test_voxel_patches_are_local():
     for k in range(n):
         pts = sphere.vertices[labels == k]
         assert np.ptp(pts, axis=0).max() <= 3 * cell
+
+
+def test_fixed_vertices_keep_their_material_and_the_rest_follow_the_errors(rng):
+    """``fixed`` (the view spread's confident vertices in the fit): vertices given a material keep it
+    even where their samples say otherwise (the metal forced on a band of the dielectric half), and
+    every other vertex more than an edge from a boundary still gets its true material from the errors."""
+    mesh, interp, cands, radiance, truth, base = two_material_scene(rng)
+    lap = texture.graph_laplacian(mesh.faces, len(mesh.vertices))
+    vz = np.asarray(mesh.vertices)[:, 2]
+    fixed = np.full(len(vz), -1)
+    band = (vz > 0.5) & (vz < 0.7)
+    fixed[band] = 1
+    found = svbrdf.material_map(interp, lap, cands, radiance, np.ones(len(radiance)), smoothness=1e-3, fixed=fixed)
+    got = found.chosen[found.labels]
+    assert np.all(got[band] == 1)
+    away = (np.abs(vz) > 0.25) & (np.abs(vz - 0.6) > 0.35)
+    assert np.array_equal(got[away], truth[away])
