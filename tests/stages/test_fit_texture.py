@@ -99,3 +99,45 @@ def test_convex_path_residuals_are_the_textures_too(tmp_path):
     per_view = np.sqrt(sum(v["rmse"] ** 2 * v["samples"] for v in views) / sum(v["samples"] for v in views))
     uniform, textured = entry["candidates"][0]["train_rmse"], entry["candidates"][1]["train_rmse"]
     assert per_view < 0.5 * uniform and abs(per_view / textured - 1) < 0.2, (per_view, uniform, textured)
+
+
+def test_with_a_proxy_the_albedo_is_the_proxys_at_the_mesh_vertices(rng):
+    """albedo_from_shading given a proxy (pipeline.proxy.build_proxy, forced: 5120 faces -> 1280) solves
+    on the proxy's 642 vertices and returns their albedo, clipped at 0, at the mesh's 2562 vertices
+    (texture.CoarseBasis.to_vertices); report.json's entry counts the unknowns."""
+    import trimesh
+
+    from pipeline.core import texture
+    from pipeline.proxy import build_proxy
+    from pipeline.raycast import ray_mesh
+    from stages.fit.settings import Settings
+    from stages.fit.texture import albedo_from_shading
+
+    mesh = trimesh.creation.icosphere(subdivisions=4)
+    proxy = build_proxy(ray_mesh(mesh), 1280)
+    n = 3000
+    face = rng.integers(0, len(mesh.faces), n)
+    bary = rng.dirichlet(np.ones(3), n)
+    points = np.einsum("pk,pkc->pc", bary, mesh.vertices[mesh.faces[face]])
+    shade = rng.uniform(0.3, 1.0, (n, 3))
+    target = shade * (0.4 + 0.2 * points[:, :1])
+    data = {"face": face, "bary": bary, "weight": np.ones(n), "image_id": rng.integers(0, 5, n), "radiance": target}
+    entry, rho, _ = albedo_from_shading(mesh, data, shade, target, Settings(albedo="textured"), {}, proxy)
+    basis = texture.coarse_basis(proxy.mesh.faces, len(proxy.mesh.vertices), proxy.tri, proxy.bary)
+    assert entry["unknowns"]["count"] == basis.n == len(proxy.mesh.vertices) and rho.shape == (len(mesh.vertices), 3)
+    _, _, coarse, _ = texture.choose_vertex_albedo(
+        mesh.faces,
+        len(mesh.vertices),
+        face,
+        bary,
+        data["image_id"] % 5,
+        data["weight"],
+        shade,
+        target,
+        smoothness=0.001,
+        parsimony=0.05,
+        noise=0.0,
+        basis=basis,
+    )
+    np.testing.assert_allclose(rho, basis.to_vertices @ np.clip(coarse, 0.0, None), atol=1e-12)
+    np.testing.assert_allclose(rho[:, 0], 0.4 + 0.2 * mesh.vertices[:, 0], atol=0.01)
