@@ -3,6 +3,7 @@ null space, the uniform albedo's normal equation, and the per-vertex solve's two
 smoothing: the exact texture where every vertex is seen; heavy smoothing: the uniform albedo)."""
 
 import numpy as np
+import scipy.sparse as sp
 import trimesh
 
 from pipeline.core import texture
@@ -67,21 +68,26 @@ def test_vertex_albedo_limits(rng):
     assert texture.weighted_rmse(texture.predict(interp, shade, sharp), target, weight) < 1e-4
 
 
-def test_solve_spd_equals_a_direct_solve_by_both_paths(rng):
-    """The regularized normal equations of fit_vertex_albedo on an icosphere, solved by conjugate
-    gradients and (given 2 iterations, too few) by the SuperLU fallback, against scipy's spsolve."""
-    import scipy.sparse as sp
+def _albedo_normal_equations(rng, subdivisions: int) -> tuple:
+    """(vertices, Laplacian, lhs, rhs, spsolve's answer) of fit_vertex_albedo's regularized normal
+    equations on an icosphere with 800 samples on random faces (most vertices unseen)."""
     import scipy.sparse.linalg as spla
 
-    mesh = trimesh.creation.icosphere(subdivisions=3)
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions)
     nv = len(mesh.vertices)
-    face = rng.integers(0, len(mesh.faces), 800)  # samples on a few faces: most vertices unseen
+    face = rng.integers(0, len(mesh.faces), 800)
     bary = rng.dirichlet(np.ones(3), 800)
     a = texture.interpolation_matrix(mesh.faces, face, bary, nv)
     lap = texture.graph_laplacian(mesh.faces, nv)
     lhs = (a.T @ a + 0.1 * (lap.T @ lap) + 1e-6 * sp.identity(nv)).tocsr()
     rhs = a.T @ rng.uniform(0.2, 0.8, 800)
-    exact = spla.spsolve(lhs.tocsc(), rhs)
+    return nv, lap, lhs, rhs, spla.spsolve(lhs.tocsc(), rhs)
+
+
+def test_solve_spd_equals_a_direct_solve_by_both_paths(rng):
+    """The regularized normal equations of fit_vertex_albedo on an icosphere, solved by conjugate
+    gradients and (given 2 iterations, too few) by the SuperLU fallback, against scipy's spsolve."""
+    nv, lap, lhs, rhs, exact = _albedo_normal_equations(rng, 3)
     for maxiter in (1000, 2):
         x = texture.solve_spd(lhs, rhs, np.full(nv, 0.5), maxiter=maxiter)
         # CG stops at a relative residual of 1e-10; the condition number (unseen vertices held
@@ -108,18 +114,7 @@ def test_the_two_level_path_equals_a_direct_solve(rng, monkeypatch):
     Laplacian's one-rings, and of the system's own pattern), against scipy's spsolve to the CG
     tolerance above (relative residual 1e-10: ~1e-6 in x with the unseen vertices), in far fewer
     iterations than Jacobi CG needs (the coarse level carries the smooth error of unseen vertices)."""
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as spla
-
-    mesh = trimesh.creation.icosphere(subdivisions=4)
-    nv = len(mesh.vertices)
-    face = rng.integers(0, len(mesh.faces), 800)
-    bary = rng.dirichlet(np.ones(3), 800)
-    a = texture.interpolation_matrix(mesh.faces, face, bary, nv)
-    lap = texture.graph_laplacian(mesh.faces, nv)
-    lhs = (a.T @ a + 0.1 * (lap.T @ lap) + 1e-6 * sp.identity(nv)).tocsr()
-    rhs = a.T @ rng.uniform(0.2, 0.8, 800)
-    exact = spla.spsolve(lhs.tocsc(), rhs)
+    nv, lap, lhs, rhs, exact = _albedo_normal_equations(rng, 4)
     agg = texture.aggregates(lap)
     assert 0 <= agg.min() and nv / 30 < agg.max() + 1 < nv / 4  # one-rings and the vertices they leave: 10-16 each
     counts = {}
