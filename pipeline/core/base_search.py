@@ -68,13 +68,18 @@ def search_base(cand: Candidate, base: np.ndarray, sources: Sources | None, ridg
         bb = float(b @ wb)
 
         def rss(beta: float) -> float:
-            g = beta * beta * dd + beta * (ds + ds.T) + ss
-            h = beta * hd + hs
-            eps = 1e-10 * np.trace(g) / len(g)
-            dc2 = float(np.linalg.solve(g + eps * np.eye(len(g)), h)[0] ** 2)
-            x = np.linalg.solve(g + np.diag(reg / max(dc2, 1e-300) + eps), h)
-            return bb - 2.0 * float(x @ h) + float(x @ g @ x)
+            return refitted_rss(beta * beta * dd + beta * (ds + ds.T) + ss, beta * hd + hs, bb, reg)
 
         return parabola_minimum(betas, np.array([rss(bt) for bt in betas]))
 
     return np.array(thread_map(channel, range(3)))  # a channel per thread
+
+
+def refitted_rss(g: np.ndarray, h: np.ndarray, bb: float, reg: np.ndarray) -> float:
+    """The training RSS b'Wb - 2 x'h + x'Gx of the lighting x refitted to normal equations (G, h),
+    with the ridge ``reg`` / L_0^2 (L_0 the DC of an unregularized solve: a prior relative to the
+    lighting's level, so no base colour is favoured by a relatively weaker one)."""
+    eps = 1e-10 * np.trace(g) / len(g)
+    dc2 = float(np.linalg.solve(g + eps * np.eye(len(g)), h)[0] ** 2)
+    x = np.linalg.solve(g + np.diag(reg / max(dc2, 1e-300) + eps), h)
+    return bb - 2.0 * float(x @ h) + float(x @ g @ x)

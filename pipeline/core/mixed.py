@@ -22,6 +22,7 @@ import nlopt
 import numpy as np
 
 from pipeline.core import prt, solve
+from pipeline.core.base_search import refitted_rss
 from pipeline.core.candidate import Observations, ShSystem, design, per_unit_base_channel
 from pipeline.core.interreflection import indirect_transfer
 from pipeline.core.material import MIN_ROUGHNESS
@@ -126,15 +127,13 @@ class MixedModel:
                 qw, sw = q * w[:, None], s * w[:, None]
                 blocks.append((q.T @ qw, q.T @ sw, s.T @ sw, qw.T @ b, sw.T @ b, float(b @ (w * b))))
 
+            bb = sum(blk[5] for blk in blocks)
+
             def rss(log_beta: np.ndarray, _grad=None) -> float:
                 beta = np.exp(log_beta)
                 g = sum(bt * bt * qq + bt * (qs + qs.T) + ss for bt, (qq, qs, ss, _, _, _) in zip(beta, blocks))
                 h = sum(bt * hq + hs for bt, (_, _, _, hq, hs, _) in zip(beta, blocks))
-                bb = sum(blk[5] for blk in blocks)
-                eps = 1e-10 * np.trace(g) / len(g)
-                dc2 = float(np.linalg.solve(g + eps * np.eye(len(g)), h)[0] ** 2)
-                x = np.linalg.solve(g + np.diag(reg / max(dc2, 1e-300) + eps), h)
-                return bb - 2.0 * float(x @ h) + float(x @ g @ x)
+                return refitted_rss(g, h, bb, reg)
 
             m = len(blocks)
             grid = np.log(np.geomspace(0.02, 1.0, BASE_GRID))
