@@ -1,12 +1,13 @@
 """The fit's materials that vary over the surface (--materials auto): after the uniform material
-and its lighting are chosen, candidate materials (the chosen one, a rougher and a sharper
-dielectric, two metals, Lambert, and the mixed model's metal) are shaded under that lighting, each
-vertex takes the one that explains its samples best (pipeline.core.svbrdf) and the map is kept where
-the held-out views prefer it to one material with a per-vertex base colour (the parsimony rule).
-The lighting they are shaded under: the mixed model's (mixed_lighting: the patches whose radiance
-changes most with the view a metal, those that change least the body's material, one lighting for
-both, the two roughnesses searched by nlopt's BOBYQA), else the body's (body_lighting), fitted again
-without the view-dependent part's samples."""
+and its lighting are chosen, candidate materials are shaded under a lighting, each vertex takes the
+one that explains its samples best (pipeline.core.svbrdf) and the map is kept where the held-out
+views prefer it to one material with a per-vertex base colour (the parsimony rule).  With a metal
+seed, the candidates are the mixed model's two materials under its lighting (mixed_lighting: the
+patches whose radiance changes most with the view a metal, those that change least the body's
+material, one lighting for both, the two roughnesses searched by nlopt's BOBYQA), the vertices the
+view spread decides keeping their material; else the chosen one, a rougher and a sharper dielectric,
+two metals and Lambert under the body's lighting (body_lighting: fitted again without the
+view-dependent part's samples) or the chosen fit's."""
 
 from __future__ import annotations
 
@@ -94,16 +95,14 @@ def fit_materials(
     """(report.json's "materials" entry, the material map or None when one material is kept) from
     every sample ``data`` (load_physical's everything: face, bary, view_dir, radiance, weight,
     image_id), each candidate shaded in chunks on ``geo``'s mesh part (prt.over_chunks) under the
-    lighting of ``mixed`` (its two materials the candidates, its confident vertices' materials given)
-    or else of ``lit`` (a fit of part of the surface, e.g. without its view-dependent seed) or of
-    ``best`` (candidate_materials); the one-material baseline is ``best`` under its own lighting."""
+    lighting of ``lit`` (with ``mixed``: its lighting, whose two materials are the candidates and whose
+    confident vertices keep their material; else a fit of part of the surface, e.g. without its
+    view-dependent seed) or of ``best`` (candidate_materials); the one-material baseline is ``best`` under its own lighting."""
     t0 = time.perf_counter()
     nv = len(mesh.vertices)
     obs = Observations(data["radiance"].astype(float), data["weight"].astype(float), fold_of(data["image_id"], settings.folds))
     interp = texture.interpolation_matrix(mesh.faces, data["face"], data["bary"].astype(float), nv)
     lap = texture.graph_laplacian(mesh.faces, nv)
-    if mixed is not None:
-        lit = mixed.lighting
     lighting = best if lit is None else lit
     materials = [lit.material, mixed.metal] if mixed is not None else candidate_materials(lighting.material, settings.ior)
     fixed = None if mixed is None else mixed.vertex_labels

@@ -169,11 +169,11 @@ def fit_physical(
             if lit is None
             else mixed_lighting(mesh, spread, data, plain, lit)
         )
+        lit = lit if mixed is None else mixed.lighting
         report["materials"], found = fit_materials(
             mesh, everything, replace(geo, pattern=None), best, settings, candidate.opts, lit, mixed
         )
         report["materials"].update(seed=seed_note, mixed=mixed_note)
-        lit = lit if mixed is None else mixed.lighting
         if found is not None and lit is not None:  # the map's materials were shaded under the body's (or mixed) lighting
             best = lit
     materials = None if found is None else (mesh, found, material_brdfs(found))
