@@ -1,13 +1,12 @@
 """The fit's materials that vary over the surface (--materials auto): after the uniform material
-and its lighting are chosen, candidate materials are shaded under a lighting, each vertex takes the
-one that explains its samples best (pipeline.core.svbrdf) and the map is kept where the held-out
-views prefer it to one material with a per-vertex base colour (the parsimony rule).  With a metal
-seed, the candidates are the mixed model's two materials under its lighting (mixed_lighting: the
-patches whose radiance changes most with the view a metal, those that change least the body's
-material, one lighting for both, the two roughnesses searched by nlopt's BOBYQA), the vertices the
-view spread decides keeping their material; else the chosen one, a rougher and a sharper dielectric,
-two metals and Lambert under the body's lighting (body_lighting: fitted again without the
-view-dependent part's samples) or the chosen fit's."""
+and its lighting are chosen, the patches whose radiance changes most with the view (a metal seed, no
+model needed) and those that change least (the body) get one lighting and a material each
+(mixed_lighting: pipeline.core.mixed, the two roughnesses searched by nlopt's BOBYQA), kept only where
+that beats one material on the same held-out samples; then each vertex takes the one of the two that
+explains its samples best (pipeline.core.svbrdf), the vertices the view spread decides keeping theirs,
+and the map is kept where the held-out views prefer it to one material with a per-vertex base colour
+(the parsimony rule).  Without a metal seed, or where the mixed model does not win, one material:
+the step then costs the view spread alone."""
 
 from __future__ import annotations
 
@@ -26,19 +25,6 @@ from pipeline.core.selection import fold_of, parsimonious_choice
 from pipeline.core.sh import order_of
 from pipeline.core.sources import Sources
 from stages.fit.settings import DEFAULT_ALBEDO, Settings
-
-DIELECTRIC_ROUGHNESS = (0.25, 0.5)  # the other dielectrics tried beside the chosen material
-METAL_ROUGHNESS = (0.15, 0.35)  # the metals tried (F0 = base colour)
-
-
-def candidate_materials(chosen: Principled | None, ior: float) -> list[Principled | None]:
-    """The chosen material first, then the other candidates (module docstring), without repeats."""
-    cands = (
-        [chosen, None]
-        + [Principled(roughness=r, ior=ior) for r in DIELECTRIC_ROUGHNESS]
-        + [Principled(roughness=r, metallic=1.0, ior=ior) for r in METAL_ROUGHNESS]
-    )
-    return list(dict.fromkeys(cands))
 
 
 def candidate_shading(
@@ -89,34 +75,30 @@ def fit_materials(
     best: material_fit.MaterialFit,
     settings: Settings,
     opts: SearchOptions,
-    lit: material_fit.MaterialFit | None = None,
-    mixed: "MixedLighting | None" = None,
+    mixed: "MixedLighting",
 ) -> tuple[dict, svbrdf.MaterialMap | None]:
     """(report.json's "materials" entry, the material map or None when one material is kept) from
     every sample ``data`` (load_physical's everything: face, bary, view_dir, radiance, weight,
-    image_id), each candidate shaded in chunks on ``geo``'s mesh part (prt.over_chunks) under the
-    lighting of ``lit`` (with ``mixed``: its lighting, whose two materials are the candidates and whose
-    confident vertices keep their material; else a fit of part of the surface, e.g. without its
-    view-dependent seed) or of ``best`` (candidate_materials); the one-material baseline is ``best`` under its own lighting."""
+    image_id): the ``mixed`` model's two materials shaded under its lighting in chunks on ``geo``'s
+    mesh part (prt.over_chunks), the vertices the view spread decides keeping their material; the
+    one-material baseline is ``best`` under its own lighting."""
     t0 = time.perf_counter()
     nv = len(mesh.vertices)
     obs = Observations(data["radiance"].astype(float), data["weight"].astype(float), fold_of(data["image_id"], settings.folds))
     interp = texture.interpolation_matrix(mesh.faces, data["face"], data["bary"].astype(float), nv)
     lap = texture.graph_laplacian(mesh.faces, nv)
-    lighting = best if lit is None else lit
-    materials = [lit.material, mixed.metal] if mixed is not None else candidate_materials(lighting.material, settings.ior)
-    fixed = None if mixed is None else mixed.vertex_labels
+    lit = mixed.lighting
+    materials = [lit.material, mixed.metal]
 
     def shade(g: prt.Geometry) -> tuple[np.ndarray, ...]:
-        shaded = [candidate_shading(g, lighting, m, opts.lobe_samples, opts.seed) for m in materials]
-        if lit is not None:
-            shaded.append(candidate_shading(g, best, best.material, opts.lobe_samples, opts.seed))
+        shaded = [candidate_shading(g, lit, m, opts.lobe_samples, opts.seed) for m in materials]
+        shaded.append(candidate_shading(g, best, best.material, opts.lobe_samples, opts.seed))
         return tuple(a for c in shaded for a in (c.shade, c.specular))
 
     arrays = prt.over_chunks(geo, data["face"], data["bary"].astype(float), data["view_dir"].astype(float), shade)
     shadings = [svbrdf.CandidateShading(m, arrays[2 * i], arrays[2 * i + 1]) for i, m in enumerate(materials)]
-    baseline = shadings[:1] if lit is None else [svbrdf.CandidateShading(best.material, arrays[-2], arrays[-1])]
-    smooth = settings.albedo_smoothness
+    baseline = [svbrdf.CandidateShading(best.material, arrays[-2], arrays[-1])]
+    smooth, fixed = settings.albedo_smoothness, mixed.vertex_labels
     one = svbrdf.held_out_rmse(interp, lap, baseline, obs.radiance, obs.weight, obs.fold, smooth)
     many = svbrdf.held_out_rmse(interp, lap, shadings, obs.radiance, obs.weight, obs.fold, smooth, fixed)
     found = svbrdf.material_map(interp, lap, shadings, obs.radiance, obs.weight, smooth, fixed)
@@ -128,7 +110,6 @@ def fit_materials(
     ]
     pick = parsimonious_choice(table, settings.parsimony, noise=settings.noise_floor * rms) if k > 1 else 0
     entry = {
-        "setting": settings.materials,
         "candidates": table,
         "choice": table[pick]["name"],
         "tried": [_describe(s.material) for s in shadings],
@@ -155,15 +136,12 @@ def _describe(material: Principled | None) -> dict:
 
 def body_lighting(
     mesh, spread: np.ndarray, data: dict, candidate: CandidateFit, models: list[str], hint
-) -> tuple[material_fit.MaterialFit | None, dict]:
+) -> tuple[material_fit.MaterialFit, dict]:
     """The material and lighting fitted again without the view-dependent seed's samples
-    (view_dependent_seed of the vertices' ``spread``; the fit's subset ``data`` / ``candidate`` less
+    (the vertices whose ``spread`` is above SEED_SPREAD; the fit's subset ``data`` / ``candidate`` less
     the seeded vertices'): a metal part's reflections no longer bend the lighting the rest of the
-    surface explains, so the metal candidates can then be shaded under it.  -> (that fit or None
-    when there is no seed, report.json's note)."""
-    seed = view_dependent_seed(spread)
-    if seed is None:
-        return None, {"seeded": False, "why": "no view-dependent part between 2 % and 98 % of the surface seen"}
+    surface explains.  -> (that fit, report.json's note)."""
+    seed = spread > SEED_SPREAD
     keep = np.flatnonzero(~seed[texture.heaviest_vertex(mesh.faces, data["face"], data["bary"])])
     obs = candidate.obs
     body = replace(
@@ -171,7 +149,6 @@ def body_lighting(
     )
     fit = select_material(body, models, np.asarray(hint or [DEFAULT_ALBEDO] * 3, float), False)[0]
     return fit, {
-        "seeded": True,
         "vertex_share": float(seed.mean()),
         "samples_left_out": int(len(obs.weight) - len(keep)),
         "spread_threshold": SEED_SPREAD,
@@ -195,42 +172,62 @@ class MixedLighting:
 
 
 def mixed_lighting(
-    mesh, spread: np.ndarray, data: dict, candidate: CandidateFit, body: material_fit.MaterialFit
+    mesh, spread: np.ndarray, data: dict, candidate: CandidateFit, models: list[str], hint, one: material_fit.MaterialFit
 ) -> tuple[MixedLighting | None, dict]:
-    """One lighting under two materials (pipeline.core.mixed): the vertices whose patch's view
-    spread is above METAL_SPREAD a metal, those at or below SEED_SPREAD the ``body`` fit's material (a
-    dielectric of roughness 0.5 where that is Lambert: its Fresnel layer fixes the scale the metal's F0
-    is read in), the samples between left out; each its own base colour; both roughnesses searched
-    (BOBYQA, held-out views) from the body's and 0.3, on the fit's subset ``data`` / ``candidate``.
-    -> (the answer, or None without a metal seed; report.json's note)."""
+    """One lighting under two materials (pipeline.core.mixed), on the fit's subset ``data`` /
+    ``candidate``: the vertices whose patch's view spread is above METAL_SPREAD a metal, those at or
+    below SEED_SPREAD the body's material (body_lighting's; a dielectric of roughness 0.5 where that is
+    Lambert: its Fresnel layer fixes the scale the metal's F0 is read in), the samples between left
+    out; each its own base colour; both roughnesses searched (BOBYQA, held-out views) from the body's
+    and 0.3.  Kept only where its held-out RMSE beats the chosen material ``one``'s (lighting and base
+    colour refitted on the same samples) by the parsimony rule.  -> (the answer, or None without a
+    metal seed or when one material does as well; report.json's "materials" notes: seed, mixed,
+    candidates, choice, why)."""
     t0 = time.perf_counter()
     if view_dependent_seed(spread, METAL_SPREAD) is None:
-        return None, {"ran": False, "why": f"no patches with a view spread above {METAL_SPREAD} on 2-98 % of the surface"}
+        why = f"no patches with a view spread above {METAL_SPREAD} on 2-98 % of the surface seen (no metal seed)"
+        return None, {"choice": "one material", "why": why}
+    body, seed_note = body_lighting(mesh, spread, data, candidate, models, hint)
     vertex_labels = np.where(spread > METAL_SPREAD, 1, np.where(spread <= SEED_SPREAD, 0, -1))
     labels = vertex_labels[texture.heaviest_vertex(mesh.faces, data["face"], data["bary"])]
     opts = candidate.opts
-    model = MixedModel(
-        candidate.geo,
-        candidate.obs,
-        labels,
-        np.maximum(vertex_labels, 0),
-        order=candidate.order,
-        folds=opts.folds,
-        kw=candidate.kw,
-        lobe_samples=opts.lobe_samples,
-        seed=opts.seed,
-    )
+
+    def model(sample_labels: np.ndarray, labels_of_vertices: np.ndarray) -> MixedModel:
+        kw = dict(order=candidate.order, folds=opts.folds, kw=candidate.kw, lobe_samples=opts.lobe_samples, seed=opts.seed)
+        return MixedModel(candidate.geo, candidate.obs, sample_labels, labels_of_vertices, **kw)
+
     materials = [body.material or Principled(roughness=0.5, ior=opts.ior), Principled(roughness=0.3, metallic=1.0, ior=opts.ior)]
-    fit, tried = model.search_roughness(materials, np.array([body.base, body.base]), [0, 1], MIXED_EVALS)
+    fit, tried = model(labels, np.maximum(vertex_labels, 0)).search_roughness(
+        materials, np.array([body.base, body.base]), [0, 1], MIXED_EVALS
+    )
+    # the baseline on the same samples: the chosen material, its lighting and base colour refitted there
+    single = model(np.where(labels >= 0, 0, -1), np.zeros_like(vertex_labels)).fit([one.material], one.base[None])
+    used = labels >= 0
+    w, b = candidate.obs.weight[used], candidate.obs.radiance[used]
+    rms = float(np.sqrt((w[:, None] * b**2).sum() / (3 * w.sum())))
+    k = fit.coeffs.size
+    table = [
+        {"name": "one material (the subset's seeded samples)", "params": k + 4, "validation_rmse": single.validation_rmse},
+        {"name": "a metal and a body, one lighting", "params": k + 8, "validation_rmse": fit.validation_rmse},
+    ]
+    pick = parsimonious_choice(table, opts.parsimony, noise=opts.noise_floor * rms)
     lighting = material_fit.MaterialFit(fit.materials[0], fit.bases[0], fit.coeffs, None, [], fit.validation_rmse, fit.train_rmse)
     note = {
-        "ran": True,
-        "metal_spread": METAL_SPREAD,
-        "vertex_share": {"metal": float(np.mean(vertex_labels == 1)), "body": float(np.mean(vertex_labels == 0))},
-        "samples": {"body": int(np.sum(labels == 0)), "metal": int(np.sum(labels == 1))},
-        "materials": [{**_describe(m), "base_color": b.tolist()} for m, b in zip(fit.materials, fit.bases)],
-        "validation_rmse": fit.validation_rmse,
-        "tried": [{"roughness": r, "validation_rmse": e} for r, e in tried],
-        "seconds": time.perf_counter() - t0,
+        "seed": seed_note,
+        "mixed": {
+            "metal_spread": METAL_SPREAD,
+            "vertex_share": {"metal": float(np.mean(vertex_labels == 1)), "body": float(np.mean(vertex_labels == 0))},
+            "samples": {"body": int(np.sum(labels == 0)), "metal": int(np.sum(labels == 1))},
+            "materials": [{**_describe(m), "base_color": b.tolist()} for m, b in zip(fit.materials, fit.bases)],
+            "candidates": table,
+            "tried": [{"roughness": r, "validation_rmse": e} for r, e in tried],
+            "seconds": time.perf_counter() - t0,
+        },
     }
+    if pick == 0:
+        why = (
+            f"a metal and a body under one lighting (held-out RMSE {fit.validation_rmse:.4g}) do not beat one material "
+            f"({single.validation_rmse:.4g}) on the same samples"
+        )
+        return None, {**note, "choice": "one material", "why": why}
     return MixedLighting(lighting, fit.materials[1], vertex_labels), note

@@ -40,7 +40,7 @@ from pipeline.raycast import ray_mesh
 from stages.fit.choice import Chosen, chart_colour, chart_convention, material_and_lighting, search_options
 from stages.fit.data import load_physical, sample_footprints
 from stages.fit.known import chart_reference, known_lighting_setup
-from stages.fit.materials import body_lighting, fit_materials, material_brdfs, mixed_lighting, vertex_spread
+from stages.fit.materials import fit_materials, material_brdfs, mixed_lighting, vertex_spread
 from stages.fit.notes import lighting_report, one_view_line, per_image_note, scale_note, selection_note, summary_line
 from stages.fit.outputs import write_fit
 from stages.fit.settings import Settings
@@ -159,23 +159,17 @@ def fit_physical(
             one_view_line(report["candidates"], brdf, settings.parsimony, len(np.unique(data["image_id"])), settings.folds),
             file=sys.stderr,
         )
-    found = lit = None
+    found = None
     if settings.materials == "auto" and known_brdf is None and candidate.known is None:
         plain = replace(candidate, geo=replace(geo, pattern=None))
         spread = vertex_spread(mesh, everything)
-        lit, seed_note = body_lighting(mesh, spread, data, plain, models, hint)
-        mixed, mixed_note = (
-            (None, {"ran": False, "why": "no view-dependent seed"})
-            if lit is None
-            else mixed_lighting(mesh, spread, data, plain, lit)
-        )
-        lit = lit if mixed is None else mixed.lighting
-        report["materials"], found = fit_materials(
-            mesh, everything, replace(geo, pattern=None), best, settings, candidate.opts, lit, mixed
-        )
-        report["materials"].update(seed=seed_note, mixed=mixed_note)
-        if found is not None and lit is not None:  # the map's materials were shaded under the body's (or mixed) lighting
-            best = lit
+        mixed, report["materials"] = mixed_lighting(mesh, spread, data, plain, models, hint, best)
+        report["materials"]["setting"] = settings.materials
+        if mixed is not None:
+            entry, found = fit_materials(mesh, everything, replace(geo, pattern=None), best, settings, candidate.opts, mixed)
+            report["materials"].update(entry)
+            if found is not None:  # the map's materials were shaded under the mixed lighting
+                best = mixed.lighting
     materials = None if found is None else (mesh, found, material_brdfs(found))
     texels = None
     if found is not None:  # the map as textures, for glTF/USD/Mitsuba (relight reads material.ply)
@@ -199,8 +193,11 @@ def fit_physical(
         if texels is not None and report["albedo"].get("choice") != "textured" and known_brdf is None:
             # every sample found a texture the subset could not: the material and lighting chosen again
             # with its pattern in the diffuse layer (as above for a texture the subset found)
+            materials_note = report.get("materials")
             chosen, report, brdf, vertex_rho, applied = with_texture(texels.vertex_base, report)
             best, interval = chosen.best, chosen.interval
+            if materials_note is not None:  # the one material kept, and why, stays recorded
+                report["materials"] = materials_note
             report["texels"], texels = fit_texels(
                 mesh, replace(geo, pattern=None), best, everything, noise, poses, keys, settings, chosen.candidate.known
             )

@@ -79,12 +79,13 @@ class Settings:
         "each level where the held-out views improve (fit/textures/)",
     )
     materials: Literal["one", "auto"] = setting(
-        "one",
-        "physical fit, material unknown: 'one' material over the surface, or "
-        "'auto' (experimental, slow on large meshes): candidate materials shaded under "
-        "the fitted lighting, each vertex taking the one that explains its samples "
-        "(fit/material.ply, brdf.json 'materials'), kept where the held-out views "
-        "prefer them to one material",
+        "auto",
+        "physical fit, material unknown: 'one' material over the surface, or 'auto': where "
+        "some patches' radiance changes with the view far more than the rest's (a metal "
+        "seed), a metal and a body under one lighting, kept where they beat one material "
+        "on held-out samples, then each vertex taking the one that explains its samples "
+        "(fit/material.ply, brdf.json 'materials') where the held-out views prefer the map "
+        "to one material; without a seed 'auto' costs the view spread alone",
     )
     forward: Literal["physical", "convex"] = setting(
         "physical",
