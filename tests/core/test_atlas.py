@@ -28,6 +28,24 @@ def test_unwrap_keeps_faces_and_the_texel_size(sphere_atlas):
     assert len(texel) * 0.02**2 == pytest.approx(mesh.area, rel=0.10)
 
 
+def test_small_faces_keep_their_uv_area():
+    """A 2 cm object in metres whose faces are ~0.06 mm^2 (as a scan of a walnut at 30k faces): every face keeps
+    a UV area in proportion to its surface area (xatlas collapses faces under FLT_EPSILON in its units, i.e.
+    under 0.12 mm^2 when given metres: unwrap hands it texel units), and the texels cover the surface."""
+    mesh = trimesh.creation.icosphere(subdivisions=5)  # 20 480 faces
+    mesh.apply_scale(0.01)  # radius 1 cm: mean face area 0.061 mm^2
+    texel_m = 5e-5
+    atlas = unwrap(mesh.vertices, mesh.faces, texel_m=texel_m)
+    uv = atlas.face_uv * [atlas.width, atlas.height]  # texels
+    a, b = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+    uv_area = 0.5 * np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
+    ratio = uv_area * texel_m**2 / mesh.area_faces
+    assert mesh.area_faces.max() < 1.19e-7  # every face below xatlas's epsilon in metres
+    assert np.percentile(ratio, 1) > 0.5 and np.median(ratio) == pytest.approx(1.0, rel=0.2), np.percentile(ratio, [0, 1, 50])
+    texel, _, _ = atlas_mod.texel_points(atlas)
+    assert len(texel) * texel_m**2 == pytest.approx(mesh.area, rel=0.10)
+
+
 def test_texel_points_are_the_texel_centres(sphere_atlas):
     """Each covered texel's surface point maps back through the face's UVs to that texel's centre
     ((col + 0.5) / W, (row + 0.5) / H: glTF's convention) to round-off, and texel_of finds it."""

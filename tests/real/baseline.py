@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 BLUR_SIGMA = 4.0  # px, the "4 px blur"
+REMAP_ROW = 16384  # samples per row of cv2.remap's maps
 SURFACE_EPS = 1e-4  # m: a shadow ray starts this far off the surface (mesh ~4 cm across)
 
 
@@ -66,12 +67,16 @@ def _sample(img: np.ndarray, valid: np.ndarray, uv: np.ndarray) -> tuple[np.ndar
     pixels under each sample are valid."""
     import cv2
 
-    # COLMAP puts the top-left pixel's centre at (0.5, 0.5), OpenCV's remap at (0, 0): subtract 0.5
-    mx = (uv[:, 0] - 0.5).astype(np.float32)[None]
-    my = (uv[:, 1] - 0.5).astype(np.float32)[None]
-    value = cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)[0]
-    ok = cv2.remap(valid.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)[0] > 0.999
-    return value.astype(float), ok
+    # COLMAP puts the top-left pixel's centre at (0.5, 0.5), OpenCV's remap at (0, 0): subtract 0.5; the
+    # maps as rows of REMAP_ROW samples (remap wants each side of a map under 32767)
+    n = len(uv)
+    rows = max(1, -(-n // REMAP_ROW))
+    pad = rows * REMAP_ROW - n
+    mx = np.pad(uv[:, 0] - 0.5, (0, pad), constant_values=-1e4).astype(np.float32).reshape(rows, REMAP_ROW)
+    my = np.pad(uv[:, 1] - 0.5, (0, pad), constant_values=-1e4).astype(np.float32).reshape(rows, REMAP_ROW)
+    value = cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT).ravel()[:n]
+    ok = cv2.remap(valid.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+    return value.astype(float), ok.ravel()[:n] > 0.999
 
 
 def predict(capture: Path, key: str, neighbours: list[str]) -> Prediction:

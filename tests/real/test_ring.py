@@ -141,20 +141,20 @@ BASELINE = {"relative": 0.389, "blurred": 0.218}
 TRAINING_MEAN = {"relative": 0.402, "blurred": 0.258}
 
 
-def _baseline_predictions():
-    keys = sorted(json.loads((CAPTURE / "poses.json").read_text())["images"])
-    return [baseline.predict(CAPTURE, key, baseline.ring_neighbours(keys, key)) for key in HELD_OUT]
+def _baseline_predictions(capture: Path = CAPTURE):
+    keys = sorted(json.loads((capture / "poses.json").read_text())["images"])
+    return [baseline.predict(capture, key, baseline.ring_neighbours(keys, key)) for key in HELD_OUT]
 
 
-def _training_mean_pairs(on: list) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def _training_mean_pairs(on: list, capture: Path = CAPTURE) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """(predicted, photo, mask) of each held-out view predicted by the mean of all nine training photos
     moved through the mesh (baseline.predict with every view `sigrend run` fits), on the pixels of the
     predictions ``on`` (the neighbour baseline's) that it covers too."""
-    keys = sorted(json.loads((CAPTURE / "poses.json").read_text())["images"])
+    keys = sorted(json.loads((capture / "poses.json").read_text())["images"])
     train = [k for k in keys if k not in HELD_OUT]
     out = []
     for p in on:
-        mean = baseline.predict(CAPTURE, p.key, train)
+        mean = baseline.predict(capture, p.key, train)
         out.append((mean.predicted, mean.photo, p.mask & mean.mask))
     return out
 
@@ -193,27 +193,31 @@ def test_the_mean_of_all_training_photos_predicts_worse_than_two_neighbours():
         assert mean_error > baseline.relative_rmse(pairs, blurred=blurred)
 
 
-@pytest.fixture(scope="module")
-def ring_run(tmp_path_factory):
-    """`sigrend run ring_sweet` once (all defaults: poses from the capture's poses.json, lighting and
-    material unknown, every 4th view held out); returns the work folder and the printed summary."""
+def _run(work: Path, capture: Path) -> tuple[Path, str]:
+    """`sigrend run CAPTURE` (all defaults: poses from the capture's poses.json, lighting and material
+    unknown, every 4th view held out) -> the work folder and the printed summary."""
     from pipeline import cli
 
-    work = tmp_path_factory.mktemp("ring-work")
     with contextlib.redirect_stdout(io.StringIO()) as out:
-        code = cli.main(["run", str(CAPTURE), "-w", str(work)])
+        code = cli.main(["run", str(capture), "-w", str(work)])
     assert code == 0, out.getvalue()
     return work, out.getvalue()
 
 
-def _sigrend_on_baseline_pixels(work: Path) -> tuple[float, float]:
+@pytest.fixture(scope="module")
+def ring_run(tmp_path_factory):
+    """`sigrend run ring_sweet` once; returns the work folder and the printed summary."""
+    return _run(tmp_path_factory.mktemp("ring-work"), CAPTURE)
+
+
+def _sigrend_on_baseline_pixels(work: Path, capture: Path = CAPTURE) -> tuple[float, float]:
     """sigrend's held-out renders (WORK/relight/check, times the check's fitted scale) against the linear
     photos on the baseline's pixels: (relative RMS, after the 4 px blur)."""
     from pipeline.io.images import read_image
 
     check = json.loads((work / "relight" / "check" / "relight.json").read_text())["compare"]
     pairs = []
-    for p in _baseline_predictions():
+    for p in _baseline_predictions(capture):
         stem = Path(p.key).stem
         render = read_image(work / "relight" / "check" / f"{stem}.exr")[:, :, 0].astype(float)
         photo = read_image(work / "linear" / f"{stem}.exr")[:, :, 0].astype(float)
@@ -228,13 +232,14 @@ def _sigrend_on_baseline_pixels(work: Path) -> tuple[float, float]:
 def test_sigrend_run_on_the_real_ring(ring_run):
     """`sigrend run` goes through on real photos with real calibration (about 100 s here): poses copied
     from poses.json, the three held-out views relit under the fitted lighting with an error that is
-    finite and <= 60 % (measured 41.3 %, 37.0 / 43.0 / 43.9 % per view, after one global scale 1.16;
+    finite and <= 60 % (measured 38.0 % after one global scale 1.16; 41.3 % before the atlas was unwrapped in
+    texel units, 2026-12-07;
     the fit chose SH order 1 and a principled dielectric, roughness 0.50, with a per-vertex base colour
     from all 137 000 samples (fit --texels auto: the 30 000-sample subset, 3 per vertex, was too thin to
     decide; the material then chosen again with that texture: a metal of roughness 0.55 before); the
     bound leaves room for the fit's refactoring, and 100 % is what predicting black would score).  On
-    the baseline's pixels sigrend scores 41.6 % (23.7 % after the 4 px blur) against the baseline's
-    38.9 % (21.8 %); before the texture from every sample, 45.1 % (27.4 %)."""
+    the baseline's pixels sigrend scores 38.5 % (23.8 % after the 4 px blur) against the baseline's
+    38.9 % (21.8 %); before the atlas fix 41.6 % (23.7 %), before the texture from every sample 45.1 % (27.4 %)."""
     from pipeline.io.run_summary import relight_check
 
     work, out = ring_run
@@ -252,8 +257,8 @@ def test_sigrend_run_on_the_real_ring(ring_run):
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="sigrend's fit predicts the held-out ring views worse than the neighbour-"
-    "reprojection baseline: 41.6 % vs 38.9 % (23.7 % vs 21.8 % after a 4 px blur), measured "
+    reason="sigrend's fit predicts the held-out ring views of the sparkling sweet worse than the "
+    "neighbour-reprojection baseline after a 4 px blur: 23.8 % vs 21.8 % (38.5 % vs 38.9 % plain), measured "
     "2026-12-07; the view-independent bound (the training photos' mean) is 40.2 % (25.8 %): "
     "the sparkle needs a view-dependent model (issue 46)",
 )
@@ -269,9 +274,46 @@ def test_sigrend_beats_the_neighbour_baseline(ring_run):
 def test_sigrend_predicts_as_well_as_the_training_photos_themselves(ring_run):
     """What a view-independent texture can reach here (the mean of the nine training photos moved
     through the mesh, 40.2 % / 25.8 % blurred) sigrend's relightable fit reaches too: no worse blurred and
-    within 0.03 unblurred (measured 23.7 % / 41.6 %; before the texture from every sample 27.4 / 45.1 %)."""
+    within 0.03 unblurred (measured 23.8 % / 38.5 %; before the texture from every sample 27.4 / 45.1 %)."""
     work, _ = ring_run
     ours, ours_blurred = _sigrend_on_baseline_pixels(work)
     mean_pairs = _training_mean_pairs(_baseline_predictions())
     assert ours <= baseline.relative_rmse(mean_pairs) + 0.03, ours
     assert ours_blurred <= baseline.relative_rmse(mean_pairs, blurred=True), ours_blurred
+
+
+# ring_walnut: a walnut of the same benchmark (capture 2016_10_24__18_26_34; not the one held back for
+# evaluation), view-independent enough that a relightable fit can beat the neighbours
+WALNUT = Path(__file__).parents[1] / "data" / "real" / "ring_walnut"
+WALNUT_BASELINE = {"relative": 0.189, "blurred": 0.103}
+
+
+@pytest.fixture(scope="module")
+def walnut_run(tmp_path_factory):
+    """`sigrend run ring_walnut` once; returns the work folder and the printed summary."""
+    return _run(tmp_path_factory.mktemp("walnut-work"), WALNUT)
+
+
+def test_walnut_neighbour_baseline():
+    """The neighbour-reprojection baseline on the walnut's three held-out views: 18.9 % relative RMS
+    (10.3 % after the 4 px blur), pinned within 0.02; it covers every interior object pixel."""
+    preds = _baseline_predictions(WALNUT)
+    pairs = [(p.predicted, p.photo, p.mask) for p in preds]
+    assert all(p.coverage >= 0.99 for p in preds), [p.coverage for p in preds]
+    assert baseline.relative_rmse(pairs) == pytest.approx(WALNUT_BASELINE["relative"], abs=0.02)
+    assert baseline.relative_rmse(pairs, blurred=True) == pytest.approx(WALNUT_BASELINE["blurred"], abs=0.02)
+
+
+@pytest.mark.slow
+def test_sigrend_beats_the_neighbour_baseline_on_a_walnut(walnut_run):
+    """On real photos of a walnut (Lambert-like shell, texture from its ridges), `sigrend run` with every
+    default (about 1 min here) predicts the held-out views better than the two neighbouring photos moved
+    through the mesh, plain and blurred: measured 15.0 % vs 18.9 % (8.3 % vs 10.3 % blurred), i.e. 21 %
+    below the baseline (the issue's target is 30 %: the silhouette's mixed pixels and the texture finer
+    than the mesh's vertices are most of what is left).  Before the atlas was unwrapped in texel units
+    (xatlas collapsed the faces under 0.12 mm^2: 6 % of this mesh's) 15.9 % / 8.2 %.  Bounds: 10 % below
+    the baseline, both."""
+    work, _ = walnut_run
+    ours, ours_blurred = _sigrend_on_baseline_pixels(work, WALNUT)
+    assert ours <= 0.9 * WALNUT_BASELINE["relative"], ours
+    assert ours_blurred <= 0.9 * WALNUT_BASELINE["blurred"], ours_blurred

@@ -195,11 +195,15 @@ def reprojection_check(points_obj, normals_obj, colours, views, images):
 
 
 def main() -> None:
+    global FACTOR, MAX_FACES
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--mirror", type=Path, required=True, help="bare git dir of multi_view_stereo_benchmark_data")
     ap.add_argument("--capture", required=True, help="capture id, e.g. 2016_10_25__12_12_50")
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--factor", type=int, default=FACTOR, help=f"downscale factor of the 1280x1024 photos (default {FACTOR})")
+    ap.add_argument("--max-faces", type=int, default=MAX_FACES, help=f"faces of the decimated mesh (default {MAX_FACES})")
     args = ap.parse_args()
+    FACTOR, MAX_FACES = args.factor, args.max_faces
     if args.capture == HELD_BACK:
         raise SystemExit(f"{HELD_BACK} is held back for evaluation: never convert it")
 
