@@ -230,7 +230,7 @@ def _sigrend_on_baseline_pixels(work: Path, capture: Path = CAPTURE) -> tuple[fl
 
 @pytest.mark.slow
 def test_sigrend_run_on_the_real_ring(ring_run):
-    """`sigrend run` goes through on real photos with real calibration (about 100 s here): poses copied
+    """`sigrend run` goes through on real photos with real calibration (about 140 s here): poses copied
     from poses.json, the three held-out views relit under the fitted lighting with an error that is
     finite and <= 60 % (measured 38.0 % after one global scale 1.16; 41.3 % before the atlas was unwrapped in
     texel units, 2026-12-07;
