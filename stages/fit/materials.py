@@ -59,7 +59,7 @@ def vertex_spread(mesh, data: dict) -> np.ndarray:
     return svbrdf.view_spread(patch_of_vertex[vertex], data["image_id"], data["radiance"], n)[patch_of_vertex]
 
 
-def view_dependent_seed(spread: np.ndarray, threshold: float = SEED_SPREAD) -> np.ndarray | None:
+def view_dependent_seed(spread: np.ndarray, threshold: float) -> np.ndarray | None:
     """(V,) bool, the vertices whose patch's radiance changes with the view (vertex ``spread`` >
     ``threshold``), or None when they are under MIN_SHARE or over 1 - MIN_SHARE of the seen vertices
     (nothing to separate)."""
