@@ -4,6 +4,8 @@ pytest ``pythonpath``)."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 import subprocess
 from pathlib import Path
 
@@ -79,3 +81,9 @@ def relight_references(folder: Path, names: list[str]) -> list[np.ndarray]:
             r0, r1, c0, c1 = json.loads((again / "windows.json").read_text())[name]
             ref[r0:r1, c0:c1] = read_image(again / name)[r0:r1, c0:c1]
     return refs
+
+
+def segfault(*args) -> None:
+    """Ends its process as xatlas does on some meshes (a segmentation fault): for tests of the code that
+    runs such work in a child process (pipeline.unwrap.in_child; importable by name, as a child needs)."""
+    os.kill(os.getpid(), signal.SIGSEGV)

@@ -1,5 +1,6 @@
 """The interreflection proxy (pipeline/proxy.py, issue 47 item 1): small meshes exactly as without
-it, a forced proxy within a stated tolerance of the full computation."""
+it, a forced proxy within a stated tolerance of the full computation; and the soft shadows of a
+dense stream of samples (prt.over_chunks), within a stated tolerance of the exact ones."""
 
 from dataclasses import replace
 from pathlib import Path
@@ -93,6 +94,39 @@ def test_point_rays_agree_with_the_vertices_visibility():
     assert abs(point.mean() / vertex.mean() - 1.0) < 0.002
     assert np.abs(point - vertex).max() < 0.05 * rms
     assert not np.array_equal(point, vertex)  # the two paths differ (the comparison can fail)
+
+
+def test_a_dense_stream_takes_soft_shadows_close_to_the_exact_ones(monkeypatch):
+    """prt.over_chunks on more than DENSE_SAMPLES samples per vertex (here 8: sample_data's mesh has 3225
+    vertices, 30 000 points) interpolates its vertices' visibility instead of casting a shadow ray where they
+    disagree (Renderer._soft_visibility).  Where a point's three vertices agree on a direction the two
+    visibilities are the same; over all points the direct irradiance under SKY is within 3 % of its RMS
+    (measured 0.67 %) and its mean within 0.5 % (measured +0.07 %) of the exact one; a stream of fewer
+    samples per vertex keeps the exact shadows."""
+    monkeypatch.setattr(prt, "DENSE_SAMPLES", 8)
+    mesh = read_mesh(MESH)
+    geo = prt.geometry(ray_mesh(mesh), *_points(mesh, 100), 4)
+    faces, bary, view = _points(mesh, 30000, seed=2)
+    assert len(faces) > prt.DENSE_SAMPLES * len(mesh.vertices)
+
+    def irradiance(g):
+        return (g.direct @ SKY,)
+
+    (soft,) = prt.over_chunks(geo, faces, bary, view, irradiance)
+    points = prt.geometry_at(geo, faces, bary, view)
+    (exact,) = irradiance(points)
+    (few,) = prt.over_chunks(geo, faces[:20000], bary[:20000], view[:20000], irradiance)
+    r, tri = geo.renderer, np.asarray(mesh.faces)[faces]
+    vis = r._visibility[tri]  # (N, 3, D)
+    agree = (vis == vis[:, :1]).all(axis=1)
+    assert 0.5 < agree.mean() < 0.99  # pairs both ways
+    weights = r._soft_visibility(tri, bary)
+    np.testing.assert_allclose(weights[agree], r._point_visibility(faces, tri, bary)[agree], atol=1e-6)
+    rms = np.sqrt(np.mean(exact**2))
+    assert np.sqrt(np.mean((soft - exact) ** 2)) < 0.03 * rms
+    assert abs(soft.mean() / exact.mean() - 1.0) < 0.005
+    assert not np.array_equal(soft, exact)  # the two paths differ (the comparison can fail)
+    np.testing.assert_array_equal(few, exact[:20000])
 
 
 def _work_with_samples(tmp_path, mesh, focal: float, n: int = 2000):

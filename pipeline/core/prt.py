@@ -169,11 +169,13 @@ def geometry_at(
     bary: np.ndarray,
     view_dirs: np.ndarray,
     footprint: tuple[np.ndarray, np.ndarray] | None = None,
+    soft_shadows: bool = False,
 ) -> Geometry:
     """``geo``'s mesh part (renderer, vertex transfer, bounce matrices: shared) at other samples: the
     same transfer as geometry() of those samples, without recomputing the vertices' part (a stream
-    of chunks of samples on one mesh)."""
-    samples = _sample_transfer(geo.renderer, geo.order, faces, bary, view_dirs)
+    of chunks of samples on one mesh); ``soft_shadows``: the vertices' visibility interpolated at the
+    samples, no shadow ray (Renderer._soft_visibility; over_chunks says when)."""
+    samples = _sample_transfer(geo.renderer, geo.order, faces, bary, view_dirs, soft_shadows)
     return Geometry(geo.renderer, geo.order, *samples, geo.vertex_direct, footprint, None, geo._bounces)
 
 
@@ -182,17 +184,29 @@ def over_chunks(
 ) -> tuple[np.ndarray, ...]:
     """``shade(g)`` -> a tuple of (n, ...) arrays, on geometry_at(geo, ...) of consecutive chunks of
     ``chunk`` samples (faces (N,), barycentrics (N, 3), view directions (N, 3)), concatenated: what
-    the transfer of every sample yields without holding all of it at once (memory ~ chunk x (K + lobe))."""
+    the transfer of every sample yields without holding all of it at once (memory ~ chunk x (K + lobe)).
+
+    A stream of more than DENSE_SAMPLES samples per vertex takes soft shadows (geometry_at): its exact
+    shadow rays, where a triangle's vertices disagree, would outnumber the vertices' own by far.  On a
+    real walnut at 1280x1024 (2.7 M samples on 30 k vertices, 89 per vertex: 43 rays per sample, 60 s a
+    pass against 3 s for the vertices') the irradiance differs by 2.2 % RMS (+0.3 % in the mean), the fit
+    takes 205 s instead of 274 s and its held-out views relight at 18.9 % instead of 18.8 %; at 320x256
+    (13 per vertex) soft shadows would save 9 s of 49 s and cost 0.4 points (15.4 % vs 15.0 %): the
+    exact ones are kept there."""
+    soft = not geo.renderer.point_rays and len(faces) > DENSE_SAMPLES * len(geo.renderer.mesh.vertices)
     parts = [
-        shade(geometry_at(geo, faces[s : s + chunk], bary[s : s + chunk], view_dirs[s : s + chunk]))
+        shade(geometry_at(geo, faces[s : s + chunk], bary[s : s + chunk], view_dirs[s : s + chunk], soft_shadows=soft))
         for s in range(0, len(faces), chunk)
     ]
     return tuple(np.concatenate([p[i] for p in parts]) for i in range(len(parts[0])))
 
 
-def _sample_transfer(r: Renderer, order: int, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray) -> tuple:
+def _sample_transfer(
+    r: Renderer, order: int, faces: np.ndarray, bary: np.ndarray, view_dirs: np.ndarray, soft_shadows: bool = False
+) -> tuple:
     """(faces, vertex ids, barycentrics, normals, view directions, mu_o, direct transfer D (N, K)) of
-    samples under the renderer ``r``'s direction set and point visibility."""
+    samples under the renderer ``r``'s direction set and point visibility (``soft_shadows``: its
+    vertices' visibility interpolated, Renderer._soft_visibility)."""
     faces = np.asarray(faces, np.int64)
     bary = np.asarray(bary, float)
     tri = np.asarray(r.mesh.faces)[faces]
@@ -208,12 +222,16 @@ def _sample_transfer(r: Renderer, order: int, faces: np.ndarray, bary: np.ndarra
     def chunk(s: int) -> None:
         sl = slice(s, s + per_chunk)
         cos = front_cos(normals[sl], mu_out[sl], dirs)
-        direct[sl] = (cos * r._point_visibility(faces[sl], tri[sl], bary[sl], cos > 0)) @ power
+        vis = (
+            r._soft_visibility(tri[sl], bary[sl]) if soft_shadows else r._point_visibility(faces[sl], tri[sl], bary[sl], cos > 0)
+        )
+        direct[sl] = (cos * vis) @ power
 
     thread_map(chunk, range(0, faces.size, per_chunk))
     return faces, tri, bary, normals, view_dirs, mu_out, direct
 
 
+DENSE_SAMPLES = 32  # samples per vertex beyond which a stream of every sample takes soft shadows (over_chunks)
 QUADRATURE_FLOOR = 1e-2  # the direct transfer's relative accuracy on 16-row cells (odd bands of a sphere: 0.5-0.8%)
 LOBE_CACHE = 6  # lobe transfers kept per geometry (specular: (N, 81, 3) floats at order 8, ~58 MB at 30k samples)
 

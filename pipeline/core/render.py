@@ -269,6 +269,12 @@ class Renderer:
             lit[pi, di] = ~self._shadow_rays.intersects_any(self._points_above(faces[pi], bary[pi]), self.lights.directions[di])
         return lit
 
+    def _soft_visibility(self, tri: np.ndarray, bary: np.ndarray) -> np.ndarray:
+        """Visibility weights (P, D) in [0, 1] at points: their vertices' visibility interpolated by
+        the barycentrics ``bary`` (P, 3) of the triangles ``tri`` (P, 3), no ray cast — a shadow edge
+        crossing a triangle is spread over it (_point_visibility casts there instead)."""
+        return sum(self._visibility[tri[:, k]] * bary[:, k : k + 1].astype(np.float32) for k in range(3))
+
     # -- shading ----------------------------------------------------------------------------
     def _normals_at(self, faces: np.ndarray, bary: np.ndarray) -> np.ndarray:
         """Unit shading normals (P, 3) at points given by face ids and barycentrics (pipeline.core.surface)."""

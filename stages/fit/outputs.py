@@ -80,14 +80,15 @@ def write_fit(
         written.append(write_vertex_albedo(out / "albedo.ply", mesh, vertex_rho))
     if materials is not None:
         written.append(write_material_ply(out / "material.ply", materials[0], material_values(materials[1])))
-    if texels is not None:
+    maps = texels is not None and texels.atlas is not None
+    if maps:
         written += write_base_color_textures(
             out / TEXTURES, texels.atlas, texels.base, texels.std, texels.roughness, texels.metallic
         )
     for name, kept in (("albedo.ply", vertex_rho is not None), ("material.ply", materials is not None)):
         if not kept and (out / name).exists():
             (out / name).unlink()  # a stale map from an earlier run would be read by relight
-    if texels is None and (out / TEXTURES).exists():
+    if not maps and (out / TEXTURES).exists():
         shutil.rmtree(out / TEXTURES)
     return written
 

@@ -44,7 +44,7 @@ from stages.fit.materials import fit_materials, material_brdfs, mixed_lighting, 
 from stages.fit.notes import lighting_report, one_view_line, per_image_note, scale_note, selection_note, summary_line
 from stages.fit.outputs import write_fit
 from stages.fit.settings import Settings
-from stages.fit.texels import fit_texels, make_atlas, material_textures, texels_called_for
+from stages.fit.texels import fit_texels, material_map_textures, texels_called_for
 from stages.fit.texture import texture_and_residuals, texture_pattern
 
 
@@ -174,12 +174,8 @@ def fit_physical(
     texels = None
     if found is not None:  # the map as textures, for glTF/USD/Mitsuba (relight reads material.ply)
         t0 = time.perf_counter()
-        texels = material_textures(mesh, found, make_atlas(mesh, everything, read_poses(poses_path(capture, work)), keys))
-        report["materials"]["textures"] = {
-            "height": texels.atlas.height,
-            "width": texels.atlas.width,
-            "texel_mm": 1e3 * texels.atlas.texel_m,
-        }
+        poses = read_poses(poses_path(capture, work))
+        texels, report["materials"]["textures"] = material_map_textures(mesh, found, everything, poses, keys)
         timings["material_textures"] = time.perf_counter() - t0
     run_texels, why = texels_called_for(report["albedo"], len(everything["weight"]), settings.folds)
     if settings.texels == "auto" and settings.albedo != "uniform" and found is None and not run_texels:
@@ -199,7 +195,16 @@ def fit_physical(
             if materials_note is not None:  # the one material kept, and why, stays recorded
                 report["materials"] = materials_note
             report["texels"], texels = fit_texels(
-                mesh, replace(geo, pattern=None), best, everything, noise, poses, keys, settings, chosen.candidate.known
+                mesh,
+                replace(geo, pattern=None),
+                best,
+                everything,
+                noise,
+                poses,
+                keys,
+                settings,
+                chosen.candidate.known,
+                texels.atlas,  # the same unwrap
             )
         report["texels"].update(setting="auto", ran=True, why=why)
         timings["texels"] = time.perf_counter() - t0

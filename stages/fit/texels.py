@@ -11,6 +11,7 @@ each level kept only where the held-out views (folds = image_id mod folds) impro
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,7 +23,7 @@ from pipeline.core.material_search import KnownLighting
 from pipeline.core.selection import fold_of
 from pipeline.core.sources import Sources
 from pipeline.io.poses import Poses
-from pipeline.unwrap import unwrap
+from pipeline.unwrap import UnwrapFailed, unwrap
 from stages.fit.materials import candidate_shading
 from stages.fit.settings import Settings
 
@@ -36,11 +37,12 @@ class TexelFit:
     """The base colour map (H, W, 3) linear, padded past the charts; its standard deviation (H, W, 3)
     (NaN where no sample fell); the atlas; the per-vertex base colour (V, 3) (the map at the vertices:
     fit/albedo.ply's, for consumers without UVs); with a material map, its roughness and metallic
-    (H, W) per texel (material_textures)."""
+    (H, W) per texel (material_textures).  The atlas, map and deviation are None where the mesh could
+    not be unwrapped (pipeline.unwrap.UnwrapFailed): the per-vertex base colour only."""
 
-    atlas: atlas_mod.Atlas
-    base: np.ndarray
-    std: np.ndarray
+    atlas: atlas_mod.Atlas | None
+    base: np.ndarray | None
+    std: np.ndarray | None
     vertex_base: np.ndarray
     roughness: np.ndarray | None = None
     metallic: np.ndarray | None = None
@@ -123,11 +125,13 @@ def fit_texels(
     keys: list[str],
     settings: Settings,
     known: KnownLighting | None = None,
+    atlas: atlas_mod.Atlas | None = None,
 ) -> tuple[dict, TexelFit | None]:
     """The per-vertex and per-texel base colour of the module docstring from all samples ``data``
     (load_physical's everything; ``noise`` its measured pixel noise) under the chosen fit ``best``
-    (under a known lighting ``known``: its SH + sources form, on_known_sh).  -> (report.json's "texels"
-    entry, the TexelFit or None when neither level beats the uniform base colour)."""
+    (under a known lighting ``known``: its SH + sources form, on_known_sh), on ``atlas`` (default
+    make_atlas's).  -> (report.json's "texels" entry, the TexelFit or None when neither level beats the
+    uniform base colour)."""
     best = on_known_sh(best, known, geo)
     if best.parts is not None or best.detail is not None:
         return {
@@ -162,7 +166,18 @@ def fit_texels(
         vertex_rho = np.broadcast_to(vertex_cands[0]["albedo"], (nv, 3)).copy()
     interp = texture.interpolation_matrix(mesh.faces, face, bary, nv)
     per_fold = {f: interp @ rho_t if textured else np.broadcast_to(rho_u, (len(face), 3)) for f, (rho_u, rho_t) in fits.items()}
-    atlas = make_atlas(mesh, data, poses, keys)
+    entry = {
+        "samples": int(len(weight)),
+        "vertex_level": {"choice": vertex_choice, "candidates": vertex_cands, "vertices_with_samples": observed},
+    }
+    try:
+        atlas = atlas or make_atlas(mesh, data, poses, keys)
+    except UnwrapFailed as failed:  # the per-vertex level stands alone: no texel level, no maps
+        print(f"fit: {failed}: no texture maps, the base colour stays per vertex (fit/albedo.ply)", file=sys.stderr)
+        entry["texel_level"] = {"ran": False, "why": str(failed)}
+        if not textured:
+            return {**entry, "choice": "uniform"}, None
+        return {**entry, "choice": "vertices"}, TexelFit(None, None, None, vertex_rho)
     n_texels = atlas.height * atlas.width
     texel = atlas.texel_of(face, bary)
     texel_cands, choice, detail, ridge = texture.choose_texel_detail(
@@ -178,11 +193,12 @@ def fit_texels(
         parsimony=settings.parsimony,
         noise=floor,
     )
-    entry = {
-        "samples": int(len(weight)),
-        "vertex_level": {"choice": vertex_choice, "candidates": vertex_cands, "vertices_with_samples": observed},
-        "texel_level": {"candidates": texel_cands, "ridges": list(RIDGES)},
-        "atlas": {"height": atlas.height, "width": atlas.width, "texel_mm": 1e3 * atlas.texel_m, "own_uvs": atlas.texel_m == 0.0},
+    entry["texel_level"] = {"candidates": texel_cands, "ridges": list(RIDGES)}
+    entry["atlas"] = {
+        "height": atlas.height,
+        "width": atlas.width,
+        "texel_mm": 1e3 * atlas.texel_m,
+        "own_uvs": atlas.texel_m == 0.0,
     }
     if choice == 0 and vertex_choice != "textured":
         return {**entry, "choice": "uniform"}, None
@@ -201,6 +217,19 @@ def fit_texels(
     entry["texels_in_charts"] = int(len(tex_id))
     vertex_base = atlas.at_vertices(image, mesh.faces, nv)
     return entry, TexelFit(atlas, image, std.reshape(atlas.height, atlas.width, 3), vertex_base)
+
+
+def material_map_textures(
+    mesh, found: svbrdf.MaterialMap, data: dict, poses: Poses, keys: list[str]
+) -> tuple[TexelFit | None, dict]:
+    """material_textures on make_atlas's atlas, and report.json's note of the maps; (None, why) where
+    the mesh could not be unwrapped (material.ply then holds the map alone)."""
+    try:
+        atlas = make_atlas(mesh, data, poses, keys)
+    except UnwrapFailed as failed:
+        print(f"fit: {failed}: no texture maps, the materials stay per vertex (fit/material.ply)", file=sys.stderr)
+        return None, {"written": False, "why": str(failed)}
+    return material_textures(mesh, found, atlas), {"height": atlas.height, "width": atlas.width, "texel_mm": 1e3 * atlas.texel_m}
 
 
 def material_textures(mesh, found: svbrdf.MaterialMap, atlas: atlas_mod.Atlas) -> TexelFit:

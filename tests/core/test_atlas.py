@@ -5,9 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from helpers import segfault
 
 from pipeline.core import atlas as atlas_mod
-from pipeline.unwrap import unwrap
+from pipeline.unwrap import UnwrapFailed, in_child, unwrap
 
 
 @pytest.fixture(scope="module")
@@ -95,3 +96,16 @@ def test_at_vertices_of_a_constant_map():
     atlas = unwrap(mesh.vertices, mesh.faces, texel_m=0.05)
     image = np.full((atlas.height, atlas.width, 3), [0.2, 0.4, 0.6])
     assert np.allclose(atlas.at_vertices(image, mesh.faces, len(mesh.vertices)), [0.2, 0.4, 0.6])
+
+
+def test_a_crash_of_the_unwrapper_is_an_error_not_the_end_of_the_fit():
+    """unwrap runs xatlas in a child process (pipeline.unwrap.in_child): xatlas 0.0.11 dies of a
+    segmentation fault on an 81 920-face icosphere (and on users' large scans), which in-process would
+    end the fit with nothing written.  A child that dies so is an UnwrapFailed naming the mesh's size;
+    one that returns hands its result back, one that raises its exception."""
+    vertices, faces = np.ones((5, 3), np.float32), np.array([[0, 1, 2]] * 5, np.uint32)
+    np.testing.assert_array_equal(in_child(np.add, vertices, faces), vertices + faces)
+    with pytest.raises(ValueError, match="broadcast"):  # an error in the child is raised here as itself
+        in_child(np.add, vertices, faces[:2])
+    with pytest.raises(UnwrapFailed, match="5 faces"):
+        in_child(segfault, vertices, faces)

@@ -109,6 +109,33 @@ def test_stripes_finer_than_the_vertices_are_found_per_texel(stripes, tmp_path):
     assert with_texels < relight_check(work)["relative_error"]
 
 
+@pytest.mark.slow
+def test_a_mesh_the_unwrapper_crashes_on_keeps_its_per_vertex_base_colour(stripes, tmp_path, monkeypatch, capsys):
+    """Where xatlas dies on the mesh (pipeline.unwrap.UnwrapFailed: it runs in a child process) the fit
+    still ends: the per-vertex level from every sample is kept (fit/albedo.ply, a texture: the stripes
+    are there at the vertices too), no texture maps, report.json says why the texel level did not run,
+    and one line on stderr says so."""
+    from pipeline.unwrap import UnwrapFailed
+
+    def crashed(*args):
+        raise UnwrapFailed("xatlas crashed unwrapping the mesh (320 faces)")
+
+    monkeypatch.setattr("stages.fit.texels.make_atlas", crashed)
+    capture, _, _ = stripes
+    work = tmp_path / "work"
+    assert cli.main(["run", str(capture), "-w", str(work), "--to", "samples", "--no-report"]) == 0
+    assert cli.main(["fit", str(capture), "-w", str(work), "--brdf", "lambert", "--texels", "auto"]) == 0
+    entry = json.loads((work / "fit" / "report.json").read_text())["texels"]
+    assert entry["choice"] == "vertices" and entry["texel_level"] == {
+        "ran": False,
+        "why": "xatlas crashed unwrapping the mesh (320 faces)",
+    }
+    assert "xatlas crashed unwrapping the mesh (320 faces): no texture maps" in capsys.readouterr().err
+    assert not (work / "fit" / "textures").exists()
+    vertex_rho = read_vertex_albedo(work / "fit" / "albedo.ply", len(read_mesh(capture / "mesh.ply").vertices))
+    assert np.std(vertex_rho[:, 0]) > 0.1 * np.mean(vertex_rho[:, 0])
+
+
 def test_the_texels_step_runs_where_the_photos_call_for_it():
     """--texels auto's gate (texels_called_for) with the numbers of four captures: a subset that chose a
     texture runs it; the real ring (30 000 of 136 768 samples on 9460 vertices: 3.2 per vertex in the
