@@ -51,7 +51,7 @@ def setting(default: Any, help: str, **kwargs: Any) -> Any:
 
 
 def memory_limit_setting() -> Any:
-    """The ``memory_limit`` field of every stage that streams (linearize, samples): one definition,
+    """The ``memory_limit`` field of every stage that streams (linearize, samples, fit): one definition,
     parsed by pipeline.memory (a size, or a share of the machine's RAM)."""
     return setting(
         "50%",

@@ -142,3 +142,41 @@ def test_a_budget_that_cannot_be_met_is_one_line(large_capture, linearized, tmp_
     )
     assert_one_line_error(result, "--memory-limit 50MB", "0.jpg", "24 MP", "use smaller photos", progress=True)
     assert {p: hashlib.md5(p.read_bytes()).hexdigest() for p in digests} == digests
+
+
+def test_the_fit_holds_as_many_of_every_sample_as_its_budget_allows(tmp_path):
+    """The fit's every-sample steps (texels, the material map) hold EVERY_SAMPLE_BYTES per sample in
+    EVERY_SAMPLE_SHARE of --memory-limit (stages.fit.data.every_sample_cap): 200 000 samples under 200 MB
+    (room for 142 857) are a random share of 71.4 % (binomial: kept within 1 %), the subset still
+    --physical-samples and its reason stated; under 1 GB all of them, no reason; under 16 MB not even
+    the subset fits: one line naming the limit and what to lower."""
+    from pipeline.io.samples import write_samples
+    from stages.fit.data import EVERY_SAMPLE_BYTES, EVERY_SAMPLE_SHARE, every_sample_cap, load_physical
+    from stages.fit.settings import Settings
+
+    n, rng = 200_000, np.random.default_rng(0)
+    bary = rng.dirichlet([1.0, 1.0, 1.0], n)
+    arrays = {
+        "point": np.zeros((n, 3)),
+        "normal": np.tile([0.0, 0.0, 1.0], (n, 1)),
+        "view_dir": np.tile([0.0, 0.0, 1.0], (n, 1)),
+        "radiance": rng.uniform(0.2, 0.8, (n, 3)),
+        "image_id": rng.integers(0, 4, n),
+        "pixel": rng.uniform(0, 100, (n, 2)),
+        "face": rng.integers(0, 10, n),
+        "bary": bary,
+        "weight": np.ones(n),
+        "visibility": np.ones(n),
+        "image_keys": ["a", "b", "c", "d"],
+    }
+    path = write_samples(tmp_path / "samples.npz", arrays, {})
+    share, note = every_sample_cap(path, Settings(memory_limit="200MB"))
+    most = int(EVERY_SAMPLE_SHARE * 200e6 // EVERY_SAMPLE_BYTES)
+    assert share == pytest.approx(most / n) and share < 1.0 and "--memory-limit 200MB" in note["why"]
+    data, _, everything = load_physical(path, Settings(memory_limit="200MB"), 10, share)
+    assert len(everything["weight"]) == pytest.approx(share * n, rel=0.01)
+    assert len(data["weight"]) == Settings().physical_samples
+    share, note = every_sample_cap(path, Settings(memory_limit="1GB"))
+    assert share == 1.0 and "why" not in note
+    with pytest.raises(UserError, match=r"--memory-limit 16MB .*lower --physical-samples"):
+        every_sample_cap(path, Settings(memory_limit="16MB"))

@@ -12,10 +12,16 @@ import numpy as np
 from pipeline.core.noise import inverse_variance_weights, noise_level_function, pixel_noise_sigma, weighted_noise_sigma
 from pipeline.errors import UserError
 from pipeline.io.poses import poses_path, read_poses
-from pipeline.io.samples import iter_sample_chunks
+from pipeline.io.samples import iter_sample_chunks, read_samples_meta
+from pipeline.memory import Budget
 from pipeline.raycast import RayMesh, pixel_footprints
 from stages.fit.settings import Settings
 
+# the fit's peak memory per sample of its every-sample steps, with room: the texels step on a real walnut's
+# 1280x1024 ring measured ~430 (peak 2.27 GB without it, 2.63 / 3.08 GB with 1.33 / 2.66 M samples);
+# the material map shades two materials at each
+EVERY_SAMPLE_BYTES = 700
+EVERY_SAMPLE_SHARE = 0.5  # of --memory-limit: the rest for the mesh's transfer, the subset's fits and the imports
 FIELDS = ("normal", "view_dir", "radiance", "image_id", "weight", "visibility")  # the convex model's
 PHYSICAL_FIELDS = ("face", "bary", "view_dir", "radiance", "image_id", "weight", "normal", "pixel")
 
@@ -53,9 +59,33 @@ def load_subset(path: Path, settings: Settings, total: int, min_cos: float) -> d
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
-def load_physical(path: Path, settings: Settings, n_faces: int) -> tuple[dict, dict, dict]:
+def every_sample_cap(path: Path, settings: Settings) -> tuple[float, dict]:
+    """The share of samples.npz's rows the fit holds for its every-sample steps (the texels step, the
+    material map: EVERY_SAMPLE_BYTES each) within EVERY_SAMPLE_SHARE of --memory-limit -> (the share
+    in (0, 1], report.json's "every_sample" note).  UserError where that is fewer than --physical-samples."""
+    budget = Budget.of(settings.memory_limit)
+    rows = int(read_samples_meta(path).get("count", 0))
+    most = int(EVERY_SAMPLE_SHARE * budget.limit // EVERY_SAMPLE_BYTES)
+    if most < settings.physical_samples:
+        raise budget.too_small(
+            int(settings.physical_samples * EVERY_SAMPLE_BYTES / EVERY_SAMPLE_SHARE),
+            f"the fit's subset of {settings.physical_samples} samples",
+            "lower --physical-samples",
+        )
+    share = min(1.0, most / max(rows, 1))
+    note = {"rows": rows, "share": share, "most": most, "memory_limit": budget.text}
+    if share < 1.0:
+        note["why"] = (
+            f"--memory-limit {budget.text}: the every-sample steps hold at most {most} samples "
+            f"({EVERY_SAMPLE_BYTES} bytes each in {EVERY_SAMPLE_SHARE:.0%} of the limit), a random {share:.1%} of {rows}"
+        )
+    return share, note
+
+
+def load_physical(path: Path, settings: Settings, n_faces: int, share: float = 1.0) -> tuple[dict, dict, dict]:
     """At most ``physical_samples`` usable samples (positive weight, finite, on the mesh), the photos'
-    noise measured on all of them, and all of them (the per-texel fit's: every pixel counts).
+    noise measured on all of them, and all of them (the per-texel fit's: every pixel counts) — or a
+    random ``share`` of them (every_sample_cap: what --memory-limit holds).
     The noise (pipeline.core.noise): {"sigma": the pixel noise (NaN if
     unmeasurable), "a", "b": the Poisson-Gaussian noise level sigma^2 = a + b B, "weighting"}.
     With ``--noise-model measured`` each sample's weight is divided by its noise variance
@@ -63,9 +93,12 @@ def load_physical(path: Path, settings: Settings, n_faces: int) -> tuple[dict, d
     pixel 100x the median is ~100x noisier (shot noise, a path tracer's), and unweighted, a few
     of them at a sphere's rim ruled the roughness (the Cycles night sphere: 0.176 for 0.15)."""
     parts = []
+    rng = np.random.default_rng([settings.seed, 1])  # its own stream: the subset below draws from the seed
     for chunk in iter_sample_chunks(path, settings.chunk, PHYSICAL_FIELDS):
         ok = (chunk["weight"] > 0) & np.all(np.isfinite(chunk["radiance"]), axis=1)
         ok &= (chunk["face"] >= 0) & (chunk["face"] < n_faces)
+        if share < 1.0:
+            ok &= rng.random(len(ok)) < share
         parts.append({k: v[ok] for k, v in chunk.items()})
     data = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]} if parts else {}
     n = len(data.get("weight", []))

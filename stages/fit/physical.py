@@ -38,7 +38,7 @@ from pipeline.io.poses import poses_path, read_poses
 from pipeline.proxy import samples_footprint_m, with_proxy
 from pipeline.raycast import ray_mesh
 from stages.fit.choice import Chosen, chart_colour, chart_convention, material_and_lighting, search_options
-from stages.fit.data import load_physical, sample_footprints
+from stages.fit.data import every_sample_cap, load_physical, sample_footprints
 from stages.fit.known import chart_reference, known_lighting_setup
 from stages.fit.materials import fit_materials, material_brdfs, mixed_lighting, vertex_spread
 from stages.fit.notes import lighting_report, one_view_line, per_image_note, scale_note, selection_note, summary_line
@@ -65,7 +65,10 @@ def fit_physical(
     timings: dict[str, float] = {}
     mesh = read_mesh(mesh_path(capture))
     samples_path = Path(work) / "samples.npz"
-    data, noise, everything = load_physical(samples_path, settings, len(mesh.faces))
+    share, every_sample = every_sample_cap(samples_path, settings)
+    if share < 1.0:
+        print(f"fit: {every_sample['why']}", file=sys.stderr)
+    data, noise, everything = load_physical(samples_path, settings, len(mesh.faces), share)
     # the renderer's view of the mesh: arrays and ray intersector, built once; a proxy for the
     # interreflection where the mesh is much finer than the photos resolve (pipeline/proxy.py)
     rays = (
@@ -177,6 +180,7 @@ def fit_physical(
         poses = read_poses(poses_path(capture, work))
         texels, report["materials"]["textures"] = material_map_textures(mesh, found, everything, poses, keys)
         timings["material_textures"] = time.perf_counter() - t0
+    report["every_sample"] = {**every_sample, "kept": int(len(everything["weight"]))}
     run_texels, why = texels_called_for(report["albedo"], len(everything["weight"]), settings.folds)
     if settings.texels == "auto" and settings.albedo != "uniform" and found is None and not run_texels:
         report["texels"] = {"setting": "auto", "ran": False, "why": why}

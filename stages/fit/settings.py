@@ -11,8 +11,9 @@ from typing import Literal
 from pipeline.core.factorization import ConvexOptions
 from pipeline.core.material import MIN_ROUGHNESS
 from pipeline.errors import UserError
+from pipeline.memory import Budget
 from pipeline.proxy import PROXY_PIXELS
-from pipeline.settings import setting
+from pipeline.settings import memory_limit_setting, setting
 
 DEFAULT_ALBEDO = 0.5  # the scale convention of a Lambertian fit under unknown lighting when no hint is given
 
@@ -129,6 +130,7 @@ class Settings:
         "error by 2%; 'off'",
     )
     physical_samples: int = setting(30000, "principled fit: samples used (random subset)")
+    memory_limit: str = memory_limit_setting()
     lobe_samples: int = setting(32, "principled fit: GGX lobe samples per sample in the specular transfer")
     bounce_samples: int = setting(64, "principled fit: occlusion / bounce rays per vertex (shadows, interreflection)")
     proxy_pixels: float = setting(
@@ -246,6 +248,7 @@ class Settings:
             raise UserError(f"--source-peaks must be 0 to 10, got {self.source_peaks}")
         if self.peak_sources < 0:
             raise UserError(f"--peak-sources must be >= 0, got {self.peak_sources}")
+        Budget.of(self.memory_limit)  # a bad size is one line
         if self.max_sources < 0 or self.physical_samples < 100 or self.lobe_samples < 1 or self.bounce_samples < 1:
             raise UserError("--max-sources must be >= 0, --physical-samples >= 100, --lobe-samples and --bounce-samples >= 1")
         if not self.proxy_pixels >= 0:
