@@ -19,7 +19,7 @@ from stages.fit.settings import Settings
 
 # the fit's peak memory per sample of its every-sample steps, with room: the texels step on a real walnut's
 # 1280x1024 ring measured ~430 (peak 2.27 GB without it, 2.63 / 3.08 GB with 1.33 / 2.66 M samples);
-# the material map shades two materials at each
+# the material map shades three candidates at each
 EVERY_SAMPLE_BYTES = 700
 EVERY_SAMPLE_SHARE = 0.5  # of --memory-limit: the rest for the mesh's transfer, the subset's fits and the imports
 FIELDS = ("normal", "view_dir", "radiance", "image_id", "weight", "visibility")  # the convex model's

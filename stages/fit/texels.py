@@ -100,6 +100,16 @@ def make_atlas(mesh, data: dict, poses: Poses, keys: list[str]) -> atlas_mod.Atl
     return unwrap(mesh.vertices, mesh.faces, footprint)
 
 
+def unwrapped(mesh, data: dict, poses: Poses, keys: list[str], instead: str) -> tuple[atlas_mod.Atlas | None, str]:
+    """(make_atlas's atlas, "") or, where xatlas crashed on the mesh (UnwrapFailed), (None, why) and one
+    stderr line saying so and what stands ``instead``."""
+    try:
+        return make_atlas(mesh, data, poses, keys), ""
+    except UnwrapFailed as failed:
+        print(f"fit: {failed}: no texture maps, {instead}", file=sys.stderr)
+        return None, str(failed)
+
+
 def on_known_sh(best: material_fit.MaterialFit, known: KnownLighting | None, geo: prt.Geometry) -> material_fit.MaterialFit:
     """A fit under a known map (material_fit.fit_to_map: the renderer's shading, at the subset's samples
     only) as the same material under the map's SH + directional sources form (KnownLighting, scaled as
@@ -170,11 +180,10 @@ def fit_texels(
         "samples": int(len(weight)),
         "vertex_level": {"choice": vertex_choice, "candidates": vertex_cands, "vertices_with_samples": observed},
     }
-    try:
-        atlas = atlas or make_atlas(mesh, data, poses, keys)
-    except UnwrapFailed as failed:  # the per-vertex level stands alone: no texel level, no maps
-        print(f"fit: {failed}: no texture maps, the base colour stays per vertex (fit/albedo.ply)", file=sys.stderr)
-        entry["texel_level"] = {"ran": False, "why": str(failed)}
+    if atlas is None:
+        atlas, failed = unwrapped(mesh, data, poses, keys, "the base colour stays per vertex (fit/albedo.ply)")
+    if atlas is None:  # the per-vertex level stands alone: no texel level, no maps
+        entry["texel_level"] = {"ran": False, "why": failed}
         if not textured:
             return {**entry, "choice": "uniform"}, None
         return {**entry, "choice": "vertices"}, TexelFit(None, None, None, vertex_rho)
@@ -224,11 +233,9 @@ def material_map_textures(
 ) -> tuple[TexelFit | None, dict]:
     """material_textures on make_atlas's atlas, and report.json's note of the maps; (None, why) where
     the mesh could not be unwrapped (material.ply then holds the map alone)."""
-    try:
-        atlas = make_atlas(mesh, data, poses, keys)
-    except UnwrapFailed as failed:
-        print(f"fit: {failed}: no texture maps, the materials stay per vertex (fit/material.ply)", file=sys.stderr)
-        return None, {"written": False, "why": str(failed)}
+    atlas, failed = unwrapped(mesh, data, poses, keys, "the materials stay per vertex (fit/material.ply)")
+    if atlas is None:
+        return None, {"written": False, "why": failed}
     return material_textures(mesh, found, atlas), {"height": atlas.height, "width": atlas.width, "texel_mm": 1e3 * atlas.texel_m}
 
 
