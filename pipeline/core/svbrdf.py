@@ -99,12 +99,18 @@ def candidate_fits(
     smoothness: float,
 ) -> tuple[np.ndarray, np.ndarray, list]:
     """Each candidate's per-vertex base colour and error: -> (weighted squared error summed per
-    vertex (V, M), sample weight per vertex (V,), base colours [(V, 3)] per candidate)."""
+    vertex (V, M), sample weight per vertex (V,), base colours [(V, 3)] per candidate).  The solves
+    take the two-level preconditioner at once (texture.solve_spd): a map's mesh has about as many
+    vertices as samples, whose systems Jacobi CG rarely solves in its 1000 iterations (docs/fit.md)."""
     vertex_weight = interp.T @ weight
     errors, bases = [], []
     for cand in shadings:
         rho = np.clip(
-            texture.fit_vertex_albedo(interp, cand.shade, radiance - cand.specular, weight, laplacian, smoothness), 0.0, 1.0
+            texture.fit_vertex_albedo(
+                interp, cand.shade, radiance - cand.specular, weight, laplacian, smoothness, two_level_from=0
+            ),
+            0.0,
+            1.0,
         )
         residual = radiance - (interp @ rho) * cand.shade - cand.specular
         errors.append(interp.T @ (weight * (residual**2).sum(axis=1)))
@@ -198,6 +204,28 @@ def held_out_rmse(
         se += float((weight[va, None] * (radiance[va] - pred) ** 2).sum())
         wsum += float(weight[va].sum())
     return float(np.sqrt(se / (3 * wsum))) if wsum else float("nan")
+
+
+def choose_smoothness(
+    interp: sp.csr_matrix,
+    laplacian: sp.csr_matrix,
+    shadings: list[CandidateShading],
+    radiance: np.ndarray,
+    weight: np.ndarray,
+    fold: np.ndarray,
+    smoothnesses: list[float],
+    fixed: np.ndarray | None = None,
+) -> tuple[float, list[tuple[float, float]]]:
+    """The base colour's smoothness (the Laplacian weight of material_map) by the held-out views:
+    ``smoothnesses`` in increasing order, each tried while the one before improved held_out_rmse
+    (a smoother map that predicts the held-out samples worse ends the search).
+    -> (the best smoothness tried, [(smoothness, held-out RMSE)] in the order tried)."""
+    tried: list[tuple[float, float]] = []
+    for s in smoothnesses:
+        tried.append((s, held_out_rmse(interp, laplacian, shadings, radiance, weight, fold, s, fixed)))
+        if len(tried) > 1 and tried[-1][1] >= tried[-2][1]:
+            break
+    return min(tried, key=lambda t: t[1])[0], tried
 
 
 def sample_shading(interp: sp.csr_matrix, shadings: list[CandidateShading], labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -4,8 +4,9 @@ model needed) and those that change least (the body) get one lighting and a mate
 (mixed_lighting: pipeline.core.mixed, the two roughnesses searched by nlopt's BOBYQA), kept only where
 that beats one material on the same held-out samples; then each vertex takes the one of the two that
 explains its samples best (pipeline.core.svbrdf), the vertices the view spread decides keeping theirs,
-and the map is kept where the held-out views prefer it to one material with a per-vertex base colour
-(the parsimony rule).  Without a metal seed, or where the mixed model does not win, one material:
+the base colour's smoothness chosen by the held-out views (svbrdf.choose_smoothness), and the map is
+kept where the held-out views prefer it to one material with a per-vertex base colour (the parsimony
+rule).  Without a metal seed, or where the mixed model does not win, one material:
 the step then costs the view spread alone."""
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ def candidate_shading(
 SEED_PATCHES = 5000  # patches of the lighting-free seed (svbrdf.voxel_patches)
 SEED_SPREAD = 0.2  # view spread above which a patch is seeded as view-dependent (metal-like):
 # teapot_two_materials' copper 0.52, glazed body 0.04-0.07 (medians, docs/fit.md)
+SMOOTHNESS_STEPS = (1.0, 100.0, 10_000.0)  # the map's base colour smoothness tried (times --albedo-smoothness)
+# while the held-out views improve: a map has about one sample per vertex, its colour's detail mostly noise
 METAL_SPREAD = 0.4  # view spread above which the mixed model takes a patch for the metal (teapot_two_materials:
 # 16 % of the vertices, 92 % of them copper; at 0.2 25 % and 75 %: glaze in the metal's samples biased its roughness)
 
@@ -98,9 +101,11 @@ def fit_materials(
     arrays = prt.over_chunks(geo, data["face"], data["bary"].astype(float), data["view_dir"].astype(float), shade)
     shadings = [svbrdf.CandidateShading(m, arrays[2 * i], arrays[2 * i + 1]) for i, m in enumerate(materials)]
     baseline = [svbrdf.CandidateShading(best.material, arrays[-2], arrays[-1])]
-    smooth, fixed = settings.albedo_smoothness, mixed.vertex_labels
+    fixed = mixed.vertex_labels
+    smoothnesses = [settings.albedo_smoothness * step for step in SMOOTHNESS_STEPS]
+    smooth, tried = svbrdf.choose_smoothness(interp, lap, shadings, obs.radiance, obs.weight, obs.fold, smoothnesses, fixed)
+    many = min(e for _, e in tried)
     one = svbrdf.held_out_rmse(interp, lap, baseline, obs.radiance, obs.weight, obs.fold, smooth)
-    many = svbrdf.held_out_rmse(interp, lap, shadings, obs.radiance, obs.weight, obs.fold, smooth, fixed)
     found = svbrdf.material_map(interp, lap, shadings, obs.radiance, obs.weight, smooth, fixed)
     k = len(found.materials)
     rms = float(np.sqrt((obs.weight[:, None] * obs.radiance**2).sum() / (3 * obs.weight.sum())))
@@ -114,6 +119,7 @@ def fit_materials(
         "choice": table[pick]["name"],
         "tried": [_describe(s.material) for s in shadings],
         "found": [{**_describe(m), "vertex_share": float(np.mean(found.labels == i))} for i, m in enumerate(found.materials)],
+        "smoothness": {"tried": [{"smoothness": s, "validation_rmse": e} for s, e in tried], "chosen": smooth},
         "seconds": time.perf_counter() - t0,
     }
     return entry, (found if pick == 1 else None)

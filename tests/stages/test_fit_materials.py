@@ -67,10 +67,12 @@ def test_metal_and_glaze_teapot_against_cycles(tmp_path):
     on lid, knob, spout and handle, 32 % of the vertices; a glaze of varying colour and roughness
     0.3-0.7; 14 views of 256^2, both lighting and material unknown).  `--materials auto` fits one
     lighting under the metal seed and the body (pipeline.core.mixed, roughnesses by BOBYQA) and maps
-    the two materials over the surface, the seed's confident vertices given.  Measured: relit under the
-    held-back HDRI from 4 novel views at 21.9 % (score_relight's metric; one material 32.3 %, the
-    previous map 24.3 %); the metal's vertices precision 0.93, IoU 0.50 (the issue's 0.9 not met: the
-    seed finds half the copper); the mixed model's metal colour 0.2 deg from the truth's chromaticity
+    the two materials over the surface, the seed's confident vertices given, the base colour's
+    smoothness chosen by the held-out views (svbrdf.choose_smoothness: 10 of 0.001 / 0.1 / 10).
+    Measured: relit under the held-back HDRI from 4 novel views at 20.6 % (score_relight's metric; one
+    material 32.3 %, the map at the default smoothness 21.9 %, the previous map 24.3 %); the metal's
+    vertices precision 0.93, IoU 0.56 (the issue's 0.9 not met: the seed finds half the copper, the
+    errors little of the rest); the mixed model's metal colour 0.2 deg from the truth's chromaticity
     (0.95, 0.64, 0.54) (issue: 3 deg); its roughness 0.39 for 0.2 (the order-8 lighting cannot hold the copper's sharp
     reflections: not asserted).  Bounds: the relight 2 points above the measurement, the rest as the
     issue's or below the measurement by a margin."""
@@ -90,7 +92,7 @@ def test_metal_and_glaze_teapot_against_cycles(tmp_path):
     true_metal = truth["metallic"][cKDTree(truth["vertices"]).query(np.asarray(mesh.vertices))[1]] > 0.5
     found = fitted["metallic"] > 0.5
     assert (found & true_metal).sum() / found.sum() > 0.85
-    assert (found & true_metal).sum() / (found | true_metal).sum() > 0.4
+    assert (found & true_metal).sum() / (found | true_metal).sum() > 0.5
 
     relight = CYCLES_TWO / "gt" / "relight"
     out = work / "relit"
@@ -107,4 +109,4 @@ def test_metal_and_glaze_teapot_against_cycles(tmp_path):
     assert cli.main([*args, "-o", str(out)]) == 0
     names = sorted(p.name for p in (relight / "images").glob("*.exr"))
     error = block_relative_rmse([read_image(out / n) for n in names], [read_image(relight / "images" / n) for n in names])
-    assert error.total < 0.24, error
+    assert error.total < 0.226, error
