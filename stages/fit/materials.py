@@ -45,6 +45,8 @@ def candidate_shading(
 
 
 SEED_PATCHES = 5000  # patches of the lighting-free seed (svbrdf.voxel_patches)
+MAP_PATCHES = (SEED_PATCHES, 1500, 500)  # the map's decided vertices: coarser patches where the seed's are unseen
+# (teapot_two_materials: the copper's small parts; the seed's patches leave 21 % of the vertices unseen, half copper)
 SEED_SPREAD = 0.2  # view spread above which a patch is seeded as view-dependent (metal-like):
 # teapot_two_materials' copper 0.52, glazed body 0.04-0.07 (medians, docs/fit.md)
 SMOOTHNESS_STEPS = (1.0, 100.0, 10_000.0)  # the map's base colour smoothness tried (times --albedo-smoothness)
@@ -53,13 +55,18 @@ METAL_SPREAD = 0.4  # view spread above which the mixed model takes a patch for 
 # 16 % of the vertices, 92 % of them copper; at 0.2 25 % and 75 %: glaze in the metal's samples biased its roughness)
 
 
-def vertex_spread(mesh, data: dict) -> np.ndarray:
-    """(V,) each vertex's patch's view spread (svbrdf.view_spread on SEED_PATCHES voxel patches of
-    every sample ``data``), NaN where unseen."""
-    patch_of_vertex = svbrdf.voxel_patches(mesh.vertices, SEED_PATCHES)
-    n = int(patch_of_vertex.max()) + 1
+def vertex_spread(mesh, data: dict, patches: tuple[int, ...] = (SEED_PATCHES,)) -> np.ndarray:
+    """(V,) each vertex's patch's view spread (svbrdf.view_spread on voxel patches of every sample
+    ``data``) at the first of the ``patches`` counts (finest first) where the patch is seen: a vertex
+    whose patch too few samples see takes its coarser patch's; NaN where none is seen."""
     vertex = texture.heaviest_vertex(mesh.faces, data["face"], data["bary"])
-    return svbrdf.view_spread(patch_of_vertex[vertex], data["image_id"], data["radiance"], n)[patch_of_vertex]
+    out = np.full(len(mesh.vertices), np.nan)
+    for count in patches:
+        patch_of_vertex = svbrdf.voxel_patches(mesh.vertices, count)
+        n = int(patch_of_vertex.max()) + 1
+        spread = svbrdf.view_spread(patch_of_vertex[vertex], data["image_id"], data["radiance"], n)[patch_of_vertex]
+        out = np.where(np.isfinite(out), out, spread)
+    return out
 
 
 def view_dependent_seed(spread: np.ndarray, threshold: float) -> np.ndarray | None:
@@ -178,7 +185,14 @@ class MixedLighting:
 
 
 def mixed_lighting(
-    mesh, spread: np.ndarray, data: dict, candidate: CandidateFit, models: list[str], hint, one: material_fit.MaterialFit
+    mesh,
+    spread: np.ndarray,
+    map_spread: np.ndarray,
+    data: dict,
+    candidate: CandidateFit,
+    models: list[str],
+    hint,
+    one: material_fit.MaterialFit,
 ) -> tuple[MixedLighting | None, dict]:
     """One lighting under two materials (pipeline.core.mixed), on the fit's subset ``data`` /
     ``candidate``: the vertices whose patch's view spread is above METAL_SPREAD a metal, those at or
@@ -186,7 +200,10 @@ def mixed_lighting(
     Lambert: its Fresnel layer fixes the scale the metal's F0 is read in), the samples between left
     out; each its own base colour; both roughnesses searched (BOBYQA, held-out views) from the body's
     and 0.3.  Kept only where its held-out RMSE beats the chosen material ``one``'s (lighting and base
-    colour refitted on the same samples) by the parsimony rule.  -> (the answer, or None without a
+    colour refitted on the same samples) by the parsimony rule.  The vertices the answer decides for
+    the map are those of ``map_spread`` (vertex_spread on MAP_PATCHES: the seed's ``spread`` where it
+    sees the patch, coarser patches' elsewhere); the mixed fit takes the seed's alone (a coarse patch
+    straddling glaze and metal would bias the metal's roughness).  -> (the answer, or None without a
     metal seed or when one material does as well; report.json's "materials" notes: seed, mixed,
     candidates, choice, why)."""
     t0 = time.perf_counter()
@@ -236,4 +253,6 @@ def mixed_lighting(
             f"({single.validation_rmse:.4g}) on the same samples"
         )
         return None, {**note, "choice": "one material", "why": why}
-    return MixedLighting(lighting, fit.materials[1], vertex_labels), note
+    decided = np.where(map_spread > METAL_SPREAD, 1, np.where(map_spread <= SEED_SPREAD, 0, -1))
+    note["mixed"]["map_vertex_share"] = {"metal": float(np.mean(decided == 1)), "body": float(np.mean(decided == 0))}
+    return MixedLighting(lighting, fit.materials[1], decided), note

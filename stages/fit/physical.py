@@ -40,7 +40,7 @@ from pipeline.raycast import ray_mesh
 from stages.fit.choice import Chosen, chart_colour, chart_convention, material_and_lighting, search_options
 from stages.fit.data import every_sample_cap, load_physical, sample_footprints
 from stages.fit.known import chart_reference, known_lighting_setup
-from stages.fit.materials import fit_materials, material_brdfs, mixed_lighting, vertex_spread
+from stages.fit.materials import MAP_PATCHES, fit_materials, material_brdfs, mixed_lighting, vertex_spread
 from stages.fit.notes import lighting_report, one_view_line, per_image_note, scale_note, selection_note, summary_line
 from stages.fit.outputs import write_fit
 from stages.fit.settings import Settings
@@ -165,8 +165,8 @@ def fit_physical(
     found = None
     if settings.materials == "auto" and known_brdf is None and candidate.known is None:
         plain = replace(candidate, geo=replace(geo, pattern=None))
-        spread = vertex_spread(mesh, everything)
-        mixed, report["materials"] = mixed_lighting(mesh, spread, data, plain, models, hint, best)
+        spread, map_spread = vertex_spread(mesh, everything), vertex_spread(mesh, everything, MAP_PATCHES)
+        mixed, report["materials"] = mixed_lighting(mesh, spread, map_spread, data, plain, models, hint, best)
         report["materials"]["setting"] = settings.materials
         if mixed is not None:
             entry, found = fit_materials(mesh, everything, replace(geo, pattern=None), best, settings, candidate.opts, mixed)

@@ -67,12 +67,13 @@ def test_metal_and_glaze_teapot_against_cycles(tmp_path):
     on lid, knob, spout and handle, 32 % of the vertices; a glaze of varying colour and roughness
     0.3-0.7; 14 views of 256^2, both lighting and material unknown).  `--materials auto` fits one
     lighting under the metal seed and the body (pipeline.core.mixed, roughnesses by BOBYQA) and maps
-    the two materials over the surface, the seed's confident vertices given, the base colour's
-    smoothness chosen by the held-out views (svbrdf.choose_smoothness: 10 of 0.001 / 0.1 / 10).
-    Measured: relit under the held-back HDRI from 4 novel views at 20.6 % (score_relight's metric; one
-    material 32.3 %, the map at the default smoothness 21.9 %, the previous map 24.3 %); the metal's
-    vertices precision 0.93, IoU 0.56 (the issue's 0.9 not met: the seed finds half the copper, the
-    errors little of the rest); the mixed model's metal colour 0.2 deg from the truth's chromaticity
+    the two materials over the surface, the seed's confident vertices given (coarser patches where the
+    seed's are unseen), the base colour's smoothness chosen by the held-out views
+    (svbrdf.choose_smoothness: 10 of 0.001 / 0.1 / 10).  Measured: relit under the held-back HDRI from
+    4 novel views at 20.35 % (score_relight's metric; one material 32.3 %, the map at the default
+    smoothness 21.9 %, the previous map 24.3 %); the metal's vertices precision 0.90, IoU 0.64 (the
+    issue's 0.9 not met: the spread finds two thirds of the copper, the errors little of the rest);
+    the mixed model's metal colour 0.2 deg from the truth's chromaticity
     (0.95, 0.64, 0.54) (issue: 3 deg); its roughness 0.39 for 0.2 (the order-8 lighting cannot hold the copper's sharp
     reflections: not asserted).  Bounds: the relight 2 points above the measurement, the rest as the
     issue's or below the measurement by a margin."""
@@ -92,7 +93,7 @@ def test_metal_and_glaze_teapot_against_cycles(tmp_path):
     true_metal = truth["metallic"][cKDTree(truth["vertices"]).query(np.asarray(mesh.vertices))[1]] > 0.5
     found = fitted["metallic"] > 0.5
     assert (found & true_metal).sum() / found.sum() > 0.85
-    assert (found & true_metal).sum() / (found | true_metal).sum() > 0.5
+    assert (found & true_metal).sum() / (found | true_metal).sum() > 0.55
 
     relight = CYCLES_TWO / "gt" / "relight"
     out = work / "relit"
@@ -109,4 +110,31 @@ def test_metal_and_glaze_teapot_against_cycles(tmp_path):
     assert cli.main([*args, "-o", str(out)]) == 0
     names = sorted(p.name for p in (relight / "images").glob("*.exr"))
     error = block_relative_rmse([read_image(out / n) for n in names], [read_image(relight / "images" / n) for n in names])
-    assert error.total < 0.226, error
+    assert error.total < 0.224, error
+
+
+def test_vertices_unseen_by_the_seed_patches_take_their_coarser_patch_spread(rng):
+    """stages.fit.materials.vertex_spread on an icosphere seen by two views, its upper half 3x as
+    bright in the second (view spread std / mean of (1, 3) = 1/2, closed form), its lower half the
+    same in both (0): 2000 samples leave most of the 1502 patches of the finest level with under 3
+    samples a view (NaN), 385 and then 26 coarser patches fill every vertex, with the exact values
+    away from the equator, and keep the finest level's values where it saw the patch."""
+    import trimesh
+
+    from stages.fit.materials import vertex_spread
+
+    mesh = trimesh.creation.icosphere(4)
+    n = 2000
+    face = rng.integers(0, len(mesh.faces), n)
+    bary = rng.dirichlet(np.ones(3), n)
+    image_id = np.arange(n) % 2
+    z = (mesh.triangles_center[face])[:, 2]
+    radiance = np.repeat(np.where((z > 0) & (image_id == 1), 3.0, 1.0)[:, None], 3, axis=1)
+    data = {"face": face, "bary": bary, "image_id": image_id, "radiance": radiance}
+    fine = vertex_spread(mesh, data, (2000,))
+    filled = vertex_spread(mesh, data, (2000, 200, 5))
+    assert np.mean(np.isnan(fine)) > 0.5 and not np.isnan(filled).any()
+    seen = np.isfinite(fine)
+    assert np.array_equal(filled[seen], fine[seen])
+    vz = np.asarray(mesh.vertices)[:, 2]
+    assert np.allclose(filled[vz > 0.5], 0.5) and np.allclose(filled[vz < -0.5], 0.0)
