@@ -206,28 +206,6 @@ def held_out_rmse(
     return float(np.sqrt(se / (3 * wsum))) if wsum else float("nan")
 
 
-def choose_smoothness(
-    interp: sp.csr_matrix,
-    laplacian: sp.csr_matrix,
-    shadings: list[CandidateShading],
-    radiance: np.ndarray,
-    weight: np.ndarray,
-    fold: np.ndarray,
-    smoothnesses: list[float],
-    fixed: np.ndarray | None = None,
-) -> tuple[float, list[tuple[float, float]]]:
-    """The base colour's smoothness (the Laplacian weight of material_map) by the held-out views:
-    ``smoothnesses`` in increasing order, each tried while the one before improved held_out_rmse
-    (a smoother map that predicts the held-out samples worse ends the search).
-    -> (the best smoothness tried, [(smoothness, held-out RMSE)] in the order tried)."""
-    tried: list[tuple[float, float]] = []
-    for s in smoothnesses:
-        tried.append((s, held_out_rmse(interp, laplacian, shadings, radiance, weight, fold, s, fixed)))
-        if len(tried) > 1 and tried[-1][1] >= tried[-2][1]:
-            break
-    return min(tried, key=lambda t: t[1])[0], tried
-
-
 def sample_shading(interp: sp.csr_matrix, shadings: list[CandidateShading], labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(shade, specular) (N, 3) each: every sample through its material's shading (sample_labels)."""
     per_sample, rows = sample_labels(interp, labels), np.arange(interp.shape[0])

@@ -4,7 +4,7 @@ model needed) and those that change least (the body) get one lighting and a mate
 (mixed_lighting: pipeline.core.mixed, the two roughnesses searched by nlopt's BOBYQA), kept only where
 that beats one material on the same held-out samples; then each vertex takes the one of the two that
 explains its samples best (pipeline.core.svbrdf), the vertices the view spread decides keeping theirs,
-the base colour's smoothness chosen by the held-out views (svbrdf.choose_smoothness), and the map is
+the base colour's smoothness chosen by the held-out views (selection.descend_grid), and the map is
 kept where the held-out views prefer it to one material with a per-vertex base colour (the parsimony
 rule).  Without a metal seed, or where the mixed model does not win, one material:
 the step then costs the view spread alone."""
@@ -22,7 +22,7 @@ from pipeline.core.candidate import Observations
 from pipeline.core.material import Principled, brdf_from_material
 from pipeline.core.material_search import CandidateFit, SearchOptions, select_material
 from pipeline.core.mixed import MixedModel
-from pipeline.core.selection import fold_of, parsimonious_choice
+from pipeline.core.selection import descend_grid, fold_of, parsimonious_choice
 from pipeline.core.sh import order_of
 from pipeline.core.sources import Sources
 from stages.fit.settings import DEFAULT_ALBEDO, Settings
@@ -109,9 +109,15 @@ def fit_materials(
     shadings = [svbrdf.CandidateShading(m, arrays[2 * i], arrays[2 * i + 1]) for i, m in enumerate(materials)]
     baseline = [svbrdf.CandidateShading(best.material, arrays[-2], arrays[-1])]
     fixed = mixed.vertex_labels
-    smoothnesses = [settings.albedo_smoothness * step for step in SMOOTHNESS_STEPS]
-    smooth, tried = svbrdf.choose_smoothness(interp, lap, shadings, obs.radiance, obs.weight, obs.fold, smoothnesses, fixed)
-    many = min(e for _, e in tried)
+    tried: dict[float, float] = {}  # the map's held-out RMSE per smoothness, smoother while it improves
+
+    def held_out_at(smoothness: float) -> float:
+        tried[smoothness] = svbrdf.held_out_rmse(interp, lap, shadings, obs.radiance, obs.weight, obs.fold, smoothness, fixed)
+        return tried[smoothness]
+
+    descend_grid([settings.albedo_smoothness * step for step in SMOOTHNESS_STEPS], held_out_at, 0)
+    smooth = min(tried, key=tried.get)
+    many = tried[smooth]
     one = svbrdf.held_out_rmse(interp, lap, baseline, obs.radiance, obs.weight, obs.fold, smooth)
     found = svbrdf.material_map(interp, lap, shadings, obs.radiance, obs.weight, smooth, fixed)
     k = len(found.materials)
@@ -126,7 +132,7 @@ def fit_materials(
         "choice": table[pick]["name"],
         "tried": [_describe(s.material) for s in shadings],
         "found": [{**_describe(m), "vertex_share": float(np.mean(found.labels == i))} for i, m in enumerate(found.materials)],
-        "smoothness": {"tried": [{"smoothness": s, "validation_rmse": e} for s, e in tried], "chosen": smooth},
+        "smoothness": {"tried": [{"smoothness": s, "validation_rmse": e} for s, e in tried.items()], "chosen": smooth},
         "seconds": time.perf_counter() - t0,
     }
     return entry, (found if pick == 1 else None)

@@ -10,6 +10,7 @@ import trimesh
 
 from pipeline.core import svbrdf, texture
 from pipeline.core.material import Principled
+from pipeline.core.selection import descend_grid
 
 
 def two_material_scene(rng, n: int = 6000, noise: float = 0.0):
@@ -118,16 +119,29 @@ def test_fixed_vertices_keep_their_material_and_the_rest_follow_the_errors(rng):
 
 
 def test_smoothness_follows_what_the_samples_resolve(rng):
-    """svbrdf.choose_smoothness: a smooth base colour seen by few noisy samples (500 on 642 vertices,
-    noise 0.05) is predicted better on held-out folds by a smoother map than the least smooth one
-    tried; a base colour that changes from vertex to vertex, seen by many clean samples (20 000,
-    noise 0.002), is not (the smoothest would blur it away) and the search stops at the first
-    rougher step that does worse."""
+    """The map's smoothness as fit --materials chooses it (selection.descend_grid over held_out_rmse,
+    smoother from the least smooth while the held-out folds improve): a smooth base colour seen by few
+    noisy samples (500 on 642 vertices, noise 0.05) is predicted better by a smoother map than the
+    least smooth one tried; a base colour that changes from vertex to vertex, seen by many clean
+    samples (20 000, noise 0.002), is not (the smoothest would blur it away) and the search stops at
+    the first smoother step that does worse."""
     steps = [1e-3, 1e-1, 1e1]
+
+    def choose(interp, lap, cands, radiance):
+        tried = {}
+
+        def held_out_at(s):
+            n = len(radiance)
+            tried[s] = svbrdf.held_out_rmse(interp, lap, cands, radiance, np.ones(n), np.arange(n) % 4, s)
+            return tried[s]
+
+        descend_grid(steps, held_out_at, 0)
+        return min(tried, key=tried.get), tried
+
     mesh, interp, cands, radiance, truth, base = two_material_scene(rng, n=500, noise=0.05)
     lap = texture.graph_laplacian(mesh.faces, len(mesh.vertices))
-    chosen, tried = svbrdf.choose_smoothness(interp, lap, cands, radiance, np.ones(500), np.arange(500) % 4, steps)
-    assert chosen > steps[0] and tried[0][1] > min(e for _, e in tried)
+    chosen, tried = choose(interp, lap, cands, radiance)
+    assert chosen > steps[0] and tried[steps[0]] > min(tried.values())
 
     mesh, interp, cands, radiance, truth, base = two_material_scene(rng, n=20000, noise=0.0)
     speckle = rng.uniform(0.3, 1.0, (len(mesh.vertices), 1))  # the base colour times a per-vertex factor
@@ -135,5 +149,5 @@ def test_smoothness_follows_what_the_samples_resolve(rng):
     rho = interp @ (base * speckle)
     radiance = np.where(per_sample[:, None] == 0, rho * cands[0].shade + cands[0].specular, rho * cands[1].shade)
     radiance = radiance + 0.002 * rng.standard_normal(radiance.shape)
-    chosen, tried = svbrdf.choose_smoothness(interp, lap, cands, radiance, np.ones(20000), np.arange(20000) % 4, steps)
-    assert chosen == steps[0] and len(tried) == 2 and tried[1][1] > tried[0][1]
+    chosen, tried = choose(interp, lap, cands, radiance)
+    assert chosen == steps[0] and list(tried) == steps[:2] and tried[steps[1]] > tried[steps[0]]
