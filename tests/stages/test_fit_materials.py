@@ -69,9 +69,9 @@ def test_metal_and_glaze_teapot_against_cycles(tmp_path):
     lighting under the metal seed and the body (pipeline.core.mixed, roughnesses by BOBYQA) and maps
     the two materials over the surface, the seed's confident vertices given (coarser patches where the
     seed's are unseen), the base colour's smoothness chosen by the held-out views
-    (selection.descend_grid over svbrdf.held_out_rmse: 10 of 0.001 / 0.1 / 10).  Measured: relit under the held-back HDRI from
-    4 novel views at 20.35 % (score_relight's metric; one material 32.3 %, the map at the default
-    smoothness 21.9 %, the previous map 24.3 %); the metal's vertices precision 0.90, IoU 0.64 (the
+    (selection.descend_grid over svbrdf.held_out_rmse: 10 of 0.001 / 0.1 / 10).  Measured: relit
+    under the held-back HDRI from 4 novel views at 20.35 % (score_relight's metric; one material
+    32.3 %, the map at the default smoothness 21.9 %, the previous map 24.3 %); the metal's vertices precision 0.90, IoU 0.64 (the
     issue's 0.9 not met: the spread finds two thirds of the copper, the errors little of the rest);
     the mixed model's metal colour 0.2 deg from the truth's chromaticity
     (0.95, 0.64, 0.54) (issue: 3 deg); its roughness 0.39 for 0.2 (the order-8 lighting cannot hold the copper's sharp
